@@ -1,0 +1,23 @@
+"""Progress reporting and cancellation shared by long-running core functions.
+
+A long function takes ``progress: ProgressFn | None`` and ``should_stop: StopFn | None``.
+It calls ``progress(step, total, info)`` after each unit of work and raises
+:class:`Cancelled` as soon as ``should_stop()`` returns True, before writing anything.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+ProgressFn = Callable[[int, int, dict], None]
+StopFn = Callable[[], bool]
+
+
+class Cancelled(RuntimeError):
+    """Raised when a caller's stop check asked a long-running function to stop."""
+
+
+def check_stop(should_stop: StopFn | None) -> None:
+    """Raise :class:`Cancelled` if ``should_stop`` says so."""
+    if should_stop is not None and should_stop():
+        raise Cancelled("stopped by request")

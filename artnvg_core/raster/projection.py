@@ -1,0 +1,120 @@
+"""EWA projection of 3D Gaussians into one pinhole camera (gsplat "classic").
+
+Conventions: OpenCV camera (x right, y down, z forward), pixel centres at
++0.5, a +0.3 px^2 low-pass added to every 2D covariance, Gaussians whose
+centre lies before the near plane culled. The perspective Jacobian clamps
+x/z and y/z to 1.3x the field of view, as 3DGS and gsplat do.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+BLUR_PX2 = 0.3
+ALPHA_MIN = 1.0 / 255.0
+MAX_EXTENT = 3.33  # sigma multiple bounding the footprint, as in gsplat
+
+
+@dataclass
+class Projection:
+    """Projected Gaussians of one camera, for the M kept ones only.
+
+    index: [M] long, indices into the scene's N Gaussians.
+    means2d: [M, 2] pixel coordinates (x right, y down).
+    conics: [M, 3] inverse 2D covariance (a, b, c) of [[a, b], [b, c]], 1/px^2.
+    depths: [M] camera-space z.
+    opacities: [M] sigmoid(opacity logit).
+    radii: [M, 2] integer half extents (x, y) of the footprint in pixels.
+    """
+
+    index: torch.Tensor
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    depths: torch.Tensor
+    opacities: torch.Tensor
+    radii: torch.Tensor
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[N, 4] wxyz quaternions (any non-zero norm) -> [N, 3, 3] rotation matrices."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1, eps=1e-12).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def project(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    world_to_cam: torch.Tensor,
+    intrinsics: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+) -> Projection:
+    """Project N Gaussians into one camera ([4, 4] world-to-camera, [3, 3] K).
+
+    Keeps the Gaussians in front of ``near_plane``, with opacity >= 1/255,
+    whose footprint overlaps the image; the footprint is the box where the
+    Gaussian's alpha can reach 1/255. Differentiable in all parameters.
+    """
+    rot_w2c = world_to_cam[:3, :3]
+    mean_c = means @ rot_w2c.T + world_to_cam[:3, 3]
+    opacities = torch.sigmoid(opacity_logits)
+    keep = (mean_c[:, 2] > near_plane) & (opacities >= ALPHA_MIN)
+    index = keep.nonzero()[:, 0]
+    mean_c, opacities = mean_c[index], opacities[index]
+
+    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+    x, y, z = mean_c.unbind(-1)
+    lim_x_pos = (width - cx) / fx + 0.15 * width / fx
+    lim_x_neg = cx / fx + 0.15 * width / fx
+    lim_y_pos = (height - cy) / fy + 0.15 * height / fy
+    lim_y_neg = cy / fy + 0.15 * height / fy
+    tx = z * torch.minimum(torch.maximum(x / z, -lim_x_neg), lim_x_pos)
+    ty = z * torch.minimum(torch.maximum(y / z, -lim_y_neg), lim_y_pos)
+    zeros = torch.zeros_like(z)
+    jac = torch.stack([fx / z, zeros, -fx * tx / (z * z), zeros, fy / z, -fy * ty / (z * z)], -1).reshape(-1, 2, 3)
+
+    # Sigma_2d = A A^T with A = J W R S, so det(Sigma_2d) is a sum of squared
+    # 2x2 minors (Cauchy-Binet): exact and non-negative even for needle-thin
+    # Gaussians, where a*c - b^2 would cancel catastrophically in float32.
+    scaled_rot = quat_to_rotmat(quats[index]) * torch.exp(log_scales[index])[:, None, :]
+    a_mat = jac @ (rot_w2c @ scaled_rot)
+    r0, r1 = a_mat[:, 0], a_mat[:, 1]
+    cov_a = (r0 * r0).sum(-1) + BLUR_PX2
+    cov_b = (r0 * r1).sum(-1)
+    cov_c = (r1 * r1).sum(-1) + BLUR_PX2
+    minors = torch.linalg.cross(r0, r1, dim=-1)
+    det = (minors * minors).sum(-1) + BLUR_PX2 * (cov_a + cov_c - BLUR_PX2)
+    conics = torch.stack([cov_c / det, -cov_b / det, cov_a / det], -1)
+    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
+
+    with torch.no_grad():
+        extent = torch.sqrt(2.0 * torch.log(opacities / ALPHA_MIN)).clamp_max(MAX_EXTENT)
+        radii = torch.ceil(extent[:, None] * torch.stack([cov_a, cov_c], -1).sqrt())
+        on_screen = (
+            (means2d[:, 0] + radii[:, 0] > 0)
+            & (means2d[:, 0] - radii[:, 0] < width)
+            & (means2d[:, 1] + radii[:, 1] > 0)
+            & (means2d[:, 1] - radii[:, 1] < height)
+        )
+        sel = on_screen.nonzero()[:, 0]
+    return Projection(
+        index=index[sel],
+        means2d=means2d[sel],
+        conics=conics[sel],
+        depths=z[sel],
+        opacities=opacities[sel],
+        radii=radii[sel].to(torch.long),
+    )

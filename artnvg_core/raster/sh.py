@@ -1,0 +1,55 @@
+"""Real spherical harmonics (degrees 0-3) as used by 3DGS and gsplat."""
+
+from __future__ import annotations
+
+import torch
+
+from ..scene import SH_C0
+
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Colour of each Gaussian seen along ``dirs``.
+
+    sh: [N, K, 3] coefficients, DC first; only the first (degree + 1)^2 are used.
+    dirs: [N, 3] viewing directions (camera centre -> Gaussian), any length > 0.
+    Returns [N, 3] = max(SH(dirs) + 0.5, 0).
+    """
+    result = SH_C0 * sh[:, 0]
+    if degree > 0:
+        d = torch.nn.functional.normalize(dirs, dim=-1, eps=1e-12)
+        x, y, z = (d[:, i : i + 1] for i in range(3))
+        result = result - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+        if degree > 1:
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            result = (
+                result
+                + SH_C2[0] * xy * sh[:, 4]
+                + SH_C2[1] * yz * sh[:, 5]
+                + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6]
+                + SH_C2[3] * xz * sh[:, 7]
+                + SH_C2[4] * (xx - yy) * sh[:, 8]
+            )
+            if degree > 2:
+                result = (
+                    result
+                    + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9]
+                    + SH_C3[1] * xy * z * sh[:, 10]
+                    + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
+                    + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
+                    + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
+                    + SH_C3[5] * z * (xx - yy) * sh[:, 14]
+                    + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15]
+                )
+    return torch.clamp_min(result + 0.5, 0.0)

@@ -1,0 +1,213 @@
+"""Rasterizer tests: brute-force float64 reference, finite-difference gradients, hard cases, a real scene."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from artnvg_core.cameras import CameraSet
+from artnvg_core.raster import render
+from artnvg_core.scene import GaussianScene
+
+from raster_reference import brute_force_render
+
+
+def look_at_camera(eye, target, width=40, height=32, focal=36.0):
+    """OpenCV world-to-camera for a camera at ``eye`` looking at ``target`` (world up = -y)."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, -1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([x, y, z])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    k = np.array([[focal, 0, width / 2 + 0.7], [0, focal * 1.1, height / 2 - 0.4], [0, 0, 1]])
+    return w2c, k
+
+
+def make_cameras(eyes, width=40, height=32, dtype=torch.float32):
+    mats = [look_at_camera(e, [0, 0, 0], width, height) for e in eyes]
+    return CameraSet(
+        torch.tensor(np.stack([m[0] for m in mats]), dtype=dtype),
+        torch.tensor(np.stack([m[1] for m in mats]), dtype=dtype),
+        width,
+        height,
+        [f"v{i}" for i in range(len(eyes))],
+    )
+
+
+def hard_scene(seed=0, n=60, degree=3, dtype=torch.float32):
+    """Random Gaussians plus the hard cases: near-plane crossers, off-screen, tiny, huge,
+    opacity near 0 and 1, needle-thin."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.8
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    log_scales = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.5 - 2.5
+    logits = torch.randn(n, generator=g, dtype=torch.float64) * 2
+    sh = torch.randn(n, (degree + 1) ** 2, 3, generator=g, dtype=torch.float64) * 0.4
+    special = [
+        ([0.0, 0.0, -3.95], [-1.0, -1.0, -1.0], 2.0),  # centre just past the near plane, crosses it
+        ([0.0, 0.0, -4.2], [-1.0, -1.0, -1.0], 2.0),  # behind the camera
+        ([9.0, 0.0, 0.0], [0.0, 0.0, 0.0], 3.0),  # far off-screen, big
+        ([0.1, 0.05, 0.0], [math.log(1e-6)] * 3, 3.0),  # tiny
+        ([0.0, 0.0, 3.0], [2.5, 2.5, 2.5], -1.0),  # huge, behind the others
+        ([0.2, -0.1, 0.1], [-2.0, -2.0, -2.0], -5.5),  # opacity just above 1/255
+        ([-0.2, 0.1, 0.1], [-2.0, -2.0, -2.0], -8.0),  # opacity below 1/255
+        ([0.0, 0.3, -0.5], [-1.5, -1.5, -1.5], 9.0),  # opacity ~1 (clamped to 0.999)
+        ([0.3, 0.3, 0.2], [0.5, -7.0, -7.0], 2.0),  # needle-thin, long
+        ([-0.3, 0.2, 0.2], [0.2, 0.1, -9.0], 2.0),  # flat disc
+    ]
+    extra_means = torch.tensor([s[0] for s in special], dtype=torch.float64)
+    extra_scales = torch.tensor([s[1] for s in special], dtype=torch.float64)
+    extra_logits = torch.tensor([s[2] for s in special], dtype=torch.float64)
+    k = len(special)
+    return GaussianScene(
+        torch.cat([means, extra_means]).to(dtype),
+        torch.cat([quats, torch.randn(k, 4, generator=g, dtype=torch.float64)]).to(dtype),
+        torch.cat([log_scales, extra_scales]).to(dtype),
+        torch.cat([logits, extra_logits]).to(dtype),
+        torch.cat([sh, torch.randn(k, (degree + 1) ** 2, 3, generator=g, dtype=torch.float64) * 0.4]).to(dtype),
+    )
+
+
+EYES = [[0.0, 0.0, -4.0], [3.0, -1.0, -2.5], [-2.0, 2.5, 2.0]]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_brute_force_float64(seed):
+    scene = hard_scene(seed)
+    cams = make_cameras(EYES)
+    background = torch.tensor([0.2, 0.5, 0.9])
+    out = render(scene, cams, background=background, return_depth=True, backend="torch")
+    assert out.rgb.shape == (3, 32, 40, 3) and out.alpha.shape == (3, 32, 40, 1) and out.depth.shape == (3, 32, 40, 1)
+    s = scene.to(dtype=torch.float64)
+    for c in range(len(cams)):
+        rgb, alpha, depth = brute_force_render(
+            s.means, s.quats, s.log_scales, s.opacity_logits, s.sh, cams.world_to_cam[c], cams.intrinsics[c], 40, 32,
+            background=background.numpy(),
+        )
+        assert np.abs(out.rgb[c].numpy() - rgb).max() <= 1e-4
+        assert np.abs(out.alpha[c, ..., 0].numpy() - alpha).max() <= 1e-4
+        covered = alpha > 0.5
+        rel = np.abs(out.depth[c, ..., 0].numpy() - depth)[covered] / depth[covered]
+        assert rel.max() <= 1e-4
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_lower_sh_degree_matches_truncated_scene(degree):
+    scene = hard_scene(3, n=30)
+    cams = make_cameras(EYES[:1])
+    truncated = GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, scene.sh[:, : (degree + 1) ** 2])
+    a = render(scene, cams, sh_degree=degree, backend="torch").rgb
+    b = render(truncated, cams, backend="torch").rgb
+    assert torch.equal(a, b)
+
+
+def test_float64_render_equals_brute_force_tightly():
+    scene = hard_scene(4, dtype=torch.float64)
+    cams = make_cameras(EYES[:1], dtype=torch.float64)
+    out = render(scene, cams, backend="torch")
+    rgb, _, _ = brute_force_render(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, scene.sh,
+                                   cams.world_to_cam[0], cams.intrinsics[0], 40, 32)
+    assert np.abs(out.rgb[0].numpy() - rgb).max() <= 1e-9
+
+
+def smooth_scene(seed=5, n=6):
+    """A few well-separated, moderately opaque Gaussians: no threshold is near,
+    so the image is a smooth function of every parameter."""
+    g = torch.Generator().manual_seed(seed)
+    return GaussianScene(
+        (torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.3),
+        torch.randn(n, 4, generator=g, dtype=torch.float64),
+        torch.full((n, 3), -1.6, dtype=torch.float64) + 0.2 * torch.randn(n, 3, generator=g, dtype=torch.float64),
+        torch.randn(n, generator=g, dtype=torch.float64) * 0.3 - 0.5,
+        torch.randn(n, 16, 3, generator=g, dtype=torch.float64) * 0.3,
+    )
+
+
+def test_gradients_match_finite_differences_float64():
+    base = smooth_scene()
+    cams = make_cameras([[0.3, -0.2, -3.0], [2.0, 0.5, -2.0]], width=20, height=18, dtype=torch.float64)
+    weights = torch.randn(2, 18, 20, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    depth_w = torch.randn(2, 18, 20, 1, generator=torch.Generator().manual_seed(10), dtype=torch.float64)
+
+    def loss_of(**params):
+        s = GaussianScene(**{**base.tensors(), **params})
+        out = render(s, cams, return_depth=True, backend="torch")
+        return (out.rgb * weights).sum() + (out.depth * out.alpha * depth_w).sum() * 0.1
+
+    for name, value in base.tensors().items():
+        param = value.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(loss_of(**{name: param}), param)
+        numeric = torch.zeros_like(value)
+        eps = 1e-6
+        for idx in np.ndindex(*value.shape):
+            plus, minus = value.clone(), value.clone()
+            plus[idx] += eps
+            minus[idx] -= eps
+            numeric[idx] = (loss_of(**{name: plus}) - loss_of(**{name: minus})) / (2 * eps)
+        assert torch.allclose(grad, numeric, rtol=1e-5, atol=1e-6), name
+
+
+def test_hard_cases_give_finite_images_and_gradients():
+    scene = hard_scene(6)
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
+    out = render(GaussianScene(**params), make_cameras(EYES), return_depth=True, backend="torch")
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.alpha).all() and torch.isfinite(out.depth).all()
+    (out.rgb.sum() + out.depth.sum()).backward()
+    for name, p in params.items():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+def test_empty_scene_and_fully_culled_scene():
+    empty = GaussianScene(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 1, 3))
+    cams = make_cameras(EYES[:2])
+    out = render(empty, cams, background=torch.tensor([0.1, 0.2, 0.3]), backend="torch")
+    assert torch.allclose(out.rgb, torch.tensor([0.1, 0.2, 0.3]).expand(2, 32, 40, 3))
+    assert (out.alpha == 0).all()
+    behind = hard_scene(0).select(torch.arange(3))
+    behind = GaussianScene(behind.means + torch.tensor([0.0, 0.0, -10.0]), behind.quats, behind.log_scales,
+                           behind.opacity_logits, behind.sh)
+    assert (render(behind, cams.subset([0]), backend="torch").alpha == 0).all()
+
+
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda t: t.__setitem__(("means", 0, 0), float("nan")), "means"),
+        (lambda t: t.__setitem__(("log_scales", 1, 2), float("inf")), "log_scales"),
+        (lambda t: t.__setitem__(("sh", 0, 0, 0), float("nan")), "sh"),
+    ],
+)
+def test_invalid_inputs_rejected(mutate, field):
+    params = {k: v.clone() for k, v in hard_scene(0, n=5).tensors().items()}
+    key_tensor = {}
+
+    class Setter:
+        def __setitem__(self, key, value):
+            name, *idx = key
+            params[name][tuple(idx)] = value
+
+    mutate(Setter())
+    with pytest.raises(ValueError, match=field):
+        render(GaussianScene(**params), make_cameras(EYES[:1]), backend="torch")
+    del key_tensor
+
+
+def test_bad_arguments_rejected():
+    scene = hard_scene(0, n=5, degree=1)
+    cams = make_cameras(EYES[:1])
+    with pytest.raises(ValueError, match="sh_degree"):
+        render(scene, cams, sh_degree=2)
+    with pytest.raises(ValueError, match="backend"):
+        render(scene, cams, backend="vulkan")
+    with pytest.raises(ValueError, match="gsplat"):
+        render(scene, cams, backend="gsplat")
+    with pytest.raises(ValueError, match="background"):
+        render(scene, cams, background=torch.zeros(4))
+    bad = CameraSet(cams.world_to_cam, cams.intrinsics * torch.tensor([-1.0, 1, 1])[:, None], 40, 32, ["x"])
+    with pytest.raises(ValueError, match="focal"):
+        render(scene, bad)
