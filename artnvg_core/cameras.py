@@ -105,8 +105,8 @@ class CameraSet:
 # --------------------------------------------------------------------------- rotations
 
 def quat_to_rotmat(quat: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [..., 3, 3] from quaternions [..., 4] (w x y z, normalised here)."""
-    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
+    """Rotation matrices [..., 3, 3] from quaternions [..., 4] (w x y z, any non-zero norm)."""
+    w, x, y, z = torch.nn.functional.normalize(quat, dim=-1, eps=1e-12).unbind(-1)
     rows = (
         (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),

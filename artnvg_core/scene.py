@@ -23,14 +23,15 @@ from __future__ import annotations
 import logging
 import os
 import re
-import uuid
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import BinaryIO
 
 import numpy as np
 import torch
 from plyfile import PlyData, PlyListProperty
+
+from .fileio import write_atomically
 
 _log = logging.getLogger(__name__)
 
@@ -270,21 +271,6 @@ def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
         np.savetxt(stream, table, fmt="%.9g")  # 9 significant digits identify every float32
 
 
-def _write_atomically(path: Path, write: Callable[[BinaryIO], None]) -> None:
-    """Call ``write`` on a temporary file beside ``path``, then rename it onto ``path``.
-
-    On any failure the temporary file is removed and ``path`` is left untouched.
-    """
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(temporary, "xb") as stream:
-            write(stream)
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
-
-
 def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True) -> None:
     """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically.
 
@@ -306,7 +292,7 @@ def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = T
         stream.write(header.encode("ascii"))
         _write_ply_body(stream, table, binary)
 
-    _write_atomically(path, write)
+    write_atomically(path, write)
 
 
 # --------------------------------------------------------------------------- nerfstudio splatfacto

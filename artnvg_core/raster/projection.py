@@ -8,10 +8,11 @@ x/z and y/z to 1.3x the field of view, as 3DGS and gsplat do.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
+
+from ..cameras import quat_to_rotmat
 
 BLUR_PX2 = 0.3
 ALPHA_MIN = 1.0 / 255.0
@@ -36,19 +37,6 @@ class Projection:
     depths: torch.Tensor
     opacities: torch.Tensor
     radii: torch.Tensor
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] wxyz quaternions (any non-zero norm) -> [N, 3, 3] rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1, eps=1e-12).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
 
 
 def project(

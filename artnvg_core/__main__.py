@@ -1,0 +1,89 @@
+"""Command line: ``python -m artnvg_core {render,stylize,evaluate} ...`` (``--help`` on each)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    return torch.device(name)
+
+
+def _view_indices(text: str | None, count: int) -> list[int]:
+    if not text:
+        return list(range(count))
+    try:
+        indices = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError as error:
+        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
+    bad = [i for i in indices if not 0 <= i < count]
+    if bad:
+        raise ValueError(f"--views: indices {bad} out of range for {count} cameras")
+    return indices
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    from .cameras import load_cameras
+    from .fileio import save_png
+    from .raster import render
+    from .scene import load_scene
+
+    device = _device(args.device)
+    scene = load_scene(args.scene).to(device)
+    cameras = load_cameras(args.cameras)
+    cameras = cameras.subset(_view_indices(args.views, len(cameras))).scaled(args.scale)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    print(f"{len(scene):,} Gaussians (SH degree {scene.sh_degree}), {len(cameras)} views at "
+          f"{cameras.width}x{cameras.height}, device {device}")
+    for i in range(len(cameras)):
+        view = cameras.subset([i])
+        start = time.perf_counter()
+        with torch.no_grad():
+            image = render(scene, view, sh_degree=args.sh_degree, backend=args.backend).rgb[0]
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        elapsed = time.perf_counter() - start
+        path = out_dir / f"{view.names[0]}.png"
+        save_png(image, path)
+        print(f"{path}  {elapsed * 1000:.0f} ms")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m artnvg_core", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    p = commands.add_parser("render", help="render a scene's views to PNG files")
+    p.add_argument("scene", help="INRIA 3DGS .ply or nerfstudio splatfacto .ckpt")
+    p.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
+    p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
+    p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
+    p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
+    p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
+    p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.set_defaults(run=cmd_render)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.run(args)
+    except ValueError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
