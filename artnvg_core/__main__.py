@@ -58,6 +58,67 @@ def cmd_render(args: argparse.Namespace) -> None:
         print(f"{path}  {elapsed * 1000:.0f} ms")
 
 
+class _ProgressBar:
+    """A tqdm bar (rate and ETA) fed by core progress callbacks."""
+
+    def __init__(self, description: str):
+        self.description = description
+        self.bar = None
+
+    def __call__(self, step: int, total: int, info: dict) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(total=total, desc=self.description, unit="it", dynamic_ncols=True)
+        self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
+        self.bar.update(step - self.bar.n)
+        if step >= total:
+            self.bar.close()
+
+
+def cmd_stylize(args: argparse.Namespace) -> None:
+    from .cameras import load_cameras
+    from .fileio import load_image
+    from .finetune import FinetuneConfig
+    from .scene import load_scene
+    from .stylize import DemoInputs, save_result, stylize_nnfm
+
+    given = [args.scene, args.cameras, args.style]
+    if any(given) and not all(given):
+        raise ValueError("stylize: give SCENE, --cameras and --style together, or none of them for the bundled demo")
+    demo = not any(given)
+    if demo:
+        inputs = DemoInputs()
+        args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
+        print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
+    scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
+    iterations = args.iters if args.iters is not None else (200 if demo else 1000)
+    device = _device(args.device)
+    torch.manual_seed(args.seed)
+
+    scene = load_scene(args.scene).to(device)
+    cameras = load_cameras(args.cameras).scaled(scale)
+    style = load_image(args.style)
+    stylizer, reason = _choose_stylizer(args.stylizer)
+    print(f"stylizer: {stylizer} ({reason})")
+    print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
+          f"{iterations} iterations on {device}")
+    config = FinetuneConfig(iterations=iterations, seed=args.seed)
+    start = time.perf_counter()
+    result = stylize_nnfm(scene, cameras, style.to(device), config, progress=_ProgressBar("finetune"))
+    sheet = save_result(scene, result, cameras, style, args.out)
+    print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+def _choose_stylizer(requested: str) -> tuple[str, str]:
+    """Resolve ``--stylizer`` to the one that runs, with the reason."""
+    if requested == "diffusion":
+        raise ValueError("--stylizer diffusion: the diffusion stage is not wired into the CLI yet; use --stylizer nnfm")
+    if requested == "auto":
+        return "nnfm", "auto: the diffusion models are not wired into the CLI yet"
+    return "nnfm", "requested"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m artnvg_core", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -72,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.set_defaults(run=cmd_render)
+    from .metrics.report import add_evaluate_arguments
+    p = commands.add_parser("evaluate", help="metrics, comparison strip and preview of a stylized scene or 2D views")
+    add_evaluate_arguments(p)
     return parser
 
 

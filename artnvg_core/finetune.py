@@ -1,0 +1,201 @@
+"""Finetune a Gaussian scene's appearance toward stylized views and a style image.
+
+Loss per step, for one randomly chosen view (ArtNVG, Sec. 3.4):
+
+    l1_weight * L1(render, stylized) + ssim_weight * (1 - SSIM(render, stylized))   [when stylized views are given]
+  + nnfm_weight * NNFM(VGG(render), VGG(style image))
+  + content_weight * relative feature MSE(VGG(render), VGG(original render))     [ARF's content term]
+  + tv_weight * total variation(render)
+
+With no stylized views this is ARF's diffusion-free stylizer. The original
+Gaussians are the starting point (not a fresh fit); no densification.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+
+from .cameras import CameraSet
+from .fileio import resize_image
+from .losses import NNFMLoss, load_vgg, ssim, style_image_features
+from .progress import ProgressFn, StopFn, check_stop
+from .raster import render
+from .scene import GaussianScene
+
+OPTIMIZE_CHOICES = ("appearance", "all")
+APPEARANCE = ("sh", "opacity_logits")
+
+
+@dataclass
+class FinetuneConfig:
+    """Finetuning settings; defaults follow the paper (1,000 iterations) and
+    splatfacto's learning rates (means' rate is multiplied by the scene extent)."""
+
+    iterations: int = 1000
+    optimize: str = "appearance"
+    l1_weight: float = 0.8
+    ssim_weight: float = 0.2
+    nnfm_weight: float = 1.0
+    content_weight: float = 0.5
+    tv_weight: float = 0.0
+    nnfm_layers: tuple[str, ...] = ("relu3_1", "relu3_2", "relu3_3")
+    vgg: str = "vgg19"
+    vgg_weights: str | None = None
+    style_max_side: int = 512
+    lr_sh_dc: float = 0.0025
+    lr_sh_rest: float = 0.0025 / 20
+    lr_opacity: float = 0.05
+    lr_means: float = 1.6e-4
+    lr_scales: float = 0.005
+    lr_quats: float = 0.001
+    from_scratch: bool = False
+    seed: int = 0
+    backend: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.optimize not in OPTIMIZE_CHOICES:
+            raise ValueError(f"FinetuneConfig.optimize: expected one of {OPTIMIZE_CHOICES}, got {self.optimize!r}")
+        if self.iterations < 0:
+            raise ValueError(f"FinetuneConfig.iterations: expected >= 0, got {self.iterations}")
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name.endswith("_weight") or f.name.startswith("lr_"):
+                if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                    raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
+
+
+def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch.Tensor]:
+    """Trainable leaf copies of the scene's tensors (the input scene is not modified).
+
+    SH is split into ``sh_dc`` [N, 1, 3] and ``sh_rest`` [N, K-1, 3] so that each
+    gets its own learning rate.
+    """
+    params = {name: value.detach().clone() for name, value in scene.tensors().items() if name != "sh"}
+    sh = scene.sh.detach().clone()
+    if config.from_scratch:
+        sh.zero_()  # grey everywhere: colour = SH_C0 * 0 + 0.5
+    params["sh_dc"], params["sh_rest"] = sh[:, :1].contiguous(), sh[:, 1:].contiguous()
+    trainable = ("sh_dc", "sh_rest", "opacity_logits")
+    if config.optimize == "all":
+        trainable += ("means", "log_scales", "quats")
+    for name in trainable:
+        params[name].requires_grad_(True)
+    return params
+
+
+def _scene_of(params: dict[str, torch.Tensor]) -> GaussianScene:
+    rest = {k: v for k, v in params.items() if not k.startswith("sh_")}
+    return GaussianScene(**rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
+
+
+def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, config: FinetuneConfig) -> torch.optim.Adam:
+    """Adam with splatfacto's per-parameter learning rates (means' scaled by the scene extent)."""
+    extent = float((scene.means - scene.means.mean(0)).norm(dim=-1).max()) if len(scene) else 1.0
+    rates = {
+        "sh_dc": config.lr_sh_dc,
+        "sh_rest": config.lr_sh_rest,
+        "opacity_logits": config.lr_opacity,
+        "means": config.lr_means * max(extent, 1e-6),
+        "log_scales": config.lr_scales,
+        "quats": config.lr_quats,
+    }
+    groups = [
+        {"params": [value], "lr": rates[name]}
+        for name, value in params.items()
+        if value.requires_grad and value.numel() > 0
+    ]
+    return torch.optim.Adam(groups, eps=1e-15)
+
+
+def _nchw(images: torch.Tensor) -> torch.Tensor:
+    """[B, H, W, 3] -> [B, 3, H, W]."""
+    return images.permute(0, 3, 1, 2)
+
+
+def _total_variation(images: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images."""
+    return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
+
+
+def finetune(
+    scene: GaussianScene,
+    cameras: CameraSet,
+    style_image: torch.Tensor,
+    *,
+    stylized: torch.Tensor | None = None,
+    config: FinetuneConfig | None = None,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
+) -> GaussianScene:
+    """Finetune ``scene`` so its renders from ``cameras`` take on the style.
+
+    scene: the original Gaussians (not modified; a new scene is returned, detached).
+    cameras: C views, rendered at their own resolution (scale them beforehand).
+    style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
+    stylized: optional [C, H', W', 3] stylized views in camera order, resized to
+        the camera size when they differ; None runs the NNFM-only stylizer.
+    progress(step, total, info): called after every step, ``info`` holding the
+        loss terms as floats. should_stop(): checked before every step; when it
+        returns True, :class:`~artnvg_core.progress.Cancelled` is raised.
+    Deterministic for ``config.seed`` on CPU.
+    """
+    config = config or FinetuneConfig()
+    if style_image.ndim == 4 and style_image.shape[0] == 1:
+        style_image = style_image[0]
+    if style_image.ndim != 3 or style_image.shape[-1] != 3:
+        raise ValueError(f"finetune: style_image must be [H, W, 3], got {tuple(style_image.shape)}")
+    if len(cameras) == 0:
+        raise ValueError("finetune: cameras is empty")
+    device = scene.device
+    cameras = cameras.to(device)
+    if stylized is not None:
+        if stylized.ndim != 4 or stylized.shape[0] != len(cameras) or stylized.shape[-1] != 3:
+            raise ValueError(
+                f"finetune: stylized must be [{len(cameras)}, H, W, 3] (one view per camera), got {tuple(stylized.shape)}"
+            )
+        stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
+
+    vgg = load_vgg(config.vgg, config.vgg_weights, device)
+    layers = config.nnfm_layers
+    style_feats = style_image_features(vgg, _nchw(style_image[None].to(device, torch.float32)), layers, config.style_max_side)
+    nnfm = NNFMLoss(style_feats, layer_groups=(layers,))
+
+    params = _parameters(scene, config)
+    optimizer = _optimizer(params, scene, config)
+    generator = torch.Generator().manual_seed(config.seed)
+    originals = None
+    if stylized is None and config.content_weight > 0:
+        with torch.no_grad():
+            originals = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
+
+    for step in range(config.iterations):
+        check_stop(should_stop)
+        view = int(torch.randint(len(cameras), (1,), generator=generator))
+        image = render(_scene_of(params), cameras.subset([view]), backend=config.backend).rgb
+        terms: dict[str, torch.Tensor] = {}
+        if stylized is not None:
+            target = stylized[view : view + 1]
+            terms["l1"] = config.l1_weight * (image - target).abs().mean()
+            terms["ssim"] = config.ssim_weight * (1 - ssim(_nchw(image), _nchw(target)))
+        needs_content = originals is not None
+        feats = vgg(_nchw(image), layers) if config.nnfm_weight > 0 or needs_content else None
+        if config.nnfm_weight > 0:
+            terms["nnfm"] = config.nnfm_weight * nnfm(feats)
+        if needs_content:
+            with torch.no_grad():
+                reference = vgg(_nchw(originals[view : view + 1]), layers)
+            terms["content"] = config.content_weight * sum(
+                ((feats[k] - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
+            ) / len(layers)
+        if config.tv_weight > 0:
+            terms["tv"] = config.tv_weight * _total_variation(image)
+        loss = sum(terms.values()) if terms else image.sum() * 0
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if progress is not None:
+            progress(step + 1, config.iterations, {"view": view, "loss": loss.item(), **{k: v.item() for k, v in terms.items()}})
+    return _scene_of({k: v.detach() for k, v in params.items()})

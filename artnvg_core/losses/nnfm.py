@@ -1,0 +1,139 @@
+"""Nearest-neighbour feature matching (NNFM) style loss, as in ARF (Zhang et al., 2022).
+
+For every rendered feature vector, find the style feature vector with the highest cosine
+similarity; the loss is the mean over rendered positions of ``1 - max cos``.
+
+As in ARF, the features of the layers of one *group* (ARF's default: VGG block 3,
+``relu3_1, relu3_2, relu3_3``) are concatenated along channels before matching, so one match
+is made per position and group; the losses of several groups are summed. Positions of all
+images in a batch are averaged together; several style images pool their positions.
+
+Memory is bounded: similarities are computed in chunks of at most ``max_chunk_elements``
+(rendered x style positions) under ``no_grad`` to pick the matches; the loss is then
+recomputed with gradient from the gathered matches only, which is exact since the gradient
+of a max is the gradient of its argmax. Normalisation and similarities are computed in
+float32 whatever the input dtype or autocast state.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .vgg import VGGFeatures
+
+ARF_LAYER_GROUPS = (("relu3_1", "relu3_2", "relu3_3"),)
+NORM_EPS = 1e-8  # added to the squared norm: a zero feature vector normalises to zero, no NaN
+
+
+def normalize_features(features: torch.Tensor) -> torch.Tensor:
+    """``features [..., C]`` scaled to unit length along C (float32; zero stays zero)."""
+    features = features.float()
+    return features * torch.rsqrt(features.square().sum(-1, keepdim=True) + NORM_EPS)
+
+
+def _group_positions(feats: Mapping[str, torch.Tensor], group: Sequence[str], what: str) -> torch.Tensor:
+    """Features of ``group``'s layers concatenated along channels, as ``[B*h*w, C_total]``."""
+    missing = [name for name in group if name not in feats]
+    if missing:
+        raise ValueError(f"{what}: missing layers {missing} (have {sorted(feats)})")
+    maps = [feats[name] for name in group]
+    sizes = {(tuple(m.shape[:1]) + tuple(m.shape[2:])) for m in maps}
+    if any(m.dim() != 4 for m in maps) or len(sizes) != 1:
+        shapes = {name: tuple(feats[name].shape) for name in group}
+        raise ValueError(f"{what}: layers of one group must be [B, C, h, w] with equal B, h, w; got {shapes}")
+    stacked = torch.cat(maps, dim=1)
+    return stacked.permute(0, 2, 3, 1).reshape(-1, stacked.shape[1])
+
+
+@torch.no_grad()
+def nearest_style_indices(
+    render_unit: torch.Tensor, style_unit: torch.Tensor, max_chunk_elements: int
+) -> torch.Tensor:
+    """Index into ``style_unit [M, C]`` of the most similar row for each ``render_unit [N, C]`` row.
+
+    Both inputs are unit-length float32 rows. At most ``max_chunk_elements`` similarities are
+    held at once; ties go to the lowest index.
+    """
+    num_style = style_unit.shape[0]
+    cols = max(1, min(num_style, max_chunk_elements))
+    rows = max(1, max_chunk_elements // cols)
+    best_index = torch.empty(render_unit.shape[0], dtype=torch.long, device=render_unit.device)
+    for r0 in range(0, render_unit.shape[0], rows):
+        chunk = render_unit[r0 : r0 + rows]
+        best_sim = torch.full((chunk.shape[0],), -torch.inf, device=chunk.device)
+        best = torch.zeros(chunk.shape[0], dtype=torch.long, device=chunk.device)
+        for c0 in range(0, num_style, cols):
+            sim, index = (chunk @ style_unit[c0 : c0 + cols].T).max(dim=1)
+            better = sim > best_sim
+            best_sim = torch.where(better, sim, best_sim)
+            best = torch.where(better, index + c0, best)
+        best_index[r0 : r0 + rows] = best
+    return best_index
+
+
+class NNFMLoss(nn.Module):
+    """NNFM loss against fixed style features.
+
+    ``style_feats``: ``{layer: [B_s, C, h, w]}`` from the same extractor as the renders (see
+    :func:`style_image_features`); held as unit vectors without gradient (non-persistent
+    buffers, moved by ``.to``). ``layer_groups``: layers matched jointly (concatenated).
+    ``forward(render_feats {layer: [B, C, h, w]}) -> scalar`` (float32).
+    """
+
+    def __init__(
+        self,
+        style_feats: Mapping[str, torch.Tensor],
+        layer_groups: Sequence[Sequence[str]] = ARF_LAYER_GROUPS,
+        max_chunk_elements: int = 2**26,
+    ):
+        super().__init__()
+        if not layer_groups or any(not group for group in layer_groups):
+            raise ValueError(f"layer_groups: expected non-empty groups of layer names, got {layer_groups}")
+        if max_chunk_elements < 1:
+            raise ValueError(f"max_chunk_elements: expected >= 1, got {max_chunk_elements}")
+        self.layer_groups = tuple(tuple(group) for group in layer_groups)
+        self.max_chunk_elements = max_chunk_elements
+        for g, group in enumerate(self.layer_groups):
+            with torch.no_grad():
+                style = normalize_features(_group_positions(style_feats, group, "style_feats"))
+            self.register_buffer(f"style_unit_{g}", style, persistent=False)
+
+    def forward(self, render_feats: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        total = 0.0
+        for g, group in enumerate(self.layer_groups):
+            style = getattr(self, f"style_unit_{g}")
+            render = _group_positions(render_feats, group, "render_feats")
+            if render.shape[1] != style.shape[1]:
+                raise ValueError(
+                    f"render_feats: group {group} has {render.shape[1]} channels, style has {style.shape[1]}"
+                )
+            with torch.autocast(render.device.type, enabled=False):
+                render_unit = normalize_features(render)
+                matches = nearest_style_indices(render_unit.detach(), style, self.max_chunk_elements)
+                total = total + (1.0 - (render_unit * style[matches]).sum(-1)).mean()
+        return total
+
+
+def style_image_features(
+    extractor: VGGFeatures, style_image: torch.Tensor, layers: Sequence[str], max_side: int | None = 1024
+) -> dict[str, torch.Tensor]:
+    """Features (no gradient) of ``style_image [B, 3, H, W]`` RGB in [0, 1].
+
+    The image is shrunk (area averaging, aspect kept) so that its longest side is at most
+    ``max_side``; it is never enlarged; ``None`` keeps it as given. ARF instead resizes the
+    style image to half the render's long side: pass that as ``max_side`` for the same scale
+    when the style image is larger. The feature scale matters: NNFM matches local patches.
+    """
+    if style_image.dim() != 4 or style_image.shape[1] != 3:
+        raise ValueError(f"style_image: expected RGB [B, 3, H, W], got {tuple(style_image.shape)}")
+    height, width = style_image.shape[-2:]
+    if max_side is not None and max(height, width) > max_side:
+        factor = max_side / max(height, width)
+        size = (max(1, round(height * factor)), max(1, round(width * factor)))
+        style_image = F.interpolate(style_image, size=size, mode="area")
+    with torch.no_grad():
+        return extractor(style_image, layers)

@@ -1,0 +1,59 @@
+"""Structural similarity (SSIM) as used by 3DGS / splatfacto training.
+
+Per channel, local statistics under an 11x11 Gaussian window (sigma 1.5) with zero padding
+(output the same size as the input), C1 = 0.01^2, C2 = 0.03^2 (data range 1), averaged over
+the SSIM map. The 2D window is separable, so it is applied as two 1D passes (same result).
+Computed in float32 whatever the input dtype or autocast state.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+C1 = 0.01**2
+C2 = 0.03**2
+
+
+def gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Normalised 1D Gaussian ``[size]`` centred on ``size // 2`` (float32)."""
+    offsets = torch.arange(size, dtype=torch.float32) - size // 2
+    window = torch.exp(-offsets.square() / (2 * sigma**2))
+    return window / window.sum()
+
+
+def _blur(maps: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
+    """Zero-padded separable Gaussian blur of every channel of ``maps [B, K, H, W]``."""
+    channels, size = maps.shape[1], window.numel()
+    horizontal = window.view(1, 1, 1, size).expand(channels, 1, 1, size)
+    vertical = window.view(1, 1, size, 1).expand(channels, 1, size, 1)
+    maps = F.conv2d(maps, horizontal, padding=(0, size // 2), groups=channels)
+    return F.conv2d(maps, vertical, padding=(size // 2, 0), groups=channels)
+
+
+def ssim(
+    a: torch.Tensor, b: torch.Tensor, window_size: int = 11, sigma: float = 1.5, per_image: bool = False
+) -> torch.Tensor:
+    """SSIM of images ``a, b [B, C, H, W]`` in [0, 1]: a scalar, or ``[B]`` if ``per_image``.
+
+    Differentiable in both inputs; 1 for identical images.
+    """
+    if a.shape != b.shape or a.dim() != 4:
+        raise ValueError(
+            f"ssim: expected two [B, C, H, W] images of one shape, got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
+    if window_size < 1 or window_size % 2 == 0:
+        raise ValueError(f"ssim: window_size must be a positive odd number, got {window_size}")
+    with torch.autocast(a.device.type, enabled=False):
+        a, b = a.float(), b.float()
+        window = gaussian_window_1d(window_size, sigma).to(a.device)
+        channels = a.shape[1]
+        stats = _blur(torch.cat([a, b, a * a, b * b, a * b], dim=1), window)
+        mu_a, mu_b, mean_aa, mean_bb, mean_ab = stats.split(channels, dim=1)
+        var_a = mean_aa - mu_a.square()
+        var_b = mean_bb - mu_b.square()
+        cov = mean_ab - mu_a * mu_b
+        ssim_map = ((2 * mu_a * mu_b + C1) * (2 * cov + C2)) / (
+            (mu_a.square() + mu_b.square() + C1) * (var_a + var_b + C2)
+        )
+    return ssim_map.flatten(1).mean(1) if per_image else ssim_map.mean()

@@ -1,0 +1,132 @@
+"""Finetuning: style is taken, geometry kept, targets reproduced, cancellation clean, deterministic."""
+
+import pytest
+import torch
+
+from artnvg_core.cameras import load_cameras
+from artnvg_core.fileio import load_image
+from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
+from artnvg_core.progress import Cancelled
+from artnvg_core.raster import render
+from artnvg_core.scene import GaussianScene, read_ply
+from artnvg_core.stylize import DemoInputs, save_result, sheet_path, stylize_nnfm
+
+LAYERS = ("relu3_1", "relu3_2", "relu3_3")
+
+
+@pytest.fixture(scope="module")
+def demo():
+    inputs = DemoInputs()
+    cameras = load_cameras(inputs.cameras).subset([0, 6, 12, 18]).scaled(0.125)
+    return read_ply(inputs.scene), cameras, load_image(inputs.style)
+
+
+def psnr(a, b):
+    return float(-10 * torch.log10(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean()))
+
+
+def nnfm_of(scene, cameras, style):
+    vgg = load_vgg("vgg19")
+    loss = NNFMLoss(style_image_features(vgg, style.permute(2, 0, 1)[None], LAYERS, 512), layer_groups=(LAYERS,))
+    with torch.no_grad():
+        images = render(scene, cameras).rgb
+        return float(loss(vgg(images.permute(0, 3, 1, 2), LAYERS)))
+
+
+def test_nnfm_stylization_reduces_style_loss_and_keeps_geometry(demo):
+    scene, cameras, style = demo
+    before = nnfm_of(scene, cameras, style)
+    result = finetune(scene, cameras, style, config=FinetuneConfig(iterations=40, content_weight=0.5))
+    after = nnfm_of(result, cameras, style)
+    assert after < before - 0.03, (before, after)
+    for name in ("means", "quats", "log_scales"):
+        assert torch.equal(getattr(result, name), getattr(scene, name)), name
+    assert not torch.equal(result.sh, scene.sh)
+
+
+def test_own_renders_as_targets_keep_the_scene(demo):
+    scene, cameras, style = demo
+    with torch.no_grad():
+        targets = render(scene, cameras).rgb.clamp(0, 1)
+    config = FinetuneConfig(iterations=10, optimize="all", nnfm_weight=0.0)
+    result = finetune(scene, cameras, style, stylized=targets, config=config)
+    with torch.no_grad():
+        assert psnr(render(result, cameras).rgb, targets) >= 40.0
+
+
+def test_l1_ssim_term_pulls_colours_back_to_targets(demo):
+    scene, cameras, style = demo
+    with torch.no_grad():
+        targets = render(scene, cameras).rgb.clamp(0, 1)
+    noisy_sh = scene.sh.clone()
+    noisy_sh[:, 0] += 0.4 * torch.randn(len(scene), 3, generator=torch.Generator().manual_seed(0))
+    noisy = GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, noisy_sh)
+    config = FinetuneConfig(iterations=60, nnfm_weight=0.0, lr_sh_dc=0.01)
+    result = finetune(noisy, cameras, style, stylized=targets, config=config)
+    with torch.no_grad():
+        start, end = psnr(render(noisy, cameras).rgb, targets), psnr(render(result, cameras).rgb, targets)
+    assert end > start + 3.0, (start, end)
+
+
+def test_deterministic_for_a_seed_on_cpu(demo):
+    scene, cameras, style = demo
+    config = FinetuneConfig(iterations=3, seed=7)
+    a = finetune(scene, cameras, style, config=config)
+    b = finetune(scene, cameras, style, config=config)
+    assert torch.equal(a.sh, b.sh) and torch.equal(a.opacity_logits, b.opacity_logits)
+
+
+def test_progress_reports_every_step_and_from_scratch_starts_grey(demo):
+    scene, cameras, style = demo
+    seen = []
+    result = finetune(scene, cameras, style, config=FinetuneConfig(iterations=0, from_scratch=True),
+                      progress=lambda step, total, info: seen.append((step, total)))
+    assert seen == [] and (result.sh == 0).all()
+    finetune(scene, cameras, style, config=FinetuneConfig(iterations=2),
+             progress=lambda step, total, info: seen.append((step, total, sorted(info))))
+    assert [s[:2] for s in seen] == [(1, 2), (2, 2)]
+    assert {"loss", "nnfm", "content"} <= set(seen[0][2])
+
+
+def test_cancelling_leaves_no_output(demo, tmp_path):
+    scene, cameras, style = demo
+    calls = []
+
+    def stop_after_two():
+        calls.append(1)
+        return len(calls) > 2
+
+    out = tmp_path / "stylized.ply"
+    with pytest.raises(Cancelled):
+        result = stylize_nnfm(scene, cameras, style, FinetuneConfig(iterations=50), should_stop=stop_after_two)
+        save_result(scene, result, cameras, style, out)
+    assert len(calls) == 3
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
+    scene, cameras, style = demo
+    out = tmp_path / "sub" / "result.ply"
+    sheet = save_result(scene, scene, cameras, style, out)
+    assert sheet == sheet_path(out) and sheet.name == "result.contact.png"
+    assert torch.equal(read_ply(out).sh, scene.sh)
+    assert load_image(sheet).shape[0] == 2 * cameras.height + 4
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
+     ({"lr_means": -1.0}, "lr_means")],
+)
+def test_bad_config_rejected(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        FinetuneConfig(**kwargs)
+
+
+def test_bad_inputs_rejected(demo):
+    scene, cameras, style = demo
+    with pytest.raises(ValueError, match="style_image"):
+        finetune(scene, cameras, style[..., :2])
+    with pytest.raises(ValueError, match="stylized"):
+        finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))

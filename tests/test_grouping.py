@@ -1,0 +1,272 @@
+"""Tests of artnvg_core.grouping: balanced neighbouring-view groups."""
+
+import itertools
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from artnvg_core.cameras import CameraSet, load_nerfstudio, look_at
+from artnvg_core.grouping import (
+    ViewGroup,
+    ViewGroups,
+    balanced_group_sizes,
+    group_cost,
+    group_views,
+)
+
+VIEW_COUNTS = [1, 2, 14, 15, 16, 29, 31, 96, 185]
+
+
+def _camera_set(centres: torch.Tensor, target=(0.0, 0.0, -50.0)) -> CameraSet:
+    """Cameras at ``centres`` [C, 3] all looking at ``target`` (float64, dummy intrinsics)."""
+    centres = centres.double()
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    world_to_cam = look_at(centres, torch.tensor(target, dtype=torch.float64), up)
+    intrinsics = torch.eye(3, dtype=torch.float64).expand(len(centres), 3, 3).clone()
+    return CameraSet(world_to_cam, intrinsics, 64, 64, [f"v{i}" for i in range(len(centres))])
+
+
+def _orbit(count: int) -> torch.Tensor:
+    angle = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count)
+    return torch.stack([4 * torch.cos(angle), 4 * torch.sin(angle), torch.ones(count, dtype=torch.float64)], dim=1)
+
+
+def _forward_facing(count: int) -> torch.Tensor:
+    """A row-major grid on the plane z = 0 with 5 cm spacing (first ``count`` points)."""
+    side = math.ceil(math.sqrt(count))
+    rows, cols = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+    grid = torch.stack([cols.flatten() * 0.05, rows.flatten() * 0.05, torch.zeros(side * side)], dim=1)
+    return grid[:count].double()
+
+
+def _unordered(count: int) -> torch.Tensor:
+    return torch.from_numpy(np.random.default_rng(count).normal(size=(count, 3)))
+
+
+SHAPES = {"orbit": _orbit, "forward_facing": _forward_facing, "unordered": _unordered}
+
+
+def _within_sse(centres: np.ndarray, groups) -> float:
+    return sum(float(((centres[list(g)] - centres[list(g)].mean(0)) ** 2).sum()) for g in groups)
+
+
+def _mean_pairwise_distance(centres: np.ndarray) -> float:
+    """Mean distance over all pairs: the expected group_cost of a random partition."""
+    dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    return float(dist[np.triu_indices(len(centres), k=1)].mean())
+
+
+def _partition_sets(groups: ViewGroups, relabel=None) -> set:
+    relabel = relabel if relabel is not None else list(range(groups.num_views))
+    return {(frozenset(relabel[v] for v in g.views), frozenset(relabel[v] for v in g.context)) for g in groups}
+
+
+@pytest.mark.parametrize("count", VIEW_COUNTS)
+@pytest.mark.parametrize("shape", SHAPES)
+def test_partition_and_size_bounds(shape, count):
+    cameras = _camera_set(SHAPES[shape](count))
+    groups = group_views(cameras, 15)
+
+    num_groups = max(1, math.floor(count / 15 + 0.5))
+    assert len(groups) == num_groups == len(groups.groups)
+    owned = [v for g in groups for v in g.views]
+    assert sorted(owned) == list(range(count))  # every view exactly once
+    for index, group in enumerate(groups):
+        assert list(group.views) == sorted(group.views)
+        assert group.context == () and group.all_views == group.views
+        assert len(group.views) in (count // num_groups, -(-count // num_groups))
+        if count >= 8:
+            assert abs(len(group.views) - 15) <= math.ceil(15 / (2 * num_groups))
+        assert all(groups.group_of(v) == index for v in group.views)
+    assert groups.as_lists() == [list(g.views) for g in groups]
+
+
+def test_balanced_group_sizes_bounds_exhaustive():
+    for group_size in range(1, 31):
+        for count in range(1, 241):
+            sizes = balanced_group_sizes(count, group_size)
+            num_groups = len(sizes)
+            assert sum(sizes) == count and max(sizes) - min(sizes) <= 1
+            assert sizes == sorted(sizes, reverse=True)
+            # G is the integer nearest to C / N (halves round up), at least 1 (exact arithmetic).
+            offset = Fraction(count, group_size) - num_groups
+            assert -Fraction(1, 2) <= offset < Fraction(1, 2) or (num_groups == 1 and offset < 0)
+            if 2 * count >= group_size:
+                assert all(abs(s - group_size) <= math.ceil(group_size / (2 * num_groups)) for s in sizes)
+                assert min(sizes) >= group_size // 2
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_deterministic_and_invariant_to_input_order(shape):
+    cameras = _camera_set(SHAPES[shape](96))
+    first = group_views(cameras, 15, context=3)
+    assert group_views(cameras, 15, context=3) == first
+
+    perm = np.random.default_rng(7).permutation(96)
+    permuted = group_views(cameras.subset(perm.tolist()), 15, context=3)
+    # Permuted view i is original view perm[i]: same partition and context up to relabelling.
+    assert _partition_sets(permuted, relabel=perm.tolist()) == _partition_sets(first)
+
+
+def test_camera_set_and_centre_tensor_give_the_same_groups():
+    cameras = _camera_set(_unordered(40))
+    assert group_views(cameras, 8, context=2) == group_views(cameras.centers, 8, context=2)
+
+
+@pytest.mark.parametrize("count", [1, 2, 7, 14])
+def test_fewer_views_than_group_size_give_one_group(count):
+    groups = group_views(_camera_set(_orbit(count)), 15, context=5)
+    assert groups.groups == (ViewGroup(views=tuple(range(count)), context=()),)
+
+
+def test_one_view_per_group():
+    groups = group_views(_camera_set(_unordered(6)), 1)
+    assert [g.views for g in groups] == [(v,) for v in range(6)]
+    assert group_cost(_unordered(6), groups) == 0.0
+
+
+@pytest.mark.parametrize("copies", [40, 5])
+def test_coincident_camera_centres(copies):
+    """Panorama rigs (one centre for all views) and repeated positions still give balanced partitions."""
+    centres = torch.from_numpy(np.repeat(np.random.default_rng(0).normal(size=(40 // copies, 3)), copies, axis=0))
+    groups = group_views(centres, 15, context=2)
+    assert sorted(v for g in groups for v in g.views) == list(range(40))
+    assert sorted(len(g.views) for g in groups) == [13, 13, 14]
+    assert all(len(g.context) == 2 and not set(g.context) & set(g.views) for g in groups)
+
+
+def _balanced_partitions(items: list[int], sizes: list[int]):
+    """Every partition of ``items`` into groups of the multiset ``sizes``, each once."""
+    if not sizes:
+        yield []
+        return
+    for size in sorted(set(sizes)):
+        rest_sizes = list(sizes)
+        rest_sizes.remove(size)
+        for others in itertools.combinations(items[1:], size - 1):
+            group = (items[0], *others)
+            rest = [i for i in items if i not in group]
+            for partition in _balanced_partitions(rest, rest_sizes):
+                yield [group, *partition]
+
+
+@pytest.mark.parametrize(("count", "group_size"), [(7, 2), (8, 4), (9, 3), (10, 4)])
+def test_matches_brute_force_optimum_on_small_sets(count, group_size):
+    sizes = balanced_group_sizes(count, group_size)
+    for seed in range(3):
+        centres = np.random.default_rng(100 + seed).normal(size=(count, 3))
+        optimum = min(_within_sse(centres, p) for p in _balanced_partitions(list(range(count)), sizes))
+        groups = group_views(torch.from_numpy(centres), group_size)
+        assert _within_sse(centres, groups.as_lists()) == pytest.approx(optimum, rel=1e-9)
+
+
+@pytest.mark.parametrize("blob_sizes", [[15] * 6, [16, 15, 16, 15, 16, 15]])
+def test_recovers_well_separated_clusters(blob_sizes):
+    rng = np.random.default_rng(3)
+    anchors = rng.normal(size=(len(blob_sizes), 3)) * 100
+    blobs = np.repeat(np.arange(len(blob_sizes)), blob_sizes)
+    centres = anchors[blobs] + rng.uniform(-1, 1, size=(len(blobs), 3))
+    order = rng.permutation(len(blobs))  # unordered input
+    groups = group_views(torch.from_numpy(centres[order]), 15)
+    expected = {frozenset(np.flatnonzero(blobs[order] == b).tolist()) for b in range(len(blob_sizes))}
+    assert {frozenset(g.views) for g in groups} == expected
+
+
+@pytest.mark.parametrize(("scale", "offset"), [(1e-4, (1000.0, -2000.0, 500.0)), (1e3, (0.0, 0.0, 0.0))])
+def test_scale_and_offset_do_not_change_the_grouping_quality(scale, offset):
+    """Forward-facing rig moved far away and shrunk to a fraction of a millimetre, or blown up."""
+    grid = _forward_facing(96)
+    moved = grid * scale + torch.tensor(offset, dtype=torch.float64)
+    groups = group_views(moved, 15)
+    assert sorted(len(g.views) for g in groups) == [16] * 6
+    reference = group_views(grid, 15)
+    assert _within_sse(grid.numpy(), groups.as_lists()) == pytest.approx(
+        _within_sse(grid.numpy(), reference.as_lists()), rel=1e-6
+    )
+
+
+@pytest.mark.parametrize("scene", ["garden", "bear"])
+def test_real_scene_groups_far_tighter_than_random(shared_data, scene):
+    cameras = load_nerfstudio(shared_data / "scenes" / scene / "transforms.json")
+    groups = group_views(cameras, 15)
+    cost = group_cost(cameras, groups)
+    assert cost < 0.5 * _mean_pairwise_distance(cameras.centers.double().numpy())
+    shuffled = np.random.default_rng(0).permutation(len(cameras))
+    random_groups = np.split(shuffled, np.cumsum([len(g.views) for g in groups])[:-1])
+    assert cost < 0.5 * group_cost(cameras, [g.tolist() for g in random_groups])
+
+
+def test_group_cost_matches_brute_force():
+    centres = np.random.default_rng(5).normal(size=(9, 3))
+    lists = [[0, 4, 8], [1, 2], [3], [5, 6, 7]]
+    pairs = [(i, j) for g in lists for i, j in itertools.combinations(g, 2)]
+    expected = sum(math.dist(centres[i], centres[j]) for i, j in pairs) / len(pairs)
+    assert group_cost(torch.from_numpy(centres), lists) == pytest.approx(expected, rel=1e-12)
+    with_context = ViewGroups(tuple(ViewGroup(tuple(g), context=(3,) if 3 not in g else ()) for g in lists), 9)
+    assert group_cost(torch.from_numpy(centres), with_context) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("context", [1, 4])
+def test_context_views_are_nearest_views_of_other_groups(shared_data, context):
+    cameras = load_nerfstudio(shared_data / "scenes" / "garden" / "transforms.json")
+    centres = cameras.centers.double().numpy()
+    groups = group_views(cameras, 15, context=context)
+    assert [g.views for g in groups] == [g.views for g in group_views(cameras, 15)]  # context leaves owners alone
+    for group in groups:
+        assert len(group.context) == context and list(group.context) == sorted(group.context)
+        assert not set(group.context) & set(group.views)
+        assert group.all_views == group.views + group.context
+        others = np.setdiff1d(np.arange(len(centres)), group.views)
+        distance = np.linalg.norm(centres[others, None] - centres[None, list(group.views)], axis=-1).min(axis=1)
+        chosen = np.isin(others, group.context)
+        assert distance[~chosen].min() >= distance[chosen].max()
+
+
+def test_context_is_capped_by_the_views_of_other_groups():
+    groups = group_views(_camera_set(_orbit(16)), 8, context=20)
+    assert len(groups) == 2
+    for group in groups:
+        assert sorted(group.context) == sorted(set(range(16)) - set(group.views))
+
+
+@pytest.mark.parametrize(
+    ("cameras", "kwargs", "message"),
+    [
+        (_camera_set(_unordered(0)), {}, "at least one view"),
+        (_orbit(5), {"group_size": 0}, "group_size"),
+        (_orbit(5), {"group_size": 2.5}, "group_size"),
+        (_orbit(5), {"group_size": True}, "group_size"),
+        (_orbit(5), {"context": -1}, "context"),
+        (_orbit(5)[:, :2], {}, r"shape \(C, 3\)"),
+        (torch.tensor([[0.0, 0.0, float("nan")]]), {}, "finite"),
+        ([[0.0, 0.0, 0.0]], {}, "CameraSet or a \\[C, 3\\] tensor or array"),
+    ],
+)
+def test_rejects_bad_input(cameras, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        group_views(cameras, **kwargs)
+
+
+def test_view_groups_validates_partition():
+    with pytest.raises(ValueError, match="already owned"):
+        ViewGroups((ViewGroup((0, 1)), ViewGroup((1, 2))), 3)
+    with pytest.raises(ValueError, match="belongs to no group"):
+        ViewGroups((ViewGroup((0, 2)),), 3)
+    with pytest.raises(ValueError, match="out of range"):
+        ViewGroups((ViewGroup((0, 1, 2, 3)),), 3)
+    with pytest.raises(ValueError, match=r"groups\[0\]\.context"):
+        ViewGroups((ViewGroup((0, 1), context=(1,)), ViewGroup((2,))), 3)
+    with pytest.raises(ValueError, match=r"groups\[1\]\.context"):
+        ViewGroups((ViewGroup((0, 1)), ViewGroup((2,), context=(0, 0))), 3)
+    assert ViewGroups([ViewGroup([0, 2], context=[1]), ViewGroup(np.array([1]))], 3) == ViewGroups(
+        (ViewGroup((0, 2), (1,)), ViewGroup((1,))), 3
+    )
+    groups = ViewGroups((ViewGroup((0, 2)), ViewGroup((1,))), 3)
+    assert [groups.group_of(v) for v in range(3)] == [0, 1, 0]
+    with pytest.raises(ValueError, match="out of range"):
+        groups.group_of(3)
+    with pytest.raises(ValueError, match="group_cost: groups\\[1\\]"):
+        group_cost(_orbit(3), [[0, 1], [5]])

@@ -1,0 +1,147 @@
+import pytest
+import torch
+
+from artnvg_core.losses import NNFMLoss, load_vgg, nearest_style_indices, style_image_features
+
+GROUPS = (("a1", "a2"), ("b1",))
+
+
+def random_feats(seed, batch, size_a, size_b) -> dict:
+    """ReLU-like features: group a = layers a1 (5 ch) + a2 (7 ch) at size_a, group b = b1 (4 ch) at size_b."""
+    gen = torch.Generator().manual_seed(seed)
+    return {
+        "a1": torch.rand(batch, 5, *size_a, generator=gen),
+        "a2": torch.rand(batch, 7, *size_a, generator=gen),
+        "b1": torch.rand(batch, 4, *size_b, generator=gen),
+    }
+
+
+def brute_force_nnfm(render: dict, style: dict, groups) -> torch.Tensor:
+    """Float64 NNFM: full cosine matrix per group (layers concatenated), max per render position."""
+    total = torch.zeros((), dtype=torch.float64)
+    for group in groups:
+        r = torch.cat([render[n].double() for n in group], 1)
+        s = torch.cat([style[n].double() for n in group], 1)
+        r = r.permute(0, 2, 3, 1).reshape(-1, r.shape[1])
+        s = s.permute(0, 2, 3, 1).reshape(-1, s.shape[1])
+        cos = (r / r.norm(dim=1, keepdim=True)) @ (s / s.norm(dim=1, keepdim=True)).T
+        total = total + (1 - cos.max(dim=1).values).mean()
+    return total
+
+
+def test_matches_brute_force_value_and_gradient():
+    render = {k: v.requires_grad_(True) for k, v in random_feats(0, 2, (4, 5), (3, 2)).items()}
+    render64 = {k: v.detach().double().requires_grad_(True) for k, v in render.items()}
+    style = random_feats(1, 1, (6, 3), (2, 4))
+    loss = NNFMLoss(style, GROUPS)(render)
+    reference = brute_force_nnfm(render64, style, GROUPS)
+    assert loss.dtype == torch.float32
+    assert loss.item() == pytest.approx(reference.item(), abs=1e-6)
+    loss.backward()
+    reference.backward()
+    for name in render:
+        assert torch.allclose(render[name].grad.double(), render64[name].grad, atol=1e-6), name
+
+
+def test_several_style_images_pool_their_positions():
+    render = random_feats(2, 1, (3, 3), (2, 2))
+    style = random_feats(3, 3, (2, 4), (3, 1))
+    loss = NNFMLoss(style, GROUPS)(render)
+    assert loss.item() == pytest.approx(brute_force_nnfm(render, style, GROUPS).item(), abs=1e-6)
+
+
+def test_zero_when_render_is_the_style_image():
+    feats = random_feats(4, 1, (5, 6), (3, 3))
+    assert NNFMLoss(feats, GROUPS)(feats).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_zero_on_real_vgg_features_of_the_style_image_itself(shared_data):
+    from test_losses_vgg import load_style
+
+    vgg = load_vgg()
+    layers = ("relu3_1", "relu3_2", "relu3_3")
+    hokusai = load_style(shared_data, "hokusai", size=64)
+    loss = NNFMLoss(style_image_features(vgg, hokusai, layers))
+    assert loss(vgg(hokusai, layers)).item() == pytest.approx(0.0, abs=1e-5)
+    assert loss(vgg(load_style(shared_data, "stripes", size=64), layers)).item() > 0.1
+
+
+@pytest.mark.parametrize("budget", [1, 7, 30, 10**9])
+def test_chunked_matches_unchunked(budget):
+    gen = torch.Generator().manual_seed(5)
+    render = torch.nn.functional.normalize(torch.randn(23, 6, generator=gen), dim=1)
+    style = torch.nn.functional.normalize(torch.randn(17, 6, generator=gen), dim=1)
+    style[9] = style[3]  # a tie: the lowest index wins, as in an unchunked argmax
+    render[4] = style[3]
+    expected = (render @ style.T).argmax(dim=1)
+    assert expected[4] == 3
+    assert torch.equal(nearest_style_indices(render, style, budget), expected)
+
+    feats = random_feats(6, 2, (4, 4), (3, 3))
+    style_feats = random_feats(7, 1, (5, 4), (4, 2))
+    small = NNFMLoss(style_feats, GROUPS, max_chunk_elements=budget)(feats)
+    large = NNFMLoss(style_feats, GROUPS, max_chunk_elements=10**9)(feats)
+    assert small.item() == large.item()
+
+
+def test_zero_feature_vectors_give_finite_loss_and_gradient():
+    render = random_feats(8, 1, (3, 3), (2, 2))
+    render["a1"][0, :, 1, 1] = 0
+    render["a2"][0, :, 1, 1] = 0
+    render = {k: v.requires_grad_(True) for k, v in render.items()}
+    style = random_feats(9, 1, (3, 3), (2, 2))
+    style["b1"][0, :, 0, 0] = 0
+    loss = NNFMLoss(style, GROUPS)(render)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert all(torch.isfinite(v.grad).all() for v in render.values())
+    # The zero position has cosine 0 with every style feature: it contributes 1 / 9 to group a.
+    assert loss.item() >= 1.0 / 9
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_low_precision_close_to_float32(dtype):
+    render = random_feats(10, 1, (6, 6), (4, 4))
+    style = random_feats(11, 1, (6, 6), (4, 4))
+    nnfm = NNFMLoss(style, GROUPS)
+    reference = nnfm(render).item()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert nnfm(render).item() == pytest.approx(reference, abs=1e-6)
+    low = {k: v.to(dtype).requires_grad_(True) for k, v in render.items()}
+    loss = nnfm(low)
+    assert loss.dtype == torch.float32
+    assert loss.item() == pytest.approx(reference, abs=0.02)
+    loss.backward()
+    assert all(v.grad.dtype == dtype and torch.isfinite(v.grad).all() for v in low.values())
+
+
+def test_bad_features_raise():
+    style = random_feats(12, 1, (3, 3), (2, 2))
+    nnfm = NNFMLoss(style, GROUPS)
+    render = random_feats(13, 1, (3, 3), (2, 2))
+    with pytest.raises(ValueError, match="b1"):
+        nnfm({k: v for k, v in render.items() if k != "b1"})
+    with pytest.raises(ValueError, match="channels"):
+        nnfm({**render, "b1": torch.rand(1, 3, 2, 2)})
+    with pytest.raises(ValueError, match="equal B, h, w"):
+        NNFMLoss({**style, "a2": torch.rand(1, 7, 4, 3)}, GROUPS)
+    with pytest.raises(ValueError, match="layer_groups"):
+        NNFMLoss(style, ())
+
+
+def test_style_image_is_shrunk_to_max_side_and_never_enlarged():
+    seen = []
+
+    def extractor(image, layers):
+        seen.append(tuple(image.shape))
+        return {name: image * 1.0 for name in layers}
+
+    image = torch.rand(1, 3, 40, 100, requires_grad=True)
+    feats = style_image_features(extractor, image, ["x"], max_side=50)
+    style_image_features(extractor, image, ["x"], max_side=500)
+    style_image_features(extractor, image, ["x"], max_side=None)
+    assert seen == [(1, 3, 20, 50), (1, 3, 40, 100), (1, 3, 40, 100)]
+    assert not feats["x"].requires_grad
+    assert torch.allclose(feats["x"][0, :, 0, 0], image[0, :, :2, :2].mean(dim=(1, 2)))
+    with pytest.raises(ValueError, match=r"\[B, 3, H, W\]"):
+        style_image_features(extractor, image[0], ["x"])
