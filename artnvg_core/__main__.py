@@ -9,6 +9,8 @@ from pathlib import Path
 
 import torch
 
+from .metrics.report import add_evaluate_arguments
+
 
 def _device(name: str) -> torch.device:
     if name == "auto":
@@ -81,7 +83,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .fileio import load_image
     from .finetune import FinetuneConfig
     from .scene import load_scene
-    from .stylize import DemoInputs, save_result, stylize_nnfm
+    from .stylize import DemoInputs, ModelPaths, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
 
     given = [args.scene, args.cameras, args.style]
     if any(given) and not all(given):
@@ -99,24 +101,20 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     scene = load_scene(args.scene).to(device)
     cameras = load_cameras(args.cameras).scaled(scale)
     style = load_image(args.style)
-    stylizer, reason = _choose_stylizer(args.stylizer)
+    paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
+    stylizer, reason = choose_stylizer(args.stylizer, paths)
     print(f"stylizer: {stylizer} ({reason})")
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed)
     start = time.perf_counter()
-    result = stylize_nnfm(scene, cameras, style.to(device), config, progress=_ProgressBar("finetune"))
+    if stylizer == "diffusion":
+        result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths,
+                                      sampling_progress=_ProgressBar("diffusion"), progress=_ProgressBar("finetune"))
+    else:
+        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=_ProgressBar("finetune"))
     sheet = save_result(scene, result, cameras, style, args.out)
     print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
-
-
-def _choose_stylizer(requested: str) -> tuple[str, str]:
-    """Resolve ``--stylizer`` to the one that runs, with the reason."""
-    if requested == "diffusion":
-        raise ValueError("--stylizer diffusion: the diffusion stage is not wired into the CLI yet; use --stylizer nnfm")
-    if requested == "auto":
-        return "nnfm", "auto: the diffusion models are not wired into the CLI yet"
-    return "nnfm", "requested"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -133,7 +131,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.set_defaults(run=cmd_render)
-    from .metrics.report import add_evaluate_arguments
+
+    p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
+    p.add_argument("scene", nargs="?", help="INRIA 3DGS .ply or splatfacto .ckpt (omit all inputs for the demo)")
+    p.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder")
+    p.add_argument("--style", help="style image file")
+    p.add_argument("--out", default="out/stylized.ply", help="output PLY; a NAME.contact.png is written beside it")
+    p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
+    p.add_argument("--iters", type=int, default=None, help="finetune iterations (default 1000; 200 for the demo)")
+    p.add_argument("--scale", type=float, default=None, help="render resolution factor (default 1; 0.25 for the demo)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--seed", type=int, default=0)
+    models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
+    models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")
+    models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
+    models.add_argument("--image-encoder", help="IP-Adapter SDXL image encoder folder (ViT-bigG/14)")
+    models.add_argument("--csgo", help="csgo_4_32.bin or csgo.bin")
+    p.set_defaults(run=cmd_stylize)
+
     p = commands.add_parser("evaluate", help="metrics, comparison strip and preview of a stylized scene or 2D views")
     add_evaluate_arguments(p)
     return parser

@@ -66,6 +66,82 @@ def stylize_nnfm(
     return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
 
 
+@dataclass(frozen=True)
+class ModelPaths:
+    """Explicit model paths for the diffusion stylizer; None looks in the Hugging Face cache."""
+
+    sdxl: str | Path | None = None
+    controlnet: str | Path | None = None
+    image_encoder: str | Path | None = None
+    csgo: str | Path | None = None
+
+
+def find_diffusion_models(paths: ModelPaths) -> str | None:
+    """None when every diffusion model file is found, else the first missing one's message."""
+    from .diffusion.model_files import CSGO_WEIGHTS, IMAGE_ENCODER, SDXL_BASE, TILE_CONTROLNET, MissingModelError, locate
+
+    sources = ((SDXL_BASE, paths.sdxl), (TILE_CONTROLNET, paths.controlnet), (IMAGE_ENCODER, paths.image_encoder),
+               (CSGO_WEIGHTS, paths.csgo))
+    for source, path in sources:
+        try:
+            locate(source, path)
+        except MissingModelError as error:
+            return str(error)
+    return None
+
+
+def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
+    """Resolve ``auto`` / ``nnfm`` / ``diffusion`` to the stylizer that runs, with the reason.
+
+    ``diffusion`` with a model file missing raises the loader's error (which names the file).
+    """
+    if requested not in STYLIZERS:
+        raise ValueError(f"stylizer: expected one of {STYLIZERS}, got {requested!r}")
+    if requested == "nnfm":
+        return "nnfm", "requested"
+    missing = find_diffusion_models(paths)
+    if requested == "diffusion":
+        if missing:
+            raise ValueError(f"--stylizer diffusion: {missing}")
+        return "diffusion", "requested"
+    if missing:
+        return "nnfm", f"auto: diffusion models not found ({missing})"
+    return "diffusion", "auto: all diffusion model files found"
+
+
+def stylize_diffusion(
+    scene: GaussianScene,
+    cameras: CameraSet,
+    style_image: torch.Tensor,
+    config: FinetuneConfig,
+    paths: ModelPaths,
+    *,
+    group_size: int = 15,
+    sampling_progress: ProgressFn | None = None,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
+) -> tuple[GaussianScene, torch.Tensor]:
+    """The ArtNVG pipeline: render content views, stylize them group by group with
+    SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
+
+    Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
+    """
+    from .diffusion.models import load_diffusion_models
+    from .diffusion.sampler import SamplerSettings
+    from .diffusion.stylize import stylize_views
+
+    device = scene.device
+    dtype = torch.float16 if device.type == "cuda" else torch.float32
+    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype, device=device)
+    with torch.no_grad():
+        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
+    views = stylize_views(models, content, cameras, style_image, SamplerSettings(), group_size=group_size,
+                          seed=config.seed, progress=sampling_progress, should_stop=should_stop)
+    del models
+    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
+    return result, views
+
+
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                 out_ply: str | Path, backend: str = "auto") -> Path:
     """Write ``out_ply`` and its contact sheet (both atomically); returns the sheet's path."""

@@ -13,6 +13,8 @@ import shutil
 from pathlib import Path
 
 import torch
+
+torch.set_num_threads(1)
 from PIL import Image
 
 from artnvg_core.cameras import CameraSet, load_nerfstudio
@@ -44,13 +46,14 @@ def thin_scene(scene: GaussianScene, cameras: CameraSet, keep: int, sh_degree: i
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("shared_data", type=Path)
-    parser.add_argument("--gaussians", type=int, default=30000)
+    parser.add_argument("--gaussians", type=int, default=40000)
     parser.add_argument("--camera-step", type=int, default=4)
     parser.add_argument("--style", default="starry.jpg")
     args = parser.parse_args()
     bear = args.shared_data / "scenes" / "bear"
     DEMO.mkdir(parents=True, exist_ok=True)
     cameras = load_nerfstudio(bear / "transforms.json").scaled(0.25)
+    cameras = cameras.subset(range(0, len(cameras), args.camera_step))
     write_ply(thin_scene(read_ply(bear / "scene.ply"), cameras, args.gaussians, 1), DEMO / "bear.ply")
     meta = json.loads((bear / "transforms.json").read_text())
     meta["frames"] = meta["frames"][:: args.camera_step]

@@ -20,7 +20,7 @@ from torch.utils.checkpoint import checkpoint
 
 from .projection import ALPHA_MIN, Projection
 
-TILE = 16
+TILE = 8
 ALPHA_MAX = 0.999
 T_MIN = 1e-4
 

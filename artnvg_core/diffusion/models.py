@@ -1,0 +1,282 @@
+"""Loading the diffusion models from explicit paths (or the Hugging Face cache), never downloading.
+
+* SDXL 1.0 base: a diffusers folder (``model_index.json`` + component subfolders), or a
+  single-file checkpoint (``.safetensors``/``.ckpt``) together with a diffusers-format SDXL
+  folder that supplies the configs and tokenizers (``config_dir``; its weights are not read).
+* VAE override (e.g. madebyollin/sdxl-vae-fp16-fix): a diffusers folder or one ``.safetensors``
+  with diffusers keys. fp16-safe decoding: a VAE whose config says ``force_upcast`` is kept
+  in float32 when float16 is requested.
+* Tile ControlNet: a diffusers folder, or one ``.safetensors`` with diffusers keys (config from a
+  ``config.json`` beside it, else the SDXL ControlNet architecture of the loaded UNet).
+* Image encoder: a transformers ``CLIPVisionModelWithProjection`` folder, or one ``.safetensors``
+  (config from a ``config.json`` beside it, else ViT-bigG/14).
+* CSGO weights: see :mod:`artnvg_core.diffusion.csgo_weights` (installs ArtNVG's processors).
+
+Single weight files are loaded strictly: missing or unexpected keys raise ValueError.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from diffusers import AutoencoderKL, ControlNetModel, StableDiffusionXLPipeline, UNet2DConditionModel
+from transformers import (
+    CLIPTextModel,
+    CLIPTextModelWithProjection,
+    CLIPTokenizer,
+    CLIPVisionConfig,
+    CLIPVisionModelWithProjection,
+)
+
+from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet
+from .csgo import CSGOProjections
+from .csgo_weights import load_csgo
+from .model_files import (
+    CSGO_WEIGHTS,
+    IMAGE_ENCODER,
+    SDXL_BASE,
+    SDXL_VAE_FP16_FIX,
+    TILE_CONTROLNET,
+    MissingModelError,
+    locate,
+)
+
+SDXL_COMPONENTS = ("unet", "vae", "text_encoder", "text_encoder_2", "tokenizer", "tokenizer_2", "scheduler")
+_LISTED_KEYS = 8
+
+
+@dataclass
+class SDXLBase:
+    """The SDXL components the sampler uses; ``scheduler_config`` configures any diffusers scheduler."""
+
+    unet: UNet2DConditionModel
+    vae: AutoencoderKL
+    text_encoder: CLIPTextModel
+    text_encoder_2: CLIPTextModelWithProjection
+    tokenizer: CLIPTokenizer
+    tokenizer_2: CLIPTokenizer
+    scheduler_config: dict
+    force_zeros_for_empty_prompt: bool = True
+
+
+@dataclass
+class DiffusionModels:
+    """Everything the ArtNVG group sampler runs (``csgo`` None = no content/style tokens)."""
+
+    base: SDXLBase
+    controlnet: ControlNetModel
+    image_encoder: CLIPVisionModelWithProjection | None = None
+    csgo: CSGOProjections | None = None
+
+    def __post_init__(self) -> None:
+        if self.csgo is not None and self.image_encoder is None:
+            raise ValueError("DiffusionModels: CSGO projections need an image_encoder to compute their tokens")
+
+
+def _vae_dtype(force_upcast: bool, dtype: torch.dtype) -> torch.dtype:
+    """float32 for a float16 request on a VAE that overflows in float16 (``force_upcast``), else ``dtype``."""
+    return torch.float32 if dtype == torch.float16 and force_upcast else dtype
+
+
+def _require(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise MissingModelError(f"{what}: '{path}' does not exist")
+    return path
+
+
+def _read_weights(path: Path) -> dict[str, torch.Tensor]:
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path))
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _keys_text(keys: list[str]) -> str:
+    more = len(keys) - _LISTED_KEYS
+    return f"[{', '.join(sorted(keys)[:_LISTED_KEYS])}{f', ... ({more} more)' if more > 0 else ''}]"
+
+
+def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
+    """Load the weight file at ``path`` into ``model``; every key must match in name and shape
+    (else ValueError listing the missing, unexpected and mis-shaped keys). Entries for the model's
+    non-persistent buffers (e.g. CLIP ``position_ids`` in older files) are ignored: the model
+    computes them itself."""
+    expected = model.state_dict()
+    recomputed = {name for name, _ in model.named_buffers()} - set(expected)
+    state = {k: v for k, v in _read_weights(path).items() if k not in recomputed}
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    wrong = [
+        f"{k} {list(state[k].shape)} != {list(expected[k].shape)}"
+        for k in expected
+        if k in state and state[k].shape != expected[k].shape
+    ]
+    if missing or unexpected or wrong:
+        raise ValueError(
+            f"weights '{path}' do not fit {type(model).__name__}: {len(missing)} missing keys "
+            f"{_keys_text(missing)}, {len(unexpected)} unexpected keys {_keys_text(unexpected)}"
+            + (f", {len(wrong)} wrong shapes {wrong[:_LISTED_KEYS]}" if wrong else "")
+        )
+    model.load_state_dict(state)
+
+
+def _config_beside(path: Path) -> dict | None:
+    config = path.parent / "config.json"
+    return json.loads(config.read_text()) if config.is_file() else None
+
+
+def _weights_variant(folder: Path) -> str | None:
+    """'fp16' when a folder holds only fp16-variant weights (``*.fp16.safetensors``), else None."""
+    files = [p.name for p in folder.glob("*.safetensors")] + [p.name for p in folder.glob("*.bin")]
+    plain = [f for f in files if ".fp16." not in f]
+    return "fp16" if files and not plain else None
+
+
+def load_sdxl(
+    path: str | Path | None = None,
+    *,
+    config_dir: str | Path | None = None,
+    dtype: torch.dtype = torch.float16,
+    device: str | torch.device = "cpu",
+    hf_cache_dir: str | Path | None = None,
+) -> SDXLBase:
+    """SDXL base from a diffusers folder or a single-file checkpoint (see the module docstring).
+
+    path None looks in the Hugging Face cache. For a single file, ``config_dir`` (default:
+    the cached stabilityai/stable-diffusion-xl-base-1.0 snapshot) provides configs and tokenizers.
+    """
+    path = locate(SDXL_BASE, path, hf_cache_dir=hf_cache_dir)
+    if path.is_dir():
+        _require(path / "model_index.json", "SDXL diffusers folder")
+        for name in SDXL_COMPONENTS:
+            _require(path / name, f"SDXL diffusers folder component '{name}'")
+        vae_config = json.loads(_require(path / "vae" / "config.json", "SDXL VAE config").read_text())
+        dtypes = {"default": dtype, "vae": _vae_dtype(vae_config.get("force_upcast", True), dtype)}
+        pipe = StableDiffusionXLPipeline.from_pretrained(
+            path,
+            torch_dtype=dtypes,
+            local_files_only=True,
+            variant=_weights_variant(path / "unet"),
+            add_watermarker=False,
+        )
+    else:
+        config_dir = locate(SDXL_BASE, config_dir, hf_cache_dir=hf_cache_dir)
+        _require(
+            Path(config_dir) / "model_index.json",
+            f"SDXL configs for the single-file checkpoint '{path}' (a diffusers-format SDXL folder)",
+        )
+        pipe = StableDiffusionXLPipeline.from_single_file(
+            str(path), config=str(config_dir), torch_dtype=dtype, local_files_only=True, add_watermarker=False
+        )
+    vae = pipe.vae.to(device=device, dtype=_vae_dtype(pipe.vae.config.force_upcast, dtype))
+    return SDXLBase(
+        unet=pipe.unet.to(device).eval(),
+        vae=vae.eval(),
+        text_encoder=pipe.text_encoder.to(device).eval(),
+        text_encoder_2=pipe.text_encoder_2.to(device).eval(),
+        tokenizer=pipe.tokenizer,
+        tokenizer_2=pipe.tokenizer_2,
+        scheduler_config=dict(pipe.scheduler.config),
+        force_zeros_for_empty_prompt=bool(pipe.config.get("force_zeros_for_empty_prompt", True)),
+    )
+
+
+def load_vae(
+    path: str | Path | None = None,
+    *,
+    dtype: torch.dtype = torch.float16,
+    device: str | torch.device = "cpu",
+    hf_cache_dir: str | Path | None = None,
+) -> AutoencoderKL:
+    """An SDXL VAE (default: madebyollin/sdxl-vae-fp16-fix from the cache), fp16-safe (module docstring)."""
+    path = locate(SDXL_VAE_FP16_FIX, path, hf_cache_dir=hf_cache_dir)
+    if path.is_dir():
+        vae = AutoencoderKL.from_pretrained(path, local_files_only=True, variant=_weights_variant(path))
+    else:
+        config = _config_beside(path)
+        if config is None:
+            raise MissingModelError(f"VAE weights '{path}': no config.json beside the file")
+        vae = AutoencoderKL.from_config(config)
+        load_state_dict_strict(vae, path)
+    return vae.to(device=device, dtype=_vae_dtype(vae.config.force_upcast, dtype)).eval()
+
+
+def load_controlnet(
+    path: str | Path | None = None,
+    *,
+    unet_config: dict | None = None,
+    dtype: torch.dtype = torch.float16,
+    device: str | torch.device = "cpu",
+    hf_cache_dir: str | Path | None = None,
+) -> ControlNetModel:
+    """The tile ControlNet from a diffusers folder or a diffusers-keyed ``.safetensors`` file.
+
+    A single file takes its config from ``config.json`` beside it, else from ``unet_config``.
+    """
+    path = locate(TILE_CONTROLNET, path, hf_cache_dir=hf_cache_dir)
+    if path.is_dir():
+        controlnet = ControlNetModel.from_pretrained(path, local_files_only=True, variant=_weights_variant(path))
+    else:
+        config = _config_beside(path)
+        if config is None and unet_config is None:
+            raise MissingModelError(
+                f"ControlNet weights '{path}': no config.json beside the file and no UNet config to derive one from"
+            )
+        controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
+        load_state_dict_strict(controlnet, path)
+    return controlnet.to(device=device, dtype=dtype).eval()
+
+
+def load_image_encoder(
+    path: str | Path | None = None,
+    *,
+    dtype: torch.dtype = torch.float16,
+    device: str | torch.device = "cpu",
+    hf_cache_dir: str | Path | None = None,
+) -> CLIPVisionModelWithProjection:
+    """The IP-Adapter SDXL image encoder from a transformers folder or a single ``.safetensors`` file."""
+    path = locate(IMAGE_ENCODER, path, hf_cache_dir=hf_cache_dir)
+    if path.is_dir():
+        _require(path / "config.json", "image encoder folder")
+        encoder = CLIPVisionModelWithProjection.from_pretrained(path, local_files_only=True)
+    else:
+        config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
+        config = {k: v for k, v in config.items() if k not in ("architectures", "model_type", "torch_dtype", "dtype")}
+        encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**config))
+        load_state_dict_strict(encoder, path)
+    return encoder.to(device=device, dtype=dtype).eval()
+
+
+def load_diffusion_models(
+    sdxl: str | Path | None = None,
+    controlnet: str | Path | None = None,
+    image_encoder: str | Path | None = None,
+    csgo: str | Path | None = None,
+    *,
+    sdxl_config_dir: str | Path | None = None,
+    vae: str | Path | None = None,
+    dtype: torch.dtype = torch.float16,
+    device: str | torch.device = "cpu",
+    query_chunk_size: int | None = None,
+    hf_cache_dir: str | Path | None = None,
+) -> DiffusionModels:
+    """Load every model (None = the Hugging Face cache; ``vae`` None = SDXL's own VAE) and attach CSGO.
+
+    All files are located before any is loaded, so a missing one fails fast.
+    query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
+    """
+    sdxl = locate(SDXL_BASE, sdxl, hf_cache_dir=hf_cache_dir)
+    controlnet = locate(TILE_CONTROLNET, controlnet, hf_cache_dir=hf_cache_dir)
+    image_encoder = locate(IMAGE_ENCODER, image_encoder, hf_cache_dir=hf_cache_dir)
+    csgo = locate(CSGO_WEIGHTS, csgo, hf_cache_dir=hf_cache_dir)
+    base = load_sdxl(sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device, hf_cache_dir=hf_cache_dir)
+    if vae is not None:
+        base.vae = load_vae(vae, dtype=dtype, device=device)
+    control = load_controlnet(controlnet, unet_config=dict(base.unet.config), dtype=dtype, device=device)
+    encoder = load_image_encoder(image_encoder, dtype=dtype, device=device)
+    projections = load_csgo(csgo, base.unet, control, query_chunk_size=query_chunk_size)
+    return DiffusionModels(base=base, controlnet=control, image_encoder=encoder, csgo=projections)

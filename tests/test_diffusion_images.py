@@ -1,0 +1,49 @@
+"""IMAGE checks, SDXL sizes, resizing and CLIP preprocessing against transformers' CLIPImageProcessor."""
+
+import numpy as np
+import pytest
+import torch
+from transformers import CLIPImageProcessor
+
+from artnvg_core.diffusion.images import check_images, clip_preprocess, resize_images, sdxl_size
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+
+
+@pytest.mark.parametrize(
+    "height, width, expected",
+    [(1024, 1024, (1024, 1024)), (840, 1297, (832, 1280)), (1080, 1920, (768, 1344)), (3000, 200, (3968, 256))],
+)
+def test_sdxl_size_keeps_aspect_and_area(height, width, expected):
+    h, w = sdxl_size(height, width)
+    assert (h, w) == expected and h % 64 == 0 and w % 64 == 0
+    assert sdxl_size(640, 480, resolution=768) == (896, 640)
+
+
+def test_resize_is_identity_at_same_size_and_stays_in_range():
+    images = torch.rand(2, 30, 40, 3)
+    assert resize_images(images, 30, 40) is images
+    out = resize_images(images, 64, 48)
+    assert out.shape == (2, 64, 48, 3) and out.min() >= 0 and out.max() <= 1
+    flat = torch.full((1, 30, 40, 3), 0.25)
+    torch.testing.assert_close(resize_images(flat, 17, 23), torch.full((1, 17, 23, 3), 0.25))
+
+
+def test_check_images_rejects_bad_batches():
+    with pytest.raises(ValueError, match=r"views: expected an IMAGE batch \[B, H, W, 3\].*\[3, 8, 8\]"):
+        check_images(torch.rand(3, 8, 8), "views")
+    with pytest.raises(ValueError, match="expected float values"):
+        check_images(torch.zeros(1, 8, 8, 3, dtype=torch.uint8), "views")
+    with pytest.raises(ValueError, match="must lie in \\[0, 1\\]"):
+        check_images(torch.full((1, 8, 8, 3), float("nan")), "views")
+
+
+def test_clip_preprocess_matches_clip_image_processor():
+    """Same recipe as CLIPImageProcessor (PIL bicubic vs torch bicubic: close, not bit-equal)."""
+    generator = torch.Generator().manual_seed(0)
+    coarse = torch.rand(1, 3, 12, 18, generator=generator)
+    image = torch.nn.functional.interpolate(coarse, size=(300, 450), mode="bilinear").permute(0, 2, 3, 1)
+    ours = clip_preprocess(image)
+    pixels = (image[0].numpy() * 255).round().astype(np.uint8)
+    theirs = CLIPImageProcessor()(images=[pixels], return_tensors="pt").pixel_values
+    assert ours.shape == theirs.shape == (1, 3, 224, 224)
+    assert (ours - theirs).abs().mean() < 0.01 and (ours - theirs).abs().max() < 0.1

@@ -1,0 +1,175 @@
+"""Model loading from explicit paths and the Hugging Face cache, with tiny models written to disk."""
+
+import pytest
+import torch
+from diffusers import ControlNetModel, StableDiffusionXLPipeline
+from safetensors.torch import save_file
+
+from artnvg_core.diffusion.model_files import CSGO_WEIGHTS, IMAGE_ENCODER, MissingModelError, hf_cache_path, locate
+from artnvg_core.diffusion.models import (
+    load_controlnet,
+    load_diffusion_models,
+    load_image_encoder,
+    load_sdxl,
+    load_vae,
+)
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import csgo_state, tiny_base, tiny_controlnet, tiny_image_encoder, tiny_scheduler, write_csgo_file
+
+
+def _same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k].float(), sb[k].float()) for k in sa)
+
+
+@pytest.fixture(scope="module")
+def sdxl_folder(tmp_path_factory):
+    base = tiny_base()
+    folder = tmp_path_factory.mktemp("sdxl")
+    StableDiffusionXLPipeline(
+        vae=base.vae,
+        text_encoder=base.text_encoder,
+        text_encoder_2=base.text_encoder_2,
+        tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2,
+        unet=base.unet,
+        scheduler=tiny_scheduler(),
+        add_watermarker=False,
+    ).save_pretrained(folder)
+    return folder, base
+
+
+def test_sdxl_folder_loads(sdxl_folder):
+    folder, base = sdxl_folder
+    loaded = load_sdxl(folder, dtype=torch.float32)
+    for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
+        assert _same_weights(getattr(loaded, name), getattr(base, name)), name
+    assert loaded.tokenizer("a cat").input_ids == base.tokenizer("a cat").input_ids
+    assert loaded.tokenizer_2.pad_token == "!"
+    assert loaded.scheduler_config["timestep_spacing"] == "leading"
+    assert loaded.force_zeros_for_empty_prompt
+
+
+def test_fp16_request_keeps_an_overflowing_vae_in_float32(sdxl_folder):
+    folder, _ = sdxl_folder
+    loaded = load_sdxl(folder, dtype=torch.float16)
+    assert loaded.unet.dtype == torch.float16 and loaded.vae.dtype == torch.float32  # force_upcast
+    assert load_sdxl(folder, dtype=torch.bfloat16).vae.dtype == torch.bfloat16
+
+
+def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):
+    with pytest.raises(MissingModelError, match="'.*missing_sdxl' does not exist|looked for '.*missing_sdxl'"):
+        load_sdxl(tmp_path / "missing_sdxl")
+    (tmp_path / "partial").mkdir()
+    (tmp_path / "partial" / "model_index.json").write_text("{}")
+    with pytest.raises(MissingModelError, match="component 'unet'.*partial/unet' does not exist"):
+        load_sdxl(tmp_path / "partial")
+    checkpoint = tmp_path / "sd_xl_base_1.0.safetensors"
+    checkpoint.write_bytes(b"")
+    with pytest.raises(
+        MissingModelError,
+        match=r"looked for '.*models--stabilityai--stable-diffusion-xl-base-1.0"
+        r".*huggingface-cli download stabilityai/stable-diffusion-xl-base-1.0",
+    ):
+        load_sdxl(checkpoint, hf_cache_dir=tmp_path / "empty_cache")
+
+
+def test_locate_explicit_path_then_hf_cache(tmp_path):
+    with pytest.raises(MissingModelError) as error:
+        locate(CSGO_WEIGHTS, tmp_path / "csgo_4_32.bin")
+    message = str(error.value)
+    assert "CSGO content/style weights" in message and str(tmp_path / "csgo_4_32.bin") in message
+    assert "https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin" in message
+    assert "huggingface-cli download InstantX/CSGO csgo_4_32.bin" in message
+    repo = tmp_path / "cache" / "models--h94--IP-Adapter"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("abc123\n")
+    target = repo / "snapshots" / "abc123" / "sdxl_models" / "image_encoder"
+    assert hf_cache_path(IMAGE_ENCODER, tmp_path / "cache") == target
+    with pytest.raises(MissingModelError, match="--include 'sdxl_models/image_encoder/\\*'"):
+        locate(IMAGE_ENCODER, hf_cache_dir=tmp_path / "cache")
+    target.mkdir(parents=True)
+    assert locate(IMAGE_ENCODER, hf_cache_dir=tmp_path / "cache") == target
+
+
+def test_controlnet_folder_and_single_files(tmp_path):
+    base = tiny_base()
+    controlnet = tiny_controlnet(base.unet)
+    controlnet.save_pretrained(tmp_path / "cn_folder")
+    assert _same_weights(load_controlnet(tmp_path / "cn_folder", dtype=torch.float32), controlnet)
+    # a single file with a config.json beside it
+    (tmp_path / "with_config").mkdir()
+    controlnet.save_config(tmp_path / "with_config")
+    save_file(controlnet.state_dict(), tmp_path / "with_config" / "tile.safetensors")
+    assert _same_weights(
+        load_controlnet(tmp_path / "with_config" / "tile.safetensors", dtype=torch.float32), controlnet
+    )
+    # a single file whose config comes from the UNet (the SDXL ControlNet architecture)
+    derived = ControlNetModel.from_unet(base.unet)
+    save_file(derived.state_dict(), tmp_path / "tile.safetensors")
+    loaded = load_controlnet(tmp_path / "tile.safetensors", unet_config=dict(base.unet.config), dtype=torch.float32)
+    assert _same_weights(loaded, derived)
+    with pytest.raises(MissingModelError, match="no config.json beside the file and no UNet config"):
+        load_controlnet(tmp_path / "tile.safetensors")
+    state = derived.state_dict()
+    state["conv_in.weights"] = state.pop("conv_in.weight")
+    save_file(state, tmp_path / "renamed.safetensors")
+    with pytest.raises(
+        ValueError,
+        match=r"renamed.safetensors' do not fit ControlNetModel: 1 missing keys "
+        r"\[conv_in.weight\], 1 unexpected keys \[conv_in.weights\]",
+    ):
+        load_controlnet(tmp_path / "renamed.safetensors", unet_config=dict(base.unet.config))
+
+
+def test_image_encoder_folder_and_single_file(tmp_path):
+    encoder = tiny_image_encoder()
+    encoder.save_pretrained(tmp_path / "image_encoder")
+    assert _same_weights(load_image_encoder(tmp_path / "image_encoder", dtype=torch.float32), encoder)
+    (tmp_path / "clip_vision").mkdir()
+    encoder.config.to_json_file(tmp_path / "clip_vision" / "config.json")
+    state = dict(encoder.state_dict())
+    state["vision_model.embeddings.position_ids"] = torch.arange(257)[None]  # as older files carry it
+    save_file(state, tmp_path / "clip_vision" / "model.safetensors")
+    loaded = load_image_encoder(tmp_path / "clip_vision" / "model.safetensors", dtype=torch.bfloat16)
+    assert loaded.dtype == torch.bfloat16 and _same_weights(loaded, encoder.to(torch.bfloat16))
+
+
+def test_vae_single_file_needs_its_config(tmp_path):
+    vae = tiny_base().vae
+    (tmp_path / "vae").mkdir()
+    save_file(vae.state_dict(), tmp_path / "vae" / "sdxl_vae.safetensors")
+    with pytest.raises(MissingModelError, match="no config.json beside the file"):
+        load_vae(tmp_path / "vae" / "sdxl_vae.safetensors")
+    vae.save_config(tmp_path / "vae")
+    loaded = load_vae(tmp_path / "vae" / "sdxl_vae.safetensors", dtype=torch.float16)
+    assert loaded.dtype == torch.float32 and _same_weights(loaded, vae)
+
+
+def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
+    folder, base = sdxl_folder
+    controlnet = tiny_controlnet(base.unet)
+    controlnet.save_pretrained(tmp_path / "controlnet")
+    tiny_image_encoder().save_pretrained(tmp_path / "image_encoder")
+    state = csgo_state(base.unet, controlnet, num_style_tokens=16)
+    write_csgo_file(tmp_path / "csgo.bin", state)
+    models = load_diffusion_models(
+        folder,
+        tmp_path / "controlnet",
+        tmp_path / "image_encoder",
+        tmp_path / "csgo.bin",
+        dtype=torch.float32,
+        hf_cache_dir=tmp_path / "no_cache",
+    )
+    assert models.csgo.num_content_tokens == 4 and models.csgo.num_style_tokens == 16
+    processors = list(models.base.unet.attn_processors.values())
+    assert torch.equal(processors[1].to_k_ip.weight, state["ip_adapter"]["1.to_k_ip.weight"])
+    with pytest.raises(MissingModelError, match="CSGO content/style weights .* not found"):
+        load_diffusion_models(
+            folder,
+            tmp_path / "controlnet",
+            tmp_path / "image_encoder",
+            None,
+            dtype=torch.float32,
+            hf_cache_dir=tmp_path / "no_cache",
+        )

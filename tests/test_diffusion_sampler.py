@@ -1,0 +1,209 @@
+"""Group sampler and scene stylization on tiny SDXL-architecture models (CPU, float32)."""
+
+import pytest
+import torch
+from diffusers import StableDiffusionXLControlNetPipeline
+from diffusers.models.attention_processor import AttnProcessor2_0
+
+from artnvg_core.cameras import CameraSet
+from artnvg_core.diffusion.conditioning import encode_prompt, prepare_conditioning
+from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
+from artnvg_core.diffusion.stylize import stylize_views
+from artnvg_core.grouping import group_views
+from artnvg_core.progress import Cancelled
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import tiny_models
+
+PROMPT, NEGATIVE = "a garden, oil painting", "blurry"
+
+
+def _images(count: int, height: int = 64, width: int = 64, seed: int = 0) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    return torch.rand(count, height, width, 3, generator=generator)
+
+
+@pytest.fixture(scope="module")
+def csgo_models(tmp_path_factory):
+    return tiny_models(tmp_path_factory.mktemp("csgo"))
+
+
+def _diffusers_reference(models, images, scheduler, steps, guidance, control_scale, seed):
+    base = models.base
+    saved = {name: dict(model.attn_processors) for name, model in (("unet", base.unet), ("cn", models.controlnet))}
+    base.unet.set_attn_processor(AttnProcessor2_0())
+    models.controlnet.set_attn_processor(AttnProcessor2_0())
+    pipe = StableDiffusionXLControlNetPipeline(
+        vae=base.vae,
+        text_encoder=base.text_encoder,
+        text_encoder_2=base.text_encoder_2,
+        tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2,
+        unet=base.unet,
+        controlnet=models.controlnet,
+        scheduler=SCHEDULERS[scheduler].from_config(base.scheduler_config),
+        add_watermarker=False,
+    )
+    pipe.set_progress_bar_config(disable=True)
+    try:
+        out = pipe(
+            prompt=[PROMPT] * len(images),
+            negative_prompt=[NEGATIVE] * len(images),
+            image=images.permute(0, 3, 1, 2),
+            height=images.shape[1],
+            width=images.shape[2],
+            num_inference_steps=steps,
+            guidance_scale=guidance,
+            controlnet_conditioning_scale=control_scale,
+            generator=torch.Generator().manual_seed(seed),
+            output_type="pt",
+        ).images
+    finally:
+        base.unet.set_attn_processor(saved["unet"])
+        models.controlnet.set_attn_processor(saved["cn"])
+    return out.permute(0, 2, 3, 1)
+
+
+@pytest.mark.parametrize("scheduler, guidance", [("ddim", 7.0), ("euler_ancestral", 5.0), ("ddim", 1.0)])
+def test_matches_diffusers_controlnet_pipeline(csgo_models, scheduler, guidance):
+    """NV attention off and CSGO scales 0: our sampler is diffusers' SDXL ControlNet pipeline."""
+    images = _images(3)
+    expected = _diffusers_reference(csgo_models, images, scheduler, 4, guidance, 0.8, seed=7)
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+    settings = SamplerSettings(
+        steps=4,
+        guidance_scale=guidance,
+        content_scale=0.0,
+        style_scale=0.0,
+        control_scale=0.8,
+        neighbour_views=False,
+        resolution=None,
+        scheduler=scheduler,
+    )
+    ours = stylize_group(csgo_models, images, conditioning, settings, seed=7)
+    assert ours.shape == (3, 64, 64, 3)
+    assert (ours - expected).abs().max().item() <= 1e-4
+
+
+def test_prompt_encoding_matches_diffusers(csgo_models):
+    base = csgo_models.base
+    pipe = StableDiffusionXLControlNetPipeline(
+        vae=base.vae,
+        text_encoder=base.text_encoder,
+        text_encoder_2=base.text_encoder_2,
+        tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2,
+        unet=base.unet,
+        controlnet=csgo_models.controlnet,
+        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config),
+        add_watermarker=False,
+    )
+    for negative in (NEGATIVE, None):
+        ours = encode_prompt(base, PROMPT, negative)
+        theirs = pipe.encode_prompt(PROMPT, device=torch.device("cpu"), negative_prompt=negative)
+        for a, b in zip((ours.text, ours.negative_text, ours.pooled, ours.negative_pooled), theirs):
+            assert torch.equal(a, b)
+    assert not encode_prompt(base, PROMPT, None).negative_text.any()
+
+
+def _run(models, images, seed=3, **changes):
+    settings = dict(steps=2, guidance_scale=5.0, resolution=None)
+    settings.update(changes)
+    conditioning = prepare_conditioning(models, _images(1, seed=9), PROMPT, NEGATIVE)
+    return stylize_group(models, images, conditioning, SamplerSettings(**settings), seed=seed)
+
+
+def test_switches_change_the_result(csgo_models):
+    images = _images(3)
+    base = _run(csgo_models, images, neighbour_views=False, content_scale=0.0, style_scale=0.0)
+    for change in ({"neighbour_views": True}, {"content_scale": 1.0}, {"style_scale": 0.6}):
+        settings = {"neighbour_views": False, "content_scale": 0.0, "style_scale": 0.0, **change}
+        assert (_run(csgo_models, images, **settings) - base).abs().max() > 1e-4, change
+    assert torch.equal(_run(csgo_models, images, neighbour_views=False, content_scale=0.0, style_scale=0.0), base)
+
+
+def test_single_view_group_ignores_nv_switch(csgo_models):
+    images = _images(1)
+    assert torch.equal(
+        _run(csgo_models, images, neighbour_views=True), _run(csgo_models, images, neighbour_views=False)
+    )
+
+
+def test_resizes_to_sdxl_size_and_back(csgo_models):
+    images = _images(2, height=50, width=90)
+    out = _run(csgo_models, images, resolution=64)
+    assert out.shape == (2, 50, 90, 3) and out.dtype == torch.float32
+    assert out.min() >= 0 and out.max() <= 1
+
+
+def test_progress_and_stop(csgo_models):
+    calls = []
+    conditioning = prepare_conditioning(csgo_models, _images(1), PROMPT, NEGATIVE)
+    settings = SamplerSettings(steps=3, resolution=None)
+    stylize_group(csgo_models, _images(2), conditioning, settings, progress=lambda s, t, info: calls.append((s, t)))
+    assert calls == [(1, 3), (2, 3), (3, 3)]
+    with pytest.raises(Cancelled):
+        stylize_group(
+            csgo_models,
+            _images(2),
+            conditioning,
+            settings,
+            should_stop=lambda: len(calls) >= 4,
+            progress=lambda s, t, info: calls.append((s, t)),
+        )
+    assert len(calls) == 4
+
+
+def test_bad_inputs_raise(csgo_models):
+    conditioning = prepare_conditioning(csgo_models, _images(1), PROMPT, NEGATIVE)
+    with pytest.raises(ValueError, match=r"content_images: expected an IMAGE batch \[B, H, W, 3\]"):
+        stylize_group(csgo_models, torch.rand(2, 3, 64, 64), conditioning)
+    with pytest.raises(ValueError, match="values must lie in \\[0, 1\\]"):
+        stylize_group(csgo_models, 2 * _images(2), conditioning)
+    with pytest.raises(ValueError, match="style_image is required"):
+        prepare_conditioning(csgo_models, None, PROMPT)
+    with pytest.raises(ValueError, match="scheduler must be one of"):
+        SamplerSettings(scheduler="magic")
+
+
+def _line_cameras(count: int) -> CameraSet:
+    world_to_cam = torch.eye(4).repeat(count, 1, 1)
+    world_to_cam[:, 0, 3] = -torch.arange(count, dtype=torch.float32)  # centres at x = 0, 1, 2, ...
+    intrinsics = torch.tensor([[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]]).repeat(count, 1, 1)
+    return CameraSet(
+        world_to_cam=world_to_cam,
+        intrinsics=intrinsics,
+        width=64,
+        height=64,
+        names=[f"v{i}" for i in range(count)],
+        image_paths=[None] * count,
+    )
+
+
+def test_scene_runs_groups_and_keeps_view_order(csgo_models):
+    """6 views on a line in 2 groups of 3: each view's output equals its group's own run (seed + group index)."""
+    images = _images(6)
+    order = torch.tensor([4, 0, 5, 2, 1, 3])  # shuffled capture order
+    cameras = _line_cameras(6)
+    cameras.world_to_cam = cameras.world_to_cam[order]
+    settings = SamplerSettings(steps=2, guidance_scale=5.0, resolution=None)
+    calls = []
+    out = stylize_views(
+        csgo_models,
+        images,
+        cameras,
+        _images(1, seed=9),
+        settings,
+        group_size=3,
+        seed=10,
+        prompt=PROMPT,
+        negative_prompt=NEGATIVE,
+        progress=lambda s, t, i: calls.append((s, t, i["group"])),
+    )
+    assert [c[:2] for c in calls] == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+    groups = [list(group.views) for group in group_views(cameras, 3)]
+    near = sorted(int(i) for i in torch.nonzero(order < 3))  # views whose centre is x in {0, 1, 2}
+    assert sorted(map(sorted, groups)) == sorted([near, sorted(set(range(6)) - set(near))])
+    for index, views in enumerate(groups):
+        expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=10 + index)
+        torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)

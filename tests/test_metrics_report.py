@@ -1,0 +1,139 @@
+"""The evaluate command end to end on a small real scene: floors, a perturbed scene, 2D stylized views."""
+
+import argparse
+import json
+
+import pytest
+import torch
+from PIL import Image
+
+from artnvg_core.__main__ import main
+from artnvg_core.cameras import load_cameras
+from artnvg_core.fileio import load_image, save_png
+from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
+from artnvg_core.metrics.report import add_evaluate_arguments, camera_path, load_view_images, render_views
+from artnvg_core.scene import load_scene, write_ply
+from artnvg_core.stylize import stylize_nnfm
+
+VIEWS = "0,1,2"
+SCALE = 0.125  # 64 x 64
+
+
+@pytest.fixture(scope="module")
+def inputs(shared_data, tmp_path_factory):
+    """The bear's 3k most opaque and largest Gaussians, a few NNFM iterations of it, tiny random
+    CLIP and CSD models, and the paths the command needs."""
+    from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+
+    folder = tmp_path_factory.mktemp("evaluate")
+    bear, style = shared_data / "scenes" / "bear", shared_data / "styles" / "starry.jpg"
+    scene = load_scene(bear / "scene.ply")
+    footprint = torch.sigmoid(scene.opacity_logits) * scene.log_scales.sort(dim=1).values[:, 1:].sum(1).exp()
+    scene = scene.select(footprint.topk(3_000).indices)
+    write_ply(scene, folder / "original.ply")
+    cameras = load_cameras(bear / "transforms.json").subset([0, 1, 2]).scaled(SCALE)
+    config = FinetuneConfig(iterations=10, lr_sh_dc=0.05, style_max_side=128)  # fast, visible colour change
+    write_ply(stylize_nnfm(scene, cameras, load_image(style, max_side=128), config), folder / "nnfm.ply")
+
+    torch.manual_seed(0)
+    clip_config = CLIPVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=4,
+                                   image_size=28, patch_size=7, projection_dim=8)
+    CLIPVisionModelWithProjection(clip_config).save_pretrained(folder / "clip")
+    torch.save(CSDStyleEncoder(CSDConfig(28, 7, 64, 1, 1, 8)).state_dict(), folder / "csd.pt")
+    return {"folder": folder, "cameras": bear / "transforms.json", "style": style,
+            "original": folder / "original.ply", "stylized": folder / "nnfm.ply"}
+
+
+def _evaluate(inputs, out, *options) -> dict:
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    args = parser.parse_args([
+        "--original", str(inputs["original"]), "--cameras", str(inputs["cameras"]), "--style", str(inputs["style"]),
+        "--views", VIEWS, "--scale", str(SCALE), "--frames", "3", "--long-step", "2", "--device", "cpu",
+        "--out", str(out), *options,
+    ])
+    return args.run(args)
+
+
+@pytest.fixture
+def no_cached_models(tmp_path, monkeypatch):
+    from huggingface_hub import constants
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))
+
+
+def test_scene_against_itself_reports_the_floors(inputs, capsys):
+    folder = inputs["folder"]
+    report = _evaluate(inputs, folder / "self" / "report.json", "--stylized", str(inputs["original"]),
+                       "--clip", str(folder / "clip"), "--csd", str(folder / "csd.pt"))
+    metrics = report["metrics"]
+    assert report["resolution"] == [64, 64] and report["view_indices"] == [0, 1, 2]
+    assert report["views"] == load_cameras(inputs["cameras"]).subset([0, 1, 2]).names
+    assert metrics["cfsd"]["per_view"] == [0.0, 0.0, 0.0] and metrics["cfsd"]["resolution"] == [64, 64]
+    warp = metrics["warp"]
+    assert warp["stylized"] == warp["floor"]
+    assert warp["floor"]["short"]["step"] == 1 and warp["floor"]["long"]["step"] == 2
+    assert warp["floor"]["short"]["rmse"] > 0 and warp["floor"]["short"]["coverage"] > 0.3
+    assert warp["params"] == {"alpha_threshold": 0.5, "depth_tolerance": 0.05}
+    assert metrics["csd"]["mean"] == pytest.approx(metrics["csd"]["original_mean"], abs=1e-6)
+    assert metrics["clip_dc"]["mean"] == pytest.approx(1.0, abs=1e-4)
+    assert metrics["clip_dc"]["sequence"] == "orbit path, 3 frames" and len(metrics["clip_dc"]["per_step"]) == 2
+
+    out = folder / "self"
+    assert json.loads((out / "report.json").read_text()) == json.loads(json.dumps(report))
+    with Image.open(out / "report_strip.png") as strip:
+        assert strip.height == 2 * 64 + 4 and strip.width > 3 * (64 + 4)
+    with Image.open(out / "report_preview.gif") as gif:
+        assert gif.n_frames == 3 and gif.size == (128, 64)
+    table = capsys.readouterr().out
+    assert "CFSD relu3_1 @ 64x64" in table and "original (floor)" in table and "CLIP-DC" in table
+
+
+def test_stylized_scene_and_its_2d_views(inputs, no_cached_models, tmp_path):
+    scene_report = _evaluate(inputs, tmp_path / "scene.json", "--stylized", str(inputs["stylized"]), "--path", "interp")
+    metrics = scene_report["metrics"]
+    assert metrics["cfsd"]["mean"] > 0
+    assert metrics["warp"]["stylized"]["short"]["rmse"] != metrics["warp"]["floor"]["short"]["rmse"]
+    assert metrics["csd"]["skipped"].startswith("no --csd given; CSD style descriptor weights (ViT-L/14) not found")
+    assert "huggingface-cli download openai/clip-vit-large-patch14" in metrics["clip_dc"]["skipped"]
+
+    # The same stylized views as 2D images (as the diffusion stage writes them) score the same,
+    # up to 8-bit quantisation.
+    cameras = load_cameras(inputs["cameras"]).subset([0, 1, 2]).scaled(SCALE)
+    views = render_views(load_scene(inputs["stylized"]), cameras).rgb
+    images = tmp_path / "views"
+    images.mkdir()
+    for name, view in zip(cameras.names, views):
+        save_png(view, images / f"{name}.png")
+    image_report = _evaluate(inputs, tmp_path / "images.json", "--stylized-images", str(images))
+    image_metrics = image_report["metrics"]
+    assert image_metrics["cfsd"]["mean"] == pytest.approx(metrics["cfsd"]["mean"], rel=0.02)
+    for label in ("short", "long"):
+        assert image_metrics["warp"]["stylized"][label]["rmse"] == pytest.approx(
+            metrics["warp"]["stylized"][label]["rmse"], abs=2e-3)
+    assert image_metrics["warp"]["floor"] == metrics["warp"]["floor"]
+
+
+def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
+    code = main(["evaluate", "--original", str(inputs["original"]), "--stylized-images", str(tmp_path / "none"),
+                 "--cameras", str(inputs["cameras"]), "--style", str(tmp_path / "missing.png")])
+    assert code == 2
+    assert "missing.png: image file not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--original", "a.ply", "--stylized", "b.ply", "--stylized-images", "c",
+              "--cameras", "t.json", "--style", "s.png"])
+
+
+def test_input_errors_name_the_problem(inputs, tmp_path):
+    cameras = load_cameras(inputs["cameras"]).subset([0, 1])
+    save_png(torch.zeros(8, 8, 3), tmp_path / f"{cameras.names[0]}.png")
+    with pytest.raises(ValueError, match=f"has no image for view {cameras.names[1]}"):
+        load_view_images(tmp_path, cameras)
+    with pytest.raises(ValueError, match="is not a folder"):
+        load_view_images(tmp_path / "nothing", cameras)
+    assert load_view_images(tmp_path, cameras.subset([0]).scaled(0.05)).shape == (1, 26, 26, 3)  # resized
+    with pytest.raises(ValueError, match="--path interp: needs at least 2"):
+        camera_path(cameras, [0], "interp", 10, 1.0)
+    with pytest.raises(ValueError, match="--frames: need at least 2"):
+        camera_path(cameras, [0, 1], "orbit", 1, 1.0)
