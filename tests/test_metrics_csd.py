@@ -65,6 +65,12 @@ def _released_checkpoint(state: dict, path) -> None:
                 "args": options, "fp16_scaler": None}, path)
 
 
+def _model_from(state: dict) -> CSDStyleEncoder:
+    model = CSDStyleEncoder(TINY).eval()
+    model.load_state_dict(state)
+    return model
+
+
 def _images(count: int) -> torch.Tensor:
     return torch.rand(count, 40, 36, 3, generator=torch.Generator().manual_seed(count))
 
@@ -87,13 +93,7 @@ def test_plain_safetensors_state_dict_loads(reference, tmp_path):
     save_file({k: v.contiguous() for k, v in state.items()}, str(tmp_path / "csd.safetensors"))
     model = load_csd(tmp_path / "csd.safetensors")
     images = _images(2)
-    torch.testing.assert_close(csd_descriptors(model, images), csd_descriptors(load_csd_from(state), images))
-
-
-def load_csd_from(state: dict) -> CSDStyleEncoder:
-    model = CSDStyleEncoder(TINY).eval()
-    model.load_state_dict(state)
-    return model
+    torch.testing.assert_close(csd_descriptors(model, images), csd_descriptors(_model_from(state), images))
 
 
 def test_scores_end_to_end_on_a_random_model():

@@ -12,7 +12,12 @@ from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
-from artnvg_core.metrics.report import add_evaluate_arguments, camera_path, load_view_images, render_views
+from artnvg_core.metrics.report import (
+    add_evaluate_arguments,
+    camera_path,
+    load_view_images,
+    render_views,
+)
 from artnvg_core.scene import load_scene, write_ply
 from artnvg_core.stylize import stylize_nnfm
 

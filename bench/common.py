@@ -1,0 +1,79 @@
+"""Shared helpers for the benchmarks: timing, memory, random scenes and cameras."""
+
+from __future__ import annotations
+
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from artnvg_core.cameras import CameraSet, look_at  # noqa: E402
+from artnvg_core.scene import GaussianScene  # noqa: E402
+
+
+def timed(fn, device: torch.device, repeats: int = 5, warmup: int = 2) -> float:
+    """Median wall time of ``fn()`` in seconds (synchronised on CUDA) after warm-up."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def peak_memory(fn, device: torch.device) -> float | None:
+    """Peak CUDA memory of ``fn()`` in GiB (None on CPU)."""
+    if device.type != "cuda":
+        fn()
+        return None
+    torch.cuda.synchronize(device)
+    torch.cuda.reset_peak_memory_stats(device)
+    base = torch.cuda.memory_allocated(device)
+    fn()
+    torch.cuda.synchronize(device)
+    return (torch.cuda.max_memory_allocated(device) - base) / 2**30
+
+
+def random_scene(n: int, *, seed: int = 0, degree: int = 3, device="cpu") -> GaussianScene:
+    """``n`` random Gaussians in a unit-radius ball, sized so that the ball is about covered."""
+    g = torch.Generator().manual_seed(seed)
+    radius = torch.rand(n, 1, generator=g) ** (1 / 3)
+    means = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * radius
+    mean_scale = 1.5 / n ** (1 / 3)
+    return GaussianScene(
+        means=means,
+        quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.log(mean_scale * torch.exp(0.5 * torch.randn(n, 3, generator=g))),
+        opacity_logits=torch.randn(n, generator=g),
+        sh=0.3 * torch.randn(n, (degree + 1) ** 2, 3, generator=g),
+    ).to(device)
+
+
+def orbit_cameras(count: int, size: int, distance: float = 3.0, fov_deg: float = 50.0) -> CameraSet:
+    """``count`` cameras on a circle of radius ``distance`` looking at the origin, ``size`` x ``size`` px."""
+    angles = torch.arange(count, dtype=torch.float64) * (2 * math.pi / max(count, 1))
+    eyes = torch.stack([distance * torch.sin(angles), -0.5 * torch.ones_like(angles), -distance * torch.cos(angles)], -1)
+    w2c = look_at(eyes, torch.zeros(count, 3, dtype=torch.float64), torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+    focal = 0.5 * size / math.tan(math.radians(fov_deg) / 2)
+    k = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]], dtype=torch.float32).expand(count, 3, 3)
+    return CameraSet(w2c.float(), k.clone(), size, size, [f"orbit_{i:03d}" for i in range(count)])
+
+
+def print_table(title: str, header: list[str], rows: list[list], command: str) -> None:
+    """A Markdown table with the command that produced it."""
+    print(f"\n### {title}\n\n`{command}`\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join("" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)) for v in row) + " |")
