@@ -9,28 +9,8 @@ from pathlib import Path
 
 import torch
 
+from .cliutil import parse_device, parse_view_indices
 from .metrics.report import add_evaluate_arguments
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available")
-    return torch.device(name)
-
-
-def _view_indices(text: str | None, count: int) -> list[int]:
-    if not text:
-        return list(range(count))
-    try:
-        indices = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
-    bad = [i for i in indices if not 0 <= i < count]
-    if bad:
-        raise ValueError(f"--views: indices {bad} out of range for {count} cameras")
-    return indices
 
 
 def cmd_render(args: argparse.Namespace) -> None:
@@ -39,10 +19,10 @@ def cmd_render(args: argparse.Namespace) -> None:
     from .raster import render
     from .scene import load_scene
 
-    device = _device(args.device)
+    device = parse_device(args.device)
     scene = load_scene(args.scene).to(device)
     cameras = load_cameras(args.cameras)
-    cameras = cameras.subset(_view_indices(args.views, len(cameras))).scaled(args.scale)
+    cameras = cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     print(f"{len(scene):,} Gaussians (SH degree {scene.sh_degree}), {len(cameras)} views at "
@@ -83,7 +63,14 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .fileio import load_image
     from .finetune import FinetuneConfig
     from .scene import load_scene
-    from .stylize import DemoInputs, ModelPaths, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
+    from .stylize import (
+        DemoInputs,
+        ModelPaths,
+        choose_stylizer,
+        save_result,
+        stylize_diffusion,
+        stylize_nnfm,
+    )
 
     given = [args.scene, args.cameras, args.style]
     if any(given) and not all(given):
@@ -95,7 +82,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
     iterations = args.iters if args.iters is not None else (200 if demo else 1000)
-    device = _device(args.device)
+    device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
     scene = load_scene(args.scene).to(device)

@@ -5,9 +5,10 @@ Loss per step, for one randomly chosen view (ArtNVG, Sec. 3.4):
     l1_weight * L1(render, stylized) + ssim_weight * (1 - SSIM(render, stylized))   [when stylized views are given]
   + nnfm_weight * NNFM(VGG(render), VGG(style image))
   + content_weight * relative feature MSE(VGG(render), VGG(original render))     [ARF's content term]
-  + tv_weight * total variation(render)
+  + tv_weight * total variation(render)                                          [when not]
 
-With no stylized views this is ARF's diffusion-free stylizer. The original
+Renders are clamped to [0, 1] before every term, as splatfacto does. With no
+stylized views this is ARF's diffusion-free stylizer. The original
 Gaussians are the starting point (not a fresh fit); no densification.
 """
 
@@ -31,8 +32,9 @@ APPEARANCE = ("sh", "opacity_logits")
 
 @dataclass
 class FinetuneConfig:
-    """Finetuning settings; defaults follow the paper (1,000 iterations) and
-    splatfacto's learning rates (means' rate is multiplied by the scene extent)."""
+    """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2,
+    NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by the
+    scene extent). ``content_weight`` and ``tv_weight`` apply only without stylized views."""
 
     iterations: int = 1000
     optimize: str = "appearance"
@@ -40,7 +42,7 @@ class FinetuneConfig:
     ssim_weight: float = 0.2
     nnfm_weight: float = 1.0
     content_weight: float = 0.5
-    tv_weight: float = 0.0
+    tv_weight: float = 0.01
     nnfm_layers: tuple[str, ...] = ("relu3_1", "relu3_2", "relu3_3")
     vgg: str = "vgg19"
     vgg_weights: str | None = None
@@ -174,7 +176,7 @@ def finetune(
     for step in range(config.iterations):
         check_stop(should_stop)
         view = int(torch.randint(len(cameras), (1,), generator=generator))
-        image = render(_scene_of(params), cameras.subset([view]), backend=config.backend).rgb
+        image = render(_scene_of(params), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
             target = stylized[view : view + 1]
@@ -190,7 +192,7 @@ def finetune(
             terms["content"] = config.content_weight * sum(
                 ((feats[k] - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
             ) / len(layers)
-        if config.tv_weight > 0:
+        if stylized is None and config.tv_weight > 0:
             terms["tv"] = config.tv_weight * _total_variation(image)
         loss = sum(terms.values()) if terms else image.sum() * 0
         optimizer.zero_grad(set_to_none=True)

@@ -1,28 +1,66 @@
-"""Pictures for people: comparison sheets of original vs stylized views."""
+"""Pictures for people: a comparison strip (PNG) and an animated preview (GIF).
+
+Images are float [H, W, 3] / [B, H, W, 3] in [0, 1]; files are written atomically.
+"""
 
 from __future__ import annotations
 
+import os
+
 import torch
+from PIL import Image
 
-from .fileio import resize_image
+from .fileio import resize_image, save_png, to_uint8, write_atomically
+
+GAP = 4  # white pixels between the tiles of a strip
 
 
-def comparison_sheet(originals: torch.Tensor, stylized: torch.Tensor, style_image: torch.Tensor, *, gap: int = 4) -> torch.Tensor:
-    """One image: a row of originals over a row of stylized views, the style image at the right.
+def evenly_spaced(count: int, limit: int) -> list[int]:
+    """At most ``limit`` indices spread evenly over ``range(count)``, first and last included."""
+    if count <= limit:
+        return list(range(count))
+    if limit == 1:
+        return [0]
+    return [round(k * (count - 1) / (limit - 1)) for k in range(limit)]
 
-    originals, stylized: [V, H, W, 3] in [0, 1], the same views in the same order.
-    style_image: [h, w, 3], scaled to the sheet's height (two rows) keeping its aspect.
-    Returns [2H + gap, V(W + gap) + style width, 3] on a white background.
+
+def comparison_strip(original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+    """One image: the original views on top, the stylized views below, the style image at the right.
+
+    original, stylized [V, H, W, 3]; style [h, w, 3], resized to the two rows' height (aspect kept).
+    Returns [2H + GAP, V (W + GAP) + w', 3] on a white background.
     """
-    if originals.shape != stylized.shape or originals.ndim != 4:
-        raise ValueError(f"comparison_sheet: originals {tuple(originals.shape)} and stylized {tuple(stylized.shape)} must match as [V, H, W, 3]")
-    views, height, width, _ = originals.shape
-    sheet_h = 2 * height + gap
-    style_w = max(1, round(style_image.shape[1] * sheet_h / style_image.shape[0]))
-    sheet = torch.ones(sheet_h, views * (width + gap) + style_w, 3)
+    if original.shape != stylized.shape or original.ndim != 4:
+        raise ValueError(f"comparison_strip: expected two [V, H, W, 3] batches of one shape, "
+                         f"got {tuple(original.shape)} and {tuple(stylized.shape)}")
+    views, height, width = original.shape[:3]
+    style_height = 2 * height + GAP
+    style_width = max(1, round(style.shape[1] * style_height / style.shape[0]))
+    style = resize_image(style.float().cpu(), style_height, style_width).clamp(0, 1)
+    canvas = torch.ones(style_height, views * (width + GAP) + style_width, 3)
     for v in range(views):
-        x = v * (width + gap)
-        sheet[:height, x : x + width] = originals[v].detach().float().cpu().clamp(0, 1)
-        sheet[height + gap :, x : x + width] = stylized[v].detach().float().cpu().clamp(0, 1)
-    sheet[:, views * (width + gap) :] = resize_image(style_image.detach().float().cpu(), sheet_h, style_w).clamp(0, 1)
-    return sheet
+        left = v * (width + GAP)
+        canvas[:height, left:left + width] = original[v].float().cpu().clamp(0, 1)
+        canvas[height + GAP:, left:left + width] = stylized[v].float().cpu().clamp(0, 1)
+    canvas[:, views * (width + GAP):] = style
+    return canvas
+
+
+def save_strip(original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor, path: str | os.PathLike) -> None:
+    """Write :func:`comparison_strip` as a PNG."""
+    save_png(comparison_strip(original, stylized, style), path)
+
+
+def save_gif(frames: torch.Tensor, path: str | os.PathLike, *, fps: float = 12.0) -> None:
+    """Write frames [F, H, W, 3] as a looping animated GIF (Pillow, adaptive palette per frame)."""
+    if frames.ndim != 4 or frames.shape[0] < 1 or frames.shape[-1] != 3:
+        raise ValueError(f"save_gif: expected frames [F, H, W, 3] with F >= 1, got {tuple(frames.shape)}")
+    if not fps > 0:
+        raise ValueError(f"save_gif: fps must be positive, got {fps}")
+    images = [Image.fromarray(to_uint8(frame)) for frame in frames]
+    duration = max(20, round(1000 / fps))  # ms per frame; browsers clamp shorter delays
+
+    def write(stream) -> None:
+        images[0].save(stream, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
+
+    write_atomically(path, write)

@@ -18,7 +18,7 @@ import torch
 from .cameras import CameraSet
 from .fileio import save_png
 from .finetune import FinetuneConfig, finetune
-from .preview import comparison_sheet
+from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import GaussianScene, write_ply
@@ -45,12 +45,11 @@ def sheet_path(out_ply: str | Path) -> Path:
 def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                   views: int = 4, backend: str = "auto") -> torch.Tensor:
     """Original vs stylized renders of ``views`` evenly spaced cameras, plus the style image."""
-    picks = sorted({round(i * (len(cameras) - 1) / max(views - 1, 1)) for i in range(min(views, len(cameras)))})
-    subset = cameras.subset(picks)
+    subset = cameras.subset(evenly_spaced(len(cameras), views))
     with torch.no_grad():
         before = render(original, subset, backend=backend).rgb
         after = render(stylized, subset, backend=backend).rgb
-    return comparison_sheet(before, after, style_image)
+    return comparison_strip(before, after, style_image)
 
 
 def stylize_nnfm(
@@ -78,7 +77,14 @@ class ModelPaths:
 
 def find_diffusion_models(paths: ModelPaths) -> str | None:
     """None when every diffusion model file is found, else the first missing one's message."""
-    from .diffusion.model_files import CSGO_WEIGHTS, IMAGE_ENCODER, SDXL_BASE, TILE_CONTROLNET, MissingModelError, locate
+    from .diffusion.model_files import (
+        CSGO_WEIGHTS,
+        IMAGE_ENCODER,
+        SDXL_BASE,
+        TILE_CONTROLNET,
+        MissingModelError,
+        locate,
+    )
 
     sources = ((SDXL_BASE, paths.sdxl), (TILE_CONTROLNET, paths.controlnet), (IMAGE_ENCODER, paths.image_encoder),
                (CSGO_WEIGHTS, paths.csgo))

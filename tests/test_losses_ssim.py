@@ -92,3 +92,11 @@ def test_bad_input_raises():
         ssim(a[0], a[0])
     with pytest.raises(ValueError, match="odd"):
         ssim(a, a, window_size=4)
+
+
+def test_gradient_is_exactly_zero_for_identical_images():
+    """Adam normalises step sizes, so even rounding noise would move parameters."""
+    x = torch.rand(2, 3, 24, 20, generator=torch.Generator().manual_seed(3))
+    a = x.clone().requires_grad_(True)
+    (1 - ssim(a, x)).backward()
+    assert torch.count_nonzero(a.grad) == 0

@@ -4,6 +4,15 @@ Per channel, local statistics under an 11x11 Gaussian window (sigma 1.5) with ze
 (output the same size as the input), C1 = 0.01^2, C2 = 0.03^2 (data range 1), averaged over
 the SSIM map. The 2D window is separable, so it is applied as two 1D passes (same result).
 Computed in float32 whatever the input dtype or autocast state.
+
+The map is written in the equivalent form (l, cs as in the textbook formula)
+
+    l  = 1 - (mu_a - mu_b)^2 / (mu_a^2 + mu_b^2 + C1)
+    cs = 1 - var(a - b) / (var_a + var_b + C2)
+
+(2 mu_a mu_b = mu_a^2 + mu_b^2 - (mu_a - mu_b)^2, and likewise for the covariance), whose
+gradient is exactly zero for identical images: the textbook form leaves rounding noise
+there, which Adam's normalised steps would turn into full-size parameter updates.
 """
 
 from __future__ import annotations
@@ -48,12 +57,12 @@ def ssim(
         a, b = a.float(), b.float()
         window = gaussian_window_1d(window_size, sigma).to(a.device)
         channels = a.shape[1]
-        stats = _blur(torch.cat([a, b, a * a, b * b, a * b], dim=1), window)
-        mu_a, mu_b, mean_aa, mean_bb, mean_ab = stats.split(channels, dim=1)
+        diff = a - b
+        stats = _blur(torch.cat([a, b, a * a, b * b, diff, diff * diff], dim=1), window)
+        mu_a, mu_b, mean_aa, mean_bb, mu_diff, mean_diff_sq = stats.split(channels, dim=1)
         var_a = mean_aa - mu_a.square()
         var_b = mean_bb - mu_b.square()
-        cov = mean_ab - mu_a * mu_b
-        ssim_map = ((2 * mu_a * mu_b + C1) * (2 * cov + C2)) / (
-            (mu_a.square() + mu_b.square() + C1) * (var_a + var_b + C2)
-        )
+        luminance = 1 - mu_diff.square() / (mu_a.square() + mu_b.square() + C1)
+        contrast_structure = 1 - (mean_diff_sq - mu_diff.square()) / (var_a + var_b + C2)
+        ssim_map = luminance * contrast_structure
     return ssim_map.flatten(1).mean(1) if per_image else ssim_map.mean()

@@ -4,7 +4,6 @@
 - :mod:`.warp`    -- ``warp_consistency``: weight-free multi-view consistency via depth reprojection
 - :mod:`.clip_dc` -- ``clip_dc_scores``: CLIP direction consistency along a camera path (CLIP weights needed)
 - :mod:`.csd`     -- ``csd_scores``: CSD style similarity to the style image (CSD weights needed)
-- :mod:`.visuals` -- comparison strip PNG and animated GIF preview
 - :mod:`.report`  -- the ``evaluate`` command (``add_evaluate_arguments`` / ``run_evaluate``)
 """
 
@@ -24,7 +23,6 @@ from .csd import (
     csd_scores,
     load_csd,
 )
-from .visuals import comparison_strip, save_gif, save_strip
 from .warp import WarpConsistency, reproject, warp_consistency
 
 __all__ = [
@@ -37,14 +35,11 @@ __all__ = [
     "cfsd_scores",
     "clip_dc_scores",
     "clip_image_embeddings",
-    "comparison_strip",
     "csd_descriptors",
     "csd_scores",
     "direction_consistency",
     "load_clip_image_encoder",
     "load_csd",
     "reproject",
-    "save_gif",
-    "save_strip",
     "warp_consistency",
 ]

@@ -27,14 +27,15 @@ from pathlib import Path
 import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
+from ..cliutil import parse_device, parse_view_indices
 from ..diffusion.model_files import MissingModelError
 from ..fileio import load_image, resize_image, write_atomically
+from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput, render
 from ..scene import load_scene
 from .cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
 from .clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
 from .csd import CSD_WEIGHTS, csd_scores, load_csd
-from .visuals import evenly_spaced, save_gif, save_strip
 from .warp import warp_consistency
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
@@ -68,29 +69,6 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha-threshold", type=float, default=0.5, help="warp co-visibility alpha threshold (default 0.5)")
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     parser.set_defaults(run=run_evaluate)
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu; ``cuda`` without a GPU is a ValueError."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available")
-    return torch.device(name)
-
-
-def parse_view_indices(text: str | None, count: int) -> list[int]:
-    """Indices from ``--views`` text such as ``0,5,9`` (default: all ``count`` views)."""
-    if not text:
-        return list(range(count))
-    try:
-        indices = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
-    bad = [i for i in indices if not 0 <= i < count]
-    if bad or not indices:
-        raise ValueError(f"--views: indices {bad or text!r} out of range for {count} cameras")
-    return indices
 
 
 # --------------------------------------------------------------------------- inputs
@@ -248,7 +226,7 @@ def _write_pictures(out: Path, original: torch.Tensor, stylized: torch.Tensor, s
 
 def run_evaluate(args: argparse.Namespace) -> dict:
     """Run the ``evaluate`` command (see the module docstring); returns the report dict."""
-    device = resolve_device(args.device)
+    device = parse_device(args.device)
     if args.long_step < 1:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
     all_cameras = load_cameras(args.cameras)
