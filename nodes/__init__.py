@@ -1,0 +1,40 @@
+"""ComfyUI nodes of the ArtNVG pack: thin adapters over ``artnvg_core``.
+
+Public contract: node type names (the keys of :data:`NODE_CLASS_MAPPINGS`), and each
+node's inputs and their order (saved workflows store widget values by position) and
+outputs. Add new inputs only at the end of a node's ``optional`` inputs.
+"""
+
+from __future__ import annotations
+
+from .camera_nodes import GroupNeighbouringViews, LoadCameras
+from .comfy_bridge import register_model_folder
+from .diffusion_nodes import (
+    CSGO_EXTENSIONS,
+    CSGO_FOLDER,
+    CSGOEncode,
+    LoadArtNVGModels,
+    NVAttentionPatch,
+    SampleGroup,
+)
+from .finetune_nodes import FinetuneGaussians
+from .render_nodes import RenderCameraPath, RenderViews
+from .scene_nodes import LoadGaussianScene, SaveGaussianScene
+
+register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
+
+NODE_CLASS_MAPPINGS = {
+    "ArtNVGLoadGaussianScene": LoadGaussianScene,
+    "ArtNVGLoadCameras": LoadCameras,
+    "ArtNVGRenderViews": RenderViews,
+    "ArtNVGRenderCameraPath": RenderCameraPath,
+    "ArtNVGGroupNeighbouringViews": GroupNeighbouringViews,
+    "ArtNVGLoadModels": LoadArtNVGModels,
+    "ArtNVGCSGOEncode": CSGOEncode,
+    "ArtNVGNVAttentionPatch": NVAttentionPatch,
+    "ArtNVGSampleGroup": SampleGroup,
+    "ArtNVGFinetuneGaussians": FinetuneGaussians,
+    "ArtNVGSaveGaussianScene": SaveGaussianScene,
+}
+
+NODE_DISPLAY_NAME_MAPPINGS = {name: node.DISPLAY_NAME for name, node in NODE_CLASS_MAPPINGS.items()}

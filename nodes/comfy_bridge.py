@@ -1,0 +1,166 @@
+"""The pack's only contact with ComfyUI's own modules, each imported lazily and optionally.
+
+Inside ComfyUI this uses ``folder_paths`` (input/output/model folders),
+``comfy.utils.ProgressBar`` (the node's progress bar) and ``comfy.model_management``
+(the user's interrupt, and the compute device); it also lifts the ``torch.inference_mode``
+under which ComfyUI runs every node, for nodes that need gradients. Without ComfyUI
+(tests, scripts) every function falls back: the input and output folders are ``./input``
+and ``./output`` of the working directory (ComfyUI's own layout), model folders are empty,
+no progress is shown, nothing is interrupted and the device is CUDA when available, else the CPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+from artnvg_core.progress import Cancelled, ProgressFn
+
+
+def comfy_module(name: str) -> ModuleType | None:
+    """ComfyUI's module ``name`` (e.g. ``folder_paths``), or None outside ComfyUI."""
+    try:
+        return importlib.import_module(name)
+    except ImportError:
+        return None
+
+
+# --------------------------------------------------------------------------- folders
+
+
+def input_directory() -> Path:
+    """ComfyUI's input folder (``./input`` without ComfyUI)."""
+    folder_paths = comfy_module("folder_paths")
+    return Path(folder_paths.get_input_directory()) if folder_paths else Path.cwd() / "input"
+
+
+def output_directory() -> Path:
+    """ComfyUI's output folder (``./output`` without ComfyUI)."""
+    folder_paths = comfy_module("folder_paths")
+    return Path(folder_paths.get_output_directory()) if folder_paths else Path.cwd() / "output"
+
+
+def register_model_folder(name: str, extensions: set[str]) -> None:
+    """Make ``models/<name>`` a ComfyUI model folder listing files with ``extensions``.
+
+    Keeps any paths the user already configured for ``name`` (extra_model_paths.yaml).
+    """
+    folder_paths = comfy_module("folder_paths")
+    if folder_paths is None:
+        return
+    default = os.path.join(folder_paths.models_dir, name)
+    if name in folder_paths.folder_names_and_paths:
+        paths, known = folder_paths.folder_names_and_paths[name]
+        if default not in paths:
+            paths.append(default)
+        folder_paths.folder_names_and_paths[name] = (paths, set(known) | extensions)
+    else:
+        folder_paths.folder_names_and_paths[name] = ([default], set(extensions))
+
+
+def model_files(folder: str) -> list[str]:
+    """File names in ComfyUI's model folder ``folder`` (``checkpoints``, ``csgo``...); [] without ComfyUI
+    or when ``folder`` is not a registered model folder."""
+    folder_paths = comfy_module("folder_paths")
+    if folder_paths is None or folder not in folder_paths.folder_names_and_paths:
+        return []
+    return list(folder_paths.get_filename_list(folder))
+
+
+def model_folder_paths(folder: str) -> list[str]:
+    """The folders ComfyUI searches for model folder ``folder``; [] without ComfyUI or when it is not registered."""
+    folder_paths = comfy_module("folder_paths")
+    if folder_paths is None or folder not in folder_paths.folder_names_and_paths:
+        return []
+    return list(folder_paths.get_folder_paths(folder))
+
+
+def model_file_path(folder: str, name: str) -> Path | None:
+    """The full path of ``name`` in ComfyUI's model folder ``folder``, or None when it is not there."""
+    folder_paths = comfy_module("folder_paths")
+    path = folder_paths.get_full_path(folder, name) if folder_paths else None
+    return Path(path) if path else None
+
+
+# --------------------------------------------------------------------------- device
+
+
+def compute_device() -> torch.device:
+    """ComfyUI's torch device (honours ``--cpu``); without ComfyUI, CUDA when available, else the CPU."""
+    model_management = comfy_module("comfy.model_management")
+    if model_management is not None:
+        return torch.device(model_management.get_torch_device())
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+# --------------------------------------------------------------------------- autograd
+
+
+@contextmanager
+def autograd_enabled():
+    """Gradients inside a node: ComfyUI runs every node under ``torch.inference_mode()``."""
+    with torch.inference_mode(False), torch.enable_grad():
+        yield
+
+
+def trainable_copy(value):
+    """A copy of dataclass ``value`` (a scene, a camera set) whose tensors autograd may use.
+
+    Call inside :func:`autograd_enabled`: tensors made under inference mode (every node
+    output in ComfyUI) cannot be saved for backward, their clones made outside it can.
+    """
+    clones = {f.name: getattr(value, f.name).clone() for f in dataclasses.fields(value)
+              if isinstance(getattr(value, f.name), torch.Tensor)}
+    return dataclasses.replace(value, **clones)
+
+
+# --------------------------------------------------------------------------- progress and interrupt
+
+
+def progress_bar() -> ProgressFn | None:
+    """A core ``ProgressFn`` that drives the running node's progress bar; None without ComfyUI."""
+    utils = comfy_module("comfy.utils")
+    if utils is None:
+        return None
+    bar = None
+
+    def report(step: int, total: int, info: dict) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = utils.ProgressBar(total)
+        bar.update_absolute(step, total)
+
+    return report
+
+
+def interrupt_requested() -> bool:
+    """Whether the user pressed Cancel (ComfyUI's interrupt); a core ``StopFn``. False without ComfyUI."""
+    model_management = comfy_module("comfy.model_management")
+    return bool(model_management and model_management.processing_interrupted())
+
+
+def cancellable(function):
+    """Decorate a node function so a core :class:`Cancelled` becomes ComfyUI's interrupt.
+
+    ComfyUI then reports the run as interrupted (not failed) and clears the request.
+    Without a pending ComfyUI interrupt the ``Cancelled`` propagates unchanged.
+    """
+
+    @functools.wraps(function)
+    def run(*args, **kwargs):
+        try:
+            return function(*args, **kwargs)
+        except Cancelled:
+            model_management = comfy_module("comfy.model_management")
+            if model_management is not None:
+                model_management.throw_exception_if_processing_interrupted()
+            raise
+
+    return run

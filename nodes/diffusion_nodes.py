@@ -1,0 +1,319 @@
+"""Load ArtNVG Models, CSGO Style/Content Encode, NV-Attention Patch Model and Sample Group.
+
+The ``ARTNVG_MODELS`` value is a :class:`LoadedModels`: the core's ``DiffusionModels`` plus
+where they run, whether they stay there between runs, and whether neighbouring-view
+attention is on (off until NV-Attention Patch Model turns it on).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from artnvg_core.diffusion.conditioning import prepare_conditioning
+from artnvg_core.diffusion.model_files import (
+    CSGO_WEIGHTS,
+    IMAGE_ENCODER,
+    SDXL_BASE,
+    TILE_CONTROLNET,
+    ModelSource,
+    locate,
+)
+from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
+from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
+from artnvg_core.diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT
+
+from .comfy_bridge import (
+    cancellable,
+    comfy_module,
+    compute_device,
+    interrupt_requested,
+    model_file_path,
+    model_files,
+    model_folder_paths,
+    progress_bar,
+)
+from .node_errors import NodeInputError, node_input
+from .node_types import CATEGORY, EMBEDS, GROUPS, IMAGE, MODELS
+
+CSGO_FOLDER = "csgo"
+CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
+HF_CACHE = "(huggingface cache)"
+DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32}
+DEVICES = ("auto", "cpu", "cuda")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelInput:
+    """One model of the loader: list input ``name`` over ComfyUI model ``folder``, text input ``<name>_path``."""
+
+    name: str
+    folder: str
+    source: ModelSource
+
+    @property
+    def path_input(self) -> str:
+        return f"{self.name}_path"
+
+
+MODEL_INPUTS = (
+    ModelInput("sdxl_checkpoint", "checkpoints", SDXL_BASE),
+    ModelInput("controlnet", "controlnet", TILE_CONTROLNET),
+    ModelInput("image_encoder", "clip_vision", IMAGE_ENCODER),
+    ModelInput("csgo_weights", CSGO_FOLDER, CSGO_WEIGHTS),
+)
+
+
+def _model_path(node: str, model: ModelInput, listed: str, path: str) -> Path:
+    """The existing file or folder for ``model``: ``path`` when not blank, else the listed file, else
+    (``HF_CACHE``) the Hugging Face cache. Raises NodeInputError saying where it looked and where to get it."""
+    if path.strip():
+        with node_input(node, model.path_input):
+            return locate(model.source, path.strip())
+    if listed == HF_CACHE:
+        with node_input(node, model.name):
+            return locate(model.source, None)
+    found = model_file_path(model.folder, listed)
+    if found is None:
+        folders = ", ".join(model_folder_paths(model.folder)) or f"ComfyUI's models/{model.folder}"
+        raise NodeInputError(
+            f"{node}: input '{model.name}': {model.source.description} '{listed}' not found in the "
+            f"'{model.folder}' model folder ({folders}). Get it from {model.source.url} and put it there."
+        )
+    return found
+
+
+def _model_paths(node: str, listed: tuple[str, ...], overrides: tuple[str, ...]) -> list[Path]:
+    """:func:`_model_path` of every entry of :data:`MODEL_INPUTS`, given their list and path inputs in that order."""
+    return [_model_path(node, model, name, path) for model, name, path in zip(MODEL_INPUTS, listed, overrides)]
+
+
+@dataclasses.dataclass
+class LoadedModels:
+    """The ``ARTNVG_MODELS`` value (see the module docstring)."""
+
+    models: DiffusionModels
+    device: torch.device
+    keep_loaded: bool
+    neighbour_views: bool = False
+
+
+def _move(value, device: torch.device) -> None:
+    """Move every torch module held by ``value`` (a dataclass, possibly nested) to ``device``."""
+    for field in dataclasses.fields(value):
+        member = getattr(value, field.name)
+        if isinstance(member, torch.nn.Module):
+            member.to(device)
+        elif dataclasses.is_dataclass(member):
+            _move(member, device)
+
+
+@contextmanager
+def models_on_device(loaded: LoadedModels):
+    """The models on their compute device for the block; afterwards back on the CPU unless ``keep_loaded``."""
+    if not loaded.keep_loaded:
+        _move(loaded.models, loaded.device)
+    try:
+        yield loaded.models
+    finally:
+        if not loaded.keep_loaded:
+            _move(loaded.models, torch.device("cpu"))
+            model_management = comfy_module("comfy.model_management")
+            if model_management is not None:
+                model_management.soft_empty_cache()
+
+
+class LoadArtNVGModels:
+    """SDXL 1.0 base, the TTPlanet tile ControlNet, the IP-Adapter SDXL image encoder and CSGO weights.
+
+    Each model comes from its ComfyUI model folder, from the Hugging Face cache, or from the
+    path typed into its ``*_path`` input (a file or a diffusers/transformers folder).
+    """
+
+    DISPLAY_NAME = "Load ArtNVG Models"
+    CATEGORY = CATEGORY
+    FUNCTION = "load"
+    RETURN_TYPES = (MODELS,)
+    RETURN_NAMES = ("models",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        required = {
+            model.name: ([HF_CACHE, *model_files(model.folder)], {"tooltip": (
+                f"{model.source.description}: a file in models/{model.folder}, or {HF_CACHE} ({model.source.url}).")})
+            for model in MODEL_INPUTS
+        }
+        required["dtype"] = (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."})
+        required["device"] = (DEVICES, {"default": "auto", "tooltip": "auto: ComfyUI's device."})
+        required["keep_loaded"] = ("BOOLEAN", {"default": True, "tooltip": (
+            "Keep the models on the device between runs; off moves them to the CPU after each node.")})
+        optional = {
+            model.path_input: ("STRING", {"default": "", "tooltip": f"Path overriding {model.name} when not blank."})
+            for model in MODEL_INPUTS
+        }
+        optional["sdxl_config_dir"] = ("STRING", {"default": "", "tooltip": (
+            "A diffusers-format SDXL folder (model_index.json, configs, tokenizers) for a single-file "
+            "checkpoint; blank: stabilityai/stable-diffusion-xl-base-1.0 from the Hugging Face cache.")})
+        return {"required": required, "optional": optional}
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
+                        sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path=""):
+        try:
+            _model_paths(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
+                         (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+        except NodeInputError as error:
+            return str(error)
+        return True
+
+    def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
+             sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
+             sdxl_config_dir=""):
+        paths = _model_paths(self.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
+                             (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+        if device == "cuda" and not torch.cuda.is_available():
+            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'device': cuda was chosen but no CUDA device is available")
+        target = compute_device() if device == "auto" else torch.device(device)
+        with node_input(self.DISPLAY_NAME):
+            models = load_diffusion_models(
+                *paths, sdxl_config_dir=sdxl_config_dir.strip() or None, dtype=DTYPES[dtype],
+                device=target if keep_loaded else "cpu",
+            )
+        return (LoadedModels(models, target, keep_loaded),)
+
+
+class NVAttentionPatch:
+    """Turn neighbouring-view attention on: every view of a group attends to all views of the group."""
+
+    DISPLAY_NAME = "NV-Attention Patch Model"
+    CATEGORY = CATEGORY
+    FUNCTION = "patch"
+    RETURN_TYPES = (MODELS,)
+    RETURN_NAMES = ("models",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "models": (MODELS,),
+                "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: each view attends only to itself."}),
+            },
+        }
+
+    def patch(self, models, enabled):
+        return (dataclasses.replace(models, neighbour_views=enabled),)
+
+
+class CSGOEncode:
+    """Encode the style image (CSGO style tokens) and the prompt, shared by every group.
+
+    Content tokens come from each view's content image and are encoded by Sample Group.
+    """
+
+    DISPLAY_NAME = "CSGO Style/Content Encode"
+    CATEGORY = CATEGORY
+    FUNCTION = "encode"
+    RETURN_TYPES = (EMBEDS,)
+    RETURN_NAMES = ("embeds",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "models": (MODELS,),
+                "style_image": (IMAGE, {"tooltip": "The style reference (first image of the batch)."}),
+                "prompt": ("STRING", {"default": DEFAULT_PROMPT, "multiline": True}),
+                "negative_prompt": ("STRING", {"default": DEFAULT_NEGATIVE_PROMPT, "multiline": True, "tooltip": (
+                    "Blank: zero negative embeddings (SDXL's default for an empty negative prompt).")}),
+            },
+        }
+
+    def encode(self, models, style_image, prompt, negative_prompt):
+        with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
+            return (prepare_conditioning(diffusion, style_image[:1], prompt, negative_prompt.strip() or None),)
+
+
+class SampleGroup:
+    """Stylize the content views group by group (or one chosen group) with CSGO control.
+
+    Returns the stylized IMAGE batch in view order: every view, or the chosen group's views.
+    Group g is sampled with seed + g, so one group alone matches its part of a full run.
+    """
+
+    DISPLAY_NAME = "Sample Group"
+    CATEGORY = CATEGORY
+    FUNCTION = "sample"
+    RETURN_TYPES = (IMAGE,)
+    RETURN_NAMES = ("stylized_views",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        defaults = SamplerSettings()
+
+        def scale(default, tooltip):
+            return ("FLOAT", {"default": default, "min": 0.0, "max": 10.0, "step": 0.05, "tooltip": tooltip})
+
+        return {
+            "required": {
+                "models": (MODELS,),
+                "embeds": (EMBEDS,),
+                "content_views": (IMAGE, {"tooltip": "Rendered views, in the cameras' order (from Render Views)."}),
+                "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
+                "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
+                    "-1: every group; otherwise only this group (0-based).")}),
+                "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
+                "steps": ("INT", {"default": defaults.steps, "min": 1, "max": 1000}),
+                "guidance_scale": ("FLOAT", {"default": defaults.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
+                "content_scale": scale(defaults.content_scale, "Weight of the CSGO content tokens (down blocks)."),
+                "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
+                "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
+                "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
+                    "Sampling size: the side of a square of equal area (1024 for SDXL); 0 keeps the views' size.")}),
+                "scheduler": (tuple(SCHEDULERS), {"default": defaults.scheduler}),
+            },
+        }
+
+    @cancellable
+    def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
+               content_scale, style_scale, control_scale, resolution, scheduler):
+        if len(content_views) != groups.num_views:
+            raise NodeInputError(
+                f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
+                f"{groups.num_views} cameras; render and group the same cameras"
+            )
+        if not -1 <= group_index < len(groups):
+            raise NodeInputError(
+                f"{self.DISPLAY_NAME}: input 'group_index': {group_index} is out of range for {len(groups)} groups"
+            )
+        with node_input(self.DISPLAY_NAME):
+            settings = SamplerSettings(
+                steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
+                control_scale=control_scale, neighbour_views=models.neighbour_views,
+                resolution=resolution or None, scheduler=scheduler,
+            )
+        chosen = range(len(groups)) if group_index < 0 else [group_index]
+        report = progress_bar()
+        output = content_views.clone()
+        with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
+            for done, index in enumerate(chosen):
+                group = groups[index]
+
+                def group_progress(step, total, info, done=done):
+                    if report is not None:
+                        report(done * total + step, len(chosen) * total, info)
+
+                stylized = stylize_group(
+                    diffusion, content_views[list(group.all_views)], embeds, settings, seed=seed + index,
+                    progress=group_progress, should_stop=interrupt_requested,
+                )
+                output[list(group.views)] = stylized[: len(group.views)]
+        if group_index >= 0:
+            output = output[list(groups[group_index].views)]
+        return (output,)

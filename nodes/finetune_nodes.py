@@ -1,0 +1,77 @@
+"""Finetune Gaussians: the scene's appearance toward stylized views (optional) and a style image."""
+
+from __future__ import annotations
+
+from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, finetune
+
+from .comfy_bridge import (
+    autograd_enabled,
+    cancellable,
+    compute_device,
+    interrupt_requested,
+    progress_bar,
+    trainable_copy,
+)
+from .node_errors import node_input
+from .node_types import CAMERAS, CATEGORY, IMAGE, SCENE
+
+_DEFAULTS = FinetuneConfig()
+
+
+def _weight(default: float, tooltip: str) -> tuple:
+    return ("FLOAT", {"default": default, "min": 0.0, "max": 1000.0, "step": 0.01, "tooltip": tooltip})
+
+
+class FinetuneGaussians:
+    """Finetune the original Gaussians so their renders take on the style.
+
+    With stylized views (in the cameras' order, e.g. from Sample Group) the loss is
+    0.8 L1 + 0.2 (1 - SSIM) to them plus NNFM to the style image; without them it is the
+    NNFM-only stylizer (plus a content term that keeps the scene recognisable).
+    """
+
+    DISPLAY_NAME = "Finetune Gaussians"
+    CATEGORY = CATEGORY
+    FUNCTION = "finetune"
+    RETURN_TYPES = (SCENE,)
+    RETURN_NAMES = ("scene",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene": (SCENE,),
+                "cameras": (CAMERAS, {"tooltip": "Training views, rendered at their own size (e.g. from Render Views)."}),
+                "style_image": (IMAGE, {"tooltip": "The style reference (first image of the batch)."}),
+                "iterations": ("INT", {"default": _DEFAULTS.iterations, "min": 0, "max": 100000, "tooltip": (
+                    "Optimisation steps, one random view each (the paper uses 1,000).")}),
+                "optimize": (OPTIMIZE_CHOICES, {"default": _DEFAULTS.optimize, "tooltip": (
+                    "appearance: colours and opacities only; all: geometry too.")}),
+                "l1_weight": _weight(_DEFAULTS.l1_weight, "L1 to the stylized views (only with stylized_views)."),
+                "ssim_weight": _weight(_DEFAULTS.ssim_weight, "1 - SSIM to the stylized views (only with stylized_views)."),
+                "nnfm_weight": _weight(_DEFAULTS.nnfm_weight, "Nearest-neighbour VGG feature match to the style image."),
+                "content_weight": _weight(_DEFAULTS.content_weight, (
+                    "VGG feature match to the original renders (only without stylized_views).")),
+                "tv_weight": _weight(_DEFAULTS.tv_weight, "Total variation of the renders (smoothness)."),
+                "seed": ("INT", {"default": _DEFAULTS.seed, "min": 0, "max": 2**31 - 1, "tooltip": "View order seed."}),
+            },
+            "optional": {
+                "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
+            },
+        }
+
+    @cancellable
+    def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
+                 content_weight, tv_weight, seed, stylized_views=None):
+        with node_input(self.DISPLAY_NAME), autograd_enabled():
+            config = FinetuneConfig(
+                iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
+                nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
+            )
+            result = finetune(
+                trainable_copy(scene).to(compute_device()), trainable_copy(cameras), style_image[:1].clone(),
+                stylized=None if stylized_views is None else stylized_views.clone(), config=config,
+                progress=progress_bar(), should_stop=interrupt_requested,
+            )
+        return (result.to("cpu"),)

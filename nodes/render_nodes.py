@@ -1,0 +1,124 @@
+"""Render Views and Render Camera Path: scene + cameras -> ComfyUI IMAGE batches."""
+
+from __future__ import annotations
+
+import torch
+
+from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.progress import check_stop
+from artnvg_core.raster import render
+from artnvg_core.scene import GaussianScene
+
+from .comfy_bridge import cancellable, compute_device, interrupt_requested, progress_bar
+from .node_errors import NodeInputError, node_input
+from .node_types import CAMERAS, CATEGORY, IMAGE, SCENE
+from .view_selection import parse_view_list, select_views
+
+SCALE_INPUT = ("FLOAT", {"default": 0.5, "min": 0.01, "max": 4.0, "step": 0.005, "tooltip": (
+    "Resolution factor applied to the cameras' image size (0.5 renders 512x512 views at 256x256).")})
+
+
+def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
+    """Every view of ``cameras`` as an IMAGE batch [C, H, W, 3] in [0, 1] on the CPU.
+
+    Renders one view at a time on ComfyUI's device, updating the progress bar and
+    stopping (core ``Cancelled``) between views when the user cancels.
+    """
+    device = compute_device()
+    scene, cameras = scene.to(device), cameras.to(device)
+    report, frames = progress_bar(), []
+    for index in range(len(cameras)):
+        check_stop(interrupt_requested)
+        with torch.no_grad():
+            rgb = render(scene, cameras.subset([index])).rgb[0]
+        frames.append(rgb.clamp(0, 1).float().cpu())
+        if report is not None:
+            report(index + 1, len(cameras), {})
+    return torch.stack(frames)
+
+
+class RenderViews:
+    """Render the scene from chosen capture cameras; also returns those cameras at the rendered size."""
+
+    DISPLAY_NAME = "Render Views"
+    CATEGORY = CATEGORY
+    FUNCTION = "render"
+    RETURN_TYPES = (IMAGE, CAMERAS)
+    RETURN_NAMES = ("images", "cameras")
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene": (SCENE,),
+                "cameras": (CAMERAS,),
+                "scale": SCALE_INPUT,
+                "stride": ("INT", {"default": 1, "min": 1, "max": 10000, "tooltip": (
+                    "Use every stride-th camera (0, stride, 2*stride, ...) when views is blank.")}),
+                "views": ("STRING", {"default": "", "tooltip": (
+                    "Comma-separated camera indices in file order (e.g. 0,5,9); blank uses stride.")}),
+            },
+        }
+
+    @cancellable
+    def render(self, scene, cameras, scale, stride, views):
+        with node_input(self.DISPLAY_NAME, "views"):
+            chosen = cameras.subset(select_views(len(cameras), stride, views))
+        with node_input(self.DISPLAY_NAME, "scale"):
+            chosen = chosen.scaled(scale)
+        with node_input(self.DISPLAY_NAME, "scene"):
+            return render_frames(scene, chosen), chosen
+
+
+PATH_KINDS = ("orbit", "interpolate")
+
+
+class RenderCameraPath:
+    """Render preview frames along an orbit around the scene or a smooth path through chosen views.
+
+    The IMAGE frames suit stock image and video save nodes.
+    """
+
+    DISPLAY_NAME = "Render Camera Path"
+    CATEGORY = CATEGORY
+    FUNCTION = "render"
+    RETURN_TYPES = (IMAGE, CAMERAS)
+    RETURN_NAMES = ("frames", "path_cameras")
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene": (SCENE,),
+                "cameras": (CAMERAS,),
+                "path": (PATH_KINDS, {"default": "orbit", "tooltip": (
+                    "orbit: a horizontal circle around the scene centre; "
+                    "interpolate: a spline through key_views.")}),
+                "scale": SCALE_INPUT,
+                "num_frames": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": "Frames of the orbit."}),
+                "key_views": ("STRING", {"default": "", "tooltip": (
+                    "interpolate: comma-separated camera indices the path passes through, in order (at least two).")}),
+                "frames_per_segment": ("INT", {"default": 30, "min": 1, "max": 10000, "tooltip": (
+                    "interpolate: frames between consecutive key views.")}),
+                "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
+            },
+        }
+
+    @cancellable
+    def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop):
+        if path not in PATH_KINDS:
+            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'path': expected one of {PATH_KINDS}, got {path!r}")
+        if path == "orbit":
+            with node_input(self.DISPLAY_NAME, "cameras"):
+                path_cameras = orbit_path(cameras, num_frames)
+        else:
+            with node_input(self.DISPLAY_NAME, "key_views"):
+                path_cameras = interpolate_path(
+                    cameras, parse_view_list(key_views, len(cameras)), frames_per_segment, loop=loop
+                )
+        with node_input(self.DISPLAY_NAME, "scale"):
+            path_cameras = path_cameras.scaled(scale)
+        with node_input(self.DISPLAY_NAME, "scene"):
+            return render_frames(scene, path_cameras), path_cameras

@@ -1,0 +1,105 @@
+"""Load Gaussian Scene and Save Gaussian Scene."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from artnvg_core.scene import load_scene, write_ply
+
+from .comfy_bridge import output_directory
+from .input_files import file_signature, list_input_files, resolve_input_path
+from .node_errors import NodeInputError, node_input
+from .node_types import CATEGORY, SCENE
+
+SCENE_SUFFIXES = (".ply", ".ckpt")
+
+
+class LoadGaussianScene:
+    """An INRIA 3DGS ``.ply`` or a nerfstudio splatfacto ``.ckpt``, from the input folder or a path."""
+
+    DISPLAY_NAME = "Load Gaussian Scene"
+    CATEGORY = CATEGORY
+    FUNCTION = "load"
+    RETURN_TYPES = (SCENE,)
+    RETURN_NAMES = ("scene",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene_file": (list_input_files(suffixes=SCENE_SUFFIXES), {
+                    "tooltip": "A .ply or .ckpt file in ComfyUI's input folder (subfolders included)."}),
+            },
+            "optional": {
+                "path": ("STRING", {"default": "", "tooltip": (
+                    "Scene file path; when not blank it is used instead of scene_file. "
+                    "Relative paths start at the input folder.")}),
+                "drop_invalid": ("BOOLEAN", {"default": False, "tooltip": (
+                    "Drop Gaussians with non-finite values or zero quaternions instead of failing.")}),
+            },
+        }
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, scene_file, path=""):
+        file, input_name = resolve_input_path("scene_file", scene_file, path)
+        if not file.is_file():
+            return f"{cls.DISPLAY_NAME}: input '{input_name}': scene file not found: {file}"
+        return True
+
+    @classmethod
+    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False):
+        return file_signature(resolve_input_path("scene_file", scene_file, path)[0])
+
+    def load(self, scene_file, path="", drop_invalid=False):
+        file, input_name = resolve_input_path("scene_file", scene_file, path)
+        with node_input(self.DISPLAY_NAME, input_name):
+            return (load_scene(file, drop_invalid=drop_invalid),)
+
+
+def _next_free_path(filename_prefix: str) -> Path:
+    """``<output>/<prefix>_NNNNN.ply`` with the next unused counter; the prefix may name subfolders."""
+    root = output_directory().resolve()
+    target = (root / filename_prefix).resolve()
+    if target == root or root not in target.parents:
+        raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    numbered = re.compile(re.escape(target.name) + r"_(\d{5,})\.ply")
+    taken = [int(m.group(1)) for existing in target.parent.iterdir() if (m := numbered.fullmatch(existing.name))]
+    return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}.ply"
+
+
+class SaveGaussianScene:
+    """Write the scene as an INRIA 3DGS PLY into ComfyUI's output folder (``<prefix>_00001.ply``, ...)."""
+
+    DISPLAY_NAME = "Save Gaussian Scene"
+    CATEGORY = CATEGORY
+    FUNCTION = "save"
+    RETURN_TYPES = ()
+    OUTPUT_NODE = True
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene": (SCENE,),
+                "filename_prefix": ("STRING", {"default": "artnvg/stylized", "tooltip": (
+                    "File name start inside the output folder; may contain subfolders. "
+                    "A five-digit counter and .ply are appended.")}),
+            },
+        }
+
+    def save(self, scene, filename_prefix):
+        with node_input(self.DISPLAY_NAME, "filename_prefix"):
+            file = _next_free_path(filename_prefix)
+        try:
+            write_ply(scene, file)
+        except OSError as error:
+            raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
+        relative = file.relative_to(output_directory().resolve())
+        subfolder = relative.parent.as_posix()
+        return {"ui": {"scenes": [{
+            "filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output",
+        }]}}

@@ -1,0 +1,169 @@
+"""The pack inside a real ComfyUI server: loading, /object_info, queueing over HTTP, interrupt, errors.
+
+Runs only when ARTNVG_COMFYUI_ROOT is set (see conftest.py). Workflows are the shipped
+NNFM-only API workflow with small settings set through the queueing script's overrides.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import urllib.request
+import uuid
+from pathlib import Path
+
+import pytest
+import torch
+from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
+from test_workflows import STOCK_NODES
+from ws_client import WebSocket
+
+from artnvg_core.scene import read_ply
+
+REPO = Path(__file__).resolve().parents[2]
+FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
+
+
+def _queue_script():
+    spec = importlib.util.spec_from_file_location("queue_workflow", REPO / "workflows" / "queue_workflow.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+queue = _queue_script()
+
+
+def _get(server, path: str) -> dict:
+    with urllib.request.urlopen(server.url + path, timeout=60) as response:
+        return json.loads(response.read())
+
+
+def _workflow(server, *overrides: str) -> dict:
+    """The NNFM-only workflow on the test inputs at small settings, then ``overrides``."""
+    folder = server.test_folder
+    small = [
+        f"Load Gaussian Scene.scene_file={folder}/scene.ply",
+        f"Load Cameras.camera_source={folder}/transforms.json",
+        f"Style image.image={folder}/style.jpg",
+        "Render Views.scale=0.125", "Render Views.stride=48",
+        "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
+    ]
+    workflow = queue.load_api_workflow(REPO / "workflows" / "artnvg_nnfm_only_api.json")
+    for assignment in [*small, *overrides]:
+        queue.apply_override(workflow, assignment)
+    return workflow
+
+
+def _run(server, workflow: dict, on_message=None, timeout: float = 900) -> tuple[dict, list[dict]]:
+    """Queue ``workflow``, follow its websocket messages until it ends; (history entry, messages)."""
+    client_id = uuid.uuid4().hex
+    socket = WebSocket(f"{server.url.replace('http', 'ws')}/ws?clientId={client_id}", timeout=timeout)
+    try:
+        prompt_id = queue.queue_prompt(server.url, workflow, client_id)
+        messages = []
+        while True:
+            message = socket.receive_json()
+            data = message.get("data", {})
+            if data.get("prompt_id") != prompt_id:
+                continue
+            messages.append(message)
+            if on_message is not None:
+                on_message(message)
+            if message["type"] in ("execution_success", "execution_error", "execution_interrupted"):
+                break
+    finally:
+        socket.close()
+    return queue.wait_for(server.url, prompt_id, timeout=60), messages
+
+
+def _finetune_progress(messages: list[dict]) -> list[tuple[int, int]]:
+    return [(m["data"]["value"], m["data"]["max"]) for m in messages
+            if m["type"] == "progress" and m["data"].get("node") == FINETUNE]
+
+
+def test_pack_loads_without_import_errors(comfy_server):
+    log = comfy_server.log.read_text()
+    lines = [line for line in log.splitlines() if line.rstrip().endswith("custom_nodes/artnvg")]
+    assert lines, f"the pack is not in the import report of {comfy_server.log}"
+    assert "IMPORT FAILED" not in lines[0]
+    assert "Cannot import" not in log
+
+
+def test_object_info_lists_every_node_with_its_inputs(comfy_server):
+    info = _get(comfy_server, "/object_info")
+    for name, inputs in PUBLIC_INPUTS.items():
+        node = info[name]
+        order = node["input_order"]
+        assert order.get("required", []) + order.get("optional", []) == inputs, name
+        assert tuple(node["output"]) == PUBLIC_OUTPUTS[name], name
+        assert node["category"] == "ArtNVG" and node["display_name"]
+    folder = comfy_server.test_folder
+    assert f"{folder}/scene.ply" in info["ArtNVGLoadGaussianScene"]["input"]["required"]["scene_file"][0]
+    assert f"{folder}/transforms.json" in info["ArtNVGLoadCameras"]["input"]["required"]["camera_source"][0]
+    assert info["ArtNVGSaveGaussianScene"]["output_node"] is True
+    for name, (types, outputs, display_name) in STOCK_NODES.items():  # what tests/test_workflows.py assumes
+        assert set(info[name]["input"]["required"]) == set(types["required"]), name
+        assert tuple(info[name]["output"]) == outputs and info[name]["display_name"] == display_name
+
+
+def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
+    folder = comfy_server.test_folder
+    before = set((comfy_server.output_dir / folder).glob("nnfm_*.ply"))
+    entry, messages = _run(comfy_server, _workflow(
+        comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm"))
+    summary = queue.run_summary(entry)
+    assert summary["status"] == "success", summary["error"]
+    assert _finetune_progress(messages)[-1] == (3, 3)
+    saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
+    assert len(saved) == 1 and saved[0]["type"] == "output"
+    path = comfy_server.output_dir / saved[0]["file"]
+    assert path not in before
+    result, original = read_ply(path), read_ply(comfy_server.input_dir / folder / "scene.ply")
+    assert len(result) == len(original) and torch.equal(result.means, original.means)
+    assert not torch.equal(result.sh, original.sh)  # the appearance was stylized
+    previews = [o for o in summary["outputs"] if o["kind"] == "images"]
+    assert len(previews) == 4  # 2 content views + 2 orbit frames
+
+
+def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
+    folder = comfy_server.output_dir / comfy_server.test_folder
+    interrupted = []
+
+    def interrupt_once_training(message):
+        if not interrupted and message["type"] == "progress" and message["data"].get("node") == FINETUNE:
+            queue.interrupt(comfy_server.url)
+            interrupted.append(message["data"]["value"])
+
+    entry, messages = _run(comfy_server, _workflow(
+        comfy_server, "6.iterations=500", "6.seed=1",
+        f"Save Gaussian Scene.filename_prefix={comfy_server.test_folder}/interrupted"),
+        on_message=interrupt_once_training)
+    summary = queue.run_summary(entry)
+    assert interrupted and summary["status"] == "interrupted"
+    assert messages[-1]["type"] == "execution_interrupted" and messages[-1]["data"]["node_id"] == FINETUNE
+    assert max(value for value, _ in _finetune_progress(messages)) < interrupted[0] + 5  # stopped promptly
+    assert not list(folder.glob("interrupted*")) and not list(folder.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("input_name, value", [
+    ("path", "/nonexistent/artnvg/missing_scene.ply"),
+    ("scene_file", "{folder}/missing.ply"),
+])
+def test_missing_scene_file_fails_validation_naming_the_file(comfy_server, input_name, value):
+    shown = value.format(folder=comfy_server.test_folder)
+    with pytest.raises(queue.RejectedError) as rejected:
+        queue.queue_prompt(comfy_server.url, _workflow(comfy_server, f"Load Gaussian Scene.{input_name}={shown}"))
+    errors = rejected.value.details["node_errors"]["1"]["errors"]
+    assert any(f"input '{input_name}': scene file not found" in error["details"] and shown in error["details"]
+               for error in errors), errors
+
+
+def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_server):
+    broken = comfy_server.input_dir / comfy_server.test_folder / "broken.ply"
+    broken.write_text("this is not a PLY file\n")
+    entry, _ = _run(comfy_server, _workflow(
+        comfy_server, f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/broken.ply"))
+    summary = queue.run_summary(entry)
+    assert summary["status"] == "error"
+    assert "Load Gaussian Scene: input 'scene_file'" in summary["error"] and str(broken) in summary["error"]

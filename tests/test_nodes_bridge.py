@@ -1,0 +1,216 @@
+"""The pack's bridge to ComfyUI: folders, model lists, progress bar, interrupt and inference mode.
+
+ComfyUI's modules are replaced by small fakes with the same names and call signatures
+(``folder_paths``, ``comfy.utils.ProgressBar``, ``comfy.model_management``); the real
+server is exercised by tests/integration/.
+"""
+
+import sys
+import types
+
+import pytest
+import torch
+
+from artnvg_core.cameras import CameraSet
+from artnvg_core.progress import Cancelled
+from artnvg_core.scene import GaussianScene
+from nodes import comfy_bridge
+from nodes.diffusion_nodes import HF_CACHE, LoadArtNVGModels
+from nodes.finetune_nodes import FinetuneGaussians
+from nodes.render_nodes import RenderViews
+from nodes.scene_nodes import LoadGaussianScene
+
+
+class InterruptProcessingException(Exception):
+    pass
+
+
+class FakeComfy:
+    """Just enough of ComfyUI's module surface, recording what the pack does with it."""
+
+    def __init__(self, root):
+        self.root = root
+        self.interrupted = False
+        self.bars = []  # one list of (value, total) per ProgressBar
+        self.emptied = 0
+        models_dir = root / "models"
+        folder_paths = types.ModuleType("folder_paths")
+        folder_paths.models_dir = str(models_dir)
+        folder_paths.folder_names_and_paths = {
+            name: ([str(models_dir / name)], {".safetensors", ".bin"})
+            for name in ("checkpoints", "controlnet", "clip_vision")
+        }
+        folder_paths.get_input_directory = lambda: str(root / "input")
+        folder_paths.get_output_directory = lambda: str(root / "output")
+        folder_paths.get_folder_paths = lambda name: list(folder_paths.folder_names_and_paths[name][0])
+
+        def listed(name):
+            folders, extensions = folder_paths.folder_names_and_paths[name]
+            return sorted(p.name for f in folders if (root / f).is_dir() for p in (root / f).iterdir()
+                          if p.suffix in extensions)
+
+        def full_path(name, filename):
+            if name not in folder_paths.folder_names_and_paths:
+                return None
+            for folder in folder_paths.folder_names_and_paths[name][0]:
+                candidate = root / folder / filename
+                if candidate.is_file():
+                    return str(candidate)
+            return None
+
+        folder_paths.get_filename_list = listed
+        folder_paths.get_full_path = full_path
+
+        fake = self
+
+        class ProgressBar:
+            def __init__(self, total, node_id=None):
+                self.updates = []
+                fake.bars.append(self.updates)
+
+            def update_absolute(self, value, total=None, preview=None):
+                self.updates.append((value, total))
+
+        utils = types.ModuleType("comfy.utils")
+        utils.ProgressBar = ProgressBar
+        management = types.ModuleType("comfy.model_management")
+        management.InterruptProcessingException = InterruptProcessingException
+        management.processing_interrupted = lambda: fake.interrupted
+        management.get_torch_device = lambda: torch.device("cpu")
+
+        def throw_if_interrupted():
+            if fake.interrupted:
+                fake.interrupted = False
+                raise InterruptProcessingException()
+
+        def soft_empty_cache():
+            fake.emptied += 1
+
+        management.throw_exception_if_processing_interrupted = throw_if_interrupted
+        management.soft_empty_cache = soft_empty_cache
+        comfy = types.ModuleType("comfy")
+        comfy.utils, comfy.model_management = utils, management
+        self.modules = {"folder_paths": folder_paths, "comfy": comfy, "comfy.utils": utils,
+                        "comfy.model_management": management}
+
+
+@pytest.fixture
+def comfy(tmp_path, monkeypatch):
+    fake = FakeComfy(tmp_path)
+    for name, module in fake.modules.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    return fake
+
+
+def _tiny_scene(count: int = 40, seed: int = 0) -> GaussianScene:
+    """Gaussians in front of the camera of :func:`_tiny_cameras` (z about 3)."""
+    generator = torch.Generator().manual_seed(seed)
+    means = torch.randn(count, 3, generator=generator) * 0.4 + torch.tensor([0.0, 0.0, 3.0])
+    return GaussianScene(
+        means=means,
+        quats=torch.randn(count, 4, generator=generator),
+        log_scales=torch.full((count, 3), -2.0),
+        opacity_logits=torch.full((count,), 1.0),
+        sh=torch.randn(count, 4, 3, generator=generator) * 0.5,
+    )
+
+
+def _tiny_cameras(count: int = 2) -> CameraSet:
+    pose = torch.eye(4).repeat(count, 1, 1)
+    pose[:, 0, 3] = torch.linspace(-0.2, 0.2, count)
+    intrinsics = torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]).repeat(count, 1, 1)
+    return CameraSet(pose, intrinsics, 16, 16, [f"view{i}" for i in range(count)])
+
+
+def test_fallbacks_without_comfyui(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert "folder_paths" not in sys.modules
+    assert comfy_bridge.input_directory() == tmp_path / "input"
+    assert comfy_bridge.output_directory() == tmp_path / "output"
+    assert comfy_bridge.model_files("checkpoints") == []
+    assert comfy_bridge.model_file_path("checkpoints", "x.safetensors") is None
+    assert comfy_bridge.progress_bar() is None
+    assert comfy_bridge.interrupt_requested() is False
+    comfy_bridge.register_model_folder("csgo", {".bin"})  # a no-op without ComfyUI
+
+    @comfy_bridge.cancellable
+    def stopped():
+        raise Cancelled("stopped by request")
+
+    with pytest.raises(Cancelled):
+        stopped()
+
+
+def test_folders_and_model_lists_come_from_comfyui(comfy):
+    root = comfy.root
+    assert comfy_bridge.input_directory() == root / "input"
+    assert comfy_bridge.output_directory() == root / "output"
+    (root / "models" / "checkpoints").mkdir(parents=True)
+    (root / "models" / "checkpoints" / "sdxl.safetensors").write_bytes(b"")
+    assert comfy_bridge.model_files("checkpoints") == ["sdxl.safetensors"]
+    assert comfy_bridge.model_file_path("checkpoints", "sdxl.safetensors") == root / "models/checkpoints/sdxl.safetensors"
+    assert comfy_bridge.model_file_path("checkpoints", "other.safetensors") is None
+    assert LoadArtNVGModels.INPUT_TYPES()["required"]["sdxl_checkpoint"][0] == [HF_CACHE, "sdxl.safetensors"]
+
+
+def test_register_model_folder_keeps_user_paths(comfy):
+    registry = comfy.modules["folder_paths"].folder_names_and_paths
+    comfy_bridge.register_model_folder("csgo", {".bin", ".safetensors"})
+    assert registry["csgo"] == ([str(comfy.root / "models" / "csgo")], {".bin", ".safetensors"})
+    registry["csgo"] = (["/elsewhere/csgo"], {".pt"})  # e.g. from extra_model_paths.yaml
+    comfy_bridge.register_model_folder("csgo", {".bin"})
+    comfy_bridge.register_model_folder("csgo", {".bin"})
+    assert registry["csgo"] == (["/elsewhere/csgo", str(comfy.root / "models" / "csgo")], {".pt", ".bin"})
+
+
+def test_cancelled_becomes_comfyui_interrupt(comfy):
+    @comfy_bridge.cancellable
+    def stopped():
+        raise Cancelled("stopped by request")
+
+    comfy.interrupted = True
+    with pytest.raises(InterruptProcessingException):
+        stopped()
+    assert comfy.interrupted is False  # the request is consumed, as ComfyUI's own check does
+
+
+def test_render_views_reports_progress_and_stops(comfy):
+    scene, cameras = _tiny_scene(), _tiny_cameras(3)
+    with torch.inference_mode():
+        images, _ = RenderViews().render(scene, cameras, 1.0, 1, "")
+    assert images.shape == (3, 16, 16, 3)
+    assert comfy.bars == [[(1, 3), (2, 3), (3, 3)]]
+    comfy.interrupted = True
+    with pytest.raises(InterruptProcessingException), torch.inference_mode():
+        RenderViews().render(scene, cameras, 1.0, 1, "")
+
+
+def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
+    """ComfyUI runs nodes under torch.inference_mode(); the finetune must still get gradients."""
+    with torch.inference_mode():  # inputs made by other nodes are inference tensors
+        scene, cameras = _tiny_scene(), _tiny_cameras(2)
+        style = torch.rand(1, 24, 24, 3)
+        node = FinetuneGaussians()
+        (result,) = node.finetune(scene, cameras, style, 2, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
+    assert not torch.equal(result.sh, scene.sh)
+    assert torch.equal(result.means, scene.means)  # appearance only
+    assert comfy.bars == [[(1, 2), (2, 2)]]
+
+    def interrupt_after_first_step(step, total, info):
+        comfy.interrupted = True
+
+    comfy.modules["comfy.utils"].ProgressBar.update_absolute = lambda self, value, total=None, preview=None: (
+        interrupt_after_first_step(value, total, None))
+    with pytest.raises(InterruptProcessingException), torch.inference_mode():
+        node.finetune(scene, cameras, style, 50, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
+
+
+def test_loader_change_signature_follows_the_file(comfy):
+    folder = comfy.root / "input"
+    folder.mkdir()
+    scene_file = folder / "scene.ply"
+    scene_file.write_bytes(b"one")
+    first = LoadGaussianScene.IS_CHANGED("scene.ply")
+    scene_file.write_bytes(b"longer")
+    assert LoadGaussianScene.IS_CHANGED("scene.ply") != first
+    assert LoadGaussianScene.IS_CHANGED("missing.ply") == ""

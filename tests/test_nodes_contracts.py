@@ -1,0 +1,151 @@
+"""The node pack's contract with ComfyUI, checked without ComfyUI installed.
+
+ComfyUI loads the pack folder as a package (its ``__init__.py`` with the folder as search
+location) and reads NODE_CLASS_MAPPINGS / NODE_DISPLAY_NAME_MAPPINGS; each class declares
+INPUT_TYPES, RETURN_TYPES, FUNCTION and CATEGORY. Saved workflows store widget values by
+position, so input names and order are pinned here: changing them breaks users' workflows.
+"""
+
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
+
+PUBLIC_INPUTS = {
+    "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid"],
+    "ArtNVGLoadCameras": ["camera_source", "path"],
+    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views"],
+    "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
+                               "loop"],
+    "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
+    "ArtNVGLoadModels": ["sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights", "dtype", "device",
+                         "keep_loaded", "sdxl_checkpoint_path", "controlnet_path", "image_encoder_path",
+                         "csgo_weights_path", "sdxl_config_dir"],
+    "ArtNVGCSGOEncode": ["models", "style_image", "prompt", "negative_prompt"],
+    "ArtNVGNVAttentionPatch": ["models", "enabled"],
+    "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
+                          "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler"],
+    "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
+                                "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views"],
+    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix"],
+}
+PUBLIC_OUTPUTS = {
+    "ArtNVGLoadGaussianScene": ("ARTNVG_SCENE",),
+    "ArtNVGLoadCameras": ("ARTNVG_CAMERAS",),
+    "ArtNVGRenderViews": ("IMAGE", "ARTNVG_CAMERAS"),
+    "ArtNVGRenderCameraPath": ("IMAGE", "ARTNVG_CAMERAS"),
+    "ArtNVGGroupNeighbouringViews": ("ARTNVG_GROUPS",),
+    "ArtNVGLoadModels": ("ARTNVG_MODELS",),
+    "ArtNVGCSGOEncode": ("ARTNVG_EMBEDS",),
+    "ArtNVGNVAttentionPatch": ("ARTNVG_MODELS",),
+    "ArtNVGSampleGroup": ("IMAGE",),
+    "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
+    "ArtNVGSaveGaussianScene": (),
+}
+
+
+def _load_pack_like_comfyui(name: str = "artnvg_pack_under_test"):
+    """Import the repository folder the way ComfyUI imports a custom node folder."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "__init__.py", submodule_search_locations=[str(REPO)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        for key in [k for k in sys.modules if k == name or k.startswith(name + ".")]:
+            del sys.modules[key]
+    return module
+
+
+@pytest.fixture(scope="module")
+def pack():
+    return _load_pack_like_comfyui()
+
+
+def _all_inputs(node) -> dict:
+    types = node.INPUT_TYPES()
+    assert set(types) <= {"required", "optional", "hidden"}
+    return {**types.get("required", {}), **types.get("optional", {})}
+
+
+def test_pack_exports_exactly_the_mappings(pack):
+    assert set(pack.__all__) == {"NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS"}
+    assert set(pack.NODE_CLASS_MAPPINGS) == set(PUBLIC_INPUTS)
+    assert set(pack.NODE_DISPLAY_NAME_MAPPINGS) == set(PUBLIC_INPUTS)
+    names = list(pack.NODE_DISPLAY_NAME_MAPPINGS.values())
+    assert len(set(names)) == len(names) and all(names)
+
+
+def test_public_inputs_and_outputs_are_pinned(pack):
+    for name, node in pack.NODE_CLASS_MAPPINGS.items():
+        assert list(_all_inputs(node)) == PUBLIC_INPUTS[name], name
+        assert tuple(node.RETURN_TYPES) == PUBLIC_OUTPUTS[name], name
+
+
+def _check_widget(where: str, kind, options: dict) -> None:
+    default = options.get("default")
+    if isinstance(kind, (list, tuple)):
+        assert all(isinstance(choice, str) for choice in kind), where
+        assert default is None or default in kind, where
+    elif kind == "INT":
+        assert isinstance(default, int) and not isinstance(default, bool), where
+        assert options.get("min", default) <= default <= options.get("max", default), where
+    elif kind == "FLOAT":
+        assert isinstance(default, float), where
+        assert options.get("min", default) <= default <= options.get("max", default), where
+    elif kind == "STRING":
+        assert isinstance(default, str), where
+    elif kind == "BOOLEAN":
+        assert isinstance(default, bool), where
+
+
+def test_every_node_contract_is_valid_and_consistent(pack):
+    produced = set()
+    consumed = set()
+    for name, node in pack.NODE_CLASS_MAPPINGS.items():
+        assert node.CATEGORY == "ArtNVG"
+        assert isinstance(node.DESCRIPTION, str) and node.DESCRIPTION.strip()
+        inputs = _all_inputs(node)
+        required = list(node.INPUT_TYPES()["required"])
+        for input_name, spec in inputs.items():
+            assert isinstance(spec, tuple) and 1 <= len(spec) <= 2, (name, input_name)
+            kind, options = spec[0], (spec[1] if len(spec) == 2 else {})
+            if isinstance(kind, (list, tuple)) or kind in WIDGET_TYPES:
+                _check_widget(f"{name}.{input_name}", kind, options)
+            else:
+                assert kind == "IMAGE" or kind.startswith("ARTNVG_"), (name, input_name, kind)
+                consumed.add(kind)
+
+        assert isinstance(node.RETURN_TYPES, tuple)
+        assert len(getattr(node, "RETURN_NAMES", ())) == len(node.RETURN_TYPES), name
+        produced.update(node.RETURN_TYPES)
+        assert getattr(node, "OUTPUT_NODE", False) == (not node.RETURN_TYPES), name
+
+        parameters = inspect.signature(getattr(node, node.FUNCTION)).parameters
+        assert list(parameters)[1:] == list(inputs), name  # self, then every input in order
+        for input_name in list(inputs)[len(required):]:
+            assert parameters[input_name].default is not inspect.Parameter.empty, (name, input_name)
+        for hook in ("VALIDATE_INPUTS", "IS_CHANGED"):
+            if hasattr(node, hook):
+                hook_parameters = inspect.signature(getattr(node, hook)).parameters
+                assert set(hook_parameters) <= set(inputs), (name, hook)
+                assert all(p.default is not inspect.Parameter.empty
+                           for key, p in hook_parameters.items() if key not in required), (name, hook)
+    assert {kind for kind in consumed if kind.startswith("ARTNVG_")} <= produced
+
+
+def test_list_inputs_validated_by_the_node_are_only_file_choices(pack):
+    """ComfyUI skips its own list check for inputs named in VALIDATE_INPUTS: those must be file lists."""
+    for name, node in pack.NODE_CLASS_MAPPINGS.items():
+        if not hasattr(node, "VALIDATE_INPUTS"):
+            continue
+        inputs = _all_inputs(node)
+        for input_name in inspect.signature(node.VALIDATE_INPUTS).parameters:
+            kind = inputs[input_name][0]
+            assert kind == "STRING" or input_name in {"scene_file", "camera_source", "sdxl_checkpoint", "controlnet",
+                                                       "image_encoder", "csgo_weights"}, (name, input_name)

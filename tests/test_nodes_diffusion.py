@@ -1,0 +1,166 @@
+"""Load ArtNVG Models, CSGO Encode, NV-Attention Patch and Sample Group on tiny SDXL-architecture models.
+
+The model files are tiny randomly initialised models written to disk in the real layouts
+(diffusers SDXL folder, ControlNet folder, transformers image encoder, CSGO ``.bin``);
+node outputs are compared with the direct ``artnvg_core`` calls.
+"""
+
+import pytest
+import torch
+from diffusers import StableDiffusionXLPipeline
+from diffusion_tiny import (  # noqa: F401  (one_cpu_thread: autouse fixture)
+    csgo_state,
+    one_cpu_thread,
+    tiny_base,
+    tiny_controlnet,
+    tiny_image_encoder,
+    tiny_scheduler,
+    write_csgo_file,
+)
+
+from artnvg_core.cameras import CameraSet
+from artnvg_core.diffusion.conditioning import prepare_conditioning
+from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.diffusion.stylize import stylize_views
+from artnvg_core.grouping import group_views
+from artnvg_core.progress import Cancelled
+from nodes import diffusion_nodes
+from nodes.diffusion_nodes import (
+    HF_CACHE,
+    CSGOEncode,
+    LoadArtNVGModels,
+    NVAttentionPatch,
+    SampleGroup,
+)
+from nodes.node_errors import NodeInputError
+
+PROMPT, NEGATIVE = "a bear, oil painting", "blurry"
+
+
+def call(node_class, **inputs):
+    """Run a node's function as ComfyUI does."""
+    with torch.inference_mode():
+        return getattr(node_class(), node_class.FUNCTION)(**inputs)
+
+
+def _images(count: int, seed: int, size: int = 64) -> torch.Tensor:
+    return torch.rand(count, size, size, 3, generator=torch.Generator().manual_seed(seed))
+
+
+def _line_cameras(count: int) -> CameraSet:
+    """Cameras along the x axis (centres 0, 1, 2, ...): groups of neighbours are runs of views."""
+    world_to_cam = torch.eye(4).repeat(count, 1, 1)
+    world_to_cam[:, 0, 3] = -torch.arange(count, dtype=torch.float32)
+    intrinsics = torch.tensor([[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]]).repeat(count, 1, 1)
+    return CameraSet(world_to_cam, intrinsics, 64, 64, [f"view{i}" for i in range(count)])
+
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    """Paths of tiny model files in the layouts the loader reads."""
+    root = tmp_path_factory.mktemp("models")
+    base = tiny_base()
+    StableDiffusionXLPipeline(
+        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=tiny_scheduler(),
+    ).save_pretrained(root / "sdxl")
+    controlnet = tiny_controlnet(base.unet)
+    controlnet.save_pretrained(root / "controlnet")
+    tiny_image_encoder().save_pretrained(root / "image_encoder")
+    write_csgo_file(root / "csgo.bin", csgo_state(base.unet, controlnet))
+    return {"sdxl_checkpoint_path": str(root / "sdxl"), "controlnet_path": str(root / "controlnet"),
+            "image_encoder_path": str(root / "image_encoder"), "csgo_weights_path": str(root / "csgo.bin")}
+
+
+LISTED = {"sdxl_checkpoint": HF_CACHE, "controlnet": HF_CACHE, "image_encoder": HF_CACHE, "csgo_weights": HF_CACHE}
+
+
+@pytest.fixture(scope="module")
+def loaded(model_files):
+    assert LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **model_files) is True
+    (models,) = call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, **model_files)
+    return models
+
+
+def test_loader_reads_every_model_from_its_path(loaded):
+    assert loaded.models.csgo.num_content_tokens == 4 and loaded.models.csgo.num_style_tokens == 8
+    assert loaded.models.base.unet.dtype == torch.float32 and loaded.device == torch.device("cpu")
+    assert loaded.keep_loaded and not loaded.neighbour_views
+
+
+def test_missing_model_names_the_input_the_file_and_where_to_get_it(model_files, tmp_path, monkeypatch):
+    listed = dict(LISTED, csgo_weights="csgo_4_32.bin")
+    paths = dict(model_files, csgo_weights_path="")
+    message = LoadArtNVGModels.VALIDATE_INPUTS(**listed, **paths)
+    assert "input 'csgo_weights'" in message and "'csgo_4_32.bin'" in message
+    assert "'csgo' model folder" in message and "huggingface.co/InstantX/CSGO" in message
+
+    missing = tmp_path / "nowhere" / "csgo.bin"
+    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, csgo_weights_path=str(missing)))
+    assert "input 'csgo_weights_path'" in message and str(missing) in message
+
+    from huggingface_hub import constants
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty_cache"))
+    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, controlnet_path=""))
+    assert "input 'controlnet'" in message and "empty_cache" in message and "TTPLanet" in message
+    with pytest.raises(NodeInputError, match="Load ArtNVG Models: input 'controlnet'"):
+        call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True,
+             **dict(model_files, controlnet_path=""))
+
+
+def test_patch_turns_neighbouring_view_attention_on_without_touching_the_input(loaded):
+    (patched,) = call(NVAttentionPatch, models=loaded, enabled=True)
+    assert patched.neighbour_views and not loaded.neighbour_views
+    assert patched.models is loaded.models
+
+
+def test_encode_matches_the_core(loaded):
+    style = _images(1, seed=5)
+    (embeds,) = call(CSGOEncode, models=loaded, style_image=style, prompt=PROMPT, negative_prompt=NEGATIVE)
+    expected = prepare_conditioning(loaded.models, style, PROMPT, NEGATIVE)
+    assert torch.equal(embeds.prompt.text, expected.prompt.text)
+    assert torch.equal(embeds.prompt.negative_text, expected.prompt.negative_text)
+    assert torch.equal(embeds.style.cond, expected.style.cond)
+    (blank,) = call(CSGOEncode, models=loaded, style_image=style, prompt=PROMPT, negative_prompt="  ")
+    assert not blank.prompt.negative_text.any()  # SDXL: an empty negative prompt gives zero embeddings
+
+
+SAMPLING = {"seed": 7, "steps": 2, "guidance_scale": 3.0, "content_scale": 1.0, "style_scale": 0.6,
+            "control_scale": 1.0, "resolution": 0, "scheduler": "ddim"}
+
+
+def test_sample_group_all_groups_or_one_matches_the_core(loaded):
+    style, content, cameras = _images(1, seed=5), _images(4, seed=6), _line_cameras(4)
+    (patched,) = call(NVAttentionPatch, models=loaded, enabled=True)
+    (embeds,) = call(CSGOEncode, models=patched, style_image=style, prompt=PROMPT, negative_prompt=NEGATIVE)
+    groups = group_views(cameras, 2)
+    (every,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                    group_index=-1, **SAMPLING)
+    settings = SamplerSettings(steps=2, guidance_scale=3.0, resolution=None, neighbour_views=True)
+    expected = stylize_views(loaded.models, content, cameras, style, settings, group_size=2, seed=7,
+                             prompt=PROMPT, negative_prompt=NEGATIVE)
+    assert every.shape == (4, 64, 64, 3) and torch.equal(every, expected)
+
+    (second,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                     group_index=1, **SAMPLING)
+    assert torch.equal(second, every[list(groups[1].views)])
+
+    (without_nv,) = call(SampleGroup, models=loaded, embeds=embeds, content_views=content, groups=groups,
+                         group_index=1, **SAMPLING)
+    assert not torch.equal(without_nv, second)
+
+
+def test_sample_group_errors_name_the_input(loaded, monkeypatch):
+    content, groups = _images(3, seed=6), group_views(_line_cameras(4), 2)
+    (embeds,) = call(CSGOEncode, models=loaded, style_image=_images(1, seed=5), prompt=PROMPT, negative_prompt="")
+    with pytest.raises(NodeInputError, match="Sample Group: input 'content_views': 3 views .* 4 cameras"):
+        call(SampleGroup, models=loaded, embeds=embeds, content_views=content, groups=groups, group_index=-1,
+             **SAMPLING)
+    with pytest.raises(NodeInputError, match="Sample Group: input 'group_index': 2 is out of range for 2 groups"):
+        call(SampleGroup, models=loaded, embeds=embeds, content_views=_images(4, seed=6), groups=groups,
+             group_index=2, **SAMPLING)
+    monkeypatch.setattr(diffusion_nodes, "interrupt_requested", lambda: True)
+    with pytest.raises(Cancelled):
+        call(SampleGroup, models=loaded, embeds=embeds, content_views=_images(4, seed=6), groups=groups,
+             group_index=-1, **SAMPLING)

@@ -1,0 +1,162 @@
+"""Scene, camera, render, grouping, finetune and save nodes on the shared bear scene, small settings.
+
+Each node is called the way ComfyUI calls it (under ``torch.inference_mode()``) and its
+output is compared with the direct ``artnvg_core`` call it adapts. Without ComfyUI the
+input and output folders are ``./input`` and ``./output`` of the working directory.
+"""
+
+import pytest
+import torch
+
+from artnvg_core.cameras import interpolate_path, load_cameras, orbit_path
+from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.grouping import group_views
+from artnvg_core.raster import render
+from artnvg_core.scene import load_scene, read_ply
+from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
+from nodes.finetune_nodes import FinetuneGaussians
+from nodes.node_errors import NodeInputError
+from nodes.render_nodes import RenderCameraPath, RenderViews
+from nodes.scene_nodes import LoadGaussianScene, SaveGaussianScene
+
+SCALE = 0.125  # 512 x 512 views -> 64 x 64
+
+
+def call(node_class, **inputs):
+    """Run a node's function as ComfyUI does."""
+    with torch.inference_mode():
+        return getattr(node_class(), node_class.FUNCTION)(**inputs)
+
+
+def _same_scene(a, b) -> bool:
+    return all(torch.equal(x, y) for x, y in zip(a.tensors().values(), b.tensors().values()))
+
+
+@pytest.fixture(scope="module")
+def bear(shared_data):
+    folder = shared_data / "scenes" / "bear"
+    return {"folder": folder, "scene": load_scene(folder / "scene.ply"), "cameras": load_cameras(folder)}
+
+
+@pytest.fixture(scope="module")
+def small_bear(bear):
+    """Every 25th Gaussian of the bear (4,000): renders stay fast on a CPU."""
+    scene = bear["scene"]
+    return scene.select(torch.arange(0, len(scene), 25))
+
+
+@pytest.fixture
+def comfy_dirs(tmp_path, monkeypatch, bear):
+    """A working directory whose input folder holds the bear capture (as ComfyUI users lay it out)."""
+    monkeypatch.chdir(tmp_path)
+    capture = tmp_path / "input" / "bear"
+    capture.mkdir(parents=True)
+    for name in ("scene.ply", "transforms.json"):
+        (capture / name).symlink_to(bear["folder"] / name)
+    return tmp_path
+
+
+def test_load_scene_from_input_folder_or_path(comfy_dirs, bear):
+    listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"][0]
+    assert listed == ["bear/scene.ply"]
+    assert LoadGaussianScene.VALIDATE_INPUTS("bear/scene.ply") is True
+    (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")
+    (from_path,) = call(LoadGaussianScene, scene_file="", path=str(bear["folder"] / "scene.ply"))
+    assert _same_scene(from_list, bear["scene"]) and _same_scene(from_path, bear["scene"])
+
+
+def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
+    message = LoadGaussianScene.VALIDATE_INPUTS("bear/nothing.ply")
+    assert "scene_file" in message and "bear/nothing.ply" in message
+    message = LoadGaussianScene.VALIDATE_INPUTS("bear/scene.ply", path="/no/such/scene.ply")
+    assert "'path'" in message and "/no/such/scene.ply" in message
+    with pytest.raises(NodeInputError, match=r"Load Gaussian Scene: input 'path': .*/no/such/scene\.ply"):
+        call(LoadGaussianScene, scene_file="bear/scene.ply", path="/no/such/scene.ply")
+    (comfy_dirs / "input" / "broken.ply").write_text("not a ply")
+    with pytest.raises(NodeInputError, match=r"input 'scene_file': .*broken\.ply"):
+        call(LoadGaussianScene, scene_file="broken.ply")
+
+
+def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
+    listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"][0]
+    assert listed == ["bear/transforms.json"]
+    (from_list,) = call(LoadCameras, camera_source="bear/transforms.json")
+    (from_folder,) = call(LoadCameras, camera_source="", path=str(bear["folder"]))
+    for cameras in (from_list, from_folder):
+        assert torch.equal(cameras.world_to_cam, bear["cameras"].world_to_cam)
+        assert cameras.names == bear["cameras"].names
+    assert "camera_source" in LoadCameras.VALIDATE_INPUTS("bear/missing.json")
+
+
+def test_render_views_matches_the_core_renderer(small_bear, bear):
+    cameras = bear["cameras"]
+    images, used = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=1, views="0, 60")
+    expected_cameras = cameras.subset([0, 60]).scaled(SCALE)
+    expected = render(small_bear, expected_cameras).rgb.clamp(0, 1)
+    assert images.shape == (2, 64, 64, 3) and images.dtype == torch.float32
+    assert torch.equal(images, expected)
+    assert torch.equal(used.intrinsics, expected_cameras.intrinsics) and used.names == expected_cameras.names
+    images_by_stride, used_by_stride = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=60,
+                                            views="")
+    assert used_by_stride.names == used.names and torch.equal(images_by_stride, images)
+
+
+def test_render_views_rejects_bad_view_lists(small_bear, bear):
+    for views, problem in (("0, 96", "out of range"), ("0, x", "'x'")):
+        with pytest.raises(NodeInputError, match=f"Render Views: input 'views': .*{problem}"):
+            call(RenderViews, scene=small_bear, cameras=bear["cameras"], scale=SCALE, stride=1, views=views)
+
+
+def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
+    cameras = bear["cameras"]
+    frames, path = call(RenderCameraPath, scene=small_bear, cameras=cameras, path="orbit", scale=SCALE,
+                        num_frames=2, key_views="", frames_per_segment=30, loop=False)
+    expected_path = orbit_path(cameras, 2).scaled(SCALE)
+    assert torch.allclose(path.world_to_cam, expected_path.world_to_cam)
+    assert torch.equal(frames, render(small_bear, expected_path).rgb.clamp(0, 1))
+
+    frames, path = call(RenderCameraPath, scene=small_bear, cameras=cameras, path="interpolate", scale=SCALE,
+                        num_frames=60, key_views="0,30", frames_per_segment=2, loop=False)
+    expected_path = interpolate_path(cameras, [0, 30], 2).scaled(SCALE)
+    assert frames.shape == (3, 64, 64, 3) and torch.allclose(path.world_to_cam, expected_path.world_to_cam)
+    with pytest.raises(NodeInputError, match="Render Camera Path: input 'key_views': .*at least 2"):
+        call(RenderCameraPath, scene=small_bear, cameras=cameras, path="interpolate", scale=SCALE,
+             num_frames=60, key_views="", frames_per_segment=2, loop=False)
+
+
+def test_group_neighbouring_views_matches_the_core(bear):
+    (groups,) = call(GroupNeighbouringViews, cameras=bear["cameras"], group_size=15, context=2)
+    expected = group_views(bear["cameras"], 15, context=2)
+    assert groups == expected and len(groups) == 6
+
+
+def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, bear):
+    cameras = bear["cameras"].subset([0, 48]).scaled(SCALE)
+    style = torch.rand(1, 32, 40, 3, generator=torch.Generator().manual_seed(0))
+    stylized = torch.rand(2, 64, 64, 3, generator=torch.Generator().manual_seed(1))
+    weights = {"l1_weight": 0.8, "ssim_weight": 0.2, "nnfm_weight": 1.0, "content_weight": 0.5, "tv_weight": 0.1}
+    (result,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=2,
+                     optimize="appearance", seed=3, stylized_views=stylized, **weights)
+    expected = finetune(small_bear, cameras, style[0], stylized=stylized,
+                        config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, **weights))
+    assert _same_scene(result, expected)
+    assert not torch.equal(result.sh, small_bear.sh)
+    with pytest.raises(NodeInputError, match="Finetune Gaussians: .*stylized"):
+        call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
+             optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)
+
+
+def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, small_bear):
+    saved = [call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized") for _ in range(2)]
+    assert [s["ui"]["scenes"][0]["filename"] for s in saved] == ["stylized_00001.ply", "stylized_00002.ply"]
+    assert saved[0]["ui"]["scenes"][0]["subfolder"] == "artnvg" and saved[0]["ui"]["scenes"][0]["type"] == "output"
+    folder = comfy_dirs / "output" / "artnvg"
+    assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
+    assert _same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
+    (folder / "stylized_00007.ply").write_bytes(b"")
+    (folder / "stylized_extra_00009.ply").write_bytes(b"")  # another prefix: not counted
+    call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")
+    assert (folder / "stylized_00008.ply").is_file()
+    for prefix in ("../escape", ""):
+        with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'filename_prefix'"):
+            call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)

@@ -1,0 +1,307 @@
+"""The shareable workflows (UI and API format) and the queueing script, without ComfyUI.
+
+Checks that every workflow references only existing node types, that links connect
+matching types, that widget values fit the inputs, and that each API file describes the
+same graph as its UI file. The stock ComfyUI nodes used are described in STOCK_NODES;
+tests/integration/ compares that description with a real server's /object_info.
+"""
+
+import http.server
+import importlib.util
+import json
+import threading
+from pathlib import Path
+from typing import ClassVar
+
+import pytest
+
+from nodes import NODE_CLASS_MAPPINGS
+
+REPO = Path(__file__).resolve().parents[1]
+WORKFLOWS = REPO / "workflows"
+WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
+FILE_LISTS = {"scene_file", "camera_source", "image", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
+SEED_CONTROL = ("fixed", "increment", "decrement", "randomize")
+
+# Stock ComfyUI nodes the workflows use: INPUT_TYPES (file lists as []), RETURN_TYPES, display name.
+STOCK_NODES = {
+    "LoadImage": ({"required": {"image": ([], {"image_upload": True})}}, ("IMAGE", "MASK"), "Load Image"),
+    "PreviewImage": ({"required": {"images": ("IMAGE",)}}, (), "Preview Image"),
+    "SaveImage": ({"required": {"images": ("IMAGE",), "filename_prefix": ("STRING", {"default": "ComfyUI"})}}, (),
+                  "Save Image"),
+}
+UPLOAD_WIDGET_VALUE = "image"  # LoadImage's upload button, stored after the file name
+
+
+def load_queue_script():
+    spec = importlib.util.spec_from_file_location("queue_workflow", WORKFLOWS / "queue_workflow.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def node_description(class_type: str) -> tuple[dict, tuple, str]:
+    """(INPUT_TYPES, RETURN_TYPES, display name) of a node type."""
+    if class_type in STOCK_NODES:
+        return STOCK_NODES[class_type]
+    node = NODE_CLASS_MAPPINGS[class_type]
+    return node.INPUT_TYPES(), tuple(node.RETURN_TYPES), node.DISPLAY_NAME
+
+
+def node_spec(class_type: str) -> tuple[dict, tuple]:
+    """(inputs by name in order, output types) of a node type."""
+    types, outputs, _ = node_description(class_type)
+    return {**types.get("required", {}), **types.get("optional", {})}, outputs
+
+
+def required_inputs(class_type: str) -> set[str]:
+    return set(node_description(class_type)[0]["required"])
+
+
+def is_widget(spec) -> bool:
+    return isinstance(spec[0], (list, tuple)) or spec[0] in WIDGET_TYPES
+
+
+def widget_problem(name: str, spec, value) -> str | None:
+    """Why ``value`` does not fit widget input ``name`` with ``spec``, or None."""
+    kind, options = spec[0], (spec[1] if len(spec) > 1 else {})
+    if isinstance(kind, (list, tuple)):
+        if name in FILE_LISTS:
+            return None if isinstance(value, str) and value else f"{name}: expected a file name, got {value!r}"
+        return None if value in kind else f"{name}: {value!r} not in {list(kind)}"
+    expected = {"INT": int, "FLOAT": (int, float), "STRING": str, "BOOLEAN": bool}[kind]
+    if not isinstance(value, expected) or (kind != "BOOLEAN" and isinstance(value, bool)):
+        return f"{name}: expected {kind}, got {value!r}"
+    if kind in ("INT", "FLOAT") and not options.get("min", value) <= value <= options.get("max", value):
+        return f"{name}: {value} outside [{options.get('min')}, {options.get('max')}]"
+    return None
+
+
+def widget_values_by_name(class_type: str, values: list) -> dict:
+    """Map a UI node's ``widgets_values`` onto input names, as the graph editor does.
+
+    INT inputs named seed get a second widget (what to do after each run); LoadImage's
+    file list is followed by its upload button's value.
+    """
+    inputs, _ = node_spec(class_type)
+    named, remaining = {}, list(values)
+    for name, spec in inputs.items():
+        if not is_widget(spec):
+            continue
+        assert remaining, f"{class_type}: no widget value left for {name}"
+        named[name] = remaining.pop(0)
+        if spec[0] == "INT" and name in ("seed", "noise_seed"):
+            assert remaining and remaining.pop(0) in SEED_CONTROL, f"{class_type}: {name} needs its control value"
+        if len(spec) > 1 and spec[1].get("image_upload"):
+            assert remaining and remaining.pop(0) == UPLOAD_WIDGET_VALUE, f"{class_type}: upload widget value"
+    assert not remaining, f"{class_type}: {len(remaining)} widget values too many: {remaining}"
+    return named
+
+
+def ui_to_api(ui: dict) -> dict:
+    """The API-format prompt the graph editor queues for a UI-format workflow."""
+    links = {link[0]: link for link in ui["links"]}
+    api = {}
+    for node in ui["nodes"]:
+        inputs = dict(widget_values_by_name(node["type"], node.get("widgets_values", [])))
+        for socket in node.get("inputs", []):
+            if socket.get("link") is not None:
+                _, origin, origin_slot, *_ = links[socket["link"]]
+                inputs[socket["name"]] = [str(origin), origin_slot]
+        title = node.get("title") or node_description(node["type"])[2]
+        api[str(node["id"])] = {"inputs": inputs, "class_type": node["type"], "_meta": {"title": title}}
+    return api
+
+
+UI_FILES = sorted(p for p in WORKFLOWS.glob("*.json") if not p.stem.endswith("_api"))
+API_FILES = sorted(WORKFLOWS.glob("*_api.json"))
+
+
+def test_each_workflow_comes_in_both_formats():
+    assert [p.stem for p in UI_FILES] == ["artnvg_full", "artnvg_nnfm_only"]
+    assert [p.stem for p in API_FILES] == [f"{p.stem}_api" for p in UI_FILES]
+
+
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.name)
+def test_ui_workflow_links_and_widgets(path):
+    ui = json.loads(path.read_text())
+    nodes = {node["id"]: node for node in ui["nodes"]}
+    assert len(nodes) == len(ui["nodes"]) and ui["last_node_id"] >= max(nodes)
+    assert ui["last_link_id"] >= max(link[0] for link in ui["links"])
+    for link_id, origin, origin_slot, target, target_slot, kind in ui["links"]:
+        origin_outputs = node_spec(nodes[origin]["type"])[1]
+        assert origin_outputs[origin_slot] == kind, (path.name, link_id)
+        assert link_id in nodes[origin]["outputs"][origin_slot]["links"]
+        socket = nodes[target]["inputs"][target_slot]
+        assert socket["link"] == link_id and socket["type"] == kind
+        assert node_spec(nodes[target]["type"])[0][socket["name"]][0] == kind, (path.name, link_id)
+    for node in ui["nodes"]:
+        inputs, outputs = node_spec(node["type"])
+        assert [o["type"] for o in node.get("outputs", [])] == list(outputs), node["type"]
+        connected = {s["name"] for s in node.get("inputs", []) if s.get("link") is not None}
+        sockets = {name for name in required_inputs(node["type"]) if not is_widget(inputs[name])}
+        assert sockets <= connected, f"{path.name}: {node['type']} has unconnected inputs {sockets - connected}"
+        for name, value in widget_values_by_name(node["type"], node.get("widgets_values", [])).items():
+            assert widget_problem(name, inputs[name], value) is None, (path.name, node["type"])
+
+
+@pytest.mark.parametrize("path", API_FILES, ids=lambda p: p.name)
+def test_api_workflow_links_and_widgets(path):
+    api = json.loads(path.read_text())
+    for node_id, node in api.items():
+        inputs, _ = node_spec(node["class_type"])
+        assert set(node["inputs"]) <= set(inputs), node_id
+        for name, value in node["inputs"].items():
+            if is_widget(inputs[name]):
+                assert widget_problem(name, inputs[name], value) is None, (path.name, node_id)
+            else:
+                origin, slot = value
+                assert node_spec(api[origin]["class_type"])[1][slot] == inputs[name][0], (path.name, node_id, name)
+        assert required_inputs(node["class_type"]) <= set(node["inputs"]), (path.name, node_id)
+
+
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.name)
+def test_api_and_ui_files_describe_the_same_graph(path):
+    ui = json.loads(path.read_text())
+    api = json.loads(path.with_name(f"{path.stem}_api.json").read_text())
+    assert ui_to_api(ui) == api
+
+
+@pytest.mark.parametrize("path", API_FILES, ids=lambda p: p.name)
+def test_input_files_are_the_bundled_demo_copied_into_the_input_folder(path):
+    """Copying artnvg_core/demo/ to ComfyUI/input/artnvg_demo/ gives every input file a workflow names."""
+    demo = REPO / "artnvg_core" / "demo"
+    for node in json.loads(path.read_text()).values():
+        for name in ("scene_file", "camera_source", "image"):
+            if name in node["inputs"]:
+                folder, _, file = node["inputs"][name].partition("/")
+                assert folder == "artnvg_demo" and (demo / file).is_file(), (path.name, node["inputs"][name])
+
+
+def test_nnfm_only_workflow_needs_no_diffusion_weights():
+    api = json.loads((WORKFLOWS / "artnvg_nnfm_only_api.json").read_text())
+    used = {node["class_type"] for node in api.values()}
+    assert {"ArtNVGFinetuneGaussians", "ArtNVGSaveGaussianScene"} <= used
+    assert not used & {"ArtNVGLoadModels", "ArtNVGCSGOEncode", "ArtNVGNVAttentionPatch", "ArtNVGSampleGroup"}
+
+
+def test_full_workflow_feeds_stylized_views_to_the_finetune():
+    api = json.loads((WORKFLOWS / "artnvg_full_api.json").read_text())
+    finetune = next(node for node in api.values() if node["class_type"] == "ArtNVGFinetuneGaussians")
+    source, _ = finetune["inputs"]["stylized_views"]
+    assert api[source]["class_type"] == "ArtNVGSampleGroup"
+    sampler = api[source]["inputs"]
+    assert api[sampler["models"][0]]["class_type"] == "ArtNVGNVAttentionPatch"
+    assert sampler["content_views"][0] == finetune["inputs"]["cameras"][0]  # same Render Views node
+
+
+# --------------------------------------------------------------------------- queue script
+
+
+@pytest.fixture(scope="module")
+def queue():
+    return load_queue_script()
+
+
+def test_overrides_by_id_or_title(queue):
+    workflow = queue.load_api_workflow(WORKFLOWS / "artnvg_nnfm_only_api.json")
+    queue.apply_override(workflow, "Load Gaussian Scene.path=/data/my scene.ply")
+    queue.apply_override(workflow, "6.iterations=25")
+    queue.apply_override(workflow, "Render Views.views=0,5")
+    queue.apply_override(workflow, "1.drop_invalid=true")
+    assert workflow["1"]["inputs"]["path"] == "/data/my scene.ply"
+    assert workflow["6"]["inputs"]["iterations"] == 25
+    assert workflow["4"]["inputs"]["views"] == "0,5"
+    assert workflow["1"]["inputs"]["drop_invalid"] is True
+    for bad, problem in (("nothing", "NODE.INPUT=VALUE"), ("Nobody.x=1", "matches no node"),
+                         ("Preview Image.images=1", "matches no node"), ("6.scene=1", "is a link")):
+        with pytest.raises(queue.WorkflowError, match=problem):
+            queue.apply_override(workflow, bad)
+
+
+def test_ui_format_is_refused_with_advice(queue):
+    with pytest.raises(queue.WorkflowError, match="UI-format workflow; queue the API-format file"):
+        queue.load_api_workflow(WORKFLOWS / "artnvg_nnfm_only.json")
+
+
+def _history_entry(status: str, messages: list, outputs: dict) -> dict:
+    return {"status": {"status_str": status, "completed": status == "success", "messages": messages},
+            "outputs": outputs}
+
+
+def test_summary_of_success_error_and_interrupt(queue):
+    done = _history_entry("success", [["execution_success", {}]],
+                          {"7": {"scenes": [{"filename": "nnfm_00001.ply", "subfolder": "artnvg", "type": "output"}]}})
+    assert queue.run_summary(done) == {"status": "success", "error": None, "outputs": [
+        {"node": "7", "kind": "scenes", "file": "artnvg/nnfm_00001.ply", "type": "output"}]}
+    failed = _history_entry("error", [["execution_error", {"node_id": "1", "node_type": "ArtNVGLoadGaussianScene",
+                                                          "exception_type": "NodeInputError",
+                                                          "exception_message": "scene file not found: x.ply"}]], {})
+    assert "node 1 (ArtNVGLoadGaussianScene): NodeInputError: scene file not found: x.ply" in \
+        queue.run_summary(failed)["error"]
+    stopped = _history_entry("error", [["execution_interrupted", {"node_id": "6"}]], {})
+    assert queue.run_summary(stopped)["status"] == "interrupted"
+
+
+class _FakeServer(http.server.BaseHTTPRequestHandler):
+    """Answers /prompt and /history like ComfyUI; ``reject`` makes /prompt fail validation."""
+
+    reject = False
+    posted: ClassVar[list] = []
+
+    def _answer(self, code: int, payload: dict) -> None:
+        body = json.dumps(payload).encode()
+        self.send_response(code)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_POST(self):
+        self.posted.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
+        if self.reject:
+            self._answer(400, {"error": {"message": "Prompt outputs failed validation", "details": ""},
+                               "node_errors": {"1": {"class_type": "ArtNVGLoadGaussianScene", "errors": [
+                                   {"message": "Custom validation failed for node",
+                                    "details": "scene_file - scene file not found: /in/x.ply"}]}}})
+        else:
+            self._answer(200, {"prompt_id": "abc", "number": 0, "node_errors": {}})
+
+    def do_GET(self):
+        assert self.path == "/history/abc"
+        self._answer(200, {"abc": _history_entry("success", [], {"7": {"scenes": [
+            {"filename": "nnfm_00001.ply", "subfolder": "artnvg", "type": "output"}]}})})
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def fake_server():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _FakeServer)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    _FakeServer.posted.clear()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    _FakeServer.reject = False
+
+
+def test_main_queues_waits_and_reports(queue, fake_server, capsys):
+    status = queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", fake_server,
+                         "--set", "6.iterations=3", "--json"])
+    assert status == 0
+    assert _FakeServer.posted[0]["prompt"]["6"]["inputs"]["iterations"] == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report["status"] == "success" and report["outputs"][0]["file"] == "artnvg/nnfm_00001.ply"
+
+
+def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, capsys):
+    _FakeServer.reject = True
+    assert queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", fake_server]) == 2
+    assert "scene_file - scene file not found: /in/x.ply" in capsys.readouterr().err
+    closed = http.server.HTTPServer(("127.0.0.1", 0), _FakeServer)
+    address = f"http://127.0.0.1:{closed.server_address[1]}"
+    closed.server_close()
+    assert queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", address]) == 3
+    assert "cannot reach the server" in capsys.readouterr().err

@@ -1,0 +1,231 @@
+#!/usr/bin/env python3
+"""Queue an API-format ComfyUI workflow on a running server, wait for it and report its outputs.
+
+Standard library only. Usage::
+
+    python workflows/queue_workflow.py workflows/artnvg_nnfm_only_api.json \\
+        --server http://127.0.0.1:8188 \\
+        --set "Load Gaussian Scene.path=/data/bear/scene.ply" \\
+        --set 4.iterations=200
+
+``--set NODE.INPUT=VALUE`` overrides one input before queueing. NODE is a node id of the
+API file or a node's title (``_meta.title``, e.g. ``Load Gaussian Scene``); VALUE is read
+as JSON when it parses (numbers, true/false, lists) and as a plain string otherwise.
+Linked inputs (``["node", slot]``) cannot be overridden.
+
+Exit status: 0 the run succeeded; 1 it failed or was interrupted; 2 the server rejected
+the workflow (validation errors are printed per node) or the file or an override is bad;
+3 the server could not be reached or the run did not finish within ``--timeout`` seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import urllib.error
+import urllib.request
+import uuid
+from pathlib import Path
+
+
+class WorkflowError(ValueError):
+    """The workflow file or an override is not usable (exit status 2)."""
+
+
+class ServerError(RuntimeError):
+    """The server could not be reached, or did not finish in time (exit status 3)."""
+
+
+class RejectedError(RuntimeError):
+    """The server refused the workflow; ``details`` is its JSON answer (exit status 2)."""
+
+    def __init__(self, message: str, details: dict):
+        super().__init__(message)
+        self.details = details
+
+
+# --------------------------------------------------------------------------- workflow file
+
+
+def load_api_workflow(path: str | Path) -> dict:
+    """The API-format workflow in ``path``: ``{node_id: {"class_type": ..., "inputs": {...}}}``."""
+    path = Path(path)
+    try:
+        workflow = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as error:
+        raise WorkflowError(f"{path}: cannot read the workflow ({error})") from error
+    except json.JSONDecodeError as error:
+        raise WorkflowError(f"{path}: not valid JSON ({error})") from error
+    if isinstance(workflow, dict) and "nodes" in workflow and "links" in workflow:
+        raise WorkflowError(f"{path}: this is a UI-format workflow; queue the API-format file (*_api.json)")
+    if not isinstance(workflow, dict) or not all(
+        isinstance(node, dict) and "class_type" in node and isinstance(node.get("inputs"), dict)
+        for node in workflow.values()
+    ):
+        raise WorkflowError(f"{path}: expected an API-format workflow {{node_id: {{class_type, inputs}}}}")
+    return workflow
+
+
+def parse_value(text: str):
+    """JSON value of ``text`` when it parses, else ``text`` itself."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def find_node(workflow: dict, key: str) -> str:
+    """The id of the node called ``key``: a node id, or a unique node title (``_meta.title``)."""
+    if key in workflow:
+        return key
+    titled = [node_id for node_id, node in workflow.items() if node.get("_meta", {}).get("title") == key]
+    if len(titled) == 1:
+        return titled[0]
+    known = ", ".join(f"{node_id} ({node.get('_meta', {}).get('title', node['class_type'])})"
+                      for node_id, node in workflow.items())
+    problem = "is ambiguous" if titled else "matches no node id or title"
+    raise WorkflowError(f"--set: node '{key}' {problem}; nodes: {known}")
+
+
+def apply_override(workflow: dict, assignment: str) -> None:
+    """Apply one ``NODE.INPUT=VALUE`` override to ``workflow`` in place."""
+    target, sep, value = assignment.partition("=")
+    key, dot, input_name = target.rpartition(".")
+    if not sep or not dot or not key or not input_name:
+        raise WorkflowError(f"--set: expected NODE.INPUT=VALUE, got {assignment!r}")
+    inputs = workflow[find_node(workflow, key)]["inputs"]
+    if isinstance(inputs.get(input_name), list):
+        raise WorkflowError(f"--set: input '{input_name}' of node '{key}' is a link, not a value")
+    inputs[input_name] = parse_value(value)
+
+
+# --------------------------------------------------------------------------- server
+
+
+def _request(server: str, path: str, payload: dict | None = None, timeout: float = 30) -> dict:
+    data = None if payload is None else json.dumps(payload).encode("utf-8")
+    request = urllib.request.Request(server.rstrip("/") + path, data=data,
+                                     headers={"Content-Type": "application/json"} if data else {})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            return json.loads(response.read() or b"{}")
+    except urllib.error.HTTPError as error:
+        body = error.read()
+        try:
+            details = json.loads(body)
+        except json.JSONDecodeError:
+            details = {"error": {"message": body.decode("utf-8", "replace")}}
+        raise RejectedError(f"{server}{path}: HTTP {error.code}", details) from error
+    except (urllib.error.URLError, OSError) as error:
+        raise ServerError(f"{server}{path}: cannot reach the server ({error})") from error
+
+
+def queue_prompt(server: str, workflow: dict, client_id: str | None = None) -> str:
+    """POST the workflow to ``/prompt``; returns its prompt id. Raises RejectedError on validation errors.
+
+    ``client_id``: the id of a websocket connection (``/ws?clientId=...``) that should receive
+    the run's progress messages.
+    """
+    answer = _request(server, "/prompt", {"prompt": workflow, "client_id": client_id or uuid.uuid4().hex})
+    return answer["prompt_id"]
+
+
+def interrupt(server: str) -> None:
+    """Ask the server to stop the running prompt (``POST /interrupt``)."""
+    _request(server, "/interrupt", {})
+
+
+def wait_for(server: str, prompt_id: str, timeout: float, poll: float = 0.5) -> dict:
+    """The history entry of ``prompt_id`` once it has finished (``status``, ``outputs``)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        entry = _request(server, f"/history/{prompt_id}").get(prompt_id)
+        if entry is not None and (entry.get("status") or {}).get("completed") is not None:
+            return entry
+        if time.monotonic() > deadline:
+            raise ServerError(f"prompt {prompt_id} did not finish within {timeout:g} s")
+        time.sleep(poll)
+
+
+# --------------------------------------------------------------------------- report
+
+
+def run_summary(entry: dict) -> dict:
+    """``{"status": "success"|"error"|"interrupted", "error": str|None, "outputs": [...]}`` of a history entry.
+
+    Each output is ``{"node": id, "kind": "images"|"scenes"|..., "file": "subfolder/name", "type": "output"}``.
+    """
+    status = entry.get("status") or {}
+    messages = {event: data for event, data in status.get("messages", [])}
+    error = None
+    state = "success" if status.get("status_str") == "success" else "error"
+    if "execution_interrupted" in messages:
+        state = "interrupted"
+        error = f"interrupted in node {messages['execution_interrupted'].get('node_id')}"
+    elif "execution_error" in messages:
+        data = messages["execution_error"]
+        error = (f"node {data.get('node_id')} ({data.get('node_type')}): "
+                 f"{data.get('exception_type')}: {data.get('exception_message', '').strip()}")
+    outputs = []
+    for node_id, node_outputs in (entry.get("outputs") or {}).items():
+        for kind, items in node_outputs.items():
+            for item in items if isinstance(items, list) else []:
+                if isinstance(item, dict) and "filename" in item:
+                    name = "/".join(part for part in (item.get("subfolder", ""), item["filename"]) if part)
+                    outputs.append({"node": node_id, "kind": kind, "file": name, "type": item.get("type", "")})
+    return {"status": state, "error": error, "outputs": outputs}
+
+
+def _rejection_text(details: dict) -> str:
+    lines = []
+    error = details.get("error")
+    if isinstance(error, dict):
+        lines.append(f"{error.get('message', '')} {error.get('details', '')}".strip())
+    for node_id, node in (details.get("node_errors") or {}).items():
+        for item in node.get("errors", []):
+            lines.append(f"node {node_id} ({node.get('class_type')}): {item.get('message')}: {item.get('details')}")
+    return "\n".join(lines) or json.dumps(details)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("workflow", help="API-format workflow JSON (File > Export (API) in ComfyUI)")
+    parser.add_argument("--server", default="http://127.0.0.1:8188", help="ComfyUI address (default %(default)s)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NODE.INPUT=VALUE",
+                        help="override an input; NODE is an id or a title; repeatable")
+    parser.add_argument("--timeout", type=float, default=3600, help="seconds to wait for the run (default %(default)s)")
+    parser.add_argument("--no-wait", action="store_true", help="print the prompt id and return at once")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    args = parser.parse_args(argv)
+    try:
+        workflow = load_api_workflow(args.workflow)
+        for assignment in args.overrides:
+            apply_override(workflow, assignment)
+        prompt_id = queue_prompt(args.server, workflow)
+        if args.no_wait:
+            print(prompt_id)
+            return 0
+        print(f"queued {prompt_id}; waiting...", file=sys.stderr)
+        summary = {"prompt_id": prompt_id, **run_summary(wait_for(args.server, prompt_id, args.timeout))}
+    except WorkflowError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except RejectedError as error:
+        print(f"error: the server rejected the workflow:\n{_rejection_text(error.details)}", file=sys.stderr)
+        return 2
+    except ServerError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 3
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"{summary['status']}" + (f": {summary['error']}" if summary["error"] else ""))
+        for output in summary["outputs"]:
+            print(f"  node {output['node']} {output['kind']}: {output['file']} [{output['type']}]")
+    return 0 if summary["status"] == "success" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
