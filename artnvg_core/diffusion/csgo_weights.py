@@ -25,12 +25,18 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .csgo import CONTROLNET_ROUTES, UNET_ROUTES, CSGOProjections, install_processors, processor_key_layout
+from ..statedict import state_dict_mismatch
+from .csgo import (
+    CONTROLNET_ROUTES,
+    UNET_ROUTES,
+    CSGOProjections,
+    install_processors,
+    processor_key_layout,
+)
 from .resampler import PerceiverResampler, resampler_config_from_state_dict
 
 REQUIRED_GROUPS = ("content_image_proj", "style_image_proj", "ip_adapter", "controlnet_adapter_modules")
 OPTIONAL_GROUPS = ("conv_in_unet_sd",)
-_LISTED_KEYS = 8
 
 
 class CSGOWeightsError(ValueError):
@@ -68,27 +74,11 @@ def read_csgo_file(path: str | Path) -> dict[str, dict[str, torch.Tensor]]:
     return groups
 
 
-def _keys_text(keys: list[str]) -> str:
-    shown = ", ".join(sorted(keys)[:_LISTED_KEYS])
-    more = len(keys) - _LISTED_KEYS
-    return f"[{shown}{f', ... ({more} more)' if more > 0 else ''}]"
-
-
 def _fill(targets: dict[str, torch.Tensor], source: dict[str, torch.Tensor], group: str, path: Path) -> None:
     """Copy ``source`` into the ``targets`` parameters; all keys must match with equal shapes."""
-    missing = [k for k in targets if k not in source]
-    unexpected = [k for k in source if k not in targets]
-    wrong = [
-        f"{k} {list(source[k].shape)} != {list(targets[k].shape)}"
-        for k in targets
-        if k in source and source[k].shape != targets[k].shape
-    ]
-    if missing or unexpected or wrong:
-        raise CSGOWeightsError(
-            f"CSGO weights '{path}', group '{group}': {len(missing)} missing keys {_keys_text(missing)}, "
-            f"{len(unexpected)} unexpected keys {_keys_text(unexpected)}"
-            + (f", wrong shapes {wrong[:_LISTED_KEYS]}" if wrong else "")
-        )
+    mismatch = state_dict_mismatch(targets, source)
+    if mismatch:
+        raise CSGOWeightsError(f"CSGO weights '{path}', group '{group}': {mismatch}")
     with torch.no_grad():
         for key, param in targets.items():
             param.copy_(source[key])

@@ -22,7 +22,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from diffusers import AutoencoderKL, ControlNetModel, StableDiffusionXLPipeline, UNet2DConditionModel
+from diffusers import (
+    AutoencoderKL,
+    ControlNetModel,
+    StableDiffusionXLPipeline,
+    UNet2DConditionModel,
+)
 from transformers import (
     CLIPTextModel,
     CLIPTextModelWithProjection,
@@ -31,6 +36,7 @@ from transformers import (
     CLIPVisionModelWithProjection,
 )
 
+from ..statedict import state_dict_mismatch
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
@@ -45,7 +51,6 @@ from .model_files import (
 )
 
 SDXL_COMPONENTS = ("unet", "vae", "text_encoder", "text_encoder_2", "tokenizer", "tokenizer_2", "scheduler")
-_LISTED_KEYS = 8
 
 
 @dataclass
@@ -95,11 +100,6 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def _keys_text(keys: list[str]) -> str:
-    more = len(keys) - _LISTED_KEYS
-    return f"[{', '.join(sorted(keys)[:_LISTED_KEYS])}{f', ... ({more} more)' if more > 0 else ''}]"
-
-
 def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
     """Load the weight file at ``path`` into ``model``; every key must match in name and shape
     (else ValueError listing the missing, unexpected and mis-shaped keys). Entries for the model's
@@ -108,19 +108,9 @@ def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
     expected = model.state_dict()
     recomputed = {name for name, _ in model.named_buffers()} - set(expected)
     state = {k: v for k, v in _read_weights(path).items() if k not in recomputed}
-    missing = [k for k in expected if k not in state]
-    unexpected = [k for k in state if k not in expected]
-    wrong = [
-        f"{k} {list(state[k].shape)} != {list(expected[k].shape)}"
-        for k in expected
-        if k in state and state[k].shape != expected[k].shape
-    ]
-    if missing or unexpected or wrong:
-        raise ValueError(
-            f"weights '{path}' do not fit {type(model).__name__}: {len(missing)} missing keys "
-            f"{_keys_text(missing)}, {len(unexpected)} unexpected keys {_keys_text(unexpected)}"
-            + (f", {len(wrong)} wrong shapes {wrong[:_LISTED_KEYS]}" if wrong else "")
-        )
+    mismatch = state_dict_mismatch(expected, state)
+    if mismatch:
+        raise ValueError(f"weights '{path}' do not fit {type(model).__name__}: {mismatch}")
     model.load_state_dict(state)
 
 

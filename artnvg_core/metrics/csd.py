@@ -30,6 +30,7 @@ from torch import nn
 
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import ModelSource, locate
+from ..statedict import state_dict_mismatch
 
 CSD_WEIGHTS = ModelSource("CSD style descriptor weights (ViT-L/14)", "tomg-group-umd/CSD-ViT-L", "pytorch_model.bin")
 _STYLE_HEAD = "last_layer_style"
@@ -184,16 +185,9 @@ def load_csd(path: str | Path | None = None, *, device: str | torch.device = "cp
     for key in _UNUSED_KEYS:
         state.pop(key, None)
     model = CSDStyleEncoder(_config_from_state(path, state))
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    wrong = [f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}" for k, v in expected.items()
-             if k in state and state[k].shape != v.shape]
-    if missing or unexpected or wrong:
-        raise ValueError(
-            f"{path}: not a CSD ViT checkpoint: missing keys {missing[:8]}, unexpected keys {unexpected[:8]}, "
-            f"wrong shapes {wrong[:8]}"
-        )
+    mismatch = state_dict_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise ValueError(f"{path}: not a CSD ViT checkpoint: {mismatch}")
     model.load_state_dict({k: v.float() for k, v in state.items()})
     return model.to(device).eval().requires_grad_(False)
 

@@ -1,0 +1,27 @@
+"""Strict state-dict matching with readable errors, shared by every weight loader."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+LISTED_KEYS = 8  # keys shown per kind of mismatch
+
+
+def _listed(keys: list[str]) -> str:
+    more = len(keys) - LISTED_KEYS
+    return f"[{', '.join(sorted(keys)[:LISTED_KEYS])}{f', ... ({more} more)' if more > 0 else ''}]"
+
+
+def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor]) -> str | None:
+    """None when ``state`` has exactly the keys of ``expected``, each with the same shape;
+    otherwise a message counting and listing the missing, unexpected and mis-shaped keys."""
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    wrong = [f"{k} {list(state[k].shape)} != {list(v.shape)}" for k, v in expected.items()
+             if k in state and state[k].shape != v.shape]
+    if not (missing or unexpected or wrong):
+        return None
+    text = f"{len(missing)} missing keys {_listed(missing)}, {len(unexpected)} unexpected keys {_listed(unexpected)}"
+    return text + (f", {len(wrong)} wrong shapes {wrong[:LISTED_KEYS]}" if wrong else "")
