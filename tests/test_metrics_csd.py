@@ -125,7 +125,7 @@ def test_loader_errors_name_the_file_and_the_problem(reference, tmp_path, monkey
     _, state = reference
     partial = {k: v for k, v in state.items() if ".resblocks.1.mlp" not in k}
     torch.save(partial, tmp_path / "partial.pt")
-    with pytest.raises(ValueError, match=r"partial.pt: not a CSD ViT checkpoint: missing keys \['backbone.transformer.resblocks.1.mlp"):
+    with pytest.raises(ValueError, match=r"partial.pt: not a CSD ViT checkpoint: 4 missing keys \[backbone.transformer.resblocks.1.mlp"):
         load_csd(tmp_path / "partial.pt")
     torch.save({"backbone.conv1.weight": torch.zeros(4, 3, 7, 7)}, tmp_path / "headless.pt")
     with pytest.raises(ValueError, match="headless.pt: 'backbone.positional_embedding': expected a 2-d tensor"):
