@@ -10,22 +10,42 @@ ArtNVG's processors (CSGO image branches active) and prints:
   ``--group-steps`` steps and, when that is below 50, extrapolated to 50 steps (labelled);
 * image encoder time (one style image + N content views) and VAE decoding time per view.
 
+Sections (no section flag = ``--timing --group``):
+
+* ``--timing``: the seconds-per-step table above;
+* ``--flops``: FLOPs of one step per configuration (counted on the meta device, no memory), the
+  floor time at the measured bf16 matmul rate (``--matmul-size``^3) and, with ``--timing``, the gap
+  of the measured time to that floor;
+* ``--variants``: one NV step (``--variant-views`` N at ``--variant-size``, CFG) for the eager
+  baseline, each exact speedup of :mod:`artnvg_core.diffusion.speed` alone (SDPA backends,
+  channels-last, fused projections, ``torch.compile`` unless ``--compile none``) and all combined
+  (with the fastest backend): time, peak memory and deviation of the noise prediction from the
+  baseline; details to ``--json``;
+* ``--group``: whole-group and component tables.
+
 Timing: CUDA events (perf_counter on CPU), ``--warmup`` untimed runs, median of ``--repeats``.
 Compute does not depend on weight values, so random weights give representative numbers.
 
     python bench/diffusion.py                      # GPU, bf16, full size
     python bench/diffusion.py --tiny --device cpu  # smoke test with tiny models
+    python bench/diffusion.py --timing --flops --variants --views 1 15 --json out/variants.json
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import dataclasses
+import gc
+import json
+import os
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -49,6 +69,13 @@ from artnvg_core.diffusion.csgo import (  # noqa: E402
 from artnvg_core.diffusion.models import DiffusionModels, SDXLBase  # noqa: E402
 from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig  # noqa: E402
 from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa: E402
+from artnvg_core.diffusion.speed import (  # noqa: E402
+    COMPILE_MODES,
+    SDPA_BACKENDS,
+    SpeedOptions,
+    apply_speedups,
+    sdpa_backend,
+)
 
 POOLED_DIM = 1280
 TEXT_TOKENS = 77
@@ -160,46 +187,229 @@ def _conditioning(models: DiffusionModels, device, dtype, pooled_dim: int) -> St
     return StyleConditioning(PromptEmbeddings(text, pooled, torch.zeros_like(text), torch.zeros_like(pooled)), style)
 
 
-def denoise_step(models: DiffusionModels, views: int, size: int, nv: bool, pooled_dim: int):
-    """One ControlNet + UNet evaluation with CFG (batch 2N), as a closure."""
-    unet, controlnet = models.base.unet, models.controlnet
+def step_inputs(models: DiffusionModels, views: int, size: int, nv: bool, pooled_dim: int, seed: int = 0) -> dict:
+    """Seeded inputs of one ControlNet + UNet evaluation with CFG (batch 2N), on the models' device."""
+    unet = models.base.unet
     device, dtype, width = unet.device, unet.dtype, unet.config.cross_attention_dim
     batch = 2 * views
-    latents = torch.randn(batch, 4, size // 8, size // 8, device=device, dtype=dtype)
-    context = torch.randn(batch, TEXT_TOKENS + 4 + 32, width, device=device, dtype=dtype)
-    added = {
-        "text_embeds": torch.randn(batch, pooled_dim, device=device, dtype=dtype),
-        "time_ids": torch.tensor([[size, size, 0, 0, size, size]] * batch, device=device, dtype=dtype),
-    }
-    hint = torch.rand(batch, 3, size, size, device=device, dtype=dtype)
-    control = attention_kwargs(
-        AttentionControl(
-            views_per_group=views if nv else 1,
-            num_content_tokens=4,
-            num_style_tokens=32,
-            content_scale=1.0,
-            style_scale=0.6,
-        )
+    generator = torch.Generator().manual_seed(seed)
+
+    def rand(*shape, normal=True):
+        values = torch.randn(shape, generator=generator) if normal else torch.rand(shape, generator=generator)
+        return values.to(device=device, dtype=dtype)
+
+    control = AttentionControl(
+        views_per_group=views if nv else 1,
+        num_content_tokens=4,
+        num_style_tokens=32,
+        content_scale=1.0,
+        style_scale=0.6,
     )
-    t = torch.tensor(500, device=device)
+    return {
+        "latents": rand(batch, 4, size // 8, size // 8),
+        "t": torch.tensor(500, device=device),
+        "context": rand(batch, TEXT_TOKENS + 4 + 32, width),
+        "hint": rand(batch, 3, size, size, normal=False),
+        "added": {
+            "text_embeds": rand(batch, pooled_dim),
+            "time_ids": torch.tensor([[size, size, 0, 0, size, size]] * batch, device=device, dtype=dtype),
+        },
+        "control": attention_kwargs(control),
+    }
 
-    @torch.no_grad()
+
+@torch.no_grad()
+def run_step(unet, controlnet, inputs: dict) -> torch.Tensor:
+    """ControlNet then UNet on ``inputs`` (see :func:`step_inputs`); returns the noise prediction [2N, 4, h, w]."""
+    common = dict(added_cond_kwargs=inputs["added"], cross_attention_kwargs=inputs["control"], return_dict=False)
+    down, mid = controlnet(inputs["latents"], inputs["t"], inputs["context"], inputs["hint"], **common)
+    return unet(
+        inputs["latents"],
+        inputs["t"],
+        inputs["context"],
+        down_block_additional_residuals=down,
+        mid_block_additional_residual=mid,
+        **common,
+    )[0]
+
+
+def denoise_step(models: DiffusionModels, views: int, size: int, nv: bool, pooled_dim: int):
+    """One ControlNet + UNet evaluation with CFG (batch 2N), as a closure."""
+    inputs = step_inputs(models, views, size, nv, pooled_dim)
+    return lambda: run_step(models.base.unet, models.controlnet, inputs)
+
+
+def write_json(path: Path | None, data: dict) -> None:
+    """Write ``data`` to ``path`` atomically (no-op for None)."""
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+def matmul_rate(device: torch.device, dtype: torch.dtype, size: int, timer: Timer) -> float:
+    """Measured FLOP/s of a ``size``^3 matrix product in ``dtype`` (median of 20)."""
+    generator = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(size, size, generator=generator).to(device=device, dtype=dtype) for _ in range(2))
+    return 2 * size**3 / timer(lambda: a @ b, 3, 20)
+
+
+FLOP_KINDS = {"attention": ("bmm", "baddbmm"), "linear": ("mm", "addmm"), "convolution": ("convolution",)}
+
+
+def step_flops(meta_models: DiffusionModels, views: int, size: int, nv: bool, pooled_dim: int) -> dict[str, int]:
+    """FLOPs of one denoising step (ControlNet + UNet, CFG, 113-token context) counted on the meta device.
+
+    On meta tensors scaled-dot-product attention runs PyTorch's math path, so the counter sees its two
+    batched matmuls (4 B H Lq Lk D FLOPs, the same formula it applies to the CUDA SDPA kernels): the
+    "attention" entry is every attention product, self (NV) and cross (text + CSGO branches).
+    """
+    inputs = step_inputs(meta_models, views, size, nv, pooled_dim)
+    with FlopCounterMode(display=False) as counter:
+        run_step(meta_models.base.unet, meta_models.controlnet, inputs)
+    counts = {str(op).removeprefix("aten."): n for op, n in counter.get_flop_counts()["Global"].items()}
+    kinds = {kind: sum(counts.get(op, 0) for op in ops) for kind, ops in FLOP_KINDS.items()}
+    return {"total": counter.get_total_flops(), **kinds}
+
+
+def flops_table(args, dtype, timer, timings: dict, pooled_dim: int) -> dict:
+    """Print FLOPs per configuration, the floor at the measured matmul rate and the gap to measured times."""
+    device = torch.device(args.device)
+    rate = matmul_rate(device, dtype, args.matmul_size, timer)
+    meta_models = build_models(args.tiny, torch.device("meta"), dtype)
+    print(
+        f"\nMeasured {args.matmul_size}^3 {args.dtype} matmul: {rate / 1e12:.1f} TFLOP/s. FLOPs counted with "
+        "torch.utils.flop_counter on the meta device (attention = SDPA products incl. CSGO branches)."
+    )
+    print("\n| size | N views | NV attention | TFLOP / step | attention | linear | conv | floor s | s / step | gap |")
+    print("|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+    rows = []
+    for size in args.sizes:
+        for views in args.views:
+            for nv in (False, True):
+                if not (nv and views == 1):  # one view: NV attention is per-view attention, same count
+                    flops = step_flops(meta_models, views, size, nv, pooled_dim)
+                floor = flops["total"] / rate
+                measured = timings.get((size, views, nv))
+                rows.append(dict(size=size, views=views, nv=nv, flops=flops, floor_s=floor, measured_s=measured))
+                tera = {kind: f"{value / 1e12:.3g}" for kind, value in flops.items()}
+                timing = "| - | -" if measured is None else f"| {measured:.3f} | {measured / floor:.2f}x"
+                print(
+                    f"| {size} | {views} | {'on' if nv else 'off'} | {tera['total']} | {tera['attention']} | "
+                    f"{tera['linear']} | {tera['convolution']} | {floor:.3f} {timing} |",
+                    flush=True,
+                )
+    return {"matmul_tflops": rate / 1e12, "matmul_size": args.matmul_size, "configurations": rows}
+
+
+def _copy_models(models: DiffusionModels) -> DiffusionModels:
+    """Independent copies of the UNet and the ControlNet (same weights), for one variant."""
+    return DiffusionModels(
+        base=dataclasses.replace(models.base, unet=copy.deepcopy(models.base.unet)),
+        controlnet=copy.deepcopy(models.controlnet),
+    )
+
+
+def measure_variant(models, inputs, backend: str, options: SpeedOptions, args, timer) -> tuple[dict, torch.Tensor]:
+    """Time one step of a speedup variant on copies of ``models``; returns (row, noise prediction)."""
+    variant = _copy_models(models)
+    apply_speedups(variant, options)
+
     def run():
-        down, mid = controlnet(
-            latents, t, context, hint, added_cond_kwargs=added, cross_attention_kwargs=control, return_dict=False
-        )
-        unet(
-            latents,
-            t,
-            context,
-            added_cond_kwargs=added,
-            cross_attention_kwargs=control,
-            down_block_additional_residuals=down,
-            mid_block_additional_residual=mid,
-            return_dict=False,
-        )
+        return run_step(variant.base.unet, variant.controlnet, inputs)
 
-    return run
+    with sdpa_backend(backend):
+        begin = time.perf_counter()
+        noise = run().float()
+        first = time.perf_counter() - begin
+        seconds = timer(run, args.warmup, args.repeats)
+        peak = peak_memory_above_resident(torch.device(args.device), run)
+    return {"seconds": seconds, "first_call_s": first, "peak_extra_gib": peak}, noise
+
+
+def release(device: torch.device) -> None:
+    """Free what the last variant left: its models (garbage), compiled code and cached GPU blocks."""
+    gc.collect()
+    torch._dynamo.reset()
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+
+
+def peak_memory_above_resident(device: torch.device, run) -> float:
+    """Peak GiB allocated by ``run`` above what was allocated before it (nan on the CPU)."""
+    if device.type != "cuda":
+        return float("nan")
+    torch.cuda.synchronize()
+    resident = torch.cuda.memory_allocated()
+    torch.cuda.reset_peak_memory_stats()
+    run()
+    torch.cuda.synchronize()
+    return (torch.cuda.max_memory_allocated() - resident) / 2**30
+
+
+def deviation(noise: torch.Tensor, reference: torch.Tensor) -> dict:
+    difference = noise - reference
+    return {
+        "max_abs": difference.abs().max().item(),
+        "rel_l2": (difference.norm() / reference.norm()).item(),
+    }
+
+
+def variants_table(models: DiffusionModels, args, timer, pooled_dim: int, report: dict) -> None:
+    """Time one NV + CFG step for the eager baseline, each exact speedup alone, and all combined.
+
+    Each variant runs on copies of the same weights with the same inputs; its noise prediction is
+    compared with the baseline's (the baseline row compares two baseline runs: run-to-run noise).
+    """
+    size, views = args.variant_size, args.variant_views
+    inputs = step_inputs(models, views, size, True, pooled_dim, seed=1)
+    compile_mode = None if args.compile == "none" else args.compile
+    backends = ["auto"] + [name for name in SDPA_BACKENDS if name != "auto"]
+    plan = [(f"sdpa {name}" if name != "auto" else "eager baseline", name, SpeedOptions()) for name in backends]
+    plan += [
+        ("channels_last", "auto", SpeedOptions(channels_last=True)),
+        ("fused projections", "auto", SpeedOptions(fuse_projections=True)),
+    ]
+    if compile_mode is not None:
+        plan.append((f"torch.compile {compile_mode}", "auto", SpeedOptions(compile=compile_mode)))
+    print(
+        f"\nExact speedups, one step: N={views}, {size}x{size}, NV on, CFG (batch {2 * views}), "
+        f"ControlNet + UNet; deviation of the noise prediction from the eager baseline ({args.dtype})."
+    )
+    print("\n| variant | SDPA backend | s / step | speedup | peak GiB above weights | max abs diff | rel L2 | note |")
+    print("|---|---|---:|---:|---:|---:|---:|---|")
+    rows = report.setdefault("variants", [])
+    reference = None
+    combined = SpeedOptions(channels_last=True, fuse_projections=True, compile=compile_mode)
+    for name, backend, options in plan + [("all combined", None, combined)]:
+        if backend is None:
+            timed = [r for r in rows if r["options"] == dataclasses.asdict(SpeedOptions()) and "seconds" in r]
+            backend = min(timed, key=lambda r: r["seconds"])["backend"]
+        row = {"variant": name, "backend": backend, "options": dataclasses.asdict(options)}
+        try:
+            measured, noise = measure_variant(models, inputs, backend, options, args, timer)
+            row.update(measured)
+            if reference is None:
+                reference = noise
+                noise = run_step(models.base.unet, models.controlnet, inputs).float()
+            row.update(deviation(noise, reference))
+        except Exception as error:  # a backend without a kernel, out of memory, a compile failure
+            row["error"] = f"{type(error).__name__}: {str(error).strip().splitlines()[0][:160]}"
+        release(torch.device(args.device))
+        rows.append(row)
+        write_json(args.json, report)
+        if "error" in row:
+            print(f"| {name} | {backend} | - | - | - | - | - | {row['error']} |", flush=True)
+            continue
+        speedup = rows[0]["seconds"] / row["seconds"] if "seconds" in rows[0] else float("nan")
+        note = f"first call {row['first_call_s']:.1f} s" if options.compile else ""
+        print(
+            f"| {name} | {backend} | {row['seconds']:.3f} | {speedup:.2f}x | {row['peak_extra_gib']:.1f} | "
+            f"{row['max_abs']:.3g} | {row['rel_l2']:.3g} | {note} |",
+            flush=True,
+        )
 
 
 def main() -> None:
@@ -213,37 +423,74 @@ def main() -> None:
     parser.add_argument("--group-steps", type=int, default=50, help="steps actually run for the whole-group time")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--timing", action="store_true", help="seconds per step table")
+    parser.add_argument("--flops", action="store_true", help="FLOP count, floor time and gap table")
+    parser.add_argument("--variants", action="store_true", help="exact speedup variants table")
+    parser.add_argument("--group", action="store_true", help="whole-group and component tables")
+    parser.add_argument("--matmul-size", type=int, help="side of the matmul rate probe (default 8192, CPU 1024)")
+    parser.add_argument("--variant-size", type=int, help="image side for --variants (default 1024, tiny 128)")
+    parser.add_argument("--variant-views", type=int, default=15)
+    parser.add_argument(
+        "--compile",
+        choices=["none", *COMPILE_MODES],
+        help="torch.compile mode of the --variants compile rows (default: 'default' on CUDA, 'none' on the CPU)",
+    )
+    parser.add_argument("--json", type=Path, help="write the results of this run as JSON here")
     args = parser.parse_args()
+    if not (args.timing or args.flops or args.variants or args.group):
+        args.timing = args.group = True
     device = torch.device(args.device)
     args.dtype = args.dtype or ("bf16" if device.type == "cuda" else "fp32")
     dtype = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}[args.dtype]
-    sizes = [64, 128] if args.tiny and args.sizes == [768, 1024] else args.sizes
+    if args.tiny and args.sizes == [768, 1024]:
+        args.sizes = [64, 128]
+    args.matmul_size = args.matmul_size or (8192 if device.type == "cuda" else 1024)
+    args.variant_size = args.variant_size or (128 if args.tiny else 1024)
+    args.compile = args.compile or ("default" if device.type == "cuda" else "none")
     pooled_dim = TINY_POOLED_DIM if args.tiny else POOLED_DIM
     timer = Timer(device)
 
     begin = time.perf_counter()
+    torch.manual_seed(0)
     models = build_models(args.tiny, device, dtype)
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    weights = sum(p.numel() * p.element_size() for m in (models.base.unet, models.controlnet) for p in m.parameters())
     print(
         f"# ArtNVG diffusion benchmark: {gpu}, {args.dtype}, {'tiny' if args.tiny else 'full-size'} random models "
-        f"(built in {time.perf_counter() - begin:.0f} s), torch {torch.__version__}, "
-        f"SDPA backends: flash={torch.backends.cuda.flash_sdp_enabled()}, "
+        f"(built in {time.perf_counter() - begin:.0f} s; UNet + ControlNet {weights / 2**30:.1f} GiB), "
+        f"torch {torch.__version__}, SDPA backends: flash={torch.backends.cuda.flash_sdp_enabled()}, "
         f"mem_efficient={torch.backends.cuda.mem_efficient_sdp_enabled()}"
     )
-    print("\n| size | N views | NV attention | s / step (CFG, ControlNet + UNet) | peak GiB |")
-    print("|---:|---:|---|---:|---:|")
-    for size in sizes:
-        for views in args.views:
-            for nv in (False, True):
-                run = denoise_step(models, views, size, nv, pooled_dim)
-                seconds = timer(run, args.warmup, args.repeats)
-                peak = peak_memory(device, run)
-                print(f"| {size} | {views} | {'on' if nv else 'off'} | {seconds:.3f} | {peak:.1f} |", flush=True)
+    report = {"setup": {"device": gpu, "dtype": args.dtype, "tiny": args.tiny, "torch": torch.__version__}}
+    timings = {}
+    if args.timing:
+        print("\n| size | N views | NV attention | s / step (CFG, ControlNet + UNet) | peak GiB |")
+        print("|---:|---:|---|---:|---:|")
+        for size in args.sizes:
+            for views in args.views:
+                for nv in (False, True):
+                    run = denoise_step(models, views, size, nv, pooled_dim)
+                    seconds = timings[(size, views, nv)] = timer(run, args.warmup, args.repeats)
+                    peak = peak_memory(device, run)
+                    print(f"| {size} | {views} | {'on' if nv else 'off'} | {seconds:.3f} | {peak:.1f} |", flush=True)
+        report["timing"] = [dict(size=k[0], views=k[1], nv=k[2], seconds=v) for k, v in timings.items()]
+        write_json(args.json, report)
+    if args.flops:
+        report["flops"] = flops_table(args, dtype, timer, timings, pooled_dim)
+        write_json(args.json, report)
+    if args.variants:
+        variants_table(models, args, timer, pooled_dim, report)
+    if args.group:
+        group_tables(models, args, timer, dtype, pooled_dim)
 
+
+def group_tables(models: DiffusionModels, args, timer: Timer, dtype: torch.dtype, pooled_dim: int) -> None:
+    """Whole-group time (all steps, decoding) and the image encoder / VAE component times."""
+    device = torch.device(args.device)
     conditioning = _conditioning(models, device, dtype, pooled_dim)
     print(f"\n| size | whole group of {args.group_views} views, NV on, DDIM | seconds |")
     print("|---:|---|---:|")
-    for size in sizes:
+    for size in args.sizes:
         images = torch.rand(args.group_views, size, size, 3)
         settings = SamplerSettings(steps=args.group_steps, resolution=size)
         measured = timer(lambda: stylize_group(models, images, conditioning, settings), 0, 1)
@@ -262,7 +509,7 @@ def main() -> None:
         seconds = timer(lambda: image_features(models.image_encoder, images), args.warmup, args.repeats)
         print(f"| image encoder (224 px, penultimate states) | {count} | {seconds:.3f} |")
     vae = models.base.vae
-    for size in sizes:
+    for size in args.sizes:
         latents = torch.randn(1, 4, size // 8, size // 8, device=device, dtype=vae.dtype)
         seconds = timer(lambda: vae.decode(latents / vae.config.scaling_factor), args.warmup, args.repeats)
         print(f"| VAE decode {size} px ({str(vae.dtype).removeprefix('torch.')}) | 1 | {seconds:.3f} |")

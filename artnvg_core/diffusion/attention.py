@@ -19,6 +19,8 @@ Two processors, installed by module name (see :mod:`artnvg_core.diffusion.csgo`)
 Per-call settings travel in diffusers' ``cross_attention_kwargs`` as one
 :class:`AttentionControl` under the key ``"control"`` (see :func:`attention_kwargs`);
 without it the processors act as plain self-attention and text-only cross-attention.
+Both processors use the fused ``to_qkv`` / ``to_kv`` projections when the layer's
+``fused_projections`` is set (see :func:`artnvg_core.diffusion.speed.fuse_attention_projections`).
 Attention masks are not supported (SDXL does not use them).
 """
 
@@ -145,10 +147,11 @@ class NeighbourViewSelfAttention:
         if batch % views:
             raise ValueError(f"NeighbourViewSelfAttention: batch {batch} is not a multiple of views_per_group {views}")
         groups = batch // views
-        q, k, v = (
-            _split_heads(proj(x).reshape(groups, views * length, -1), attn.heads)
-            for proj in (attn.to_q, attn.to_k, attn.to_v)
-        )
+        if attn.fused_projections:
+            projected = attn.to_qkv(x).chunk(3, dim=-1)
+        else:
+            projected = (attn.to_q(x), attn.to_k(x), attn.to_v(x))
+        q, k, v = (_split_heads(p.reshape(groups, views * length, -1), attn.heads) for p in projected)
         q, k = _qk_norm(attn, q, k)
         out = _attend(q, k, v, attn.scale, self.query_chunk_size)
         out = _merge_heads(out).reshape(batch, length, -1).to(q.dtype)
@@ -199,9 +202,9 @@ class DecoupledCrossAttention(nn.Module):
         if attn.norm_cross:
             text = attn.norm_encoder_hidden_states(text)
         q = _split_heads(attn.to_q(x), attn.heads)
-        k = _split_heads(attn.to_k(text), attn.heads)
-        q, k = _qk_norm(attn, q, k)
-        out = F.scaled_dot_product_attention(q, k, _split_heads(attn.to_v(text), attn.heads), scale=attn.scale)
+        k, v = attn.to_kv(text).chunk(2, dim=-1) if attn.fused_projections else (attn.to_k(text), attn.to_v(text))
+        q, k = _qk_norm(attn, q, _split_heads(k, attn.heads))
+        out = F.scaled_dot_product_attention(q, k, _split_heads(v, attn.heads), scale=attn.scale)
         tokens, scale = {
             "content": (content, control.content_scale),
             "style": (style, control.style_scale),

@@ -35,6 +35,7 @@ from .attention import AttentionControl, attention_kwargs
 from .conditioning import StyleConditioning, content_tokens
 from .images import check_images, resize_images, sdxl_size
 from .models import DiffusionModels
+from .speed import check_sdpa_backend, sdpa_backend
 
 SCHEDULERS = {
     "ddim": DDIMScheduler,
@@ -52,6 +53,8 @@ class SamplerSettings:
 
     resolution: target side of the square of equal area (None: keep the content size, rounded to 64).
     neighbour_views: neighbouring-view attention on (False: the paper's "w/o NV" ablation).
+    attention_backend: scaled-dot-product attention backend of the denoising loop, one of
+        ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
     """
 
     steps: int = 50
@@ -62,8 +65,10 @@ class SamplerSettings:
     neighbour_views: bool = True
     resolution: int | None = 1024
     scheduler: str = "ddim"
+    attention_backend: str = "auto"
 
     def __post_init__(self) -> None:
+        check_sdpa_backend(self.attention_backend, "SamplerSettings.attention_backend")
         if self.steps < 1:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
         if self.scheduler not in SCHEDULERS:
@@ -183,17 +188,23 @@ def stylize_group(
     for step, t in enumerate(timesteps):
         check_stop(should_stop)
         model_input = scheduler.scale_model_input(torch.cat([latents] * halves), t).to(unet.dtype)
-        down, mid = controlnet(
-            model_input, t, controlnet_cond=hint, conditioning_scale=settings.control_scale, return_dict=False, **inputs
-        )
-        noise = unet(
-            model_input,
-            t,
-            down_block_additional_residuals=down,
-            mid_block_additional_residual=mid,
-            return_dict=False,
-            **inputs,
-        )[0].float()
+        with sdpa_backend(settings.attention_backend):
+            down, mid = controlnet(
+                model_input,
+                t,
+                controlnet_cond=hint,
+                conditioning_scale=settings.control_scale,
+                return_dict=False,
+                **inputs,
+            )
+            noise = unet(
+                model_input,
+                t,
+                down_block_additional_residuals=down,
+                mid_block_additional_residual=mid,
+                return_dict=False,
+                **inputs,
+            )[0].float()
         if halves == 2:
             noise_uncond, noise_cond = noise.chunk(2)
             noise = noise_uncond + settings.guidance_scale * (noise_cond - noise_uncond)

@@ -1,0 +1,105 @@
+"""Exact speedups of the diffusion models: each changes no result beyond floating-point rounding.
+
+* :func:`sdpa_backend` — a context in which every ``scaled_dot_product_attention`` (our
+  processors included) runs on one named PyTorch backend: ``"flash"``, ``"cudnn"``,
+  ``"efficient"``, ``"math"``, or ``"auto"`` (PyTorch's own choice). The sampler enters it
+  around the denoising loop (:attr:`SamplerSettings.attention_backend`).
+* :class:`SpeedOptions` / :func:`apply_speedups` — one-off transformations of the UNet and
+  the ControlNet, applied in place after loading:
+
+  - ``channels_last``: NHWC memory layout for the convolutions;
+  - ``fuse_projections``: one ``to_qkv`` matmul per self-attention and one ``to_kv`` per text
+    cross-attention (diffusers' ``Attention.fuse_projections``); the original ``to_q`` /
+    ``to_k`` / ``to_v`` weights become views of the fused weight, so no memory is added.
+    ArtNVG's processors use the fused layers when ``attn.fused_projections`` is set;
+  - ``compile``: ``torch.compile`` of both models' forward in place (``nn.Module.compile``)
+    with the given mode, e.g. ``"default"`` or ``"max-autotune-no-cudagraphs"``; the first
+    call of each input shape compiles (minutes for full-size SDXL).
+
+All are off by default; none changes any parameter value.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import torch
+from diffusers.models.attention_processor import Attention
+from torch import nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
+
+SDPA_BACKENDS = {
+    "auto": None,
+    "flash": SDPBackend.FLASH_ATTENTION,
+    "cudnn": SDPBackend.CUDNN_ATTENTION,
+    "efficient": SDPBackend.EFFICIENT_ATTENTION,
+    "math": SDPBackend.MATH,
+}
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def check_sdpa_backend(name: str, field: str) -> str:
+    """``name`` if it is a key of :data:`SDPA_BACKENDS`, else ValueError naming ``field``."""
+    if name not in SDPA_BACKENDS:
+        raise ValueError(f"{field} must be one of {sorted(SDPA_BACKENDS)}, got {name!r}")
+    return name
+
+
+def sdpa_backend(name: str) -> contextlib.AbstractContextManager:
+    """Context restricting scaled-dot-product attention to backend ``name`` ("auto": no restriction).
+
+    Inside it, a call the backend cannot serve (e.g. "cudnn" on the CPU) raises RuntimeError.
+    """
+    backend = SDPA_BACKENDS[check_sdpa_backend(name, "sdpa_backend: name")]
+    return contextlib.nullcontext() if backend is None else sdpa_kernel(backend)
+
+
+@dataclass(frozen=True)
+class SpeedOptions:
+    """Which exact speedups :func:`apply_speedups` applies (see the module docstring).
+
+    compile: None (eager) or a ``torch.compile`` mode from :data:`COMPILE_MODES`.
+    """
+
+    channels_last: bool = False
+    fuse_projections: bool = False
+    compile: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.compile is not None and self.compile not in COMPILE_MODES:
+            raise ValueError(f"SpeedOptions.compile must be None or one of {COMPILE_MODES}, got {self.compile!r}")
+
+
+@torch.no_grad()
+def fuse_attention_projections(model: nn.Module) -> None:
+    """Fuse the q/k/v (self-attention) and k/v (cross-attention) projections of every diffusers
+    ``Attention`` in ``model``, keeping the separate layers as views of the fused weight."""
+    for layer in model.modules():
+        if not isinstance(layer, Attention) or layer.fused_projections:
+            continue
+        layer.fuse_projections()
+        if layer.is_cross_attention:
+            fused, names = layer.to_kv, ("to_k", "to_v")
+        else:
+            fused, names = layer.to_qkv, ("to_q", "to_k", "to_v")
+        sizes = [getattr(layer, name).out_features for name in names]
+        weights = fused.weight.split(sizes)
+        biases = fused.bias.split(sizes) if fused.bias is not None else [None] * len(names)
+        for name, weight, bias in zip(names, weights, biases):
+            linear = getattr(layer, name)
+            linear.weight = nn.Parameter(weight, requires_grad=linear.weight.requires_grad)
+            if bias is not None:
+                linear.bias = nn.Parameter(bias, requires_grad=linear.bias.requires_grad)
+
+
+def apply_speedups(models, options: SpeedOptions) -> None:
+    """Apply ``options`` in place to ``models.base.unet`` and ``models.controlnet``
+    (a :class:`artnvg_core.diffusion.models.DiffusionModels`). Call once, after loading."""
+    for model in (models.base.unet, models.controlnet):
+        if options.channels_last:
+            model.to(memory_format=torch.channels_last)
+        if options.fuse_projections:
+            fuse_attention_projections(model)
+        if options.compile is not None:
+            model.compile(mode=options.compile)

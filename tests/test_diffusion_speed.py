@@ -1,0 +1,163 @@
+"""Exact speedups (artnvg_core.diffusion.speed) on tiny SDXL-architecture models (CPU, float32).
+
+Each option must leave the noise prediction and the sampled images unchanged up to float32
+rounding. torch.compile is not tested here: compiling even the tiny models takes minutes on a
+CPU; the GPU benchmark (bench/diffusion.py --variants) reports its deviation.
+"""
+
+import copy
+import dataclasses
+
+import pytest
+import torch
+from diffusers.models.attention_processor import Attention
+from torch.utils.flop_counter import FlopCounterMode
+
+from artnvg_core.diffusion.attention import AttentionControl, NeighbourViewSelfAttention, attention_kwargs
+from artnvg_core.diffusion.conditioning import prepare_conditioning
+from artnvg_core.diffusion.models import DiffusionModels
+from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group
+from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups, sdpa_backend
+from diffusion_tiny import CROSS_DIM, TEXT_WIDTH
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import tiny_models
+
+VIEWS, SIZE, TEXT_TOKENS, CONTENT_TOKENS, STYLE_TOKENS = 3, 64, 10, 4, 8
+TOLERANCE = 1e-5  # relative L2, float32
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    return tiny_models(tmp_path_factory.mktemp("csgo"), num_style_tokens=STYLE_TOKENS)
+
+
+@pytest.fixture(scope="module")
+def step_inputs():
+    """CFG batch of 2 x VIEWS views with NV attention and CSGO tokens, seeded."""
+    generator = torch.Generator().manual_seed(0)
+    batch = 2 * VIEWS
+    control = AttentionControl(VIEWS, CONTENT_TOKENS, STYLE_TOKENS, content_scale=1.0, style_scale=0.6)
+    return {
+        "sample": torch.randn(batch, 4, SIZE // 8, SIZE // 8, generator=generator),
+        "timestep": torch.tensor(500),
+        "encoder_hidden_states": torch.randn(
+            batch, TEXT_TOKENS + CONTENT_TOKENS + STYLE_TOKENS, CROSS_DIM, generator=generator
+        ),
+        "hint": torch.rand(batch, 3, SIZE, SIZE, generator=generator),
+        "added_cond_kwargs": {
+            "text_embeds": torch.randn(batch, TEXT_WIDTH, generator=generator),
+            "time_ids": torch.tensor([[SIZE, SIZE, 0, 0, SIZE, SIZE]] * batch, dtype=torch.float32),
+        },
+        "cross_attention_kwargs": attention_kwargs(control),
+    }
+
+
+@torch.no_grad()
+def _noise(models, inputs) -> torch.Tensor:
+    inputs = dict(inputs)
+    hint = inputs.pop("hint")
+    down, mid = models.controlnet(controlnet_cond=hint, return_dict=False, **inputs)
+    return models.base.unet(
+        down_block_additional_residuals=down, mid_block_additional_residual=mid, return_dict=False, **inputs
+    )[0]
+
+
+def _relative_l2(a: torch.Tensor, b: torch.Tensor) -> float:
+    return ((a - b).norm() / b.norm()).item()
+
+
+def _copy(models) -> DiffusionModels:
+    return dataclasses.replace(
+        models,
+        base=dataclasses.replace(models.base, unet=copy.deepcopy(models.base.unet)),
+        controlnet=copy.deepcopy(models.controlnet),
+    )
+
+
+def _storage_bytes(model: torch.nn.Module) -> int:
+    """Bytes of the distinct storages behind ``model``'s parameters."""
+    storages = {p.untyped_storage().data_ptr(): p.untyped_storage().nbytes() for p in model.parameters()}
+    return sum(storages.values())
+
+
+def test_math_backend_matches_default(models, step_inputs):
+    reference = _noise(models, step_inputs)
+    with sdpa_backend("math"):
+        math = _noise(models, step_inputs)
+    assert reference.abs().mean() > 0.1
+    assert _relative_l2(math, reference) < TOLERANCE
+
+
+def test_backend_reaches_our_processors(models, step_inputs):
+    """The context really restricts our processors' SDPA calls: cuDNN has no CPU kernel."""
+    with sdpa_backend("cudnn"), pytest.raises(RuntimeError, match="backend|kernel"):
+        _noise(models, step_inputs)
+
+
+@pytest.mark.parametrize(
+    "options", [SpeedOptions(channels_last=True), SpeedOptions(fuse_projections=True)], ids=["channels_last", "fused"]
+)
+def test_model_speedup_keeps_noise_prediction(models, step_inputs, options):
+    variant = _copy(models)
+    apply_speedups(variant, options)
+    assert _relative_l2(_noise(variant, step_inputs), _noise(models, step_inputs)) < TOLERANCE
+
+
+def test_channels_last_layout(models):
+    variant = _copy(models)
+    apply_speedups(variant, SpeedOptions(channels_last=True))
+    convs = [m.weight for m in variant.base.unet.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3)]
+    assert convs and all(w.is_contiguous(memory_format=torch.channels_last) for w in convs)
+
+
+def test_fused_projections_share_memory(models):
+    """Every attention is fused; the separate weights are views of the fused one (no memory added)."""
+    variant = _copy(models)
+    before = _storage_bytes(variant.base.unet)
+    apply_speedups(variant, SpeedOptions(fuse_projections=True))
+    layers = [m for m in variant.base.unet.modules() if isinstance(m, Attention)]
+    assert layers and all(layer.fused_projections for layer in layers)
+    for layer in layers:
+        fused = layer.to_kv if layer.is_cross_attention else layer.to_qkv
+        assert layer.to_k.weight.untyped_storage().data_ptr() == fused.weight.untyped_storage().data_ptr()
+        k_rows = layer.to_k.out_features
+        k_start = 0 if layer.is_cross_attention else layer.to_q.out_features
+        assert torch.equal(fused.weight[k_start : k_start + k_rows], layer.to_k.weight)
+    assert _storage_bytes(variant.base.unet) == before
+
+
+def test_sampler_with_all_exact_options_matches(models):
+    generator = torch.Generator().manual_seed(1)
+    images = torch.rand(VIEWS, SIZE, SIZE, 3, generator=generator)
+    conditioning = prepare_conditioning(models, torch.rand(1, 64, 64, 3, generator=generator), "a cat", "blurry")
+    settings = SamplerSettings(steps=2, guidance_scale=5.0, resolution=None)
+    reference = stylize_group(models, images, conditioning, settings, seed=3)
+    variant = _copy(models)
+    apply_speedups(variant, SpeedOptions(channels_last=True, fuse_projections=True))
+    fast = dataclasses.replace(settings, attention_backend="math")
+    assert _relative_l2(stylize_group(variant, images, conditioning, fast, seed=3), reference) < TOLERANCE
+
+
+def test_bad_options_raise():
+    with pytest.raises(ValueError, match="SamplerSettings.attention_backend"):
+        SamplerSettings(attention_backend="fast")
+    with pytest.raises(ValueError, match="SpeedOptions.compile"):
+        SpeedOptions(compile="fastest")
+    with pytest.raises(ValueError, match="sdpa_backend"):
+        sdpa_backend("flashy")
+
+
+def test_flop_counter_counts_nv_attention_on_meta():
+    """On the meta device the FLOP counter sees NV attention's products: 4 G H (N L)^2 D."""
+    groups, views, tokens, heads, head_dim = 2, 3, 16, 2, 8
+    with torch.device("meta"):
+        layer = Attention(query_dim=heads * head_dim, heads=heads, dim_head=head_dim)
+        x = torch.randn(groups * views, tokens, heads * head_dim)
+    layer.set_processor(NeighbourViewSelfAttention())
+    with FlopCounterMode(display=False) as counter:
+        layer(x, control=AttentionControl(views_per_group=views))
+    counts = {str(op): n for op, n in counter.get_flop_counts()["Global"].items()}
+    width = heads * head_dim
+    assert counts["aten.bmm"] == 4 * groups * heads * (views * tokens) ** 2 * head_dim
+    projections = 4 * 2 * groups * views * tokens * width * width  # q, k, v, out
+    assert counts.get("aten.mm", 0) + counts.get("aten.addmm", 0) == projections
