@@ -13,8 +13,6 @@ import shutil
 from pathlib import Path
 
 import torch
-
-torch.set_num_threads(1)
 from PIL import Image
 
 from artnvg_core.cameras import CameraSet, load_nerfstudio
