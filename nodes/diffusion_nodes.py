@@ -23,8 +23,12 @@ from artnvg_core.diffusion.model_files import (
     locate,
 )
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
-from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
-from artnvg_core.diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT
+from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings
+from artnvg_core.diffusion.stylize import (
+    DEFAULT_NEGATIVE_PROMPT,
+    DEFAULT_PROMPT,
+    stylize_groups,
+)
 
 from .comfy_bridge import (
     cancellable,
@@ -298,22 +302,10 @@ class SampleGroup:
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
                 resolution=resolution or None, scheduler=scheduler,
             )
-        chosen = range(len(groups)) if group_index < 0 else [group_index]
-        report = progress_bar()
-        output = content_views.clone()
+        chosen = None if group_index < 0 else [group_index]
         with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
-            for done, index in enumerate(chosen):
-                group = groups[index]
-
-                def group_progress(step, total, info, done=done):
-                    if report is not None:
-                        report(done * total + step, len(chosen) * total, info)
-
-                stylized = stylize_group(
-                    diffusion, content_views[list(group.all_views)], embeds, settings, seed=seed + index,
-                    progress=group_progress, should_stop=interrupt_requested,
-                )
-                output[list(group.views)] = stylized[: len(group.views)]
+            output = stylize_groups(diffusion, content_views, groups, embeds, settings, seed=seed, group_indices=chosen,
+                                    progress=progress_bar(), should_stop=interrupt_requested)
         if group_index >= 0:
             output = output[list(groups[group_index].views)]
         return (output,)

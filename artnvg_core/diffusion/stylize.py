@@ -8,12 +8,14 @@ every view's output comes from the one group that owns it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from ..cameras import CameraSet
-from ..grouping import DEFAULT_GROUP_SIZE, group_views
+from ..grouping import DEFAULT_GROUP_SIZE, ViewGroups, group_views
 from ..progress import ProgressFn, StopFn
-from .conditioning import prepare_conditioning
+from .conditioning import StyleConditioning, prepare_conditioning
 from .images import check_images
 from .models import DiffusionModels
 from .sampler import SamplerSettings, stylize_group
@@ -48,17 +50,39 @@ def stylize_views(
         raise ValueError(f"stylize_views: {len(images)} content images but {len(cameras.world_to_cam)} cameras")
     groups = group_views(cameras, group_size, context=context_views)
     conditioning = prepare_conditioning(models, style_image, prompt, negative_prompt)
-    total = len(groups) * settings.steps
-    output = torch.empty_like(images)
-    for index, group in enumerate(groups):
+    return stylize_groups(models, images, groups, conditioning, settings, seed=seed, progress=progress,
+                          should_stop=should_stop)
 
-        def report(step: int, steps: int, info: dict, index: int = index) -> None:
+
+def stylize_groups(
+    models: DiffusionModels,
+    images: torch.Tensor,
+    groups: ViewGroups,
+    conditioning: StyleConditioning,
+    settings: SamplerSettings = SamplerSettings(),
+    *,
+    seed: int = 0,
+    group_indices: Sequence[int] | None = None,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
+) -> torch.Tensor:
+    """Stylize the chosen groups (default: all) of ``images`` [V, H, W, 3], in view order.
+
+    Returns a copy of ``images`` in which every view owned by a chosen group is replaced by its
+    stylized version. Group ``g`` uses seed ``seed + g``. progress(step, total, info) counts
+    denoising steps over the chosen groups; info holds "group" and "groups".
+    """
+    chosen = list(range(len(groups))) if group_indices is None else [int(g) for g in group_indices]
+    total = len(chosen) * settings.steps
+    output = images.clone()
+    for done, index in enumerate(chosen):
+        group = groups[index]
+
+        def report(step: int, steps: int, info: dict, done: int = done, index: int = index) -> None:
             if progress is not None:
-                progress(index * steps + step, total, {**info, "group": index, "groups": len(groups)})
+                progress(done * steps + step, total, {**info, "group": index, "groups": len(groups)})
 
-        views = list(group.all_views)
-        result = stylize_group(
-            models, images[views], conditioning, settings, seed=seed + index, progress=report, should_stop=should_stop
-        )
+        result = stylize_group(models, images[list(group.all_views)], conditioning, settings, seed=seed + index,
+                               progress=report, should_stop=should_stop)
         output[list(group.views)] = result[: len(group.views)]
     return output
