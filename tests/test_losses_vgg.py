@@ -203,3 +203,14 @@ def test_vgg16_bad_file_lists_keys(tmp_path):
 
     with pytest.raises(ValueError, match="does not exist"):
         VGGFeatures("vgg16", tmp_path / "absent.pth")
+
+
+def test_vgg_first_loaded_in_inference_mode_still_backpropagates():
+    from artnvg_core.losses.vgg import _cached_vgg
+
+    _cached_vgg.cache_clear()
+    with torch.inference_mode():
+        load_vgg("vgg19")
+    image = torch.rand(1, 3, 32, 32, requires_grad=True)
+    load_vgg("vgg19")(image, ["relu2_1"])["relu2_1"].sum().backward()
+    assert image.grad is not None and torch.isfinite(image.grad).all()

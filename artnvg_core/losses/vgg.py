@@ -230,7 +230,10 @@ class VGGFeatures(nn.Module):
 
 @lru_cache(maxsize=8)
 def _cached_vgg(arch: str, weights: str | None, device: str) -> VGGFeatures:
-    return VGGFeatures(arch, weights).to(device)
+    # Built outside inference mode even when first asked for inside it (ComfyUI runs nodes
+    # under torch.inference_mode): cached inference tensors would break later autograd use.
+    with torch.inference_mode(False):
+        return VGGFeatures(arch, weights).to(device)
 
 
 def load_vgg(
