@@ -63,10 +63,13 @@ def save_png(image: torch.Tensor, path: str | os.PathLike) -> None:
     write_atomically(path, lambda stream: pil.save(stream, format="PNG"))
 
 
-def resize_image(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Resize [H, W, 3] or [B, H, W, 3] (bilinear, antialiased when shrinking)."""
+def resize_image(image: torch.Tensor, height: int, width: int, *, mode: str = "bilinear") -> torch.Tensor:
+    """Resize [H, W, 3] or [B, H, W, 3] (``mode`` "bilinear" or "bicubic", antialiased when
+    shrinking, clamped to [0, 1]); an image already of that size is returned as it is."""
+    if image.shape[-3:-1] == (height, width):
+        return image
     batch = image if image.ndim == 4 else image[None]
     out = torch.nn.functional.interpolate(
-        batch.permute(0, 3, 1, 2), size=(height, width), mode="bilinear", align_corners=False, antialias=True
-    ).permute(0, 2, 3, 1)
+        batch.permute(0, 3, 1, 2), size=(height, width), mode=mode, align_corners=False, antialias=True
+    ).clamp(0, 1).permute(0, 2, 3, 1)
     return out if image.ndim == 4 else out[0]

@@ -53,13 +53,18 @@ from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel  # no
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection  # noqa: E402
 
 from artnvg_core.diffusion.architectures import (  # noqa: E402
+    SDXL_SCHEDULER_CONFIG,
     SDXL_UNET_CONFIG,
     SDXL_VAE_CONFIG,
     VIT_BIGG_IMAGE_ENCODER_CONFIG,
     controlnet_config_from_unet,
 )
 from artnvg_core.diffusion.attention import AttentionControl, attention_kwargs  # noqa: E402
-from artnvg_core.diffusion.conditioning import PromptEmbeddings, StyleConditioning, image_features  # noqa: E402
+from artnvg_core.diffusion.conditioning import (  # noqa: E402
+    PromptEmbeddings,
+    StyleConditioning,
+    image_features,
+)
 from artnvg_core.diffusion.csgo import (  # noqa: E402
     CONTROLNET_ROUTES,
     UNET_ROUTES,
@@ -79,16 +84,6 @@ from artnvg_core.diffusion.speed import (  # noqa: E402
 
 POOLED_DIM = 1280
 TEXT_TOKENS = 77
-DDIM = dict(
-    num_train_timesteps=1000,
-    beta_start=0.00085,
-    beta_end=0.012,
-    beta_schedule="scaled_linear",
-    steps_offset=1,
-    timestep_spacing="leading",
-    clip_sample=False,
-    set_alpha_to_one=False,
-)
 
 # --tiny: the same architectures with a few channels (CPU smoke test of this script)
 TINY_UNET = dict(
@@ -137,7 +132,7 @@ def build_models(tiny: bool, device: torch.device, dtype: torch.dtype) -> Diffus
         text_encoder_2=None,
         tokenizer=None,
         tokenizer_2=None,
-        scheduler_config=DDIM,
+        scheduler_config=SDXL_SCHEDULER_CONFIG,
     )
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=encoder, csgo=csgo)
 

@@ -16,7 +16,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from diffusers import AutoencoderKL, ControlNetModel, DDIMScheduler, UNet2DConditionModel
+from diffusers import (
+    AutoencoderKL,
+    ControlNetModel,
+    DDIMScheduler,
+    UNet2DConditionModel,
+)
 from transformers import (
     CLIPTextConfig,
     CLIPTextModel,
@@ -27,6 +32,7 @@ from transformers import (
 )
 from transformers.convert_slow_tokenizer import bytes_to_unicode
 
+from artnvg_core.diffusion.architectures import SDXL_SCHEDULER_CONFIG
 from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig
 
 TEXT_WIDTH = 8  # each text encoder; the UNet's cross-attention width is 2 * TEXT_WIDTH
@@ -34,16 +40,6 @@ CROSS_DIM = 2 * TEXT_WIDTH
 TIME_EMBED_DIM = 4
 ENCODER_WIDTH = 16
 RESAMPLER_HEAD_WIDTH = 64
-SDXL_SCHEDULER = dict(
-    num_train_timesteps=1000,
-    beta_start=0.00085,
-    beta_end=0.012,
-    beta_schedule="scaled_linear",
-    steps_offset=1,
-    timestep_spacing="leading",
-    clip_sample=False,
-    set_alpha_to_one=False,
-)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -148,7 +144,7 @@ def tiny_image_encoder(seed: int = 4) -> CLIPVisionModelWithProjection:
 
 
 def tiny_scheduler() -> DDIMScheduler:
-    return DDIMScheduler(**SDXL_SCHEDULER)
+    return DDIMScheduler(**SDXL_SCHEDULER_CONFIG)
 
 
 def tiny_resampler(num_queries: int, seed: int = 5) -> PerceiverResampler:
@@ -220,7 +216,11 @@ def tiny_base():
 
 def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8):
     """DiffusionModels of tiny models; with ``tmp_path``, CSGO weights are written there and loaded."""
-    from artnvg_core.diffusion.csgo import CONTROLNET_ROUTES, UNET_ROUTES, install_processors
+    from artnvg_core.diffusion.csgo import (
+        CONTROLNET_ROUTES,
+        UNET_ROUTES,
+        install_processors,
+    )
     from artnvg_core.diffusion.csgo_weights import load_csgo
     from artnvg_core.diffusion.models import DiffusionModels
 

@@ -2,6 +2,8 @@
 
 * :data:`SDXL_UNET_CONFIG` / :data:`SDXL_VAE_CONFIG`: stabilityai/stable-diffusion-xl-base-1.0
   (``unet/config.json`` / ``vae/config.json``).
+* :data:`SDXL_SCHEDULER_CONFIG`: its noise schedule (``scheduler/scheduler_config.json``),
+  for DDIM and the other diffusers schedulers.
 * :func:`controlnet_config_from_unet`: an SDXL ControlNet of the UNet's architecture (what
   diffusers' ``ControlNetModel.from_unet`` builds; the TTPlanet tile ControlNet has it).
 * :data:`VIT_BIGG_IMAGE_ENCODER_CONFIG`: the IP-Adapter SDXL image encoder
@@ -32,6 +34,17 @@ SDXL_UNET_CONFIG = dict(
     addition_embed_type="text_time",
     addition_time_embed_dim=256,
     projection_class_embeddings_input_dim=2816,
+)
+
+SDXL_SCHEDULER_CONFIG = dict(
+    num_train_timesteps=1000,
+    beta_start=0.00085,
+    beta_end=0.012,
+    beta_schedule="scaled_linear",
+    steps_offset=1,
+    timestep_spacing="leading",
+    clip_sample=False,
+    set_alpha_to_one=False,
 )
 
 SDXL_VAE_CONFIG = dict(

@@ -9,7 +9,8 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
+
+from ..fileio import resize_image
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -43,12 +44,8 @@ def sdxl_size(height: int, width: int, resolution: int = 1024, multiple: int = 6
 
 
 def resize_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """[B, H, W, 3] -> [B, height, width, 3] (unchanged when the size already matches)."""
-    if images.shape[1:3] == (height, width):
-        return images
-    chw = images.permute(0, 3, 1, 2)
-    resized = F.interpolate(chw, size=(height, width), mode="bicubic", antialias=True, align_corners=False)
-    return resized.clamp(0, 1).permute(0, 2, 3, 1)
+    """[B, H, W, 3] -> [B, height, width, 3], bicubic (unchanged when the size already matches)."""
+    return resize_image(images, height, width, mode="bicubic")
 
 
 def clip_preprocess(images: torch.Tensor, size: int = 224) -> torch.Tensor:
