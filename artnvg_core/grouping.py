@@ -70,14 +70,23 @@ class ViewGroup:
 
 @dataclass(frozen=True)
 class ViewGroups:
-    """A partition of ``num_views`` views into groups (each owned view in exactly one group)."""
+    """A partition of ``num_views`` views into groups (each owned view in exactly one group).
+
+    centers: the camera centre of every view (world units), when known (:func:`group_views` records them).
+    """
 
     groups: tuple[ViewGroup, ...]
     num_views: int
+    centers: tuple[tuple[float, float, float], ...] | None = field(default=None, compare=False)
     _owner: tuple[int, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "groups", tuple(self.groups))
+        if self.centers is not None:
+            centers = _centers_array(np.asarray(self.centers, dtype=np.float64).reshape(-1, 3), "ViewGroups.centers")
+            if len(centers) != self.num_views:
+                raise ValueError(f"ViewGroups.centers: {len(centers)} centres for {self.num_views} views")
+            object.__setattr__(self, "centers", tuple(map(tuple, centers.tolist())))
         owner = [-1] * self.num_views
         for g, group in enumerate(self.groups):
             for v in group.views + group.context:
@@ -153,7 +162,7 @@ def group_views(
         for own, ctx in zip(members, borrowed)
     ]
     groups.sort(key=lambda group: group.views[0])
-    return ViewGroups(groups=tuple(groups), num_views=count)
+    return ViewGroups(groups=tuple(groups), num_views=count, centers=centers)
 
 
 def balanced_group_sizes(num_views: int, group_size: int) -> list[int]:
@@ -181,6 +190,18 @@ def group_cost(cameras: CamerasLike, groups: ViewGroups | Sequence[Sequence[int]
         total += float(np.triu(dist, k=1).sum())
         pairs += len(views) * (len(views) - 1) // 2
     return total / pairs if pairs else 0.0
+
+
+def nearest_views(cameras: CamerasLike, k: int) -> tuple[tuple[int, ...], ...]:
+    """For each of the C views, the indices of its ``k`` nearest other views by camera-centre
+    distance, nearest first (ties: lower index first); ``k`` is capped at C - 1."""
+    centers = _centers_array(cameras, "nearest_views")
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise ValueError(f"nearest_views: k must be an integer >= 1, got {k!r}")
+    distances = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    np.fill_diagonal(distances, np.inf)
+    order = np.argsort(distances, axis=1, kind="stable")[:, : min(k, len(centers) - 1)]
+    return tuple(tuple(int(j) for j in row) for row in order)
 
 
 def _centers_array(cameras: CamerasLike, caller: str) -> np.ndarray:

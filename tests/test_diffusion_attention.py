@@ -99,6 +99,98 @@ def test_nv_rejects_bad_batches():
         AttentionControl(views_per_group=0)
 
 
+def _reference_sparse_nv(layer: Attention, x: torch.Tensor, control: AttentionControl, grid: tuple[int, int]):
+    """Brute force of the approximate NV attention: view i attends to its own tokens and to its
+    neighbours' tokens average-pooled over kv_downsample x kv_downsample windows of the token grid."""
+    views, factor, (h, w) = control.views_per_group, control.kv_downsample, grid
+
+    def pooled(t):  # [h*w, C] -> [ceil(h/f) * ceil(w/f), C], windows clipped at the border
+        t = t.reshape(h, w, -1)
+        return torch.stack([
+            t[a : a + factor, b : b + factor].reshape(-1, t.shape[-1]).mean(0)
+            for a in range(0, h, factor) for b in range(0, w, factor)
+        ])
+
+    q, k, v = layer.to_q(x), layer.to_k(x), layer.to_v(x)
+    out = torch.empty_like(q)
+    for b in range(x.shape[0]):
+        first, i = b - b % views, b % views
+        others = control.neighbours[i] if control.neighbours else [j for j in range(views) if j != i]
+        keys = torch.cat([k[b]] + [pooled(k[first + j]) for j in others])
+        values = torch.cat([v[b]] + [pooled(v[first + j]) for j in others])
+        for hd in range(HEADS):
+            s = slice(hd * HEAD_DIM, (hd + 1) * HEAD_DIM)
+            weights = torch.softmax(q[b, :, s] @ keys[:, s].T / HEAD_DIM**0.5, dim=-1)
+            out[b, :, s] = weights @ values[:, s]
+    return layer.to_out[0](out)
+
+
+def _control(**fields) -> dict:
+    return attention_kwargs(AttentionControl(**fields))
+
+
+@pytest.mark.parametrize(
+    "fields, grid",
+    [
+        (dict(neighbours=((2,), (0,), (1,))), (3, 2)),
+        (dict(kv_downsample=2, latent_size=(12, 8)), (3, 2)),  # layer at 1/4 of the latent grid
+        (dict(neighbours=((1, 2), (2, 0), (0, 1)), kv_downsample=2, latent_size=(10, 6)), (5, 3)),  # odd grid
+        (dict(kv_downsample=3, latent_size=(5, 3)), (5, 3)),
+    ],
+)
+def test_approximate_nv_matches_brute_force(fields, grid):
+    layer = _layer()
+    layer.set_processor(NeighbourViewSelfAttention())
+    x = torch.randn(6, grid[0] * grid[1], WIDTH, dtype=torch.float64)  # 2 groups of 3 views
+    control = AttentionControl(views_per_group=3, **fields)
+    expected = _reference_sparse_nv(layer, x, control, grid)
+    torch.testing.assert_close(layer(x, **attention_kwargs(control)), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_all_neighbours_unpooled_is_exact_nv():
+    """Listing every other view explicitly only reorders the keys: the exact NV result."""
+    layer = _layer()
+    layer.set_processor(NeighbourViewSelfAttention())
+    x = torch.randn(8, 6, WIDTH, dtype=torch.float64)
+    everyone = tuple(tuple(j for j in range(4) if j != i)[::-1] for i in range(4))
+    torch.testing.assert_close(
+        layer(x, **_control(views_per_group=4, neighbours=everyone)), _reference_nv(layer, x, 4), rtol=1e-12, atol=1e-12
+    )
+
+
+def test_nv_max_tokens_restricts_nv_to_small_layers():
+    layer = _layer()
+    x = torch.randn(6, 5, WIDTH, dtype=torch.float64)
+    per_view, nv = _plain(layer, x), _reference_nv(layer, x, 3)
+    layer.set_processor(NeighbourViewSelfAttention())
+    torch.testing.assert_close(layer(x, **_control(views_per_group=3, nv_max_tokens=4)), per_view)
+    torch.testing.assert_close(layer(x, **_control(views_per_group=3, nv_max_tokens=5)), nv)
+
+
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        (dict(views_per_group=3, neighbours=((1,), (0,))), "one row per view"),
+        (dict(views_per_group=3, neighbours=((1,), (0, 2), (0,))), "equal length"),
+        (dict(views_per_group=3, neighbours=((0,), (0,), (0,))), r"neighbours\[0\] must hold distinct views"),
+        (dict(views_per_group=2, neighbours=((1,), (5,))), r"neighbours\[1\]"),
+        (dict(kv_downsample=2), "latent_size is required"),
+        (dict(kv_downsample=0), "kv_downsample must be >= 1"),
+        (dict(nv_max_tokens=0), "nv_max_tokens must be None or >= 1"),
+    ],
+)
+def test_bad_approximation_settings_raise(fields, message):
+    with pytest.raises(ValueError, match=message):
+        AttentionControl(**fields)
+
+
+def test_latent_size_must_fit_the_layer():
+    layer = _layer()
+    layer.set_processor(NeighbourViewSelfAttention())
+    with pytest.raises(ValueError, match=r"latent_size \(7, 7\) does not fit a layer of 6 tokens"):
+        layer(torch.randn(4, 6, WIDTH, dtype=torch.float64), **_control(views_per_group=2, kv_downsample=2, latent_size=(7, 7)))
+
+
 def _cross(kind: str | None) -> tuple[Attention, DecoupledCrossAttention]:
     layer = _layer(CROSS)
     torch.manual_seed(1)

@@ -7,6 +7,7 @@ from diffusers.models.attention_processor import AttnProcessor2_0
 
 from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.conditioning import encode_prompt, prepare_conditioning
+from artnvg_core.diffusion.memory import enable_low_memory
 from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
 from artnvg_core.diffusion.stylize import stylize_views
 from artnvg_core.grouping import group_views
@@ -207,3 +208,54 @@ def test_scene_runs_groups_and_keeps_view_order(csgo_models):
     for index, views in enumerate(groups):
         expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=10 + index)
         torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)
+
+
+def test_sequential_guidance_halves_match_the_joint_batch(csgo_models):
+    images = _images(3)
+    torch.testing.assert_close(
+        _run(csgo_models, images, sequential_cfg=True), _run(csgo_models, images), rtol=0, atol=1e-5
+    )
+
+
+def test_low_memory_mode_matches(tmp_path):
+    """Feed-forward chunking and idle-model placement change rounding only (CPU: nothing moves)."""
+    models = tiny_models(tmp_path)
+    images = _images(3)
+    expected = _run(models, images)
+    enable_low_memory(models)
+    assert all(block._chunk_size == 1 for block in models.base.unet.modules() if hasattr(block, "_chunk_size"))
+    torch.testing.assert_close(_run(models, images, sequential_cfg=True), expected, rtol=0, atol=1e-5)
+
+
+def test_nv_approximations_change_the_result_unless_degenerate(csgo_models):
+    images, centers = _images(4), torch.tensor([[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [7, 0, 0]])
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+
+    def run(**changes):
+        settings = SamplerSettings(steps=2, guidance_scale=5.0, resolution=None, **changes)
+        return stylize_group(csgo_models, images, conditioning, settings, seed=3, view_centers=centers)
+
+    exact = run()
+    assert torch.equal(run(nv_nearest=3), exact)  # every other view: the exact path
+    per_view = run(neighbour_views=False)
+    for change in ({"nv_levels": "lowest"}, {"nv_nearest": 1}, {"nv_kv_downsample": 2}):
+        approximate = run(**change)
+        assert torch.equal(approximate, run(**change)), change
+        assert (approximate - exact).abs().max() > 1e-5, change
+        assert (approximate - per_view).abs().max() > 1e-5, change
+    with pytest.raises(ValueError, match="nv_nearest needs view_centers"):
+        stylize_group(csgo_models, images, conditioning, SamplerSettings(steps=1, nv_nearest=1, resolution=None))
+    for field, value in (("nv_levels", "middle"), ("nv_nearest", 0), ("nv_kv_downsample", 0)):
+        with pytest.raises(ValueError, match=f"SamplerSettings.{field}"):
+            SamplerSettings(**{field: value})
+
+
+def test_scene_passes_camera_centres_to_nearest_views(csgo_models):
+    """stylize_views hands each group its views' centres: nv_nearest=1 runs and matches the group run."""
+    images, cameras = _images(6), _line_cameras(6)
+    settings = SamplerSettings(steps=1, guidance_scale=5.0, resolution=None, nv_nearest=1)
+    out = stylize_views(csgo_models, images, cameras, _images(1, seed=9), settings, group_size=6, seed=2,
+                        prompt=PROMPT, negative_prompt=NEGATIVE)
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+    expected = stylize_group(csgo_models, images, conditioning, settings, seed=2, view_centers=cameras.centers)
+    torch.testing.assert_close(out, expected, rtol=0, atol=1e-6)

@@ -15,6 +15,7 @@ from artnvg_core.grouping import (
     balanced_group_sizes,
     group_cost,
     group_views,
+    nearest_views,
 )
 
 VIEW_COUNTS = [1, 2, 14, 15, 16, 29, 31, 96, 185]
@@ -270,3 +271,25 @@ def test_view_groups_validates_partition():
         groups.group_of(3)
     with pytest.raises(ValueError, match="group_cost: groups\\[1\\]"):
         group_cost(_orbit(3), [[0, 1], [5]])
+
+
+def test_nearest_views_brute_force_and_ties():
+    rng = np.random.default_rng(4)
+    centers = rng.normal(size=(9, 3))
+    for k in (1, 3, 8, 20):
+        rows = nearest_views(centers, k)
+        for i, row in enumerate(rows):
+            others = sorted((float(np.linalg.norm(centers[j] - centers[i])), j) for j in range(9) if j != i)
+            assert list(row) == [j for _, j in others[: min(k, 8)]]
+    assert nearest_views(np.array([[0.0, 0, 0], [1, 0, 0], [-1, 0, 0]]), 1) == ((1,), (0,), (0,))  # tie: lower index
+    with pytest.raises(ValueError, match="k must be an integer >= 1"):
+        nearest_views(centers, 0)
+
+
+def test_groups_record_camera_centres():
+    centers = np.random.default_rng(5).normal(size=(12, 3))
+    groups = group_views(centers, 4)
+    np.testing.assert_array_equal(np.array(groups.centers), centers)
+    assert groups == ViewGroups(groups.groups, 12)  # centres do not take part in equality
+    with pytest.raises(ValueError, match="ViewGroups.centers: 2 centres for 12 views"):
+        ViewGroups(groups.groups, 12, centers=centers[:2])

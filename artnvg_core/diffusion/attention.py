@@ -9,6 +9,13 @@ Two processors, installed by module name (see :mod:`artnvg_core.diffusion.csgo`)
   values of all views of its group, ``Attn(Q_i, [K_1..K_N], [V_1..V_N])``, computed as
   one scaled-dot-product attention over the group's concatenated tokens.
   ``views_per_group = 1`` is plain per-view self-attention (the "w/o NV" ablation).
+  Three approximations, all off by default, trade exactness for speed:
+  ``nv_max_tokens`` keeps NV attention only in layers with at most that many tokens per
+  view (the low-resolution levels) and attends per view elsewhere; ``neighbours`` lets
+  each view attend to its own tokens and those of a few chosen views of its group only;
+  ``kv_downsample`` average-pools the other views' keys and values by that factor per
+  side (a view's own keys stay full resolution). With either of the last two a view's
+  keys are ``[own tokens, chosen other views' (pooled) tokens]``.
 * :class:`DecoupledCrossAttention` for every cross-attention (``attn2``). The context
   is ``[text tokens, content tokens, style tokens]``; the counts of the last two come
   from :class:`AttentionControl`, the text takes the rest. The output is
@@ -28,6 +35,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -42,6 +51,12 @@ class AttentionControl:
     views_per_group: N, the number of consecutive batch samples that share self-attention.
     num_content_tokens / num_style_tokens: counts of image tokens appended to the text context.
     content_scale / style_scale: weights of the content and style attention branches.
+    nv_max_tokens: NV attention only in layers with at most this many tokens per view (None: all).
+    neighbours: for each of the N views of a group, the indices (0..N-1) of the other views whose
+        tokens it attends to, the same count for every view (None: all other views).
+    kv_downsample: average-pooling factor per side of the other views' keys and values (1: none).
+    latent_size: (h, w) of the latent grid, which gives each layer's token grid; required when
+        kv_downsample > 1.
     """
 
     views_per_group: int = 1
@@ -49,14 +64,41 @@ class AttentionControl:
     num_style_tokens: int = 0
     content_scale: float = 1.0
     style_scale: float = 0.6
+    nv_max_tokens: int | None = None
+    neighbours: tuple[tuple[int, ...], ...] | None = None
+    kv_downsample: int = 1
+    latent_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if self.views_per_group < 1:
             raise ValueError(f"AttentionControl.views_per_group must be >= 1, got {self.views_per_group}")
+        if self.nv_max_tokens is not None and self.nv_max_tokens < 1:
+            raise ValueError(f"AttentionControl.nv_max_tokens must be None or >= 1, got {self.nv_max_tokens}")
+        if self.kv_downsample < 1:
+            raise ValueError(f"AttentionControl.kv_downsample must be >= 1, got {self.kv_downsample}")
+        if self.kv_downsample > 1 and self.latent_size is None:
+            raise ValueError("AttentionControl.latent_size is required when kv_downsample > 1")
+        if self.neighbours is not None:
+            _check_neighbours(self.neighbours, self.views_per_group)
         if self.num_content_tokens < 0 or self.num_style_tokens < 0:
             raise ValueError(
                 "AttentionControl.num_content_tokens / num_style_tokens must be >= 0, got "
                 f"{self.num_content_tokens} / {self.num_style_tokens}"
+            )
+
+
+def _check_neighbours(neighbours: tuple[tuple[int, ...], ...], views: int) -> None:
+    counts = {len(row) for row in neighbours}
+    if len(neighbours) != views or len(counts) != 1:
+        raise ValueError(
+            f"AttentionControl.neighbours must hold one row per view ({views}) of equal length, "
+            f"got {len(neighbours)} rows of lengths {sorted(counts)}"
+        )
+    for view, row in enumerate(neighbours):
+        if len(set(row)) != len(row) or view in row or any(not 0 <= j < views for j in row):
+            raise ValueError(
+                f"AttentionControl.neighbours[{view}] must hold distinct views in 0..{views - 1} other than "
+                f"{view}, got {row}"
             )
 
 
@@ -82,6 +124,29 @@ def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float, que
     return torch.cat(
         [F.scaled_dot_product_attention(part, k, v, scale=scale) for part in q.split(query_chunk, dim=2)], dim=2
     )
+
+
+def _token_grid(latent_size: tuple[int, int], length: int) -> tuple[int, int]:
+    """(h, w) of a layer's token grid: the latent grid downsampled by a power of two, ``h * w = length``."""
+    height, width = latent_size
+    factor = 2 ** round(math.log2(math.sqrt(height * width / length)))
+    grid = (math.ceil(height / factor), math.ceil(width / factor))
+    if grid[0] * grid[1] != length:
+        raise ValueError(f"AttentionControl.latent_size {latent_size} does not fit a layer of {length} tokens")
+    return grid
+
+
+def _neighbour_tokens(x: torch.Tensor, control: AttentionControl, views: int) -> torch.Tensor:
+    """Keys or values [G*N, L, C] -> [G*N, L + m*Lp, C]: each view's own tokens, then the (pooled)
+    tokens of its m chosen neighbours (``control.neighbours``, default all other views)."""
+    others = x
+    if control.kv_downsample > 1:
+        grid = x.unflatten(1, _token_grid(control.latent_size, x.shape[1])).permute(0, 3, 1, 2)
+        others = F.avg_pool2d(grid, control.kv_downsample, ceil_mode=True).flatten(2).transpose(1, 2)
+    rows = control.neighbours or tuple(tuple(j for j in range(views) if j != i) for i in range(views))
+    index = torch.tensor(rows, device=x.device)
+    others = others.unflatten(0, (-1, views))[:, index]  # [G, N, m, Lp, C]
+    return torch.cat([x, others.flatten(2, 3).flatten(0, 1)], dim=1)
 
 
 def _begin(attn, hidden_states: torch.Tensor, temb: torch.Tensor | None, attention_mask) -> tuple:
@@ -141,17 +206,23 @@ class NeighbourViewSelfAttention:
     ) -> torch.Tensor:
         if encoder_hidden_states is not None:
             raise ValueError("NeighbourViewSelfAttention is a self-attention processor: got encoder_hidden_states")
-        views = 1 if control is None else control.views_per_group
+        control = control or AttentionControl()
         x, residual, spatial_shape = _begin(attn, hidden_states, temb, attention_mask)
         batch, length, _ = x.shape
+        views = control.views_per_group
         if batch % views:
             raise ValueError(f"NeighbourViewSelfAttention: batch {batch} is not a multiple of views_per_group {views}")
-        groups = batch // views
+        if control.nv_max_tokens is not None and length > control.nv_max_tokens:
+            views = 1
         if attn.fused_projections:
-            projected = attn.to_qkv(x).chunk(3, dim=-1)
+            q, k, v = attn.to_qkv(x).chunk(3, dim=-1)
         else:
-            projected = (attn.to_q(x), attn.to_k(x), attn.to_v(x))
-        q, k, v = (_split_heads(p.reshape(groups, views * length, -1), attn.heads) for p in projected)
+            q, k, v = attn.to_q(x), attn.to_k(x), attn.to_v(x)
+        if views > 1 and (control.neighbours is not None or control.kv_downsample > 1):
+            k, v = (_neighbour_tokens(t, control, views) for t in (k, v))
+        else:  # exact: each group's views as one sequence
+            q, k, v = (t.reshape(batch // views, views * length, -1) for t in (q, k, v))
+        q, k, v = (_split_heads(t, attn.heads) for t in (q, k, v))
         q, k = _qk_norm(attn, q, k)
         out = _attend(q, k, v, attn.scale, self.query_chunk_size)
         out = _merge_heads(out).reshape(batch, length, -1).to(q.dtype)

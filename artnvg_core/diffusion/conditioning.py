@@ -19,6 +19,7 @@ import torch
 
 from .csgo import ImageTokens
 from .images import check_images, clip_preprocess
+from .memory import visiting
 from .models import DiffusionModels, SDXLBase
 
 
@@ -53,11 +54,13 @@ def encode_prompt(base: SDXLBase, prompt: str, negative_prompt: str | None = Non
         raise ValueError(
             f"encode_prompt: prompt and negative_prompt must be strings, got {prompt!r}, {negative_prompt!r}"
         )
-    text, pooled = _encode_text(base, prompt)
-    if negative_prompt is None and base.force_zeros_for_empty_prompt:
-        negative_text, negative_pooled = torch.zeros_like(text), torch.zeros_like(pooled)
-    else:
-        negative_text, negative_pooled = _encode_text(base, negative_prompt or "")
+    device = base.unet.device
+    with visiting(base.text_encoder, device), visiting(base.text_encoder_2, device):
+        text, pooled = _encode_text(base, prompt)
+        if negative_prompt is None and base.force_zeros_for_empty_prompt:
+            negative_text, negative_pooled = torch.zeros_like(text), torch.zeros_like(pooled)
+        else:
+            negative_text, negative_pooled = _encode_text(base, negative_prompt or "")
     return PromptEmbeddings(text, pooled, negative_text, negative_pooled)
 
 
@@ -69,11 +72,19 @@ def image_features(encoder, images: torch.Tensor) -> torch.Tensor:
     return encoder(pixels, output_hidden_states=True).hidden_states[-2]
 
 
+def image_tokens(models: DiffusionModels, kind: str, images: torch.Tensor) -> ImageTokens:
+    """CSGO tokens of ``kind`` ("content" or "style") of each image of ``images`` [B, H, W, 3];
+    the image encoder runs on the UNet's device."""
+    with visiting(models.image_encoder, models.base.unet.device):
+        features = image_features(models.image_encoder, images)
+    return models.csgo.tokens(kind, features)
+
+
 def content_tokens(models: DiffusionModels, content_images: torch.Tensor) -> ImageTokens | None:
     """CSGO content tokens of each view [B, 4, D] (None without CSGO)."""
     if models.csgo is None:
         return None
-    return models.csgo.tokens("content", image_features(models.image_encoder, content_images))
+    return image_tokens(models, "content", content_images)
 
 
 @dataclass
@@ -103,5 +114,5 @@ def prepare_conditioning(
         raise ValueError(
             f"prepare_conditioning: style_image must hold one image, got a batch of {style_image.shape[0]}"
         )
-    style = models.csgo.tokens("style", image_features(models.image_encoder, style_image))
+    style = image_tokens(models, "style", style_image)
     return StyleConditioning(embeddings, style)

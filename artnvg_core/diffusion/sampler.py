@@ -12,6 +12,12 @@ For a group of content images [N, H, W, 3] (ComfyUI IMAGE layout, values in [0, 
    neighbouring-view attention groups the N views of each half;
 5. decode each view with the VAE and resize back to H x W.
 
+Approximations (each off by default; see :class:`SamplerSettings` and
+:mod:`artnvg_core.diffusion.attention`): NV attention on the lowest-resolution level only
+(``nv_levels="lowest"``), with each view's ``nv_nearest`` nearest views only, or with the
+other views' keys and values pooled by ``nv_kv_downsample``; fewer steps, another scheduler
+or a lower ``resolution``. ``sequential_cfg`` saves memory and is exact.
+
 With neighbouring-view attention off and zero CSGO scales this is exactly diffusers'
 ``StableDiffusionXLControlNetPipeline`` (same scheduler, seed and inputs).
 """
@@ -31,9 +37,11 @@ from diffusers import (
 )
 
 from ..progress import ProgressFn, StopFn, check_stop
+from ..grouping import nearest_views
 from .attention import AttentionControl, attention_kwargs
 from .conditioning import StyleConditioning, content_tokens
 from .images import check_images, resize_images, sdxl_size
+from .memory import visiting
 from .models import DiffusionModels
 from .speed import check_sdpa_backend, sdpa_backend
 
@@ -44,6 +52,7 @@ SCHEDULERS = {
     "dpmpp_2m": DPMSolverMultistepScheduler,
     "unipc": UniPCMultistepScheduler,
 }
+NV_LEVELS = ("all", "lowest")
 
 
 @dataclass(frozen=True)
@@ -55,6 +64,12 @@ class SamplerSettings:
     neighbour_views: neighbouring-view attention on (False: the paper's "w/o NV" ablation).
     attention_backend: scaled-dot-product attention backend of the denoising loop, one of
         ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
+    sequential_cfg: run the two guidance halves one after the other (less memory; exact).
+    Approximations of NV attention (defaults: exact):
+    nv_levels: "all", or "lowest" (NV in the lowest-resolution attention level, per view elsewhere).
+    nv_nearest: each view attends to itself and its k nearest views of the group by camera centre
+        (None: all views; needs the views' camera centres).
+    nv_kv_downsample: the other views' keys and values average-pooled by this factor per side.
     """
 
     steps: int = 50
@@ -66,9 +81,19 @@ class SamplerSettings:
     resolution: int | None = 1024
     scheduler: str = "ddim"
     attention_backend: str = "auto"
+    sequential_cfg: bool = False
+    nv_levels: str = "all"
+    nv_nearest: int | None = None
+    nv_kv_downsample: int = 1
 
     def __post_init__(self) -> None:
         check_sdpa_backend(self.attention_backend, "SamplerSettings.attention_backend")
+        if self.nv_levels not in NV_LEVELS:
+            raise ValueError(f"SamplerSettings.nv_levels must be one of {NV_LEVELS}, got {self.nv_levels!r}")
+        if self.nv_nearest is not None and self.nv_nearest < 1:
+            raise ValueError(f"SamplerSettings.nv_nearest must be None or >= 1, got {self.nv_nearest}")
+        if self.nv_kv_downsample < 1:
+            raise ValueError(f"SamplerSettings.nv_kv_downsample must be >= 1, got {self.nv_kv_downsample}")
         if self.steps < 1:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
         if self.scheduler not in SCHEDULERS:
@@ -98,15 +123,49 @@ def _decode(models: DiffusionModels, latents: torch.Tensor) -> torch.Tensor:
     """Latents [N, 4, h, w] -> IMAGE [N, 8h, 8w, 3] float32 on the CPU, one view at a time."""
     vae = models.base.vae
     config = vae.config
-    latents = latents.to(vae.dtype)
-    if getattr(config, "latents_mean", None) is not None and getattr(config, "latents_std", None) is not None:
-        mean = torch.tensor(config.latents_mean, device=latents.device, dtype=latents.dtype).view(1, -1, 1, 1)
-        std = torch.tensor(config.latents_std, device=latents.device, dtype=latents.dtype).view(1, -1, 1, 1)
-        latents = latents * std / config.scaling_factor + mean
-    else:
-        latents = latents / config.scaling_factor
-    views = [vae.decode(view, return_dict=False)[0] for view in latents.split(1)]
-    return (torch.cat(views) / 2 + 0.5).clamp(0, 1).float().permute(0, 2, 3, 1).cpu()
+    with visiting(vae, latents.device):
+        latents = latents.to(vae.dtype)
+        if getattr(config, "latents_mean", None) is not None and getattr(config, "latents_std", None) is not None:
+            mean = torch.tensor(config.latents_mean, device=latents.device, dtype=latents.dtype).view(1, -1, 1, 1)
+            std = torch.tensor(config.latents_std, device=latents.device, dtype=latents.dtype).view(1, -1, 1, 1)
+            latents = latents * std / config.scaling_factor + mean
+        else:
+            latents = latents / config.scaling_factor
+        views = [vae.decode(view, return_dict=False)[0].float().cpu() for view in latents.split(1)]
+    return (torch.cat(views) / 2 + 0.5).clamp(0, 1).permute(0, 2, 3, 1)
+
+
+def _attention_control(
+    models: DiffusionModels,
+    conditioning: StyleConditioning,
+    settings: SamplerSettings,
+    latent_size: tuple[int, int],
+    view_centers: torch.Tensor | None,
+    views: int,
+) -> AttentionControl:
+    """The processors' settings for a group of ``views`` views on a latent grid of ``latent_size``."""
+    if not settings.neighbour_views or views == 1:
+        views = 1
+    neighbours = None
+    if views > 1 and settings.nv_nearest is not None and settings.nv_nearest < views - 1:
+        if view_centers is None:
+            raise ValueError("stylize_group: SamplerSettings.nv_nearest needs view_centers (each view's camera centre)")
+        neighbours = nearest_views(view_centers, settings.nv_nearest)
+    nv_max_tokens = None
+    if settings.nv_levels == "lowest":
+        factor = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
+        nv_max_tokens = -(-latent_size[0] // factor) * -(-latent_size[1] // factor)
+    return AttentionControl(
+        views_per_group=views,
+        num_content_tokens=0 if models.csgo is None else models.csgo.num_content_tokens,
+        num_style_tokens=0 if conditioning.style is None else conditioning.style.cond.shape[1],
+        content_scale=settings.content_scale,
+        style_scale=settings.style_scale,
+        nv_max_tokens=nv_max_tokens,
+        neighbours=neighbours,
+        kv_downsample=settings.nv_kv_downsample,
+        latent_size=latent_size,
+    )
 
 
 def _model_inputs(
@@ -116,6 +175,7 @@ def _model_inputs(
     conditioning: StyleConditioning,
     settings: SamplerSettings,
     halves: int,
+    control: AttentionControl,
 ) -> dict:
     """ControlNet/UNet keyword inputs for a batch of ``halves`` x N views (uncond half first)."""
     unet, views = models.base.unet, len(images)
@@ -129,13 +189,6 @@ def _model_inputs(
             uncond.append(tokens.uncond.to(prompt.text))
     cond, uncond = (torch.cat([t.expand(views, -1, -1) for t in parts], 1) for parts in (cond, uncond))
     pooled = torch.cat([prompt.negative_pooled, prompt.pooled][2 - halves :])
-    control = AttentionControl(
-        views_per_group=views if settings.neighbour_views else 1,
-        num_content_tokens=0 if content is None else content.cond.shape[1],
-        num_style_tokens=0 if style is None else style.cond.shape[1],
-        content_scale=settings.content_scale,
-        style_scale=settings.style_scale,
-    )
     time_ids = _time_ids(models, *work.shape[1:3], pooled.shape[-1])
     return {
         "encoder_hidden_states": torch.cat([uncond, cond][2 - halves :]).to(device=device, dtype=dtype),
@@ -148,6 +201,31 @@ def _model_inputs(
     }
 
 
+def _split_batch(value, parts: int) -> list:
+    """``value`` (a tensor or nested dicts of them) as ``parts`` pieces split along dim 0;
+    anything else is shared by every piece."""
+    if isinstance(value, torch.Tensor):
+        return list(value.chunk(parts))
+    if isinstance(value, dict):
+        split = {key: _split_batch(item, parts) for key, item in value.items()}
+        return [{key: items[i] for key, items in split.items()} for i in range(parts)]
+    return [value] * parts
+
+
+def _predict_noise(models: DiffusionModels, latents: torch.Tensor, t, batch: dict, control_scale: float) -> torch.Tensor:
+    """Noise prediction [B, 4, h, w] (float32) of ControlNet + UNet for one batch of :func:`_model_inputs`
+    (B views: the scaled latents [N, 4, h, w] repeated over the batch's guidance halves)."""
+    inputs = dict(batch)
+    hint = inputs.pop("hint")
+    x = latents.repeat(len(hint) // len(latents), 1, 1, 1)
+    down, mid = models.controlnet(
+        x, t, controlnet_cond=hint, conditioning_scale=control_scale, return_dict=False, **inputs
+    )
+    return models.base.unet(
+        x, t, down_block_additional_residuals=down, mid_block_additional_residual=mid, return_dict=False, **inputs
+    )[0].float()
+
+
 @torch.no_grad()
 def stylize_group(
     models: DiffusionModels,
@@ -156,55 +234,43 @@ def stylize_group(
     settings: SamplerSettings = SamplerSettings(),
     *,
     seed: int = 0,
+    view_centers: torch.Tensor | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> torch.Tensor:
     """Stylize one group of views jointly; returns IMAGE [N, H, W, 3] in the input order and size.
 
+    view_centers: camera centres [N, 3] of the views (world units); needed by ``settings.nv_nearest``.
     Latents stay in float32 between steps; the models run in their own dtype.
     progress(step, steps, info) is called after every denoising step; should_stop() is checked
     before every step and raises :class:`artnvg_core.progress.Cancelled` when it returns True.
     """
     images = check_images(content_images, "stylize_group: content_images")
     views, height, width = images.shape[:3]
-    unet, controlnet = models.base.unet, models.controlnet
+    unet = models.base.unet
     if settings.resolution is None:
         size = (max(64, round(height / 64) * 64), max(64, round(width / 64) * 64))
     else:
         size = sdxl_size(height, width, settings.resolution)
     work = resize_images(images, *size)
+    scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
+    latent_shape = (views, unet.config.in_channels, size[0] // scale, size[1] // scale)
+    control = _attention_control(models, conditioning, settings, latent_shape[2:], view_centers, views)
     halves = 2 if settings.guidance_scale > 1 else 1
-    inputs = _model_inputs(models, images, work, conditioning, settings, halves)
-    hint = inputs.pop("hint")
+    inputs = _model_inputs(models, images, work, conditioning, settings, halves, control)
+    batches = _split_batch(inputs, halves if settings.sequential_cfg else 1)
 
     scheduler = SCHEDULERS[settings.scheduler].from_config(models.base.scheduler_config)
     scheduler.set_timesteps(settings.steps, device=unet.device)
     generator = torch.Generator().manual_seed(seed)
-    scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
-    latent_shape = (views, unet.config.in_channels, size[0] // scale, size[1] // scale)
     latents = (torch.randn(latent_shape, generator=generator) * scheduler.init_noise_sigma).to(unet.device)
     step_kwargs = _step_kwargs(scheduler, generator)
     timesteps = scheduler.timesteps
     for step, t in enumerate(timesteps):
         check_stop(should_stop)
-        model_input = scheduler.scale_model_input(torch.cat([latents] * halves), t).to(unet.dtype)
+        model_input = scheduler.scale_model_input(latents, t).to(unet.dtype)
         with sdpa_backend(settings.attention_backend):
-            down, mid = controlnet(
-                model_input,
-                t,
-                controlnet_cond=hint,
-                conditioning_scale=settings.control_scale,
-                return_dict=False,
-                **inputs,
-            )
-            noise = unet(
-                model_input,
-                t,
-                down_block_additional_residuals=down,
-                mid_block_additional_residual=mid,
-                return_dict=False,
-                **inputs,
-            )[0].float()
+            noise = torch.cat([_predict_noise(models, model_input, t, b, settings.control_scale) for b in batches])
         if halves == 2:
             noise_uncond, noise_cond = noise.chunk(2)
             noise = noise_uncond + settings.guidance_scale * (noise_cond - noise_uncond)

@@ -69,7 +69,8 @@ def stylize_groups(
     """Stylize the chosen groups (default: all) of ``images`` [V, H, W, 3], in view order.
 
     Returns a copy of ``images`` in which every view owned by a chosen group is replaced by its
-    stylized version. Group ``g`` uses seed ``seed + g``. progress(step, total, info) counts
+    stylized version. Group ``g`` uses seed ``seed + g``; ``groups.centers`` (when recorded) give
+    the views' camera centres to ``settings.nv_nearest``. progress(step, total, info) counts
     denoising steps over the chosen groups; info holds "group" and "groups".
     """
     chosen = list(range(len(groups))) if group_indices is None else [int(g) for g in group_indices]
@@ -82,7 +83,9 @@ def stylize_groups(
             if progress is not None:
                 progress(done * steps + step, total, {**info, "group": index, "groups": len(groups)})
 
-        result = stylize_group(models, images[list(group.all_views)], conditioning, settings, seed=seed + index,
-                               progress=report, should_stop=should_stop)
+        members = list(group.all_views)
+        centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
+        result = stylize_group(models, images[members], conditioning, settings, seed=seed + index,
+                               view_centers=centers, progress=report, should_stop=should_stop)
         output[list(group.views)] = result[: len(group.views)]
     return output
