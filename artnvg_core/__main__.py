@@ -62,6 +62,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
     from .fileio import load_image
     from .finetune import FinetuneConfig
+    from .presets import get_preset
     from .scene import load_scene
     from .stylize import (
         DemoInputs,
@@ -81,7 +82,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    iterations = args.iters if args.iters is not None else (200 if demo else 1000)
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
@@ -90,13 +90,16 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     style = load_image(args.style)
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     stylizer, reason = choose_stylizer(args.stylizer, paths)
-    print(f"stylizer: {stylizer} ({reason})")
+    preset = get_preset(args.preset)
+    iterations = preset.finetune_iterations if stylizer == "diffusion" else 1000
+    iterations = args.iters if args.iters is not None else (200 if demo else iterations)
+    print(f"stylizer: {stylizer} ({reason})" + (f"; preset {args.preset}: {preset.summary}" if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed)
     start = time.perf_counter()
     if stylizer == "diffusion":
-        result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths,
+        result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
                                       sampling_progress=_ProgressBar("diffusion"), progress=_ProgressBar("finetune"))
     else:
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=_ProgressBar("finetune"))
@@ -125,7 +128,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--style", help="style image file")
     p.add_argument("--out", default="out/stylized.ply", help="output PLY; a NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
-    p.add_argument("--iters", type=int, default=None, help="finetune iterations (default 1000; 200 for the demo)")
+    p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
+                   help="diffusion speed/accuracy preset (README: Presets)")
+    p.add_argument("--iters", type=int, default=None,
+                   help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 200 for the demo)")
     p.add_argument("--scale", type=float, default=None, help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--seed", type=int, default=0)

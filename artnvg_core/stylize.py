@@ -122,6 +122,7 @@ def stylize_diffusion(
     config: FinetuneConfig,
     paths: ModelPaths,
     *,
+    preset: str = "paper",
     group_size: int = 15,
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
@@ -130,18 +131,25 @@ def stylize_diffusion(
     """The ArtNVG pipeline: render content views, stylize them group by group with
     SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
 
+    ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
+    memory mode; ``config.iterations`` is used as given.
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
+    from .diffusion.memory import enable_low_memory
     from .diffusion.models import load_diffusion_models
-    from .diffusion.sampler import SamplerSettings
     from .diffusion.stylize import stylize_views
+    from .presets import get_preset
 
+    settings = get_preset(preset)
     device = scene.device
     dtype = torch.float16 if device.type == "cuda" else torch.float32
-    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype, device=device)
+    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
+                                   device="cpu" if settings.low_memory else device)
+    if settings.low_memory:
+        enable_low_memory(models, device)
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
-    views = stylize_views(models, content, cameras, style_image, SamplerSettings(), group_size=group_size,
+    views = stylize_views(models, content, cameras, style_image, settings.sampler, group_size=group_size,
                           seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     del models
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)

@@ -174,7 +174,7 @@ def peak_memory(device: torch.device, run) -> float:
     return torch.cuda.max_memory_allocated() / 2**30
 
 
-def _conditioning(models: DiffusionModels, device, dtype, pooled_dim: int) -> StyleConditioning:
+def random_conditioning(models: DiffusionModels, device, dtype, pooled_dim: int) -> StyleConditioning:
     width = models.base.unet.config.cross_attention_dim
     text = torch.randn(1, TEXT_TOKENS, width, device=device, dtype=dtype)
     pooled = torch.randn(1, pooled_dim, device=device, dtype=dtype)
@@ -482,7 +482,7 @@ def main() -> None:
 def group_tables(models: DiffusionModels, args, timer: Timer, dtype: torch.dtype, pooled_dim: int) -> None:
     """Whole-group time (all steps, decoding) and the image encoder / VAE component times."""
     device = torch.device(args.device)
-    conditioning = _conditioning(models, device, dtype, pooled_dim)
+    conditioning = random_conditioning(models, device, dtype, pooled_dim)
     print(f"\n| size | whole group of {args.group_views} views, NV on, DDIM | seconds |")
     print("|---:|---|---:|")
     for size in args.sizes:

@@ -35,14 +35,20 @@ def visiting(module: nn.Module | None, device: torch.device) -> Iterator[None]:
         module.to(home)
 
 
-def enable_low_memory(models: DiffusionModels) -> None:
-    """Keep only the UNet and the ControlNet on the compute device (the rest visits it, see the
-    module docstring), and run their transformer feed-forward layers one sample at a time."""
+def enable_low_memory(models: DiffusionModels, device: str | torch.device | None = None) -> None:
+    """Keep only the UNet, the ControlNet and the CSGO resamplers on ``device`` (default: the UNet's),
+    the rest on the CPU (it visits the device, see the module docstring), and run the transformer
+    feed-forward layers one sample at a time. Load the models on the CPU and call this to never
+    hold them all on the GPU."""
     base = models.base
+    device = base.unet.device if device is None else torch.device(device)
     for idle in (base.text_encoder, base.text_encoder_2, base.vae, models.image_encoder):
         if idle is not None:
             idle.to("cpu")
-    for model in (base.unet, models.controlnet):
+    for model in (base.unet, models.controlnet, models.csgo):
+        if model is None:
+            continue
+        model.to(device)
         for module in model.modules():
             if hasattr(module, "set_chunk_feed_forward"):  # diffusers' BasicTransformerBlock
                 module.set_chunk_feed_forward(1, 0)

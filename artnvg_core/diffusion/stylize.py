@@ -77,15 +77,33 @@ def stylize_groups(
     total = len(chosen) * settings.steps
     output = images.clone()
     for done, index in enumerate(chosen):
-        group = groups[index]
 
         def report(step: int, steps: int, info: dict, done: int = done, index: int = index) -> None:
             if progress is not None:
                 progress(done * steps + step, total, {**info, "group": index, "groups": len(groups)})
 
-        members = list(group.all_views)
-        centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
-        result = stylize_group(models, images[members], conditioning, settings, seed=seed + index,
-                               view_centers=centers, progress=report, should_stop=should_stop)
-        output[list(group.views)] = result[: len(group.views)]
+        output[list(groups[index].views)] = stylize_owned_views(models, images, groups, index, conditioning, settings,
+                                                                seed=seed, progress=report, should_stop=should_stop)
     return output
+
+
+def stylize_owned_views(
+    models: DiffusionModels,
+    images: torch.Tensor,
+    groups: ViewGroups,
+    index: int,
+    conditioning: StyleConditioning,
+    settings: SamplerSettings = SamplerSettings(),
+    *,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
+) -> torch.Tensor:
+    """Group ``index`` of ``images`` [V, H, W, 3] sampled with seed ``seed + index`` (its context views
+    included); returns its owned views' stylized images [len(views), H, W, 3] in ``groups[index].views`` order."""
+    group = groups[index]
+    members = list(group.all_views)
+    centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
+    result = stylize_group(models, images[members], conditioning, settings, seed=seed + index,
+                           view_centers=centers, progress=progress, should_stop=should_stop)
+    return result[: len(group.views)]

@@ -1,0 +1,41 @@
+"""Named speed/accuracy presets of the diffusion pipeline (sampler settings, memory mode, finetune length).
+
+Only ``paper`` is exact; the others trade accuracy for speed or memory, as measured in
+BENCHMARKS.md (numerical deviation from ``paper`` on identical inputs and models).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .diffusion.sampler import SamplerSettings
+
+
+@dataclass(frozen=True)
+class Preset:
+    """sampler: the group sampler's settings; low_memory: :func:`artnvg_core.diffusion.memory.enable_low_memory`
+    and sequential guidance halves; finetune_iterations: length of the Gaussian finetune."""
+
+    sampler: SamplerSettings
+    finetune_iterations: int
+    low_memory: bool
+    summary: str
+
+
+PRESETS = {
+    "paper": Preset(SamplerSettings(), 1000, False,
+                    "the paper: 50 DDIM steps, NV attention in every layer, 1024 px; exact"),
+    "balanced": Preset(SamplerSettings(steps=20, nv_kv_downsample=2), 1000, False,
+                       "20 DDIM steps, other views' keys/values pooled 2x2"),
+    "fast": Preset(SamplerSettings(steps=10, resolution=768, nv_levels="lowest"), 500, False,
+                   "10 DDIM steps at 768 px, NV attention in the lowest-resolution level only, 500 finetune iterations"),
+    "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
+                         "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
+}
+
+
+def get_preset(name: str) -> Preset:
+    """The preset called ``name`` (ValueError listing the names otherwise)."""
+    if name not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+    return PRESETS[name]
