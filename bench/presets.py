@@ -194,31 +194,31 @@ def memory_table(models, conditioning, args, device, report: dict) -> None:
           f"cap {args.memory_cap} GiB via torch.cuda.set_per_process_memory_fraction.")
     print("\n| mode | cap | s / step | whole run s | peak allocated GiB | peak reserved GiB | rel L2 vs full |")
     print("|---|---|---:|---:|---:|---:|---:|")
-    rows = report.setdefault("memory", [])
-    reference, row = run(full)
-    rows.append({"mode": "full memory", "cap_gib": None, **row})
-    print(f"| full memory | none | {row['s_per_step']:.3f} | {row['seconds']:.1f} | {row['peak_gib']:.1f} | "
-          f"{row['reserved_gib']:.1f} | 0 |", flush=True)
-    enable_low_memory(models)
-    if device.type == "cuda":
-        torch.cuda.empty_cache()
-        torch.cuda.set_per_process_memory_fraction(args.memory_cap * 2**30 / torch.cuda.get_device_properties(device).total_memory)
-        torch.cuda.reset_peak_memory_stats(device)
-    for mode, settings in (("low memory", low), ("full memory", full)):
-        try:
-            result, row = run(settings)
-            row["rel_l2"] = compare(result, reference)["rel_l2"]
-            line = (f"| {row['s_per_step']:.3f} | {row['seconds']:.1f} | {row['peak_gib']:.1f} | "
-                    f"{row['reserved_gib']:.1f} | {row['rel_l2']:.2g} |")
-        except torch.OutOfMemoryError as error:
-            row = {"error": f"out of memory: {str(error).splitlines()[0][:120]}"}
-            line = f"| {row['error']} | | | | |"
+    rows, reference = report.setdefault("memory", []), None
+    plan = [("full memory", full, None), ("low memory", low, None), ("low memory", low, args.memory_cap),
+            ("full memory, idle models on the CPU", full, args.memory_cap)]
+    for mode, settings, cap in plan:
+        if mode == "low memory" and cap is None:
+            enable_low_memory(models)
         if device.type == "cuda":
             torch.cuda.empty_cache()
-        rows.append({"mode": mode, "cap_gib": args.memory_cap, **row})
+            total = torch.cuda.get_device_properties(device).total_memory
+            torch.cuda.set_per_process_memory_fraction(1.0 if cap is None else cap * 2**30 / total)
+            torch.cuda.reset_peak_memory_stats(device)
+            resident = torch.cuda.memory_allocated(device) / 2**30
+        try:
+            result, row = run(settings)
+            reference = result if reference is None else reference
+            row["rel_l2"] = compare(result, reference)["rel_l2"]
+            line = (f"| {row['s_per_step']:.3f} | {row['seconds']:.1f} | {row['peak_gib']:.2f} | "
+                    f"{row['reserved_gib']:.2f} | {row['rel_l2']:.2g} |")
+        except torch.OutOfMemoryError as error:
+            row = {"error": f"out of memory: {str(error).splitlines()[0][:160]}"}
+            line = f"| {row['error']} | | | | |"
+        rows.append({"mode": mode, "cap_gib": cap, "resident_gib": resident if device.type == "cuda" else None, **row})
         write_json(args.json, report)
-        print(f"| {mode}{' (idle models on the CPU)' if mode == 'full memory' else ''} | {args.memory_cap} GiB "
-              f"{line}", flush=True)
+        print(f"| {mode} (resident before: {rows[-1]['resident_gib'] or 0:.2f} GiB) | "
+              f"{'none' if cap is None else f'{cap} GiB'} {line}", flush=True)
     if device.type == "cuda":
         torch.cuda.set_per_process_memory_fraction(1.0)
 

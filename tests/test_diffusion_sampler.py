@@ -7,7 +7,7 @@ from diffusers.models.attention_processor import AttnProcessor2_0
 
 from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.conditioning import encode_prompt, prepare_conditioning
-from artnvg_core.diffusion.memory import enable_low_memory
+from artnvg_core.diffusion.memory import enable_low_memory, visiting
 from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
 from artnvg_core.diffusion.stylize import stylize_views
 from artnvg_core.grouping import group_views
@@ -259,3 +259,15 @@ def test_scene_passes_camera_centres_to_nearest_views(csgo_models):
     conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
     expected = stylize_group(csgo_models, images, conditioning, settings, seed=2, view_centers=cameras.centers)
     torch.testing.assert_close(out, expected, rtol=0, atol=1e-6)
+
+
+def test_visiting_swaps_weights_in_and_back():
+    """Inside the block the module computes with copies on the device; afterwards it holds its own tensors."""
+    layer = torch.nn.Linear(3, 2)
+    homes = [t.data_ptr() for t in layer.parameters()]
+    with visiting(layer, torch.device("meta")):
+        assert all(t.device.type == "meta" for t in layer.parameters())
+        assert layer(torch.zeros(1, 3, device="meta")).device.type == "meta"
+    assert [t.data_ptr() for t in layer.parameters()] == homes
+    with visiting(layer, torch.device("cpu")), visiting(None, torch.device("meta")):  # no-ops
+        assert [t.data_ptr() for t in layer.parameters()] == homes

@@ -218,9 +218,10 @@ def _predict_noise(models: DiffusionModels, latents: torch.Tensor, t, batch: dic
     inputs = dict(batch)
     hint = inputs.pop("hint")
     x = latents.repeat(len(hint) // len(latents), 1, 1, 1)
-    down, mid = models.controlnet(
-        x, t, controlnet_cond=hint, conditioning_scale=control_scale, return_dict=False, **inputs
-    )
+    with visiting(models.controlnet, x.device):
+        down, mid = models.controlnet(
+            x, t, controlnet_cond=hint, conditioning_scale=control_scale, return_dict=False, **inputs
+        )
     return models.base.unet(
         x, t, down_block_additional_residuals=down, mid_block_additional_residual=mid, return_dict=False, **inputs
     )[0].float()
