@@ -14,6 +14,19 @@ def parse_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def parse_devices(text: str | None) -> list[torch.device] | None:
+    """Devices from ``--devices`` text such as ``cuda:0,cuda:1`` (None when not given)."""
+    if not text:
+        return None
+    devices = []
+    for part in text.split(","):
+        try:
+            devices.append(torch.device(part.strip()))
+        except RuntimeError as error:
+            raise ValueError(f"--devices: {part.strip()!r} is not a device (expected e.g. cuda:0,cuda:1)") from error
+    return devices
+
+
 def parse_view_indices(text: str | None, count: int) -> list[int]:
     """Indices from ``--views`` text such as ``0,5,9`` (default: all ``count`` views)."""
     if not text:

@@ -10,6 +10,8 @@ Two stylizers:
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -115,6 +117,22 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
+def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device):
+    """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
+    loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`.
+    A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
+    from .diffusion.memory import enable_low_memory
+    from .diffusion.models import load_diffusion_models
+
+    device = torch.device(device)
+    dtype = torch.float16 if device.type == "cuda" else torch.float32
+    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
+                                   device="cpu" if low_memory else device)
+    if low_memory:
+        enable_low_memory(models, device)
+    return models
+
+
 def stylize_diffusion(
     scene: GaussianScene,
     cameras: CameraSet,
@@ -123,6 +141,7 @@ def stylize_diffusion(
     paths: ModelPaths,
     *,
     preset: str = "paper",
+    devices: Sequence[str | torch.device] | None = None,
     group_size: int = 15,
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
@@ -132,26 +151,33 @@ def stylize_diffusion(
     SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
 
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``config.iterations`` is used as given.
+    memory mode; ``config.iterations`` is used as given. ``devices`` (default: the scene's) share
+    the groups, one worker process per device beyond the first (identical results).
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
-    from .diffusion.memory import enable_low_memory
-    from .diffusion.models import load_diffusion_models
-    from .diffusion.stylize import stylize_views
+    from .diffusion.conditioning import prepare_conditioning
+    from .diffusion.multi_gpu import stylize_groups_on_devices
+    from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
+    from .grouping import group_views
     from .presets import get_preset
 
-    settings = get_preset(preset)
-    device = scene.device
-    dtype = torch.float16 if device.type == "cuda" else torch.float32
-    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
-                                   device="cpu" if settings.low_memory else device)
-    if settings.low_memory:
-        enable_low_memory(models, device)
+    chosen = get_preset(preset)
+    devices = [scene.device] if not devices else [torch.device(d) for d in devices]
+    load = functools.partial(load_models_for, paths, chosen.low_memory)
     with torch.no_grad():
-        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
-    views = stylize_views(models, content, cameras, style_image, settings.sampler, group_size=group_size,
-                          seed=config.seed, progress=sampling_progress, should_stop=should_stop)
-    del models
+        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+    groups = group_views(cameras, group_size)
+    models = load(devices[0])
+    conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
+    common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
+    if len(devices) == 1:
+        views = stylize_groups(models, content, groups, conditioning, chosen.sampler, **common)
+        del models
+    else:
+        del models  # each worker loads its own copy
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+        views = stylize_groups_on_devices(load, content, groups, conditioning, chosen.sampler, devices=devices, **common)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
     return result, views
 

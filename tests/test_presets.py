@@ -1,0 +1,36 @@
+"""Named presets and the command-line values that choose them."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from artnvg_core.__main__ import build_parser
+from artnvg_core.cliutil import parse_devices
+from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.presets import PRESETS, get_preset
+
+
+def test_cli_offers_every_preset():
+    stylize = build_parser()._subparsers._group_actions[0].choices["stylize"]
+    choices = next(action.choices for action in stylize._actions if action.dest == "preset")
+    assert tuple(choices) == tuple(PRESETS)
+
+
+def test_only_paper_is_exact_and_paper_is_the_default_sampler():
+    assert PRESETS["paper"].sampler == SamplerSettings() and not PRESETS["paper"].low_memory
+    exact_fields = ("attention_backend", "sequential_cfg")
+    for name, preset in PRESETS.items():
+        changed = {f.name for f in dataclasses.fields(SamplerSettings)
+                   if getattr(preset.sampler, f.name) != getattr(SamplerSettings(), f.name)}
+        assert (name in ("paper", "low-memory")) == changed.issubset(exact_fields), name
+    assert PRESETS["low-memory"].low_memory and PRESETS["low-memory"].sampler.sequential_cfg
+
+
+def test_unknown_preset_and_device_raise():
+    with pytest.raises(ValueError, match=r"preset must be one of \['balanced', 'fast', 'low-memory', 'paper'\]"):
+        get_preset("turbo")
+    assert parse_devices("cuda:0, cuda:1") == [torch.device("cuda", 0), torch.device("cuda", 1)]
+    assert parse_devices(None) is None
+    with pytest.raises(ValueError, match="--devices: 'gpu0' is not a device"):
+        parse_devices("cuda:0,gpu0")
