@@ -164,3 +164,23 @@ def test_sample_group_errors_name_the_input(loaded, monkeypatch):
     with pytest.raises(Cancelled):
         call(SampleGroup, models=loaded, embeds=embeds, content_views=_images(4, seed=6), groups=groups,
              group_index=-1, **SAMPLING)
+
+
+def test_patch_approximations_and_low_memory_reach_the_sampler(model_files):
+    """The patch node's NV approximations and the loader's low-memory mode give the core's result."""
+    (low,) = call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, memory="low",
+                  **model_files)
+    assert low.low_memory
+    (patched,) = call(NVAttentionPatch, models=low, enabled=True, levels="lowest", nearest_views=1, kv_downsample=2)
+    assert (patched.nv_levels, patched.nv_nearest, patched.nv_kv_downsample) == ("lowest", 1, 2)
+    style, content, cameras = _images(1, seed=5), _images(4, seed=6), _line_cameras(4)
+    (embeds,) = call(CSGOEncode, models=patched, style_image=style, prompt=PROMPT, negative_prompt=NEGATIVE)
+    groups = group_views(cameras, 4)
+    (out,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                  group_index=-1, **SAMPLING)
+    settings = SamplerSettings(steps=2, guidance_scale=3.0, resolution=None, nv_levels="lowest", nv_nearest=1,
+                               nv_kv_downsample=2, sequential_cfg=True)
+    expected = stylize_views(low.models, content, cameras, style, settings, group_size=4, seed=7,
+                             prompt=PROMPT, negative_prompt=NEGATIVE)
+    assert torch.equal(out, expected)
+    assert all(block._chunk_size == 1 for block in low.models.base.unet.modules() if hasattr(block, "_chunk_size"))

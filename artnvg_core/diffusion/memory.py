@@ -56,7 +56,8 @@ def enable_low_memory(models: DiffusionModels, device: str | torch.device | None
     """Keep only the UNet and the CSGO resamplers on ``device`` (default: the UNet's); move the
     ControlNet, the text encoders, the image encoder and the VAE to pinned CPU memory (they visit
     the device, see the module docstring); run the transformer feed-forward layers one sample at a
-    time. Load the models on the CPU and call this to never hold them all on the GPU."""
+    time. Load the models on the CPU and call this to never hold them all on the GPU.
+    Calling it again is cheap: nothing is moved or pinned twice."""
     base = models.base
     device = base.unet.device if device is None else torch.device(device)
     for resident in (base.unet, models.csgo):
@@ -68,7 +69,8 @@ def enable_low_memory(models: DiffusionModels, device: str | torch.device | None
         idle.to("cpu")
         if torch.cuda.is_available():
             for store, key in _slots(idle):
-                store[key].data = store[key].data.pin_memory()
+                if not store[key].is_pinned():
+                    store[key].data = store[key].data.pin_memory()
     for model in (base.unet, models.controlnet):
         for module in model.modules():
             if hasattr(module, "set_chunk_feed_forward"):  # diffusers' BasicTransformerBlock
