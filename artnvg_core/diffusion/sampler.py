@@ -36,8 +36,8 @@ from diffusers import (
     UniPCMultistepScheduler,
 )
 
-from ..progress import ProgressFn, StopFn, check_stop
 from ..grouping import nearest_views
+from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
 from .conditioning import StyleConditioning, content_tokens
 from .images import check_images, resize_images, sdxl_size
@@ -144,7 +144,7 @@ def _attention_control(
     views: int,
 ) -> AttentionControl:
     """The processors' settings for a group of ``views`` views on a latent grid of ``latent_size``."""
-    if not settings.neighbour_views or views == 1:
+    if not settings.neighbour_views:
         views = 1
     neighbours = None
     if views > 1 and settings.nv_nearest is not None and settings.nv_nearest < views - 1:
@@ -173,7 +173,6 @@ def _model_inputs(
     images: torch.Tensor,
     work: torch.Tensor,
     conditioning: StyleConditioning,
-    settings: SamplerSettings,
     halves: int,
     control: AttentionControl,
 ) -> dict:
@@ -258,7 +257,7 @@ def stylize_group(
     latent_shape = (views, unet.config.in_channels, size[0] // scale, size[1] // scale)
     control = _attention_control(models, conditioning, settings, latent_shape[2:], view_centers, views)
     halves = 2 if settings.guidance_scale > 1 else 1
-    inputs = _model_inputs(models, images, work, conditioning, settings, halves, control)
+    inputs = _model_inputs(models, images, work, conditioning, halves, control)
     batches = _split_batch(inputs, halves if settings.sequential_cfg else 1)
 
     scheduler = SCHEDULERS[settings.scheduler].from_config(models.base.scheduler_config)
