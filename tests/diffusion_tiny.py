@@ -233,3 +233,21 @@ def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8):
     path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(base.unet, controlnet, num_style_tokens=num_style_tokens))
     csgo = load_csgo(path, base.unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=tiny_image_encoder(), csgo=csgo)
+
+
+def write_model_files(root: Path) -> dict[str, Path]:
+    """Tiny model files in the layouts the loaders read: a diffusers SDXL folder, a ControlNet folder,
+    a transformers image encoder folder and a CSGO ``.bin``; returns their paths by role."""
+    from diffusers import StableDiffusionXLPipeline
+
+    base = tiny_base()
+    StableDiffusionXLPipeline(
+        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=tiny_scheduler(),
+    ).save_pretrained(root / "sdxl")
+    controlnet = tiny_controlnet(base.unet)
+    controlnet.save_pretrained(root / "controlnet")
+    tiny_image_encoder().save_pretrained(root / "image_encoder")
+    write_csgo_file(root / "csgo.bin", csgo_state(base.unet, controlnet))
+    return {"sdxl": root / "sdxl", "controlnet": root / "controlnet", "image_encoder": root / "image_encoder",
+            "csgo": root / "csgo.bin"}

@@ -7,16 +7,8 @@ node outputs are compared with the direct ``artnvg_core`` calls.
 
 import pytest
 import torch
-from diffusers import StableDiffusionXLPipeline
-from diffusion_tiny import (  # noqa: F401  (one_cpu_thread: autouse fixture)
-    csgo_state,
-    one_cpu_thread,
-    tiny_base,
-    tiny_controlnet,
-    tiny_image_encoder,
-    tiny_scheduler,
-    write_csgo_file,
-)
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import write_model_files
 
 from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.conditioning import prepare_conditioning
@@ -57,19 +49,10 @@ def _line_cameras(count: int) -> CameraSet:
 
 @pytest.fixture(scope="module")
 def model_files(tmp_path_factory):
-    """Paths of tiny model files in the layouts the loader reads."""
-    root = tmp_path_factory.mktemp("models")
-    base = tiny_base()
-    StableDiffusionXLPipeline(
-        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=tiny_scheduler(),
-    ).save_pretrained(root / "sdxl")
-    controlnet = tiny_controlnet(base.unet)
-    controlnet.save_pretrained(root / "controlnet")
-    tiny_image_encoder().save_pretrained(root / "image_encoder")
-    write_csgo_file(root / "csgo.bin", csgo_state(base.unet, controlnet))
-    return {"sdxl_checkpoint_path": str(root / "sdxl"), "controlnet_path": str(root / "controlnet"),
-            "image_encoder_path": str(root / "image_encoder"), "csgo_weights_path": str(root / "csgo.bin")}
+    """Paths of tiny model files in the layouts the loader reads, by path input."""
+    files = write_model_files(tmp_path_factory.mktemp("models"))
+    return {"sdxl_checkpoint_path": str(files["sdxl"]), "controlnet_path": str(files["controlnet"]),
+            "image_encoder_path": str(files["image_encoder"]), "csgo_weights_path": str(files["csgo"])}
 
 
 LISTED = {"sdxl_checkpoint": HF_CACHE, "controlnet": HF_CACHE, "image_encoder": HF_CACHE, "csgo_weights": HF_CACHE}

@@ -1,0 +1,38 @@
+"""The diffusion pipeline (stylize_diffusion) on tiny model files: presets and devices are wired through."""
+
+import dataclasses
+
+import torch
+
+from artnvg_core.cameras import load_cameras
+from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.fileio import load_image
+from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.presets import PRESETS, Preset
+from artnvg_core.scene import read_ply
+from artnvg_core.stylize import DemoInputs, ModelPaths, stylize_diffusion
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import write_model_files
+
+
+def test_low_memory_preset_and_two_devices_give_the_same_views(tmp_path, monkeypatch):
+    """Exact presets and device spreading change no view (beyond float32 rounding); the scene is finetuned."""
+    small = Preset(SamplerSettings(steps=1, guidance_scale=3.0, resolution=None), 2, False, "test")
+    monkeypatch.setitem(PRESETS, "paper", small)
+    monkeypatch.setitem(PRESETS, "low-memory", dataclasses.replace(
+        small, low_memory=True, sampler=dataclasses.replace(small.sampler, sequential_cfg=True)))
+    demo = DemoInputs()
+    scene = read_ply(demo.scene)
+    cameras = load_cameras(demo.cameras).subset(range(4))
+    cameras = cameras.scaled(64 / cameras.width)
+    style = load_image(demo.style)
+    paths = ModelPaths(**write_model_files(tmp_path))
+    config = FinetuneConfig(iterations=2, backend="torch")
+
+    result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
+    assert views.shape == (4, cameras.height, cameras.width, 3) and 0 <= views.min() and views.max() <= 1
+    assert not torch.equal(result.sh, scene.sh) and torch.equal(result.means, scene.means)
+    _, low = stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", group_size=2)
+    torch.testing.assert_close(low, views, rtol=0, atol=1e-5)
+    _, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"], group_size=2)
+    torch.testing.assert_close(spread, views, rtol=0, atol=1e-5)
