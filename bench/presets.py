@@ -107,13 +107,7 @@ def at_size(settings: SamplerSettings, size: int) -> SamplerSettings:
 
 
 def accuracy_rows(args):
-    """(name, settings, compared with) of the accuracy table, reference first."""
-    rows = _accuracy_rows(args)
-    return [(name, at_size(settings, args.size), baseline and at_size(baseline, args.size))
-            for name, settings, baseline in rows]
-
-
-def _accuracy_rows(args):
+    """(name, settings, compared with) of the accuracy table at ``args.size``, reference first."""
     paper = PRESETS["paper"].sampler
     approx = dataclasses.replace(paper, steps=args.approx_steps)
     rows = [("paper (reference)", paper, None)]
@@ -130,7 +124,8 @@ def _accuracy_rows(args):
         (f"no NV attention, {args.approx_steps} steps", dataclasses.replace(approx, neighbour_views=False), approx),
     ]
     rows += [(f"preset {name}", PRESETS[name].sampler, None) for name in ("balanced", "fast")]
-    return rows
+    return [(name, at_size(settings, args.size), baseline and at_size(baseline, args.size))
+            for name, settings, baseline in rows]
 
 
 def accuracy_table(models, conditioning, args, device, report: dict) -> None:
