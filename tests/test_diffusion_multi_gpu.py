@@ -37,6 +37,13 @@ def load_tiny_models(device: torch.device):
         return tiny_models(Path(folder))
 
 
+def load_on_cpu_never(device: torch.device):
+    """A CPU worker that never finishes loading, so only the other worker's error can arrive."""
+    if device.type == "cpu":
+        time.sleep(3600)
+    return load_tiny_models(device)
+
+
 def _images(count: int, seed: int) -> torch.Tensor:
     return torch.rand(count, 64, 64, 3, generator=torch.Generator().manual_seed(seed))
 
@@ -88,9 +95,9 @@ def test_no_group_needs_no_models(scene):
 
 
 def test_worker_error_names_device_and_traceback(scene):
-    """The worker on "meta" fails to load; its error surfaces and the CPU worker is terminated."""
+    """The worker on "meta" fails to load; its error surfaces and the (hanging) CPU worker is terminated."""
     with pytest.raises(RuntimeError, match=r"worker on meta failed:\nTraceback") as error:
-        _run(scene, ["cpu", "meta"])
+        _run(scene, ["cpu", "meta"], load_on_cpu_never)
     assert "in load_tiny_models" in str(error.value) and "ValueError: no tiny models for meta" in str(error.value)
     assert not multiprocessing.active_children()
 

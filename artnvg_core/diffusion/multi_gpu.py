@@ -61,7 +61,8 @@ def stylize_groups_on_devices(
       holds "group", "groups" and "device". should_stop is checked while waiting: when it returns
       True the workers are terminated and :class:`Cancelled` is raised. A worker's exception is
       raised here as RuntimeError naming its device, with the worker's traceback; the other workers
-      are terminated. After a completed run the workers exit by themselves.
+      are terminated. (If the other workers finish every group before the error arrives, the
+      complete result is returned.) After a completed run the workers exit by themselves.
     """
     devices = _check_devices(devices)
     images = check_images(images, "stylize_groups_on_devices: images")
