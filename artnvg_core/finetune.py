@@ -7,7 +7,11 @@ Loss per step, for one randomly chosen view (ArtNVG, Sec. 3.4):
   + content_weight * relative feature MSE(VGG(render), VGG(original render))     [ARF's content term]
   + tv_weight * total variation(render)                                          [when not]
 
-Renders are clamped to [0, 1] before every term, as splatfacto does. With no
+Renders are clamped to [0, 1] before every term, as splatfacto does. The VGG terms (NNFM,
+content) see the render shrunk to at most ``nnfm_max_side`` pixels on its long side and the
+style image shrunk likewise, as ARF computes NNFM on renders halved to about 500 px with the
+style at that size: at 1024x1024 this is ARF's factor 0.5, and a quarter of the VGG and
+matching work of full resolution; L1/SSIM stay at full resolution. With no
 stylized views this is ARF's diffusion-free stylizer. The original
 Gaussians are the starting point (not a fresh fit); no densification.
 """
@@ -21,7 +25,7 @@ import torch
 
 from .cameras import CameraSet
 from .fileio import resize_image
-from .losses import NNFMLoss, load_vgg, ssim, style_image_features
+from .losses import NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import render
 from .scene import GaussianScene
@@ -35,6 +39,8 @@ class FinetuneConfig:
     """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2,
     NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by the
     scene extent). ``content_weight`` and ``tv_weight`` apply only without stylized views.
+    ``nnfm_max_side``: longest side in pixels of the images the VGG terms see (renders and
+    style image are shrunk to it, never enlarged; None: full resolution).
 
     SH learning rates left at None mean splatfacto's (DC 0.0025, rest 0.0025/20) when
     stylized views are given, and ARF-like faster ones (DC 0.03, rest 0.003) without them:
@@ -51,7 +57,7 @@ class FinetuneConfig:
     nnfm_layers: tuple[str, ...] = ("relu3_1", "relu3_2", "relu3_3")
     vgg: str = "vgg19"
     vgg_weights: str | None = None
-    style_max_side: int = 512
+    nnfm_max_side: int | None = 512
     lr_sh_dc: float | None = None
     lr_sh_rest: float | None = None
     lr_opacity: float = 0.05
@@ -72,6 +78,8 @@ class FinetuneConfig:
             if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
                 if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                     raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
+        if self.nnfm_max_side is not None and not (isinstance(self.nnfm_max_side, int) and self.nnfm_max_side >= 16):
+            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= 16, got {self.nnfm_max_side!r}")
 
 
 def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch.Tensor]:
@@ -124,6 +132,11 @@ def _nchw(images: torch.Tensor) -> torch.Tensor:
     return images.permute(0, 3, 1, 2)
 
 
+def _vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
+    """[B, H, W, 3] renders -> [B, 3, h, w], shrunk to ``config.nnfm_max_side``."""
+    return shrink_to_max_side(_nchw(images), config.nnfm_max_side)
+
+
 def _total_variation(images: torch.Tensor) -> torch.Tensor:
     """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images."""
     return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
@@ -169,7 +182,8 @@ def finetune(
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers
-    style_feats = style_image_features(vgg, _nchw(style_image[None].to(device, torch.float32)), layers, config.style_max_side)
+    style_feats = style_image_features(vgg, _nchw(style_image[None].to(device, torch.float32)), layers,
+                                       config.nnfm_max_side)
     nnfm = NNFMLoss(style_feats, layer_groups=(layers,))
 
     params = _parameters(scene, config)
@@ -178,7 +192,7 @@ def finetune(
     originals = None
     if stylized is None and config.content_weight > 0:
         with torch.no_grad():
-            originals = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
+            originals = _vgg_input(render(scene, cameras, backend=config.backend).rgb.clamp(0, 1), config)
 
     for step in range(config.iterations):
         check_stop(should_stop)
@@ -190,12 +204,12 @@ def finetune(
             terms["l1"] = config.l1_weight * (image - target).abs().mean()
             terms["ssim"] = config.ssim_weight * (1 - ssim(_nchw(image), _nchw(target)))
         needs_content = originals is not None
-        feats = vgg(_nchw(image), layers) if config.nnfm_weight > 0 or needs_content else None
+        feats = vgg(_vgg_input(image, config), layers) if config.nnfm_weight > 0 or needs_content else None
         if config.nnfm_weight > 0:
             terms["nnfm"] = config.nnfm_weight * nnfm(feats)
         if needs_content:
             with torch.no_grad():
-                reference = vgg(_nchw(originals[view : view + 1]), layers)
+                reference = vgg(originals[view : view + 1], layers)
             terms["content"] = config.content_weight * sum(
                 ((feats[k] - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
             ) / len(layers)

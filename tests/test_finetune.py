@@ -114,10 +114,30 @@ def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
     assert load_image(sheet).shape[0] == 2 * cameras.height + 4
 
 
+def test_vgg_terms_see_the_render_shrunk_as_arf_does(demo):
+    """Step 1's NNFM term (before any update) equals an independent computation on ARF's half-size
+    render: ``interpolate(render, scale_factor=0.5, mode="bilinear")`` against the same style."""
+    scene, cameras, style = demo
+    side = max(cameras.width, cameras.height) // 2
+    style = torch.nn.functional.interpolate(style.permute(2, 0, 1)[None], size=(side * 203 // 256, side), mode="area")
+    seen = []
+    finetune(scene, cameras, style[0].permute(1, 2, 0), config=FinetuneConfig(iterations=1, nnfm_max_side=side),
+             progress=lambda step, total, info: seen.append(info))
+    vgg = load_vgg("vgg19")
+    loss = NNFMLoss(vgg(style, LAYERS), layer_groups=(LAYERS,))
+    with torch.no_grad():
+        image = render(scene, cameras.subset([seen[0]["view"]])).rgb.clamp(0, 1).permute(0, 3, 1, 2)
+        half = torch.nn.functional.interpolate(image, scale_factor=0.5, mode="bilinear")
+        expected = float(loss(vgg(half, LAYERS)))
+    assert seen[0]["nnfm"] == pytest.approx(expected, rel=1e-5)
+    assert seen[0]["content"] == 0.0  # the untouched scene matches its own (shrunk) renders
+
+
 @pytest.mark.parametrize(
     "kwargs, field",
     [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
-     ({"lr_means": -1.0}, "lr_means")],
+     ({"lr_means": -1.0}, "lr_means"), ({"nnfm_max_side": 8}, "nnfm_max_side"),
+     ({"nnfm_max_side": 256.0}, "nnfm_max_side")],
 )
 def test_bad_config_rejected(kwargs, field):
     with pytest.raises(ValueError, match=field):

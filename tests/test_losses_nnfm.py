@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from artnvg_core.losses import NNFMLoss, load_vgg, nearest_style_indices, style_image_features
+from artnvg_core.losses import NNFMLoss, load_vgg, nearest_style_indices, shrink_to_max_side, style_image_features
 
 GROUPS = (("a1", "a2"), ("b1",))
 
@@ -145,3 +145,17 @@ def test_style_image_is_shrunk_to_max_side_and_never_enlarged():
     assert torch.allclose(feats["x"][0, :, 0, 0], image[0, :, :2, :2].mean(dim=(1, 2)))
     with pytest.raises(ValueError, match=r"\[B, 3, H, W\]"):
         style_image_features(extractor, image[0], ["x"])
+
+
+def test_halving_equals_arfs_bilinear_half_and_gradients_flow():
+    """ARF feeds VGG ``interpolate(render, scale_factor=0.5, mode="bilinear")``: for a factor of two that
+    is a 2x2 average, which is what shrinking a 64 x 48 image to a long side of 32 must give."""
+    image = torch.rand(2, 3, 48, 64, dtype=torch.float64, requires_grad=True)
+    shrunk = shrink_to_max_side(image, 32)
+    arf = torch.nn.functional.interpolate(image, scale_factor=0.5, mode="bilinear")
+    assert shrunk.shape == (2, 3, 24, 32)
+    torch.testing.assert_close(shrunk, arf, rtol=0, atol=1e-15)
+    shrunk.sum().backward()
+    torch.testing.assert_close(image.grad, torch.full_like(image, 0.25))
+    assert shrink_to_max_side(image, 64) is image and shrink_to_max_side(image, None) is image
+    assert shrink_to_max_side(torch.rand(1, 3, 5, 300), 30).shape == (1, 3, 1, 30)  # never below one pixel

@@ -38,7 +38,7 @@ def inputs(shared_data, tmp_path_factory):
     scene = scene.select(footprint.topk(3_000).indices)
     write_ply(scene, folder / "original.ply")
     cameras = load_cameras(bear / "transforms.json").subset([0, 1, 2]).scaled(SCALE)
-    config = FinetuneConfig(iterations=10, lr_sh_dc=0.05, style_max_side=128)  # fast, visible colour change
+    config = FinetuneConfig(iterations=10, lr_sh_dc=0.05, nnfm_max_side=128)  # fast, visible colour change
     write_ply(stylize_nnfm(scene, cameras, load_image(style, max_side=128), config), folder / "nnfm.ply")
 
     torch.manual_seed(0)

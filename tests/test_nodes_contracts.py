@@ -31,7 +31,8 @@ PUBLIC_INPUTS = {
     "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
                           "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
-                                "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views"],
+                                "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
+                                "nnfm_max_side"],
     "ArtNVGSaveGaussianScene": ["scene", "filename_prefix"],
 }
 PUBLIC_OUTPUTS = {

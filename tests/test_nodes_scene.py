@@ -141,6 +141,11 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
                         config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, **weights))
     assert _same_scene(result, expected)
     assert not torch.equal(result.sh, small_bear.sh)
+    (full,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=2,
+                   optimize="appearance", seed=3, stylized_views=stylized, nnfm_max_side=0, **weights)
+    expected = finetune(small_bear, cameras, style[0], stylized=stylized,
+                        config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, nnfm_max_side=None, **weights))
+    assert _same_scene(full, expected)
     with pytest.raises(NodeInputError, match="Finetune Gaussians: .*stylized"):
         call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
              optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)

