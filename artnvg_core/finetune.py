@@ -78,8 +78,9 @@ class FinetuneConfig:
             if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
                 if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                     raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
-        if self.nnfm_max_side is not None and not (isinstance(self.nnfm_max_side, int) and self.nnfm_max_side >= 16):
-            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= 16, got {self.nnfm_max_side!r}")
+        side = self.nnfm_max_side
+        if side is not None and not (isinstance(side, int) and side >= 16):
+            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= 16, got {side!r}")
 
 
 def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch.Tensor]:

@@ -82,7 +82,8 @@ def main() -> None:
         combos = itertools.product(backends, (False, True), sides)
         for backend, targets, side in [c for c in combos if c[0] == backends[0] or c[1:] == (False, 512)]:
             config = FinetuneConfig(iterations=args.iters, backend=backend, nnfm_max_side=side)
-            sec = seconds_per_iteration(scene.to(device), cams, resized_style(style, max(cams.width, cams.height) // 2), config, targets, device)
+            arf_style = resized_style(style, max(cams.width, cams.height) // 2)
+            sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
             rows.append([name, backend, f"{cams.width}x{cams.height}", "L1+SSIM+NNFM" if targets else "NNFM+content",
                          side or "full", sec * 1e3, sec * 1000 / 60])
             print(rows[-1], flush=True)
