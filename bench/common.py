@@ -17,29 +17,34 @@ from artnvg_core.scene import GaussianScene  # noqa: E402
 
 
 def timed(fn, device: torch.device, repeats: int = 5, warmup: int = 2) -> float:
-    """Median wall time of ``fn()`` in seconds (synchronised on CUDA) after warm-up."""
+    """Median seconds of ``fn()`` after ``warmup`` untimed calls: CUDA events on a GPU, perf_counter on the CPU."""
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeats):
         if device.type == "cuda":
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            fn()
+            end.record()
             torch.cuda.synchronize(device)
-        start = time.perf_counter()
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        times.append(time.perf_counter() - start)
+            times.append(start.elapsed_time(end) / 1000)
+        else:
+            begin = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - begin)
     return statistics.median(times)
 
 
-def peak_memory(fn, device: torch.device) -> float | None:
-    """Peak CUDA memory of ``fn()`` in GiB (None on CPU)."""
+def peak_memory(fn, device: torch.device, *, absolute: bool = False) -> float:
+    """Peak CUDA memory in GiB while ``fn()`` runs: above what was allocated before it, or the
+    whole allocation with ``absolute`` (nan on the CPU, where ``fn`` still runs)."""
     if device.type != "cuda":
         fn()
-        return None
+        return float("nan")
     torch.cuda.synchronize(device)
     torch.cuda.reset_peak_memory_stats(device)
-    base = torch.cuda.memory_allocated(device)
+    base = 0 if absolute else torch.cuda.memory_allocated(device)
     fn()
     torch.cuda.synchronize(device)
     return (torch.cuda.max_memory_allocated(device) - base) / 2**30

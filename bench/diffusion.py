@@ -39,7 +39,6 @@ import dataclasses
 import gc
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -51,6 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel  # noqa: E402
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection  # noqa: E402
+
+from bench.common import peak_memory, timed  # noqa: E402
 
 from artnvg_core.diffusion.architectures import (  # noqa: E402
     SDXL_SCHEDULER_CONFIG,
@@ -137,43 +138,6 @@ def build_models(tiny: bool, device: torch.device, dtype: torch.dtype) -> Diffus
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=encoder, csgo=csgo)
 
 
-class Timer:
-    """Median wall time of a callable: CUDA events on a GPU, perf_counter on the CPU."""
-
-    def __init__(self, device: torch.device):
-        self.cuda = device.type == "cuda"
-
-    def __call__(self, run, warmup: int, repeats: int) -> float:
-        for _ in range(warmup):
-            run()
-        times = []
-        for _ in range(repeats):
-            if self.cuda:
-                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                start.record()
-                run()
-                end.record()
-                torch.cuda.synchronize()
-                times.append(start.elapsed_time(end) / 1000)
-            else:
-                begin = time.perf_counter()
-                run()
-                times.append(time.perf_counter() - begin)
-        return statistics.median(times)
-
-
-def peak_memory(device: torch.device, run) -> float:
-    """Peak GiB allocated while ``run`` runs (nan on the CPU)."""
-    if device.type != "cuda":
-        run()
-        return float("nan")
-    torch.cuda.synchronize()
-    torch.cuda.reset_peak_memory_stats()
-    run()
-    torch.cuda.synchronize()
-    return torch.cuda.max_memory_allocated() / 2**30
-
-
 def random_conditioning(models: DiffusionModels, device, dtype, pooled_dim: int) -> StyleConditioning:
     width = models.base.unet.config.cross_attention_dim
     text = torch.randn(1, TEXT_TOKENS, width, device=device, dtype=dtype)
@@ -244,11 +208,11 @@ def write_json(path: Path | None, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def matmul_rate(device: torch.device, dtype: torch.dtype, size: int, timer: Timer) -> float:
+def matmul_rate(device: torch.device, dtype: torch.dtype, size: int) -> float:
     """Measured FLOP/s of a ``size``^3 matrix product in ``dtype`` (median of 20)."""
     generator = torch.Generator().manual_seed(0)
     a, b = (torch.randn(size, size, generator=generator).to(device=device, dtype=dtype) for _ in range(2))
-    return 2 * size**3 / timer(lambda: a @ b, 3, 20)
+    return 2 * size**3 / timed(lambda: a @ b, device, repeats=20, warmup=3)
 
 
 FLOP_KINDS = {"attention": ("bmm", "baddbmm"), "linear": ("mm", "addmm"), "convolution": ("convolution",)}
@@ -269,10 +233,10 @@ def step_flops(meta_models: DiffusionModels, views: int, size: int, nv: bool, po
     return {"total": counter.get_total_flops(), **kinds}
 
 
-def flops_table(args, dtype, timer, timings: dict, pooled_dim: int) -> dict:
+def flops_table(args, dtype, timings: dict, pooled_dim: int) -> dict:
     """Print FLOPs per configuration, the floor at the measured matmul rate and the gap to measured times."""
     device = torch.device(args.device)
-    rate = matmul_rate(device, dtype, args.matmul_size, timer)
+    rate = matmul_rate(device, dtype, args.matmul_size)
     meta_models = build_models(args.tiny, torch.device("meta"), dtype)
     print(
         f"\nMeasured {args.matmul_size}^3 {args.dtype} matmul: {rate / 1e12:.1f} TFLOP/s. FLOPs counted with "
@@ -307,7 +271,7 @@ def _copy_models(models: DiffusionModels) -> DiffusionModels:
     )
 
 
-def measure_variant(models, inputs, backend: str, options: SpeedOptions, args, timer) -> tuple[dict, torch.Tensor]:
+def measure_variant(models, inputs, backend: str, options: SpeedOptions, args) -> tuple[dict, torch.Tensor]:
     """Time one step of a speedup variant on copies of ``models``; returns (row, noise prediction)."""
     variant = _copy_models(models)
     apply_speedups(variant, options)
@@ -319,8 +283,9 @@ def measure_variant(models, inputs, backend: str, options: SpeedOptions, args, t
         begin = time.perf_counter()
         noise = run().float()
         first = time.perf_counter() - begin
-        seconds = timer(run, args.warmup, args.repeats)
-        peak = peak_memory_above_resident(torch.device(args.device), run)
+        device = torch.device(args.device)
+        seconds = timed(run, device, repeats=args.repeats, warmup=args.warmup)
+        peak = peak_memory(run, device)
     return {"seconds": seconds, "first_call_s": first, "peak_extra_gib": peak}, noise
 
 
@@ -332,18 +297,6 @@ def release(device: torch.device) -> None:
         torch.cuda.empty_cache()
 
 
-def peak_memory_above_resident(device: torch.device, run) -> float:
-    """Peak GiB allocated by ``run`` above what was allocated before it (nan on the CPU)."""
-    if device.type != "cuda":
-        return float("nan")
-    torch.cuda.synchronize()
-    resident = torch.cuda.memory_allocated()
-    torch.cuda.reset_peak_memory_stats()
-    run()
-    torch.cuda.synchronize()
-    return (torch.cuda.max_memory_allocated() - resident) / 2**30
-
-
 def deviation(noise: torch.Tensor, reference: torch.Tensor) -> dict:
     difference = noise - reference
     return {
@@ -352,7 +305,7 @@ def deviation(noise: torch.Tensor, reference: torch.Tensor) -> dict:
     }
 
 
-def variants_table(models: DiffusionModels, args, timer, pooled_dim: int, report: dict) -> None:
+def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict) -> None:
     """Time one NV + CFG step for the eager baseline, each exact speedup alone, and all combined.
 
     Each variant runs on copies of the same weights with the same inputs; its noise prediction is
@@ -384,7 +337,7 @@ def variants_table(models: DiffusionModels, args, timer, pooled_dim: int, report
             backend = min(timed, key=lambda r: r["seconds"])["backend"]
         row = {"variant": name, "backend": backend, "options": dataclasses.asdict(options)}
         try:
-            measured, noise = measure_variant(models, inputs, backend, options, args, timer)
+            measured, noise = measure_variant(models, inputs, backend, options, args)
             row.update(measured)
             if reference is None:
                 reference = noise
@@ -443,7 +396,6 @@ def main() -> None:
     args.variant_size = args.variant_size or (128 if args.tiny else 1024)
     args.compile = args.compile or ("default" if device.type == "cuda" else "none")
     pooled_dim = TINY_POOLED_DIM if args.tiny else POOLED_DIM
-    timer = Timer(device)
 
     begin = time.perf_counter()
     torch.manual_seed(0)
@@ -465,21 +417,21 @@ def main() -> None:
             for views in args.views:
                 for nv in (False, True):
                     run = denoise_step(models, views, size, nv, pooled_dim)
-                    seconds = timings[(size, views, nv)] = timer(run, args.warmup, args.repeats)
-                    peak = peak_memory(device, run)
+                    seconds = timings[(size, views, nv)] = timed(run, device, args.repeats, args.warmup)
+                    peak = peak_memory(run, device, absolute=True)
                     print(f"| {size} | {views} | {'on' if nv else 'off'} | {seconds:.3f} | {peak:.1f} |", flush=True)
         report["timing"] = [dict(size=k[0], views=k[1], nv=k[2], seconds=v) for k, v in timings.items()]
         write_json(args.json, report)
     if args.flops:
-        report["flops"] = flops_table(args, dtype, timer, timings, pooled_dim)
+        report["flops"] = flops_table(args, dtype, timings, pooled_dim)
         write_json(args.json, report)
     if args.variants:
-        variants_table(models, args, timer, pooled_dim, report)
+        variants_table(models, args, pooled_dim, report)
     if args.group:
-        group_tables(models, args, timer, dtype, pooled_dim)
+        group_tables(models, args, dtype, pooled_dim)
 
 
-def group_tables(models: DiffusionModels, args, timer: Timer, dtype: torch.dtype, pooled_dim: int) -> None:
+def group_tables(models: DiffusionModels, args, dtype: torch.dtype, pooled_dim: int) -> None:
     """Whole-group time (all steps, decoding) and the image encoder / VAE component times."""
     device = torch.device(args.device)
     conditioning = random_conditioning(models, device, dtype, pooled_dim)
@@ -488,10 +440,10 @@ def group_tables(models: DiffusionModels, args, timer: Timer, dtype: torch.dtype
     for size in args.sizes:
         images = torch.rand(args.group_views, size, size, 3)
         settings = SamplerSettings(steps=args.group_steps, resolution=size)
-        measured = timer(lambda: stylize_group(models, images, conditioning, settings), 0, 1)
+        measured = timed(lambda: stylize_group(models, images, conditioning, settings), device, repeats=1, warmup=0)
         print(f"| {size} | {args.group_steps} steps, measured | {measured:.1f} |")
         if args.group_steps < 50:
-            step = timer(denoise_step(models, args.group_views, size, True, pooled_dim), 1, args.repeats)
+            step = timed(denoise_step(models, args.group_views, size, True, pooled_dim), device, args.repeats, warmup=1)
             print(
                 f"| {size} | 50 steps, EXTRAPOLATED (+{50 - args.group_steps} x {step:.3f} s/step) | "
                 f"{measured + (50 - args.group_steps) * step:.1f} |"
@@ -501,12 +453,12 @@ def group_tables(models: DiffusionModels, args, timer: Timer, dtype: torch.dtype
     print("|---|---:|---:|")
     for count in (1, args.group_views):
         images = torch.rand(count, 512, 512, 3)
-        seconds = timer(lambda: image_features(models.image_encoder, images), args.warmup, args.repeats)
+        seconds = timed(lambda: image_features(models.image_encoder, images), device, args.repeats, args.warmup)
         print(f"| image encoder (224 px, penultimate states) | {count} | {seconds:.3f} |")
     vae = models.base.vae
     for size in args.sizes:
         latents = torch.randn(1, 4, size // 8, size // 8, device=device, dtype=vae.dtype)
-        seconds = timer(lambda: vae.decode(latents / vae.config.scaling_factor), args.warmup, args.repeats)
+        seconds = timed(lambda: vae.decode(latents / vae.config.scaling_factor), device, args.repeats, args.warmup)
         print(f"| VAE decode {size} px ({str(vae.dtype).removeprefix('torch.')}) | 1 | {seconds:.3f} |")
 
 

@@ -23,12 +23,13 @@ import time
 from pathlib import Path
 
 import torch
+from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.profiler import ProfilerActivity, profile, schedule
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import print_table  # noqa: E402
-from bench.diffusion import POOLED_DIM, Timer, build_models, run_step, step_inputs, write_json  # noqa: E402
+from bench.common import print_table, timed  # noqa: E402
+from bench.diffusion import POOLED_DIM, build_models, run_step, step_inputs, write_json  # noqa: E402
 
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.fileio import load_image  # noqa: E402
@@ -37,6 +38,7 @@ from artnvg_core.losses import ssim  # noqa: E402
 from artnvg_core.scene import read_ply  # noqa: E402
 from artnvg_core.stylize import DemoInputs  # noqa: E402
 
+CUDA = torch.device("cuda")
 KINDS = (  # first match wins: cuDNN attention kernels also say "fprop", cuDNN convolutions also say "gemm"
     ("attention", ("sdpa", "fmha", "flash", "attention")),
     ("convolution", ("conv", "dgrad", "wgrad", "fprop", "implicit", "winograd")),
@@ -90,11 +92,9 @@ def report(title: str, wall: float, times: dict[str, float], command: str) -> di
     return {"wall_s": wall, "kernels_s": kernels, "kinds_s": kinds, "longest": longest}
 
 
-def sdpa_rates(views: int, size: int, timer: Timer) -> list[list]:
+def sdpa_rates(views: int, size: int) -> list[list]:
     """TFLOP/s of SDPA alone at the step's two NV shapes (CFG batch 2), per backend, in the layout the
     processor passes ([B, L, H, D] memory seen as [B, H, L, D]) and contiguous."""
-    from torch.nn.attention import SDPBackend, sdpa_kernel
-
     rows = []
     for heads, side in ((10, size // 16), (20, size // 32)):
         length = views * side * side
@@ -106,15 +106,15 @@ def sdpa_rates(views: int, size: int, timer: Timer) -> list[list]:
                 q, k, v = q.contiguous(), k.contiguous(), v.contiguous()
             for backend in (SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION):
                 with sdpa_kernel(backend):
-                    seconds = timer(lambda: torch.nn.functional.scaled_dot_product_attention(q, k, v), 2, 5)
+                    seconds = timed(lambda: torch.nn.functional.scaled_dot_product_attention(q, k, v), CUDA, 5, 2)
                 rows.append([f"2 x {heads} x {length} x 64", layout, backend.name, seconds * 1e3,
                              flops / seconds / 1e12])
     return rows
 
 
-def step_profile(args, timer: Timer, command: str) -> dict:
+def step_profile(args, command: str) -> dict:
     """Wall time and kernel times of one denoising step (the models are freed on return)."""
-    models = build_models(False, torch.device("cuda"), torch.bfloat16)
+    models = build_models(False, CUDA, torch.bfloat16)
     inputs = step_inputs(models, args.views, args.size, True, POOLED_DIM)
 
     def run() -> None:
@@ -126,22 +126,22 @@ def step_profile(args, timer: Timer, command: str) -> dict:
             torch.cuda.synchronize()
             step()
 
-    wall = timer(run, 1, 3)
+    wall = timed(run, CUDA, repeats=3, warmup=1)
     return report(f"One denoising step: N={args.views}, {args.size}x{args.size}, NV on, CFG, bf16, eager",
                   wall, kernel_times(steps, active=2), command)
 
 
-def diffusion(args, timer: Timer, command: str) -> dict:
-    data = step_profile(args, timer, command)
+def diffusion(args, command: str) -> dict:
+    data = step_profile(args, command)
     torch.cuda.empty_cache()
-    rates = sdpa_rates(args.views, args.size, timer)
+    rates = sdpa_rates(args.views, args.size)
     print_table("SDPA alone at the NV shapes", ["shape (B x H x L x D)", "layout", "backend", "ms", "TFLOP/s"],
                 rates, command)
     return {**data, "sdpa": rates}
 
 
 def finetune_profile(args, command: str) -> dict:
-    device = torch.device("cuda")
+    device = CUDA
     scene = read_ply(args.scene / "scene.ply").to(device)
     cameras = load_cameras(args.scene / "transforms.json").scaled(2.0)
     style = load_image(DemoInputs().style).to(device)
@@ -164,7 +164,7 @@ def finetune_profile(args, command: str) -> dict:
                                wall, times, command)
     a = torch.rand(1, 3, cameras.height, cameras.width, device=device, requires_grad=True)
     b = torch.rand_like(a)
-    seconds = Timer(device)(lambda: ssim(a, b).backward(), 3, 10)
+    seconds = timed(lambda: ssim(a, b).backward(), device, repeats=10, warmup=3)
     print(f"\nSSIM alone, forward + backward at {cameras.width}x{cameras.height}: {seconds * 1e3:.2f} ms")
     results["ssim_s"] = seconds
     return results
@@ -188,7 +188,7 @@ def main() -> None:
     if args.finetune:
         results["finetune"] = finetune_profile(args, command)
     if args.diffusion:
-        results["diffusion"] = diffusion(args, Timer(torch.device("cuda")), command)
+        results["diffusion"] = diffusion(args, command)
     write_json(args.json, results)
 
 

@@ -102,8 +102,9 @@ def render_views(scene, cameras, backend: str = "auto") -> tuple[torch.Tensor, t
 
 
 def at_size(settings: SamplerSettings, size: int) -> SamplerSettings:
-    """``settings`` with its resolution scaled from 1024 to ``size`` (the presets are written for 1024)."""
-    return dataclasses.replace(settings, resolution=settings.resolution * size // 1024)
+    """``settings`` with its resolution scaled from 1024 to ``size`` (the presets are written for 1024),
+    at least SDXL's 64 px."""
+    return dataclasses.replace(settings, resolution=max(64, settings.resolution * size // 1024))
 
 
 def accuracy_rows(args):
