@@ -66,7 +66,7 @@ def kernel_times(run, active: int, skip: int = 1) -> dict[str, float]:
         run(prof.step)
     times = {}
     for event in prof.key_averages():
-        micros = getattr(event, "self_device_time_total", None) or getattr(event, "self_cuda_time_total", 0)
+        micros = event.self_device_time_total
         if micros > 0 and event.device_type == torch.autograd.DeviceType.CUDA:
             times[event.key] = times.get(event.key, 0.0) + micros / 1e6 / active
     return times
