@@ -20,6 +20,7 @@ from .diffusion_nodes import (
 from .finetune_nodes import FinetuneGaussians
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
+from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
 
@@ -35,6 +36,8 @@ NODE_CLASS_MAPPINGS = {
     "ArtNVGSampleGroup": SampleGroup,
     "ArtNVGFinetuneGaussians": FinetuneGaussians,
     "ArtNVGSaveGaussianScene": SaveGaussianScene,
+    "ArtNVGSceneToSplat": SceneToSplat,
+    "ArtNVGSplatToScene": SplatToScene,
 }
 
 NODE_DISPLAY_NAME_MAPPINGS = {name: node.DISPLAY_NAME for name, node in NODE_CLASS_MAPPINGS.items()}

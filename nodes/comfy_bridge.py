@@ -2,7 +2,8 @@
 
 Inside ComfyUI this uses ``folder_paths`` (input/output/model folders),
 ``comfy.utils.ProgressBar`` (the node's progress bar) and ``comfy.model_management``
-(the user's interrupt, and the compute device); it also lifts the ``torch.inference_mode``
+(the user's interrupt, and the compute device), and ``comfy_api.latest.Types`` (the core's data
+classes, where present); it also lifts the ``torch.inference_mode``
 under which ComfyUI runs every node, for nodes that need gradients. Without ComfyUI
 (tests, scripts) every function falls back: the input and output folders are ``./input``
 and ``./output`` of the working directory (ComfyUI's own layout), model folders are empty,
@@ -87,6 +88,13 @@ def model_file_path(folder: str, name: str) -> Path | None:
     folder_paths = comfy_module("folder_paths")
     path = folder_paths.get_full_path(folder, name) if folder_paths else None
     return Path(path) if path else None
+
+
+def comfy_types():
+    """ComfyUI's ``comfy_api.latest.Types`` (its data classes: 3D files, splats...); None outside ComfyUI
+    or on a ComfyUI without that API."""
+    latest = comfy_module("comfy_api.latest")
+    return getattr(latest, "Types", None) if latest is not None else None
 
 
 # --------------------------------------------------------------------------- device

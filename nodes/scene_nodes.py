@@ -11,6 +11,7 @@ from .comfy_bridge import output_directory
 from .input_files import file_signature, list_input_files, resolve_input_path
 from .node_errors import NodeInputError, node_input
 from .node_types import CATEGORY, SCENE
+from .splat_interop import FILE3D_CLASS, FILE_3D_PLY, MISSING_FILE3D, ply_file3d
 
 SCENE_SUFFIXES = (".ply", ".ckpt")
 
@@ -71,14 +72,17 @@ def _next_free_path(filename_prefix: str) -> Path:
 
 
 class SaveGaussianScene:
-    """Write the scene as an INRIA 3DGS PLY into ComfyUI's output folder (``<prefix>_00001.ply``, ...)."""
+    """Write the scene as an INRIA 3DGS PLY into ComfyUI's output folder (``<prefix>_00001.ply``, ...).
+
+    Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
     DISPLAY_NAME = "Save Gaussian Scene"
     CATEGORY = CATEGORY
     FUNCTION = "save"
-    RETURN_TYPES = ()
+    RETURN_TYPES = (FILE_3D_PLY,) if FILE3D_CLASS is not None else ()
+    RETURN_NAMES = ("model_3d",) if FILE3D_CLASS is not None else ()
     OUTPUT_NODE = True
-    DESCRIPTION = __doc__
+    DESCRIPTION = __doc__ if FILE3D_CLASS is not None else __doc__.split("\n\n")[0] + "\n\n" + MISSING_FILE3D
 
     @classmethod
     def INPUT_TYPES(cls):
@@ -100,6 +104,5 @@ class SaveGaussianScene:
             raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
-        return {"ui": {"scenes": [{
-            "filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output",
-        }]}}
+        ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}]}
+        return {"ui": ui, "result": (ply_file3d(file),)} if FILE3D_CLASS is not None else {"ui": ui}

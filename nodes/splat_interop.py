@@ -1,0 +1,100 @@
+"""ComfyUI core's Gaussian splat and 3D file types, where the running ComfyUI has them (never required).
+
+ComfyUI's ``comfy_api.latest.Types`` gained (2026) a splat type: ``SPLAT`` (link type "SPLAT"; the
+releases before its rename call it ``GAUSSIAN``, link type "GAUSSIAN"). It holds a batch of B splats
+in activated form (see ``artnvg_core.activated``) as (B, N, ...) tensors zero-padded to a common N,
+``counts`` [B] giving the real lengths (None when every item has N): positions (B, N, 3), scales
+(B, N, 3) linear, rotations (B, N, 4) unit w x y z, opacities (B, N, 1) in [0, 1], sh (B, N, K, 3).
+``Types.File3D`` is a 3D file; Preview Gaussian Splat displays one linked as "FILE_3D_PLY".
+ComfyUI 0.3.64 has neither: the constants below then say so, and nothing else changes.
+
+The pack's scene converts to and from the splat type here and nowhere else. A splat made by
+:func:`scene_to_splat` whose values are unchanged converts back to the very same scene (bit-exact;
+re-deriving the raw values could move scales and opacities by 1 float32 ulp).
+"""
+
+from __future__ import annotations
+
+import weakref
+from pathlib import Path
+
+import torch
+
+from artnvg_core.activated import ActivatedGaussians, activate, deactivate
+from artnvg_core.scene import GaussianScene
+
+from .comfy_bridge import comfy_types
+
+
+def _splat_class() -> tuple[type | None, str]:
+    """The core splat class and its link type name; (None, "SPLAT") when this ComfyUI has none."""
+    types = comfy_types()
+    for name in ("SPLAT", "GAUSSIAN"):
+        if types is not None and hasattr(types, name):
+            return getattr(types, name), name
+    return None, "SPLAT"
+
+
+SPLAT_CLASS, SPLAT = _splat_class()
+FILE3D_CLASS = getattr(comfy_types(), "File3D", None)
+FILE_3D_PLY = "FILE_3D_PLY"  # the link type of a .ply File3D, accepted by Preview Gaussian Splat
+
+MISSING_SPLAT = (
+    "Needs ComfyUI's core Gaussian splat type (comfy_api.latest Types.SPLAT, or Types.GAUSSIAN before its "
+    "rename; ComfyUI releases of 2026). This ComfyUI lacks it, so this node cannot run here."
+)
+MISSING_FILE3D = (
+    "On a ComfyUI with 3D file types (comfy_api.latest Types.File3D, 2026) it also outputs the saved file for "
+    "Preview Gaussian Splat; this ComfyUI lacks them, so it has no output."
+)
+
+_ORIGINS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # splat -> the scene it was made from
+
+
+def _same_values(a: ActivatedGaussians, b: ActivatedGaussians) -> bool:
+    return all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("positions", "scales", "rotations", "opacities", "sh"))
+
+
+def scene_to_splat(scene: GaussianScene):
+    """A core splat (batch of one, on the CPU) holding ``scene``. Raises RuntimeError without the core type."""
+    if SPLAT_CLASS is None:
+        raise RuntimeError(MISSING_SPLAT)
+    a = activate(scene.to("cpu"))
+    splat = SPLAT_CLASS(a.positions[None], a.scales[None], a.rotations[None], a.opacities[None, :, None], a.sh[None])
+    _ORIGINS[splat] = scene
+    return splat
+
+
+def splat_to_scene(splat, source: str = "splat") -> GaussianScene:
+    """The scene (float32, CPU) of a core splat holding one item; ``source`` names it in errors.
+
+    The item is cut to its real length ``counts[0]`` when counts are given. A batch of several
+    splats, an SH degree above 3 and invalid values raise ValueError naming ``source`` and the field.
+    """
+    positions = splat.positions
+    if positions.ndim != 3 or positions.shape[0] != 1:
+        raise ValueError(f"{source}: positions: expected a batch of one splat (1, N, 3), got shape "
+                         f"{tuple(positions.shape)}; convert one item at a time")
+    n = positions.shape[1]
+    counts = getattr(splat, "counts", None)
+    if counts is not None:
+        n = int(counts.reshape(-1)[0])
+        if not 0 < n <= positions.shape[1]:
+            raise ValueError(f"{source}: counts: {n} is not a length in 1..{positions.shape[1]}")
+    opacities = splat.opacities[0, :n]
+    a = ActivatedGaussians(
+        positions=positions[0, :n],
+        scales=splat.scales[0, :n],
+        rotations=splat.rotations[0, :n],
+        opacities=opacities[:, 0] if opacities.ndim == 2 and opacities.shape[1] == 1 else opacities,
+        sh=splat.sh[0, :n],
+    ).map(lambda t: t.detach().to("cpu", torch.float32))
+    origin = _ORIGINS.get(splat)
+    if origin is not None and _same_values(activate(origin.to("cpu")), a):
+        return origin
+    return deactivate(a, source)
+
+
+def ply_file3d(path: Path):
+    """A core File3D of the .ply at ``path`` (for Preview Gaussian Splat), or None without the type."""
+    return FILE3D_CLASS(str(path)) if FILE3D_CLASS is not None else None
