@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from .cliutil import parse_device, parse_devices, parse_view_indices
+from .devices import DEVICE_CHOICES
 from .metrics.report import add_evaluate_arguments
 
 
@@ -123,7 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                   help="auto: CUDA, else Apple MPS, else the CPU")
     p.set_defaults(run=cmd_render)
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
@@ -139,7 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iters", type=int, default=None,
                    help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 200 for the demo)")
     p.add_argument("--scale", type=float, default=None, help="render resolution factor (default 1; 0.25 for the demo)")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                   help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=int, default=0)
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")

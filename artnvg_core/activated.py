@@ -47,15 +47,15 @@ class ActivatedGaussians:
 
 
 def activate(scene: GaussianScene) -> ActivatedGaussians:
-    """The activated form of ``scene`` (float32, on the scene's device; quaternions normalised)."""
-    quats = scene.quats.detach().double()
+    """The activated form of ``scene``: float32 on the CPU (the float64 maths runs there), quaternions normalised."""
+    raw = scene.map(lambda t: t.detach().to("cpu", torch.float64))
     return ActivatedGaussians(
-        positions=scene.means.detach().float().clone(),
-        scales=scene.log_scales.detach().double().exp().float(),
-        rotations=(quats / torch.linalg.vector_norm(quats, dim=1, keepdim=True)).float(),
-        opacities=torch.sigmoid(scene.opacity_logits.detach().double()).float(),
-        sh=scene.sh.detach().float().clone(),
-    )
+        positions=raw.means,
+        scales=raw.log_scales.exp(),
+        rotations=raw.quats / torch.linalg.vector_norm(raw.quats, dim=1, keepdim=True),
+        opacities=torch.sigmoid(raw.opacity_logits),
+        sh=raw.sh,
+    ).map(lambda t: t.float())
 
 
 def _check(source: str, name: str, bad: torch.Tensor, problem: str) -> None:
@@ -66,7 +66,7 @@ def _check(source: str, name: str, bad: torch.Tensor, problem: str) -> None:
 
 
 def deactivate(gaussians: ActivatedGaussians, source: str) -> GaussianScene:
-    """The float32 scene of activated ``gaussians``; ``source`` names them in errors.
+    """The float32 scene (on the CPU) of activated ``gaussians``; ``source`` names them in errors.
 
     Raises ValueError naming ``source`` and the field for wrong shapes, an SH degree above 3,
     non-finite values, scales that are not positive, opacities outside [0, 1] or zero quaternions.
@@ -90,11 +90,12 @@ def deactivate(gaussians: ActivatedGaussians, source: str) -> GaussianScene:
     _check(source, "scales", (gaussians.scales <= 0).any(dim=1), "have a scale that is not positive")
     _check(source, "opacities", (gaussians.opacities < 0) | (gaussians.opacities > 1), "lie outside [0, 1]")
     _check(source, "rotations", torch.linalg.vector_norm(gaussians.rotations, dim=1) == 0, "have a zero quaternion")
-    opacities = gaussians.opacities.float().clamp(OPACITY_RANGE[0], OPACITY_RANGE[1]).double()
+    cpu = gaussians.map(lambda t: t.detach().to("cpu", torch.float32))
+    opacities = cpu.opacities.clamp(*OPACITY_RANGE).double()
     return GaussianScene(
-        means=gaussians.positions.float().clone(),
-        quats=gaussians.rotations.float().clone(),
-        log_scales=gaussians.scales.double().log().float(),
+        means=cpu.positions.clone(),
+        quats=cpu.rotations.clone(),
+        log_scales=cpu.scales.double().log().float(),
         opacity_logits=(opacities.log() - (-opacities).log1p()).float(),
-        sh=sh.float().clone(),
+        sh=cpu.sh.clone(),
     )

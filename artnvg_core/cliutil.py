@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import torch
 
+from .devices import device_for
+
 
 def parse_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu; ``cuda`` without a GPU is a ValueError."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available")
-    return torch.device(name)
+    """``--device``: ``auto`` -> CUDA, else MPS, else the CPU; a device that is not present is a ValueError."""
+    try:
+        return device_for(name)
+    except ValueError as error:
+        raise ValueError(f"--device {error}") from error
 
 
 def parse_devices(text: str | None) -> list[torch.device] | None:

@@ -7,7 +7,7 @@ classes, where present); it also lifts the ``torch.inference_mode``
 under which ComfyUI runs every node, for nodes that need gradients. Without ComfyUI
 (tests, scripts) every function falls back: the input and output folders are ``./input``
 and ``./output`` of the working directory (ComfyUI's own layout), model folders are empty,
-no progress is shown, nothing is interrupted and the device is CUDA when available, else the CPU.
+no progress is shown, nothing is interrupted and the device is CUDA, else Apple's MPS, else the CPU.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from types import ModuleType
 
 import torch
 
+from artnvg_core.devices import best_device
 from artnvg_core.progress import Cancelled, ProgressFn
 
 
@@ -101,11 +102,11 @@ def comfy_types():
 
 
 def compute_device() -> torch.device:
-    """ComfyUI's torch device (honours ``--cpu``); without ComfyUI, CUDA when available, else the CPU."""
+    """ComfyUI's torch device (honours ``--cpu``; MPS on a Mac); without ComfyUI, CUDA, else MPS, else the CPU."""
     model_management = comfy_module("comfy.model_management")
     if model_management is not None:
         return torch.device(model_management.get_torch_device())
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return best_device()
 
 
 # --------------------------------------------------------------------------- autograd

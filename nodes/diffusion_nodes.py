@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from artnvg_core.devices import DEVICE_CHOICES, device_for
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.memory import enable_low_memory
 from artnvg_core.diffusion.model_files import (
@@ -48,7 +49,6 @@ CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
 HF_CACHE = "(huggingface cache)"
 DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32}
-DEVICES = ("auto", "cpu", "cuda")
 MEMORY_MODES = ("full", "low")
 
 
@@ -161,7 +161,7 @@ class LoadArtNVGModels:
             for model in MODEL_INPUTS
         }
         required["dtype"] = (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."})
-        required["device"] = (DEVICES, {"default": "auto", "tooltip": "auto: ComfyUI's device."})
+        required["device"] = (DEVICE_CHOICES, {"default": "auto", "tooltip": "auto: ComfyUI's device (CUDA, Apple MPS or the CPU)."})
         required["keep_loaded"] = ("BOOLEAN", {"default": True, "tooltip": (
             "Keep the models on the device between runs; off moves them to the CPU after each node.")})
         optional = {
@@ -192,9 +192,8 @@ class LoadArtNVGModels:
              sdxl_config_dir="", memory="full"):
         paths = _model_paths(self.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
                              (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
-        if device == "cuda" and not torch.cuda.is_available():
-            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'device': cuda was chosen but no CUDA device is available")
-        target = compute_device() if device == "auto" else torch.device(device)
+        with node_input(self.DISPLAY_NAME, "device"):
+            target = compute_device() if device == "auto" else device_for(device)
         low_memory = memory == "low"
         with node_input(self.DISPLAY_NAME):
             models = load_diffusion_models(

@@ -28,6 +28,7 @@ import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
 from ..cliutil import parse_device, parse_view_indices
+from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import load_image, resize_image, write_atomically
 from ..preview import evenly_spaced, save_gif, save_strip
@@ -67,7 +68,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-tolerance", type=float, default=0.05,
                         help="relative depth agreement of the warp occlusion test (default 0.05)")
     parser.add_argument("--alpha-threshold", type=float, default=0.5, help="warp co-visibility alpha threshold (default 0.5)")
-    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                        help="auto: CUDA, else Apple MPS, else the CPU")
     parser.set_defaults(run=run_evaluate)
 
 
