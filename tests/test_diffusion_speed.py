@@ -17,7 +17,13 @@ from artnvg_core.diffusion.attention import AttentionControl, NeighbourViewSelfA
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.models import DiffusionModels
 from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group
-from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups, sdpa_backend
+from artnvg_core.diffusion.speed import (
+    REPEATED_BLOCKS,
+    SpeedOptions,
+    apply_speedups,
+    compile_repeated_blocks,
+    sdpa_backend,
+)
 from diffusion_tiny import CROSS_DIM, TEXT_WIDTH
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import tiny_models
@@ -161,3 +167,54 @@ def test_flop_counter_counts_nv_attention_on_meta():
     assert counts["aten.bmm"] == 4 * groups * heads * (views * tokens) ** 2 * head_dim
     projections = 4 * 2 * groups * views * tokens * width * width  # q, k, v, out
     assert counts.get("aten.mm", 0) + counts.get("aten.addmm", 0) == projections
+
+
+def test_cached_hint_embedding_is_exact_and_computed_once_per_hint(models):
+    """The sampler's images are bit-identical with the cache, and the embedding runs once per
+    hint tensor (per guidance half with sequential CFG), not once per step."""
+    generator = torch.Generator().manual_seed(1)
+    images = torch.rand(VIEWS, SIZE, SIZE, 3, generator=generator)
+    conditioning = prepare_conditioning(models, torch.rand(1, 64, 64, 3, generator=generator), "a cat", "blurry")
+    for sequential in (False, True):
+        settings = SamplerSettings(steps=3, guidance_scale=5.0, resolution=None, sequential_cfg=sequential)
+        reference = stylize_group(models, images, conditioning, settings, seed=3)
+        variant = _copy(models)
+        apply_speedups(variant, SpeedOptions(cache_hint_embedding=True))
+        calls = []  # the embedding's first convolution runs only when the embedding is really computed
+        variant.controlnet.controlnet_cond_embedding.conv_in.register_forward_hook(lambda *_: calls.append(1))
+        assert torch.equal(stylize_group(variant, images, conditioning, settings, seed=3), reference)
+        assert len(calls) == (2 if sequential else 1)
+
+
+def test_cached_hint_embedding_recomputes_a_changed_hint(models, step_inputs):
+    variant = _copy(models)
+    apply_speedups(variant, SpeedOptions(cache_hint_embedding=True))
+    inputs = dict(step_inputs, hint=step_inputs["hint"].clone())
+    _noise(variant, inputs)
+    inputs["hint"].mul_(0.5)  # in place: same object, new version
+    assert torch.equal(_noise(variant, inputs), _noise(models, inputs))
+    with torch.enable_grad():  # never cached while gradients are on
+        first = variant.controlnet.controlnet_cond_embedding(inputs["hint"])
+        assert first.grad_fn is not None
+
+
+def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models, step_inputs):
+    """Dynamo traces every transformer/ResNet block (eager backend: no code generation on the CPU
+    test machine); the noise prediction is unchanged and the models themselves stay uncompiled."""
+    torch._dynamo.reset()
+    variant = _copy(models)
+    counts = [compile_repeated_blocks(model, backend="eager")
+              for model in (variant.base.unet, variant.controlnet)]
+    blocks = [m for m in variant.base.unet.modules() if type(m).__name__ in REPEATED_BLOCKS]
+    assert counts[0] == len(blocks) > 0 and counts[1] > 0
+    assert all(block._compiled_call_impl is not None for block in blocks)
+    assert variant.base.unet._compiled_call_impl is None
+    assert _relative_l2(_noise(variant, step_inputs), _noise(models, step_inputs)) < TOLERANCE
+    torch._dynamo.reset()
+
+
+def test_bad_speed_options_raise():
+    with pytest.raises(ValueError, match="SpeedOptions.compile_scope"):
+        SpeedOptions(compile="default", compile_scope="layers")
+    with pytest.raises(ValueError, match="cache_hint_embedding"):
+        SpeedOptions(compile="default", cache_hint_embedding=True)

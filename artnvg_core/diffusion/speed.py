@@ -12,9 +12,17 @@
     cross-attention (diffusers' ``Attention.fuse_projections``); the original ``to_q`` /
     ``to_k`` / ``to_v`` weights become views of the fused weight, so no memory is added.
     ArtNVG's processors use the fused layers when ``attn.fused_projections`` is set;
-  - ``compile``: ``torch.compile`` of both models' forward in place (``nn.Module.compile``)
-    with the given mode, e.g. ``"default"`` or ``"max-autotune-no-cudagraphs"``; the first
-    call of each input shape compiles (minutes for full-size SDXL).
+  - ``compile``: ``torch.compile`` with the given mode, e.g. ``"default"`` or
+    ``"max-autotune-no-cudagraphs"``, in place (``nn.Module.compile``) of what ``compile_scope``
+    names: ``"model"``, both models' whole forward (the first call of each input shape compiles:
+    minutes for full-size SDXL), or ``"blocks"``, only the repeated blocks
+    (:data:`REPEATED_BLOCKS`: transformer and ResNet blocks), regional compilation: blocks of the
+    same class and shapes share one compiled graph, so it compiles far fewer graphs;
+  - ``cache_hint_embedding``: the ControlNet's hint embedding (a stack of convolutions on the
+    full-resolution content image, the same at every denoising step of a group) is computed
+    once per hint tensor and reused while that tensor is unchanged (the same object, same
+    ``_version``; at most two hints are kept, the two guidance halves of sequential CFG).
+    Only under ``torch.no_grad``; the results are bit-identical.
 
 All are off by default; none changes any parameter value.
 """
@@ -37,6 +45,8 @@ SDPA_BACKENDS = {
     "math": SDPBackend.MATH,
 }
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+COMPILE_SCOPES = ("model", "blocks")
+REPEATED_BLOCKS = ("BasicTransformerBlock", "ResnetBlock2D")
 
 
 def check_sdpa_backend(name: str, field: str) -> str:
@@ -60,15 +70,23 @@ class SpeedOptions:
     """Which exact speedups :func:`apply_speedups` applies (see the module docstring).
 
     compile: None (eager) or a ``torch.compile`` mode from :data:`COMPILE_MODES`.
+    compile_scope: what is compiled, one of :data:`COMPILE_SCOPES`.
     """
 
     channels_last: bool = False
     fuse_projections: bool = False
     compile: str | None = None
+    compile_scope: str = "model"
+    cache_hint_embedding: bool = False
 
     def __post_init__(self) -> None:
         if self.compile is not None and self.compile not in COMPILE_MODES:
             raise ValueError(f"SpeedOptions.compile must be None or one of {COMPILE_MODES}, got {self.compile!r}")
+        if self.compile_scope not in COMPILE_SCOPES:
+            raise ValueError(f"SpeedOptions.compile_scope must be one of {COMPILE_SCOPES}, got {self.compile_scope!r}")
+        if self.cache_hint_embedding and self.compile is not None and self.compile_scope == "model":
+            raise ValueError("SpeedOptions.cache_hint_embedding needs compile_scope='blocks' or no compile: "
+                             "a whole-model graph cannot keep a cache between calls")
 
 
 @torch.no_grad()
@@ -93,6 +111,37 @@ def fuse_attention_projections(model: nn.Module) -> None:
                 linear.bias = nn.Parameter(bias, requires_grad=linear.bias.requires_grad)
 
 
+def cache_hint_embedding(controlnet: nn.Module, capacity: int = 2) -> None:
+    """Make ``controlnet.controlnet_cond_embedding`` reuse its output for a hint tensor it has seen
+    (same object, unchanged ``_version``), keeping the ``capacity`` latest; computed afresh when
+    gradients are enabled. The module and its parameters (state dict) are untouched."""
+    embedding = controlnet.controlnet_cond_embedding
+    compute = embedding.forward
+    cache: list[tuple[torch.Tensor, int, torch.Tensor]] = []
+
+    def forward(hint: torch.Tensor) -> torch.Tensor:
+        if torch.is_grad_enabled():
+            return compute(hint)
+        for seen, version, output in cache:
+            if seen is hint and version == hint._version:
+                return output
+        output = compute(hint)
+        cache.append((hint, hint._version, output))
+        del cache[:-capacity]
+        return output
+
+    embedding.forward = forward
+
+
+def compile_repeated_blocks(model: nn.Module, **compile_kwargs) -> int:
+    """``torch.compile(**compile_kwargs)`` in place every submodule of ``model`` whose class is in
+    :data:`REPEATED_BLOCKS`; returns how many."""
+    blocks = [module for module in model.modules() if type(module).__name__ in REPEATED_BLOCKS]
+    for block in blocks:
+        block.compile(**compile_kwargs)
+    return len(blocks)
+
+
 def apply_speedups(models, options: SpeedOptions) -> None:
     """Apply ``options`` in place to ``models.base.unet`` and ``models.controlnet``
     (a :class:`artnvg_core.diffusion.models.DiffusionModels`). Call once, after loading."""
@@ -101,5 +150,9 @@ def apply_speedups(models, options: SpeedOptions) -> None:
             model.to(memory_format=torch.channels_last)
         if options.fuse_projections:
             fuse_attention_projections(model)
-        if options.compile is not None:
+        if options.compile is not None and options.compile_scope == "model":
             model.compile(mode=options.compile)
+        elif options.compile is not None:
+            compile_repeated_blocks(model, mode=options.compile)
+    if options.cache_hint_embedding:
+        cache_hint_embedding(models.controlnet)
