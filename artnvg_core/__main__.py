@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from .cliutil import parse_device, parse_devices, parse_view_indices
+from .cliutil import ProgressBar, load_scene_verbose, parse_device, parse_devices, parse_view_indices
 from .devices import DEVICE_CHOICES
 from .metrics.report import add_evaluate_arguments
 
@@ -19,16 +19,14 @@ def cmd_render(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
     from .fileio import save_png
     from .raster import render
-    from .scene import load_scene
 
     device = parse_device(args.device)
-    scene = load_scene(args.scene).to(device)
+    scene = load_scene_verbose(args.scene, device)
     cameras = load_cameras(args.cameras)
     cameras = cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    print(f"{len(scene):,} Gaussians (SH degree {scene.sh_degree}), {len(cameras)} views at "
-          f"{cameras.width}x{cameras.height}, device {device}")
+    print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
         start = time.perf_counter()
@@ -39,25 +37,7 @@ def cmd_render(args: argparse.Namespace) -> None:
         elapsed = time.perf_counter() - start
         path = out_dir / f"{view.names[0]}.png"
         save_png(image, path)
-        print(f"{path}  {elapsed * 1000:.0f} ms")
-
-
-class _ProgressBar:
-    """A tqdm bar (rate and ETA) fed by core progress callbacks."""
-
-    def __init__(self, description: str):
-        self.description = description
-        self.bar = None
-
-    def __call__(self, step: int, total: int, info: dict) -> None:
-        from tqdm import tqdm
-
-        if self.bar is None:
-            self.bar = tqdm(total=total, desc=self.description, unit="it", dynamic_ncols=True)
-        self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
-        self.bar.update(step - self.bar.n)
-        if step >= total:
-            self.bar.close()
+        print(f"[{i + 1}/{len(cameras)}] {path}  {elapsed * 1000:.0f} ms", flush=True)
 
 
 def cmd_stylize(args: argparse.Namespace) -> None:
@@ -65,7 +45,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .fileio import load_image
     from .finetune import FinetuneConfig
     from .presets import get_preset
-    from .scene import load_scene
     from .stylize import (
         DemoInputs,
         ModelPaths,
@@ -89,7 +68,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
-    scene = load_scene(args.scene).to(device)
+    scene = load_scene_verbose(args.scene, device)
     cameras = load_cameras(args.cameras).scaled(scale)
     style = load_image(args.style)
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
@@ -105,9 +84,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     if stylizer == "diffusion":
         result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
                                       devices=parse_devices(args.devices),
-                                      sampling_progress=_ProgressBar("diffusion"), progress=_ProgressBar("finetune"))
+                                      sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
     else:
-        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=_ProgressBar("finetune"))
+        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
     sheet = save_result(scene, result, cameras, style, args.out)
     print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
 

@@ -1,10 +1,17 @@
-"""Parsing of command-line values shared by the ``python -m artnvg_core`` commands."""
+"""What the ``python -m artnvg_core`` commands share: parsing of values, progress bars, verbose loading."""
 
 from __future__ import annotations
+
+import os
+import time
+from typing import TYPE_CHECKING
 
 import torch
 
 from .devices import device_for
+
+if TYPE_CHECKING:
+    from .scene import GaussianScene
 
 
 def parse_device(name: str) -> torch.device:
@@ -40,3 +47,34 @@ def parse_view_indices(text: str | None, count: int) -> list[int]:
     if bad or not indices:
         raise ValueError(f"--views: indices {bad or text!r} out of range for {count} cameras")
     return indices
+
+
+class ProgressBar:
+    """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it."""
+
+    def __init__(self, description: str):
+        self.description = description
+        self.bar = None
+
+    def __call__(self, step: int, total: int, info: dict) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(total=total, desc=self.description, unit="it", dynamic_ncols=True)
+        self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
+        self.bar.update(step - self.bar.n)
+        if step >= total:
+            self.bar.close()
+
+
+def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
+    """:func:`~artnvg_core.scene.load_scene` onto ``device``, printing the file size first and the count and time after."""
+    from .scene import load_scene
+
+    print(f"loading {path} ({os.path.getsize(path) / 2**20:,.1f} MiB)" if os.path.isfile(path) else f"loading {path}",
+          flush=True)
+    start = time.perf_counter()
+    scene = load_scene(path).to(device)
+    print(f"loaded {len(scene):,} Gaussians (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
+          flush=True)
+    return scene

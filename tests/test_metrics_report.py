@@ -91,8 +91,13 @@ def test_scene_against_itself_reports_the_floors(inputs, capsys):
         assert strip.height == 2 * 64 + 4 and strip.width > 3 * (64 + 4)
     with Image.open(out / "report_preview.gif") as gif:
         assert gif.n_frames == 3 and gif.size == (128, 64)
-    table = capsys.readouterr().out
+    printed = capsys.readouterr()
+    table = printed.out
     assert "CFSD relu3_1 @ 64x64" in table and "original (floor)" in table and "CLIP-DC" in table
+    assert "loaded 3,000 Gaussians" in table and "CSD of 3 stylized" in table and "CLIP-DC along orbit path" in table
+    for stage in ("render original views", "render stylized views", "render original path", "render stylized path",
+                  "CFSD", "warp step 1 (stylized)", "warp step 2 (floor)"):
+        assert f"{stage}: 100%" in printed.err, stage  # a progress bar ran to its end
 
 
 def test_stylized_scene_and_its_2d_views(inputs, no_cached_models, tmp_path):

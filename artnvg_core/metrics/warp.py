@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import CameraSet
+from ..progress import ProgressFn
 
 
 @dataclass(frozen=True)
@@ -107,18 +108,20 @@ def warp_consistency(
     step: int = 1,
     alpha_threshold: float = 0.5,
     depth_tolerance: float = 0.05,
+    progress: ProgressFn | None = None,
 ) -> WarpConsistency:
     """Warp error of ``images`` [C, H, W, 3] (views in sequence order) for pairs (i, i + step).
 
     depth, alpha [C, H, W, 1]: the original scene rendered at ``cameras`` (C views of the
     images' size). Raises ValueError on mismatched shapes or a step with no pair.
+    ``progress(done, total, {})`` is called after each pair.
     """
     _check_inputs(images, depth, alpha, cameras, step)
     cameras = cameras.to(images.device)
     squared = absolute = 0.0
     covisible = total = 0
     pairs = [(i, i + int(step)) for i in range(images.shape[0] - int(step))]
-    for i, j in pairs:
+    for done, (i, j) in enumerate(pairs, 1):
         uv, z = reproject(depth[j, ..., 0], cameras.world_to_cam[j], cameras.intrinsics[j],
                           cameras.world_to_cam[i], cameras.intrinsics[i])
         target = _sample(torch.cat([images[i], depth[i], alpha[i]], dim=-1).float(), uv)
@@ -136,6 +139,8 @@ def warp_consistency(
         absolute += difference.abs().sum().item()
         covisible += int(mask.sum())
         total += mask.numel()
+        if progress is not None:
+            progress(done, len(pairs), {})
     values = 3 * covisible
     return WarpConsistency(
         step=int(step),
