@@ -1,11 +1,13 @@
 """A real ComfyUI server with this pack installed, for the integration tests.
 
-Skipped unless ARTNVG_COMFYUI_ROOT names a ComfyUI install made by
-``../shared/tools/comfyui/setup.sh GITDIR ROOT`` (ROOT holds ComfyUI/ and venv/; the
-pack's dependencies must be installed into that venv). The session starts its own server
-on a free port with the shared start.sh / stop.sh, so no other server may run from ROOT
-meanwhile. The project is linked as ROOT/ComfyUI/custom_nodes/artnvg (created if missing),
-and test inputs are written under ROOT/ComfyUI/input/artnvg_test/.
+Skipped unless ARTNVG_COMFYUI_ROOT names a ComfyUI install: either a ComfyUI checkout (the
+folder holding main.py) or a folder holding one as ComfyUI/. The server runs on the CPU with
+the Python of ARTNVG_COMFYUI_PYTHON, else of a venv/ beside or inside the checkout, else the one
+running the tests; the pack's dependencies must be installed there. The session starts its own
+server on a free port and stops it at the end (log: ROOT/artnvg_server.log). The project is
+linked as ComfyUI/custom_nodes/artnvg (created if missing), and test inputs are written under
+ComfyUI/input/artnvg_test/: the bundled demo (artnvg_core/demo: the bear thinned out to 10,000
+Gaussians for quick CPU renders, its 24 cameras and the style image).
 """
 
 from __future__ import annotations
@@ -14,19 +16,21 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
+import time
+import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-import torch
 
 from artnvg_core.scene import read_ply, write_ply
+from artnvg_core.stylize import DemoInputs
 
-ROOT_ENV = "ARTNVG_COMFYUI_ROOT"
+ROOT_ENV, PYTHON_ENV = "ARTNVG_COMFYUI_ROOT", "ARTNVG_COMFYUI_PYTHON"
 REPO = Path(__file__).resolve().parents[2]
-TOOLS = REPO.parent / "shared" / "tools" / "comfyui"
 TEST_FOLDER = "artnvg_test"
-SCENE_STRIDE = 10  # the test scene keeps every 10th Gaussian of the bear (10,000): quick CPU renders
+TEST_GAUSSIANS = 10_000
 
 
 @dataclass
@@ -45,6 +49,22 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+def _comfy_checkout(root: Path) -> Path:
+    for candidate in (root, root / "ComfyUI"):
+        if (candidate / "main.py").is_file():
+            return candidate
+    pytest.fail(f"{ROOT_ENV}={root}: no ComfyUI main.py there or in {root / 'ComfyUI'}")
+
+
+def _python(root: Path, comfy: Path) -> str:
+    if os.environ.get(PYTHON_ENV):
+        return os.environ[PYTHON_ENV]
+    for venv in (root / "venv", comfy / "venv", comfy / ".venv"):
+        if (venv / "bin" / "python").is_file():
+            return str(venv / "bin" / "python")
+    return sys.executable
+
+
 def _link_pack(comfy: Path) -> None:
     link = comfy / "custom_nodes" / "artnvg"
     if link.is_symlink() or link.exists():
@@ -54,31 +74,50 @@ def _link_pack(comfy: Path) -> None:
         link.symlink_to(REPO, target_is_directory=True)
 
 
-def _write_inputs(input_dir: Path, shared_data: Path) -> None:
-    """The bear capture, its scene thinned out, and a style image under input/artnvg_test/."""
+def _write_inputs(input_dir: Path) -> None:
+    """The demo's bear thinned out, its cameras and its style image under input/artnvg_test/."""
     folder = input_dir / TEST_FOLDER
     folder.mkdir(parents=True, exist_ok=True)
-    bear = shared_data / "scenes" / "bear"
-    scene = read_ply(bear / "scene.ply")
-    write_ply(scene.select(torch.arange(0, len(scene), SCENE_STRIDE)), folder / "scene.ply")
-    shutil.copyfile(bear / "transforms.json", folder / "transforms.json")
-    shutil.copyfile(shared_data / "styles" / "starry.jpg", folder / "style.jpg")
+    demo = DemoInputs()
+    scene = read_ply(demo.scene)
+    write_ply(scene.select(slice(0, None, max(1, len(scene) // TEST_GAUSSIANS))), folder / "scene.ply")
+    shutil.copyfile(demo.cameras, folder / "transforms.json")
+    shutil.copyfile(demo.style, folder / "style.jpg")
+
+
+def _start(python: str, comfy: Path, port: int, log: Path) -> subprocess.Popen:
+    with log.open("wb") as output:
+        server = subprocess.Popen([python, "main.py", "--cpu", "--listen", "127.0.0.1", "--port", str(port)],
+                                  cwd=comfy, stdout=output, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            pytest.fail(f"ComfyUI exited with status {server.returncode}; see {log}")
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/system_stats", timeout=5):
+                return server
+        except OSError:
+            time.sleep(0.5)
+    server.terminate()
+    pytest.fail(f"ComfyUI did not answer within 300 s; see {log}")
 
 
 @pytest.fixture(scope="session")
-def comfy_server(shared_data) -> ComfyServer:
+def comfy_server() -> ComfyServer:
     root = os.environ.get(ROOT_ENV)
     if not root:
-        pytest.skip(f"set {ROOT_ENV} to a ComfyUI install made by ../shared/tools/comfyui/setup.sh")
+        pytest.skip(f"set {ROOT_ENV} to a ComfyUI checkout (README: Integration tests)")
     root = Path(root).resolve()
-    comfy = root / "ComfyUI"
-    if not (comfy / "main.py").is_file() or not (root / "venv").is_dir():
-        pytest.fail(f"{ROOT_ENV}={root}: expected ComfyUI/main.py and venv/ there (run setup.sh)")
+    comfy = _comfy_checkout(root)
     _link_pack(comfy)
-    _write_inputs(comfy / "input", shared_data)
-    port = _free_port()
-    subprocess.run(["bash", str(TOOLS / "start.sh"), str(root), str(port)], check=True, timeout=300)
+    _write_inputs(comfy / "input")
+    port, log = _free_port(), root / "artnvg_server.log"
+    server = _start(_python(root, comfy), comfy, port, log)
     try:
-        yield ComfyServer(f"http://127.0.0.1:{port}", root, comfy / "input", comfy / "output", root / "server.log")
+        yield ComfyServer(f"http://127.0.0.1:{port}", root, comfy / "input", comfy / "output", log)
     finally:
-        subprocess.run(["bash", str(TOOLS / "stop.sh"), str(root)], check=False, timeout=60)
+        server.terminate()
+        try:
+            server.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            server.kill()
