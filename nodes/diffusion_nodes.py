@@ -25,7 +25,7 @@ from artnvg_core.diffusion.model_files import (
     locate,
 )
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
-from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SamplerSettings
+from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
     DEFAULT_PROMPT,
@@ -305,14 +305,20 @@ class SampleGroup:
                 "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
                 "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
                 "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
-                    "Sampling size: the side of a square of equal area (1024 for SDXL); 0 keeps the views' size.")}),
+                    "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
+                    "views' size.")}),
                 "scheduler": (tuple(SCHEDULERS), {"default": defaults.scheduler}),
+            },
+            "optional": {
+                "size_rule": (SIZE_RULES, {"default": defaults.size_rule, "tooltip": (
+                    "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
+                    "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
             },
         }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
-               content_scale, style_scale, control_scale, resolution, scheduler):
+               content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule):
         if len(content_views) != groups.num_views:
             raise NodeInputError(
                 f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -326,7 +332,8 @@ class SampleGroup:
             settings = SamplerSettings(
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
-                resolution=resolution or None, scheduler=scheduler, sequential_cfg=models.low_memory,
+                resolution=resolution or None, size_rule=size_rule, scheduler=scheduler,
+                sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )
         chosen = None if group_index < 0 else [group_index]

@@ -5,7 +5,7 @@ import pytest
 import torch
 from transformers import CLIPImageProcessor
 
-from artnvg_core.diffusion.images import check_images, clip_preprocess, resize_images, sdxl_size
+from artnvg_core.diffusion.images import check_images, clip_preprocess, csgo_size, resize_images, sdxl_size
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 
 
@@ -17,6 +17,26 @@ def test_sdxl_size_keeps_aspect_and_area(height, width, expected):
     h, w = sdxl_size(height, width)
     assert (h, w) == expected and h % 64 == 0 and w % 64 == 0
     assert sdxl_size(640, 480, resolution=768) == (896, 640)
+
+
+@pytest.mark.parametrize(
+    "height, width, expected",
+    [
+        (512, 512, (1024, 1024)),  # enlarged: CSGO brings the short side up to 1024 first
+        (2048, 2048, (1024, 1024)),
+        (1080, 1920, (576, 1024)),  # 16:9
+        (540, 960, (576, 1024)),
+        (1920, 1080, (1024, 576)),
+        (768, 1024, (768, 1024)),
+        (2000, 3000, (672, 1024)),  # 682.7 floored to 32's
+        (200, 3000, (64, 1024)),  # 68.3 -> 64
+        (10, 3000, (32, 1024)),  # never below one multiple
+    ],
+)
+def test_csgo_size_puts_the_long_side_at_1024(height, width, expected):
+    assert csgo_size(height, width) == expected
+    assert csgo_size(1080, 1920, long_side=768) == (416, 768)  # 432 floored to 32's
+    assert csgo_size(705, 1000) == (704, 1024) and csgo_size(705, 1000, multiple=16) == (720, 1024)  # 721.9
 
 
 def test_resize_is_identity_at_same_size_and_stays_in_range():

@@ -129,9 +129,17 @@ def test_single_view_group_ignores_nv_switch(csgo_models):
     )
 
 
-def test_resizes_to_sdxl_size_and_back(csgo_models):
-    images = _images(2, height=50, width=90)
-    out = _run(csgo_models, images, resolution=64)
+@pytest.mark.parametrize("size_rule, latent", [("long_side", (8, 16)), ("area", (8, 24))])
+def test_samples_at_the_working_size_and_returns_the_views_size(csgo_models, size_rule, latent):
+    # 50x90 views, resolution 128: CSGO's rule gives 64x128 (long side 128, 71 floored to 32's),
+    # the area rule about 128² pixels in 64's: 64x192. The tiny VAE shrinks 8x, like SDXL's.
+    seen = []
+    hook = csgo_models.base.unet.register_forward_pre_hook(lambda module, args: seen.append(args[0].shape[2:]))
+    try:
+        out = _run(csgo_models, _images(2, height=50, width=90), resolution=128, size_rule=size_rule)
+    finally:
+        hook.remove()
+    assert set(seen) == {latent}
     assert out.shape == (2, 50, 90, 3) and out.dtype == torch.float32
     assert out.min() >= 0 and out.max() <= 1
 

@@ -1,4 +1,4 @@
-"""Image batches for the diffusion stage: validation, SDXL-friendly sizes, resizing, CLIP preprocessing.
+"""Image batches for the diffusion stage: validation, working sizes, resizing, CLIP preprocessing.
 
 Images are ComfyUI IMAGE batches: float tensors ``[B, H, W, 3]`` with values in [0, 1].
 Resizing is bicubic with antialiasing (torch only), clamped back to [0, 1].
@@ -28,6 +28,27 @@ def check_images(images: torch.Tensor, name: str) -> torch.Tensor:
     if not (math.isfinite(low) and math.isfinite(high)) or low < -1e-3 or high > 1 + 1e-3:
         raise ValueError(f"{name}: values must lie in [0, 1], got range [{low:.4g}, {high:.4g}]")
     return images.clamp(0, 1)
+
+
+def csgo_size(height: int, width: int, long_side: int = 1024, multiple: int = 32) -> tuple[int, int]:
+    """(height, width) by CSGO's ``resize_content``: the long side becomes ``long_side``, the short
+    side scales with it, both floored to multiples of ``multiple`` (at least ``multiple``).
+
+    CSGO floors to multiples of 16; a UNet whose grid halves k times needs multiples of
+    8·2^k (32 for SDXL) for every level to halve exactly. A 16:9 view gives 1024x576.
+    The ratio is exact here; CSGO's float arithmetic truncates the long side to 1023 for some
+    sizes (then 1008 after flooring).
+    """
+    if min(height, width, long_side, multiple) < 1:
+        raise ValueError(
+            f"csgo_size: sizes must be positive, got {height}x{width}, long side {long_side}, multiple {multiple}"
+        )
+    longest = max(height, width)
+
+    def floor(side: int) -> int:
+        return max(multiple, side * long_side // longest // multiple * multiple)
+
+    return floor(height), floor(width)
 
 
 def sdxl_size(height: int, width: int, resolution: int = 1024, multiple: int = 64) -> tuple[int, int]:

@@ -2,7 +2,7 @@
 
 For a group of content images [N, H, W, 3] (ComfyUI IMAGE layout, values in [0, 1]):
 
-1. resize to an SDXL-friendly size (aspect kept, area about ``resolution``², multiples of 64);
+1. resize to the working size (aspect kept; by default CSGO's: long side ``resolution``);
 2. conditioning context per view: ``[text (77), content tokens (4), style tokens (32/16)]``
    for the conditional half, ``[negative text, tokens of zero features]`` for the
    unconditional half; the ControlNet hint is the content image itself;
@@ -40,7 +40,7 @@ from ..grouping import nearest_views
 from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
 from .conditioning import StyleConditioning, content_tokens
-from .images import check_images, resize_images, sdxl_size
+from .images import check_images, csgo_size, resize_images, sdxl_size
 from .memory import visiting
 from .models import DiffusionModels
 from .speed import check_sdpa_backend, sdpa_backend
@@ -53,6 +53,7 @@ SCHEDULERS = {
     "unipc": UniPCMultistepScheduler,
 }
 NV_LEVELS = ("all", "lowest")
+SIZE_RULES = ("long_side", "area")
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,11 @@ class SamplerSettings:
     """Sampling parameters. Defaults: the paper's scales (content 1.0, style 0.6, control 1.0) and
     DDIM; guidance 10 and 50 steps as in CSGO's inference script.
 
-    resolution: target side of the square of equal area (None: keep the content size, rounded to 64).
+    resolution: working size of a view (None: keep the content size, rounded to 64); see size_rule.
+    size_rule: "long_side": CSGO's ``resize_content``, the long side becomes ``resolution`` (a 16:9 view
+        samples at 1024x576), sides floored to what the UNet halves exactly (multiples of 32 on SDXL);
+        "area": about ``resolution``² pixels, multiples of 64 (SDXL's training sizes; 1344x768 for 16:9,
+        1.75x the tokens). Outputs come back at each view's own size either way.
     neighbour_views: neighbouring-view attention on (False: the paper's "w/o NV" ablation).
     attention_backend: scaled-dot-product attention backend of the denoising loop, one of
         ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
@@ -79,6 +84,7 @@ class SamplerSettings:
     control_scale: float = 1.0
     neighbour_views: bool = True
     resolution: int | None = 1024
+    size_rule: str = "long_side"
     scheduler: str = "ddim"
     attention_backend: str = "auto"
     sequential_cfg: bool = False
@@ -98,6 +104,8 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
         if self.scheduler not in SCHEDULERS:
             raise ValueError(f"SamplerSettings.scheduler must be one of {sorted(SCHEDULERS)}, got {self.scheduler!r}")
+        if self.size_rule not in SIZE_RULES:
+            raise ValueError(f"SamplerSettings.size_rule must be one of {SIZE_RULES}, got {self.size_rule!r}")
         if self.resolution is not None and self.resolution < 64:
             raise ValueError(f"SamplerSettings.resolution must be >= 64 or None, got {self.resolution}")
 
@@ -111,6 +119,17 @@ def _time_ids(models: DiffusionModels, height: int, width: int, pooled_dim: int)
             f"{unet.config.addition_time_embed_dim} + pooled text {pooled_dim} differ"
         )
     return torch.tensor([[height, width, 0, 0, height, width]], dtype=torch.float32)
+
+
+def working_size(models: DiffusionModels, settings: SamplerSettings, height: int, width: int) -> tuple[int, int]:
+    """(height, width) at which a ``height`` x ``width`` view is sampled (see ``SamplerSettings.size_rule``)."""
+    if settings.resolution is None:
+        return max(64, round(height / 64) * 64), max(64, round(width / 64) * 64)
+    if settings.size_rule == "area":
+        return sdxl_size(height, width, settings.resolution)
+    vae_scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
+    unet_scale = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
+    return csgo_size(height, width, settings.resolution, vae_scale * unet_scale)
 
 
 def _step_kwargs(scheduler, generator: torch.Generator) -> dict:
@@ -248,10 +267,7 @@ def stylize_group(
     images = check_images(content_images, "stylize_group: content_images")
     views, height, width = images.shape[:3]
     unet = models.base.unet
-    if settings.resolution is None:
-        size = (max(64, round(height / 64) * 64), max(64, round(width / 64) * 64))
-    else:
-        size = sdxl_size(height, width, settings.resolution)
+    size = working_size(models, settings, height, width)
     work = resize_images(images, *size)
     scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
     latent_shape = (views, unet.config.in_channels, size[0] // scale, size[1] // scale)
