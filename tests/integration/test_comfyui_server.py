@@ -90,13 +90,21 @@ def test_pack_loads_without_import_errors(comfy_server):
     assert "Cannot import" not in log
 
 
+def _core_splat_type(info: dict) -> str | None:
+    """The link type of ComfyUI's core splat, judged by its file-to-splat node; None without one (0.3.64)."""
+    return next((kind for node, kind in (("File3DToSplat", "SPLAT"), ("File3DToGaussian", "GAUSSIAN")) if node in info),
+                None)
+
+
 def test_object_info_lists_every_node_with_its_inputs(comfy_server):
     info = _get(comfy_server, "/object_info")
+    core = _core_splat_type(info)
+    with_core_types = {"ArtNVGSaveGaussianScene": ("FILE_3D_PLY",), "ArtNVGSceneToSplat": (core,)} if core else {}
     for name, inputs in PUBLIC_INPUTS.items():
         node = info[name]
         order = node["input_order"]
         assert order.get("required", []) + order.get("optional", []) == inputs, name
-        assert tuple(node["output"]) == PUBLIC_OUTPUTS[name], name
+        assert tuple(node["output"]) == with_core_types.get(name, PUBLIC_OUTPUTS[name]), name
         assert node["category"] == "ArtNVG" and node["display_name"]
     folder = comfy_server.test_folder
     assert f"{folder}/scene.ply" in info["ArtNVGLoadGaussianScene"]["input"]["required"]["scene_file"][0]
@@ -105,6 +113,19 @@ def test_object_info_lists_every_node_with_its_inputs(comfy_server):
     for name, (types, outputs, display_name) in STOCK_NODES.items():  # what tests/test_workflows.py assumes
         assert set(info[name]["input"]["required"]) == set(types["required"]), name
         assert tuple(info[name]["output"]) == outputs and info[name]["display_name"] == display_name
+
+
+def test_splat_nodes_say_what_this_comfyui_lacks(comfy_server):
+    info = _get(comfy_server, "/object_info")
+    save, to_splat, to_scene = (info[name] for name in
+                                ("ArtNVGSaveGaussianScene", "ArtNVGSceneToSplat", "ArtNVGSplatToScene"))
+    if _core_splat_type(info) is None:  # e.g. 0.3.64: everything as before, and the descriptions say why
+        assert "This ComfyUI lacks it, so this node cannot run here" in to_splat["description"]
+        assert "This ComfyUI lacks it, so this node cannot run here" in to_scene["description"]
+        assert save["output"] == [] and "this ComfyUI lacks them, so it has no output" in save["description"]
+    else:
+        assert "lacks" not in to_splat["description"] + to_scene["description"] + save["description"]
+        assert to_scene["input"]["required"]["splat"][0] == to_splat["output"][0] == _core_splat_type(info)
 
 
 def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
