@@ -16,6 +16,7 @@ re-deriving the raw values could move scales and opacities by 1 float32 ulp).
 from __future__ import annotations
 
 import weakref
+from dataclasses import fields
 from pathlib import Path
 
 import torch
@@ -52,7 +53,7 @@ _ORIGINS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # splat -> th
 
 
 def _same_values(a: ActivatedGaussians, b: ActivatedGaussians) -> bool:
-    return all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("positions", "scales", "rotations", "opacities", "sh"))
+    return all(torch.equal(getattr(a, f.name), getattr(b, f.name)) for f in fields(a))
 
 
 def scene_to_splat(scene: GaussianScene):
