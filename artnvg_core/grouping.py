@@ -4,12 +4,12 @@ ArtNVG stylizes the views of one group jointly (neighbouring-view attention), so
 group should hold views whose camera centres lie close together. ``group_views``
 solves a size-constrained (balanced) k-means on the camera centres:
 
-* number of groups ``G = max(1, floor(C / N + 1/2))`` for ``C`` views and target
-  size ``N`` (``C < 1.5 N`` gives one group);
+* number of groups ``G = ceil(C / N)`` for ``C`` views and group size ``N``: the fewest
+  groups of at most ``N`` views (the paper's N bounds a group; ``C <= N`` gives one group);
 * every view belongs to exactly one group and the group sizes are
-  ``floor(C / G)`` or ``ceil(C / G)``, so sizes differ by at most one and, for
-  ``C >= N / 2``, ``|size - N| <= ceil(N / (2 G))`` (never below ``floor(N / 2)``:
-  no fragments of one or two views for ``N >= 6``);
+  ``floor(C / G)`` or ``ceil(C / G)`` (at most ``N``), so sizes differ by at most one and,
+  for ``C >= N``, no group holds fewer than ``ceil(N / 2)`` views: no fragments
+  (96 views, N = 15: 7 groups, five of 14 and two of 13);
 * the partition seeks the least within-group sum of squared distances of the
   centres to their group mean (balanced k-means; a local optimum, found to be the
   global one on small brute-forced sets): starting from a recursive
@@ -128,7 +128,7 @@ def group_views(
     *,
     context: int = 0,
 ) -> ViewGroups:
-    """Split views into balanced groups of about ``group_size`` nearby cameras.
+    """Split views into the fewest balanced groups of at most ``group_size`` nearby cameras.
 
     ``cameras`` is a CameraSet or its camera centres ``[C, 3]`` (tensor or array, world units).
     ``context`` views per group are borrowed from other groups (fewer when fewer
@@ -166,8 +166,9 @@ def group_views(
 
 
 def balanced_group_sizes(num_views: int, group_size: int) -> list[int]:
-    """Sizes of the ``G = max(1, floor(C / N + 1/2))`` groups, larger first, summing to C."""
-    num_groups = max(1, (2 * num_views + group_size) // (2 * group_size))
+    """Sizes of the ``G = ceil(C / N)`` groups (each at most N, differing by at most one), larger first,
+    summing to C."""
+    num_groups = max(1, -(-num_views // group_size))
     base, extra = divmod(num_views, num_groups)
     return [base + 1] * extra + [base] * (num_groups - extra)
 

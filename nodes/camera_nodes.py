@@ -71,7 +71,8 @@ class GroupNeighbouringViews:
             "required": {
                 "cameras": (CAMERAS,),
                 "group_size": ("INT", {"default": DEFAULT_GROUP_SIZE, "min": 1, "max": 256, "tooltip": (
-                    "Target views per group (the paper uses 15); sizes differ by at most one.")}),
+                    "Most views per group (the paper uses 15): the fewest groups that hold them, sizes differing by at "
+                    "most one.")}),
                 "context": ("INT", {"default": 0, "min": 0, "max": 64, "tooltip": (
                     "Extra views each group borrows from its neighbours as shared context.")}),
             },

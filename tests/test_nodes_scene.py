@@ -127,7 +127,7 @@ def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
 def test_group_neighbouring_views_matches_the_core(bear):
     (groups,) = call(GroupNeighbouringViews, cameras=bear["cameras"], group_size=15, context=2)
     expected = group_views(bear["cameras"], 15, context=2)
-    assert groups == expected and len(groups) == 6
+    assert groups == expected and len(groups) == 7
 
 
 def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, bear):
