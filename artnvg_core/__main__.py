@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     p = commands.add_parser("render", help="render a scene's views to PNG files")
-    p.add_argument("scene", help="INRIA 3DGS .ply or nerfstudio splatfacto .ckpt")
+    p.add_argument("scene", help="scene file: .ply (INRIA or compressed), .splat, .spz or splatfacto .ckpt")
     p.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
     p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
@@ -108,10 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=cmd_render)
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
-    p.add_argument("scene", nargs="?", help="INRIA 3DGS .ply or splatfacto .ckpt (omit all inputs for the demo)")
+    p.add_argument("scene", nargs="?", help=".ply, .splat, .spz or splatfacto .ckpt (omit all inputs for the demo)")
     p.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder")
     p.add_argument("--style", help="style image file")
-    p.add_argument("--out", default="out/stylized.ply", help="output PLY; a NAME.contact.png is written beside it")
+    p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
     p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
                    help="diffusion speed/accuracy preset (README: Presets)")

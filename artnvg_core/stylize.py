@@ -23,7 +23,8 @@ from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
 from .raster import render
-from .scene import GaussianScene, write_ply
+from .formats import save_scene
+from .scene import GaussianScene
 
 STYLIZERS = ("auto", "nnfm", "diffusion")
 DEMO_DIR = Path(__file__).resolve().parent / "demo"
@@ -188,6 +189,6 @@ def save_result(original: GaussianScene, stylized: GaussianScene, cameras: Camer
     out_ply = Path(out_ply)
     out_ply.parent.mkdir(parents=True, exist_ok=True)
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
-    write_ply(stylized.to("cpu"), out_ply)
+    save_scene(stylized.to("cpu"), out_ply)
     save_png(sheet, sheet_path(out_ply))
     return sheet_path(out_ply)

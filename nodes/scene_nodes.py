@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from artnvg_core.scene import load_scene, write_ply
+from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, load_scene, save_scene
 
 from .comfy_bridge import output_directory
 from .input_files import file_signature, list_input_files, resolve_input_path
@@ -13,11 +13,9 @@ from .node_errors import NodeInputError, node_input
 from .node_types import CATEGORY, SCENE
 from .splat_interop import FILE3D_CLASS, FILE_3D_PLY, MISSING_FILE3D, ply_file3d
 
-SCENE_SUFFIXES = (".ply", ".ckpt")
-
-
 class LoadGaussianScene:
-    """An INRIA 3DGS ``.ply`` or a nerfstudio splatfacto ``.ckpt``, from the input folder or a path."""
+    """A Gaussian scene file from the input folder or a path: ``.ply`` (INRIA 3DGS, Mip-Splatting or
+    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic) or a nerfstudio splatfacto ``.ckpt``."""
 
     DISPLAY_NAME = "Load Gaussian Scene"
     CATEGORY = CATEGORY
@@ -31,7 +29,7 @@ class LoadGaussianScene:
         return {
             "required": {
                 "scene_file": (list_input_files(suffixes=SCENE_SUFFIXES), {
-                    "tooltip": "A .ply or .ckpt file in ComfyUI's input folder (subfolders included)."}),
+                    "tooltip": "A .ply, .splat, .spz or .ckpt file in ComfyUI's input folder (subfolders included)."}),
             },
             "optional": {
                 "path": ("STRING", {"default": "", "tooltip": (
@@ -59,20 +57,21 @@ class LoadGaussianScene:
             return (load_scene(file, drop_invalid=drop_invalid),)
 
 
-def _next_free_path(filename_prefix: str) -> Path:
-    """``<output>/<prefix>_NNNNN.ply`` with the next unused counter; the prefix may name subfolders."""
+def _next_free_path(filename_prefix: str, suffix: str) -> Path:
+    """``<output>/<prefix>_NNNNN<suffix>`` with the next unused counter; the prefix may name subfolders."""
     root = output_directory().resolve()
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:
         raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
     target.parent.mkdir(parents=True, exist_ok=True)
-    numbered = re.compile(re.escape(target.name) + r"_(\d{5,})\.ply")
+    numbered = re.compile(re.escape(target.name) + r"_(\d{5,})" + re.escape(suffix))
     taken = [int(m.group(1)) for existing in target.parent.iterdir() if (m := numbered.fullmatch(existing.name))]
-    return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}.ply"
+    return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}{suffix}"
 
 
 class SaveGaussianScene:
-    """Write the scene as an INRIA 3DGS PLY into ComfyUI's output folder (``<prefix>_00001.ply``, ...).
+    """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
+    by ``format`` a Niantic ``.spz`` or an antimatter15 ``.splat`` (smaller files, quantised).
 
     Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
@@ -91,15 +90,24 @@ class SaveGaussianScene:
                 "scene": (SCENE,),
                 "filename_prefix": ("STRING", {"default": "artnvg/stylized", "tooltip": (
                     "File name start inside the output folder; may contain subfolders. "
-                    "A five-digit counter and .ply are appended.")}),
+                    "A five-digit counter and the format's extension are appended.")}),
+            },
+            "optional": {
+                "format": ([suffix.lstrip(".") for suffix in SAVE_SUFFIXES], {"default": "ply", "tooltip": (
+                    "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
+                    "splat: antimatter15 .splat, SH degree 0 only.")}),
             },
         }
 
-    def save(self, scene, filename_prefix):
+    def save(self, scene, filename_prefix, format="ply"):
+        with node_input(self.DISPLAY_NAME, "format"):
+            if f".{format}" not in SAVE_SUFFIXES:
+                raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
         with node_input(self.DISPLAY_NAME, "filename_prefix"):
-            file = _next_free_path(filename_prefix)
+            file = _next_free_path(filename_prefix, f".{format}")
         try:
-            write_ply(scene, file)
+            with node_input(self.DISPLAY_NAME, "scene"):
+                save_scene(scene, file)
         except OSError as error:
             raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
         relative = file.relative_to(output_directory().resolve())

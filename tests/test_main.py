@@ -3,7 +3,7 @@
 import re
 
 from artnvg_core.__main__ import main
-from artnvg_core.scene import load_scene, write_ply
+from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.stylize import DemoInputs
 
 

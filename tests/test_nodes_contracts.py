@@ -20,6 +20,7 @@ CORE_TYPES = {"IMAGE", "SPLAT", "GAUSSIAN"}  # ComfyUI's own link types the node
 PUBLIC_INPUTS = {
     "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
+    "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
     "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views"],
     "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
                                "loop"],
@@ -35,13 +36,14 @@ PUBLIC_INPUTS = {
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side"],
-    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix"],
+    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],
     "ArtNVGSceneToSplat": ["scene"],
     "ArtNVGSplatToScene": ["splat"],
 }
 PUBLIC_OUTPUTS = {
     "ArtNVGLoadGaussianScene": ("ARTNVG_SCENE",),
     "ArtNVGLoadCameras": ("ARTNVG_CAMERAS",),
+    "ArtNVGCamerasAroundScene": ("ARTNVG_CAMERAS",),
     "ArtNVGRenderViews": ("IMAGE", "ARTNVG_CAMERAS"),
     "ArtNVGRenderCameraPath": ("IMAGE", "ARTNVG_CAMERAS"),
     "ArtNVGGroupNeighbouringViews": ("ARTNVG_GROUPS",),

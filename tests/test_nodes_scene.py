@@ -12,7 +12,7 @@ from artnvg_core.cameras import interpolate_path, load_cameras, orbit_path
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.grouping import group_views
 from artnvg_core.raster import render
-from artnvg_core.scene import load_scene, read_ply
+from artnvg_core.formats import load_scene, read_ply
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError

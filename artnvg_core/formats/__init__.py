@@ -1,0 +1,50 @@
+"""Gaussian scene files: :func:`load_scene` and :func:`save_scene` choose the format by extension.
+
+Read: ``.ply`` (INRIA 3DGS, Mip-Splatting, PlayCanvas/SuperSplat compressed),
+``.splat`` (antimatter15), ``.spz`` (Niantic, versions 1-4), ``.ckpt``
+(nerfstudio splatfacto). Written: ``.ply`` (INRIA), ``.spz`` (version 3),
+``.splat``. Each format's module states its layout, coordinate convention and
+quantisation; scenes are held in the INRIA layout and the PLY's axes, and
+axes are converted only inside the reader and writer of a format that stores
+others (SPZ). Every reader validates the scene (bad input: ValueError naming
+the file and the field); every writer refuses an invalid scene before
+writing and writes atomically.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..scene import GaussianScene
+from .ply import read_ply, write_ply
+from .splat import read_splat, write_splat
+from .splatfacto import read_splatfacto_ckpt
+from .spz import read_spz, write_spz
+
+READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ckpt": read_splatfacto_ckpt}
+WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat}
+SCENE_SUFFIXES = tuple(READERS)
+SAVE_SUFFIXES = tuple(WRITERS)
+_DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz or .ckpt (nerfstudio splatfacto checkpoint)"
+
+
+def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read a Gaussian scene, the reader chosen by the file's extension (any case)."""
+    path = Path(path)
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
+    if not path.is_file():
+        raise ValueError(f"{path}: scene file not found; expected {_DESCRIBED}")
+    return reader(path, drop_invalid=drop_invalid)
+
+
+def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz or .splat."""
+    path = Path(path)
+    writer = WRITERS.get(path.suffix.lower())
+    if writer is None:
+        raise ValueError(f"{path}: cannot write scene file type {path.suffix!r}; expected one of "
+                         f"{', '.join(SAVE_SUFFIXES)}")
+    writer(scene, path)

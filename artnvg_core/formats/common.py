@@ -1,0 +1,63 @@
+"""What every scene file reader and writer shares: file checks, the scene check before writing, logits."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..scene import GaussianScene, invalid_gaussians
+
+
+def require_file(path: Path) -> None:
+    if not path.is_file():
+        raise ValueError(f"{path}: scene file not found")
+
+
+def scene_to_write(scene: GaussianScene, path: Path) -> GaussianScene:
+    """``scene`` as detached float32 CPU tensors; a ValueError naming ``path`` and the field when
+    any Gaussian is non-finite (after the float32 cast) or has a zero quaternion, before anything is written."""
+    cpu = scene.map(lambda t: t.detach().to("cpu", torch.float32))
+    if len(cpu) == 0:
+        raise ValueError(f"{path}: not written: the scene contains no Gaussians")
+    for name, problem, bad in invalid_gaussians(cpu):
+        if bad.any():
+            raise ValueError(
+                f"{path}: not written: {name}: {int(bad.sum())} of {len(cpu)} Gaussians have {problem} "
+                f"(first at index {int(bad.nonzero()[0, 0])})"
+            )
+    return cpu
+
+
+def logit(p: np.ndarray) -> np.ndarray:
+    """log(p / (1 - p)) in float64, for p in (0, 1)."""
+    p = np.asarray(p, np.float64)
+    return np.log(p) - np.log1p(-p)
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
+
+
+def unit_quats(quats: np.ndarray) -> np.ndarray:
+    """[N, 4] quaternions scaled to unit norm (scaled by their largest component first, so
+    norms near the float limits do not overflow or underflow)."""
+    q = np.asarray(quats, np.float64)
+    q = q / np.abs(q).max(axis=1, keepdims=True)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+# An 8-bit opacity byte b stands for b / 255; the two end bytes are read as b / 255 moved 0.25/255
+# inwards (finite logits) and written back as the same byte.
+_OPACITY_EDGE = 0.25 / 255
+
+
+def opacity_logits_from_bytes(values: np.ndarray) -> np.ndarray:
+    """Opacity logits [N] (float64) of 8-bit opacities (0..255 for 0..1)."""
+    return logit(np.clip(np.asarray(values, np.float64) / 255, _OPACITY_EDGE, 1 - _OPACITY_EDGE))
+
+
+def to_bytes(values: np.ndarray) -> np.ndarray:
+    """Values on the 0..255 scale rounded half up and clamped to uint8."""
+    return np.clip(np.floor(np.asarray(values, np.float64) + 0.5), 0, 255).astype(np.uint8)

@@ -1,0 +1,240 @@
+"""INRIA 3DGS PLY: read (ASCII or binary, Mip-Splatting's ``filter_3D`` folded in) and write.
+
+Layout (``vertex`` element, float properties in any order): x y z, f_dc_0..2,
+f_rest_0..M-1 with M in {0, 9, 24, 45} (SH degree 0..3, channel-major:
+``f_rest[c * (K-1) + j]`` is ``sh[:, 1 + j, c]``), opacity (logit),
+scale_0..2 (log), rot_0..3 (w x y z). Normals and other properties are ignored.
+Coordinates are stored as they are (the PLY's own axes; no conversion).
+
+Mip-Splatting: a ``filter_3D`` property f [N] (its 3D smoothing filter) is
+folded in at load, exactly as Mip-Splatting renders it: scales
+s' = sqrt(s^2 + f^2), opacity o' = o * sqrt(prod(s^2) / prod(s^2 + f^2)); the
+scene is then rendered with Mip-Splatting's 2D Mip filter (``blur_px2`` 0.1,
+``antialiased``). A scene with ``antialiased`` set is written with a zero
+``filter_3D`` column, so that it reads back (and opens in Mip-Splatting tools)
+as antialiased; its ``blur_px2`` is then Mip-Splatting's 0.1.
+
+A PLY with a ``chunk`` element and ``packed_*`` vertex properties is a
+PlayCanvas/SuperSplat compressed PLY (:mod:`.compressed_ply`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyListProperty
+
+from ..fileio import write_atomically
+from ..scene import GaussianScene, validate_scene
+from . import compressed_ply
+from .common import logit, require_file, scene_to_write, sigmoid
+
+_PLY_ELEMENT = "vertex"
+_SH_DEGREE_FOR_REST_COUNT = {3 * ((d + 1) ** 2 - 1): d for d in range(4)}  # 0, 9, 24, 45
+_REST_PROPERTY = re.compile(r"f_rest_\d+")
+_FILTER_3D = "filter_3D"
+MIP_SPLATTING_BLUR_PX2 = 0.1  # Mip-Splatting's 2D Mip filter (its kernel_size)
+
+
+def _ply_layout(num_rest: int) -> dict[str, list[str]]:
+    """Property names of each block of the INRIA layout, in file order."""
+    return {
+        "means": ["x", "y", "z"],
+        "normals": ["nx", "ny", "nz"],
+        "sh_dc": ["f_dc_0", "f_dc_1", "f_dc_2"],
+        "sh_rest": [f"f_rest_{i}" for i in range(num_rest)],
+        "opacity_logits": ["opacity"],
+        "log_scales": ["scale_0", "scale_1", "scale_2"],
+        "quats": ["rot_0", "rot_1", "rot_2", "rot_3"],
+    }
+
+
+def _check_no_trailing_data(path: Path, ply: PlyData, stream: BinaryIO) -> None:
+    """The element counts of the header must account for the whole file (no records left unread)."""
+    declared = sum(element.count for element in ply.elements)
+    if ply.text:
+        with open(path, "rb") as text:
+            for line in text:
+                if line.strip() == b"end_header":
+                    break
+            rows = sum(1 for line in text if line.strip())
+        extra = f"{rows} data lines" if rows != declared else ""
+    else:
+        left = os.fstat(stream.fileno()).st_size - stream.tell()
+        extra = f"{left} more bytes" if left else ""
+    if extra:
+        counts = ", ".join(f"{element.name} {element.count}" for element in ply.elements)
+        raise ValueError(
+            f"{path}: the header's element counts ({counts}) disagree with the data size: the file holds "
+            f"{extra} than those records need; the file is corrupt or its counts were edited"
+        )
+
+
+def read_ply_data(path: Path) -> PlyData:
+    """The parsed PLY (every element read), with its header counts checked against the data size."""
+    try:
+        with open(path, "rb") as stream, np.errstate(all="ignore"):  # out-of-range text -> inf, rejected later
+            ply = PlyData.read(stream)
+            for element in ply.elements:
+                element.data  # noqa: B018 - force reading while the stream is open
+            if not ply.text:
+                _check_no_trailing_data(path, ply, stream)
+    except ValueError as error:
+        if str(error).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: not a readable PLY file ({type(error).__name__}: {error})") from error
+    except Exception as error:  # plyfile and numpy raise many types on corrupt bytes
+        raise ValueError(f"{path}: not a readable PLY file ({type(error).__name__}: {error})") from error
+    if ply.text:
+        _check_no_trailing_data(path, ply, None)
+    return ply
+
+
+def _vertices(path: Path, ply: PlyData) -> tuple[np.ndarray, set[str]]:
+    """The 'vertex' element's structured array and the names of its list properties."""
+    if _PLY_ELEMENT not in ply:
+        names = [element.name for element in ply.elements]
+        raise ValueError(f"{path}: no '{_PLY_ELEMENT}' element (found {names}); expected an INRIA 3DGS PLY")
+    element = ply[_PLY_ELEMENT]
+    return element.data, {p.name for p in element.properties if isinstance(p, PlyListProperty)}
+
+
+def _ply_columns(path: Path, data: np.ndarray, list_names: set[str], names: list[str]) -> torch.Tensor:
+    """The named scalar properties as one float32 tensor [N, len(names)]."""
+    available = set(data.dtype.names or ())
+    missing = [name for name in names if name not in available]
+    if missing:
+        noun = "property" if len(missing) == 1 else "properties"
+        raise ValueError(f"{path}: element '{_PLY_ELEMENT}' lacks {noun} {', '.join(missing)}")
+    lists = [name for name in names if name in list_names]
+    if lists:
+        raise ValueError(f"{path}: property {lists[0]} is a list; expected a scalar number")
+    table = np.empty((len(data), len(names)), dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # float64 overflow -> inf, rejected by validation
+        for column, name in enumerate(names):
+            table[:, column] = data[name]
+    return torch.from_numpy(table)
+
+
+def _sh_rest_count(path: Path, property_names: tuple[str, ...]) -> int:
+    count = sum(1 for name in property_names if _REST_PROPERTY.fullmatch(name))
+    if count not in _SH_DEGREE_FOR_REST_COUNT:
+        raise ValueError(
+            f"{path}: f_rest_*: found {count} properties, expected 0, 9, 24 or 45 (SH degree 0 to 3)"
+        )
+    return count
+
+
+def _fold_filter_3d(path: Path, scene: GaussianScene, filter_3d: torch.Tensor) -> GaussianScene:
+    """Mip-Splatting's 3D filter f [N] folded into log-scales and opacity logits (float64 maths);
+    non-finite parameters stay non-finite, for :func:`validate_scene` to report."""
+    f = filter_3d.double()
+    bad = ~(torch.isfinite(f) & (f >= 0))
+    if bad.any():
+        raise ValueError(
+            f"{path}: {_FILTER_3D}: {int(bad.sum())} of {len(f)} values are not finite numbers >= 0 "
+            f"(first at index {int(bad.nonzero()[0, 0])})"
+        )
+    s2 = torch.exp(2 * scene.log_scales.double())
+    widened = s2 + f[:, None] ** 2
+    log_coef = 0.5 * (torch.log(s2) - torch.log(widened)).sum(1)  # log sqrt(det ratio) <= 0
+    opacity = sigmoid(scene.opacity_logits.double().numpy()) * np.exp(log_coef.numpy())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logits = np.maximum(logit(opacity), -1e4)  # opacity 0 -> a logit far below the 1/255 cull
+    return GaussianScene(
+        means=scene.means,
+        quats=scene.quats,
+        log_scales=(0.5 * torch.log(widened)).float(),
+        opacity_logits=torch.from_numpy(logits).float(),
+        sh=scene.sh,
+        blur_px2=MIP_SPLATTING_BLUR_PX2,
+        antialiased=True,
+    )
+
+
+def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read an INRIA 3DGS PLY (ASCII or binary of either byte order) as float32 tensors, or a
+    PlayCanvas compressed PLY. Layout and Mip-Splatting's ``filter_3D`` in the module docstring.
+    Validated with :func:`~artnvg_core.scene.validate_scene`.
+    """
+    path = Path(path)
+    require_file(path)
+    ply = read_ply_data(path)
+    if compressed_ply.is_compressed_ply(ply):
+        return compressed_ply.scene_from_compressed_ply(path, ply, drop_invalid=drop_invalid)
+    data, list_names = _vertices(path, ply)
+    num_rest = _sh_rest_count(path, data.dtype.names or ())
+    layout = _ply_layout(num_rest)
+    del layout["normals"]
+    columns = {key: _ply_columns(path, data, list_names, names) for key, names in layout.items()}
+    n, coeffs_per_channel = len(data), num_rest // 3
+    sh_rest = columns["sh_rest"].reshape(n, 3, coeffs_per_channel).transpose(1, 2)
+    scene = GaussianScene(
+        means=columns["means"].contiguous(),
+        quats=columns["quats"].contiguous(),
+        log_scales=columns["log_scales"].contiguous(),
+        opacity_logits=columns["opacity_logits"][:, 0].contiguous(),
+        sh=torch.cat([columns["sh_dc"][:, None, :], sh_rest], dim=1).contiguous(),
+    )
+    if _FILTER_3D in (data.dtype.names or ()):
+        scene = _fold_filter_3d(path, scene, _ply_columns(path, data, list_names, [_FILTER_3D])[:, 0])
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+
+
+def _ply_table(scene: GaussianScene) -> tuple[list[str], np.ndarray]:
+    """Property names and the float32 table [N, P] of ``scene`` in the INRIA layout (zero normals)."""
+    n, k = scene.sh.shape[:2]
+    blocks = {
+        "means": scene.means,
+        "normals": torch.zeros(n, 3),
+        "sh_dc": scene.sh[:, 0, :],
+        "sh_rest": scene.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),
+        "opacity_logits": scene.opacity_logits[:, None],
+        "log_scales": scene.log_scales,
+        "quats": scene.quats,
+    }
+    layout = _ply_layout(3 * (k - 1))
+    names = [name for key in blocks for name in layout[key]]
+    if scene.antialiased:
+        blocks["filter_3d"] = torch.zeros(n, 1)
+        names.append(_FILTER_3D)
+    return names, torch.cat(list(blocks.values()), dim=1).numpy()
+
+
+def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
+    """Rows of ``table`` as little-endian float32, or as text that round-trips float32 exactly."""
+    if binary:
+        stream.write(table.astype("<f4").tobytes())
+    else:
+        np.savetxt(stream, table, fmt="%.9g")  # 9 significant digits identify every float32
+
+
+def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True) -> None:
+    """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically.
+
+    Properties x y z nx ny nz (zeros) f_dc_* f_rest_* (channel-major) opacity
+    scale_* rot_* (and a zero ``filter_3D`` when ``scene.antialiased``); binary
+    little-endian by default, ASCII with ``binary=False``. Reading the file back
+    gives bit-identical tensors in either format. A scene with non-finite values
+    or zero quaternions is refused with a ValueError before anything is written.
+    """
+    path = Path(path)
+    names, table = _ply_table(scene_to_write(scene, path))
+    header = "\n".join([
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        f"element {_PLY_ELEMENT} {len(table)}",
+        *(f"property float {name}" for name in names),
+        "end_header",
+    ]) + "\n"
+
+    def write(stream: BinaryIO) -> None:
+        stream.write(header.encode("ascii"))
+        _write_ply_body(stream, table, binary)
+
+    write_atomically(path, write)

@@ -1,0 +1,95 @@
+"""antimatter15 ``.splat``: a headerless array of 32-byte little-endian records.
+
+Record: position x y z (3 x float32), linear scales (3 x float32), colour
+r g b and opacity a (4 x uint8, value / 255), rotation w x y z (4 x uint8,
+(byte - 128) / 128, normalised on read). Colour is SH_C0 * f_dc + 0.5: the
+format holds SH degree 0 only. Coordinates are stored as they are (the PLY's
+axes, as antimatter15's converter and PlayCanvas's reader do; no conversion).
+
+Round trip ply -> splat -> ply (``write_splat`` then ``read_splat``):
+means exact; log-scales within 1e-6 (float32 exp/log), log-scales outside
+[-87, 88] are refused (float32 range of the linear scale); colour
+SH_C0 * f_dc + 0.5 within 0.5/255 where it lies in [0, 1] (clamped outside);
+opacity sigmoid(logit) within 0.5/255; unit quaternion components within
+1.5/128 (up to the sign of q); SH above degree 0 dropped (with a warning).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..fileio import write_atomically
+from ..scene import SH_C0, GaussianScene, validate_scene
+from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes, unit_quats
+
+_log = logging.getLogger(__name__)
+
+RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
+_LOG_SCALE_RANGE = (-87.0, 88.0)
+
+
+def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read a ``.splat`` file (layout in the module docstring) as an SH degree 0 scene."""
+    path = Path(path)
+    require_file(path)
+    size = path.stat().st_size
+    if size == 0 or size % RECORD.itemsize:
+        raise ValueError(
+            f"{path}: file size {size} bytes is not a positive multiple of the {RECORD.itemsize}-byte "
+            ".splat record (empty or truncated file)"
+        )
+    records = np.fromfile(path, dtype=RECORD)
+    scales = records["scale"].astype(np.float64)
+    bad = ~(np.isfinite(scales) & (scales > 0)).all(1)
+    if bad.any() and not drop_invalid:
+        raise ValueError(
+            f"{path}: scale: {int(bad.sum())} of {len(records)} Gaussians have a scale that is not a positive "
+            f"finite number (first at index {int(bad.nonzero()[0][0])}); pass drop_invalid=True to drop them"
+        )
+    rotation = records["rotation"].astype(np.float64) - 128
+    rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_scales = np.log(scales)
+    colour = records["rgba"][:, :3].astype(np.float64) / 255
+    scene = GaussianScene(
+        means=torch.from_numpy(records["position"].copy()),
+        quats=torch.from_numpy(rotation / 128).float(),
+        log_scales=torch.from_numpy(log_scales).float(),
+        opacity_logits=torch.from_numpy(opacity_logits_from_bytes(records["rgba"][:, 3])).float(),
+        sh=torch.from_numpy((colour - 0.5) / SH_C0).float()[:, None, :],
+    )
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+
+
+def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """Write ``scene`` as a ``.splat`` file atomically (quantisation in the module docstring).
+
+    Refused with a ValueError before writing: non-finite values, zero
+    quaternions, log-scales outside [-87, 88].
+    """
+    path = Path(path)
+    cpu = scene_to_write(scene, path)
+    log_scales = cpu.log_scales.double().numpy()
+    outside = ((log_scales < _LOG_SCALE_RANGE[0]) | (log_scales > _LOG_SCALE_RANGE[1])).any(1)
+    if outside.any():
+        raise ValueError(
+            f"{path}: not written: log_scales: {int(outside.sum())} of {len(cpu)} Gaussians lie outside "
+            f"{list(_LOG_SCALE_RANGE)}, beyond the float32 linear scales of .splat "
+            f"(first at index {int(outside.nonzero()[0][0])})"
+        )
+    if cpu.sh_degree > 0:
+        _log.warning("%s: .splat holds SH degree 0 only; the degree %d view-dependent terms are dropped",
+                     path, cpu.sh_degree)
+    records = np.empty(len(cpu), dtype=RECORD)
+    records["position"] = cpu.means.numpy()
+    records["scale"] = np.exp(log_scales)
+    colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
+    records["rgba"][:, :3] = to_bytes(np.clip(colour, 0, 1) * 255)
+    records["rgba"][:, 3] = to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)
+    records["rotation"] = to_bytes(unit_quats(cpu.quats.numpy()) * 128 + 128)
+    write_atomically(path, lambda stream: stream.write(records.tobytes()))

@@ -1,0 +1,101 @@
+"""nerfstudio splatfacto checkpoints (``.ckpt``), read only.
+
+nerfstudio keeps the training config beside the checkpoint
+(``<run>/config.yml``, the checkpoint in ``<run>/nerfstudio_models/``); a run
+trained with ``rasterize_mode: antialiased`` there is rendered with gsplat's
+antialiased mode (``GaussianScene.antialiased``). Without a config the scene is
+classic.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from pathlib import Path
+
+import torch
+
+from ..scene import SH_C0, GaussianScene, validate_scene
+from .common import require_file
+
+_log = logging.getLogger(__name__)
+_SPLATFACTO_PREFIX = "_model.gauss_params."
+_SPLATFACTO_REQUIRED = ("means", "scales", "quats", "features_dc", "opacities")
+_RASTERIZE_MODE = re.compile(r"^\s*rasterize_mode:\s*['\"]?(\w+)", re.MULTILINE)
+
+
+def trained_antialiased(path: Path) -> bool:
+    """True when the run's ``config.yml`` (beside the checkpoint or one folder up) says
+    ``rasterize_mode: antialiased``."""
+    for config in (path.parent / "config.yml", path.parent.parent / "config.yml"):
+        try:
+            match = _RASTERIZE_MODE.search(config.read_text(encoding="utf-8", errors="replace"))
+        except OSError:
+            continue
+        if match:
+            _log.info("%s: rasterize_mode %s (from %s)", path, match.group(1), config)
+            return match.group(1) == "antialiased"
+    return False
+
+
+def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
+    """The ``_model.gauss_params.*`` tensors of a checkpoint, by short name, as float32."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch.load raises many types on corrupt or foreign files
+        raise ValueError(f"{path}: not a loadable torch checkpoint ({type(error).__name__}: {error})") from error
+    pipeline = checkpoint.get("pipeline") if isinstance(checkpoint, dict) else None
+    if not isinstance(pipeline, dict):
+        raise ValueError(f"{path}: expected a nerfstudio checkpoint, a dict with a 'pipeline' state dict")
+    params = {
+        key.removeprefix(_SPLATFACTO_PREFIX): value
+        for key, value in pipeline.items()
+        if isinstance(key, str) and key.startswith(_SPLATFACTO_PREFIX) and isinstance(value, torch.Tensor)
+    }
+    missing = [_SPLATFACTO_PREFIX + name for name in _SPLATFACTO_REQUIRED if name not in params]
+    if missing:
+        raise ValueError(f"{path}: not a splatfacto checkpoint, pipeline lacks tensors {', '.join(missing)}")
+    return {name: value.detach().to(torch.float32) for name, value in params.items()}
+
+
+def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, ...]) -> None:
+    if tuple(value.shape) != shape:
+        raise ValueError(f"{path}: {_SPLATFACTO_PREFIX}{name}: expected shape {shape}, got {tuple(value.shape)}")
+
+
+def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read the Gaussians of a nerfstudio splatfacto ``.ckpt`` (loaded with ``weights_only=True``).
+
+    Uses ``pipeline["_model.gauss_params.*"]``: means [N, 3], scales [N, 3] (log),
+    quats [N, 4] (w x y z), opacities [N, 1] (logits), features_dc [N, 3] and
+    features_rest [N, K-1, 3]. At SH degree 0 (features_rest empty or absent)
+    splatfacto renders colour = sigmoid(features_dc), which is converted to the
+    SH DC coefficient (sigmoid(f) - 0.5) / SH_C0. ``antialiased`` from the run's config
+(module docstring). Validated with :func:`validate_scene`.
+    """
+    path = Path(path)
+    require_file(path)
+    params = _splatfacto_params(path)
+    n = params["means"].shape[0] if params["means"].ndim == 2 else -1
+    shapes = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "features_dc": (n, 3), "opacities": (n, 1)}
+    for name, shape in shapes.items():
+        _expect_shape(path, name, params[name], shape)
+    rest = params.get("features_rest", torch.zeros(n, 0, 3))
+    if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3 or rest.shape[1] + 1 not in (1, 4, 9, 16):
+        raise ValueError(
+            f"{path}: {_SPLATFACTO_PREFIX}features_rest: expected shape ({n}, K-1, 3) with K-1 in "
+            f"0, 3, 8, 15 (SH degree 0 to 3), got {tuple(rest.shape)}"
+        )
+    dc = params["features_dc"]
+    if rest.shape[1] == 0:
+        dc = ((torch.sigmoid(dc.double()) - 0.5) / SH_C0).float()
+    scene = GaussianScene(
+        means=params["means"].contiguous(),
+        quats=params["quats"].contiguous(),
+        log_scales=params["scales"].contiguous(),
+        opacity_logits=params["opacities"][:, 0].contiguous(),
+        sh=torch.cat([dc[:, None, :], rest], dim=1).contiguous(),
+        antialiased=trained_antialiased(path),
+    )
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]

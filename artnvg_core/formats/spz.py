@@ -1,0 +1,314 @@
+"""Niantic SPZ (``.spz``): read versions 1 to 4, write version 3.
+
+Containers, as nianticlabs/spz's reference reads them: versions 1-3 are one
+gzip stream holding a 16-byte header (magic "NGSP", version, count, SH
+degree, fractional bits, flags, reserved) and the attribute arrays; version
+4 is a 32-byte plain header, optional extension records, a table of
+(compressed, uncompressed) sizes and one zstd stream per attribute. Arrays,
+per Gaussian: positions (24-bit signed fixed point with ``fractional bits``;
+float16 in version 1), opacities (uint8, value / 255), colours (uint8, f_dc =
+(b / 255 - 0.5) / 0.15), log-scales (uint8, b / 16 - 10), rotations (version
+3+: the smallest three components, 2 + 3 x 10 bits; version 2: x y z as
+uint8), SH coefficients (uint8, (b - 128) / 128, coefficient-major with the
+colour channel inner). Flag 0x1 marks a scene trained antialiased (loaded
+with ``GaussianScene.antialiased``, written from it). Reading version 4 needs
+the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning).
+
+Coordinate rule: SPZ stores RUB axes (x right, y up, z back), the format's
+documented default and what Niantic's writer produces from a PLY's RDF axes
+(x right, y down, z forward). A file carrying the ``SPZ_ADOBE_coordinate_system``
+extension record (version 4 header zone) is read in the axes it names (any
+of the 8 axis-flip systems; the 90-degree-rotated ones are refused). Loading
+converts to RDF, saving converts RDF to RUB: flip y and z of positions, the
+x/y... components of quaternions as (x, -y, -z), and each SH coefficient by
+the parity of its basis function under that flip. Writers that store PLY
+axes without saying so (some version-4 exporters) therefore load upside
+down; flip them back with a 180-degree rotation about x.
+
+Written as version 3 (gzip; every SPZ reader reads it, the stdlib writes it),
+with the reference's default quantisation: 12 fractional bits (fewer when the
+largest |coordinate| needs it, the bound doubling with each bit given up;
+|coordinate| >= 2^23 is refused), SH degree-1 coefficients in 5 bits and higher
+degrees in 4. Round trip ply -> spz -> ply, per field: means within
+0.5 / 2^bits (2^-13 at 12 bits); log-scales within 1/32 inside [-10, 5.9]
+(clamped outside); f_dc within 0.5 / (0.15 * 255) = 0.0131 inside
+[-3.33, 3.33] (clamped outside); opacity sigmoid(logit) within 0.5 / 255;
+unit quaternion components within 0.002 (up to the sign of q); SH degree-1
+coefficients within 4.5 / 128 and higher degrees within 8.5 / 128 inside
+[-1, 0.99] (clamped outside).
+"""
+
+from __future__ import annotations
+
+import gzip
+import logging
+import math
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..fileio import write_atomically
+from ..scene import GaussianScene, validate_scene
+from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes, unit_quats
+
+_log = logging.getLogger(__name__)
+
+MAGIC = 0x5053474E  # "NGSP" little-endian
+LATEST_VERSION = 4
+WRITTEN_VERSION = 3
+COLOR_SCALE = 0.15
+FLAG_ANTIALIASED = 0x1
+FLAG_EXTENSIONS = 0x2
+_LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fractional_bits flags reserved
+_HEADER = struct.Struct("<IIIBBBBI12x")  # ... numStreams tocByteOffset reserved[12]
+_COORDINATE_EXTENSION = 0xADBE0003
+RUB, RDF = 4, 6  # the reference's CoordinateSystem values; 1..8 differ by axis flips only
+_SQRT1_2 = math.sqrt(0.5)
+_MAX_DEGREE = 4
+
+
+def _sh_flip_signs(x: float, y: float, z: float) -> np.ndarray:
+    """[15] sign of each SH coefficient (degrees 1-3, basis order) when the axes flip by (x, y, z)."""
+    return np.array([y, z, x, x * y, y * z, 1, x * z, 1, y, x * y * z, y, z, x, z, x], np.float64)
+
+
+def _axis_flips(stored: int, path: Path) -> np.ndarray:
+    """(x, y, z) signs taking coordinates in the reference's system ``stored`` to RDF (and back)."""
+    if not 1 <= stored <= 8:
+        raise ValueError(
+            f"{path}: SPZ_ADOBE_coordinate_system: coordinate system {stored} is not supported "
+            "(only the eight axis-flip systems 1-8, e.g. RUB 4 or RDF 6)"
+        )
+    differ = (stored - 1) ^ (RDF - 1)
+    return np.array([-1.0 if differ >> bit & 1 else 1.0 for bit in range(3)])
+
+
+def _stored_system(path: Path, zone: bytes) -> int:
+    """The coordinate system named by an extension record in ``zone`` (RUB when none names one)."""
+    offset = 0
+    while offset + 8 <= len(zone):
+        kind, length = struct.unpack_from("<II", zone, offset)
+        if offset + 8 + length > len(zone):
+            raise ValueError(f"{path}: extension record at byte {offset} runs past its zone ({length} bytes)")
+        if kind == _COORDINATE_EXTENSION and length >= 4:
+            return struct.unpack_from("<I", zone, offset + 8)[0] or RUB
+        offset += 8 + length
+    return RUB
+
+
+def _array_sizes(count: int, degree: int, version: int) -> dict[str, int]:
+    """Bytes of each attribute array, in file order."""
+    return {
+        "positions": count * 3 * (2 if version == 1 else 3),
+        "alphas": count,
+        "colors": count * 3,
+        "scales": count * 3,
+        "rotations": count * (4 if version >= 3 else 3),
+        "sh": count * ((degree + 1) ** 2 - 1) * 3,
+    }
+
+
+def _check_header(path: Path, version: int, count: int, degree: int, valid_versions: range) -> None:
+    if version not in valid_versions:
+        raise ValueError(f"{path}: version: {version} is not a supported SPZ version ({valid_versions.start}-"
+                         f"{valid_versions.stop - 1} in this container)")
+    if count == 0 or count > 2**31 - 1:
+        raise ValueError(f"{path}: numPoints: {count} is not a valid Gaussian count")
+    if degree > _MAX_DEGREE:
+        raise ValueError(f"{path}: shDegree: {degree} is above SPZ's maximum 4")
+
+
+def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+    try:
+        data = gzip.decompress(raw)
+    except (OSError, EOFError, zlib.error) as error:
+        raise ValueError(f"{path}: gzip stream: not readable ({error}); the file is truncated or corrupt") from error
+    if len(data) < _LEGACY_HEADER.size:
+        raise ValueError(f"{path}: header: {len(data)} bytes, expected {_LEGACY_HEADER.size}")
+    magic, version, count, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
+    _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
+    sizes = _array_sizes(count, degree, version)
+    arrays, offset = {}, _LEGACY_HEADER.size
+    for name, size in sizes.items():
+        if offset + size > len(data):
+            raise ValueError(f"{path}: {name}: the data ends {offset + size - len(data)} bytes early for "
+                             f"{count} Gaussians (numPoints or the file is wrong)")
+        arrays[name], offset = data[offset : offset + size], offset + size
+    if offset != len(data) and not flags & FLAG_EXTENSIONS:
+        raise ValueError(f"{path}: numPoints: the data holds {len(data) - offset} more bytes than {count} "
+                         "Gaussians need")
+    header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
+    return header, arrays, RUB
+
+
+def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+    if len(raw) < _HEADER.size:
+        raise ValueError(f"{path}: header: {len(raw)} bytes, expected {_HEADER.size}")
+    _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
+    _check_header(path, version, count, degree, range(4, LATEST_VERSION + 1))
+    sizes = {name: size for name, size in _array_sizes(count, degree, version).items() if size}
+    if streams != len(sizes):
+        raise ValueError(f"{path}: numStreams: {streams}, expected {len(sizes)} for SH degree {degree}")
+    body = toc + 16 * streams
+    if toc < _HEADER.size or body > len(raw):
+        raise ValueError(f"{path}: tocByteOffset: {toc} puts the table outside the {len(raw)}-byte file")
+    system = _stored_system(path, raw[_HEADER.size : toc]) if flags & FLAG_EXTENSIONS else RUB
+    try:
+        import zstandard
+    except ImportError as error:
+        raise ValueError(f"{path}: SPZ version 4 is zstd-compressed: pip install zstandard") from error
+    arrays, offset = {}, body
+    for index, (name, size) in enumerate(sizes.items()):
+        compressed, uncompressed = struct.unpack_from("<QQ", raw, toc + 16 * index)
+        if uncompressed != size:
+            raise ValueError(f"{path}: {name} stream: {uncompressed} bytes uncompressed, expected {size} "
+                             f"for {count} Gaussians")
+        if compressed > len(raw) - offset:
+            raise ValueError(f"{path}: {name} stream: runs {compressed - (len(raw) - offset)} bytes past the "
+                             "end of the file (truncated)")
+        try:
+            arrays[name] = zstandard.ZstdDecompressor().decompress(raw[offset : offset + compressed],
+                                                                   max_output_size=size)
+        except zstandard.ZstdError as error:
+            raise ValueError(f"{path}: {name} stream: not valid zstd data ({error})") from error
+        if len(arrays[name]) != size:
+            raise ValueError(f"{path}: {name} stream: {len(arrays[name])} bytes, expected {size}")
+        offset += compressed
+    if offset != len(raw):
+        raise ValueError(f"{path}: the file holds {len(raw) - offset} bytes after its last stream")
+    header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
+    return header, arrays, system
+
+
+def _positions(path: Path, header: dict, raw: bytes) -> np.ndarray:
+    count = header["count"]
+    if header["version"] == 1:
+        return np.frombuffer(raw, "<f2").reshape(count, 3).astype(np.float64)
+    if header["bits"] > 23:
+        raise ValueError(f"{path}: fractionalBits: {header['bits']}, expected at most 23")
+    b = np.frombuffer(raw, np.uint8).reshape(count, 3, 3).astype(np.int32)
+    fixed = b[..., 0] | b[..., 1] << 8 | b[..., 2] << 16
+    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    return fixed / float(1 << header["bits"])
+
+
+def _rotations_xyzw(header: dict, raw: bytes) -> np.ndarray:
+    count = header["count"]
+    if header["version"] < 3:
+        xyz = np.frombuffer(raw, np.uint8).reshape(count, 3) / 127.5 - 1
+        return np.concatenate([xyz, np.sqrt(np.maximum(0, 1 - (xyz**2).sum(1)))[:, None]], 1)
+    comp = np.frombuffer(raw, "<u4").astype(np.int64)
+    largest = comp >> 30
+    q = np.zeros((count, 4))
+    for i in range(3, -1, -1):  # the last component is in the lowest 10 bits
+        value = _SQRT1_2 * (comp & 511) / 511 * np.where(comp >> 9 & 1, -1.0, 1.0)
+        take = largest != i
+        q[take, i] = value[take]
+        comp = np.where(take, comp >> 10, comp)
+    rows = np.arange(count)
+    q[rows, largest] = np.sqrt(np.maximum(0, 1 - (q**2).sum(1)))
+    return q
+
+
+def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring)."""
+    path = Path(path)
+    require_file(path)
+    raw = path.read_bytes()
+    if raw[:4] == struct.pack("<I", MAGIC):
+        header, arrays, system = _read_v4(path, raw)
+    elif raw[:2] == b"\x1f\x8b":
+        header, arrays, system = _read_legacy(path, raw)
+    else:
+        raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
+    count, degree = header["count"], header["degree"]
+    flips = _axis_flips(system, path)
+    x, y, z = flips
+    q = _rotations_xyzw(header, arrays["rotations"])
+    q[:, :3] *= (y * z, x * z, x * y)
+    coefficients = (degree + 1) ** 2 - 1
+    sh_rest = (np.frombuffer(arrays["sh"], np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
+    if degree > 3:
+        _log.warning("%s: SH degree %d read as degree 3 (the degree-4 terms are dropped)", path, degree)
+        sh_rest, degree = sh_rest[:, :15], 3
+    sh_rest = sh_rest * _sh_flip_signs(x, y, z)[: sh_rest.shape[1], None]
+    dc = (np.frombuffer(arrays["colors"], np.uint8).reshape(count, 1, 3) / 255 - 0.5) / COLOR_SCALE
+    scene = GaussianScene(
+        means=torch.from_numpy(_positions(path, header, arrays["positions"]) * flips).float(),
+        quats=torch.from_numpy(q[:, [3, 0, 1, 2]]).float(),
+        log_scales=torch.from_numpy(np.frombuffer(arrays["scales"], np.uint8).reshape(count, 3) / 16 - 10).float(),
+        opacity_logits=torch.from_numpy(opacity_logits_from_bytes(np.frombuffer(arrays["alphas"], np.uint8))).float(),
+        sh=torch.from_numpy(np.concatenate([dc, sh_rest], 1)).float(),
+        antialiased=bool(header["flags"] & FLAG_ANTIALIASED),
+    )
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+
+
+def _fractional_bits(path: Path, means: np.ndarray) -> int:
+    """12, or fewer when the largest |coordinate| needs the range (24-bit signed fixed point)."""
+    largest = float(np.abs(means).max())
+    bits = 12
+    while bits >= 0 and math.floor(largest * (1 << bits) + 0.5) >= 1 << 23:
+        bits -= 1
+    if bits < 0:
+        raise ValueError(f"{path}: not written: means: |coordinate| {largest:.6g} does not fit SPZ's 24-bit "
+                         "fixed point (at most 2^23)")
+    return bits
+
+
+def _quantized_sh(values: np.ndarray, bits: int) -> np.ndarray:
+    """SH coefficients as bytes, rounded to a bucket of 2^(8 - bits) as the reference writer does."""
+    bucket = 1 << (8 - bits)
+    q = np.floor(values * 128 + 0.5) + 128
+    return np.clip((q + bucket // 2) // bucket * bucket, 0, 255).astype(np.uint8)
+
+
+def _smallest_three(q: np.ndarray) -> np.ndarray:
+    """[N] uint32 smallest-three codes of unit quaternions [N, 4] (x y z w)."""
+    largest = np.abs(q).argmax(1)
+    rows = np.arange(len(q))
+    q = q * np.where(q[rows, largest] < 0, -1.0, 1.0)[:, None]
+    comp = largest.astype(np.uint64)
+    for i in range(4):
+        take = largest != i
+        magnitude = np.floor(511 * np.abs(q[:, i]) / _SQRT1_2 + 0.5).astype(np.uint64)
+        code = (comp << np.uint64(10)) | (q[:, i] < 0).astype(np.uint64) << np.uint64(9) | magnitude
+        comp = np.where(take, code, comp)
+    return comp.astype("<u4")
+
+
+def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring).
+
+    Refused with a ValueError before writing: non-finite values, zero
+    quaternions, a coordinate of magnitude 2^23 or more.
+    """
+    path = Path(path)
+    cpu = scene_to_write(scene, path)
+    x, y, z = _axis_flips(RUB, path)
+    means = cpu.means.double().numpy() * (x, y, z)
+    bits = _fractional_bits(path, means)
+    fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
+    positions = np.stack([fixed & 255, fixed >> 8 & 255, fixed >> 16], -1).astype(np.uint8)
+    q = unit_quats(cpu.quats.numpy())[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
+    count, degree = len(cpu), cpu.sh_degree
+    sh_rest = cpu.sh[:, 1:].double().numpy() * _sh_flip_signs(x, y, z)[: (degree + 1) ** 2 - 1, None]
+    sh_bytes = np.concatenate([_quantized_sh(sh_rest[:, :3], 5), _quantized_sh(sh_rest[:, 3:], 4)], 1)
+    flags = FLAG_ANTIALIASED if cpu.antialiased else 0
+    arrays = [
+        _LEGACY_HEADER.pack(MAGIC, WRITTEN_VERSION, count, degree, bits, flags, 0),
+        positions,
+        to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255),
+        to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
+        to_bytes((cpu.log_scales.double().numpy() + 10) * 16),
+        _smallest_three(q),
+        sh_bytes,
+    ]
+    payload = b"".join(a if isinstance(a, bytes) else np.ascontiguousarray(a).tobytes() for a in arrays)
+    write_atomically(path, lambda stream: stream.write(gzip.compress(payload, compresslevel=6, mtime=0)))

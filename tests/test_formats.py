@@ -1,0 +1,57 @@
+"""The extension dispatch of load_scene / save_scene, and the writers' shared refusals."""
+
+import pytest
+import torch
+
+from artnvg_core import scene as scene_module
+from artnvg_core.formats import SAVE_SUFFIXES, load_scene, save_scene
+from tests.test_formats_ply import assert_same_bits, random_scene
+
+
+def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
+    scene = random_scene(4, 2)
+    upper = tmp_path / "SCENE.PLY"
+    save_scene(scene, upper)
+    assert_same_bits(load_scene(upper), scene)
+    assert_same_bits(load_scene(str(upper)), scene)
+    for suffix in (".spz", ".SPLAT"):
+        save_scene(scene.select(slice(3, None)), tmp_path / f"scene{suffix}")  # rows 0-2 exceed their ranges
+        assert load_scene(tmp_path / f"scene{suffix}").sh_degree == (2 if suffix == ".spz" else 0)
+
+    (tmp_path / "scene.obj").write_bytes(b"v 0 0 0\n")
+    with pytest.raises(ValueError, match=r"scene\.obj: unsupported scene file type '\.obj'; expected \.ply .*\.ckpt"):
+        load_scene(tmp_path / "scene.obj")
+    with pytest.raises(ValueError, match=r"missing\.ckpt: scene file not found; expected \.ply"):
+        load_scene(tmp_path / "missing.ckpt")
+    with pytest.raises(ValueError, match=r"scene\.ckpt: cannot write scene file type '\.ckpt'; expected one of"):
+        save_scene(scene, tmp_path / "scene.ckpt")
+
+
+def test_old_import_names_still_work():
+    from artnvg_core.formats import read_ply, write_ply
+
+    assert (scene_module.load_scene, scene_module.read_ply, scene_module.write_ply) == (load_scene, read_ply, write_ply)
+    with pytest.raises(AttributeError):
+        scene_module.no_such_name  # noqa: B018
+
+
+@pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
+@pytest.mark.parametrize(("field", "value"), [("means", float("nan")), ("log_scales", float("inf")),
+                                              ("sh", -float("inf")), ("quats", 0.0)])
+def test_writers_refuse_invalid_scenes_before_writing(tmp_path, suffix, field, value):
+    scene = random_scene(6, 1)
+    getattr(scene, field)[4] = value
+    path = tmp_path / f"bad{suffix}"
+    problem = "a zero norm" if value == 0 else "non-finite values"
+    with pytest.raises(ValueError, match=rf"bad\{suffix}: not written: {field}: 1 of 6 Gaussians have {problem} "
+                                         r"\(first at index 4\)"):
+        save_scene(scene, path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_float64_beyond_float32_is_refused_not_written_as_inf(tmp_path):
+    scene = random_scene(3, 0).map(lambda t: t.double())
+    scene.sh[1, 0, 0] = 1e300
+    with pytest.raises(ValueError, match=r"huge\.ply: not written: sh: 1 of 3 .*non-finite"):
+        save_scene(scene, tmp_path / "huge.ply")
+    assert torch.isfinite(scene.sh).all()

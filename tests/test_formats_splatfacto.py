@@ -1,0 +1,129 @@
+"""nerfstudio splatfacto checkpoints: tensors, SH degree 0 colours, errors, the run's rasterize_mode."""
+
+from fractions import Fraction
+from pathlib import Path
+
+import pytest
+import torch
+
+from artnvg_core.formats import load_scene
+from artnvg_core.formats.splatfacto import read_splatfacto_ckpt
+from artnvg_core.scene import SH_C0, GaussianScene
+from tests.test_formats_ply import assert_same_bits
+
+
+# --------------------------------------------------------------------------- splatfacto checkpoints
+
+PREFIX = "_model.gauss_params."
+
+
+def splatfacto_params(n: int, degree: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "means": torch.randn(n, 3, generator=g),
+        "scales": torch.randn(n, 3, generator=g) - 4,
+        "quats": torch.randn(n, 4, generator=g),
+        "features_dc": torch.randn(n, 3, generator=g) * 4,
+        "features_rest": torch.randn(n, (degree + 1) ** 2 - 1, 3, generator=g),
+        "opacities": torch.randn(n, 1, generator=g),
+    }
+
+
+def scene_from_splatfacto(params: dict[str, torch.Tensor]) -> GaussianScene:
+    """The expected scene of SH degree >= 1 splatfacto parameters, as float32."""
+    return GaussianScene(
+        means=params["means"].float(),
+        quats=params["quats"].float(),
+        log_scales=params["scales"].float(),
+        opacity_logits=params["opacities"][:, 0].float(),
+        sh=torch.cat([params["features_dc"][:, None], params["features_rest"]], dim=1).float(),
+    )
+
+
+def save_splatfacto(path: Path, params: dict[str, torch.Tensor], **extra) -> Path:
+    pipeline = {PREFIX + name: value for name, value in params.items()}
+    pipeline["_model.field.mlp.weight"] = torch.zeros(2, 2)  # unrelated model state
+    torch.save({"step": 29999, "pipeline": pipeline, "optimizers": {}, "schedulers": {}, **extra}, path)
+    return path
+
+
+def test_splatfacto_degree_3_maps_every_tensor(tmp_path):
+    params = splatfacto_params(11, 3)
+    path = save_splatfacto(tmp_path / "step-000029999.ckpt", params)
+    for scene in (read_splatfacto_ckpt(path), load_scene(path)):
+        assert scene.sh_degree == 3
+        assert_same_bits(scene, scene_from_splatfacto(params))
+
+
+@pytest.mark.parametrize("rest", ["empty", "absent"])
+def test_splatfacto_degree_0_converts_colour_logits_to_sh_dc(tmp_path, rest):
+    params = splatfacto_params(9, 0)
+    params["features_dc"][0] = torch.tensor([-30.0, 0.0, 30.0])
+    if rest == "absent":
+        del params["features_rest"]
+    scene = read_splatfacto_ckpt(save_splatfacto(tmp_path / "deg0.ckpt", params))
+    assert scene.sh_degree == 0 and scene.sh.dtype == torch.float32
+    rendered_dc = SH_C0 * scene.sh[:, 0].double() + 0.5
+    torch.testing.assert_close(rendered_dc, torch.sigmoid(params["features_dc"].double()), rtol=0, atol=1e-6)
+
+
+def test_splatfacto_half_precision_is_read_as_float32(tmp_path):
+    params = {k: v.half() for k, v in splatfacto_params(5, 1).items()}
+    scene = read_splatfacto_ckpt(save_splatfacto(tmp_path / "half.ckpt", params))
+    assert_same_bits(scene, scene_from_splatfacto(params))
+
+
+def test_splatfacto_missing_keys_are_listed(tmp_path):
+    params = splatfacto_params(4, 1)
+    del params["quats"], params["opacities"]
+    path = save_splatfacto(tmp_path / "partial.ckpt", params)
+    with pytest.raises(ValueError, match=rf"partial\.ckpt: .*lacks tensors {PREFIX}quats, {PREFIX}opacities$"):
+        read_splatfacto_ckpt(path)
+
+
+@pytest.mark.parametrize(
+    ("name", "shape", "message"),
+    [
+        ("features_rest", (4, 5, 3), r"features_rest: expected shape \(4, K-1, 3\)"),
+        ("scales", (4, 4), r"scales: expected shape \(4, 3\), got \(4, 4\)"),
+        ("opacities", (4,), r"opacities: expected shape \(4, 1\), got \(4,\)"),
+    ],
+)
+def test_splatfacto_wrong_shapes_are_named(tmp_path, name, shape, message):
+    params = splatfacto_params(4, 1)
+    params[name] = torch.zeros(shape)
+    with pytest.raises(ValueError, match=rf"bad_shape\.ckpt: {PREFIX}{message}"):
+        read_splatfacto_ckpt(save_splatfacto(tmp_path / "bad_shape.ckpt", params))
+
+
+def test_splatfacto_invalid_values_are_rejected_or_dropped(tmp_path):
+    params = splatfacto_params(6, 2)
+    params["means"][3, 2] = float("nan")
+    path = save_splatfacto(tmp_path / "nan.ckpt", params)
+    message = r"nan\.ckpt: means: 1 of 6 Gaussians have non-finite values \(first at index 3\)"
+    with pytest.raises(ValueError, match=message):
+        read_splatfacto_ckpt(path)
+    scene = load_scene(path, drop_invalid=True)
+    assert len(scene) == 5
+    assert torch.equal(scene.means, params["means"][[0, 1, 2, 4, 5]])
+
+
+def test_files_that_are_not_splatfacto_checkpoints(tmp_path):
+    garbage = tmp_path / "garbage.ckpt"
+    garbage.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ValueError, match=r"garbage\.ckpt: not a loadable torch checkpoint"):
+        read_splatfacto_ckpt(garbage)
+
+    unsafe = save_splatfacto(tmp_path / "unsafe.ckpt", splatfacto_params(3, 0), note=Fraction(1, 3))
+    with pytest.raises(ValueError, match=r"unsafe\.ckpt: not a loadable torch checkpoint"):
+        read_splatfacto_ckpt(unsafe)  # weights_only refuses arbitrary pickled objects
+
+    tensor_only = tmp_path / "tensor.ckpt"
+    torch.save(torch.zeros(3), tensor_only)
+    with pytest.raises(ValueError, match=r"tensor\.ckpt: expected a nerfstudio checkpoint"):
+        read_splatfacto_ckpt(tensor_only)
+
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(save_splatfacto(tmp_path / "full.ckpt", splatfacto_params(3, 1)).read_bytes()[:300])
+    with pytest.raises(ValueError, match=r"truncated\.ckpt: not a loadable torch checkpoint"):
+        read_splatfacto_ckpt(truncated)
