@@ -7,7 +7,7 @@ outputs. Add new inputs only at the end of a node's ``optional`` inputs.
 
 from __future__ import annotations
 
-from .camera_nodes import GroupNeighbouringViews, LoadCameras
+from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from .comfy_bridge import register_model_folder
 from .diffusion_nodes import (
     CSGO_EXTENSIONS,
@@ -27,6 +27,7 @@ register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
 NODE_CLASS_MAPPINGS = {
     "ArtNVGLoadGaussianScene": LoadGaussianScene,
     "ArtNVGLoadCameras": LoadCameras,
+    "ArtNVGCamerasAroundScene": CamerasAroundScene,
     "ArtNVGRenderViews": RenderViews,
     "ArtNVGRenderCameraPath": RenderCameraPath,
     "ArtNVGGroupNeighbouringViews": GroupNeighbouringViews,

@@ -1,13 +1,14 @@
-"""Load Cameras and Group Neighbouring Views."""
+"""Load Cameras, Cameras Around Scene and Group Neighbouring Views."""
 
 from __future__ import annotations
 
+from artnvg_core.camera_rigs import orbit_cameras
 from artnvg_core.cameras import load_cameras
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
 from .input_files import file_signature, list_input_files, resolve_input_path
 from .node_errors import node_input
-from .node_types import CAMERAS, CATEGORY, GROUPS
+from .node_types import CAMERAS, CATEGORY, GROUPS, SCENE
 
 COLMAP_MARKERS = ("cameras.bin", "cameras.txt")
 
@@ -53,6 +54,58 @@ class LoadCameras:
         source, input_name = resolve_input_path("camera_source", camera_source, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_cameras(source),)
+
+
+def _numbers(text: str, what: str) -> list[float]:
+    """Comma-separated numbers from ``text``; ValueError naming ``what`` otherwise."""
+    try:
+        return [float(part) for part in text.split(",") if part.strip()]
+    except ValueError as error:
+        raise ValueError(f"expected {what}, got {text!r}") from error
+
+
+class CamerasAroundScene:
+    """Cameras for a scene that came without any: views on rings around the scene's centre, all looking at
+    it, at the distance where its main subject fills the view. For Render Views, Finetune and the rest
+    exactly like loaded capture cameras."""
+
+    DISPLAY_NAME = "Cameras Around Scene"
+    CATEGORY = CATEGORY
+    FUNCTION = "place"
+    RETURN_TYPES = (CAMERAS,)
+    RETURN_NAMES = ("cameras",)
+    DESCRIPTION = __doc__
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "scene": (SCENE,),
+                "count": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": (
+                    "Number of views, shared out over the rings (60: four neighbouring-view groups of 15).")}),
+                "fov_deg": ("FLOAT", {"default": 50.0, "min": 1.0, "max": 179.0, "step": 0.5, "tooltip": (
+                    "Horizontal field of view in degrees.")}),
+                "width": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image width in pixels."}),
+                "height": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image height in pixels."}),
+                "up": ("STRING", {"default": "auto", "tooltip": (
+                    "The world direction shown up in every view: auto (detected from the scene; a guess is "
+                    "logged), an axis such as -y or +z, or three numbers x, y, z.")}),
+                "elevations": ("STRING", {"default": "10, 30", "tooltip": (
+                    "One ring of views per angle (degrees above the horizontal plane through the centre), "
+                    "comma-separated, each between -90 and 90.")}),
+                "distance_factor": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 100.0, "step": 0.05, "tooltip": (
+                    "1: the main subject just fills the view; larger shows more of the surroundings.")}),
+            },
+        }
+
+    def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor):
+        with node_input(self.DISPLAY_NAME, "up"):
+            direction = _numbers(up, "auto, an axis such as -y, or three numbers") if "," in up else up
+        with node_input(self.DISPLAY_NAME, "elevations"):
+            angles = _numbers(elevations, "comma-separated angles in degrees")
+        with node_input(self.DISPLAY_NAME):
+            return (orbit_cameras(scene, count, fov_deg=fov_deg, width=width, height=height, up=direction,
+                                  elevations_deg=angles, distance_factor=distance_factor),)
 
 
 class GroupNeighbouringViews:

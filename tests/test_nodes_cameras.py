@@ -1,0 +1,38 @@
+"""Cameras Around Scene: the node against the core's orbit_cameras, and its text inputs."""
+
+import pytest
+import torch
+
+from artnvg_core.camera_rigs import orbit_cameras
+from nodes.camera_nodes import CamerasAroundScene
+from nodes.node_errors import NodeInputError
+from tests.test_activated import random_scene
+
+SETTINGS = dict(count=7, fov_deg=40.0, width=64, height=48, distance_factor=1.5)
+
+
+def place(scene, up="auto", elevations="10, 30", **changes):
+    return CamerasAroundScene().place(scene, **(SETTINGS | changes), up=up, elevations=elevations)[0]
+
+
+@pytest.mark.parametrize("up, core_up", [("auto", None), ("-y", "-y"), (" 0.2, -1, 0 ", [0.2, -1.0, 0.0])])
+def test_node_places_the_cores_orbit(up, core_up):
+    scene = random_scene(n=300, degree=0)
+    cameras = place(scene, up=up, elevations="-5, 20,45")
+    expected = orbit_cameras(scene, 7, fov_deg=40.0, width=64, height=48, up=core_up,
+                             elevations_deg=(-5.0, 20.0, 45.0), distance_factor=1.5)
+    assert torch.equal(cameras.world_to_cam, expected.world_to_cam)
+    assert torch.equal(cameras.intrinsics, expected.intrinsics)
+    assert (cameras.width, cameras.height, len(cameras)) == (64, 48, 7)
+
+
+@pytest.mark.parametrize("inputs, message", [
+    ({"up": "1, 2"}, r"up: expected 3 finite numbers"),
+    ({"up": "1, x, 2"}, r"input 'up': expected auto, an axis such as -y, or three numbers"),
+    ({"up": "sideways"}, r"up: expected 'auto', one of"),
+    ({"elevations": "10, high"}, r"input 'elevations': expected comma-separated angles"),
+    ({"elevations": "95"}, r"elevations_deg must be angles in \(-90, 90\)"),
+])
+def test_bad_text_inputs_name_the_input(inputs, message):
+    with pytest.raises(NodeInputError, match=r"^Cameras Around Scene: .*" + message):
+        place(random_scene(n=50, degree=0), **inputs)
