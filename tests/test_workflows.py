@@ -118,7 +118,7 @@ API_FILES = sorted(WORKFLOWS.glob("*_api.json"))
 
 
 def test_each_workflow_comes_in_both_formats():
-    assert [p.stem for p in UI_FILES] == ["artnvg_full", "artnvg_nnfm_only"]
+    assert [p.stem for p in UI_FILES] == ["artnvg_camera_free", "artnvg_full", "artnvg_nnfm_only"]
     assert [p.stem for p in API_FILES] == [f"{p.stem}_api" for p in UI_FILES]
 
 
@@ -183,6 +183,16 @@ def test_nnfm_only_workflow_needs_no_diffusion_weights():
     used = {node["class_type"] for node in api.values()}
     assert {"ArtNVGFinetuneGaussians", "ArtNVGSaveGaussianScene"} <= used
     assert not used & {"ArtNVGLoadModels", "ArtNVGCSGOEncode", "ArtNVGNVAttentionPatch", "ArtNVGSampleGroup"}
+
+
+def test_camera_free_workflow_needs_only_a_scene_file_and_a_style_image():
+    api = json.loads((WORKFLOWS / "artnvg_camera_free_api.json").read_text())
+    used = {node["class_type"] for node in api.values()}
+    assert "ArtNVGLoadCameras" not in used and {"ArtNVGCamerasAroundScene", "ArtNVGFinetuneGaussians"} <= used
+    assert not used & {"ArtNVGLoadModels", "ArtNVGSampleGroup"}  # the NNFM stylizer
+    rig = next(node_id for node_id, node in api.items() if node["class_type"] == "ArtNVGCamerasAroundScene")
+    views = next(node for node in api.values() if node["class_type"] == "ArtNVGRenderViews")
+    assert views["inputs"]["cameras"] == [rig, 0]
 
 
 def test_full_workflow_feeds_stylized_views_to_the_finetune():

@@ -147,6 +147,23 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     assert len(previews) == 4  # 2 content views + 2 orbit frames
 
 
+def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
+    folder = comfy_server.test_folder
+    workflow = queue.load_api_workflow(REPO / "workflows" / "artnvg_camera_free_api.json")
+    for assignment in (f"Load Gaussian Scene.scene_file={folder}/scene.ply", f"Style image.image={folder}/style.jpg",
+                       "Cameras Around Scene.count=3", "Render Views.scale=0.125", "Finetune Gaussians.iterations=3",
+                       "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
+                       f"Save Gaussian Scene.filename_prefix={folder}/camera_free"):
+        queue.apply_override(workflow, assignment)
+    entry, messages = _run(comfy_server, workflow)
+    summary = queue.run_summary(entry)
+    assert summary["status"] == "success", summary["error"]
+    (saved,) = [o for o in summary["outputs"] if o["kind"] == "scenes"]
+    result, original = read_ply(comfy_server.output_dir / saved["file"]), read_ply(comfy_server.input_dir / folder / "scene.ply")
+    assert torch.equal(result.means, original.means) and not torch.equal(result.sh, original.sh)
+    assert len([o for o in summary["outputs"] if o["kind"] == "images"]) == 3 + 2  # content views + orbit frames
+
+
 def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
     folder = comfy_server.output_dir / comfy_server.test_folder
     interrupted = []
