@@ -134,11 +134,12 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
         raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
     _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
     sizes = _array_sizes(count, degree, version)
+    needed, held = sum(sizes.values()), len(data) - _LEGACY_HEADER.size
+    if held < needed:
+        raise ValueError(f"{path}: numPoints: {count} Gaussians of SH degree {degree} need {needed} bytes of data, "
+                         f"the file holds {held} (truncated, or numPoints is wrong)")
     arrays, offset = {}, _LEGACY_HEADER.size
     for name, size in sizes.items():
-        if offset + size > len(data):
-            raise ValueError(f"{path}: {name}: the data ends {offset + size - len(data)} bytes early for "
-                             f"{count} Gaussians (numPoints or the file is wrong)")
         arrays[name], offset = data[offset : offset + size], offset + size
     if offset != len(data) and not flags & FLAG_EXTENSIONS:
         raise ValueError(f"{path}: numPoints: the data holds {len(data) - offset} more bytes than {count} "

@@ -1,0 +1,184 @@
+"""Niantic SPZ: versions 1-4, RUB axes, round trip within the stated quantisation, corrupt files."""
+
+import gzip
+import struct
+
+import numpy as np
+import pytest
+import torch
+import zstandard
+
+from artnvg_core.formats.spz import read_spz, write_spz
+from artnvg_core.raster.sh import sh_to_color
+from tests.test_formats_splat import assert_only_value_errors, plain_scene, quat_error
+
+ARRAYS = ("positions", "alphas", "colors", "scales", "rotations", "sh")
+
+
+def payload_arrays(path) -> tuple[tuple, dict[str, bytes]]:
+    """The legacy header fields and attribute arrays of a version 3 file we wrote."""
+    data = gzip.decompress(path.read_bytes())
+    header = struct.unpack_from("<IIIBBBB", data)
+    n, degree = header[2], header[3]
+    sizes = [9 * n, n, 3 * n, 3 * n, 4 * n, n * ((degree + 1) ** 2 - 1) * 3]
+    arrays, offset = {}, 16
+    for name, size in zip(ARRAYS, sizes):
+        arrays[name], offset = data[offset : offset + size], offset + size
+    assert offset == len(data)
+    return header, arrays
+
+
+def version_4(header: tuple, arrays: dict[str, bytes], extension: bytes = b"") -> bytes:
+    """The same Gaussians in the version 4 container (32-byte header, TOC, one zstd stream per array)."""
+    _, _, n, degree, bits, flags, _ = header
+    streams = [zstandard.ZstdCompressor().compress(a) for a in arrays.values() if a]
+    toc = 32 + len(extension)
+    head = struct.pack("<IIIBBBBI12x", 0x5053474E, 4, n, degree, bits, flags | (2 if extension else 0),
+                       len(streams), toc)
+    sizes = b"".join(struct.pack("<QQ", len(s), len(a)) for s, a in zip(streams, (a for a in arrays.values() if a)))
+    return head + extension + sizes + b"".join(streams)
+
+
+def test_round_trip_stays_within_the_stated_quantisation(tmp_path):
+    scene = plain_scene(3000, 3)
+    scene.sh[:, 1:] = scene.sh[:, 1:].clamp(-1, 0.99)
+    scene.sh[:, 0] = scene.sh[:, 0].clamp(-3.3, 3.3)
+    scene.log_scales.clamp_(-10, 5.9)
+    path = tmp_path / "scene.spz"
+    write_spz(scene, path)
+    back = read_spz(path)
+    assert back.sh_degree == 3 and not back.antialiased
+    assert (back.means - scene.means).abs().max() <= 2.0**-13
+    assert (back.log_scales - scene.log_scales).abs().max() <= 1 / 32 + 1e-6
+    assert (back.sh[:, 0] - scene.sh[:, 0]).abs().max() <= 0.5 / (0.15 * 255) + 1e-6
+    assert (back.sh[:, 1:4] - scene.sh[:, 1:4]).abs().max() <= 4.5 / 128 + 1e-6
+    assert (back.sh[:, 4:] - scene.sh[:, 4:]).abs().max() <= 8.5 / 128 + 1e-6
+    opacity = torch.sigmoid(scene.opacity_logits.double())
+    assert (torch.sigmoid(back.opacity_logits.double()) - opacity).abs().max() <= 0.5 / 255 + 1e-7
+    assert quat_error(back.quats, scene.quats) <= 0.002
+    assert len(path.read_bytes()) < 0.25 * 3000 * 62 * 4  # far smaller than the float32 PLY
+
+
+def test_file_holds_rub_axes_and_colours_are_the_same_from_flipped_directions(tmp_path):
+    scene = plain_scene(200, 3)
+    path = tmp_path / "axes.spz"
+    write_spz(scene, path)
+    header, arrays = payload_arrays(path)
+    assert header[:2] == (0x5053474E, 3)
+    fixed = np.frombuffer(arrays["positions"], np.uint8).reshape(-1, 3, 3).astype(np.int64)
+    stored = fixed[..., 0] | fixed[..., 1] << 8 | fixed[..., 2] << 16
+    stored = np.where(stored >= 1 << 23, stored - (1 << 24), stored) / 4096
+    np.testing.assert_allclose(stored, scene.means.numpy() * [1, -1, -1], atol=2.0**-12)
+    # the stored SH seen along the RUB direction gives the PLY's colour along the RDF direction
+    back = read_spz(path)
+    stored_sh = back.sh.clone()
+    flips = torch.tensor([-1.0, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1])
+    stored_sh[:, 1:] *= flips[:, None]
+    directions = torch.nn.functional.normalize(torch.randn(200, 3), dim=1)
+    rub = directions * torch.tensor([1.0, -1, -1])
+    torch.testing.assert_close(sh_to_color(stored_sh, rub, 3), sh_to_color(back.sh, directions, 3))
+
+
+def test_version_4_zstd_container_reads_as_version_3(tmp_path):
+    scene = plain_scene(300, 2)
+    write_spz(scene, tmp_path / "v3.spz")
+    header, arrays = payload_arrays(tmp_path / "v3.spz")
+    v3 = read_spz(tmp_path / "v3.spz")
+    (tmp_path / "v4.spz").write_bytes(version_4(header, arrays))
+    v4 = read_spz(tmp_path / "v4.spz")
+    for name, value in v3.tensors().items():
+        assert torch.equal(getattr(v4, name), value), name
+    # an extension record naming RDF axes: the file is read without the RUB flip
+    record = struct.pack("<III", 0xADBE0003, 4, 6)
+    (tmp_path / "rdf.spz").write_bytes(version_4(header, arrays, struct.pack("<II", 0xADBE0002, 0) + record))
+    rdf = read_spz(tmp_path / "rdf.spz")
+    torch.testing.assert_close(rdf.means, v3.means * torch.tensor([1.0, -1, -1]))
+
+
+def test_versions_1_and_2_and_the_antialiased_flag(tmp_path):
+    n = 3
+    positions = np.array([[1, -2, 0.5]] * n, "<f2").tobytes()
+    rotations = bytes([128, 128, 255] * n)  # x y z = (0.004, 0.004, 1): a half turn about z
+    body = positions + bytes([255] * n) + bytes([128] * 3 * n) + bytes([160] * 3 * n) + rotations
+    path = tmp_path / "v1.spz"
+    path.write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 1, n, 0, 0, 1, 0) + body))
+    scene = read_spz(path)
+    assert scene.antialiased
+    torch.testing.assert_close(scene.means, torch.tensor([[1.0, 2, -0.5]] * n))  # RUB -> RDF
+    torch.testing.assert_close(scene.log_scales, torch.full((n, 3), 0.0))
+    assert quat_error(scene.quats, torch.tensor([[0.0, 0, 0, 1]] * n)) < 0.01
+    assert torch.sigmoid(scene.opacity_logits).min() > 0.998
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda h: h[:4] + struct.pack("<I", 9) + h[8:], "version: 9 is not a supported SPZ version"),
+        (lambda h: h[:8] + struct.pack("<I", 0) + h[12:], "numPoints: 0 is not a valid Gaussian count"),
+        (lambda h: h[:8] + struct.pack("<I", 9) + h[12:], "numPoints: the data holds"),
+        (lambda h: h[:8] + struct.pack("<I", 11) + h[12:], "numPoints: 11 Gaussians of SH degree 1 need 319 bytes"),
+        (lambda h: h[:12] + bytes([5]) + h[13:], "shDegree: 5 is above SPZ's maximum 4"),
+        (lambda h: h[:12] + bytes([2]) + h[13:], "numPoints: 10 Gaussians of SH degree 2 need"),
+        (lambda h: b"XGSP" + h[4:], "magic: 0x50534758, expected 0x5053474e"),
+    ],
+)
+def test_corrupt_legacy_headers_name_the_field(tmp_path, change, message):
+    write_spz(plain_scene(10, 1), tmp_path / "good.spz")
+    data = gzip.decompress((tmp_path / "good.spz").read_bytes())
+    path = tmp_path / "corrupt.spz"
+    path.write_bytes(gzip.compress(change(data[:16]) + data[16:]))
+    with pytest.raises(ValueError, match=rf"corrupt\.spz: {message}"):
+        read_spz(path)
+
+
+@pytest.mark.parametrize(
+    ("offset", "value", "message"),
+    [
+        (15, b"\x05", r"numStreams: 5, expected 6 for SH degree 1"),
+        (16, struct.pack("<I", 4000), r"tocByteOffset: 4000 puts the table outside"),
+        (8, struct.pack("<I", 11), r"positions stream: \d+ bytes uncompressed, expected 99"),
+    ],
+)
+def test_corrupt_version_4_headers_name_the_field(tmp_path, offset, value, message):
+    write_spz(plain_scene(10, 1), tmp_path / "good.spz")
+    data = bytearray(version_4(*payload_arrays(tmp_path / "good.spz")))
+    data[offset : offset + len(value)] = value
+    path = tmp_path / "corrupt.spz"
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"corrupt\.spz: {message}"):
+        read_spz(path)
+
+
+def test_far_coordinates_give_up_fractional_bits_and_huge_ones_are_refused(tmp_path):
+    scene = plain_scene(20, 0)
+    scene.means[3] = torch.tensor([343035.0, -2.0, 1.0])  # the shared bear's farthest floater
+    write_spz(scene, tmp_path / "far.spz")
+    header, _ = payload_arrays(tmp_path / "far.spz")
+    assert header[4] == 4  # 19 integer bits + sign leave 4 fractional bits
+    assert (read_spz(tmp_path / "far.spz").means - scene.means).abs().max() <= 2.0**-5
+    scene.means[3, 0] = 2.0**23
+    with pytest.raises(ValueError, match=r"huge\.spz: not written: means: \|coordinate\| 8\.38861e\+06"):
+        write_spz(scene, tmp_path / "huge.spz")
+
+
+def test_fuzzed_and_truncated_files_raise_only_value_error(tmp_path):
+    write_spz(plain_scene(12, 1), tmp_path / "source.spz")
+    v3 = (tmp_path / "source.spz").read_bytes()
+    v4 = version_4(*payload_arrays(tmp_path / "source.spz"))
+    raw = gzip.decompress(v3)
+    rng = np.random.default_rng(2)
+    for name, original in (("v3", v3), ("v4", v4), ("raw", raw)):
+        for case in range(60):
+            data = bytearray(original)
+            span = 48 if case % 2 else len(data)  # half the flips aimed at the header
+            for position in rng.integers(0, span, 3):
+                data[position] = int(rng.integers(0, 256))
+            if name == "raw":
+                data = bytearray(gzip.compress(bytes(data)))
+            assert_only_value_errors(read_spz, tmp_path / "fuzzed.spz", bytes(data), f"{name} case {case}")
+        for length in range(0, len(original), max(1, len(original) // 40)):
+            path = tmp_path / "cut.spz"
+            assert_only_value_errors(read_spz, path, original[:length], f"{name} cut to {length}")
+            if name != "raw" and length < len(original):
+                with pytest.raises(ValueError, match=r"cut\.spz: "):
+                    read_spz(path)
