@@ -11,7 +11,7 @@ from .comfy_bridge import output_directory
 from .input_files import file_signature, list_input_files, resolve_input_path
 from .node_errors import NodeInputError, node_input
 from .node_types import CATEGORY, SCENE
-from .splat_interop import FILE3D_CLASS, FILE_3D_PLY, MISSING_FILE3D, ply_file3d
+from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_type
 
 class LoadGaussianScene:
     """A Gaussian scene file from the input folder or a path: ``.ply`` (INRIA 3DGS, Mip-Splatting or
@@ -78,7 +78,7 @@ class SaveGaussianScene:
     DISPLAY_NAME = "Save Gaussian Scene"
     CATEGORY = CATEGORY
     FUNCTION = "save"
-    RETURN_TYPES = (FILE_3D_PLY,) if FILE3D_CLASS is not None else ()
+    RETURN_TYPES = (file3d_link_type(SAVE_SUFFIXES),) if FILE3D_CLASS is not None else ()
     RETURN_NAMES = ("model_3d",) if FILE3D_CLASS is not None else ()
     OUTPUT_NODE = True
     DESCRIPTION = __doc__ if FILE3D_CLASS is not None else __doc__.split("\n\n")[0] + "\n\n" + MISSING_FILE3D
@@ -113,4 +113,4 @@ class SaveGaussianScene:
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}]}
-        return {"ui": ui, "result": (ply_file3d(file),)} if FILE3D_CLASS is not None else {"ui": ui}
+        return {"ui": ui, "result": (file3d(file),)} if FILE3D_CLASS is not None else {"ui": ui}

@@ -5,7 +5,8 @@ releases before its rename call it ``GAUSSIAN``, link type "GAUSSIAN"). It holds
 in activated form (see ``artnvg_core.activated``) as (B, N, ...) tensors zero-padded to a common N,
 ``counts`` [B] giving the real lengths (None when every item has N): positions (B, N, 3), scales
 (B, N, 3) linear, rotations (B, N, 4) unit w x y z, opacities (B, N, 1) in [0, 1], sh (B, N, K, 3).
-``Types.File3D`` is a 3D file; Preview Gaussian Splat displays one linked as "FILE_3D_PLY".
+``Types.File3D`` is a 3D file; Preview Gaussian Splat displays one linked as "FILE_3D_PLY",
+"FILE_3D_SPZ" or "FILE_3D_SPLAT" (link types may list several, comma-separated).
 ComfyUI 0.3.64 has neither: the constants below then say so, and nothing else changes.
 
 The pack's scene converts to and from the splat type here and nowhere else. A splat made by
@@ -38,7 +39,6 @@ def _splat_class() -> tuple[type | None, str]:
 
 SPLAT_CLASS, SPLAT = _splat_class()
 FILE3D_CLASS = getattr(comfy_types(), "File3D", None)
-FILE_3D_PLY = "FILE_3D_PLY"  # the link type of a .ply File3D, accepted by Preview Gaussian Splat
 
 MISSING_SPLAT = (
     "Needs ComfyUI's core Gaussian splat type (comfy_api.latest Types.SPLAT, or Types.GAUSSIAN before its "
@@ -96,6 +96,11 @@ def splat_to_scene(splat, source: str = "splat") -> GaussianScene:
     return deactivate(a, source)
 
 
-def ply_file3d(path: Path):
-    """A core File3D of the .ply at ``path`` (for Preview Gaussian Splat), or None without the type."""
+def file3d_link_type(suffixes: tuple[str, ...]) -> str:
+    """The core's link type of a 3D file with one of ``suffixes`` (e.g. ".ply", ".spz"): "FILE_3D_PLY,FILE_3D_SPZ"."""
+    return ",".join(f"FILE_3D_{suffix.lstrip('.').upper()}" for suffix in suffixes)
+
+
+def file3d(path: Path):
+    """A core File3D of the file at ``path`` (its format from the extension), or None without the type."""
     return FILE3D_CLASS(str(path)) if FILE3D_CLASS is not None else None

@@ -109,7 +109,7 @@ def test_counts_cut_the_item_and_bad_batches_are_refused(core):
 def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     save = core.scene_nodes.SaveGaussianScene
-    assert save.RETURN_TYPES == ("FILE_3D_PLY",) and save.RETURN_NAMES == ("model_3d",) and save.OUTPUT_NODE
+    assert save.RETURN_TYPES == ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT",) and save.RETURN_NAMES == ("model_3d",)
     scene = random_scene(n=50)
     result = save().save(scene, "artnvg/stylized")
     (model_3d,) = result["result"]
@@ -120,3 +120,5 @@ def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path,
     model_3d.save_to(str(copy))
     for name, value in read_ply(copy).tensors().items():
         assert np.array_equal(getattr(scene, name).numpy(), value.numpy()), name
+    (spz,) = save().save(scene, "artnvg/stylized", "spz")["result"]
+    assert spz.format == "spz" and spz.get_bytes() == (tmp_path / "output" / "artnvg" / "stylized_00001.spz").read_bytes()
