@@ -28,17 +28,11 @@ from artnvg_core.scene import GaussianScene
 from .comfy_bridge import comfy_types
 
 
-def _splat_class() -> tuple[type | None, str]:
-    """The core splat class and its link type name; (None, "SPLAT") when this ComfyUI has none."""
-    types = comfy_types()
-    for name in ("SPLAT", "GAUSSIAN"):
-        if types is not None and hasattr(types, name):
-            return getattr(types, name), name
-    return None, "SPLAT"
-
-
-SPLAT_CLASS, SPLAT = _splat_class()
-FILE3D_CLASS = getattr(comfy_types(), "File3D", None)
+_TYPES = comfy_types()
+# the core splat class and its link type name; (None, "SPLAT") when this ComfyUI has none
+SPLAT_CLASS, SPLAT = next(((getattr(_TYPES, name), name) for name in ("SPLAT", "GAUSSIAN") if hasattr(_TYPES, name)),
+                          (None, "SPLAT"))
+FILE3D_CLASS = getattr(_TYPES, "File3D", None)
 
 MISSING_SPLAT = (
     "Needs ComfyUI's core Gaussian splat type (comfy_api.latest Types.SPLAT, or Types.GAUSSIAN before its "
