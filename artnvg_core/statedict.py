@@ -9,7 +9,8 @@ import torch
 LISTED_KEYS = 8  # keys shown per kind of mismatch
 
 
-def _listed(keys: list[str]) -> str:
+def listed_keys(keys: list[str]) -> str:
+    """``keys`` sorted, as ``[a, b, ... (n more)]`` (at most LISTED_KEYS shown)."""
     more = len(keys) - LISTED_KEYS
     return f"[{', '.join(sorted(keys)[:LISTED_KEYS])}{f', ... ({more} more)' if more > 0 else ''}]"
 
@@ -23,5 +24,6 @@ def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str
              if k in state and state[k].shape != v.shape]
     if not (missing or unexpected or wrong):
         return None
-    text = f"{len(missing)} missing keys {_listed(missing)}, {len(unexpected)} unexpected keys {_listed(unexpected)}"
+    text = (f"{len(missing)} missing keys {listed_keys(missing)}, "
+            f"{len(unexpected)} unexpected keys {listed_keys(unexpected)}")
     return text + (f", {len(wrong)} wrong shapes {wrong[:LISTED_KEYS]}" if wrong else "")

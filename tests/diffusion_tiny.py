@@ -182,12 +182,15 @@ def csgo_state(
     num_content_tokens: int = 4,
     num_style_tokens: int = 8,
     controlnet_by_index: bool = True,
+    unet_content: bool = True,
 ) -> dict[str, dict[str, torch.Tensor]]:
-    """A CSGO weight dict in the released layout with random tensors."""
+    """A CSGO weight dict in the released layout with random tensors; ``unet_content=False`` leaves out
+    the UNet down blocks' content entries, as a file saved from the released class does."""
     return {
         "content_image_proj": tiny_resampler(num_content_tokens, seed=6).state_dict(),
         "style_image_proj": tiny_resampler(num_style_tokens, seed=7).state_dict(),
-        "ip_adapter": _image_branch_keys(unet, ("down_blocks", "up_blocks"), True, seed=8),
+        "ip_adapter": _image_branch_keys(unet, ("down_blocks", "up_blocks") if unet_content else ("up_blocks",), True,
+                                         seed=8),
         "controlnet_adapter_modules": _image_branch_keys(controlnet, ("down_blocks",), controlnet_by_index, seed=9),
     }
 
@@ -214,8 +217,9 @@ def tiny_base():
     )
 
 
-def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8):
-    """DiffusionModels of tiny models; with ``tmp_path``, CSGO weights are written there and loaded."""
+def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8, unet_content: bool = True):
+    """DiffusionModels of tiny models; with ``tmp_path``, CSGO weights are written there and loaded
+    (``unet_content``: see :func:`csgo_state`)."""
     from artnvg_core.diffusion.csgo import (
         CONTROLNET_ROUTES,
         UNET_ROUTES,
@@ -230,7 +234,8 @@ def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8):
         install_processors(base.unet, UNET_ROUTES, image_branches=False)
         install_processors(controlnet, CONTROLNET_ROUTES, image_branches=False)
         return DiffusionModels(base=base, controlnet=controlnet)
-    path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(base.unet, controlnet, num_style_tokens=num_style_tokens))
+    state = csgo_state(base.unet, controlnet, num_style_tokens=num_style_tokens, unet_content=unet_content)
+    path = write_csgo_file(tmp_path / "csgo.bin", state)
     csgo = load_csgo(path, base.unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=tiny_image_encoder(), csgo=csgo)
 

@@ -1,4 +1,7 @@
-"""CSGO: released key layout, strict loading, token routing and scale-0 identity on tiny SDXL models."""
+"""CSGO: released key layouts, loading strict where the released loader keeps random weights, token routing
+and scale-0 identity on tiny SDXL models."""
+
+import logging
 
 import pytest
 import torch
@@ -12,6 +15,7 @@ from artnvg_core.diffusion.csgo import (
     UNET_ROUTES,
     install_processors,
     processor_key_layout,
+    routed_keys,
 )
 from artnvg_core.diffusion.csgo_weights import CSGOWeightsError, load_csgo
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
@@ -85,20 +89,22 @@ def _edit(state, group, old, new=None):
     "edit, message",
     [
         (
-            lambda s: _edit(s, "ip_adapter", "1.to_k_ip.weight", "1.to_k_ip_renamed.weight"),
-            r"group 'ip_adapter': 1 missing keys \[1.to_k_ip.weight\], 1 unexpected keys \[1.to_k_ip_renamed.weight\]",
+            lambda s: _edit(s, "ip_adapter", "13.to_k_ip.weight", "13.to_k_ip_renamed.weight"),
+            r"group 'ip_adapter': 1 missing keys \[13.to_k_ip.weight\]",
         ),
         (
             lambda s: _edit(s, "style_image_proj", "layers.1.0.to_kv.weight"),
             r"group 'style_image_proj': 1 missing keys \[layers.1.0.to_kv.weight\], 0 unexpected",
         ),
         (
+            lambda s: {**s, "content_image_proj": {**s["content_image_proj"], "extra": torch.zeros(1)}},
+            r"group 'content_image_proj': 0 missing keys \[\], 1 unexpected keys \[extra\]",  # strict as released
+        ),
+        (
             lambda s: _edit(s, "controlnet_adapter_modules", "3.to_v_ip.weight", "2.to_v_ip.weight"),
-            r"group 'controlnet_adapter_modules': 1 missing keys \[3.to_v_ip.weight\], "
-            r"1 unexpected keys \[2.to_v_ip.weight\]",
+            r"group 'controlnet_adapter_modules': 1 missing keys \[3.to_v_ip.weight\]",
         ),
         (lambda s: {k: v for k, v in s.items() if k != "ip_adapter"}, r"key groups missing \['ip_adapter'\]"),
-        (lambda s: {**s, "image_proj": {}}, r"unexpected \['image_proj'\]"),
     ],
 )
 def test_mismatched_files_fail_with_listed_keys(tmp_path, models, edit, message):
@@ -120,6 +126,70 @@ def test_wrong_shapes_and_unreadable_files_fail(tmp_path, models):
         load_csgo(tmp_path / "junk.bin", unet, controlnet)
     with pytest.raises(CSGOWeightsError, match="does not exist"):
         load_csgo(tmp_path / "absent.bin", unet, controlnet)
+
+
+def _save_safetensors(state: dict, path):
+    from safetensors.torch import save_file
+
+    save_file({f"{group}.{key}": t.contiguous() for group, keys in state.items() for key, t in keys.items()}, path)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".bin", ".safetensors"])
+def test_file_saved_by_the_released_class_loads_without_unet_content(tmp_path, models, caplog, suffix):
+    """The released class's down blocks are text-only: its files hold only the up blocks' ip_adapter entries."""
+    unet, controlnet = models
+    state = csgo_state(unet, controlnet, unet_content=False)
+    assert set(state["ip_adapter"]) == set(routed_keys(unet, UNET_ROUTES, "style"))
+    path = tmp_path / f"released{suffix}"
+    _save_safetensors(state, path) if suffix == ".safetensors" else write_csgo_file(path, state)
+    with caplog.at_level(logging.INFO, logger="artnvg_core.diffusion.csgo_weights"):
+        projections = load_csgo(path, unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
+    assert not projections.unet_content
+    for name, processor in unet.attn_processors.items():
+        if name.endswith("attn2.processor"):
+            assert processor.image_tokens == {"down_blocks": None, "up_blocks": "style", "mid_block": None}[
+                name.split(".")[0]]
+    assert processor_key_layout(unet).keys() == state["ip_adapter"].keys()
+    assert all(torch.equal(p, state["ip_adapter"][k]) for k, p in processor_key_layout(unet).items())
+    controlnet_state = state["controlnet_adapter_modules"]
+    assert all(torch.equal(p, controlnet_state[k]) for k, p in processor_key_layout(controlnet).items())
+    [record] = caplog.records
+    assert record.levelno == logging.INFO and "UNet content entries absent" in record.getMessage()
+    assert "keyed by processor index" in record.getMessage() and str(path) in record.getMessage()
+
+
+def test_ignores_what_the_released_loader_ignores_with_a_warning(tmp_path, models, caplog):
+    """Other top-level groups, keys no layer reads and an incomplete set of content entries are dropped, named."""
+    unet, controlnet = models
+    state = csgo_state(unet, controlnet)
+    state["image_proj"] = {"proj.weight": torch.zeros(2, 2)}
+    state["ip_adapter"]["200.to_k_ip.weight"] = torch.zeros(2, 2)
+    del state["ip_adapter"]["1.to_k_ip.weight"]
+    path = write_csgo_file(tmp_path / "extra.bin", state)
+    with caplog.at_level(logging.WARNING, logger="artnvg_core.diffusion.csgo_weights"):
+        projections = load_csgo(path, unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
+    assert not projections.unet_content
+    messages = "\n".join(r.getMessage() for r in caplog.records)
+    assert "ignored key groups ['image_proj']" in messages
+    assert "only 11 of the 12 UNet content entries; all ignored (missing [1.to_k_ip.weight])" in messages
+    assert "group 'ip_adapter': ignored 12 keys" in messages and "200.to_k_ip.weight" in messages
+
+
+def test_module_path_controlnet_group_also_loads_controlnet_weights(tmp_path, models, caplog):
+    """Keyed by module path, the group goes through controlnet.load_state_dict in the released loader:
+    any ControlNet weight it holds is loaded too (with its shape checked)."""
+    unet, controlnet = models
+    state = csgo_state(unet, controlnet, controlnet_by_index=False)
+    weight = torch.randn(controlnet.conv_in.weight.shape)
+    state["controlnet_adapter_modules"]["conv_in.weight"] = weight
+    with caplog.at_level(logging.INFO, logger="artnvg_core.diffusion.csgo_weights"):
+        load_csgo(write_csgo_file(tmp_path / "cn.bin", state), unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
+    assert torch.equal(controlnet.conv_in.weight, weight)
+    assert "1 other ControlNet weights replaced" in caplog.records[-1].getMessage()
+    state["controlnet_adapter_modules"]["conv_in.weight"] = torch.zeros(1)
+    with pytest.raises(CSGOWeightsError, match=r"'controlnet_adapter_modules': .*wrong shapes \['conv_in.weight \[1\]"):
+        load_csgo(write_csgo_file(tmp_path / "cn.bin", state), unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
 
 
 def _text_image_context(batch: int, seed: int = 0) -> torch.Tensor:

@@ -6,7 +6,8 @@ from diffusers import StableDiffusionXLControlNetPipeline
 from diffusers.models.attention_processor import AttnProcessor2_0
 
 from artnvg_core.cameras import CameraSet
-from artnvg_core.diffusion.conditioning import encode_prompt, prepare_conditioning
+from artnvg_core.diffusion.attention import AttentionControl
+from artnvg_core.diffusion.conditioning import encode_prompt, image_features, prepare_conditioning
 from artnvg_core.diffusion.memory import enable_low_memory, visiting
 from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
 from artnvg_core.diffusion.stylize import stylize_views
@@ -85,6 +86,60 @@ def test_matches_diffusers_controlnet_pipeline(csgo_models, scheduler, guidance)
     assert (ours - expected).abs().max().item() <= 1e-4
 
 
+class _BoundProcessor:
+    """One of our cross-attention processors with fixed settings, for a pipeline that hands the
+    ControlNet no cross_attention_kwargs (as CSGO's processors keep their token counts themselves)."""
+
+    def __init__(self, processor, control):
+        self.processor, self.control = processor, control
+
+    def __call__(self, attn, hidden_states, encoder_hidden_states=None, attention_mask=None, temb=None):
+        return self.processor(attn, hidden_states, encoder_hidden_states, attention_mask, temb, control=self.control)
+
+
+def test_csgo_tokens_match_diffusers_pipeline_at_a_non_square_size(csgo_models):
+    """With CSGO tokens in play (paper routing, NV off) at 64x128, our sampler equals diffusers' SDXL ControlNet
+    pipeline fed prompt embeddings [text, view i's own content tokens, style tokens] and unconditional ones from
+    zero features: catches swapped guidance halves, another view's content tokens and (w, h) size ids."""
+    models, views = csgo_models, 3
+    images, style_image = _images(views, height=64, width=128), _images(1, seed=9)
+    control = AttentionControl(num_content_tokens=4, num_style_tokens=8, content_scale=0.8, style_scale=0.7)
+    base = models.base
+    pipe = StableDiffusionXLControlNetPipeline(
+        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2, unet=base.unet, controlnet=models.controlnet,
+        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config), add_watermarker=False,
+    )
+    pipe.set_progress_bar_config(disable=True)
+    text, negative_text, pooled, negative_pooled = pipe.encode_prompt(PROMPT, device=torch.device("cpu"),
+                                                                      negative_prompt=NEGATIVE)
+    style = models.csgo.tokens("style", image_features(models.image_encoder, style_image))
+    content = [models.csgo.tokens("content", image_features(models.image_encoder, images[i : i + 1])) for i in
+               range(views)]  # one view at a time
+    cond = torch.cat([torch.cat([text, c.cond, style.cond], 1) for c in content])
+    uncond = torch.cat([torch.cat([negative_text, c.uncond, style.uncond], 1) for c in content])
+    saved = {model: dict(model.attn_processors) for model in (base.unet, models.controlnet)}
+    for model, processors in saved.items():
+        model.set_attn_processor({name: AttnProcessor2_0() if name.endswith("attn1.processor")
+                                  else _BoundProcessor(processor, control) for name, processor in processors.items()})
+    try:
+        expected = pipe(
+            prompt_embeds=cond, negative_prompt_embeds=uncond, pooled_prompt_embeds=pooled.expand(views, -1),
+            negative_pooled_prompt_embeds=negative_pooled.expand(views, -1), image=images.permute(0, 3, 1, 2),
+            height=64, width=128, num_inference_steps=3, guidance_scale=5.0, controlnet_conditioning_scale=0.9,
+            generator=torch.Generator().manual_seed(4), output_type="pt",
+        ).images.permute(0, 2, 3, 1)
+    finally:
+        for model, processors in saved.items():
+            model.set_attn_processor(processors)
+    settings = SamplerSettings(steps=3, guidance_scale=5.0, content_scale=0.8, style_scale=0.7, control_scale=0.9,
+                               content_routing="paper", neighbour_views=False, resolution=None)
+    conditioning = prepare_conditioning(models, style_image, PROMPT, NEGATIVE)
+    ours = stylize_group(models, images, conditioning, settings, seed=4)
+    assert ours.shape == (views, 64, 128, 3)
+    assert (ours - expected).abs().max().item() <= 1e-4
+
+
 def test_prompt_encoding_matches_diffusers(csgo_models):
     base = csgo_models.base
     pipe = StableDiffusionXLControlNetPipeline(
@@ -116,10 +171,25 @@ def _run(models, images, seed=3, **changes):
 def test_switches_change_the_result(csgo_models):
     images = _images(3)
     base = _run(csgo_models, images, neighbour_views=False, content_scale=0.0, style_scale=0.0)
-    for change in ({"neighbour_views": True}, {"content_scale": 1.0}, {"style_scale": 0.6}):
+    for change in ({"neighbour_views": True}, {"content_scale": 1.0, "content_routing": "paper"}, {"style_scale": 0.6}):
         settings = {"neighbour_views": False, "content_scale": 0.0, "style_scale": 0.0, **change}
         assert (_run(csgo_models, images, **settings) - base).abs().max() > 1e-4, change
     assert torch.equal(_run(csgo_models, images, neighbour_views=False, content_scale=0.0, style_scale=0.0), base)
+
+
+def test_released_routing_reads_no_content_tokens(csgo_models, tmp_path):
+    """CSGO's released inference: with the content entries loaded, "released" equals "paper" at
+    content_scale 0, and content_scale changes nothing; "paper" needs the entries."""
+    images = _images(3)
+    released = _run(csgo_models, images, content_scale=1.0)
+    assert torch.equal(released, _run(csgo_models, images, content_routing="paper", content_scale=0.0))
+    assert torch.equal(released, _run(csgo_models, images, content_scale=0.3))
+    without_content = tiny_models(tmp_path, unet_content=False)
+    assert _run(without_content, images).shape == images.shape
+    with pytest.raises(ValueError, match="content_routing 'paper' needs the CSGO file's content entries"):
+        _run(without_content, images, content_routing="paper")
+    with pytest.raises(ValueError, match="SamplerSettings.content_routing must be one of"):
+        SamplerSettings(content_routing="papers")
 
 
 def test_single_view_group_ignores_nv_switch(csgo_models):

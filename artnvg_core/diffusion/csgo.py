@@ -1,8 +1,17 @@
 """CSGO content/style control on SDXL: token routing, processor installation, projections.
 
-Routing (ArtNVG / CSGO): cross-attention (``attn2``) of the UNet's ``down_blocks`` reads
-the content tokens, of its ``up_blocks`` the style tokens, of its ``mid_block`` text
-only; the ControlNet's ``down_blocks`` read the style tokens, its ``mid_block`` text only.
+Routing: cross-attention (``attn2``) of the UNet's ``up_blocks`` reads the style tokens, of
+its ``mid_block`` text only; the ControlNet's ``down_blocks`` read the style tokens, its
+``mid_block`` text only. The UNet's ``down_blocks`` depend on the content routing
+(:data:`CONTENT_ROUTINGS`):
+
+* ``"released"``: text only, which is what CSGO's released inference code computes (its
+  content loop never marks those layers, so they get a text-only processor): content
+  reaches the image through the Tile ControlNet alone and ``content_scale`` has no effect;
+* ``"paper"``: the content tokens, as the CSGO and ArtNVG papers describe; needs the
+  content entries of the ``ip_adapter`` group, which a file saved from the released
+  class does not hold.
+
 Every self-attention (``attn1``) of both models becomes neighbouring-view attention.
 
 Released weight layout (``ip_adapter`` group and the ControlNet's ``controlnet_adapter_modules``):
@@ -26,8 +35,10 @@ from torch import nn
 from .attention import DecoupledCrossAttention, NeighbourViewSelfAttention
 from .resampler import PerceiverResampler
 
-UNET_ROUTES = {"down_blocks": "content", "up_blocks": "style", "mid_block": None}
+UNET_ROUTES = {"down_blocks": "content", "up_blocks": "style", "mid_block": None}  # with content entries
+UNET_STYLE_ROUTES = {**UNET_ROUTES, "down_blocks": None}  # without them
 CONTROLNET_ROUTES = {"down_blocks": "style", "mid_block": None}
+CONTENT_ROUTINGS = ("released", "paper")
 
 
 def route_for(processor_name: str, routes: dict[str, str | None]) -> str | None:
@@ -64,6 +75,17 @@ def install_processors(
     model.set_attn_processor(processors)
 
 
+def routed_keys(model: nn.Module, routes: dict[str, str | None], kind: str, by_index: bool = True) -> list[str]:
+    """Released-layout keys (see :func:`processor_key_layout`) of the ``attn2`` layers of ``model`` that
+    ``routes`` gives ``kind`` tokens, whatever processors are installed now."""
+    keys = []
+    for index, name in enumerate(model.attn_processors):
+        if name.endswith("attn2.processor") and route_for(name, routes) == kind:
+            prefix = str(index) if by_index else name
+            keys += [f"{prefix}.to_k_ip.weight", f"{prefix}.to_v_ip.weight"]
+    return keys
+
+
 def processor_key_layout(model: nn.Module, by_index: bool = True) -> dict[str, torch.nn.Parameter]:
     """Released-layout key -> parameter of every installed image branch of ``model``.
 
@@ -88,12 +110,17 @@ class ImageTokens:
 
 
 class CSGOProjections(nn.Module):
-    """CSGO's two resamplers: ``content`` (4 tokens) and ``style`` (32 or 16 tokens)."""
+    """CSGO's two resamplers: ``content`` (4 tokens) and ``style`` (32 or 16 tokens).
 
-    def __init__(self, content: PerceiverResampler, style: PerceiverResampler):
+    unet_content: the UNet's down blocks hold content branches (the file had their entries),
+    which the ``"paper"`` content routing needs.
+    """
+
+    def __init__(self, content: PerceiverResampler, style: PerceiverResampler, unet_content: bool = True):
         super().__init__()
         self.content = content
         self.style = style
+        self.unet_content = unet_content
 
     @property
     def num_content_tokens(self) -> int:

@@ -1,42 +1,53 @@
-"""Load CSGO's released weights (``csgo_4_32.bin``: 4/32 tokens, ``csgo.bin``: 4/16) strictly.
+"""Load CSGO's weights (``csgo_4_32.bin``: 4/32 tokens, ``csgo.bin``: 4/16) in every layout the
+released loader reads, strictly where it would keep a random weight.
 
 File layout: a ``torch.save`` dict of key groups (or a ``.safetensors`` file whose keys
 carry the group name as prefix, ``content_image_proj.latents`` ...):
 
 * ``content_image_proj`` / ``style_image_proj``: :class:`PerceiverResampler` state dicts;
-  the token counts come from the ``latents`` shapes.
+  the token counts come from the ``latents`` shapes. Strict, as in the released loader.
 * ``ip_adapter``: the UNet's image branches, ``{i}.to_k_ip.weight`` / ``{i}.to_v_ip.weight``
-  (layout in :mod:`artnvg_core.diffusion.csgo`).
-* ``controlnet_adapter_modules``: the ControlNet's image branches, either indexed the same
+  (layout in :mod:`artnvg_core.diffusion.csgo`). The up blocks' style entries are required.
+  The down blocks' content entries are optional: a file saved from the released class has
+  none (its down blocks are text-only); when all are there they are loaded and the
+  ``"paper"`` content routing becomes available.
+* ``controlnet_adapter_modules``: the ControlNet's style branches, either indexed the same
   way over the ControlNet's processors, or keyed by module path
   (``down_blocks.1.attentions.0.transformer_blocks.0.attn2.processor.to_k_ip.weight``, the
-  only layout CSGO's own ``controlnet.load_state_dict(..., strict=False)`` would consume).
+  layout CSGO's own ``controlnet.load_state_dict(..., strict=False)`` consumes; by module path,
+  other ControlNet weights in the group are loaded too, as that call does).
 * optional ``conv_in_unet_sd``: a replacement ``unet.conv_in`` state dict.
 
-Unlike the released loader (``strict=False``), every key must be consumed and every
-expected parameter filled with the right shape; otherwise :class:`CSGOWeightsError`
-lists the missing and unexpected keys per group and names the file.
+Like the released loader, other top-level groups and keys no layer reads are ignored, with a
+warning naming them on the ``artnvg_core.diffusion.csgo_weights`` logger. Unlike it (``strict=False``),
+a missing style, resampler or ControlNet key, or a wrong shape, is a :class:`CSGOWeightsError`
+that lists the keys and names the file. The layout found is logged once per load (INFO).
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from ..statedict import state_dict_mismatch
+from ..statedict import listed_keys, state_dict_mismatch
 from .csgo import (
     CONTROLNET_ROUTES,
     UNET_ROUTES,
+    UNET_STYLE_ROUTES,
     CSGOProjections,
     install_processors,
     processor_key_layout,
+    routed_keys,
 )
 from .resampler import PerceiverResampler, resampler_config_from_state_dict
 
 REQUIRED_GROUPS = ("content_image_proj", "style_image_proj", "ip_adapter", "controlnet_adapter_modules")
 OPTIONAL_GROUPS = ("conv_in_unet_sd",)
+
+_log = logging.getLogger(__name__)
 
 
 class CSGOWeightsError(ValueError):
@@ -45,11 +56,10 @@ class CSGOWeightsError(ValueError):
 
 def read_csgo_file(path: str | Path) -> dict[str, dict[str, torch.Tensor]]:
     """Read the key groups of a CSGO file (``.bin``/``.pt`` via ``torch.load(weights_only=True)``,
-    or ``.safetensors``) onto the CPU, checking that the required groups are there and no others."""
+    or ``.safetensors``) onto the CPU; the required groups must be there, others are dropped with a warning."""
     path = Path(path)
     if not path.is_file():
         raise CSGOWeightsError(f"CSGO weights: file '{path}' does not exist")
-    known = REQUIRED_GROUPS + OPTIONAL_GROUPS
     if path.suffix == ".safetensors":
         from safetensors.torch import load_file
 
@@ -62,26 +72,49 @@ def read_csgo_file(path: str | Path) -> dict[str, dict[str, torch.Tensor]]:
             groups = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as error:  # unpickling errors have many types
             raise CSGOWeightsError(f"CSGO weights '{path}': not a readable torch file ({error})") from error
-    if not isinstance(groups, dict) or not all(isinstance(g, dict) for g in groups.values()):
+    if not isinstance(groups, dict):
         raise CSGOWeightsError(f"CSGO weights '{path}': expected a dict of key groups {list(REQUIRED_GROUPS)}")
     missing = [g for g in REQUIRED_GROUPS if g not in groups]
-    unexpected = [g for g in groups if g not in known]
-    if missing or unexpected:
+    if missing:
         raise CSGOWeightsError(
-            f"CSGO weights '{path}': key groups missing {missing}, unexpected {unexpected}; expected "
-            f"{list(REQUIRED_GROUPS)} (optional {list(OPTIONAL_GROUPS)})"
+            f"CSGO weights '{path}': key groups missing {missing}; expected {list(REQUIRED_GROUPS)} "
+            f"(optional {list(OPTIONAL_GROUPS)})"
         )
+    ignored = [g for g in groups if g not in REQUIRED_GROUPS + OPTIONAL_GROUPS]
+    if ignored:
+        _log.warning("CSGO weights '%s': ignored key groups %s (the released loader reads only %s)", path, ignored,
+                     list(REQUIRED_GROUPS + OPTIONAL_GROUPS))
+    groups = {g: groups[g] for g in REQUIRED_GROUPS + OPTIONAL_GROUPS if g in groups}
+    bad = [g for g, value in groups.items() if not isinstance(value, dict)]
+    if bad:
+        raise CSGOWeightsError(f"CSGO weights '{path}': key groups {bad} are not dicts of tensors")
     return groups
 
 
-def _fill(targets: dict[str, torch.Tensor], source: dict[str, torch.Tensor], group: str, path: Path) -> None:
-    """Copy ``source`` into the ``targets`` parameters; all keys must match with equal shapes."""
-    mismatch = state_dict_mismatch(targets, source)
+def _fill(
+    targets: dict[str, torch.Tensor],
+    source: dict[str, torch.Tensor],
+    group: str,
+    path: Path,
+    *,
+    optional: dict[str, torch.Tensor] | None = None,
+    strict: bool = False,
+) -> list[str]:
+    """Copy ``source`` into the ``targets`` parameters (every one must be there with its shape) and into
+    those of ``optional`` it holds; returns the keys it ignored (with ``strict``, any is an error)."""
+    optional = {k: v for k, v in (optional or {}).items() if k in source and k not in targets}
+    known = {**targets, **optional}
+    ignored = [k for k in source if k not in known]
+    mismatch = state_dict_mismatch(known, source if strict else {k: v for k, v in source.items() if k in known})
     if mismatch:
         raise CSGOWeightsError(f"CSGO weights '{path}', group '{group}': {mismatch}")
     with torch.no_grad():
-        for key, param in targets.items():
+        for key, param in known.items():
             param.copy_(source[key])
+    if ignored:
+        _log.warning("CSGO weights '%s', group '%s': ignored %d keys no layer reads %s", path, group, len(ignored),
+                     listed_keys(ignored))
+    return ignored
 
 
 def _load_resampler(state: dict[str, torch.Tensor], group: str, path: Path, dim_head: int) -> PerceiverResampler:
@@ -90,8 +123,19 @@ def _load_resampler(state: dict[str, torch.Tensor], group: str, path: Path, dim_
     except ValueError as error:
         raise CSGOWeightsError(f"CSGO weights '{path}', group '{group}': {error}") from error
     resampler = PerceiverResampler(config)
-    _fill(dict(resampler.state_dict(keep_vars=True)), state, group, path)
+    _fill(dict(resampler.state_dict(keep_vars=True)), state, group, path, strict=True)
     return resampler
+
+
+def _unet_routes(unet: nn.Module, ip_adapter: dict[str, torch.Tensor], path: Path) -> dict[str, str | None]:
+    """UNET_ROUTES when ``ip_adapter`` holds every content entry of the down blocks, else UNET_STYLE_ROUTES
+    (a partial set is ignored with a warning, as the released loader ignores them all)."""
+    content = routed_keys(unet, UNET_ROUTES, "content")
+    present = [key for key in content if key in ip_adapter]
+    if present and len(present) < len(content):
+        _log.warning("CSGO weights '%s': only %d of the %d UNet content entries; all ignored (missing %s)", path,
+                     len(present), len(content), listed_keys([k for k in content if k not in ip_adapter]))
+    return UNET_ROUTES if len(present) == len(content) else UNET_STYLE_ROUTES
 
 
 def load_csgo(
@@ -106,7 +150,7 @@ def load_csgo(
     ``path`` and return the content/style resamplers (on the UNet's device and dtype).
 
     dim_head: the resamplers' head width (64 in CSGO; not stored in the file).
-    Raises :class:`CSGOWeightsError` on any layout mismatch (see the module docstring).
+    Raises :class:`CSGOWeightsError` on a missing or mis-shaped key (see the module docstring).
     """
     path = Path(path)
     groups = read_csgo_file(path)
@@ -119,13 +163,27 @@ def load_csgo(
                 f"CSGO weights '{path}', group '{name}': output width {resampler.config.output_dim} "
                 f"!= the UNet's cross_attention_dim {cross_dim}"
             )
-    install_processors(unet, UNET_ROUTES, query_chunk_size=query_chunk_size)
+    unet_routes = _unet_routes(unet, groups["ip_adapter"], path)
+    install_processors(unet, unet_routes, query_chunk_size=query_chunk_size)
     install_processors(controlnet, CONTROLNET_ROUTES, query_chunk_size=query_chunk_size)
     _fill(processor_key_layout(unet), groups["ip_adapter"], "ip_adapter", path)
     controlnet_keys = groups["controlnet_adapter_modules"]
     by_index = all(key.split(".", 1)[0].isdigit() for key in controlnet_keys)
-    _fill(processor_key_layout(controlnet, by_index), controlnet_keys, "controlnet_adapter_modules", path)
+    others = {} if by_index else dict(controlnet.state_dict(keep_vars=True))
+    ignored = _fill(processor_key_layout(controlnet, by_index), controlnet_keys, "controlnet_adapter_modules", path,
+                    optional=others)
     if "conv_in_unet_sd" in groups:
-        _fill(dict(unet.conv_in.state_dict(keep_vars=True)), groups["conv_in_unet_sd"], "conv_in_unet_sd", path)
+        _fill(dict(unet.conv_in.state_dict(keep_vars=True)), groups["conv_in_unet_sd"], "conv_in_unet_sd", path,
+              strict=True)
+    replaced = len(controlnet_keys) - len(ignored) - len(processor_key_layout(controlnet, by_index))
+    _log.info(
+        "CSGO weights '%s': %d content / %d style tokens; UNet content entries %s; ControlNet entries keyed by %s%s%s",
+        path, content.config.num_queries, style.config.num_queries,
+        "loaded (content routing 'paper' available)" if unet_routes is UNET_ROUTES else "absent (as saved by the "
+        "released code; content routing 'released' only)", "processor index" if by_index else "module path",
+        f", {replaced} other ControlNet weights replaced" if replaced else "",
+        ", UNet conv_in replaced" if "conv_in_unet_sd" in groups else "",
+    )
     weight = unet.conv_in.weight
-    return CSGOProjections(content, style).to(device=weight.device, dtype=weight.dtype)
+    projections = CSGOProjections(content, style, unet_content=unet_routes is UNET_ROUTES)
+    return projections.to(device=weight.device, dtype=weight.dtype)

@@ -5,7 +5,8 @@ For a group of content images [N, H, W, 3] (ComfyUI IMAGE layout, values in [0, 
 1. resize to the working size (aspect kept; by default CSGO's: long side ``resolution``);
 2. conditioning context per view: ``[text (77), content tokens (4), style tokens (32/16)]``
    for the conditional half, ``[negative text, tokens of zero features]`` for the
-   unconditional half; the ControlNet hint is the content image itself;
+   unconditional half; the ControlNet hint is the content image itself. With the
+   ``"released"`` content routing no layer reads content tokens, so they are left out;
 3. SDXL micro-conditioning: ``add_time_ids = (h, w, 0, 0, h, w)`` and the pooled text embedding;
 4. denoise from seeded Gaussian latents with a diffusers scheduler (DDIM by default) and
    classifier-free guidance; the batch is ``[uncond view 1..N, cond view 1..N]`` and
@@ -39,6 +40,7 @@ from diffusers import (
 from ..grouping import nearest_views
 from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
+from .csgo import CONTENT_ROUTINGS
 from .conditioning import StyleConditioning, content_tokens
 from .images import check_images, csgo_size, resize_images, sdxl_size
 from .memory import visiting
@@ -61,6 +63,9 @@ class SamplerSettings:
     """Sampling parameters. Defaults: the paper's scales (content 1.0, style 0.6, control 1.0) and
     DDIM; guidance 10 and 50 steps as in CSGO's inference script.
 
+    content_routing: "released" (CSGO's released inference: UNet down blocks read text only, content
+        comes through the Tile ControlNet and content_scale has no effect) or "paper" (content tokens
+        into every UNet down-block attn2; needs the CSGO file's content entries).
     resolution: working size of a view (None: keep the content size, rounded to 64); see size_rule.
     size_rule: "long_side": CSGO's ``resize_content``, the long side becomes ``resolution`` (a 16:9 view
         samples at 1024x576), sides floored to what the UNet halves exactly (multiples of 32 on SDXL);
@@ -82,6 +87,7 @@ class SamplerSettings:
     content_scale: float = 1.0
     style_scale: float = 0.6
     control_scale: float = 1.0
+    content_routing: str = "released"
     neighbour_views: bool = True
     resolution: int | None = 1024
     size_rule: str = "long_side"
@@ -104,6 +110,10 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
         if self.scheduler not in SCHEDULERS:
             raise ValueError(f"SamplerSettings.scheduler must be one of {sorted(SCHEDULERS)}, got {self.scheduler!r}")
+        if self.content_routing not in CONTENT_ROUTINGS:
+            raise ValueError(
+                f"SamplerSettings.content_routing must be one of {CONTENT_ROUTINGS}, got {self.content_routing!r}"
+            )
         if self.size_rule not in SIZE_RULES:
             raise ValueError(f"SamplerSettings.size_rule must be one of {SIZE_RULES}, got {self.size_rule!r}")
         if self.resolution is not None and self.resolution < 64:
@@ -170,13 +180,22 @@ def _attention_control(
         if view_centers is None:
             raise ValueError("stylize_group: SamplerSettings.nv_nearest needs view_centers (each view's camera centre)")
         neighbours = nearest_views(view_centers, settings.nv_nearest)
+    num_content_tokens = 0
+    if models.csgo is not None and settings.content_routing == "paper":
+        if not models.csgo.unet_content:
+            raise ValueError(
+                "SamplerSettings.content_routing 'paper' needs the CSGO file's content entries for the UNet's "
+                "down blocks, which the loaded file does not hold (a file saved by the released code has none); "
+                "use 'released'"
+            )
+        num_content_tokens = models.csgo.num_content_tokens
     nv_max_tokens = None
     if settings.nv_levels == "lowest":
         factor = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
         nv_max_tokens = -(-latent_size[0] // factor) * -(-latent_size[1] // factor)
     return AttentionControl(
         views_per_group=views,
-        num_content_tokens=0 if models.csgo is None else models.csgo.num_content_tokens,
+        num_content_tokens=num_content_tokens,
         num_style_tokens=0 if conditioning.style is None else conditioning.style.cond.shape[1],
         content_scale=settings.content_scale,
         style_scale=settings.style_scale,
@@ -199,7 +218,7 @@ def _model_inputs(
     unet, views = models.base.unet, len(images)
     device, dtype = unet.device, unet.dtype
     prompt, style = conditioning.prompt, conditioning.style
-    content = content_tokens(models, images)
+    content = content_tokens(models, images) if control.num_content_tokens else None
     cond, uncond = [prompt.text], [prompt.negative_text]
     for tokens in (content, style):
         if tokens is not None:
