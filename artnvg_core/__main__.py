@@ -12,6 +12,7 @@ import torch
 
 from .cliutil import ProgressBar, load_scene_verbose, parse_device, parse_devices, parse_view_indices
 from .devices import DEVICE_CHOICES
+from .diffusion.csgo import CONTENT_ROUTINGS
 from .metrics.report import add_evaluate_arguments
 
 
@@ -83,6 +84,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     if stylizer == "diffusion":
         result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
+                                      content_routing=args.content_routing,
                                       devices=parse_devices(args.devices),
                                       sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
     else:
@@ -115,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
     p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
                    help="diffusion speed/accuracy preset (README: Presets)")
+    p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
+                   help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
+                   "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
     p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1 "
                    "(default: --device)")
     p.add_argument("--iters", type=int, default=None,

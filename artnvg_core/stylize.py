@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -142,6 +142,7 @@ def stylize_diffusion(
     paths: ModelPaths,
     *,
     preset: str = "paper",
+    content_routing: str = "released",
     devices: Sequence[str | torch.device] | None = None,
     group_size: int = 15,
     sampling_progress: ProgressFn | None = None,
@@ -152,8 +153,9 @@ def stylize_diffusion(
     SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
 
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``config.iterations`` is used as given. ``devices`` (default: the scene's) share
-    the groups, one worker process per device beyond the first (identical results).
+    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``); ``config.iterations`` is
+    used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
+    beyond the first (identical results).
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
     from .diffusion.conditioning import prepare_conditioning
@@ -163,6 +165,7 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
+    settings = replace(chosen.sampler, content_routing=content_routing)
     devices = [scene.device] if not devices else [torch.device(d) for d in devices]
     load = functools.partial(load_models_for, paths, chosen.low_memory)
     with torch.no_grad():
@@ -172,13 +175,13 @@ def stylize_diffusion(
     conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if len(devices) == 1:
-        views = stylize_groups(models, content, groups, conditioning, chosen.sampler, **common)
+        views = stylize_groups(models, content, groups, conditioning, settings, **common)
         del models
     else:
         del models  # each worker loads its own copy
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
-        views = stylize_groups_on_devices(load, content, groups, conditioning, chosen.sampler, devices=devices, **common)
+        views = stylize_groups_on_devices(load, content, groups, conditioning, settings, devices=devices, **common)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
     return result, views
 

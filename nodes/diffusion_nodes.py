@@ -25,6 +25,7 @@ from artnvg_core.diffusion.model_files import (
     locate,
 )
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
+from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
@@ -301,7 +302,7 @@ class SampleGroup:
                 "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
                 "steps": ("INT", {"default": defaults.steps, "min": 1, "max": 1000}),
                 "guidance_scale": ("FLOAT", {"default": defaults.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
-                "content_scale": scale(defaults.content_scale, "Weight of the CSGO content tokens (down blocks)."),
+                "content_scale": scale(defaults.content_scale, "Weight of the CSGO content tokens (down blocks; content_routing paper only)."),
                 "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
                 "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
                 "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
@@ -313,12 +314,17 @@ class SampleGroup:
                 "size_rule": (SIZE_RULES, {"default": defaults.size_rule, "tooltip": (
                     "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
                     "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
+                "content_routing": (CONTENT_ROUTINGS, {"default": defaults.content_routing, "tooltip": (
+                    "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
+                    "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
+                    "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
             },
         }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
-               content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule):
+               content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule,
+               content_routing=SamplerSettings.content_routing):
         if len(content_views) != groups.num_views:
             raise NodeInputError(
                 f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -332,7 +338,7 @@ class SampleGroup:
             settings = SamplerSettings(
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
-                resolution=resolution or None, size_rule=size_rule, scheduler=scheduler,
+                content_routing=content_routing, resolution=resolution or None, size_rule=size_rule, scheduler=scheduler,
                 sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )

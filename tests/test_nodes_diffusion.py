@@ -5,6 +5,8 @@ The model files are tiny randomly initialised models written to disk in the real
 node outputs are compared with the direct ``artnvg_core`` calls.
 """
 
+from dataclasses import replace
+
 import pytest
 import torch
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
@@ -132,6 +134,12 @@ def test_sample_group_all_groups_or_one_matches_the_core(loaded):
     (without_nv,) = call(SampleGroup, models=loaded, embeds=embeds, content_views=content, groups=groups,
                          group_index=1, **SAMPLING)
     assert not torch.equal(without_nv, second)
+
+    (paper,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                    group_index=-1, content_routing="paper", **SAMPLING)
+    expected = stylize_views(loaded.models, content, cameras, style, replace(settings, content_routing="paper"),
+                             group_size=2, seed=7, prompt=PROMPT, negative_prompt=NEGATIVE)
+    assert torch.equal(paper, expected) and not torch.equal(paper, every)
 
 
 def test_sample_group_errors_name_the_input(loaded, monkeypatch):

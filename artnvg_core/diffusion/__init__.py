@@ -6,7 +6,7 @@ Entry points (import them from their modules; this package imports nothing heavy
 - :mod:`.stylize`      -- ``stylize_views``: a whole scene, group by group
 - :mod:`.sampler`      -- ``stylize_group``, ``SamplerSettings``: one neighbouring-view group
 - :mod:`.conditioning` -- ``prepare_conditioning``: prompt embeddings and style tokens
-- :mod:`.csgo_weights` -- ``load_csgo``: CSGO's released weights, loaded strictly
+- :mod:`.csgo_weights` -- ``load_csgo``: CSGO's weights in every layout the released loader reads
 - :mod:`.csgo`         -- token routing, processor installation, ``CSGOProjections``
 - :mod:`.attention`    -- ``NeighbourViewSelfAttention``, ``DecoupledCrossAttention``, ``AttentionControl``
 - :mod:`.resampler`    -- ``PerceiverResampler``
