@@ -104,9 +104,20 @@ class CameraSet:
 
 # --------------------------------------------------------------------------- rotations
 
+def normalize_quats(quat: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions [..., 4] of ``quat`` [..., 4] of any finite norm (1e-40 to 3e38 in float32):
+    each is divided by its largest absolute component before the norm is taken, so the squares
+    neither underflow nor overflow. The zero quaternion stays zero (which :func:`quat_to_rotmat`
+    maps to the identity)."""
+    largest = quat.detach().abs().amax(-1, keepdim=True)
+    scaled = quat / torch.where(largest > 0, largest, torch.ones_like(largest))
+    return torch.nn.functional.normalize(scaled, dim=-1, eps=1e-12)
+
+
 def quat_to_rotmat(quat: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [..., 3, 3] from quaternions [..., 4] (w x y z, any non-zero norm)."""
-    w, x, y, z = torch.nn.functional.normalize(quat, dim=-1, eps=1e-12).unbind(-1)
+    """Rotation matrices [..., 3, 3] from quaternions [..., 4] (w x y z, any finite norm, normalised
+    with :func:`normalize_quats`; the zero quaternion gives the identity)."""
+    w, x, y, z = normalize_quats(quat).unbind(-1)
     rows = (
         (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),

@@ -243,3 +243,87 @@ def test_gsplat_backend_matches_reference_on_cuda():
     fast = render(scene, cams, return_depth=True, backend="gsplat")
     assert (ref.rgb - fast.rgb).abs().max() <= 1e-3
     assert (ref.alpha - fast.alpha).abs().max() <= 1e-3
+
+
+def _assert_matches_brute_force(scene, cams, tolerance=1e-4):
+    s = scene.to(dtype=torch.float64)
+    out = render(scene, cams, backend="torch")
+    for c in range(len(cams)):
+        rgb, alpha, _ = brute_force_render(s.means, s.quats, s.log_scales, s.opacity_logits, s.sh,
+                                           cams.world_to_cam[c], cams.intrinsics[c], 40, 32)
+        assert np.abs(out.rgb[c].numpy() - rgb).max() <= tolerance
+        assert np.abs(out.alpha[c, ..., 0].numpy() - alpha).max() <= tolerance
+
+
+@pytest.mark.parametrize("seed", [0])
+def test_quaternions_of_any_norm_render_as_normalised(seed):
+    """Fuzz: every quaternion times 10^k, k in -40..38 (float32's whole range, 1e-13 and 1e30 included)."""
+    scene = hard_scene(seed, n=30)
+    g = torch.Generator().manual_seed(seed)
+    exponents = torch.randint(-40, 39, (len(scene), 1), generator=g).double()
+    exponents[:2, 0] = torch.tensor([-13.0, 30.0])
+    quats = (scene.quats.double() * 10.0**exponents).float()
+    assert torch.isfinite(quats).all() and (quats != 0).any(-1).all()
+    unnormalised = GaussianScene(scene.means, quats, scene.log_scales, scene.opacity_logits, scene.sh)
+    cams = make_cameras(EYES[:2])
+    _assert_matches_brute_force(unnormalised, cams)
+    assert torch.allclose(render(unnormalised, cams).rgb, render(scene, cams).rgb, atol=1e-4)
+
+
+def test_zero_quaternion_is_the_identity_rotation():
+    from artnvg_core.cameras import quat_to_rotmat
+
+    assert torch.equal(quat_to_rotmat(torch.zeros(2, 4)), torch.eye(3).expand(2, 3, 3))
+
+
+@pytest.mark.parametrize("huge", [(40.0, 42.0, 45.0), (30.0, 25.0, -3.0), (88.7, 88.7, 88.7)])
+def test_huge_log_scales_match_float64_and_keep_gradients_finite(huge):
+    """Gaussians far larger than the view (log-scales up to float32's exp limit, 88.7) cover it at
+    their opacity; a float64 evaluation of the same Gaussians agrees, gradients stay finite."""
+    scene = hard_scene(0, n=20)
+    log_scales = scene.log_scales.clone()
+    log_scales[[0, 5]] = torch.tensor(huge)
+    params = dict(scene.tensors(), log_scales=log_scales)
+    cams = make_cameras(EYES[:2])
+    _assert_matches_brute_force(GaussianScene(**params), cams)
+    params = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    out = render(GaussianScene(**params), cams, return_depth=True, backend="torch")
+    (out.rgb.sum() + out.depth.sum()).backward()
+    for name, p in params.items():
+        assert torch.isfinite(p.grad).all(), name
+
+
+@pytest.mark.parametrize("log_scale", [100.0, 1e4, 3e38])
+def test_log_scales_beyond_exp_range_render_as_the_limit(log_scale):
+    """exp(log-scale) overflows float32 above 88.7; such a Gaussian renders as one at 88.7 would."""
+    scene = hard_scene(1, n=10)
+    limit, beyond = scene.log_scales.clone(), scene.log_scales.clone()
+    limit[3], beyond[3] = 88.7, log_scale
+    cams = make_cameras(EYES)
+    expected = render(GaussianScene(**dict(scene.tensors(), log_scales=limit)), cams)
+    got = render(GaussianScene(**dict(scene.tensors(), log_scales=beyond)), cams)
+    assert torch.equal(got.rgb, expected.rgb) and torch.equal(got.alpha, expected.alpha)
+    assert (got.alpha > 0.3).all()  # the huge Gaussian covers every view
+
+
+@pytest.mark.parametrize("value", [3e38, -3e38, 1e20])
+def test_huge_sh_gives_finite_images_and_gradients(value):
+    """Finite SH up to float32's limit: finite renders and gradients; renders clamped to [0, 1]
+    equal those of SH just below the colour cap (a capped channel already saturates its pixel)."""
+    scene = hard_scene(2, n=20)
+    sh = scene.sh.clone()
+    sh[:4] = value
+    sh[4:6, 1:] = -value
+    params = {k: v.clone().requires_grad_(True) for k, v in dict(scene.tensors(), sh=sh).items()}
+    cams = make_cameras(EYES)
+    out = render(GaussianScene(**params), cams, return_depth=True, backend="torch")
+    assert torch.isfinite(out.rgb).all()
+    (out.rgb.clamp(0, 1).sum() + out.depth.sum()).backward()
+    for name, p in params.items():
+        assert torch.isfinite(p.grad).all(), name
+    if value == 1e20:  # float64 agrees once both are clamped to [0, 1]
+        s = GaussianScene(**dict(scene.tensors(), sh=sh)).to(dtype=torch.float64)
+        for c in range(len(cams)):
+            rgb, _, _ = brute_force_render(s.means, s.quats, s.log_scales, s.opacity_logits, s.sh,
+                                           cams.world_to_cam[c], cams.intrinsics[c], 40, 32)
+            assert np.abs(out.rgb[c].detach().clamp(0, 1).numpy() - np.clip(rgb, 0, 1)).max() <= 1e-4

@@ -79,10 +79,14 @@ def render(
     near_plane: Gaussians with camera-space z <= near_plane are culled.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
-    low-pass, alpha = min(0.999, o * exp(-d^T Sigma^-1 d / 2)), samples with
+    low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is
+    compensated as gsplat's "antialiased" mode does), alpha = min(0.999, o * exp(-d^T Sigma^-1 d / 2)), samples with
     alpha < 1/255 skipped, front-to-back compositing in depth order stopping
     at transmittance 1e-4. Colour = max(SH(dir) + 0.5, 0), dir from the
-    camera centre to the Gaussian. Returns a :class:`RenderOutput`.
+    camera centre to the Gaussian. Any finite parameters give finite images and
+    gradients (reference backend): unnormalised quaternions of any norm,
+    log-scales up to the float32 limit, SH up to 3e38 (colours are capped where
+    a pixel is already >= 1, see :mod:`.sh`). Returns a :class:`RenderOutput`.
     """
     degree = scene.sh_degree if sh_degree is None else sh_degree
     _check_inputs(scene, cameras, degree, background)

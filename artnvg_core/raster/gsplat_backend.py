@@ -13,17 +13,19 @@ def gsplat_available() -> bool:
 
 
 def render_gsplat(scene, world_to_cam, intrinsics, width, height, sh_degree, background, return_depth, near_plane):
-    """Render with ``gsplat.rasterization`` in "classic" mode.
+    """Render with ``gsplat.rasterization`` in the scene's mode ("classic", or "antialiased"), blur ``eps2d``.
 
     Returns rgb [C, H, W, 3], alpha [C, H, W, 1], depth [C, H, W, 1] or None
     (expected depth normalised by alpha, 0 where alpha is 0).
     """
     from gsplat import rasterization
 
+    from ..cameras import normalize_quats
+
     sh = scene.sh[:, : (sh_degree + 1) ** 2]
     out, alpha, _ = rasterization(
         means=scene.means,
-        quats=scene.quats,
+        quats=normalize_quats(scene.quats),  # gsplat's own normalisation over/underflows
         scales=torch.exp(scene.log_scales),
         opacities=torch.sigmoid(scene.opacity_logits),
         colors=sh,

@@ -1,8 +1,8 @@
 """EWA projection of 3D Gaussians into one pinhole camera (gsplat "classic").
 
 Conventions: OpenCV camera (x right, y down, z forward), pixel centres at
-+0.5, a +0.3 px^2 low-pass added to every 2D covariance, Gaussians whose
-centre lies before the near plane culled. The perspective Jacobian clamps
++0.5, a low-pass (0.3 px^2 unless the scene says otherwise) added to every
+2D covariance, Gaussians whose centre lies before the near plane culled. The perspective Jacobian clamps
 x/z and y/z to 1.3x the field of view, as 3DGS and gsplat do.
 """
 
@@ -17,6 +17,7 @@ from ..cameras import quat_to_rotmat
 BLUR_PX2 = 0.3
 ALPHA_MIN = 1.0 / 255.0
 MAX_EXTENT = 3.33  # sigma multiple bounding the footprint, as in gsplat
+MAX_RADIUS_PX = 2.0**31  # footprints are cut to the image, then to this (centres this far off the image)
 
 
 @dataclass
@@ -28,7 +29,7 @@ class Projection:
     conics: [M, 3] inverse 2D covariance (a, b, c) of [[a, b], [b, c]], 1/px^2.
     depths: [M] camera-space z.
     opacities: [M] sigmoid(opacity logit).
-    radii: [M, 2] integer half extents (x, y) of the footprint in pixels.
+    radii: [M, 2] integer half extents (x, y) of the footprint in pixels, cut to the image.
     """
 
     index: torch.Tensor
@@ -49,8 +50,14 @@ def project(
     width: int,
     height: int,
     near_plane: float = 0.01,
+    blur_px2: float = BLUR_PX2,
+    antialiased: bool = False,
 ) -> Projection:
     """Project N Gaussians into one camera ([4, 4] world-to-camera, [3, 3] K).
+
+    ``blur_px2`` is the low-pass variance added to every 2D covariance S;
+    ``antialiased`` scales each opacity by sqrt(det(S) / det(S + blur I)) (gsplat's
+    "antialiased" mode), computed only when set.
 
     Keeps the Gaussians in front of ``near_plane``, with opacity >= 1/255,
     whose footprint overlaps the image; the footprint is the box where the
@@ -77,20 +84,32 @@ def project(
     # Sigma_2d = A A^T with A = J W R S, so det(Sigma_2d) is a sum of squared
     # 2x2 minors (Cauchy-Binet): exact and non-negative even for needle-thin
     # Gaussians, where a*c - b^2 would cancel catastrophically in float32.
-    scaled_rot = quat_to_rotmat(quats[index]) * torch.exp(log_scales[index])[:, None, :]
+    # Any finite log-scale is valid: the largest scale k = exp(top) (top >= 0) is
+    # factored out, A = k A', so no square or minor overflows, and
+    # conic = inverse(A'A'^T + u blur I) * u with u = 1/k^2, which underflows
+    # to 0 (alpha = opacity everywhere) for a Gaussian far larger than any view.
+    log_s = log_scales[index]
+    top = log_s.detach().amax(-1).clamp_min(0)
+    scaled_rot = quat_to_rotmat(quats[index]) * torch.exp(log_s - top[:, None])[:, None, :]
     a_mat = jac @ (rot_w2c @ scaled_rot)
     r0, r1 = a_mat[:, 0], a_mat[:, 1]
-    cov_a = (r0 * r0).sum(-1) + BLUR_PX2
+    inv_k2 = torch.exp(-2 * top)
+    blur = blur_px2 * inv_k2
+    cov_a = (r0 * r0).sum(-1) + blur
     cov_b = (r0 * r1).sum(-1)
-    cov_c = (r1 * r1).sum(-1) + BLUR_PX2
+    cov_c = (r1 * r1).sum(-1) + blur
     minors = torch.linalg.cross(r0, r1, dim=-1)
-    det = (minors * minors).sum(-1) + BLUR_PX2 * (cov_a + cov_c - BLUR_PX2)
-    conics = torch.stack([cov_c / det, -cov_b / det, cov_a / det], -1)
+    det_unblurred = (minors * minors).sum(-1)
+    det = det_unblurred + blur * (cov_a + cov_c - blur)
+    if antialiased:  # both determinants carry the same 1/k^4, so their ratio is exact
+        opacities = opacities * torch.sqrt(det_unblurred / det.clamp_min(torch.finfo(det.dtype).tiny))
+    conics = torch.stack([cov_c, -cov_b, cov_a], -1) * (inv_k2 / det.clamp_min(torch.finfo(det.dtype).tiny))[:, None]
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
 
     with torch.no_grad():
-        extent = torch.sqrt(2.0 * torch.log(opacities / ALPHA_MIN)).clamp_max(MAX_EXTENT)
-        radii = torch.ceil(extent[:, None] * torch.stack([cov_a, cov_c], -1).sqrt())
+        extent = torch.sqrt(2.0 * torch.log(opacities / ALPHA_MIN).clamp_min(0)).clamp_max(MAX_EXTENT)
+        sigmas = torch.exp(top[:, None] + 0.5 * torch.log(torch.stack([cov_a, cov_c], -1)))  # may be inf
+        radii = torch.ceil(extent[:, None] * sigmas)
         on_screen = (
             (means2d[:, 0] + radii[:, 0] > 0)
             & (means2d[:, 0] - radii[:, 0] < width)
@@ -98,6 +117,10 @@ def project(
             & (means2d[:, 1] - radii[:, 1] < height)
         )
         sel = on_screen.nonzero()[:, 0]
+        # A footprint reaching past the whole image is cut to the image: same tiles, integer-sized.
+        size = torch.tensor([width, height], dtype=means2d.dtype, device=means2d.device)
+        reach = torch.maximum(means2d.abs(), (means2d - size).abs()).ceil()
+        radii = torch.minimum(radii, reach).clamp_max(MAX_RADIUS_PX)
     return Projection(
         index=index[sel],
         means2d=means2d[sel],

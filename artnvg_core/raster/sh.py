@@ -5,6 +5,14 @@ from __future__ import annotations
 import torch
 
 from ..scene import SH_C0
+from .projection import ALPHA_MIN
+from .torch_backend import T_MIN
+
+# The cap that keeps colours and their gradients finite for any finite coefficients (float32 sums
+# of huge terms overflow to inf, and inf colours give NaN gradients). A composited Gaussian weighs
+# more than ALPHA_MIN * T_MIN, so a colour channel at COLOR_MAX already makes its pixel >= 1:
+# the cap changes no image clamped to [0, 1].
+COLOR_MAX = 1.0 / (ALPHA_MIN * T_MIN)
 
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -24,7 +32,7 @@ def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
 
     sh: [N, K, 3] coefficients, DC first; only the first (degree + 1)^2 are used.
     dirs: [N, 3] viewing directions (camera centre -> Gaussian), any length > 0.
-    Returns [N, 3] = max(SH(dirs) + 0.5, 0).
+    Returns [N, 3] = SH(dirs) + 0.5 clamped to [0, COLOR_MAX] (no image clamped to [0, 1] changes).
     """
     result = SH_C0 * sh[:, 0]
     if degree > 0:
@@ -52,4 +60,4 @@ def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
                     + SH_C3[5] * z * (xx - yy) * sh[:, 14]
                     + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15]
                 )
-    return torch.clamp_min(result + 0.5, 0.0)
+    return torch.clamp(result + 0.5, 0.0, COLOR_MAX)
