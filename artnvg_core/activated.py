@@ -9,6 +9,9 @@ logits, unnormalised quaternions). The activated form of N Gaussians is
 - ``opacities`` [N]     ``sigmoid(opacity_logits)``, in [0, 1]
 - ``sh``        [N, K, 3] spherical-harmonic coefficients, unchanged (DC first, K = (d + 1)^2, d <= 3)
 
+It has no place for a scene's rendering settings (``blur_px2``, ``antialiased``): viewers render it
+as classic 3DGS, and :func:`deactivate` gives a scene with the defaults.
+
 Both directions compute in float64 and round once to float32, so each value is the correctly
 rounded image of its source; float32 ``exp``/``log`` and ``sigmoid``/``logit`` are not bijections,
 so round trips are exact only up to that rounding. Activated -> scene -> activated gives positions
