@@ -18,6 +18,7 @@ Gaussians are the starting point (not a fresh fit); no densification.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, fields
 
@@ -32,6 +33,7 @@ from .scene import GaussianScene
 
 OPTIMIZE_CHOICES = ("appearance", "all")
 APPEARANCE = ("sh", "opacity_logits")
+_log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -138,6 +140,17 @@ def _vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
     return shrink_to_max_side(_nchw(images), config.nnfm_max_side)
 
 
+def _skip_blind_view(view: int, cameras: CameraSet, blind: set[int]) -> None:
+    """Warn once about a view that sees no Gaussian; ValueError once every view is such."""
+    if view in blind:
+        return
+    blind.add(view)
+    _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
+    if len(blind) == len(cameras):
+        raise ValueError(f"finetune: none of the {len(cameras)} cameras sees any Gaussian; check that the "
+                         "cameras and the scene share one coordinate frame")
+
+
 def _total_variation(images: torch.Tensor) -> torch.Tensor:
     """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images."""
     return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
@@ -195,10 +208,14 @@ def finetune(
         with torch.no_grad():
             originals = _vgg_input(render(scene, cameras, backend=config.backend).rgb.clamp(0, 1), config)
 
+    blind: set[int] = set()
     for step in range(config.iterations):
         check_stop(should_stop)
         view = int(torch.randint(len(cameras), (1,), generator=generator))
         image = render(_scene_of(params), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
+        if not image.requires_grad:  # no Gaussian projects into this view: nothing to learn from it
+            _skip_blind_view(view, cameras, blind)
+            continue
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
             target = stylized[view : view + 1]

@@ -150,3 +150,24 @@ def test_bad_inputs_rejected(demo):
         finetune(scene, cameras, style[..., :2])
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
+
+
+def _looking_away(cameras):
+    """The same intrinsics, every camera 1e4 units out along +z looking further out: sees no Gaussian."""
+    pose = torch.eye(4)
+    pose[2, 3] = -1e4
+    return dataclasses.replace(cameras, world_to_cam=pose.expand(len(cameras), 4, 4).clone())
+
+
+def test_a_view_that_sees_no_gaussian_is_skipped_with_a_warning(demo, caplog):
+    scene, cameras, style = demo
+    away = _looking_away(cameras.subset([0]))
+    assert render(scene, away).alpha.max() == 0
+    mixed = dataclasses.replace(cameras.subset([0, 1]), world_to_cam=torch.cat([away.world_to_cam, cameras.world_to_cam[1:2]]))
+    config = FinetuneConfig(iterations=6, nnfm_max_side=32)
+    with caplog.at_level("WARNING", logger="artnvg_core.finetune"):
+        result = finetune(scene, mixed, style, config=config)
+    assert [r.message for r in caplog.records] == [f"finetune: view 0 ({mixed.names[0]}) sees no Gaussian; its steps are skipped"]
+    assert not torch.equal(result.sh, scene.sh) and torch.isfinite(result.sh).all()
+    with pytest.raises(ValueError, match="none of the 2 cameras sees any Gaussian"):
+        finetune(scene, _looking_away(cameras.subset([0, 1])), style, config=config)
