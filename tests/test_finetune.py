@@ -1,5 +1,7 @@
 """Finetuning: style is taken, geometry kept, targets reproduced, cancellation clean, deterministic."""
 
+import dataclasses
+
 import pytest
 import torch
 
