@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -48,6 +49,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .presets import get_preset
     from .stylize import (
         DemoInputs,
+        DiffusionModelsUnavailable,
         ModelPaths,
         choose_stylizer,
         save_result,
@@ -75,19 +77,29 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     stylizer, reason = choose_stylizer(args.stylizer, paths)
     preset = get_preset(args.preset)
-    iterations = preset.finetune_iterations if stylizer == "diffusion" else 1000
-    iterations = args.iters if args.iters is not None else (200 if demo else iterations)
+
+    def iterations_for(stylizer: str) -> int:
+        default = preset.finetune_iterations if stylizer == "diffusion" else 1000
+        return args.iters if args.iters is not None else (200 if demo else default)
+
+    iterations = iterations_for(stylizer)
     print(f"stylizer: {stylizer} ({reason})" + (f"; preset {args.preset}: {preset.summary}" if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed)
     start = time.perf_counter()
     if stylizer == "diffusion":
-        result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
-                                      content_routing=args.content_routing,
-                                      devices=parse_devices(args.devices),
-                                      sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
-    else:
+        try:
+            result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
+                                          content_routing=args.content_routing,
+                                          devices=parse_devices(args.devices),
+                                          sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
+        except DiffusionModelsUnavailable as error:
+            if args.stylizer != "auto":
+                raise
+            stylizer, config = "nnfm", dataclasses.replace(config, iterations=iterations_for("nnfm"))
+            print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
+    if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
     sheet = save_result(scene, result, cameras, style, args.out)
     print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")

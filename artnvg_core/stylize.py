@@ -78,24 +78,18 @@ class ModelPaths:
     csgo: str | Path | None = None
 
 
-def find_diffusion_models(paths: ModelPaths) -> str | None:
-    """None when every diffusion model file is found, else the first missing one's message."""
-    from .diffusion.model_files import (
-        CSGO_WEIGHTS,
-        IMAGE_ENCODER,
-        SDXL_BASE,
-        TILE_CONTROLNET,
-        MissingModelError,
-        locate,
-    )
+class DiffusionModelsUnavailable(ValueError):
+    """The diffusion models could not be loaded (the message says why)."""
 
-    sources = ((SDXL_BASE, paths.sdxl), (TILE_CONTROLNET, paths.controlnet), (IMAGE_ENCODER, paths.image_encoder),
-               (CSGO_WEIGHTS, paths.csgo))
-    for source, path in sources:
-        try:
-            locate(source, path)
-        except MissingModelError as error:
-            return str(error)
+
+def find_diffusion_models(paths: ModelPaths) -> str | None:
+    """None when every file the diffusion models' load reads is there, else the first missing one's message."""
+    from .diffusion.model_files import MissingModelError, check_model_files
+
+    try:
+        check_model_files(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo)
+    except MissingModelError as error:
+        return str(error)
     return None
 
 
@@ -121,14 +115,18 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
 def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device):
     """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
     loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`.
+    Any failure to load raises :class:`DiffusionModelsUnavailable` saying why.
     A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
     from .diffusion.memory import enable_low_memory
     from .diffusion.models import load_diffusion_models
 
     device = torch.device(device)
     dtype = torch.float16 if device.type == "cuda" else torch.float32
-    models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
-                                   device="cpu" if low_memory else device)
+    try:
+        models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
+                                       device="cpu" if low_memory else device)
+    except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
+        raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
     if low_memory:
         enable_low_memory(models, device)
     return models
@@ -168,10 +166,10 @@ def stylize_diffusion(
     settings = replace(chosen.sampler, content_routing=content_routing)
     devices = [scene.device] if not devices else [torch.device(d) for d in devices]
     load = functools.partial(load_models_for, paths, chosen.low_memory)
+    models = load(devices[0])  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
     groups = group_views(cameras, group_size)
-    models = load(devices[0])
     conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if len(devices) == 1:

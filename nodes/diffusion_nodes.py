@@ -15,6 +15,7 @@ import torch
 
 from artnvg_core.devices import DEVICE_CHOICES, device_for
 from artnvg_core.diffusion.conditioning import prepare_conditioning
+from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
 from artnvg_core.diffusion.model_files import (
     CSGO_WEIGHTS,
@@ -22,10 +23,10 @@ from artnvg_core.diffusion.model_files import (
     SDXL_BASE,
     TILE_CONTROLNET,
     ModelSource,
+    check_model_files,
     locate,
 )
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
-from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
@@ -171,7 +172,7 @@ class LoadArtNVGModels:
         }
         optional["sdxl_config_dir"] = ("STRING", {"default": "", "tooltip": (
             "A diffusers-format SDXL folder (model_index.json, configs, tokenizers) for a single-file "
-            "checkpoint; blank: stabilityai/stable-diffusion-xl-base-1.0 from the Hugging Face cache.")})
+            "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")})
         optional["memory"] = (MEMORY_MODES, {"default": "full", "tooltip": (
             "low: a 15-view group at 1024 px within 12 GiB, same result, ~10% slower: only the UNet stays on "
             "the GPU, the rest visits it; guidance halves one at a time. Start ComfyUI with "
@@ -180,10 +181,14 @@ class LoadArtNVGModels:
 
     @classmethod
     def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
-                        sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path=""):
+                        sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
+                        sdxl_config_dir=""):
+        """True when every file the load reads is there, else the message naming what is missing."""
         try:
-            _model_paths(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
-                         (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+            paths = _model_paths(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
+                                 (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+            with node_input(cls.DISPLAY_NAME):
+                check_model_files(*paths, sdxl_config_dir=sdxl_config_dir.strip() or None)
         except NodeInputError as error:
             return str(error)
         return True
@@ -302,7 +307,8 @@ class SampleGroup:
                 "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
                 "steps": ("INT", {"default": defaults.steps, "min": 1, "max": 1000}),
                 "guidance_scale": ("FLOAT", {"default": defaults.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
-                "content_scale": scale(defaults.content_scale, "Weight of the CSGO content tokens (down blocks; content_routing paper only)."),
+                "content_scale": scale(defaults.content_scale, (
+                    "Weight of the CSGO content tokens (down blocks; content_routing paper only).")),
                 "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
                 "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
                 "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
@@ -338,7 +344,8 @@ class SampleGroup:
             settings = SamplerSettings(
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
-                content_routing=content_routing, resolution=resolution or None, size_rule=size_rule, scheduler=scheduler,
+                content_routing=content_routing, resolution=resolution or None, size_rule=size_rule,
+                scheduler=scheduler,
                 sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )

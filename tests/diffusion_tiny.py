@@ -256,3 +256,100 @@ def write_model_files(root: Path) -> dict[str, Path]:
     write_csgo_file(root / "csgo.bin", csgo_state(base.unet, controlnet))
     return {"sdxl": root / "sdxl", "controlnet": root / "controlnet", "image_encoder": root / "image_encoder",
             "csgo": root / "csgo.bin"}
+
+
+def _ldm_unet_keys(unet: UNet2DConditionModel) -> dict[str, str]:
+    """diffusers UNet key -> key in an original (SGM) SDXL checkpoint, under ``model.diffusion_model.``."""
+    per_block = unet.config.layers_per_block + 1
+    resnet = {"norm1": "in_layers.0", "conv1": "in_layers.2", "norm2": "out_layers.0", "conv2": "out_layers.3",
+              "time_emb_proj": "emb_layers.1", "conv_shortcut": "skip_connection"}
+    top = {"time_embedding.linear_1": "time_embed.0", "time_embedding.linear_2": "time_embed.2",
+           "add_embedding.linear_1": "label_emb.0.0", "add_embedding.linear_2": "label_emb.0.2",
+           "conv_in": "input_blocks.0.0", "conv_norm_out": "out.0", "conv_out": "out.2"}
+    mapping = {}
+    for key in unet.state_dict():
+        parts = key.split(".")
+        head = key.rsplit(".", 1)[0]
+        if head in top:
+            new = f"{top[head]}.{parts[-1]}"
+        elif parts[0] == "down_blocks":
+            block, kind = int(parts[1]), parts[2]
+            if kind == "downsamplers":
+                new = f"input_blocks.{1 + block * per_block + per_block - 1}.0.op.{parts[-1]}"
+            else:
+                index = 1 + block * per_block + int(parts[3])
+                rest = parts[4:] if kind == "attentions" else [resnet.get(parts[4], parts[4]), *parts[5:]]
+                new = ".".join([f"input_blocks.{index}.{1 if kind == 'attentions' else 0}", *rest])
+        elif parts[0] == "mid_block":
+            index = {"resnets.0": 0, "attentions.0": 1, "resnets.1": 2}[".".join(parts[1:3])]
+            rest = parts[3:] if parts[1] == "attentions" else [resnet.get(parts[3], parts[3]), *parts[4:]]
+            new = ".".join([f"middle_block.{index}", *rest])
+        else:  # up_blocks
+            block, kind = int(parts[1]), parts[2]
+            if kind == "upsamplers":
+                has_attention = "attentions" in dict(unet.up_blocks[block].named_children())
+                new = f"output_blocks.{block * per_block + per_block - 1}.{2 if has_attention else 1}.conv.{parts[-1]}"
+            else:
+                index = block * per_block + int(parts[3])
+                rest = parts[4:] if kind == "attentions" else [resnet.get(parts[4], parts[4]), *parts[5:]]
+                new = ".".join([f"output_blocks.{index}.{1 if kind == 'attentions' else 0}", *rest])
+        mapping[key] = new
+    return mapping
+
+
+def _ldm_vae_state(vae: AutoencoderKL) -> dict[str, torch.Tensor]:
+    """The VAE's weights in the original layout (under ``first_stage_model.``; attention as 1x1 convolutions)."""
+    ups = len(vae.config.up_block_types)
+    attention = {"group_norm": "norm", "to_q": "q", "to_k": "k", "to_v": "v", "to_out.0": "proj_out"}
+    state = {}
+    for key, tensor in vae.state_dict().items():
+        new = key.replace("conv_norm_out", "norm_out").replace("conv_shortcut", "nin_shortcut")
+        new = new.replace("mid_block.resnets.0", "mid.block_1").replace("mid_block.resnets.1", "mid.block_2")
+        if "mid_block.attentions.0" in new:
+            new = new.replace("mid_block.attentions.0", "mid.attn_1")
+            for old, short in attention.items():
+                new = new.replace(f".{old}.", f".{short}.")
+            tensor = tensor[:, :, None, None] if tensor.ndim == 2 else tensor
+        parts = new.split(".")
+        if parts[1] == "down_blocks":
+            new = ".".join([parts[0], "down", parts[2], *(["block", *parts[4:]] if parts[3] == "resnets"
+                                                          else ["downsample", "conv", parts[-1]])])
+        elif parts[1] == "up_blocks":
+            new = ".".join([parts[0], "up", str(ups - 1 - int(parts[2])),
+                            *(["block", *parts[4:]] if parts[3] == "resnets" else ["upsample", "conv", parts[-1]])])
+        state[new] = tensor
+    return state
+
+
+def _open_clip_state(encoder: CLIPTextModelWithProjection) -> dict[str, torch.Tensor]:
+    """The projected text encoder's weights in OpenCLIP's layout (fused q/k/v, transposed projection)."""
+    text = {k.removeprefix("text_model."): v for k, v in encoder.state_dict().items()}
+    state = {"token_embedding.weight": text["embeddings.token_embedding.weight"],
+             "positional_embedding": text["embeddings.position_embedding.weight"],
+             "ln_final.weight": text["final_layer_norm.weight"], "ln_final.bias": text["final_layer_norm.bias"],
+             "text_projection": text["text_projection.weight"].T.contiguous()}
+    names = {"layer_norm1": "ln_1", "layer_norm2": "ln_2", "mlp.fc1": "mlp.c_fc", "mlp.fc2": "mlp.c_proj",
+             "self_attn.out_proj": "attn.out_proj"}
+    for layer in range(encoder.config.num_hidden_layers):
+        prefix = f"encoder.layers.{layer}."
+        for old, new in names.items():
+            for kind in ("weight", "bias"):
+                state[f"transformer.resblocks.{layer}.{new}.{kind}"] = text[f"{prefix}{old}.{kind}"]
+        for kind in ("weight", "bias"):
+            state[f"transformer.resblocks.{layer}.attn.in_proj_{kind}"] = torch.cat(
+                [text[f"{prefix}self_attn.{p}_proj.{kind}"] for p in "qkv"])
+    return state
+
+
+def write_single_file_checkpoint(path: Path, base) -> Path:
+    """``base`` (an SDXLBase) as one ``.safetensors`` in the key layout of ``sd_xl_base_1.0.safetensors``."""
+    from safetensors.torch import save_file
+
+    unet_state = base.unet.state_dict()
+    state = {f"model.diffusion_model.{new}": unet_state[old] for old, new in _ldm_unet_keys(base.unet).items()}
+    state.update({f"first_stage_model.{k}": v for k, v in _ldm_vae_state(base.vae).items()})
+    state.update({f"conditioner.embedders.0.transformer.text_model.{k.removeprefix('text_model.')}": v
+                  for k, v in base.text_encoder.state_dict().items()})
+    state.update({f"conditioner.embedders.1.model.{k}": v for k, v in _open_clip_state(base.text_encoder_2).items()})
+    save_file({k: v.contiguous() for k, v in state.items()}, str(path))
+    return path

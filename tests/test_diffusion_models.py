@@ -14,7 +14,15 @@ from artnvg_core.diffusion.models import (
     load_vae,
 )
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
-from diffusion_tiny import csgo_state, tiny_base, tiny_controlnet, tiny_image_encoder, tiny_scheduler, write_csgo_file
+from diffusion_tiny import (
+    csgo_state,
+    tiny_base,
+    tiny_controlnet,
+    tiny_image_encoder,
+    tiny_scheduler,
+    write_csgo_file,
+    write_single_file_checkpoint,
+)
 
 
 def _same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
@@ -66,12 +74,72 @@ def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):
         load_sdxl(tmp_path / "partial")
     checkpoint = tmp_path / "sd_xl_base_1.0.safetensors"
     checkpoint.write_bytes(b"")
-    with pytest.raises(
-        MissingModelError,
-        match=r"looked for '.*models--stabilityai--stable-diffusion-xl-base-1.0"
-        r".*huggingface-cli download stabilityai/stable-diffusion-xl-base-1.0",
-    ):
-        load_sdxl(checkpoint, hf_cache_dir=tmp_path / "empty_cache")
+    with pytest.raises(MissingModelError, match=r"SDXL configs for the single-file checkpoint .*configs/model_index"):
+        load_sdxl(checkpoint, config_dir=tmp_path / "configs")
+
+
+TINY_TEXT = dict(vocab_size=49408, hidden_size=4, intermediate_size=16, num_hidden_layers=2, num_attention_heads=2,
+                 max_position_embeddings=77, projection_dim=8, bos_token_id=49406, eos_token_id=49407,
+                 pad_token_id=49407)
+TINY_TEXT_2 = dict(TINY_TEXT, hidden_size=12, pad_token_id=0)  # widths 4 + 12: the tiny UNet's context of 16
+
+
+def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path, monkeypatch):
+    """A checkpoint in sd_xl_base_1.0.safetensors' key layout loads with no network, an empty Hugging Face cache
+    and no config folder: every weight arrives unchanged and the shipped CLIP tokenizers are used."""
+    import socket
+    from contextlib import contextmanager
+
+    from huggingface_hub import constants
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection
+
+    from artnvg_core.diffusion import models
+    from artnvg_core.diffusion.sdxl_config import write_sdxl_config_dir
+
+    original = tiny_base()
+    torch.manual_seed(3)
+    original.text_encoder = CLIPTextModel(CLIPTextConfig(**TINY_TEXT)).eval()
+    original.text_encoder_2 = CLIPTextModelWithProjection(CLIPTextConfig(**TINY_TEXT_2)).eval()
+    checkpoint = write_single_file_checkpoint(tmp_path / "sd_xl_base_1.0.safetensors", original)
+
+    @contextmanager
+    def tiny_built_in_config():  # the shipped folder's layout and tokenizers, with tiny architectures
+        yield write_sdxl_config_dir(tmp_path / "configs", unet=dict(original.unet.config),
+                                    vae=dict(original.vae.config), text_encoder=TINY_TEXT, text_encoder_2=TINY_TEXT_2)
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("network access")
+
+    monkeypatch.setattr(models, "built_in_sdxl_config", tiny_built_in_config)
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty_cache"))
+    monkeypatch.setattr(socket.socket, "connect", no_network)
+    loaded = load_sdxl(checkpoint, dtype=torch.float32)
+    for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
+        assert _same_weights(getattr(loaded, name), getattr(original, name)), name
+    assert loaded.tokenizer("a photo of a cat").input_ids == [49406, 320, 1125, 539, 320, 2368, 49407]
+    assert (loaded.tokenizer.pad_token, loaded.tokenizer_2.pad_token) == ("<|endoftext|>", "!")
+    assert loaded.scheduler_config["_class_name"] == "EulerDiscreteScheduler" and loaded.force_zeros_for_empty_prompt
+
+
+def test_shipped_configs_are_sdxl_base_1_0():
+    """The built-in folder builds SDXL's four models with their published parameter counts, and its tokenizer
+    is CLIP's (49,408 tokens, the vocabulary derived from the shipped merges)."""
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection, CLIPTokenizer
+
+    from artnvg_core.diffusion.sdxl_config import built_in_sdxl_config
+
+    with built_in_sdxl_config() as folder, torch.device("meta"):
+        counts = [sum(p.numel() for p in model.parameters()) for model in (
+            UNet2DConditionModel.from_config(UNet2DConditionModel.load_config(folder, subfolder="unet")),
+            AutoencoderKL.from_config(AutoencoderKL.load_config(folder, subfolder="vae")),
+            CLIPTextModel(CLIPTextConfig.from_pretrained(folder, subfolder="text_encoder")),
+            CLIPTextModelWithProjection(CLIPTextConfig.from_pretrained(folder, subfolder="text_encoder_2")),
+        )]
+        tokenizer = CLIPTokenizer.from_pretrained(folder, subfolder="tokenizer_2", local_files_only=True)
+    assert counts == [2_567_463_684, 83_653_863, 123_060_480, 694_659_840]
+    assert len(tokenizer) == 49408 and tokenizer.convert_tokens_to_ids(["a</w>", "cat</w>"]) == [320, 2368]
 
 
 def test_locate_explicit_path_then_hf_cache(tmp_path):

@@ -80,6 +80,18 @@ def test_missing_model_names_the_input_the_file_and_where_to_get_it(model_files,
     assert "input 'csgo_weights'" in message and "'csgo_4_32.bin'" in message
     assert "'csgo' model folder" in message and "huggingface.co/InstantX/CSGO" in message
 
+    partial = tmp_path / "partial_sdxl"  # the loader would fail on it: validation says so, naming only that
+    partial.mkdir()
+    (partial / "model_index.json").write_text("{}")
+    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(partial)))
+    assert message.startswith("Load ArtNVG Models: SDXL diffusers folder component 'unet'") and "vae" not in message
+    single = tmp_path / "sd_xl_base_1.0.safetensors"
+    single.write_bytes(b"")
+    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single)),
+                                               sdxl_config_dir=str(tmp_path / "configs"))
+    assert "SDXL configs for the single-file checkpoint" in message and "configs/model_index.json" in message
+    assert LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single))) is True
+
     missing = tmp_path / "nowhere" / "csgo.bin"
     message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, csgo_weights_path=str(missing)))
     assert "input 'csgo_weights_path'" in message and str(missing) in message

@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
@@ -36,3 +37,38 @@ def test_low_memory_preset_and_two_devices_give_the_same_views(tmp_path, monkeyp
     torch.testing.assert_close(low, views, rtol=0, atol=1e-5)
     _, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"], group_size=2)
     torch.testing.assert_close(spread, views, rtol=0, atol=1e-5)
+
+
+def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_path, monkeypatch, capsys):
+    """choose_stylizer checks what the load reads; a file that is there but fails to load makes the
+    command line fall back too, saying why. ``diffusion`` asked for explicitly fails instead."""
+    import shutil
+
+    from artnvg_core import __main__ as cli
+    from artnvg_core import stylize
+    from artnvg_core.stylize import DiffusionModelsUnavailable, choose_stylizer, load_models_for
+
+    files = write_model_files(tmp_path)
+    shutil.rmtree(files["sdxl"] / "unet")
+    stylizer, reason = choose_stylizer("auto", ModelPaths(**files))
+    assert stylizer == "nnfm" and "SDXL diffusers folder component 'unet'" in reason and "csgo" not in reason.lower()
+
+    files = write_model_files(tmp_path / "broken")
+    files["csgo"].write_bytes(b"not a torch file")
+    paths = ModelPaths(**files)
+    assert choose_stylizer("auto", paths) == ("diffusion", "auto: all diffusion model files found")
+    with pytest.raises(DiffusionModelsUnavailable, match="could not be loaded: CSGO weights .* not a readable"):
+        load_models_for(paths, False, "cpu")
+
+    finetuned = []
+    monkeypatch.setattr(stylize, "stylize_nnfm", lambda scene, *args, **kwargs: finetuned.append(kwargs) or scene)
+    monkeypatch.setattr(stylize, "save_result", lambda *args: tmp_path / "sheet.png")
+    demo = DemoInputs()
+    common = [str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
+              "--out", str(tmp_path / "out.ply"), "--sdxl", str(files["sdxl"]), "--controlnet", str(files["controlnet"]),
+              "--image-encoder", str(files["image_encoder"]), "--csgo", str(files["csgo"])]
+    assert cli.main(["stylize", *common]) == 0 and len(finetuned) == 1
+    assert "stylizer: nnfm (auto: falling back, diffusion models could not be loaded: CSGO weights" in \
+        capsys.readouterr().out
+    assert cli.main(["stylize", *common, "--stylizer", "diffusion"]) == 2
+    assert "error: diffusion models could not be loaded" in capsys.readouterr().err

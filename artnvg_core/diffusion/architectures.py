@@ -4,6 +4,9 @@
   (``unet/config.json`` / ``vae/config.json``).
 * :data:`SDXL_SCHEDULER_CONFIG`: its noise schedule (``scheduler/scheduler_config.json``),
   for DDIM and the other diffusers schedulers.
+* :data:`CLIP_L_TEXT_CONFIG` / :data:`BIGG_TEXT_CONFIG`: SDXL's two text encoders (OpenAI CLIP
+  ViT-L/14 text tower, OpenCLIP ViT-bigG/14 text tower with projection), transformers
+  ``CLIPTextConfig`` fields; the token ids are CLIP's BPE ids (49406 start, 49407 end).
 * :func:`controlnet_config_from_unet`: an SDXL ControlNet of the UNet's architecture (what
   diffusers' ``ControlNetModel.from_unet`` builds; the TTPlanet tile ControlNet has it).
 * :data:`VIT_BIGG_IMAGE_ENCODER_CONFIG`: the IP-Adapter SDXL image encoder
@@ -59,6 +62,32 @@ SDXL_VAE_CONFIG = dict(
     sample_size=1024,
     scaling_factor=0.13025,
     force_upcast=True,
+)
+
+CLIP_L_TEXT_CONFIG = dict(
+    vocab_size=49408,
+    hidden_size=768,
+    intermediate_size=3072,
+    num_hidden_layers=12,
+    num_attention_heads=12,
+    max_position_embeddings=77,
+    hidden_act="quick_gelu",
+    layer_norm_eps=1e-5,
+    projection_dim=768,
+    bos_token_id=49406,
+    eos_token_id=49407,
+    pad_token_id=49407,
+)
+
+BIGG_TEXT_CONFIG = dict(
+    CLIP_L_TEXT_CONFIG,
+    hidden_size=1280,
+    intermediate_size=5120,
+    num_hidden_layers=32,
+    num_attention_heads=20,
+    hidden_act="gelu",
+    projection_dim=1280,
+    pad_token_id=0,  # its tokenizer pads with "!"
 )
 
 VIT_BIGG_IMAGE_ENCODER_CONFIG = dict(

@@ -86,3 +86,47 @@ def locate(source: ModelSource, path: str | Path | None = None, *, hf_cache_dir:
         f"{source.description} not found: looked for {looked}. Get it from {source.url} "
         f"(e.g. `{source.download_command}`) and pass its path."
     )
+
+
+SDXL_COMPONENTS = ("unet", "vae", "text_encoder", "text_encoder_2", "tokenizer", "tokenizer_2", "scheduler")
+
+
+def require_path(path: Path, what: str) -> Path:
+    """``path`` when it exists, else :class:`MissingModelError` naming ``what`` and the path."""
+    if not path.exists():
+        raise MissingModelError(f"{what}: '{path}' does not exist")
+    return path
+
+
+def check_sdxl(path: Path, config_dir: str | Path | None = None) -> None:
+    """An SDXL folder holds its index and components; a single file's explicit ``config_dir`` holds its index
+    (without one, the configs shipped with the package are used)."""
+    if path.is_dir():
+        require_path(path / "model_index.json", "SDXL diffusers folder")
+        for name in SDXL_COMPONENTS:
+            require_path(path / name, f"SDXL diffusers folder component '{name}'")
+        require_path(path / "vae" / "config.json", "SDXL VAE config")
+    elif config_dir is not None:
+        require_path(Path(config_dir) / "model_index.json",
+                     f"SDXL configs for the single-file checkpoint '{path}' (a diffusers-format SDXL folder)")
+
+
+def check_model_files(
+    sdxl: str | Path | None = None,
+    controlnet: str | Path | None = None,
+    image_encoder: str | Path | None = None,
+    csgo: str | Path | None = None,
+    *,
+    sdxl_config_dir: str | Path | None = None,
+    hf_cache_dir: str | Path | None = None,
+) -> tuple[Path, Path, Path, Path]:
+    """The paths of SDXL, the ControlNet, the image encoder and CSGO (None = the Hugging Face cache), after
+    checking without loading anything that each file or folder holds what its loader reads.
+    Raises :class:`MissingModelError` naming the first thing missing, and only that."""
+    paths = tuple(locate(source, path, hf_cache_dir=hf_cache_dir) for source, path in (
+        (SDXL_BASE, sdxl), (TILE_CONTROLNET, controlnet), (IMAGE_ENCODER, image_encoder), (CSGO_WEIGHTS, csgo)))
+    check_sdxl(paths[0], sdxl_config_dir)
+    for path, what in ((paths[1], "ControlNet folder"), (paths[2], "image encoder folder")):
+        if path.is_dir():
+            require_path(path / "config.json", what)
+    return paths

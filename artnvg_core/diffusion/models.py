@@ -1,8 +1,9 @@
 """Loading the diffusion models from explicit paths (or the Hugging Face cache), never downloading.
 
 * SDXL 1.0 base: a diffusers folder (``model_index.json`` + component subfolders), or a
-  single-file checkpoint (``.safetensors``/``.ckpt``) together with a diffusers-format SDXL
-  folder that supplies the configs and tokenizers (``config_dir``; its weights are not read).
+  single-file checkpoint (``.safetensors``/``.ckpt``, e.g. ``sd_xl_base_1.0.safetensors``).
+  Its configs and tokenizers come with the package (:mod:`.sdxl_config`), so it loads with no
+  network; ``config_dir`` may name another diffusers-format SDXL folder (its weights are not read).
 * VAE override (e.g. madebyollin/sdxl-vae-fp16-fix): a diffusers folder or one ``.safetensors``
   with diffusers keys. fp16-safe decoding: a VAE whose config says ``force_upcast`` is kept
   in float32 when float16 is requested.
@@ -18,6 +19,8 @@ Single weight files are loaded strictly: missing or unexpected keys raise ValueE
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,16 +44,17 @@ from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
 from .model_files import (
-    CSGO_WEIGHTS,
     IMAGE_ENCODER,
     SDXL_BASE,
     SDXL_VAE_FP16_FIX,
     TILE_CONTROLNET,
     MissingModelError,
+    check_model_files,
+    check_sdxl,
     locate,
+    require_path,
 )
-
-SDXL_COMPONENTS = ("unet", "vae", "text_encoder", "text_encoder_2", "tokenizer", "tokenizer_2", "scheduler")
+from .sdxl_config import built_in_sdxl_config
 
 
 @dataclass
@@ -84,12 +88,6 @@ class DiffusionModels:
 def _vae_dtype(force_upcast: bool, dtype: torch.dtype) -> torch.dtype:
     """float32 for a float16 request on a VAE that overflows in float16 (``force_upcast``), else ``dtype``."""
     return torch.float32 if dtype == torch.float16 and force_upcast else dtype
-
-
-def _require(path: Path, what: str) -> Path:
-    if not path.exists():
-        raise MissingModelError(f"{what}: '{path}' does not exist")
-    return path
 
 
 def _read_weights(path: Path) -> dict[str, torch.Tensor]:
@@ -126,6 +124,16 @@ def _weights_variant(folder: Path) -> str | None:
     return "fp16" if files and not plain else None
 
 
+@contextmanager
+def _config_folder(config_dir: str | Path | None) -> Iterator[Path]:
+    """The SDXL config folder of a single-file checkpoint: ``config_dir`` when given, else the built-in one."""
+    if config_dir is not None:
+        yield Path(config_dir)
+        return
+    with built_in_sdxl_config() as folder:
+        yield folder
+
+
 def load_sdxl(
     path: str | Path | None = None,
     *,
@@ -136,15 +144,13 @@ def load_sdxl(
 ) -> SDXLBase:
     """SDXL base from a diffusers folder or a single-file checkpoint (see the module docstring).
 
-    path None looks in the Hugging Face cache. For a single file, ``config_dir`` (default:
-    the cached stabilityai/stable-diffusion-xl-base-1.0 snapshot) provides configs and tokenizers.
+    path None looks in the Hugging Face cache. For a single file, ``config_dir`` (default: the
+    configs and tokenizers shipped with the package) provides configs and tokenizers.
     """
     path = locate(SDXL_BASE, path, hf_cache_dir=hf_cache_dir)
+    check_sdxl(path, config_dir)
     if path.is_dir():
-        _require(path / "model_index.json", "SDXL diffusers folder")
-        for name in SDXL_COMPONENTS:
-            _require(path / name, f"SDXL diffusers folder component '{name}'")
-        vae_config = json.loads(_require(path / "vae" / "config.json", "SDXL VAE config").read_text())
+        vae_config = json.loads((path / "vae" / "config.json").read_text())
         dtypes = {"default": dtype, "vae": _vae_dtype(vae_config.get("force_upcast", True), dtype)}
         pipe = StableDiffusionXLPipeline.from_pretrained(
             path,
@@ -154,14 +160,10 @@ def load_sdxl(
             add_watermarker=False,
         )
     else:
-        config_dir = locate(SDXL_BASE, config_dir, hf_cache_dir=hf_cache_dir)
-        _require(
-            Path(config_dir) / "model_index.json",
-            f"SDXL configs for the single-file checkpoint '{path}' (a diffusers-format SDXL folder)",
-        )
-        pipe = StableDiffusionXLPipeline.from_single_file(
-            str(path), config=str(config_dir), torch_dtype=dtype, local_files_only=True, add_watermarker=False
-        )
+        with _config_folder(config_dir) as folder:
+            pipe = StableDiffusionXLPipeline.from_single_file(
+                str(path), config=str(folder), torch_dtype=dtype, local_files_only=True, add_watermarker=False
+            )
     vae = pipe.vae.to(device=device, dtype=_vae_dtype(pipe.vae.config.force_upcast, dtype))
     return SDXLBase(
         unet=pipe.unet.to(device).eval(),
@@ -231,7 +233,7 @@ def load_image_encoder(
     """The IP-Adapter SDXL image encoder from a transformers folder or a single ``.safetensors`` file."""
     path = locate(IMAGE_ENCODER, path, hf_cache_dir=hf_cache_dir)
     if path.is_dir():
-        _require(path / "config.json", "image encoder folder")
+        require_path(path / "config.json", "image encoder folder")
         encoder = CLIPVisionModelWithProjection.from_pretrained(path, local_files_only=True)
     else:
         config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
@@ -256,13 +258,11 @@ def load_diffusion_models(
 ) -> DiffusionModels:
     """Load every model (None = the Hugging Face cache; ``vae`` None = SDXL's own VAE) and attach CSGO.
 
-    All files are located before any is loaded, so a missing one fails fast.
+    All files are checked (:func:`check_model_files`) before any is loaded, so a missing one fails fast.
     query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
     """
-    sdxl = locate(SDXL_BASE, sdxl, hf_cache_dir=hf_cache_dir)
-    controlnet = locate(TILE_CONTROLNET, controlnet, hf_cache_dir=hf_cache_dir)
-    image_encoder = locate(IMAGE_ENCODER, image_encoder, hf_cache_dir=hf_cache_dir)
-    csgo = locate(CSGO_WEIGHTS, csgo, hf_cache_dir=hf_cache_dir)
+    sdxl, controlnet, image_encoder, csgo = check_model_files(
+        sdxl, controlnet, image_encoder, csgo, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
     base = load_sdxl(sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device, hf_cache_dir=hf_cache_dir)
     if vae is not None:
         base.vae = load_vae(vae, dtype=dtype, device=device)
