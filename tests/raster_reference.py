@@ -48,8 +48,14 @@ def _sh_color(sh, d):
     return np.maximum(np.asarray(basis) @ sh + 0.5, 0.0)
 
 
-def brute_force_render(means, quats, log_scales, opacity_logits, sh, w2c, K, width, height, near=0.01, background=None):
-    """Render one view in float64. Returns rgb [H, W, 3], alpha [H, W], depth [H, W] (normalised)."""
+def brute_force_render(means, quats, log_scales, opacity_logits, sh, w2c, K, width, height, near=0.01, background=None,
+                       blur=0.3, antialiased=False, filter_3d=None):
+    """Render one view in float64. Returns rgb [H, W, 3], alpha [H, W], depth [H, W] (normalised).
+
+    blur: the 2D low-pass variance (px^2); antialiased: opacity x sqrt(det(cov2) / det(cov2 + blur I))
+    (gsplat "antialiased"); filter_3d: [N] Mip-Splatting 3D filter, covariance R (S^2 + f^2 I) R^T and
+    opacity x sqrt(det(S^2) / det(S^2 + f^2 I)).
+    """
     means, quats, log_scales, sh = (np.asarray(a, np.float64) for a in (means, quats, log_scales, sh))
     opac = 1 / (1 + np.exp(-np.asarray(opacity_logits, np.float64)))
     w2c, K = np.asarray(w2c, np.float64), np.asarray(K, np.float64)
@@ -61,15 +67,22 @@ def brute_force_render(means, quats, log_scales, opacity_logits, sh, w2c, K, wid
         p = rot_w @ means[i] + t_w
         if p[2] <= near:
             continue
-        cov = _rotation(quats[i]) @ np.diag(np.exp(2 * log_scales[i])) @ _rotation(quats[i]).T
+        variances = np.exp(2 * log_scales[i])
+        opacity = opac[i]
+        if filter_3d is not None:
+            opacity *= np.sqrt(np.prod(variances) / np.prod(variances + filter_3d[i] ** 2))
+            variances = variances + filter_3d[i] ** 2
+        cov = _rotation(quats[i]) @ np.diag(variances) @ _rotation(quats[i]).T
         cov_c = rot_w @ cov @ rot_w.T
         tx = p[2] * min((width - cx) / fx + 0.3 * 0.5 * width / fx, max(-(cx / fx + 0.3 * 0.5 * width / fx), p[0] / p[2]))
         ty = p[2] * min((height - cy) / fy + 0.3 * 0.5 * height / fy, max(-(cy / fy + 0.3 * 0.5 * height / fy), p[1] / p[2]))
         J = np.array([[fx / p[2], 0, -fx * tx / p[2] ** 2], [0, fy / p[2], -fy * ty / p[2] ** 2]])
-        cov2 = J @ cov_c @ J.T + 0.3 * np.eye(2)
+        cov2 = J @ cov_c @ J.T + blur * np.eye(2)
+        if antialiased:
+            opacity *= np.sqrt(np.linalg.det(cov2 - blur * np.eye(2)) / np.linalg.det(cov2))
         color = _sh_color(sh[i], (means[i] - cam_center) / np.linalg.norm(means[i] - cam_center))
         mean2 = np.array([fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy])
-        splats.append((p[2], mean2, np.linalg.inv(cov2), opac[i], color))
+        splats.append((p[2], mean2, np.linalg.inv(cov2), opacity, color))
     splats.sort(key=lambda s: s[0])
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
     rgb = np.zeros((height, width, 3))

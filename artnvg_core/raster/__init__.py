@@ -103,7 +103,8 @@ def render(
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
         w2c, k = cameras.world_to_cam[c], cameras.intrinsics[c]
-        proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height, near_plane)
+        proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height,
+                       near_plane, scene.blur_px2, scene.antialiased)
         center = cameras.centers[c]
         colors = sh_to_color(scene.sh[proj.index], scene.means[proj.index] - center, degree)
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors

@@ -37,7 +37,8 @@ def render_gsplat(scene, world_to_cam, intrinsics, width, height, sh_degree, bac
         sh_degree=sh_degree,
         backgrounds=background,
         render_mode="RGB+ED" if return_depth else "RGB",
-        rasterize_mode="classic",
+        eps2d=scene.blur_px2,
+        rasterize_mode="antialiased" if scene.antialiased else "classic",
     )
     depth = torch.where(alpha > 0, out[..., 3:4], torch.zeros_like(alpha)) if return_depth else None
     return out[..., :3], alpha, depth
