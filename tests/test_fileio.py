@@ -1,0 +1,131 @@
+"""Image reading at any bit depth and size, output-path checks, files written together or not at all."""
+
+import os
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from artnvg_core.fileio import (
+    MAX_IMAGE_PIXELS,
+    check_output_file,
+    check_output_folder,
+    load_image,
+    written_together,
+)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_16_bit_greyscale_png_is_scaled_by_65535(tmp_path, seed):
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, 65536, size=(rng.integers(1, 40), rng.integers(1, 40)), dtype=np.uint16)
+    Image.fromarray(values).save(tmp_path / "grey16.png")
+    image = load_image(tmp_path / "grey16.png").numpy()
+    assert image.shape == (*values.shape, 3) and image.dtype == np.float32
+    for channel in range(3):
+        np.testing.assert_allclose(image[..., channel], values / 65535.0, rtol=0, atol=1e-7)
+
+
+def test_float_tiff_kept_in_unit_range_else_rescaled(tmp_path):
+    rng = np.random.default_rng(0)
+    unit = rng.random((17, 23), dtype=np.float32)
+    Image.fromarray(unit).save(tmp_path / "unit.tif")
+    assert np.array_equal(load_image(tmp_path / "unit.tif").numpy()[..., 1], unit)
+    wide = unit * 400 - 100
+    Image.fromarray(wide).save(tmp_path / "wide.tif")
+    np.testing.assert_allclose(load_image(tmp_path / "wide.tif").numpy()[..., 2],
+                               (wide - wide.min()) / (wide.max() - wide.min()), atol=1e-6)
+    flat = np.full((4, 4), 7.0, np.float32)
+    Image.fromarray(flat).save(tmp_path / "flat.tif")
+    assert (load_image(tmp_path / "flat.tif") == 0).all()
+    unit[3, 4] = np.nan
+    Image.fromarray(unit).save(tmp_path / "nan.tif")
+    with pytest.raises(ValueError, match="nan.tif.*NaN"):
+        load_image(tmp_path / "nan.tif")
+
+
+@pytest.mark.parametrize("mode", ["L", "P", "RGBA", "LA", "1", "CMYK", "RGB"])
+def test_8_bit_modes_match_pillows_rgb(tmp_path, mode):
+    rng = np.random.default_rng(1)
+    rgb = Image.fromarray(rng.integers(0, 256, (9, 13, 3), dtype=np.uint8))
+    image = rgb.convert(mode)
+    path = tmp_path / f"x.{'jpg' if mode == 'CMYK' else 'png'}"
+    image.save(path, **({"quality": 100} if mode == "CMYK" else {}))
+    with Image.open(path) as stored:
+        expected = np.asarray(stored.convert("RGB"), np.float32) / 255
+    assert np.array_equal(load_image(path).numpy(), expected)
+
+
+def test_max_side_on_a_16_bit_image_stays_in_unit_range(tmp_path):
+    values = np.zeros((60, 90), np.uint16)
+    values[::2] = 65535  # stripes: Lanczos overshoots, the result is clamped
+    Image.fromarray(values).save(tmp_path / "stripes.png")
+    image = load_image(tmp_path / "stripes.png", max_side=30)
+    assert image.shape == (20, 30, 3) and image.min() >= 0 and image.max() <= 1
+
+
+def _png_header_only(path, width, height):
+    """A PNG whose header declares width x height (no pixel data): enough for Image.open."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("width, height", [(40000, 40000), (10000, 9000), (2**31 - 1, 2)])
+def test_huge_images_refused_before_decoding_with_their_size(tmp_path, width, height):
+    assert width * height > MAX_IMAGE_PIXELS
+    path = tmp_path / "huge.png"
+    _png_header_only(path, width, height)
+    with pytest.raises(ValueError, match=rf"huge.png: image .*({width}x{height}|{width * height} pixels)"):
+        load_image(path)
+
+
+def test_output_file_checks(tmp_path):
+    for bad, message in [("", "empty"), ("  ", "empty"), (tmp_path, "is a folder")]:
+        with pytest.raises(ValueError, match=f"--out: .*{message}"):
+            check_output_file(bad, "--out")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="--out: cannot write .*file is a file, not a folder"):
+        check_output_file(tmp_path / "file" / "sub" / "a.ply", "--out")
+    with pytest.raises(ValueError, match="--out: .*exists and is not a folder"):
+        check_output_folder(tmp_path / "file", "--out")
+    assert check_output_file(tmp_path / "new" / "deeper" / "a.ply", "--out") == tmp_path / "new" / "deeper" / "a.ply"
+    assert check_output_folder(tmp_path / "renders", "--out") == tmp_path / "renders"
+    assert sorted(os.listdir(tmp_path)) == ["file"]  # checking created nothing
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="needs a user that read-only folders stop")
+def test_read_only_folder_refused(tmp_path):
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    folder.chmod(0o500)
+    try:
+        with pytest.raises(ValueError, match="not writable"):
+            check_output_file(folder / "a.ply", "--out")
+    finally:
+        folder.chmod(0o700)
+
+
+def test_written_together_all_or_nothing(tmp_path):
+    a, b = tmp_path / "out" / "a.ply", tmp_path / "out" / "a.contact.png"
+    with pytest.raises(RuntimeError, match="boom"):
+        with written_together(a, b) as (ta, tb):
+            assert ta.suffix == ".ply" and tb.suffix == ".png" and ta.parent == a.parent
+            ta.write_text("new a")
+            raise RuntimeError("boom")
+    assert os.listdir(tmp_path / "out") == []
+    with written_together(a, b) as (ta, tb):
+        ta.write_text("a")
+        tb.write_text("b")
+    assert a.read_text() == "a" and b.read_text() == "b" and sorted(os.listdir(a.parent)) == [b.name, a.name]
+    b.unlink()
+    b.mkdir()  # a folder where the second file goes: neither is replaced
+    with pytest.raises(ValueError, match="folder"):
+        with written_together(a, b) as (ta, tb):
+            ta.write_text("a2")
+            tb.write_text("b2")
+    assert a.read_text() == "a" and b.is_dir() and sorted(os.listdir(a.parent)) == [b.name, a.name]
