@@ -214,3 +214,31 @@ def test_vgg_first_loaded_in_inference_mode_still_backpropagates():
     image = torch.rand(1, 3, 32, 32, requires_grad=True)
     load_vgg("vgg19")(image, ["relu2_1"])["relu2_1"].sum().backward()
     assert image.grad is not None and torch.isfinite(image.grad).all()
+
+
+@pytest.mark.parametrize("name", ["garbage.pth", "truncated.pth", "garbage.safetensors", "folder.pth"])
+def test_unreadable_weights_file_is_a_value_error_naming_it(tmp_path, name):
+    path = tmp_path / name
+    if name == "truncated.pth":
+        torch.save(random_vgg16_state(), path)
+        path.write_bytes(path.read_bytes()[:5000])
+    elif name == "folder.pth":
+        path.mkdir()
+    else:
+        path.write_bytes(b"\x00not a weights file" * 7)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        VGGFeatures("vgg16", path)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (2, 2), (3, 3), (2, 300), (300, 1), (4, 4)])
+def test_images_smaller_than_the_pools_are_enlarged_first(size):
+    """relu3_1 lies after 2 max-pools, so needs 4 px a side: smaller sides are enlarged (bilinear)."""
+    vgg = load_vgg()
+    image = torch.rand(1, 3, *size, generator=torch.Generator().manual_seed(0))
+    got = vgg(image, ["relu1_1", "relu3_1"])
+    enlarged = F.interpolate(image, size=(max(size[0], 4), max(size[1], 4)), mode="bilinear", align_corners=False)
+    expected = vgg(enlarged, ["relu1_1", "relu3_1"])
+    assert torch.isfinite(got["relu3_1"]).all() and got["relu3_1"].shape[-2:] == (max(size[0], 4) // 4, max(size[1], 4) // 4)
+    assert torch.equal(got["relu3_1"], expected["relu3_1"]) and torch.equal(got["relu1_1"], expected["relu1_1"])
+    assert vgg(image, ["relu1_2"])["relu1_2"].shape[-2:] == size  # no pool before relu1_2: nothing enlarged
+    assert vgg(torch.rand(1, 3, 3, 20), ["relu5_1"])["relu5_1"].shape[-2:] == (1, 1)  # 4 pools: 16 px

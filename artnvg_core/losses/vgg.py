@@ -130,12 +130,12 @@ def _read_torchvision(path: Path, arch: str) -> list[tuple[torch.Tensor, torch.T
     """
     if not path.is_file():
         raise ValueError(f"VGG weights file {path} does not exist")
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+    from safetensors.torch import load_file
 
-        state = load_file(str(path))
-    else:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = load_file(str(path)) if path.suffix == ".safetensors" else torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # unreadable, truncated, not a weights file: each loader raises its own type
+        raise ValueError(f"{path}: not a readable VGG weights file ({type(error).__name__}: {error})") from error
     if not isinstance(state, dict):
         raise ValueError(f"{path}: expected a state dict (mapping of tensors), got {type(state).__name__}")
     # torchvision's features Sequential: conv, relu per conv, plus a max-pool after each block.
@@ -174,11 +174,22 @@ def _read_weights(arch: str, weights: str | None):
     return _read_torchvision(Path(weights), arch), _TORCHVISION
 
 
+def _at_least(images: torch.Tensor, side: int) -> torch.Tensor:
+    """``images [B, 3, H, W]`` with each side below ``side`` pixels enlarged to it (bilinear; the
+    other side kept), so that every max-pool before the requested layer has a pixel to pool."""
+    height, width = images.shape[-2:]
+    if height >= side and width >= side:
+        return images
+    return F.interpolate(images, size=(max(height, side), max(width, side)), mode="bilinear", align_corners=False)
+
+
 class VGGFeatures(nn.Module):
     """Frozen VGG conv stack returning the requested layers' features (see module docstring).
 
     ``forward(images [B, 3, H, W] RGB in [0, 1], layers) -> {name: [B, C, h, w]}``; the forward
-    stops at the deepest requested layer. Gradients flow to ``images``; parameters are frozen.
+    stops at the deepest requested layer. An image side shorter than that layer needs (2^pools:
+    4 px for relu3_*) is first enlarged to it (bilinear). Gradients flow to ``images``;
+    parameters are frozen.
     """
 
     def __init__(self, arch: str = "vgg19", weights: str | Path | None = None):
@@ -214,7 +225,8 @@ class VGGFeatures(nn.Module):
             raise ValueError(f"layers: expected names from {self._names}, got {list(layers)}")
         wanted = set(layers)
         deepest = max(self._names.index(name) for name in wanted)
-        x = images.to(self.input_mean.dtype) - self.input_mean
+        pools = sum(1 for name in self._names[: deepest + 1] if name in self._pooled_convs)
+        x = _at_least(images.to(self.input_mean.dtype), 2**pools) - self.input_mean
         out = {}
         for position, name in enumerate(self._names[: deepest + 1]):
             if name.startswith("relu"):
