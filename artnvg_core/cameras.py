@@ -28,6 +28,9 @@ from pathlib import Path
 import torch
 
 
+MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
+
+
 @dataclass
 class CameraSet:
     """C pinhole cameras of one image size (shapes in the module docstring).
@@ -49,8 +52,9 @@ class CameraSet:
             raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")
         if tuple(self.intrinsics.shape) != (c, 3, 3):
             raise ValueError(f"CameraSet.intrinsics: expected shape ({c}, 3, 3), got {tuple(self.intrinsics.shape)}")
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"CameraSet: image size must be positive, got {self.width}x{self.height}")
+        if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
+            raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
+                             f"got {self.width}x{self.height}")
         if len(self.names) != c:
             raise ValueError(f"CameraSet.names: expected {c} names, got {len(self.names)}")
         if not self.image_paths:
@@ -89,10 +93,13 @@ class CameraSet:
         Intrinsics scale with the actual per-axis size ratio, so the image
         plane keeps covering the same field of view.
         """
-        if factor <= 0:
-            raise ValueError(f"CameraSet.scaled: factor must be positive, got {factor}")
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"CameraSet.scaled: factor must be a finite number > 0, got {factor}")
         width = max(1, round(self.width * factor))
         height = max(1, round(self.height * factor))
+        if max(width, height) > MAX_IMAGE_SIDE:
+            raise ValueError(f"CameraSet.scaled: factor {factor} makes {self.width}x{self.height} views "
+                             f"{width}x{height}, above the {MAX_IMAGE_SIDE} pixels a side a view may have")
         k = self.intrinsics.clone()
         k[:, 0, :] *= width / self.width
         k[:, 1, :] *= height / self.height
@@ -187,6 +194,21 @@ def _rigid_inverse(pose: torch.Tensor) -> torch.Tensor:
     return inverse
 
 
+def _view_names(files: list[str], source: Path) -> list[str]:
+    """Unique view names for image files (relative paths): each file's stem, or, where stems
+    repeat (``a/0001.jpg``, ``b/0001.jpg``), the path without its suffix joined by ``_``
+    (``a_0001``, ``b_0001``). Names that still repeat are a ValueError naming them."""
+    stems = [Path(f).stem for f in files]
+    repeated = {s for s in stems if stems.count(s) > 1}
+    names = ["_".join(p for p in Path(f.replace("\\", "/")).with_suffix("").parts if p not in (".", "..", "/"))
+             if s in repeated else s for f, s in zip(files, stems)]
+    clashes = sorted({f for f, n in zip(files, names) if names.count(n) > 1})
+    if clashes:
+        raise ValueError(f"{source}: image files {clashes[:6]} give views one name; views are named after "
+                         "their image files (renders are saved as NAME.png), so each must be distinct")
+    return names
+
+
 def _pinhole_matrix(fx: float, fy: float, cx: float, cy: float) -> list[list[float]]:
     return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
 
@@ -216,10 +238,21 @@ _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 
 
+def _read_text(path: Path) -> str:
+    """A UTF-8 text file's contents; a missing, unreadable or non-UTF-8 file is a ValueError naming it."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not UTF-8 text (byte {error.object[error.start:error.start + 1]!r} at offset "
+                         f"{error.start}); save it as UTF-8") from None
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
+
+
 def _read_json_object(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        data = json.loads(_read_text(path))
+    except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
@@ -234,8 +267,8 @@ def _number(value, where: str) -> float:
 
 def _image_size(value, where: str) -> int:
     size = _number(value, where)
-    if size <= 0 or size != int(size):
-        raise ValueError(f"{where}: expected a positive whole number of pixels, got {value!r}")
+    if not 0 < size <= MAX_IMAGE_SIDE or size != int(size):
+        raise ValueError(f"{where}: expected a whole number of pixels from 1 to {MAX_IMAGE_SIDE}, got {value!r}")
     return int(size)
 
 
@@ -359,7 +392,7 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
         file_path = value("file_path")
         if not isinstance(file_path, str) or not file_path:
             raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {file_path!r}")
-        names.append(Path(file_path).stem)
+        names.append(file_path)
         image_paths.append(path.parent / file_path)
 
         pose = _affine_matrix(value("transform_matrix"), f"{where}: 'transform_matrix'")
@@ -371,7 +404,7 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
         transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
         cam_to_world = transform @ cam_to_world
         cam_to_world[:, :3, 3] *= scale
-    return _camera_set(_rigid_inverse(cam_to_world), intrinsics, size[0], size[1], names, image_paths)
+    return _camera_set(_rigid_inverse(cam_to_world), intrinsics, size[0], size[1], _view_names(names, path), image_paths)
 
 
 # --------------------------------------------------------------------------- COLMAP
@@ -426,7 +459,10 @@ class _BinaryReader:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.data = path.read_bytes()
+        try:
+            self.data = path.read_bytes()
+        except OSError as error:
+            raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
         self.offset = 0
 
     def unpack(self, fmt: str, what: str) -> tuple:
@@ -483,7 +519,7 @@ def _read_images_bin(path: Path) -> list[_ColmapImage]:
 
 def _text_records(path: Path) -> list[tuple[int, str]]:
     """(line number, line) of a COLMAP text file, comments dropped, blank lines kept."""
-    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = _read_text(path).splitlines()
     return [(number, line.strip()) for number, line in enumerate(lines, 1) if not line.startswith("#")]
 
 
@@ -515,26 +551,55 @@ def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
     return cameras
 
 
+def _image_line(line: str) -> _ColmapImage | None:
+    """The record of an images.txt image line ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME``, else None."""
+    fields = line.split(maxsplit=9)
+    if len(fields) != 10:
+        return None
+    try:
+        int(fields[0])
+        numbers = [float(f) for f in fields[1:8]]
+        camera_id = int(fields[8])
+    except ValueError:
+        return None
+    return _ColmapImage(tuple(numbers[:4]), tuple(numbers[4:]), camera_id, fields[9])
+
+
+def _is_points_line(line: str) -> bool:
+    """True for an images.txt 2D-points line: ``X Y POINT3D_ID`` triples, or nothing."""
+    fields = line.split()
+    if len(fields) % 3:
+        return False
+    try:
+        for start in range(0, len(fields), 3):
+            float(fields[start]), float(fields[start + 1]), int(fields[start + 2])
+    except ValueError:
+        return False
+    return True
+
+
 def _read_images_txt(path: Path) -> list[_ColmapImage]:
+    """Image records, read by structure: each image line is followed by its 2D-points line
+    (possibly empty), as COLMAP writes them; files written without the points lines (an image
+    line straight after an image line) are read too. Anything else is an error naming the line."""
     expected = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
     records = _text_records(path)
     images = []
     index = 0
     while index < len(records):
         number, line = records[index]
+        index += 1
         if not line:  # stray blank line between records or at the end
-            index += 1
             continue
-        fields = line.split(maxsplit=9)
-        if len(fields) != 10:
+        image = _image_line(line)
+        if image is None:
             raise _text_line_error(path, number, expected, line)
-        try:
-            numbers = [float(f) for f in fields[1:8]]
-            camera_id = int(fields[8])
-        except ValueError:
-            raise _text_line_error(path, number, expected, line) from None
-        images.append(_ColmapImage(tuple(numbers[:4]), tuple(numbers[4:]), camera_id, fields[9]))
-        index += 2  # the next line lists the image's 2D points (possibly empty)
+        images.append(image)
+        if index < len(records) and (not records[index][1] or _is_points_line(records[index][1])):
+            index += 1  # its 2D points
+        elif index < len(records) and _image_line(records[index][1]) is None:
+            number, line = records[index]
+            raise _text_line_error(path, number, f"the 2D points (X Y POINT3D_ID ...) of image {image.name!r}", line)
     return images
 
 
@@ -543,10 +608,14 @@ def _colmap_intrinsics(camera: _ColmapCamera, where: str) -> list[list[float]]:
         raise ValueError(
             f"{where}: camera model {camera.model} is not supported; expected one of {', '.join(_PERSPECTIVE_MODELS)}"
         )
+    if not (0 < camera.width <= MAX_IMAGE_SIDE and 0 < camera.height <= MAX_IMAGE_SIDE):
+        raise ValueError(f"{where}: image size {camera.width}x{camera.height}: expected 1 to {MAX_IMAGE_SIDE} pixels a side")
     p = camera.params
-    if camera.model in _SINGLE_FOCAL_MODELS:
-        return _pinhole_matrix(p[0], p[0], p[1], p[2])
-    return _pinhole_matrix(p[0], p[1], p[2], p[3])
+    fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if camera.model in _SINGLE_FOCAL_MODELS else p[:4]
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise ValueError(f"{where}: focal lengths must be finite and positive and the principal point finite, "
+                         f"got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    return _pinhole_matrix(fx, fy, cx, cy)
 
 
 def _image_file(model_dir: Path, name: str) -> Path | None:
@@ -615,7 +684,7 @@ def load_colmap(path) -> CameraSet:
         intrinsics,
         size[0],
         size[1],
-        [Path(image.name).stem for image in images],
+        _view_names([image.name for image in images], images_file),
         [_image_file(model_dir, image.name) for image in images],
     )
 

@@ -549,3 +549,98 @@ def test_interpolate_errors():
         interpolate_path(cameras, [0, 9])
     with pytest.raises(ValueError, match="frames_per_segment"):
         interpolate_path(cameras, [0, 1], 0)
+
+
+# --------------------------------------------------------------------------- bad input (issue 14)
+
+
+def test_missing_or_unreadable_files_are_value_errors_naming_them(tmp_path):
+    quats, trans = random_capture(2)
+    path = write_transforms(tmp_path / "transforms.json", quats, trans)
+    with pytest.raises(ValueError, match=r"absent\.json: cannot read the file"):
+        load_nerfstudio(tmp_path / "absent.json")
+    with pytest.raises(ValueError, match=r"dataparser_transforms\.json: cannot read the file"):
+        load_nerfstudio(path, dataparser_transforms=tmp_path / "dataparser_transforms.json")
+    with pytest.raises(ValueError, match=r"folder: cannot read the file"):
+        load_nerfstudio((tmp_path / "folder").mkdir() or tmp_path / "folder")
+    path.write_bytes(path.read_bytes().replace(b"view_00", b"vi\xe9w_00"))  # Latin-1, not UTF-8
+    with pytest.raises(ValueError, match=r"transforms\.json: not UTF-8 text .*b'\\xe9'"):
+        load_nerfstudio(path)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_non_utf8_text_and_names(tmp_path, binary):
+    quats, trans = random_capture(2, seed=1)
+    images = [(*record[:4], record[4].replace("view", "vi\xe9w"), record[5]) for record in colmap_images(quats, trans)]
+    folder = tmp_path / "model"
+    write_colmap(folder, {1: ("PINHOLE", 64, 48, [50.0] * 4)}, images, binary)
+    file = folder / f"images.{'bin' if binary else 'txt'}"
+    file.write_bytes(file.read_bytes().replace("\xe9".encode(), b"\xe9"))
+    with pytest.raises(ValueError, match=rf"images\.{'bin' if binary else 'txt'}: .*not UTF-8"):
+        load_colmap(folder)
+
+
+BAD_INTRINSICS = [  # (model, width, height, params), each with one thing wrong
+    ("PINHOLE", 64, 48, [float("nan"), 50.0, 30.0, 20.0]),
+    ("PINHOLE", 64, 48, [50.0, float("inf"), 30.0, 20.0]),
+    ("PINHOLE", 64, 48, [50.0, 0.0, 30.0, 20.0]),
+    ("SIMPLE_PINHOLE", 64, 48, [-50.0, 30.0, 20.0]),
+    ("SIMPLE_RADIAL", 64, 48, [50.0, float("nan"), 20.0, 0.0]),
+    ("PINHOLE", 0, 0, [50.0, 50.0, 30.0, 20.0]),
+    ("PINHOLE", 64, 0, [50.0, 50.0, 30.0, 20.0]),
+    ("PINHOLE", 10**6, 48, [50.0, 50.0, 30.0, 20.0]),
+]
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("camera", BAD_INTRINSICS)
+def test_colmap_bad_intrinsics_rejected_naming_file_and_camera(tmp_path, binary, camera):
+    quats, trans = random_capture(2, seed=2)
+    folder = write_colmap(tmp_path / "m", {7: camera}, colmap_images(quats, trans, camera_ids=[7, 7]), binary)
+    with pytest.raises(ValueError, match=rf"cameras\.{'bin' if binary else 'txt'}: camera 7: (focal|image size)"):
+        load_colmap(folder)
+
+
+def test_colmap_images_txt_is_read_by_structure(tmp_path):
+    """COLMAP writes two lines per image; files without the 2D-points lines hold every image too."""
+    quats, trans = random_capture(5, seed=4)
+    model = {1: ("PINHOLE", 64, 48, [50.0] * 4)}
+    full = load_colmap(write_colmap(tmp_path / "full", model, colmap_images(quats, trans), binary=False))
+    folder = write_colmap(tmp_path / "bare", model, colmap_images(quats, trans), binary=False)
+    lines = (folder / "images.txt").read_text().splitlines()
+    image_lines = [line for line in lines if line.startswith("#") or len(line.split()) == 10]
+    for kept in (image_lines, image_lines[:3] + lines[4:]):  # no points lines; some missing
+        (folder / "images.txt").write_text("\n".join(kept) + "\n")
+        assert_same_cameras(load_colmap(folder), full, atol=0)
+        assert load_colmap(folder).names == full.names
+    (folder / "images.txt").write_text("\n".join(image_lines[:3] + ["1.5 2.5"] + image_lines[3:]) + "\n")
+    with pytest.raises(ValueError, match=r"images\.txt: line 4: expected the 2D points .* of image 'view_04\.png'"):
+        load_colmap(folder)
+
+
+def test_views_sharing_an_image_stem_get_distinct_names(tmp_path):
+    quats, trans = random_capture(3, seed=5)
+    records = colmap_images(quats, trans)
+    names = ["cam0/0001.png", "cam1/0001.png", "cam1/0002.jpg"]
+    records = [(*r[:4], name, r[5]) for r, name in zip(records, names)]
+    cameras = load_colmap(write_colmap(tmp_path / "rig", {1: ("PINHOLE", 64, 48, [50.0] * 4)}, records, True))
+    assert cameras.names == ["cam0_0001", "cam1_0001", "0002"]
+    records = [(*r[:4], name, r[5]) for r, name in zip(records, ["a.png", "a.jpg", "b.png"])]
+    with pytest.raises(ValueError, match=r"images\.txt: image files \['a\.jpg', 'a\.png'\] give views one name"):
+        load_colmap(write_colmap(tmp_path / "clash", {1: ("PINHOLE", 64, 48, [50.0] * 4)}, records, False))
+    path = write_transforms(tmp_path / "transforms.json", quats, trans)
+    data = json.loads(path.read_text())
+    data["frames"][1]["file_path"] = "images_2/view_00.png"
+    assert load_nerfstudio(write_json(path, data)).names == ["images_view_00", "images_2_view_00", "view_02"]
+
+
+@pytest.mark.parametrize("size", [1e20, 10**6, 16385])
+def test_absurd_image_sizes_refused_early(tmp_path, size):
+    quats, trans = random_capture(2, seed=6)
+    with pytest.raises(ValueError, match=r"transforms\.json: frame 0: 'w': expected a whole number of pixels from 1 to 16384"):
+        load_nerfstudio(write_transforms(tmp_path / "transforms.json", quats, trans, w=size))
+    cameras = load_nerfstudio(write_transforms(tmp_path / "ok.json", quats, trans))
+    for factor in (size, float("inf"), float("nan"), 0.0, -1.0):
+        with pytest.raises(ValueError, match="CameraSet.scaled: factor"):
+            cameras.scaled(factor)
+    assert cameras.scaled(1e-6).width == 1 and cameras.scaled(256).width == 16384
