@@ -5,7 +5,7 @@ import pytest
 import torch
 from transformers import CLIPImageProcessor
 
-from artnvg_core.diffusion.images import check_images, clip_preprocess, csgo_size, resize_images, sdxl_size
+from artnvg_core.diffusion.images import CLIP_STD, check_images, clip_preprocess, csgo_size, resize_images, sdxl_size
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 
 
@@ -58,12 +58,15 @@ def test_check_images_rejects_bad_batches():
 
 
 def test_clip_preprocess_matches_clip_image_processor():
-    """Same recipe as CLIPImageProcessor (PIL bicubic vs torch bicubic: close, not bit-equal)."""
-    generator = torch.Generator().manual_seed(0)
-    coarse = torch.rand(1, 3, 12, 18, generator=generator)
-    image = torch.nn.functional.interpolate(coarse, size=(300, 450), mode="bilinear").permute(0, 2, 3, 1)
-    ours = clip_preprocess(image)
-    pixels = (image[0].numpy() * 255).round().astype(np.uint8)
+    """Same recipe as CLIPImageProcessor, which CSGO runs (PIL bicubic on uint8): on a photo the torch
+    bicubic differs by 0.3/255 on average and at most 3.1/255 (the figures in clip_preprocess's docstring)."""
+    from artnvg_core.fileio import load_image
+    from artnvg_core.stylize import DemoInputs
+
+    photo = load_image(DemoInputs().style)[None]  # 203x256
+    ours = clip_preprocess(photo)
+    pixels = (photo[0].numpy() * 255).round().astype(np.uint8)
     theirs = CLIPImageProcessor()(images=[pixels], return_tensors="pt").pixel_values
     assert ours.shape == theirs.shape == (1, 3, 224, 224)
-    assert (ours - theirs).abs().mean() < 0.01 and (ours - theirs).abs().max() < 0.1
+    levels = (ours - theirs).abs() * torch.tensor(CLIP_STD).view(1, 3, 1, 1) * 255  # in 0-255 pixel levels
+    assert levels.mean() < 0.35 and levels.max() < 3.5
