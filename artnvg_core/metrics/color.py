@@ -1,0 +1,48 @@
+"""How far a set of renders' colours are from a style image's palette (lower is closer).
+
+- ``histogram``: total-variation distance between the two joint RGB histograms
+  (``bins`` per channel over [0, 1]): 0 for the same palette, 1 for disjoint ones;
+- ``mean_cov``: the 2-Wasserstein distance between the Gaussians fitted to the two sets of
+  colours, ``sqrt(|mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a^1/2 C_b C_a^1/2)^1/2))``, in [0, 1]
+  colour units: 0 when means and covariances agree (what ARF's colour transfer achieves).
+
+Both look at colours only, not where they are; pixels are clamped to [0, 1]; float64.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..color_transfer import color_statistics
+
+
+def _sqrtm(matrix: torch.Tensor) -> torch.Tensor:
+    """Square root of a symmetric PSD [3, 3] (negative rounding errors clipped)."""
+    eigenvalues, vectors = torch.linalg.eigh(matrix)
+    return vectors @ torch.diag(eigenvalues.clamp_min(0).sqrt()) @ vectors.T
+
+
+def histogram_distance(images: torch.Tensor, style: torch.Tensor, bins: int = 8) -> float:
+    """Total variation between the joint RGB histograms of ``images [..., 3]`` and ``style [..., 3]``."""
+
+    def histogram(pixels: torch.Tensor) -> torch.Tensor:
+        index = (pixels.detach().reshape(-1, 3).double().clamp(0, 1) * bins).long().clamp_max(bins - 1)
+        flat = (index[:, 0] * bins + index[:, 1]) * bins + index[:, 2]
+        return torch.bincount(flat.cpu(), minlength=bins**3).double() / len(flat)
+
+    return 0.5 * float((histogram(images) - histogram(style)).abs().sum())
+
+
+def mean_cov_distance(images: torch.Tensor, style: torch.Tensor) -> float:
+    """2-Wasserstein distance between Gaussian fits of the colours of ``images`` and ``style``."""
+    mu_a, cov_a = color_statistics(images.detach().clamp(0, 1).cpu(), "images")
+    mu_b, cov_b = color_statistics(style.detach().clamp(0, 1).cpu(), "style image")
+    root_a = _sqrtm(cov_a)
+    cross = _sqrtm(root_a @ cov_b @ root_a)
+    squared = (mu_a - mu_b).square().sum() + torch.trace(cov_a + cov_b - 2 * cross)
+    return float(squared.clamp_min(0).sqrt())
+
+
+def color_distances(images: torch.Tensor, style: torch.Tensor) -> dict[str, float]:
+    """``{"histogram": ..., "mean_cov": ...}`` of ``images [..., 3]`` to ``style [..., 3]``."""
+    return {"histogram": histogram_distance(images, style), "mean_cov": mean_cov_distance(images, style)}
