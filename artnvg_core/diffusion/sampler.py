@@ -40,8 +40,8 @@ from diffusers import (
 from ..grouping import nearest_views
 from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
-from .csgo import CONTENT_ROUTINGS
 from .conditioning import StyleConditioning, content_tokens
+from .csgo import CONTENT_ROUTINGS
 from .images import check_images, csgo_size, resize_images, sdxl_size
 from .memory import visiting
 from .models import DiffusionModels
