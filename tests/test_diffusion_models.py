@@ -66,7 +66,8 @@ def test_fp16_request_keeps_an_overflowing_vae_in_float32(sdxl_folder):
 
 
 def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):
-    with pytest.raises(MissingModelError, match="'.*missing_sdxl' does not exist|looked for '.*missing_sdxl'"):
+    with pytest.raises(MissingModelError, match="looked for '.*missing_sdxl'.*`huggingface-cli download "
+                       "stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors`"):  # one file suffices
         load_sdxl(tmp_path / "missing_sdxl")
     (tmp_path / "partial").mkdir()
     (tmp_path / "partial" / "model_index.json").write_text("{}")

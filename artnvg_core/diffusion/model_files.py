@@ -18,11 +18,13 @@ class MissingModelError(ValueError):
 
 @dataclass(frozen=True)
 class ModelSource:
-    """A model: ``description``, Hugging Face ``repo`` and ``repo_path`` inside it ('' = the whole repo)."""
+    """A model: ``description``, Hugging Face ``repo`` and ``repo_path`` inside it ('' = the whole repo);
+    ``download_file``: the one file of the repo that suffices, when there is one (what the download command names)."""
 
     description: str
     repo: str
     repo_path: str = ""
+    download_file: str = ""
 
     @property
     def _is_file(self) -> bool:
@@ -36,6 +38,8 @@ class ModelSource:
 
     @property
     def download_command(self) -> str:
+        if self.download_file:
+            return f"huggingface-cli download {self.repo} {self.download_file}"
         if not self.repo_path:
             return f"huggingface-cli download {self.repo}"
         if self._is_file:
@@ -44,7 +48,8 @@ class ModelSource:
 
 
 SDXL_BASE = ModelSource(
-    "SDXL 1.0 base (diffusers folder or single-file checkpoint)", "stabilityai/stable-diffusion-xl-base-1.0"
+    "SDXL 1.0 base (diffusers folder or single-file checkpoint)", "stabilityai/stable-diffusion-xl-base-1.0",
+    download_file="sd_xl_base_1.0.safetensors",
 )
 SDXL_VAE_FP16_FIX = ModelSource(
     "SDXL VAE, fp16-safe (diffusers folder or .safetensors)", "madebyollin/sdxl-vae-fp16-fix"
