@@ -69,14 +69,17 @@ def test_file_holds_rub_axes_and_colours_are_the_same_from_flipped_directions(tm
     stored = fixed[..., 0] | fixed[..., 1] << 8 | fixed[..., 2] << 16
     stored = np.where(stored >= 1 << 23, stored - (1 << 24), stored) / 4096
     np.testing.assert_allclose(stored, scene.means.numpy() * [1, -1, -1], atol=2.0**-12)
-    # the stored SH seen along the RUB direction gives the PLY's colour along the RDF direction
-    back = read_spz(path)
-    stored_sh = back.sh.clone()
-    flips = torch.tensor([-1.0, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1])
-    stored_sh[:, 1:] *= flips[:, None]
-    directions = torch.nn.functional.normalize(torch.randn(200, 3), dim=1)
+    # SH that SPZ stores exactly (multiples of 1/8 in [-0.875, 0.875]): the stored coefficients seen along
+    # the RUB direction give the PLY's colour along the RDF direction, and the file reads back exactly
+    scene.sh[:, 1:] = torch.randint(-7, 8, scene.sh[:, 1:].shape, generator=torch.Generator().manual_seed(0)) / 8
+    write_spz(scene, path)
+    _, arrays = payload_arrays(path)
+    stored = (torch.tensor(np.frombuffer(arrays["sh"], np.uint8).reshape(200, 15, 3), dtype=torch.float32) - 128) / 128
+    stored = torch.cat([scene.sh[:, :1], stored], 1)
+    directions = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=1)
     rub = directions * torch.tensor([1.0, -1, -1])
-    torch.testing.assert_close(sh_to_color(stored_sh, rub, 3), sh_to_color(back.sh, directions, 3))
+    torch.testing.assert_close(sh_to_color(stored, rub, 3), sh_to_color(scene.sh, directions, 3))
+    assert torch.equal(read_spz(path).sh[:, 1:], scene.sh[:, 1:])
 
 
 def test_version_4_zstd_container_reads_as_version_3(tmp_path):
