@@ -7,11 +7,10 @@ import dataclasses
 import os
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-from .cliutil import ProgressBar, load_scene_verbose, parse_device, parse_devices, parse_view_indices
+from .cliutil import ProgressBar, load_scene_verbose, parse_device, parse_devices, parse_view_indices, positive_number
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
 from .metrics.report import add_evaluate_arguments
@@ -19,14 +18,14 @@ from .metrics.report import add_evaluate_arguments
 
 def cmd_render(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
-    from .fileio import save_png
+    from .fileio import check_output_folder, save_png
     from .raster import render
 
     device = parse_device(args.device)
-    scene = load_scene_verbose(args.scene, device)
+    out_dir = check_output_folder(args.out, "--out")
     cameras = load_cameras(args.cameras)
     cameras = cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
-    out_dir = Path(args.out)
+    scene = load_scene_verbose(args.scene, device)
     out_dir.mkdir(parents=True, exist_ok=True)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
@@ -44,7 +43,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
 def cmd_stylize(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
-    from .fileio import load_image
+    from .fileio import check_output_file, load_image
     from .finetune import FinetuneConfig
     from .presets import get_preset
     from .stylize import (
@@ -53,6 +52,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         ModelPaths,
         choose_stylizer,
         save_result,
+        sheet_path,
         stylize_diffusion,
         stylize_nnfm,
     )
@@ -66,6 +66,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
+    check_output_file(sheet_path(check_output_file(args.out, "--out")), "--out (its contact sheet)")
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
@@ -114,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
     p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
+    p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
@@ -136,7 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: --device)")
     p.add_argument("--iters", type=int, default=None,
                    help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 200 for the demo)")
-    p.add_argument("--scale", type=float, default=None, help="render resolution factor (default 1; 0.25 for the demo)")
+    p.add_argument("--scale", type=positive_number, default=None,
+                   help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=int, default=0)
@@ -156,8 +158,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.run(args)
-    except ValueError as error:
+    except (ValueError, OSError) as error:  # bad input, or a file the system would not read or write
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    except (MemoryError, torch.OutOfMemoryError) as error:
+        print(f"error: out of memory ({error}); try a smaller --scale or fewer --views", file=sys.stderr)
         return 2
     return 0
 

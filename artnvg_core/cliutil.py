@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 import time
 from typing import TYPE_CHECKING
@@ -20,6 +22,28 @@ def parse_device(name: str) -> torch.device:
         return device_for(name)
     except ValueError as error:
         raise ValueError(f"--device {error}") from error
+
+
+def positive_number(text: str) -> float:
+    """argparse type of ``--scale`` and the like: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def fraction(text: str) -> float:
+    """argparse type of a threshold: a number in [0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 up to (not including) 1, got {text!r}")
+    return value
 
 
 def parse_devices(text: str | None) -> list[torch.device] | None:

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from .cameras import CameraSet
-from .fileio import save_png
+from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
@@ -186,10 +186,11 @@ def stylize_diffusion(
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                 out_ply: str | Path, backend: str = "auto") -> Path:
-    """Write ``out_ply`` and its contact sheet (both atomically); returns the sheet's path."""
+    """Write ``out_ply`` and its contact sheet together: both appear, or (on any failure) neither
+    and nothing on disk changes. Returns the sheet's path."""
     out_ply = Path(out_ply)
-    out_ply.parent.mkdir(parents=True, exist_ok=True)
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
-    save_scene(stylized.to("cpu"), out_ply)
-    save_png(sheet, sheet_path(out_ply))
+    with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
+        save_scene(stylized.to("cpu"), ply_file)
+        save_png(sheet, sheet_file)
     return sheet_path(out_ply)

@@ -127,3 +127,17 @@ def test_files_that_are_not_splatfacto_checkpoints(tmp_path):
     truncated.write_bytes(save_splatfacto(tmp_path / "full.ckpt", splatfacto_params(3, 1)).read_bytes()[:300])
     with pytest.raises(ValueError, match=r"truncated\.ckpt: not a loadable torch checkpoint"):
         read_splatfacto_ckpt(truncated)
+
+
+@pytest.mark.parametrize(("config", "antialiased"), [
+    ("pipeline:\n  model: !!python/object:SplatfactoModelConfig\n    rasterize_mode: antialiased\n", True),
+    ("pipeline:\n  model:\n    rasterize_mode: classic\n", False),
+    (None, False),
+])
+def test_rasterize_mode_comes_from_the_runs_config(tmp_path, config, antialiased):
+    models = tmp_path / "run" / "nerfstudio_models"
+    models.mkdir(parents=True)
+    if config is not None:
+        (tmp_path / "run" / "config.yml").write_text(config)
+    scene = read_splatfacto_ckpt(save_splatfacto(models / "step-000029999.ckpt", splatfacto_params(4, 1)))
+    assert scene.antialiased is antialiased and scene.blur_px2 == 0.3

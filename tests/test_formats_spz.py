@@ -1,5 +1,6 @@
 """Niantic SPZ: versions 1-4, RUB axes, round trip within the stated quantisation, corrupt files."""
 
+import dataclasses
 import gzip
 import struct
 
@@ -185,3 +186,10 @@ def test_fuzzed_and_truncated_files_raise_only_value_error(tmp_path):
             if name != "raw" and length < len(original):
                 with pytest.raises(ValueError, match=r"cut\.spz: "):
                     read_spz(path)
+
+
+def test_antialiased_flag_round_trips(tmp_path):
+    scene = dataclasses.replace(plain_scene(5, 0), antialiased=True)
+    write_spz(scene, tmp_path / "aa.spz")
+    assert payload_arrays(tmp_path / "aa.spz")[0][5] == 1
+    assert read_spz(tmp_path / "aa.spz").antialiased

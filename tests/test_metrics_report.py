@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import re
 
 import pytest
 import torch
@@ -147,3 +148,58 @@ def test_input_errors_name_the_problem(inputs, tmp_path):
         camera_path(cameras, [0], "interp", 10, 1.0)
     with pytest.raises(ValueError, match="--frames: need at least 2"):
         camera_path(cameras, [0, 1], "orbit", 1, 1.0)
+
+
+def test_orbit_error_names_only_cli_options(inputs):
+    """Cameras that give no orbit (all at one point and looking one way, or one camera): the advice
+    names --path interp, not orbit_path's own center= or up= arguments."""
+    cameras = load_cameras(inputs["cameras"]).subset([0, 0, 0])
+    for subset in (cameras, cameras.subset([0])):
+        with pytest.raises(ValueError, match=r"--path orbit: no orbit around these cameras .*use --path interp") as error:
+            camera_path(subset, [0, 1], "orbit", 10, 1.0)
+        assert "=" not in str(error.value)
+
+
+def _cli(inputs, *options):
+    return main(["evaluate", "--original", str(inputs["original"]), "--stylized", str(inputs["original"]),
+                 "--cameras", str(inputs["cameras"]), "--style", str(inputs["style"]), "--views", VIEWS,
+                 "--scale", str(SCALE), "--device", "cpu", *options])
+
+
+@pytest.mark.parametrize("option, value", [("--alpha-threshold", "nan"), ("--alpha-threshold", "2"),
+                                           ("--alpha-threshold", "1"), ("--alpha-threshold", "-0.1"),
+                                           ("--depth-tolerance", "-1"), ("--depth-tolerance", "0"),
+                                           ("--depth-tolerance", "nan"), ("--scale", "inf"), ("--scale", "nan"),
+                                           ("--scale", "0"), ("--scale", "x")])
+def test_bad_numbers_exit_2_naming_the_option(inputs, capsys, option, value):
+    with pytest.raises(SystemExit) as exit_:
+        _cli(inputs, option, value)
+    assert exit_.value.code == 2 and f"error: argument {option}: expected" in capsys.readouterr().err
+
+
+def test_outputs_checked_before_any_work(inputs, tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "taken_strip.png").mkdir()
+    for out, message in [("", "--out: the output path is empty"), (tmp_path, "is a folder"),
+                         (tmp_path / "file" / "r.json", "file is a file, not a folder"),
+                         (tmp_path / "taken.json", "--out (its strip taken_strip.png): .* is a folder")]:
+        assert _cli(inputs, "--out", str(out)) == 2
+        err = capsys.readouterr().err
+        assert "error: " in err and re.search(message, err) and "loading" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken_strip.png"]
+
+
+def test_a_failing_evaluate_writes_none_of_its_outputs(inputs, tmp_path, monkeypatch, capsys):
+    from artnvg_core.metrics import report
+
+    out = tmp_path / "eval" / "r.json"
+    out.parent.mkdir()
+    out.write_text("earlier report")
+
+    def fail(report_dict, path):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report, "_write_json", fail)
+    assert _cli(inputs, "--out", str(out), "--frames", "2", "--long-step", "1") == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.json"] and out.read_text() == "earlier report"

