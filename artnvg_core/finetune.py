@@ -24,6 +24,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from .camera_rigs import scene_frame
 from .cameras import CameraSet
 from .fileio import resize_image
 from .losses import NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
@@ -39,8 +40,8 @@ _log = logging.getLogger(__name__)
 @dataclass
 class FinetuneConfig:
     """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2,
-    NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by the
-    scene extent). ``content_weight`` and ``tv_weight`` apply only without stylized views.
+    NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by
+    :func:`camera_extent`). ``content_weight`` and ``tv_weight`` apply only without stylized views.
     ``nnfm_max_side``: longest side in pixels of the images the VGG terms see (renders and
     style image are shrunk to it, never enlarged; None: full resolution).
 
@@ -109,10 +110,22 @@ def _scene_of(params: dict[str, torch.Tensor]) -> GaussianScene:
     return GaussianScene(**rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
 
 
-def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, config: FinetuneConfig,
+def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
+    """The scale of the means' learning rate, in world units: gsplat's scene scale, 1.1 x the
+    largest distance of a camera centre from the centres' mean. With fewer than two distinct
+    centres, 1.1 x the scene's robust radius (:func:`~artnvg_core.camera_rigs.scene_frame`).
+    Far floaters never enter it."""
+    centers = cameras.centers.detach().cpu().to(torch.float64)
+    extent = float((centers - centers.mean(0)).norm(dim=-1).max())
+    if not extent > 1e-9 * (1 + float(centers.abs().max())):
+        extent = scene_frame(scene, up="+z").radius
+    return 1.1 * extent
+
+
+def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig,
                has_targets: bool) -> torch.optim.Adam:
     """Adam with per-parameter learning rates (see :class:`FinetuneConfig`)."""
-    extent = float((scene.means - scene.means.mean(0)).norm(dim=-1).max()) if len(scene) else 1.0
+    extent = camera_extent(cameras, scene) if config.optimize == "all" else 1.0
     default_dc, default_rest = (0.0025, 0.0025 / 20) if has_targets else (0.03, 0.003)
     rates = {
         "sh_dc": default_dc if config.lr_sh_dc is None else config.lr_sh_dc,
@@ -201,7 +214,7 @@ def finetune(
     nnfm = NNFMLoss(style_feats, layer_groups=(layers,))
 
     params = _parameters(scene, config)
-    optimizer = _optimizer(params, scene, config, stylized is not None)
+    optimizer = _optimizer(params, scene, cameras, config, stylized is not None)
     generator = torch.Generator().manual_seed(config.seed)
     originals = None
     if stylized is None and config.content_weight > 0:

@@ -7,7 +7,7 @@ import torch
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image
-from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.finetune import FinetuneConfig, camera_extent, finetune
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.progress import Cancelled
 from artnvg_core.raster import render
@@ -152,6 +152,57 @@ def test_bad_inputs_rejected(demo):
         finetune(scene, cameras, style[..., :2])
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
+
+
+def _looking_away(cameras):
+    """The same intrinsics, every camera 1e4 units out along +z looking further out: sees no Gaussian."""
+    pose = torch.eye(4)
+    pose[2, 3] = -1e4
+    return dataclasses.replace(cameras, world_to_cam=pose.expand(len(cameras), 4, 4).clone())
+
+
+def test_a_view_that_sees_no_gaussian_is_skipped_with_a_warning(demo, caplog):
+    scene, cameras, style = demo
+    away = _looking_away(cameras.subset([0]))
+    assert render(scene, away).alpha.max() == 0
+    mixed = dataclasses.replace(cameras.subset([0, 1]), world_to_cam=torch.cat([away.world_to_cam, cameras.world_to_cam[1:2]]))
+    config = FinetuneConfig(iterations=6, nnfm_max_side=32)
+    with caplog.at_level("WARNING", logger="artnvg_core.finetune"):
+        result = finetune(scene, mixed, style, config=config)
+    assert [r.message for r in caplog.records] == [f"finetune: view 0 ({mixed.names[0]}) sees no Gaussian; its steps are skipped"]
+    assert not torch.equal(result.sh, scene.sh) and torch.isfinite(result.sh).all()
+    with pytest.raises(ValueError, match="none of the 2 cameras sees any Gaussian"):
+        finetune(scene, _looking_away(cameras.subset([0, 1])), style, config=config)
+
+
+def test_camera_extent_is_gsplats_scene_scale_and_ignores_floaters(demo):
+    scene, cameras, _ = demo
+    centers = cameras.centers.double().numpy()
+    expected = 1.1 * max(sum((c - centers.mean(0)) ** 2) ** 0.5 for c in centers)
+    assert camera_extent(cameras, scene) == pytest.approx(expected, rel=1e-9)
+    far = scene.means.clone()
+    far[0] = 1e6  # a floater as far as any seen in real captures
+    assert camera_extent(cameras, dataclasses.replace(scene, means=far)) == pytest.approx(expected, rel=1e-9)
+    one = camera_extent(cameras.subset([0]), scene)  # one camera: the scene's robust radius instead
+    assert 0 < one < 0.1 * float((scene.means - scene.means.mean(0)).norm(dim=1).max())
+
+
+def test_optimize_all_keeps_the_geometry_while_colours_change(demo):
+    scene, cameras, style = demo  # the bear: floaters 279 units out, cameras within 5.1 of their mean
+    distance = (scene.means - scene.means.median(0).values).norm(dim=1)
+    keep = torch.zeros(len(scene), dtype=torch.bool)
+    keep[::4] = True
+    keep[distance.argsort()[-100:]] = True  # every floater stays
+    scene, cameras = scene.select(keep), cameras.scaled(0.5)
+    with torch.no_grad():
+        targets = (0.6 * render(scene, cameras).rgb + torch.tensor([0.4, 0.1, 0.0])).clamp(0, 1)
+    config = FinetuneConfig(iterations=50, optimize="all", nnfm_weight=0.0, lr_sh_dc=0.01)
+    result = finetune(scene, cameras, style, stylized=targets, config=config)
+    moved = (result.means - scene.means).norm(dim=1).max()
+    assert moved < 0.02 * camera_extent(cameras, scene), float(moved)
+    with torch.no_grad():
+        start, end = psnr(render(scene, cameras).rgb, targets), psnr(render(result, cameras).rgb, targets)
+    assert end > start + 2.0, (start, end)
 
 
 def _looking_away(cameras):
