@@ -81,13 +81,13 @@ def cmd_stylize(args: argparse.Namespace) -> None:
 
     def iterations_for(stylizer: str) -> int:
         default = preset.finetune_iterations if stylizer == "diffusion" else 1000
-        return args.iters if args.iters is not None else (200 if demo else default)
+        return args.iters if args.iters is not None else (60 if demo else default)
 
     iterations = iterations_for(stylizer)
     print(f"stylizer: {stylizer} ({reason})" + (f"; preset {args.preset}: {preset.summary}" if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
-    config = FinetuneConfig(iterations=iterations, seed=args.seed)
+    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
     start = time.perf_counter()
     if stylizer == "diffusion":
         try:
@@ -136,7 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1 "
                    "(default: --device)")
     p.add_argument("--iters", type=int, default=None,
-                   help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 200 for the demo)")
+                   help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
+    p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
+                   help="nnfm: match the scene's colours to the style image's before and after finetuning, "
+                   "as ARF does (default on)")
     p.add_argument("--scale", type=positive_number, default=None,
                    help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",

@@ -8,16 +8,24 @@ Loss per step, for one randomly chosen view (ArtNVG, Sec. 3.4):
   + tv_weight * total variation(render)                                          [when not]
 
 Renders are clamped to [0, 1] before every term, as splatfacto does. The VGG terms (NNFM,
-content) see the render shrunk to at most ``nnfm_max_side`` pixels on its long side and the
-style image shrunk likewise, as ARF computes NNFM on renders halved to about 500 px with the
-style at that size: at 1024x1024 this is ARF's factor 0.5, and a quarter of the VGG and
-matching work of full resolution; L1/SSIM stay at full resolution. With no
-stylized views this is ARF's diffusion-free stylizer. The original
-Gaussians are the starting point (not a fresh fit); no densification.
+content) see the render shrunk to at most ``nnfm_max_side`` pixels on its long side: at
+1024x1024 this is ARF's factor 0.5 and a quarter of the VGG and matching work of full
+resolution. ARF halves every render; we keep the 512 px cap instead, which above 1024 px costs
+less than ARF's half (4x less at 2048 px), and below 512 px keeps the render whole (a 128 px
+render halved leaves relu3 maps of 16x16). The style image is sized as ARF sizes it relative to
+the render: its long side equal to the long side of the render the VGG sees (ARF: the style's
+long side set to the render's, then both halved). L1/SSIM stay at full resolution.
+
+With no stylized views this is ARF's diffusion-free stylizer, by default with ARF's colour
+transfer (:mod:`artnvg_core.color_transfer`): the scene's colours are first matched to the
+style image's mean and covariance, exactly in the SH, the content term compares against the
+recoloured views (clamped to [0, 1]), and the match is estimated and applied again to the
+result. The original Gaussians are the starting point (not a fresh fit); no densification.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, fields
@@ -26,6 +34,7 @@ import torch
 
 from .camera_rigs import scene_frame
 from .cameras import CameraSet
+from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
 from .losses import NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
@@ -42,8 +51,10 @@ class FinetuneConfig:
     """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2,
     NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by
     :func:`camera_extent`). ``content_weight`` and ``tv_weight`` apply only without stylized views.
-    ``nnfm_max_side``: longest side in pixels of the images the VGG terms see (renders and
-    style image are shrunk to it, never enlarged; None: full resolution).
+    ``nnfm_max_side``: longest side in pixels of the renders the VGG terms see (shrunk to it,
+    never enlarged; None: full resolution); the style image is resized to that long side.
+    ``color_transfer``: without stylized views, ARF's colour transfer before and after the
+    optimisation (module docstring); ignored with stylized views.
 
     SH learning rates left at None mean splatfacto's (DC 0.0025, rest 0.0025/20) when
     stylized views are given, and ARF-like faster ones (DC 0.03, rest 0.003) without them:
@@ -61,6 +72,7 @@ class FinetuneConfig:
     vgg: str = "vgg19"
     vgg_weights: str | None = None
     nnfm_max_side: int | None = 512
+    color_transfer: bool = True
     lr_sh_dc: float | None = None
     lr_sh_rest: float | None = None
     lr_opacity: float = 0.05
@@ -105,9 +117,10 @@ def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch
     return params
 
 
-def _scene_of(params: dict[str, torch.Tensor]) -> GaussianScene:
+def _scene_of(params: dict[str, torch.Tensor], like: GaussianScene) -> GaussianScene:
+    """The scene of ``params`` with the render settings (blur, antialiasing) of ``like``."""
     rest = {k: v for k, v in params.items() if not k.startswith("sh_")}
-    return GaussianScene(**rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
+    return dataclasses.replace(like, **rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
 
 
 def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
@@ -151,6 +164,21 @@ def _nchw(images: torch.Tensor) -> torch.Tensor:
 def _vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
     """[B, H, W, 3] renders -> [B, 3, h, w], shrunk to ``config.nnfm_max_side``."""
     return shrink_to_max_side(_nchw(images), config.nnfm_max_side)
+
+
+def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneConfig) -> torch.Tensor:
+    """[H, W, 3] style image -> [1, 3, h, w] with its long side that of the renders the VGG sees
+    (area-averaged when shrinking, as ARF's ``INTER_AREA``; bilinear when enlarging)."""
+    side = max(cameras.width, cameras.height)
+    if config.nnfm_max_side is not None:
+        side = min(side, config.nnfm_max_side)
+    style = _nchw(style_image[None])
+    height, width = style.shape[-2:]
+    factor = side / max(height, width)
+    size = (max(1, round(height * factor)), max(1, round(width * factor)))
+    if factor < 1:
+        return torch.nn.functional.interpolate(style, size=size, mode="area")
+    return torch.nn.functional.interpolate(style, size=size, mode="bilinear", align_corners=False)
 
 
 def _skip_blind_view(view: int, cameras: CameraSet, blind: set[int]) -> None:
@@ -209,23 +237,31 @@ def finetune(
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers
-    style_feats = style_image_features(vgg, _nchw(style_image[None].to(device, torch.float32)), layers,
-                                       config.nnfm_max_side)
+    style_image = style_image.to(device, torch.float32)
+    style_feats = style_image_features(vgg, _vgg_style(style_image, cameras, config), layers, None)
     nnfm = NNFMLoss(style_feats, layer_groups=(layers,))
 
+    color_transfer = stylized is None and config.color_transfer
+    originals = None
+    if color_transfer or (stylized is None and config.content_weight > 0):
+        with torch.no_grad():
+            content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
+        if color_transfer:
+            transform = match_colors(content, style_image)
+            scene = recolor_scene(scene, transform)
+            content = transform.apply(content).clamp(0, 1)  # ARF's recoloured training views
+        if config.content_weight > 0:
+            originals = _vgg_input(content, config)
+        del content
     params = _parameters(scene, config)
     optimizer = _optimizer(params, scene, cameras, config, stylized is not None)
     generator = torch.Generator().manual_seed(config.seed)
-    originals = None
-    if stylized is None and config.content_weight > 0:
-        with torch.no_grad():
-            originals = _vgg_input(render(scene, cameras, backend=config.backend).rgb.clamp(0, 1), config)
 
     blind: set[int] = set()
     for step in range(config.iterations):
         check_stop(should_stop)
         view = int(torch.randint(len(cameras), (1,), generator=generator))
-        image = render(_scene_of(params), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
+        image = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
         if not image.requires_grad:  # no Gaussian projects into this view: nothing to learn from it
             _skip_blind_view(view, cameras, blind)
             continue
@@ -252,4 +288,9 @@ def finetune(
         optimizer.step()
         if progress is not None:
             progress(step + 1, config.iterations, {"view": view, "loss": loss.item(), **{k: v.item() for k, v in terms.items()}})
-    return _scene_of({k: v.detach() for k, v in params.items()})
+    result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
+    if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
+        with torch.no_grad():
+            renders = render(result, cameras, backend=config.backend).rgb.clamp(0, 1)
+        result = recolor_scene(result, match_colors(renders, style_image))
+    return result

@@ -64,7 +64,8 @@ def stylize_nnfm(
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> GaussianScene:
-    """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views."""
+    """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views (ARF's colour transfer,
+    then NNFM + content; ``config.color_transfer`` switches the colour transfer)."""
     return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
 
 

@@ -61,17 +61,21 @@ class FinetuneGaussians:
                 "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
                     "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
                     "(512: ARF's half resolution for 1024 px views, about 2x faster there); 0: full resolution.")}),
+                "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
+                    "Without stylized_views: match the scene's colours to the style image's mean and covariance "
+                    "before and after finetuning, as ARF does (exact, no extra iterations).")}),
             },
         }
 
     @cancellable
     def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
-                 content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side):
+                 content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side,
+                 color_transfer=_DEFAULTS.color_transfer):
         with node_input(self.DISPLAY_NAME), autograd_enabled():
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
-                nnfm_max_side=nnfm_max_side or None,
+                nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer,
             )
             result = finetune(
                 trainable_copy(scene).to(compute_device()), trainable_copy(cameras), style_image[:1].clone(),

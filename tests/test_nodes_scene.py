@@ -146,6 +146,11 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
     expected = finetune(small_bear, cameras, style[0], stylized=stylized,
                         config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, nnfm_max_side=None, **weights))
     assert _same_scene(full, expected)
+    (plain,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
+                    optimize="appearance", seed=3, color_transfer=False, **weights)
+    expected = finetune(small_bear, cameras, style[0],
+                        config=FinetuneConfig(iterations=1, optimize="appearance", seed=3, color_transfer=False, **weights))
+    assert _same_scene(plain, expected)
     with pytest.raises(NodeInputError, match="Finetune Gaussians: .*stylized"):
         call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
              optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)
