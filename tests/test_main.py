@@ -2,7 +2,10 @@
 
 import re
 
+import pytest
+
 from artnvg_core.__main__ import main
+from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.stylize import DemoInputs
 
@@ -20,3 +23,64 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     views = [line for line in lines if line.startswith("[")]
     assert [line.split("]")[0] + "]" for line in views] == ["[1/3]", "[2/3]", "[3/3]"]
     assert len(list(tmp_path.glob("*.png"))) == 3
+
+
+def _small_scene(tmp_path):
+    scene = tmp_path / "scene.ply"
+    write_ply(load_scene(DemoInputs().scene).select(slice(0, None, 40)), scene)
+    return scene
+
+
+@pytest.mark.parametrize("command", ["render", "stylize"])
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "-1", "x"])
+def test_bad_scale_exits_2_naming_it(tmp_path, capsys, command, value):
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "scene.ply", "--cameras", "t.json", "--style", "s.png", "--out", str(tmp_path), "--scale", value])
+    assert exit_.value.code == 2 and "error: argument --scale: expected" in capsys.readouterr().err
+
+
+def test_absurd_size_refused_before_loading(tmp_path, capsys):
+    demo = DemoInputs()
+    assert main(["render", "none.ply", "--cameras", str(demo.cameras), "--out", str(tmp_path), "--scale", "1e6"]) == 2
+    err = capsys.readouterr()
+    assert "error: CameraSet.scaled: factor 1000000.0 makes" in err.err and "loading" not in err.out
+
+
+def test_tiny_scale_renders_one_pixel_views(tmp_path):
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path / "r"), "--views", "0",
+                 "--scale", "1e-6", "--device", "cpu"]) == 0
+    assert load_image(next((tmp_path / "r").glob("*.png"))).shape == (1, 1, 3)
+
+
+@pytest.mark.parametrize("command", ["render", "stylize"])
+def test_outputs_checked_before_loading(tmp_path, capsys, command):
+    demo = DemoInputs()
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "taken.contact.png").mkdir()
+    cases = [("", "the output (path|folder) is empty"), (tmp_path / "file" / "x.ply", "file is a file, not a folder")]
+    cases += [(tmp_path / "file", "exists and is not a folder")] if command == "render" else [
+        (tmp_path, "is a folder"), (tmp_path / "taken.ply", r"\(its contact sheet\): .* is a folder")]
+    style = ["--style", str(demo.style)] if command == "stylize" else []
+    for out, message in cases:
+        code = main([command, str(demo.scene), "--cameras", str(demo.cameras), *style, "--out", str(out), "--device", "cpu"])
+        captured = capsys.readouterr()
+        assert code == 2 and re.search("error: --out.*" + message, captured.err) and "loading" not in captured.out, captured
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken.contact.png"]
+
+
+def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
+    import artnvg_core.stylize
+
+    def full_disk(image, path):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(artnvg_core.stylize, "save_png", full_disk)
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    out = tmp_path / "s" / "stylized.ply"
+    out.parent.mkdir()
+    out.write_text("an earlier result")
+    assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
+                 "--stylizer", "nnfm", "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
+    assert "error: [Errno 28] No space left on device" in capsys.readouterr().err
+    assert [p.name for p in out.parent.iterdir()] == ["stylized.ply"] and out.read_text() == "an earlier result"

@@ -19,7 +19,6 @@ Conventions: OpenCV cameras, pixel centres at +0.5, depth = camera-space z; colo
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -88,8 +87,8 @@ def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int, alpha_thr
                   depth_tolerance: float) -> None:
     if not 0 <= alpha_threshold < 1:
         raise ValueError(f"warp_consistency: alpha_threshold must be in [0, 1), got {alpha_threshold!r}")
-    if not (math.isfinite(depth_tolerance) and depth_tolerance > 0):
-        raise ValueError(f"warp_consistency: depth_tolerance must be a finite number > 0, got {depth_tolerance!r}")
+    if not depth_tolerance > 0:  # inf: no occlusion test
+        raise ValueError(f"warp_consistency: depth_tolerance must be > 0, got {depth_tolerance!r}")
     count = images.shape[0] if images.ndim == 4 else -1
     size = (cameras.height, cameras.width)
     if images.ndim != 4 or images.shape[-1] != 3 or tuple(images.shape[1:3]) != size:
