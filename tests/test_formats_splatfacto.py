@@ -67,6 +67,14 @@ def test_splatfacto_degree_0_converts_colour_logits_to_sh_dc(tmp_path, rest):
     torch.testing.assert_close(rendered_dc, torch.sigmoid(params["features_dc"].double()), rtol=0, atol=1e-6)
 
 
+def test_splatfacto_sparse_tensors_read_as_their_dense_values(tmp_path):
+    params = splatfacto_params(7, 1)
+    params["features_rest"][2:5] = 0  # mostly zero, as a sparse tensor would be saved for
+    sparse = {name: value.to_sparse() for name, value in params.items()}
+    scene = read_splatfacto_ckpt(save_splatfacto(tmp_path / "sparse.ckpt", sparse))
+    assert_same_bits(scene, scene_from_splatfacto(params))
+
+
 def test_splatfacto_half_precision_is_read_as_float32(tmp_path):
     params = {k: v.half() for k, v in splatfacto_params(5, 1).items()}
     scene = read_splatfacto_ckpt(save_splatfacto(tmp_path / "half.ckpt", params))

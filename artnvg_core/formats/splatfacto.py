@@ -56,7 +56,8 @@ def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
     missing = [_SPLATFACTO_PREFIX + name for name in _SPLATFACTO_REQUIRED if name not in params]
     if missing:
         raise ValueError(f"{path}: not a splatfacto checkpoint, pipeline lacks tensors {', '.join(missing)}")
-    return {name: value.detach().to(torch.float32) for name, value in params.items()}
+    # to_dense: tensors saved in a sparse layout (COO, CSR, ...) read as the dense values they hold
+    return {name: value.detach().to_dense().to(torch.float32) for name, value in params.items()}
 
 
 def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, ...]) -> None:
