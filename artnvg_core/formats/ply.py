@@ -54,8 +54,11 @@ def _ply_layout(num_rest: int) -> dict[str, list[str]]:
     }
 
 
-def _check_no_trailing_data(path: Path, ply: PlyData, stream: BinaryIO) -> None:
-    """The element counts of the header must account for the whole file (no records left unread)."""
+def _check_no_trailing_data(path: Path, ply: PlyData, bytes_left: int | None) -> None:
+    """The element counts of the header must account for the whole file (no records left unread).
+
+    ``bytes_left``: bytes after the last binary record (None for ASCII, whose data lines are counted).
+    """
     declared = sum(element.count for element in ply.elements)
     if ply.text:
         with open(path, "rb") as text:
@@ -63,15 +66,14 @@ def _check_no_trailing_data(path: Path, ply: PlyData, stream: BinaryIO) -> None:
                 if line.strip() == b"end_header":
                     break
             rows = sum(1 for line in text if line.strip())
-        extra = f"{rows} data lines" if rows != declared else ""
+        extra = f"{rows} data lines for {declared} records" if rows != declared else ""
     else:
-        left = os.fstat(stream.fileno()).st_size - stream.tell()
-        extra = f"{left} more bytes" if left else ""
+        extra = f"{bytes_left} bytes more than those records need" if bytes_left else ""
     if extra:
         counts = ", ".join(f"{element.name} {element.count}" for element in ply.elements)
         raise ValueError(
             f"{path}: the header's element counts ({counts}) disagree with the data size: the file holds "
-            f"{extra} than those records need; the file is corrupt or its counts were edited"
+            f"{extra}; the file is corrupt or its counts were edited"
         )
 
 
@@ -80,18 +82,10 @@ def read_ply_data(path: Path) -> PlyData:
     try:
         with open(path, "rb") as stream, np.errstate(all="ignore"):  # out-of-range text -> inf, rejected later
             ply = PlyData.read(stream)
-            for element in ply.elements:
-                element.data  # noqa: B018 - force reading while the stream is open
-            if not ply.text:
-                _check_no_trailing_data(path, ply, stream)
-    except ValueError as error:
-        if str(error).startswith(str(path)):
-            raise
-        raise ValueError(f"{path}: not a readable PLY file ({type(error).__name__}: {error})") from error
+            bytes_left = None if ply.text else os.fstat(stream.fileno()).st_size - stream.tell()
     except Exception as error:  # plyfile and numpy raise many types on corrupt bytes
         raise ValueError(f"{path}: not a readable PLY file ({type(error).__name__}: {error})") from error
-    if ply.text:
-        _check_no_trailing_data(path, ply, None)
+    _check_no_trailing_data(path, ply, bytes_left)
     return ply
 
 
