@@ -8,9 +8,10 @@ from ``opt/opt_style.py``) does, with its default flags:
    [3, 3] (divided by the pixel count); it eigen-decomposes both (``torch.svd`` of the symmetric
    matrices), clamps the eigenvalues to [1e-8, 1e8] and sets
    ``A = C_s^(1/2) C_c^(-1/2)`` (symmetric square roots), ``t = mu_s - A mu_c``. The training
-   images become ``clamp(A x + t, 0, 1)``; the radiance grid gets ``apply_ct``, which applies
-   ``A`` and ``t`` to *every* SH coefficient, DC and higher bands alike, ignoring the basis
-   constant and the +0.5 offset, so the grid only approximates the recoloured images;
+   images become ``clamp(A x + t, 0, 1)``; the radiance grid gets ``apply_ct`` (ARF-svox2's
+   ``svox2.py``), which applies ``A`` and ``t`` to *every* SH coefficient, DC and higher bands
+   alike: not the exact map of an SH colour (the offset belongs to the colour, that is to the
+   DC term divided by the basis constant), so the grid only approximates the recoloured images;
 2. **MSE epochs** (``--mse_num_epoches``, 2 in its scripts) fit the grid to the recoloured images;
 3. **NNFM epochs**, the content term measured against the recoloured images;
 4. **post-transform**: the training views are rendered (clamped to [0, 1]), the transform is

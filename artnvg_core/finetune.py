@@ -10,9 +10,10 @@ Loss per step, for one randomly chosen view (ArtNVG, Sec. 3.4):
 Renders are clamped to [0, 1] before every term, as splatfacto does. The VGG terms (NNFM,
 content) see the render shrunk to at most ``nnfm_max_side`` pixels on its long side: at
 1024x1024 this is ARF's factor 0.5 and a quarter of the VGG and matching work of full
-resolution. ARF halves every render; we keep the 512 px cap instead, which above 1024 px costs
-less than ARF's half (4x less at 2048 px), and below 512 px keeps the render whole (a 128 px
-render halved leaves relu3 maps of 16x16). The style image is sized as ARF sizes it relative to
+resolution. ARF halves every render; we keep the measured 512 px cap instead: ARF's size at
+1024 px, 4x cheaper than ARF's half at 2048 px, and more pixels than ARF's half below 1024 px
+(a 128 px render is kept whole; halved, it would leave relu3 maps of 16x16), which we have not
+measured against ARF's half. The style image is sized as ARF sizes it relative to
 the render: its long side equal to the long side of the render the VGG sees (ARF: the style's
 long side set to the render's, then both halved). L1/SSIM stay at full resolution.
 
