@@ -164,8 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as error:  # bad input, or a file the system would not read or write
         print(f"error: {error}", file=sys.stderr)
         return 2
-    except (MemoryError, torch.OutOfMemoryError) as error:
-        print(f"error: out of memory ({error}); try a smaller --scale or fewer --views", file=sys.stderr)
+    except (MemoryError, RuntimeError) as error:  # torch's CPU allocator raises a bare RuntimeError
+        if not isinstance(error, (MemoryError, torch.OutOfMemoryError)) and "can't allocate memory" not in str(error):
+            raise
+        print(f"error: out of memory ({str(error)[:300]}); try a smaller --scale or fewer --views", file=sys.stderr)
         return 2
     return 0
 

@@ -84,3 +84,19 @@ def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
                  "--stylizer", "nnfm", "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
     assert "error: [Errno 28] No space left on device" in capsys.readouterr().err
     assert [p.name for p in out.parent.iterdir()] == ["stylized.ply"] and out.read_text() == "an earlier result"
+
+
+@pytest.mark.parametrize("failure", [MemoryError(), RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried")])
+def test_out_of_memory_is_an_error_with_advice(tmp_path, capsys, monkeypatch, failure):
+    import artnvg_core.cameras
+
+    def exhausted(path):
+        raise failure
+
+    monkeypatch.setattr(artnvg_core.cameras, "load_cameras", exhausted)
+    assert main(["render", "scene.ply", "--cameras", "t.json", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory (") and "try a smaller --scale" in err
+    monkeypatch.setattr(artnvg_core.cameras, "load_cameras", lambda path: 1 / 0)
+    with pytest.raises(ZeroDivisionError):  # other failures are not disguised
+        main(["render", "scene.ply", "--cameras", "t.json", "--out", str(tmp_path)])
