@@ -39,11 +39,13 @@ def test_bad_scale_exits_2_naming_it(tmp_path, capsys, command, value):
     assert exit_.value.code == 2 and "error: argument --scale: expected" in capsys.readouterr().err
 
 
-def test_absurd_size_refused_before_loading(tmp_path, capsys):
-    demo = DemoInputs()
-    assert main(["render", "none.ply", "--cameras", str(demo.cameras), "--out", str(tmp_path), "--scale", "1e6"]) == 2
-    err = capsys.readouterr()
-    assert "error: CameraSet.scaled: factor 1000000.0 makes" in err.err and "loading" not in err.out
+def test_absurd_size_refused_before_rendering(tmp_path, capsys):
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    out = tmp_path / "renders"
+    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(out), "--scale", "1e6"]) == 2
+    captured = capsys.readouterr()
+    assert "error: CameraSet.scaled: factor 1000000.0 makes" in captured.err and "rendering" not in captured.out
+    assert not out.exists()
 
 
 def test_tiny_scale_renders_one_pixel_views(tmp_path):
