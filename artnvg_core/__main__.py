@@ -10,7 +10,16 @@ import time
 
 import torch
 
-from .cliutil import ProgressBar, load_scene_verbose, parse_device, parse_devices, parse_view_indices, positive_number
+from .cliutil import (
+    ProgressBar,
+    add_camera_arguments,
+    load_scene_verbose,
+    orbit_from_args,
+    parse_device,
+    parse_devices,
+    parse_view_indices,
+    positive_number,
+)
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
 from .metrics.report import add_evaluate_arguments
@@ -23,9 +32,12 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     device = parse_device(args.device)
     out_dir = check_output_folder(args.out, "--out")
-    cameras = load_cameras(args.cameras)
-    cameras = cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
+    def chosen(cameras):
+        return cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
+
+    cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
     scene = load_scene_verbose(args.scene, device)
+    cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
     out_dir.mkdir(parents=True, exist_ok=True)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
@@ -57,9 +69,10 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylize_nnfm,
     )
 
-    given = [args.scene, args.cameras, args.style]
-    if any(given) and not all(given):
-        raise ValueError("stylize: give SCENE, --cameras and --style together, or none of them for the bundled demo")
+    given = [args.scene, args.style]
+    if any(given + [args.cameras]) and not all(given):
+        raise ValueError("stylize: give SCENE and --style (and --cameras, else views orbiting the scene are built), "
+                         "or none of them for the bundled demo")
     demo = not any(given)
     if demo:
         inputs = DemoInputs()
@@ -73,7 +86,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
 
     scene = load_scene_verbose(args.scene, device)
-    cameras = load_cameras(args.cameras).scaled(scale)
+    cameras = load_cameras(args.cameras) if args.cameras else orbit_from_args(args, scene)
+    cameras = cameras.scaled(scale)
     style = load_image(args.style)
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     stylizer, reason = choose_stylizer(args.stylizer, paths)
@@ -112,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("render", help="render a scene's views to PNG files")
     p.add_argument("scene", help="scene file: .ply (INRIA or compressed), .splat, .spz or splatfacto .ckpt")
-    p.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
+    add_camera_arguments(p)
     p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
@@ -124,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
     p.add_argument("scene", nargs="?", help=".ply, .splat, .spz or splatfacto .ckpt (omit all inputs for the demo)")
-    p.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder")
+    add_camera_arguments(p)
     p.add_argument("--style", help="style image file")
     p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")

@@ -13,6 +13,9 @@ import torch
 from .devices import device_for
 
 if TYPE_CHECKING:
+    import argparse
+
+    from .cameras import CameraSet
     from .scene import GaussianScene
 
 
@@ -102,3 +105,31 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> Gaussia
     print(f"loaded {len(scene):,} Gaussians (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
           flush=True)
     return scene
+
+
+def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
+    from .camera_rigs import UP_AXES
+
+    parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
+                        "the scene, built from the Gaussians alone (README: Scenes without cameras)")
+    orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
+    orbit.add_argument("--orbit-views", type=int, default=60, help="number of views (default 60: four groups of 15)")
+    orbit.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")
+    orbit.add_argument("--up", default="auto", choices=("auto", *UP_AXES),
+                       help="the scene's up axis, e.g. --up=-y (default auto: detected; COLMAP scenes are often -y)")
+    orbit.add_argument("--orbit-size", default="512", help="image size WIDTHxHEIGHT or N for NxN (default 512)")
+
+
+def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
+    """:func:`~artnvg_core.camera_rigs.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
+    from .camera_rigs import orbit_cameras
+
+    parts = args.orbit_size.lower().split("x")
+    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
+        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
+    width, height = int(parts[0]), int(parts[-1])
+    cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up)
+    print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
+          flush=True)
+    return cameras

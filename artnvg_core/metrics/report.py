@@ -1,7 +1,7 @@
 """The ``evaluate`` command: metrics of a stylized scene (or of 2D stylized views) as a report.
 
 ``python -m artnvg_core evaluate --original A.ply (--stylized B.ply | --stylized-images DIR)
---cameras CAMERAS --style IMAGE [--out report.json] ...`` renders the original scene (colour,
+[--cameras CAMERAS] --style IMAGE [--out report.json] ...`` renders the original scene (colour,
 alpha, depth) and the stylized scene at the capture views, then reports
 
 - CFSD (content fidelity, :mod:`.cfsd`) of each stylized view against the original render;
@@ -27,7 +27,16 @@ from pathlib import Path
 import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
-from ..cliutil import ProgressBar, fraction, load_scene_verbose, parse_device, parse_view_indices, positive_number
+from ..cliutil import (
+    ProgressBar,
+    add_camera_arguments,
+    fraction,
+    load_scene_verbose,
+    orbit_from_args,
+    parse_device,
+    parse_view_indices,
+    positive_number,
+)
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, load_image, resize_image, write_atomically, written_together
@@ -53,7 +62,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     stylized = parser.add_mutually_exclusive_group(required=True)
     stylized.add_argument("--stylized", help="stylized scene (.ply or .ckpt)")
     stylized.add_argument("--stylized-images", help="folder of 2D stylized views named after the view stems (e.g. frame_00001.png)")
-    parser.add_argument("--cameras", required=True, help="transforms.json or a COLMAP sparse folder")
+    add_camera_arguments(parser)
     parser.add_argument("--style", required=True, help="the style image")
     parser.add_argument("--out", default="report.json", help="JSON report path; the strip PNG and preview GIF go beside it")
     parser.add_argument("--views", help="comma-separated view indices in file order (default: all)")
@@ -253,12 +262,13 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     files = output_files(args.out)
     if args.long_step < 1:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
-    all_cameras = load_cameras(args.cameras)
+    all_cameras = load_cameras(args.cameras) if args.cameras else None
+    style = load_image(args.style)
+    original_scene = load_scene_verbose(args.original, device)
+    all_cameras = orbit_from_args(args, original_scene) if all_cameras is None else all_cameras
     indices = parse_view_indices(args.views, len(all_cameras))
     cameras = all_cameras.subset(indices).scaled(args.scale)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
-    style = load_image(args.style)
-    original_scene = load_scene_verbose(args.original, device)
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, scoring)
     csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, scoring)
