@@ -77,6 +77,7 @@ from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig 
 from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa: E402
 from artnvg_core.diffusion.speed import (  # noqa: E402
     COMPILE_MODES,
+    COMPILE_SCOPES,
     SDPA_BACKENDS,
     SpeedOptions,
     apply_speedups,
@@ -319,9 +320,12 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
     plan += [
         ("channels_last", "auto", SpeedOptions(channels_last=True)),
         ("fused projections", "auto", SpeedOptions(fuse_projections=True)),
+        ("hint embedding cached", "auto", SpeedOptions(cache_hint_embedding=True)),
     ]
+    scopes = COMPILE_SCOPES if args.compile_scope == "both" else (args.compile_scope,)
     if compile_mode is not None:
-        plan.append((f"torch.compile {compile_mode}", "auto", SpeedOptions(compile=compile_mode)))
+        plan += [(f"torch.compile {compile_mode}, {'whole models' if scope == 'model' else 'repeated blocks'}", "auto",
+                  SpeedOptions(compile=compile_mode, compile_scope=scope)) for scope in scopes]
     print(
         f"\nExact speedups, one step: N={views}, {size}x{size}, NV on, CFG (batch {2 * views}), "
         f"ControlNet + UNet; deviation of the noise prediction from the eager baseline ({args.dtype})."
@@ -330,7 +334,8 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
     print("|---|---|---:|---:|---:|---:|---:|---|")
     rows = report.setdefault("variants", [])
     reference = None
-    combined = SpeedOptions(channels_last=True, fuse_projections=True, compile=compile_mode)
+    combined = SpeedOptions(channels_last=True, fuse_projections=True, compile=compile_mode, compile_scope=scopes[-1],
+                            cache_hint_embedding=compile_mode is None or scopes[-1] == "blocks")
     for name, backend, options in plan + [("all combined", None, combined)]:
         if backend is None:
             timed = [r for r in rows if r["options"] == dataclasses.asdict(SpeedOptions()) and "seconds" in r]
@@ -383,6 +388,8 @@ def main() -> None:
         choices=["none", *COMPILE_MODES],
         help="torch.compile mode of the --variants compile rows (default: 'default' on CUDA, 'none' on the CPU)",
     )
+    parser.add_argument("--compile-scope", choices=["both", *COMPILE_SCOPES], default="both",
+                        help="what the --variants compile rows compile: whole models, repeated blocks, or both")
     parser.add_argument("--json", type=Path, help="write the results of this run as JSON here")
     args = parser.parse_args()
     if not (args.timing or args.flops or args.variants or args.group):

@@ -23,6 +23,9 @@ Sections (no flag = all three):
 
     python bench/presets.py --scene .devdata/scenes/bear --json out/presets.json
     python bench/presets.py --tiny --device cpu --size 64 --views 6   # smoke test
+    # the paper configuration end to end, split over two calls of at most 10 minutes:
+    python bench/presets.py --end-to-end paper --groups 0:4 --parts .devdata/parts
+    python bench/presets.py --end-to-end paper --groups 4: --parts .devdata/parts
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_co
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.diffusion.memory import enable_low_memory  # noqa: E402
 from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa: E402
+from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups  # noqa: E402
 from artnvg_core.diffusion.stylize import stylize_groups  # noqa: E402
 from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
@@ -219,28 +223,75 @@ def memory_table(models, conditioning, args, device, report: dict) -> None:
         torch.cuda.set_per_process_memory_fraction(1.0)
 
 
+def _group_range(text: str | None, count: int) -> range:
+    """``START:STOP`` (Python slice of the scene's groups) as a range; all groups when None."""
+    if text is None:
+        return range(count)
+    start, _, stop = text.partition(":")
+    return range(count)[slice(int(start) if start else None, int(stop) if stop else None)]
+
+
 def end_to_end(models, conditioning, args, device, name: str, report: dict) -> None:
-    """Render, stylize every group and finetune with preset ``name``; prints and records phase times."""
+    """Render, stylize every group and finetune with preset ``name``; prints and records phase times.
+
+    With ``--groups START:STOP`` and ``--parts DIR`` (a run split over several calls), this call renders
+    and stylizes only those groups and saves each group's views, images and times to DIR; once DIR holds
+    every group, it finetunes on all of them and prints the phases summed over the parts.
+    """
     preset = PRESETS[name]
     scene, cameras, groups = load_inputs(args, device)
-    style = torch.rand(512, 512, 3, generator=torch.Generator().manual_seed(2)).to(device)
+    chosen = _group_range(args.groups, len(groups))
+    settings = at_size(preset.sampler, args.size)
+    times, parts = {"render content": 0.0, "stylize": 0.0}, []
+    peak = 0.0
+    for index in chosen:
+        views = list(groups[index].views)
+        needed = sorted(set(views) | set(groups[index].context))
+        content = torch.zeros(len(cameras), cameras.height, cameras.width, 3)
+        (content[needed], _, _), render_s, _ = measured(
+            device, lambda: render_views(scene, cameras.subset(needed), "torch"))
+        stylized_all, stylize_s, group_peak = measured(device, lambda: stylize_groups(
+            models, content, groups, conditioning, settings, seed=args.seed, group_indices=[index]))
+        images = stylized_all[views]
+        part = {"group": index, "views": views, "images": images.cpu(), "render_s": render_s,
+                "stylize_s": stylize_s, "peak_gib": group_peak}
+        times["render content"] += render_s
+        times["stylize"] += stylize_s
+        peak = max(peak, group_peak)
+        print(f"group {index}: {len(views)} views, rendered in {render_s:.1f} s (reference rasterizer), "
+              f"stylized in {stylize_s:.1f} s, peak {group_peak:.1f} GiB", flush=True)
+        if args.parts is not None:
+            args.parts.mkdir(parents=True, exist_ok=True)
+            torch.save(part, args.parts / f"group_{index:03d}.pt")
+        parts.append(part)
+    if args.parts is not None:
+        saved = {int(f.stem.split("_")[1]): f for f in args.parts.glob("group_*.pt")}
+        missing = sorted(set(range(len(groups))) - set(saved))
+        if missing:
+            print(f"\nparts saved in {args.parts}; groups {missing} still to stylize before the finetune")
+            return
+        parts = [torch.load(saved[i]) for i in range(len(groups))]
+        times = {"render content": sum(p["render_s"] for p in parts), "stylize": sum(p["stylize_s"] for p in parts)}
+        peak = max(p["peak_gib"] for p in parts)
+    stylized = torch.empty(len(cameras), cameras.height, cameras.width, 3)
+    for part in parts:
+        stylized[part["views"]] = part["images"]
     _, build, _ = measured(device, lambda: render(scene, cameras.subset([0])))  # builds gsplat's kernels once
-    print(f"\n(first render, building the rasterizer's kernels once: {build:.1f} s, not counted)")
-    times = {}
-    begin = time.perf_counter()
-    (content, _, _), times["render content"], _ = measured(device, lambda: render_views(scene, cameras))
-    stylized, times["stylize (all groups)"], peak = measured(device, lambda: stylize_groups(
-        models, content, groups, conditioning, at_size(preset.sampler, args.size), seed=args.seed))
+    print(f"\n(first render with the default backend, building the rasterizer's kernels once: {build:.1f} s, "
+          "not counted)")
+    style = torch.rand(512, 512, 3, generator=torch.Generator().manual_seed(2)).to(device)
     config = FinetuneConfig(iterations=preset.finetune_iterations)
     _, times["finetune"], _ = measured(device, lambda: finetune(scene, cameras, style, stylized=stylized.to(device),
                                                                 config=config))
-    times["total"] = time.perf_counter() - begin
+    times["total"] = sum(times.values())
     report.setdefault("end_to_end", []).append({"preset": name, "views": len(cameras), "groups": len(groups),
+                                                "group_sizes": [len(g.views) for g in groups],
                                                 "size": [cameras.width, cameras.height], "seconds": times,
-                                                "stylize_peak_gib": peak})
+                                                "stylize_peak_gib": peak, "speed": args.speed})
     write_json(args.json, report)
-    print(f"\nEnd to end, preset {name} ({preset.summary}): {len(cameras)} views in {len(groups)} groups at "
-          f"{cameras.width}x{cameras.height}, {preset.finetune_iterations} finetune iterations")
+    print(f"\nEnd to end, preset {name} ({preset.summary}): {len(cameras)} views in {len(groups)} groups of "
+          f"{sorted({len(g.views) for g in groups})} views at {cameras.width}x{cameras.height}, "
+          f"{preset.finetune_iterations} finetune iterations, speedups: {args.speed}; stylize peak {peak:.1f} GiB")
     print("\n| phase | seconds |\n|---|---:|")
     for phase, seconds in times.items():
         print(f"| {phase} | {seconds:.1f} |", flush=True)
@@ -261,6 +312,10 @@ def main() -> None:
     parser.add_argument("--memory-cap", type=float, default=12.0, help="GiB")
     parser.add_argument("--memory-steps", type=int, default=4)
     parser.add_argument("--end-to-end", nargs="+", choices=sorted(PRESETS), default=[])
+    parser.add_argument("--groups", help="START:STOP: the end-to-end run stylizes only these groups (see --parts)")
+    parser.add_argument("--parts", type=Path, help="folder of a split end-to-end run's per-group results")
+    parser.add_argument("--speed", choices=["eager", "regional"], default="eager",
+                        help="regional: compile the repeated blocks and cache the hint embedding (exact speedups)")
     parser.add_argument("--json", type=Path, help="write the results as JSON here")
     args = parser.parse_args()
     if not (args.accuracy or args.memory or args.end_to_end):
@@ -271,6 +326,8 @@ def main() -> None:
     torch.manual_seed(0)
     models = build_models(args.tiny, device, dtype)
     conditioning = random_conditioning(models, device, dtype, TINY_POOLED_DIM if args.tiny else POOLED_DIM)
+    if args.speed == "regional":
+        apply_speedups(models, SpeedOptions(compile="default", compile_scope="blocks", cache_hint_embedding=True))
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"# ArtNVG presets benchmark: {gpu}, {dtype}, {'tiny' if args.tiny else 'full-size'} random models "
           f"(built in {time.perf_counter() - begin:.0f} s), torch {torch.__version__}\n\n`python {' '.join(sys.argv)}`")
