@@ -29,6 +29,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from .cameras import normalize_quats
 from .scene import GaussianScene, sh_degree_for
 
 OPACITY_RANGE = (2.0**-126, 1 - 2.0**-24)  # float32 opacities with finite logits
@@ -55,7 +56,7 @@ def activate(scene: GaussianScene) -> ActivatedGaussians:
     return ActivatedGaussians(
         positions=raw.means,
         scales=raw.log_scales.exp(),
-        rotations=raw.quats / torch.linalg.vector_norm(raw.quats, dim=1, keepdim=True),
+        rotations=normalize_quats(raw.quats),
         opacities=torch.sigmoid(raw.opacity_logits),
         sh=raw.sh,
     ).map(lambda t: t.float())
