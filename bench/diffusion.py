@@ -336,7 +336,10 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
     reference = None
     combined = SpeedOptions(channels_last=True, fuse_projections=True, compile=compile_mode, compile_scope=scopes[-1],
                             cache_hint_embedding=compile_mode is None or scopes[-1] == "blocks")
-    for name, backend, options in plan + [("all combined", None, combined)]:
+    plan += [("all combined", None, combined)]
+    if args.only:
+        plan = [row for row in plan if row[0] == "eager baseline" or any(text in row[0] for text in args.only)]
+    for name, backend, options in plan:
         if backend is None:
             timed = [r for r in rows if r["options"] == dataclasses.asdict(SpeedOptions()) and "seconds" in r]
             backend = min(timed, key=lambda r: r["seconds"])["backend"]
@@ -388,6 +391,8 @@ def main() -> None:
         choices=["none", *COMPILE_MODES],
         help="torch.compile mode of the --variants compile rows (default: 'default' on CUDA, 'none' on the CPU)",
     )
+    parser.add_argument("--only", nargs="+", metavar="TEXT",
+                        help="--variants rows whose name contains one of these (the eager baseline always runs)")
     parser.add_argument("--compile-scope", choices=["both", *COMPILE_SCOPES], default="both",
                         help="what the --variants compile rows compile: whole models, repeated blocks, or both")
     parser.add_argument("--json", type=Path, help="write the results of this run as JSON here")

@@ -133,9 +133,21 @@ def cache_hint_embedding(controlnet: nn.Module, capacity: int = 2) -> None:
     embedding.forward = forward
 
 
+BLOCK_RECOMPILE_LIMIT = 64
+
+
 def compile_repeated_blocks(model: nn.Module, **compile_kwargs) -> int:
     """``torch.compile(**compile_kwargs)`` in place every submodule of ``model`` whose class is in
-    :data:`REPEATED_BLOCKS`; returns how many."""
+    :data:`REPEATED_BLOCKS`; returns how many.
+
+    All blocks of a class share one ``forward`` and so one Dynamo cache, which holds a graph per
+    shape variant (SDXL's UNet and ControlNet have about 20 ResNet-block variants: channels,
+    resolution, batch). Dynamo's default limit of 8 graphs per function would leave the rest
+    eager, so this raises ``torch._dynamo.config.recompile_limit`` (process-wide) to at least
+    :data:`BLOCK_RECOMPILE_LIMIT`.
+    """
+    dynamo_config = torch._dynamo.config
+    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, BLOCK_RECOMPILE_LIMIT)
     blocks = [module for module in model.modules() if type(module).__name__ in REPEATED_BLOCKS]
     for block in blocks:
         block.compile(**compile_kwargs)
