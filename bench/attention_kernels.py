@@ -114,12 +114,13 @@ def kernel_table(found: dict, args, report: dict) -> None:
 
 @contextlib.contextmanager
 def self_attention_through(kernel):
-    """Route every scaled_dot_product_attention with >= 1024 keys and queries (the UNet's and the
-    ControlNet's self-attention; cross-attention has <= 113 keys) through ``kernel``."""
+    """Route every scaled_dot_product_attention with >= 1024 keys and queries and head dimension 64
+    (the UNet's and the ControlNet's self-attention; cross-attention has <= 113 keys, the VAE's
+    attention one head of 512) through ``kernel``."""
     original = F.scaled_dot_product_attention
 
     def patched(q, k, v, attn_mask=None, dropout_p=0.0, is_causal=False, scale=None, **kwargs):
-        if attn_mask is None and not is_causal and q.shape[-2] >= 1024 and k.shape[-2] >= 1024:
+        if attn_mask is None and not is_causal and q.shape[-1] == 64 and min(q.shape[-2], k.shape[-2]) >= 1024:
             return kernel(q, k, v, scale if scale is not None else q.shape[-1] ** -0.5)
         return original(q, k, v, attn_mask=attn_mask, dropout_p=dropout_p, is_causal=is_causal, scale=scale, **kwargs)
 
