@@ -18,9 +18,11 @@ Sections (no section flag = ``--timing --group``):
   of the measured time to that floor;
 * ``--variants``: one NV step (``--variant-views`` N at ``--variant-size``, CFG) for the eager
   baseline, each exact speedup of :mod:`artnvg_core.diffusion.speed` alone (SDPA backends,
-  channels-last, fused projections, ``torch.compile`` unless ``--compile none``) and all combined
-  (with the fastest backend): time, peak memory and deviation of the noise prediction from the
-  baseline; details to ``--json``;
+  channels-last, fused projections, the cached hint embedding, ``torch.compile`` unless
+  ``--compile none``, with static and with dynamic shapes) and all combined (with the fastest
+  backend): time, peak memory and deviation of the noise prediction from the baseline; for the
+  compiled rows also the first call, and the first call at N-1 views after it (a group of another
+  size: the recompilation); details to ``--json``;
 * ``--group``: whole-group and component tables.
 
 Timing: CUDA events (perf_counter on CPU), ``--warmup`` untimed runs, median of ``--repeats``.
@@ -272,22 +274,26 @@ def _copy_models(models: DiffusionModels) -> DiffusionModels:
     )
 
 
-def measure_variant(models, inputs, backend: str, options: SpeedOptions, args) -> tuple[dict, torch.Tensor]:
-    """Time one step of a speedup variant on copies of ``models``; returns (row, noise prediction)."""
+def measure_variant(models, inputs, backend: str, options: SpeedOptions, args,
+                    resized_inputs: dict) -> tuple[dict, torch.Tensor]:
+    """Time one step of a speedup variant on copies of ``models``, then the first step on
+    ``resized_inputs`` (another group size: what a recompilation costs); returns (row, noise prediction)."""
     variant = _copy_models(models)
     apply_speedups(variant, options)
+    device = torch.device(args.device)
 
-    def run():
-        return run_step(variant.base.unet, variant.controlnet, inputs)
+    def run(step_inputs=inputs):
+        return run_step(variant.base.unet, variant.controlnet, step_inputs)
 
     with sdpa_backend(backend):
         begin = time.perf_counter()
         noise = run().float()
         first = time.perf_counter() - begin
-        device = torch.device(args.device)
         seconds = timed(run, device, repeats=args.repeats, warmup=args.warmup)
         peak = peak_memory(run, device)
-    return {"seconds": seconds, "first_call_s": first, "peak_extra_gib": peak}, noise
+        resized_first = timed(lambda: run(resized_inputs), device, repeats=1, warmup=0)
+    return {"seconds": seconds, "first_call_s": first, "resized_first_call_s": resized_first,
+            "peak_extra_gib": peak}, noise
 
 
 def release(device: torch.device) -> None:
@@ -314,6 +320,7 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
     """
     size, views = args.variant_size, args.variant_views
     inputs = step_inputs(models, views, size, True, pooled_dim, seed=1)
+    resized_inputs = step_inputs(models, views - 1, size, True, pooled_dim, seed=1)
     compile_mode = None if args.compile == "none" else args.compile
     backends = ["auto"] + [name for name in SDPA_BACKENDS if name != "auto"]
     plan = [(f"sdpa {name}" if name != "auto" else "eager baseline", name, SpeedOptions()) for name in backends]
@@ -324,8 +331,10 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
     ]
     scopes = COMPILE_SCOPES if args.compile_scope == "both" else (args.compile_scope,)
     if compile_mode is not None:
-        plan += [(f"torch.compile {compile_mode}, {'whole models' if scope == 'model' else 'repeated blocks'}", "auto",
-                  SpeedOptions(compile=compile_mode, compile_scope=scope)) for scope in scopes]
+        plan += [(f"torch.compile {compile_mode}, {'whole models' if scope == 'model' else 'repeated blocks'}"
+                  f"{', dynamic shapes' if dynamic else ''}", "auto",
+                  SpeedOptions(compile=compile_mode, compile_scope=scope, compile_dynamic=dynamic))
+                 for scope in scopes for dynamic in (False, True)]
     print(
         f"\nExact speedups, one step: N={views}, {size}x{size}, NV on, CFG (batch {2 * views}), "
         f"ControlNet + UNet; deviation of the noise prediction from the eager baseline ({args.dtype})."
@@ -345,7 +354,7 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
             backend = min(timed, key=lambda r: r["seconds"])["backend"]
         row = {"variant": name, "backend": backend, "options": dataclasses.asdict(options)}
         try:
-            measured, noise = measure_variant(models, inputs, backend, options, args)
+            measured, noise = measure_variant(models, inputs, backend, options, args, resized_inputs)
             row.update(measured)
             if reference is None:
                 reference = noise
@@ -360,7 +369,8 @@ def variants_table(models: DiffusionModels, args, pooled_dim: int, report: dict)
             print(f"| {name} | {backend} | - | - | - | - | - | {row['error']} |", flush=True)
             continue
         speedup = rows[0]["seconds"] / row["seconds"] if "seconds" in rows[0] else float("nan")
-        note = f"first call {row['first_call_s']:.1f} s" if options.compile else ""
+        note = (f"first call {row['first_call_s']:.1f} s, then at N={views - 1}: {row['resized_first_call_s']:.1f} s"
+                if options.compile else "")
         print(
             f"| {name} | {backend} | {row['seconds']:.3f} | {speedup:.2f}x | {row['peak_extra_gib']:.1f} | "
             f"{row['max_abs']:.3g} | {row['rel_l2']:.3g} | {note} |",

@@ -1,8 +1,9 @@
 """Exact speedups (artnvg_core.diffusion.speed) on tiny SDXL-architecture models (CPU, float32).
 
 Each option must leave the noise prediction and the sampled images unchanged up to float32
-rounding. torch.compile is not tested here: compiling even the tiny models takes minutes on a
-CPU; the GPU benchmark (bench/diffusion.py --variants) reports its deviation.
+rounding. Compilation is traced with Dynamo's eager backend only: generating code for even the
+tiny models takes minutes on a CPU; the GPU benchmark (bench/diffusion.py --variants) reports the
+compiled deviation.
 """
 
 import copy
@@ -11,6 +12,7 @@ import dataclasses
 import pytest
 import torch
 from diffusers.models.attention_processor import Attention
+from torch._dynamo.utils import counters
 from torch.utils.flop_counter import FlopCounterMode
 
 from artnvg_core.diffusion.attention import AttentionControl, NeighbourViewSelfAttention, attention_kwargs
@@ -38,12 +40,11 @@ def models(tmp_path_factory):
     return tiny_models(tmp_path_factory.mktemp("csgo"), num_style_tokens=STYLE_TOKENS)
 
 
-@pytest.fixture(scope="module")
-def step_inputs():
-    """CFG batch of 2 x VIEWS views with NV attention and CSGO tokens, seeded."""
+def _step_inputs(views: int) -> dict:
+    """CFG batch of 2 x ``views`` views with NV attention and CSGO tokens, seeded."""
     generator = torch.Generator().manual_seed(0)
-    batch = 2 * VIEWS
-    control = AttentionControl(VIEWS, CONTENT_TOKENS, STYLE_TOKENS, content_scale=1.0, style_scale=0.6)
+    batch = 2 * views
+    control = AttentionControl(views, CONTENT_TOKENS, STYLE_TOKENS, content_scale=1.0, style_scale=0.6)
     return {
         "sample": torch.randn(batch, 4, SIZE // 8, SIZE // 8, generator=generator),
         "timestep": torch.tensor(500),
@@ -57,6 +58,11 @@ def step_inputs():
         },
         "cross_attention_kwargs": attention_kwargs(control),
     }
+
+
+@pytest.fixture(scope="module")
+def step_inputs():
+    return _step_inputs(VIEWS)
 
 
 @torch.no_grad()
@@ -217,8 +223,29 @@ def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models,
     torch._dynamo.reset()
 
 
+@pytest.mark.parametrize("dynamic", [True, None])
+def test_dynamic_regional_compile_keeps_its_graphs_for_a_new_group_size(models, dynamic):
+    """With symbolic shapes, a group of another size reuses the blocks' graphs (Dynamo's default,
+    dynamic=None, compiles them again); the output is unchanged at both sizes."""
+    torch._dynamo.reset()
+    counters.clear()
+    variant = _copy(models)
+    for model in (variant.base.unet, variant.controlnet):
+        compile_repeated_blocks(model, backend="eager", dynamic=dynamic)
+    graphs = []
+    for views in (VIEWS, VIEWS - 1):
+        inputs = _step_inputs(views)
+        assert _relative_l2(_noise(variant, inputs), _noise(models, inputs)) < TOLERANCE
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[0] > 0
+    assert (graphs[1] == graphs[0]) == (dynamic is True), graphs
+    torch._dynamo.reset()
+
+
 def test_bad_speed_options_raise():
     with pytest.raises(ValueError, match="SpeedOptions.compile_scope"):
         SpeedOptions(compile="default", compile_scope="layers")
     with pytest.raises(ValueError, match="cache_hint_embedding"):
         SpeedOptions(compile="default", cache_hint_embedding=True)
+    with pytest.raises(ValueError, match="compile_dynamic"):
+        SpeedOptions(compile_dynamic=True)

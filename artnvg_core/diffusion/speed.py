@@ -18,6 +18,8 @@
     minutes for full-size SDXL), or ``"blocks"``, only the repeated blocks
     (:data:`REPEATED_BLOCKS`: transformer and ResNet blocks), regional compilation: blocks of the
     same class and shapes share one compiled graph, so it compiles far fewer graphs;
+    ``compile_dynamic`` compiles with symbolic shapes from the start (``dynamic=True``), so a new
+    group size or resolution reuses the graphs instead of compiling them again;
   - ``cache_hint_embedding``: the ControlNet's hint embedding (a stack of convolutions on the
     full-resolution content image, the same at every denoising step of a group) is computed
     once per hint tensor and reused while that tensor is unchanged (the same object, same
@@ -71,12 +73,15 @@ class SpeedOptions:
 
     compile: None (eager) or a ``torch.compile`` mode from :data:`COMPILE_MODES`.
     compile_scope: what is compiled, one of :data:`COMPILE_SCOPES`.
+    compile_dynamic: compile with symbolic shapes (``dynamic=True``) instead of Dynamo's default
+        (static first, dynamic after a shape change).
     """
 
     channels_last: bool = False
     fuse_projections: bool = False
     compile: str | None = None
     compile_scope: str = "model"
+    compile_dynamic: bool = False
     cache_hint_embedding: bool = False
 
     def __post_init__(self) -> None:
@@ -84,6 +89,8 @@ class SpeedOptions:
             raise ValueError(f"SpeedOptions.compile must be None or one of {COMPILE_MODES}, got {self.compile!r}")
         if self.compile_scope not in COMPILE_SCOPES:
             raise ValueError(f"SpeedOptions.compile_scope must be one of {COMPILE_SCOPES}, got {self.compile_scope!r}")
+        if self.compile_dynamic and self.compile is None:
+            raise ValueError("SpeedOptions.compile_dynamic needs a compile mode")
         if self.cache_hint_embedding and self.compile is not None and self.compile_scope == "model":
             raise ValueError("SpeedOptions.cache_hint_embedding needs compile_scope='blocks' or no compile: "
                              "a whole-model graph cannot keep a cache between calls")
@@ -162,9 +169,11 @@ def apply_speedups(models, options: SpeedOptions) -> None:
             model.to(memory_format=torch.channels_last)
         if options.fuse_projections:
             fuse_attention_projections(model)
-        if options.compile is not None and options.compile_scope == "model":
-            model.compile(mode=options.compile)
-        elif options.compile is not None:
-            compile_repeated_blocks(model, mode=options.compile)
+        if options.compile is not None:
+            compile_kwargs = {"mode": options.compile, "dynamic": True if options.compile_dynamic else None}
+            if options.compile_scope == "model":
+                model.compile(**compile_kwargs)
+            else:
+                compile_repeated_blocks(model, **compile_kwargs)
     if options.cache_hint_embedding:
         cache_hint_embedding(models.controlnet)
