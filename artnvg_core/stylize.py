@@ -113,14 +113,18 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
-def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device):
+def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool = False):
     """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
-    loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`.
+    loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
+    ``compile_blocks`` sped up by :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only).
     Any failure to load raises :class:`DiffusionModelsUnavailable` saying why.
     A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
     from .diffusion.memory import enable_low_memory
     from .diffusion.models import load_diffusion_models
+    from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
 
+    if compile_blocks and low_memory:
+        raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
     dtype = torch.float16 if device.type == "cuda" else torch.float32
     try:
@@ -130,6 +134,8 @@ def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device):
         raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
     if low_memory:
         enable_low_memory(models, device)
+    if compile_blocks:
+        apply_speedups(models, COMPILED_BLOCKS)
     return models
 
 
@@ -144,6 +150,7 @@ def stylize_diffusion(
     content_routing: str = "released",
     devices: Sequence[str | torch.device] | None = None,
     group_size: int = 15,
+    compile_blocks: bool = False,
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
@@ -154,7 +161,7 @@ def stylize_diffusion(
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
     memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``); ``config.iterations`` is
     used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
-    beyond the first (identical results).
+    beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`.
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
     from .diffusion.conditioning import prepare_conditioning
@@ -166,7 +173,7 @@ def stylize_diffusion(
     chosen = get_preset(preset)
     settings = replace(chosen.sampler, content_routing=content_routing)
     devices = [scene.device] if not devices else [torch.device(d) for d in devices]
-    load = functools.partial(load_models_for, paths, chosen.low_memory)
+    load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
     models = load(devices[0])  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()

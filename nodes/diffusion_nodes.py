@@ -28,6 +28,7 @@ from artnvg_core.diffusion.model_files import (
 )
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
 from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
+from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
     DEFAULT_PROMPT,
@@ -177,6 +178,10 @@ class LoadArtNVGModels:
             "low: a 15-view group at 1024 px within 12 GiB, same result, ~10% slower: only the UNet stays on "
             "the GPU, the rest visits it; guidance halves one at a time. Start ComfyUI with "
             "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")})
+        optional["compile"] = ("BOOLEAN", {"default": False, "tooltip": (
+            "Compile the UNet's and ControlNet's repeated blocks (full memory only): same result up to bf16 "
+            "rounding, ~6% faster steps after a first run of ~80 s (H100); pays back on large scenes. Keeps "
+            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")})
         return {"required": required, "optional": optional}
 
     @classmethod
@@ -195,17 +200,22 @@ class LoadArtNVGModels:
 
     def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
              sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
-             sdxl_config_dir="", memory="full"):
+             sdxl_config_dir="", memory="full", compile=False):
         paths = _model_paths(self.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
                              (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
         with node_input(self.DISPLAY_NAME, "device"):
             target = compute_device() if device == "auto" else device_for(device)
         low_memory = memory == "low"
+        if compile and low_memory:
+            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'compile' runs in the full-memory mode only; "
+                                 "set 'memory' to full or 'compile' off")
         with node_input(self.DISPLAY_NAME):
             models = load_diffusion_models(
                 *paths, sdxl_config_dir=sdxl_config_dir.strip() or None, dtype=DTYPES[dtype],
                 device=target if keep_loaded and not low_memory else "cpu",
             )
+        if compile:
+            apply_speedups(models, COMPILED_BLOCKS)
         return (LoadedModels(models, target, keep_loaded, low_memory),)
 
 

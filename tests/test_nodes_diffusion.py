@@ -15,6 +15,7 @@ from diffusion_tiny import write_model_files
 from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups
 from artnvg_core.diffusion.stylize import stylize_views
 from artnvg_core.grouping import group_views
 from artnvg_core.progress import Cancelled
@@ -187,3 +188,25 @@ def test_patch_approximations_and_low_memory_reach_the_sampler(model_files):
                              prompt=PROMPT, negative_prompt=NEGATIVE)
     assert torch.equal(out, expected)
     assert all(block._chunk_size == 1 for block in low.models.base.unet.modules() if hasattr(block, "_chunk_size"))
+
+
+def test_compile_input_applies_the_compiled_blocks_in_full_memory_only(model_files, monkeypatch):
+    """The loader's ``compile`` applies ``COMPILED_BLOCKS`` (here its exact hint cache alone: Inductor
+    takes minutes on a CPU) and gives the uncompiled result; with low memory it is refused by name."""
+    applied = []
+    monkeypatch.setattr(diffusion_nodes, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
+    monkeypatch.setattr(diffusion_nodes, "apply_speedups",
+                        lambda models, options: applied.append(options) or apply_speedups(models, options))
+    with pytest.raises(NodeInputError, match="Load ArtNVG Models: input 'compile' .* full-memory mode only"):
+        call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, memory="low",
+             compile=True, **model_files)
+    outputs = []
+    for compile in (False, True):
+        (loaded,) = call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True,
+                         compile=compile, **model_files)
+        (embeds,) = call(CSGOEncode, models=loaded, style_image=_images(1, seed=5), prompt=PROMPT,
+                         negative_prompt=NEGATIVE)
+        outputs.append(call(SampleGroup, models=loaded, embeds=embeds, content_views=_images(4, seed=6),
+                            groups=group_views(_line_cameras(4), 4), group_index=-1, **SAMPLING)[0])
+    assert applied == [SpeedOptions(cache_hint_embedding=True)]
+    assert torch.equal(outputs[1], outputs[0])

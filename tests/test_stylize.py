@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
+from artnvg_core.diffusion import speed
 from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.diffusion.speed import SpeedOptions
 from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.presets import PRESETS, Preset
@@ -16,8 +18,9 @@ from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
 
-def test_low_memory_preset_and_two_devices_give_the_same_views(tmp_path, monkeypatch):
-    """Exact presets and device spreading change no view (beyond float32 rounding); the scene is finetuned."""
+def test_low_memory_preset_two_devices_and_compile_are_wired_through(tmp_path, monkeypatch):
+    """Exact presets and device spreading change no view (beyond float32 rounding); the scene is
+    finetuned; the compile switch reaches the loaded models."""
     small = Preset(SamplerSettings(steps=1, guidance_scale=3.0, resolution=None), 2, False, "test")
     monkeypatch.setitem(PRESETS, "paper", small)
     monkeypatch.setitem(PRESETS, "low-memory", dataclasses.replace(
@@ -37,6 +40,16 @@ def test_low_memory_preset_and_two_devices_give_the_same_views(tmp_path, monkeyp
     torch.testing.assert_close(low, views, rtol=0, atol=1e-5)
     _, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"], group_size=2)
     torch.testing.assert_close(spread, views, rtol=0, atol=1e-5)
+
+    # compile_blocks reaches the models (COMPILED_BLOCKS reduced to its exact hint cache: Inductor
+    # takes minutes on a CPU); refused with low memory before anything loads
+    applied = []
+    monkeypatch.setattr(speed, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
+    monkeypatch.setattr(speed, "apply_speedups", lambda models, options: applied.append(options))
+    stylize_diffusion(scene, cameras, style, config, paths, group_size=2, compile_blocks=True)
+    assert applied == [SpeedOptions(cache_hint_embedding=True)]
+    with pytest.raises(ValueError, match="compile: .* full-memory mode only"):
+        stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", compile_blocks=True)
 
 
 def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_path, monkeypatch, capsys):
