@@ -27,7 +27,7 @@ PUBLIC_INPUTS = {
     "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
     "ArtNVGLoadModels": ["sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights", "dtype", "device",
                          "keep_loaded", "sdxl_checkpoint_path", "controlnet_path", "image_encoder_path",
-                         "csgo_weights_path", "sdxl_config_dir", "memory"],
+                         "csgo_weights_path", "sdxl_config_dir", "memory", "compile"],
     "ArtNVGCSGOEncode": ["models", "style_image", "prompt", "negative_prompt"],
     "ArtNVGNVAttentionPatch": ["models", "enabled", "levels", "nearest_views", "kv_downsample"],
     "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
