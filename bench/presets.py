@@ -23,9 +23,10 @@ Sections (no flag = all three):
 
     python bench/presets.py --scene .devdata/scenes/bear --json out/presets.json
     python bench/presets.py --tiny --device cpu --size 64 --views 6   # smoke test
-    # the paper configuration end to end, split over two calls of at most 10 minutes:
-    python bench/presets.py --end-to-end paper --groups 0:4 --parts .devdata/parts
-    python bench/presets.py --end-to-end paper --groups 4: --parts .devdata/parts
+    # the paper configuration end to end, split over two calls of at most 10 minutes on one
+    # machine (.parts is git-ignored and not carried, so it survives between calls):
+    python bench/presets.py --end-to-end paper --groups 0:4 --parts .parts
+    python bench/presets.py --end-to-end paper --groups 4: --parts .parts
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_co
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.diffusion.memory import enable_low_memory  # noqa: E402
 from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa: E402
-from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups  # noqa: E402
+from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups  # noqa: E402
 from artnvg_core.diffusion.stylize import stylize_groups  # noqa: E402
 from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
@@ -314,8 +315,9 @@ def main() -> None:
     parser.add_argument("--end-to-end", nargs="+", choices=sorted(PRESETS), default=[])
     parser.add_argument("--groups", help="START:STOP: the end-to-end run stylizes only these groups (see --parts)")
     parser.add_argument("--parts", type=Path, help="folder of a split end-to-end run's per-group results")
-    parser.add_argument("--speed", choices=["eager", "regional"], default="eager",
-                        help="regional: compile the repeated blocks and cache the hint embedding (exact speedups)")
+    parser.add_argument("--speed", choices=["eager", "compiled-blocks"], default="eager",
+                        help="compiled-blocks: what --compile switches on (speed.COMPILED_BLOCKS: the repeated "
+                             "blocks compiled with dynamic shapes, the hint embedding cached; exact speedups)")
     parser.add_argument("--json", type=Path, help="write the results as JSON here")
     args = parser.parse_args()
     if not (args.accuracy or args.memory or args.end_to_end):
@@ -326,8 +328,8 @@ def main() -> None:
     torch.manual_seed(0)
     models = build_models(args.tiny, device, dtype)
     conditioning = random_conditioning(models, device, dtype, TINY_POOLED_DIM if args.tiny else POOLED_DIM)
-    if args.speed == "regional":
-        apply_speedups(models, SpeedOptions(compile="default", compile_scope="blocks", cache_hint_embedding=True))
+    if args.speed == "compiled-blocks":
+        apply_speedups(models, COMPILED_BLOCKS)
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"# ArtNVG presets benchmark: {gpu}, {dtype}, {'tiny' if args.tiny else 'full-size'} random models "
           f"(built in {time.perf_counter() - begin:.0f} s), torch {torch.__version__}\n\n`python {' '.join(sys.argv)}`")
