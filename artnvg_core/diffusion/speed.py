@@ -51,6 +51,7 @@ SDPA_BACKENDS = {
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 COMPILE_SCOPES = ("model", "blocks")
 REPEATED_BLOCKS = ("BasicTransformerBlock", "ResnetBlock2D")
+BLOCK_RECOMPILE_LIMIT = 64  # Dynamo graphs per block class (see compile_repeated_blocks)
 
 
 def check_sdpa_backend(name: str, field: str) -> str:
@@ -147,9 +148,6 @@ def cache_hint_embedding(controlnet: nn.Module, capacity: int = 2) -> None:
     embedding.forward = forward
 
 
-BLOCK_RECOMPILE_LIMIT = 64
-
-
 def compile_repeated_blocks(model: nn.Module, **compile_kwargs) -> int:
     """``torch.compile(**compile_kwargs)`` in place every submodule of ``model`` whose class is in
     :data:`REPEATED_BLOCKS`; returns how many.
@@ -184,7 +182,6 @@ def apply_speedups(models, options: SpeedOptions) -> None:
                 compile_repeated_blocks(model, **compile_kwargs)
     if options.cache_hint_embedding:
         cache_hint_embedding(models.controlnet)
-
 
 
 # What users switch on (command line ``--compile``, Load ArtNVG Models' ``compile``): regional
