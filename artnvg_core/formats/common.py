@@ -40,14 +40,6 @@ def sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
 
 
-def unit_quats(quats: np.ndarray) -> np.ndarray:
-    """[N, 4] quaternions scaled to unit norm (scaled by their largest component first, so
-    norms near the float limits do not overflow or underflow)."""
-    q = np.asarray(quats, np.float64)
-    q = q / np.abs(q).max(axis=1, keepdims=True)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 # An 8-bit opacity byte b stands for b / 255; the two end bytes are read as b / 255 moved 0.25/255
 # inwards (finite logits) and written back as the same byte.
 _OPACITY_EDGE = 0.25 / 255

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..cameras import normalize_quats
 from ..fileio import write_atomically
 from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes, unit_quats
+from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -91,5 +92,5 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
     records["rgba"][:, :3] = to_bytes(np.clip(colour, 0, 1) * 255)
     records["rgba"][:, 3] = to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)
-    records["rotation"] = to_bytes(unit_quats(cpu.quats.numpy()) * 128 + 128)
+    records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
     write_atomically(path, lambda stream: stream.write(records.tobytes()))

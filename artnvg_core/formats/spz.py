@@ -51,9 +51,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..cameras import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes, unit_quats
+from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -297,7 +298,7 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
     bits = _fractional_bits(path, means)
     fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
     positions = np.stack([fixed & 255, fixed >> 8 & 255, fixed >> 16], -1).astype(np.uint8)
-    q = unit_quats(cpu.quats.numpy())[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
+    q = normalize_quats(cpu.quats.double()).numpy()[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
     count, degree = len(cpu), cpu.sh_degree
     sh_rest = cpu.sh[:, 1:].double().numpy() * _sh_flip_signs(x, y, z)[: (degree + 1) ** 2 - 1, None]
     sh_bytes = np.concatenate([_quantized_sh(sh_rest[:, :3], 5), _quantized_sh(sh_rest[:, 3:], 4)], 1)
