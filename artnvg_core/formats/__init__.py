@@ -40,11 +40,17 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     return reader(path, drop_invalid=drop_invalid)
 
 
+def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> Path:
+    """``path`` when its extension (any case) names a format :func:`save_scene` writes, checked before
+    any work; otherwise a ValueError naming ``path`` (after ``option``, e.g. ``--out``, when given)."""
+    path = Path(path)
+    if path.suffix.lower() not in WRITERS:
+        raise ValueError(f"{option + ': ' if option else ''}{path}: cannot write scene file type {path.suffix!r}; "
+                         f"expected one of {', '.join(SAVE_SUFFIXES)}")
+    return path
+
+
 def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz or .splat."""
-    path = Path(path)
-    writer = WRITERS.get(path.suffix.lower())
-    if writer is None:
-        raise ValueError(f"{path}: cannot write scene file type {path.suffix!r}; expected one of "
-                         f"{', '.join(SAVE_SUFFIXES)}")
-    writer(scene, path)
+    path = writable_scene_path(path)
+    WRITERS[path.suffix.lower()](scene, path)
