@@ -15,7 +15,8 @@ from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_typ
 
 class LoadGaussianScene:
     """A Gaussian scene file from the input folder or a path: ``.ply`` (INRIA 3DGS, Mip-Splatting or
-    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic) or a nerfstudio splatfacto ``.ckpt``."""
+    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic), ``.ksplat`` (GaussianSplats3D) or a
+    nerfstudio splatfacto ``.ckpt``."""
 
     DISPLAY_NAME = "Load Gaussian Scene"
     CATEGORY = CATEGORY
@@ -29,7 +30,7 @@ class LoadGaussianScene:
         return {
             "required": {
                 "scene_file": (list_input_files(suffixes=SCENE_SUFFIXES), {
-                    "tooltip": "A .ply, .splat, .spz or .ckpt file in ComfyUI's input folder (subfolders included)."}),
+                    "tooltip": "A .ply, .splat, .spz, .ksplat or .ckpt file in ComfyUI's input folder (subfolders included)."}),
             },
             "optional": {
                 "path": ("STRING", {"default": "", "tooltip": (
@@ -71,7 +72,8 @@ def _next_free_path(filename_prefix: str, suffix: str) -> Path:
 
 class SaveGaussianScene:
     """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
-    by ``format`` a Niantic ``.spz`` or an antimatter15 ``.splat`` (smaller files, quantised).
+    by ``format`` a Niantic ``.spz``, an antimatter15 ``.splat`` or a GaussianSplats3D ``.ksplat`` (smaller
+    files, quantised).
 
     Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
@@ -95,7 +97,8 @@ class SaveGaussianScene:
             "optional": {
                 "format": ([suffix.lstrip(".") for suffix in SAVE_SUFFIXES], {"default": "ply", "tooltip": (
                     "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
-                    "splat: antimatter15 .splat, SH degree 0 only.")}),
+                    "splat: antimatter15 .splat, SH degree 0 only. ksplat: GaussianSplats3D level 0, SH up to "
+                    "degree 2.")}),
             },
         }
 
