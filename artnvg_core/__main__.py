@@ -19,6 +19,7 @@ from .cliutil import (
     parse_devices,
     parse_view_indices,
     positive_number,
+    prepare_rasterizer,
 )
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
@@ -39,6 +40,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     scene = load_scene_verbose(args.scene, device)
     cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
     out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
@@ -104,6 +106,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
         try:
