@@ -34,8 +34,9 @@ def look_at_camera(eye, target, width=40, height=32, focal=36.0):
     return w2c, k
 
 
-def make_cameras(eyes, width=40, height=32, dtype=torch.float32):
-    mats = [look_at_camera(e, [0, 0, 0], width, height) for e in eyes]
+def make_cameras(eyes, width=40, height=32, dtype=torch.float32, focal=36.0):
+    """Cameras at ``eyes`` looking at the origin, ``focal`` pixels (x; y 1.1 x that)."""
+    mats = [look_at_camera(e, [0, 0, 0], width, height, focal) for e in eyes]
     return CameraSet(
         torch.tensor(np.stack([m[0] for m in mats]), dtype=dtype),
         torch.tensor(np.stack([m[1] for m in mats]), dtype=dtype),
@@ -154,7 +155,7 @@ def many_gaussians(count: int, size: int = 512, seed: int = 0) -> HardCase:
     scene = GaussianScene(means, torch.randn(count, 4, generator=g),
                           torch.randn(count, 3, generator=g) * 0.3 - 5.0 - math.log(count / 1e5) / 3,
                           torch.randn(count, generator=g) - 1.0, torch.randn(count, 16, 3, generator=g) * 0.3)
-    return HardCase(f"{count:,} Gaussians", scene, make_cameras([[0.0, -0.5, -3.0]], size, size))
+    return HardCase(f"{count:,} Gaussians", scene, make_cameras([[0.0, -0.5, -3.0]], size, size, focal=size))
 
 
 def psnr(image: np.ndarray, reference: np.ndarray) -> float:
