@@ -49,7 +49,7 @@ def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poiso
         assert torch.equal(guarded[name][2], after_first[name][2]), name  # held back at steps 2 and 3
     assert not torch.equal(guarded["opacity"][4], after_first["opacity"][4])  # stepped again at step 3
     assert [r.message for r in caplog.records] == [
-        f"test: step 2: 2 Gaussians have non-finite (or >= 1e+18) gradients (2, 4); they keep their last "
+        "test: step 2: 2 Gaussians have non-finite (or >= 1e+18) gradients (2, 4); they keep their last "
         "finite values this step"]
     caplog.clear()
     with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):

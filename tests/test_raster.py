@@ -1,7 +1,6 @@
 """Rasterizer tests: brute-force float64 reference, finite-difference gradients, hard cases, a real scene."""
 
 import dataclasses
-import math
 
 import numpy as np
 import pytest
