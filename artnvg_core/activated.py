@@ -29,7 +29,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from .cameras import normalize_quats
+from .cameras.geometry import normalize_quats
 from .scene import GaussianScene, sh_degree_for
 
 OPACITY_RANGE = (2.0**-126, 1 - 2.0**-24)  # float32 opacities with finite logits

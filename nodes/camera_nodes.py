@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from artnvg_core.camera_rigs import orbit_cameras
-from artnvg_core.cameras import load_cameras
+from artnvg_core.cameras import load_cameras, orbit_cameras
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
 from .input_files import file_signature, list_input_files, resolve_input_path

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import normalize_quats
+from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import SH_C0, GaussianScene, validate_scene
 from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
