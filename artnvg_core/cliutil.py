@@ -95,7 +95,7 @@ class ProgressBar:
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
-    """:func:`~artnvg_core.scene.load_scene` onto ``device``, printing the file size first and the count and time after."""
+    """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and time after."""
     from .formats import load_scene
 
     print(f"loading {path} ({os.path.getsize(path) / 2**20:,.1f} MiB)" if os.path.isfile(path) else f"loading {path}",

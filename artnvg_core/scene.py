@@ -1,4 +1,4 @@
-"""Gaussian scenes: the raw stored 3DGS parameters and their file I/O.
+"""Gaussian scenes: the raw stored 3DGS parameters and their validation (no file format).
 
 Conventions (INRIA 3DGS layout, see DESIGN.md):
 
@@ -20,8 +20,8 @@ How the trainer rendered them (defaults: gsplat "classic", the INRIA renderer):
   S the projected 2D covariance (splatfacto ``rasterize_mode="antialiased"``,
   Mip-Splatting, SPZ files flagged antialiased).
 
-File formats live in :mod:`artnvg_core.formats` (``load_scene``, ``save_scene``);
-every reader validates with :func:`validate_scene`: bad input raises
+Scenes are read and written by :mod:`artnvg_core.formats` (``load_scene``, ``save_scene``),
+which this module does not import; every reader validates with :func:`validate_scene`: bad input raises
 ``ValueError`` naming the file and the field; with ``drop_invalid=True``
 invalid Gaussians are dropped instead and reported as a warning on the
 ``artnvg_core.scene`` logger.
@@ -166,14 +166,3 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         scene = scene.select(~invalid)
     return scene, dropped
 
-
-_MOVED_TO_FORMATS = ("load_scene", "save_scene", "read_ply", "write_ply", "read_splatfacto_ckpt")
-
-
-def __getattr__(name: str):
-    """The file readers and writers live in :mod:`artnvg_core.formats`; their old names here still work."""
-    if name in _MOVED_TO_FORMATS:
-        from . import formats
-
-        return getattr(formats, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
