@@ -26,7 +26,7 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -91,6 +91,6 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     records["scale"] = np.exp(log_scales)
     colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
     records["rgba"][:, :3] = to_bytes(np.clip(colour, 0, 1) * 255)
-    records["rgba"][:, 3] = to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)
+    records["rgba"][:, 3] = opacity_bytes(cpu.opacity_logits)
     records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
     write_atomically(path, lambda stream: stream.write(records.tobytes()))
