@@ -38,6 +38,28 @@ def positive_number(text: str) -> float:
     return value
 
 
+def positive_integer(text: str) -> int:
+    """argparse type of ``--steps`` and the like: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def unit_interval(text: str) -> float:
+    """argparse type of ``--cfg-until``: a number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
 def fraction(text: str) -> float:
     """argparse type of a threshold: a number in [0, 1)."""
     try:

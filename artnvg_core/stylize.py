@@ -11,8 +11,8 @@ Two stylizers:
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import torch
@@ -148,6 +148,7 @@ def stylize_diffusion(
     *,
     preset: str = "paper",
     content_routing: str = "released",
+    sampler_changes: Mapping[str, object] | None = None,
     devices: Sequence[str | torch.device] | None = None,
     group_size: int = 15,
     compile_blocks: bool = False,
@@ -159,8 +160,9 @@ def stylize_diffusion(
     SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
 
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``); ``config.iterations`` is
-    used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
+    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
+    ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
+    is used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
     beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`.
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
@@ -171,7 +173,11 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
-    settings = replace(chosen.sampler, content_routing=content_routing)
+    changes = dict(sampler_changes or {})
+    unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
+    if unknown:
+        raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
+    settings = replace(chosen.sampler, content_routing=content_routing, **changes)
     devices = [scene.device] if not devices else [torch.device(d) for d in devices]
     load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
     models = load(devices[0])  # first: a model that cannot be loaded fails before any work

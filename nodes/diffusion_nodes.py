@@ -334,13 +334,16 @@ class SampleGroup:
                     "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
                     "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
                     "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
+                "cfg_until": ("FLOAT", {"default": defaults.cfg_until, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
+                    "Classifier-free guidance for this fraction of the steps only, then the conditional half alone "
+                    "(half the work per step); 1: every step (exact).")}),
             },
         }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
                content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule,
-               content_routing=SamplerSettings.content_routing):
+               content_routing=SamplerSettings.content_routing, cfg_until=SamplerSettings.cfg_until):
         if len(content_views) != groups.num_views:
             raise NodeInputError(
                 f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -355,7 +358,7 @@ class SampleGroup:
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
                 content_routing=content_routing, resolution=resolution or None, size_rule=size_rule,
-                scheduler=scheduler,
+                scheduler=scheduler, cfg_until=cfg_until,
                 sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )

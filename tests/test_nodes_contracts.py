@@ -32,7 +32,7 @@ PUBLIC_INPUTS = {
     "ArtNVGNVAttentionPatch": ["models", "enabled", "levels", "nearest_views", "kv_downsample"],
     "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
                           "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler",
-                          "size_rule", "content_routing"],
+                          "size_rule", "content_routing", "cfg_until"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side", "color_transfer"],

@@ -154,6 +154,12 @@ def test_sample_group_all_groups_or_one_matches_the_core(loaded):
                              group_size=2, seed=7, prompt=PROMPT, negative_prompt=NEGATIVE)
     assert torch.equal(paper, expected) and not torch.equal(paper, every)
 
+    (truncated,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                        group_index=-1, cfg_until=0.5, **SAMPLING)
+    expected = stylize_views(loaded.models, content, cameras, style, replace(settings, cfg_until=0.5),
+                             group_size=2, seed=7, prompt=PROMPT, negative_prompt=NEGATIVE)
+    assert torch.equal(truncated, expected) and not torch.equal(truncated, every)
+
 
 def test_sample_group_errors_name_the_input(loaded, monkeypatch):
     content, groups = _images(3, seed=6), group_views(_line_cameras(4), 2)

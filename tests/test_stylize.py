@@ -85,3 +85,36 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
         capsys.readouterr().out
     assert cli.main(["stylize", *common, "--stylizer", "diffusion"]) == 2
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
+
+
+def test_command_line_sampler_options_replace_the_preset(tmp_path, monkeypatch):
+    """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
+    the preset's settings run."""
+    from artnvg_core import __main__ as cli
+    from artnvg_core import stylize
+    from artnvg_core.diffusion import stylize as diffusion_stylize
+
+    seen = []
+
+    def record(models, images, groups, conditioning, settings, **kwargs):
+        seen.append(settings)
+        return images
+
+    monkeypatch.setattr(diffusion_stylize, "stylize_groups", record)
+    monkeypatch.setattr(stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
+    files = write_model_files(tmp_path)
+    demo = DemoInputs()
+    common = [str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
+              "--scale", "0.05", "--iters", "0", "--out", str(tmp_path / "out.ply"), "--stylizer", "diffusion",
+              *[f"--{name.replace('_', '-')}={path}" for name, path in files.items()]]
+    assert cli.main(["stylize", *common, "--preset", "fast"]) == 0
+    assert cli.main(["stylize", *common, "--preset", "fast", "--scheduler", "unipc", "--steps", "7",
+                     "--cfg-until", "0.6"]) == 0
+    assert seen[0] == PRESETS["fast"].sampler
+    assert seen[1] == dataclasses.replace(PRESETS["fast"].sampler, scheduler="unipc", steps=7, cfg_until=0.6)
+    for bad in (["--steps", "0"], ["--cfg-until", "1.5"], ["--scheduler", "plms"]):
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(["stylize", *bad])
+    with pytest.raises(ValueError, match="sampler_changes names no SamplerSettings field: \\['stpes'\\]"):
+        stylize_diffusion(read_ply(demo.scene), load_cameras(demo.cameras), load_image(demo.style),
+                          FinetuneConfig(iterations=0), ModelPaths(**files), sampler_changes={"stpes": 3})

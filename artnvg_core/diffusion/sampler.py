@@ -17,7 +17,9 @@ Approximations (each off by default; see :class:`SamplerSettings` and
 :mod:`artnvg_core.diffusion.attention`): NV attention on the lowest-resolution level only
 (``nv_levels="lowest"``), with each view's ``nv_nearest`` nearest views only, or with the
 other views' keys and values pooled by ``nv_kv_downsample``; fewer steps, another scheduler
-or a lower ``resolution``. ``sequential_cfg`` saves memory and is exact.
+(DPM-Solver++(2M), UniPC), guidance truncated after the ``cfg_until`` fraction of the steps
+(the conditional half alone afterwards: half the batch), or a lower ``resolution``.
+``sequential_cfg`` saves memory and is exact.
 
 With neighbouring-view attention off and zero CSGO scales this is exactly diffusers'
 ``StableDiffusionXLControlNetPipeline`` (same scheduler, seed and inputs).
@@ -26,6 +28,7 @@ With neighbouring-view attention off and zero CSGO scales this is exactly diffus
 from __future__ import annotations
 
 import inspect
+import math
 from dataclasses import dataclass
 
 import torch
@@ -75,6 +78,9 @@ class SamplerSettings:
     attention_backend: scaled-dot-product attention backend of the denoising loop, one of
         ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
     sequential_cfg: run the two guidance halves one after the other (less memory; exact).
+    cfg_until: classifier-free guidance for the first ``cfg_until`` fraction of the steps only
+        (:func:`guided_steps`), then the conditional half alone, a batch of N instead of 2N
+        (1.0: every step, exact; 0: never, as guidance_scale 1).
     Approximations of NV attention (defaults: exact):
     nv_levels: "all", or "lowest" (NV in the lowest-resolution attention level, per view elsewhere).
     nv_nearest: each view attends to itself and its k nearest views of the group by camera centre
@@ -94,6 +100,7 @@ class SamplerSettings:
     scheduler: str = "ddim"
     attention_backend: str = "auto"
     sequential_cfg: bool = False
+    cfg_until: float = 1.0
     nv_levels: str = "all"
     nv_nearest: int | None = None
     nv_kv_downsample: int = 1
@@ -108,6 +115,8 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.nv_kv_downsample must be >= 1, got {self.nv_kv_downsample}")
         if self.steps < 1:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
+        if not 0 <= self.cfg_until <= 1:
+            raise ValueError(f"SamplerSettings.cfg_until must be in [0, 1], got {self.cfg_until}")
         if self.scheduler not in SCHEDULERS:
             raise ValueError(f"SamplerSettings.scheduler must be one of {sorted(SCHEDULERS)}, got {self.scheduler!r}")
         if self.content_routing not in CONTENT_ROUTINGS:
@@ -118,6 +127,14 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.size_rule must be one of {SIZE_RULES}, got {self.size_rule!r}")
         if self.resolution is not None and self.resolution < 64:
             raise ValueError(f"SamplerSettings.resolution must be >= 64 or None, got {self.resolution}")
+
+
+def guided_steps(settings: SamplerSettings, steps: int) -> int:
+    """How many of the first ``steps`` denoising steps use classifier-free guidance: ``ceil(cfg_until * steps)``
+    (rounded to 1e-6 first, so 0.8 x 50 is 40), or 0 when ``guidance_scale <= 1`` (no unconditional half)."""
+    if settings.guidance_scale <= 1:
+        return 0
+    return min(steps, math.ceil(round(settings.cfg_until * steps, 6)))
 
 
 def _time_ids(models: DiffusionModels, height: int, width: int, pooled_dim: int) -> torch.Tensor:
@@ -293,7 +310,8 @@ def stylize_group(
     control = _attention_control(models, conditioning, settings, latent_shape[2:], view_centers, views)
     halves = 2 if settings.guidance_scale > 1 else 1
     inputs = _model_inputs(models, images, work, conditioning, halves, control)
-    batches = _split_batch(inputs, halves if settings.sequential_cfg else 1)
+    per_half = _split_batch(inputs, halves)  # [uncond, cond] or [cond]
+    guided_batches = per_half if settings.sequential_cfg else [inputs]
 
     scheduler = SCHEDULERS[settings.scheduler].from_config(models.base.scheduler_config)
     scheduler.set_timesteps(settings.steps, device=unet.device)
@@ -301,12 +319,14 @@ def stylize_group(
     latents = (torch.randn(latent_shape, generator=generator) * scheduler.init_noise_sigma).to(unet.device)
     step_kwargs = _step_kwargs(scheduler, generator)
     timesteps = scheduler.timesteps
+    guided = guided_steps(settings, len(timesteps))
     for step, t in enumerate(timesteps):
         check_stop(should_stop)
         model_input = scheduler.scale_model_input(latents, t).to(unet.dtype)
+        batches = guided_batches if step < guided else per_half[-1:]
         with sdpa_backend(settings.attention_backend):
             noise = torch.cat([_predict_noise(models, model_input, t, b, settings.control_scale) for b in batches])
-        if halves == 2:
+        if step < guided:
             noise_uncond, noise_cond = noise.chunk(2)
             noise = noise_uncond + settings.guidance_scale * (noise_cond - noise_uncond)
         latents = scheduler.step(noise, t, latents, **step_kwargs, return_dict=False)[0]
