@@ -18,7 +18,7 @@ from .cliutil import (
     parse_device,
     parse_devices,
     parse_view_indices,
-    positive_integer,
+    integer_at_least,
     positive_number,
     unit_interval,
 )
@@ -104,7 +104,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
 
     iterations = iterations_for(stylizer)
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
-    described = f"; preset {args.preset}: {preset.summary}" + (f"; changed: {changes}" if changes else "")
+    key_views = preset.key_views if args.key_views is None else args.key_views
+    described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
+                 + (f"; {key_views} key views" if key_views else ""))
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
@@ -114,6 +116,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         try:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
+                                          key_views=key_views,
                                           devices=parse_devices(args.devices), compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
         except DiffusionModelsUnavailable as error:
@@ -157,10 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", choices=("ddim", "euler", "euler_ancestral", "dpmpp_2m", "unipc"), default=None,
                    help="diffusion sampler (default: the preset's, DDIM); dpmpp_2m and unipc are multistep solvers "
                         "meant for fewer --steps")
-    p.add_argument("--steps", type=positive_integer, default=None, help="denoising steps (default: the preset's)")
+    p.add_argument("--steps", type=integer_at_least(1), default=None, help="denoising steps (default: the preset's)")
     p.add_argument("--cfg-until", type=unit_interval, default=None,
                    help="classifier-free guidance for this fraction of the steps only, then the conditional half "
                         "alone (half the batch); 1 = every step (default: the preset's, 1)")
+    p.add_argument("--key-views", type=integer_at_least(0), default=None, metavar="K",
+                   help="diffusion: stylize only K views chosen to cover the scene (farthest camera poses) and "
+                        "finetune on them alone; 0 = every view (default: the preset's, every view)")
     p.add_argument("--compile", action="store_true",
                    help="diffusion stage: compile the UNet's and ControlNet's repeated blocks (exact up to bf16 "
                         "rounding; ~6%% faster steps after a first call of ~80 s: pays back on large scenes; "

@@ -149,6 +149,7 @@ def stylize_diffusion(
     preset: str = "paper",
     content_routing: str = "released",
     sampler_changes: Mapping[str, object] | None = None,
+    key_views: int | None = None,
     devices: Sequence[str | torch.device] | None = None,
     group_size: int = 15,
     compile_blocks: bool = False,
@@ -162,14 +163,17 @@ def stylize_diffusion(
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
     memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
     ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
-    is used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
+    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
+    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone. ``devices`` (default: the scene's) share the groups, one worker process per device
     beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`.
-    Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
+    Returns the stylized scene and the stylized views [K, H, W, 3] of the K views used, in camera order
+    (every view's without key views).
     """
     from .diffusion.conditioning import prepare_conditioning
     from .diffusion.multi_gpu import stylize_groups_on_devices
     from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
     from .grouping import group_views
+    from .key_views import select_key_views
     from .presets import get_preset
 
     chosen = get_preset(preset)
@@ -178,6 +182,8 @@ def stylize_diffusion(
     if unknown:
         raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
     settings = replace(chosen.sampler, content_routing=content_routing, **changes)
+    keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
+    cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     devices = [scene.device] if not devices else [torch.device(d) for d in devices]
     load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
     models = load(devices[0])  # first: a model that cannot be loaded fails before any work

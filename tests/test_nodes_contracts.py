@@ -21,7 +21,7 @@ PUBLIC_INPUTS = {
     "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
     "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
-    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views"],
+    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views", "key_views"],
     "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
                                "loop"],
     "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
