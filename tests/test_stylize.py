@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.diffusion import speed
+from artnvg_core.diffusion import compile_cache, speed
 from artnvg_core.diffusion.sampler import SamplerSettings
 from artnvg_core.diffusion.speed import SpeedOptions
 from artnvg_core.fileio import load_image
@@ -43,11 +43,15 @@ def test_low_memory_preset_two_devices_and_compile_are_wired_through(tmp_path, m
 
     # compile_blocks reaches the models (COMPILED_BLOCKS reduced to its exact hint cache: Inductor
     # takes minutes on a CPU); refused with low memory before anything loads
+    # and the compile artifacts of an earlier run are loaded after it, this run's saved after sampling
     applied = []
     monkeypatch.setattr(speed, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
     monkeypatch.setattr(speed, "apply_speedups", lambda models, options: applied.append(options))
+    monkeypatch.setattr(compile_cache, "load_compile_cache", lambda device: applied.append(("load", device)))
+    monkeypatch.setattr(compile_cache, "save_compile_cache", lambda device: applied.append(("save", device)))
     stylize_diffusion(scene, cameras, style, config, paths, group_size=2, compile_blocks=True)
-    assert applied == [SpeedOptions(cache_hint_embedding=True)]
+    cpu = torch.device("cpu")
+    assert applied == [SpeedOptions(cache_hint_embedding=True), ("load", cpu), ("save", cpu)]
     with pytest.raises(ValueError, match="compile: .* full-memory mode only"):
         stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", compile_blocks=True)
 
