@@ -14,8 +14,14 @@ from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.attention import AttentionControl
 from artnvg_core.diffusion.conditioning import encode_prompt, image_features, prepare_conditioning
 from artnvg_core.diffusion.memory import enable_low_memory, visiting
-from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, guided_steps, stylize_group
-from artnvg_core.diffusion.stylize import stylize_views
+from artnvg_core.diffusion.sampler import (
+    SCHEDULERS,
+    SamplerSettings,
+    guided_steps,
+    resample_noise,
+    stylize_group,
+)
+from artnvg_core.diffusion.stylize import stylize_groups, stylize_views
 from artnvg_core.grouping import group_views
 from artnvg_core.progress import Cancelled
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
@@ -186,11 +192,11 @@ def test_prompt_encoding_matches_diffusers(csgo_models):
     assert not encode_prompt(base, PROMPT, None).negative_text.any()
 
 
-def _run(models, images, seed=3, **changes):
+def _run(models, images, seed=3, noise_seeds=None, **changes):
     settings = dict(steps=2, guidance_scale=5.0, resolution=None)
     settings.update(changes)
     conditioning = prepare_conditioning(models, _images(1, seed=9), PROMPT, NEGATIVE)
-    return stylize_group(models, images, conditioning, SamplerSettings(**settings), seed=seed)
+    return stylize_group(models, images, conditioning, SamplerSettings(**settings), seed=seed, noise_seeds=noise_seeds)
 
 
 def test_switches_change_the_result(csgo_models):
@@ -293,6 +299,57 @@ def test_guidance_truncation_halves_the_late_steps(csgo_models):
             SamplerSettings(cfg_until=value)
 
 
+def _first_unet_input(models, run) -> torch.Tensor:
+    """The latents the UNet sees first in ``run()`` (DDIM: the initial noise itself)."""
+    seen = []
+    hook = models.base.unet.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
+    try:
+        run()
+    finally:
+        hook.remove()
+    return seen[0]
+
+
+def test_noise_resolution_resamples_the_noise_of_the_other_grid(csgo_models):
+    """At resolution 64 (latents 8x8) with noise_resolution 128, the first latents are the seeded 16x16 noise
+    resampled to 8x8; at its own resolution the setting changes nothing."""
+    images = _images(2)
+    noise = _first_unet_input(csgo_models, lambda: _run(csgo_models, images, resolution=64, noise_resolution=128))
+    expected = resample_noise(torch.randn((2, 4, 16, 16), generator=torch.Generator().manual_seed(3)), (8, 8))
+    torch.testing.assert_close(noise[:2], expected)
+    assert torch.equal(_run(csgo_models, images, resolution=64, noise_resolution=64),
+                       _run(csgo_models, images, resolution=64))
+    with pytest.raises(ValueError, match="SamplerSettings.noise_resolution"):
+        SamplerSettings(noise_resolution=32)
+
+
+def test_resample_noise_area_averages_and_standardises():
+    coarse = torch.randn(2, 4, 4, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    fine = coarse.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3)  # each coarse cell as 2x2 cells
+    out = resample_noise(fine, (4, 6))
+    standard = (coarse - coarse.mean((2, 3), keepdim=True)) / coarse.std((2, 3), keepdim=True)
+    torch.testing.assert_close(out, standard)
+    odd = resample_noise(torch.randn(3, 4, 16, 16, generator=torch.Generator().manual_seed(1)), (12, 12))
+    assert odd.shape == (3, 4, 12, 12)
+    torch.testing.assert_close(odd.mean((2, 3)), torch.zeros(3, 4), atol=1e-6, rtol=0)
+    torch.testing.assert_close(odd.std((2, 3)), torch.ones(3, 4), atol=1e-6, rtol=0)
+    assert resample_noise(coarse, (4, 6)) is coarse
+
+
+def test_noise_seeds_give_each_view_its_own_noise_whatever_its_group(csgo_models):
+    """With one seed per view and NV attention off (views independent), a view's result does not depend on
+    the group it is sampled in; its first latents are its own seeded noise."""
+    images = _images(3)
+    together = _run(csgo_models, images, neighbour_views=False, noise_seeds=[10, 11, 12])
+    alone = _run(csgo_models, images[1:2], neighbour_views=False, noise_seeds=[11])
+    torch.testing.assert_close(alone, together[1:2], rtol=0, atol=1e-5)
+    noise = _first_unet_input(csgo_models, lambda: _run(csgo_models, images[1:], noise_seeds=[11, 12]))
+    expected = torch.cat([torch.randn((1, 4, 8, 8), generator=torch.Generator().manual_seed(s)) for s in (11, 12)])
+    torch.testing.assert_close(noise[:2], expected)
+    with pytest.raises(ValueError, match="2 noise_seeds for 3 views"):
+        _run(csgo_models, images, noise_seeds=[1, 2])
+
+
 def test_progress_and_stop(csgo_models):
     calls = []
     conditioning = prepare_conditioning(csgo_models, _images(1), PROMPT, NEGATIVE)
@@ -365,6 +422,22 @@ def test_scene_runs_groups_and_keeps_view_order(csgo_models):
     for index, views in enumerate(groups):
         expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=10 + index)
         torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)
+
+
+def test_scene_hands_each_group_its_views_noise_seeds(csgo_models):
+    images, cameras = _images(6), _line_cameras(6)
+    groups = group_views(cameras, 3)
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+    settings = SamplerSettings(steps=1, guidance_scale=5.0, resolution=None)
+    seeds = [100 + 7 * v for v in range(6)]
+    out = stylize_groups(csgo_models, images, groups, conditioning, settings, seed=4, noise_seeds=seeds)
+    for index, group in enumerate(groups):
+        views = list(group.views)
+        expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=4 + index,
+                                 noise_seeds=[seeds[v] for v in views], view_centers=cameras.centers[views])
+        torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="5 noise_seeds for 6 views"):
+        stylize_groups(csgo_models, images, groups, conditioning, settings, noise_seeds=seeds[:5])
 
 
 def test_sequential_guidance_halves_match_the_joint_batch(csgo_models):

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import inspect
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import torch
 from diffusers import (
@@ -81,6 +82,9 @@ class SamplerSettings:
     cfg_until: classifier-free guidance for the first ``cfg_until`` fraction of the steps only
         (:func:`guided_steps`), then the conditional half alone, a batch of N instead of 2N
         (1.0: every step, exact; 0: never, as guidance_scale 1).
+    noise_resolution: draw the initial noise on the latent grid this ``resolution`` would give and
+        resample it to the working grid (:func:`resample_noise`), so runs at different resolutions
+        start from the same noise field (None: drawn on the working grid).
     Approximations of NV attention (defaults: exact):
     nv_levels: "all", or "lowest" (NV in the lowest-resolution attention level, per view elsewhere).
     nv_nearest: each view attends to itself and its k nearest views of the group by camera centre
@@ -101,6 +105,7 @@ class SamplerSettings:
     attention_backend: str = "auto"
     sequential_cfg: bool = False
     cfg_until: float = 1.0
+    noise_resolution: int | None = None
     nv_levels: str = "all"
     nv_nearest: int | None = None
     nv_kv_downsample: int = 1
@@ -127,6 +132,8 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.size_rule must be one of {SIZE_RULES}, got {self.size_rule!r}")
         if self.resolution is not None and self.resolution < 64:
             raise ValueError(f"SamplerSettings.resolution must be >= 64 or None, got {self.resolution}")
+        if self.noise_resolution is not None and self.noise_resolution < 64:
+            raise ValueError(f"SamplerSettings.noise_resolution must be >= 64 or None, got {self.noise_resolution}")
 
 
 def guided_steps(settings: SamplerSettings, steps: int) -> int:
@@ -157,6 +164,46 @@ def working_size(models: DiffusionModels, settings: SamplerSettings, height: int
     vae_scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
     unet_scale = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
     return csgo_size(height, width, settings.resolution, vae_scale * unet_scale)
+
+
+def resample_noise(noise: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Gaussian noise [B, C, h, w] on another grid ``size`` (h', w'): area-averaged (each output cell the mean
+    of the input cells it covers; copied cells when enlarging), then every (view, channel) map shifted and
+    scaled to mean 0 and standard deviation 1, the statistics the sampler's initial noise has. The same
+    tensor when ``size`` is its own."""
+    if tuple(noise.shape[2:]) == tuple(size):
+        return noise
+    resampled = torch.nn.functional.interpolate(noise, size=size, mode="area")
+    mean = resampled.mean(dim=(2, 3), keepdim=True)
+    std = resampled.std(dim=(2, 3), keepdim=True).clamp_min(1e-12)
+    return (resampled - mean) / std
+
+
+def _initial_noise(
+    models: DiffusionModels,
+    settings: SamplerSettings,
+    latent_shape: tuple[int, int, int, int],
+    image_size: tuple[int, int],
+    generator: torch.Generator,
+    noise_seeds,
+) -> torch.Tensor:
+    """Standard Gaussian noise of ``latent_shape`` [N, C, h, w] (CPU, float32): from ``generator`` for the whole
+    group, or one generator per view seeded ``noise_seeds[i]``; on the grid of ``settings.noise_resolution``
+    and resampled to (h, w) when it is set."""
+    views, channels, height, width = latent_shape
+    grid = (height, width)
+    if settings.noise_resolution is not None:
+        size = working_size(models, replace(settings, resolution=settings.noise_resolution), *image_size)
+        scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
+        grid = (size[0] // scale, size[1] // scale)
+    if noise_seeds is None:
+        noise = torch.randn((views, channels, *grid), generator=generator)
+    else:
+        if len(noise_seeds) != views:
+            raise ValueError(f"stylize_group: {len(noise_seeds)} noise_seeds for {views} views")
+        noise = torch.cat([torch.randn((1, channels, *grid), generator=torch.Generator().manual_seed(int(s)))
+                           for s in noise_seeds])
+    return resample_noise(noise, (height, width))
 
 
 def _step_kwargs(scheduler, generator: torch.Generator) -> dict:
@@ -289,12 +336,16 @@ def stylize_group(
     settings: SamplerSettings = SamplerSettings(),
     *,
     seed: int = 0,
+    noise_seeds: Sequence[int] | None = None,
     view_centers: torch.Tensor | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> torch.Tensor:
     """Stylize one group of views jointly; returns IMAGE [N, H, W, 3] in the input order and size.
 
+    seed: the group's generator (initial noise, and the noise of stochastic schedulers' steps).
+    noise_seeds: one seed per view for its initial noise instead (a view then starts from the same noise in
+        whatever group it is sampled).
     view_centers: camera centres [N, 3] of the views (world units); needed by ``settings.nv_nearest``.
     Latents stay in float32 between steps; the models run in their own dtype.
     progress(step, steps, info) is called after every denoising step; should_stop() is checked
@@ -316,7 +367,8 @@ def stylize_group(
     scheduler = SCHEDULERS[settings.scheduler].from_config(models.base.scheduler_config)
     scheduler.set_timesteps(settings.steps, device=unet.device)
     generator = torch.Generator().manual_seed(seed)
-    latents = (torch.randn(latent_shape, generator=generator) * scheduler.init_noise_sigma).to(unet.device)
+    noise = _initial_noise(models, settings, latent_shape, (height, width), generator, noise_seeds)
+    latents = (noise * scheduler.init_noise_sigma).to(unet.device)
     step_kwargs = _step_kwargs(scheduler, generator)
     timesteps = scheduler.timesteps
     guided = guided_steps(settings, len(timesteps))
