@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from artnvg_core.devices import DEVICE_CHOICES, device_for
+from artnvg_core.diffusion.compile_cache import load_compile_cache, save_compile_cache
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
@@ -26,6 +27,7 @@ from artnvg_core.diffusion.model_files import (
     check_model_files,
     locate,
 )
+from artnvg_core.diffusion.model_cache import file_key, load_once
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
 from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups
@@ -108,7 +110,8 @@ def _model_paths(node: str, listed: tuple[str, ...], overrides: tuple[str, ...])
 
 @dataclasses.dataclass
 class LoadedModels:
-    """The ``ARTNVG_MODELS`` value (see the module docstring)."""
+    """The ``ARTNVG_MODELS`` value (see the module docstring); ``compiled``: the loader compiled the blocks (Sample
+    Group then saves the compile artifacts for the next run)."""
 
     models: DiffusionModels
     device: torch.device
@@ -118,6 +121,7 @@ class LoadedModels:
     nv_levels: str = "all"
     nv_nearest: int | None = None
     nv_kv_downsample: int = 1
+    compiled: bool = False
 
 
 def _move(value, device: torch.device) -> None:
@@ -208,14 +212,20 @@ class LoadArtNVGModels(ArtNVGNode):
         if compile and low_memory:
             raise NodeInputError(f"{self.DISPLAY_NAME}: input 'compile' runs in the full-memory mode only; "
                                  "set 'memory' to full or 'compile' off")
-        with node_input(self.DISPLAY_NAME):
-            models = load_diffusion_models(
-                *paths, sdxl_config_dir=sdxl_config_dir.strip() or None, dtype=DTYPES[dtype],
-                device=target if keep_loaded and not low_memory else "cpu",
-            )
-        if compile:
-            apply_speedups(models, COMPILED_BLOCKS)
-        return (LoadedModels(models, target, keep_loaded, low_memory),)
+        config_dir = sdxl_config_dir.strip() or None
+        key = ("LoadArtNVGModels", tuple(file_key(path) for path in paths), file_key(config_dir), dtype, str(target),
+               keep_loaded, low_memory, compile)
+
+        def load_models():
+            with node_input(self.DISPLAY_NAME):
+                models = load_diffusion_models(*paths, sdxl_config_dir=config_dir, dtype=DTYPES[dtype],
+                                               device=target if keep_loaded and not low_memory else "cpu")
+            if compile:
+                apply_speedups(models, COMPILED_BLOCKS)
+                load_compile_cache(target)
+            return models
+
+        return (LoadedModels(load_once(key, load_models), target, keep_loaded, low_memory, compiled=compile),)
 
 
 class NVAttentionPatch(ArtNVGNode):
@@ -317,13 +327,16 @@ class SampleGroup(ArtNVGNode):
                     "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
                     "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
                     "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
+                "cfg_until": ("FLOAT", {"default": defaults.cfg_until, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
+                    "Classifier-free guidance for this fraction of the steps only, then the conditional half alone "
+                    "(half the work per step); 1: every step (exact).")}),
             },
         }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
                content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule,
-               content_routing=SamplerSettings.content_routing):
+               content_routing=SamplerSettings.content_routing, cfg_until=SamplerSettings.cfg_until):
         if len(content_views) != groups.num_views:
             raise NodeInputError(
                 f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -338,7 +351,7 @@ class SampleGroup(ArtNVGNode):
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
                 content_routing=content_routing, resolution=resolution or None, size_rule=size_rule,
-                scheduler=scheduler,
+                scheduler=scheduler, cfg_until=cfg_until,
                 sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )
@@ -346,6 +359,8 @@ class SampleGroup(ArtNVGNode):
         with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
             output = stylize_groups(diffusion, content_views, groups, embeds, settings, seed=seed, group_indices=chosen,
                                     progress=progress_bar(), should_stop=interrupt_requested)
+        if models.compiled:
+            save_compile_cache(models.device)
         if group_index >= 0:
             output = output[list(groups[group_index].views)]
         return (output,)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.key_views import select_key_views
 from artnvg_core.progress import check_stop
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
@@ -63,11 +64,18 @@ class RenderViews(ArtNVGNode):
         "views": ("STRING", {"default": "", "tooltip": (
             "Comma-separated camera indices in file order (e.g. 0,5,9); blank uses stride.")}),
     }
+    OPTIONAL = {
+        "key_views": ("INT", {"default": 0, "min": 0, "max": 10000, "tooltip": (
+            "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
+            "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
+    }
 
     @cancellable
-    def render(self, scene, cameras, scale, stride, views):
+    def render(self, scene, cameras, scale, stride, views, key_views=0):
         with node_input(self.DISPLAY_NAME, "views"):
             chosen = cameras.subset(select_views(len(cameras), stride, views))
+        with node_input(self.DISPLAY_NAME, "key_views"):
+            chosen = chosen.subset(select_key_views(chosen, key_views))
         return render_scaled(self.DISPLAY_NAME, scene, chosen, scale)
 
 

@@ -78,7 +78,7 @@ def test_a_scene_type_that_cannot_be_written_is_refused_before_any_work(tmp_path
                  "--out", str(out), "--stylizer", "nnfm", "--iters", "1", "--device", "cpu"]) == 2
     captured = capsys.readouterr()
     assert captured.err == (f"error: --out: {out}: cannot write scene file type '.txt'; "
-                            "expected one of .ply, .spz, .splat\n")
+                            "expected one of .ply, .spz, .splat, .ksplat\n")
     assert captured.out == "" and list(tmp_path.iterdir()) == []
 
 
