@@ -8,8 +8,8 @@
 #          of this pack installed: README, "Integration tests", makes one)
 #   ROUTE  git      clone into custom_nodes/artnvg, then `pip install -e artnvg` (README's git route,
 #                   also comfy-cli's)
-#          manager  clone into custom_nodes/artnvg-comfyui, then `pip install -r requirements.txt`
-#                   (what ComfyUI Manager's "Install via Git URL" and the Comfy registry do)
+#          manager  clone into custom_nodes/artnvg-comfyui, then `pip install -r requirements.txt` when
+#                   there is one (what ComfyUI Manager's "Install via Git URL" and the Comfy registry do)
 #          pip-git  clone into custom_nodes/artnvg, then `pip install git+URL` (the library from git,
 #                   not editable: checks that the package carries its demo and data files)
 #          default: all three
@@ -36,8 +36,8 @@ install() {
   local route=$1 nodes="$2/base/custom_nodes" python=$3
   case $route in
     git)     git clone -q "$REPO" "$nodes/artnvg" && (cd "$nodes" && "$python" -m pip install -q -e artnvg) ;;
-    manager) git clone -q "$REPO" "$nodes/artnvg-comfyui" &&
-             (cd "$nodes/artnvg-comfyui" && "$python" -m pip install -q -r requirements.txt) ;;
+    manager) git clone -q "$REPO" "$nodes/artnvg-comfyui" &&  # as Manager: no requirements.txt, no install
+             (cd "$nodes/artnvg-comfyui" && { [ ! -f requirements.txt ] || "$python" -m pip install -q -r requirements.txt; }) ;;
     pip-git) git clone -q "$REPO" "$nodes/artnvg" && "$python" -m pip install -q "git+file://$REPO@$COMMIT" ;;
     *) echo "unknown route $route"; return 2 ;;
   esac
@@ -46,7 +46,7 @@ install() {
 # check_route ROUTE: 0 when the route installs, loads and runs the demo workflow
 check_route() {
   local route=$1 dir="$ROOT/routes/$1" python pack port url server status=0
-  rm -rf "$dir" && mkdir -p "$dir/base/custom_nodes" "$dir/base/input" "$dir/base/output"
+  rm -rf "$dir" && mkdir -p "$dir"/base/{custom_nodes,input,output,user}
   echo "-- $route: copying ComfyUI's environment"
   cp -a "$ROOT/venv" "$dir/venv" || return 1
   python="$dir/venv/bin/python"
