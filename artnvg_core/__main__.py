@@ -57,6 +57,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
     from .fileio import check_output_file, load_image
     from .finetune import FinetuneConfig
+    from .formats import writable_scene_path
     from .presets import get_preset
     from .stylize import (
         DemoInputs,
@@ -79,7 +80,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    check_output_file(sheet_path(check_output_file(args.out, "--out")), "--out (its contact sheet)")
+    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
+                      "--out (its contact sheet)")
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)

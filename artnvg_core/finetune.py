@@ -261,10 +261,11 @@ def finetune(
     for step in range(config.iterations):
         check_stop(should_stop)
         view = int(torch.randint(len(cameras), (1,), generator=generator))
-        image = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
-        if not image.requires_grad:  # no Gaussian projects into this view: nothing to learn from it
+        out = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend)
+        if not (out.alpha > 0).any():  # no Gaussian reaches this view: nothing to learn from it
             _skip_blind_view(view, cameras, blind)
             continue
+        image = out.rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
             target = stylized[view : view + 1]

@@ -98,6 +98,13 @@ def comfy_types():
     return getattr(latest, "Types", None) if latest is not None else None
 
 
+def comfy_io():
+    """ComfyUI's ``comfy_api.latest.IO`` (its link types, each with an ``io_type`` name); None outside
+    ComfyUI or on a ComfyUI without that API."""
+    latest = comfy_module("comfy_api.latest")
+    return getattr(latest, "IO", None) if latest is not None else None
+
+
 # --------------------------------------------------------------------------- device
 
 

@@ -118,6 +118,16 @@ def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
     assert load_image(sheet).shape[0] == 2 * cameras.height + 4
 
 
+def test_save_result_refuses_a_scene_type_before_rendering_the_sheet(demo, tmp_path, monkeypatch):
+    import artnvg_core.stylize
+
+    scene, cameras, style = demo
+    monkeypatch.setattr(artnvg_core.stylize, "contact_sheet", lambda *args, **kwargs: pytest.fail("rendered"))
+    with pytest.raises(ValueError, match=r"result\.obj: cannot write scene file type '\.obj'"):
+        save_result(scene, scene, cameras, style, tmp_path / "result.obj")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_vgg_terms_see_the_render_and_style_sized_as_arf_does(demo):
     """Step 1's NNFM term (before any update) equals an independent computation on ARF's half-size
     render, ``interpolate(render, scale_factor=0.5, mode="bilinear")``, against the style image

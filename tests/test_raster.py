@@ -223,6 +223,26 @@ def test_empty_scene_and_fully_culled_scene():
     assert (render(behind, cams.subset([0]), backend="torch").alpha == 0).all()
 
 
+@pytest.mark.parametrize("cull", ["opacity", "behind", "empty"])
+def test_backward_through_a_render_that_shows_nothing_gives_zero_gradients(cull):
+    """Every Gaussian culled (opacity logits -1e4, all behind the camera, or none at all): the
+    render is the background, and a loss on colour, alpha and depth back-propagates zeros."""
+    params = dict(hard_scene(0, n=8).tensors())
+    if cull == "opacity":
+        params["opacity_logits"] = torch.full_like(params["opacity_logits"], -1e4)
+    elif cull == "behind":
+        params["means"] = params["means"] + torch.tensor([0.0, 0.0, -10.0])
+    else:
+        params = {k: v[:0] for k, v in params.items()}
+    params = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    out = render(GaussianScene(**params), make_cameras(EYES[:2]), background=torch.tensor([0.1, 0.2, 0.3]),
+                 return_depth=True, backend="torch")
+    assert (out.alpha == 0).all() and torch.allclose(out.rgb, torch.tensor([0.1, 0.2, 0.3]).expand_as(out.rgb))
+    (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    for name, p in params.items():
+        assert p.grad is not None and torch.equal(p.grad, torch.zeros_like(p)), name
+
+
 @pytest.mark.parametrize(
     "mutate, field",
     [

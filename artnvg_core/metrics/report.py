@@ -238,9 +238,12 @@ def _write_json(report: dict, path: Path) -> None:
 
 
 def output_files(out: str) -> dict[str, Path]:
-    """The report ``--out`` and, beside it, the strip PNG and the preview GIF, each checked to be
-    writable (before any work: all three are written together at the end, or none)."""
+    """The report ``--out`` (a .json file) and, beside it, the strip PNG and the preview GIF, each
+    checked to be writable (before any work: all three are written together at the end, or none)."""
     report = check_output_file(out, "--out")
+    if report.suffix.lower() != ".json":
+        raise ValueError(f"--out: {report}: the report is JSON; give a file name ending in .json "
+                         f"(e.g. {report.with_suffix('.json')})")
     files = {"report": report, "strip": report.with_name(f"{report.stem}_strip.png"),
              "preview": report.with_name(f"{report.stem}_preview.gif")}
     for name in ("strip", "preview"):
