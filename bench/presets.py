@@ -51,11 +51,11 @@ from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa
 from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups  # noqa: E402
 from artnvg_core.diffusion.stylize import stylize_groups  # noqa: E402
 from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
+from artnvg_core.formats import read_ply  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
 from artnvg_core.metrics.warp import warp_consistency  # noqa: E402
 from artnvg_core.presets import PRESETS  # noqa: E402
 from artnvg_core.raster import render  # noqa: E402
-from artnvg_core.scene import read_ply  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -47,8 +47,9 @@ from .comfy_bridge import (
     model_folder_paths,
     progress_bar,
 )
+from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
-from .node_types import CATEGORY, EMBEDS, GROUPS, IMAGE, MODELS
+from .node_types import EMBEDS, GROUPS, IMAGE, MODELS
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -68,6 +69,11 @@ class ModelInput:
     @property
     def path_input(self) -> str:
         return f"{self.name}_path"
+
+    def list_input(self) -> tuple:
+        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache."""
+        return ([HF_CACHE, *model_files(self.folder)], {"tooltip": (
+            f"{self.source.description}: a file in models/{self.folder}, or {HF_CACHE} ({self.source.url}).")})
 
 
 MODEL_INPUTS = (
@@ -146,7 +152,7 @@ def models_on_device(loaded: LoadedModels):
                 model_management.soft_empty_cache()
 
 
-class LoadArtNVGModels:
+class LoadArtNVGModels(ArtNVGNode):
     """SDXL 1.0 base, the TTPlanet tile ControlNet, the IP-Adapter SDXL image encoder and CSGO weights.
 
     Each model comes from its ComfyUI model folder, from the Hugging Face cache, or from the
@@ -154,39 +160,32 @@ class LoadArtNVGModels:
     """
 
     DISPLAY_NAME = "Load ArtNVG Models"
-    CATEGORY = CATEGORY
     FUNCTION = "load"
     RETURN_TYPES = (MODELS,)
     RETURN_NAMES = ("models",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        required = {
-            model.name: ([HF_CACHE, *model_files(model.folder)], {"tooltip": (
-                f"{model.source.description}: a file in models/{model.folder}, or {HF_CACHE} ({model.source.url}).")})
-            for model in MODEL_INPUTS
-        }
-        required["dtype"] = (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."})
-        required["device"] = (DEVICE_CHOICES, {"default": "auto", "tooltip": "auto: ComfyUI's device (CUDA, Apple MPS or the CPU)."})
-        required["keep_loaded"] = ("BOOLEAN", {"default": True, "tooltip": (
-            "Keep the models on the device between runs; off moves them to the CPU after each node.")})
-        optional = {
-            model.path_input: ("STRING", {"default": "", "tooltip": f"Path overriding {model.name} when not blank."})
-            for model in MODEL_INPUTS
-        }
-        optional["sdxl_config_dir"] = ("STRING", {"default": "", "tooltip": (
+    REQUIRED = {
+        **{model.name: model.list_input for model in MODEL_INPUTS},
+        "dtype": (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."}),
+        "device": (DEVICE_CHOICES, {"default": "auto", "tooltip": (
+            "auto: ComfyUI's device (CUDA, Apple MPS or the CPU).")}),
+        "keep_loaded": ("BOOLEAN", {"default": True, "tooltip": (
+            "Keep the models on the device between runs; off moves them to the CPU after each node.")}),
+    }
+    OPTIONAL = {
+        **{model.path_input: ("STRING", {"default": "", "tooltip": f"Path overriding {model.name} when not blank."})
+           for model in MODEL_INPUTS},
+        "sdxl_config_dir": ("STRING", {"default": "", "tooltip": (
             "A diffusers-format SDXL folder (model_index.json, configs, tokenizers) for a single-file "
-            "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")})
-        optional["memory"] = (MEMORY_MODES, {"default": "full", "tooltip": (
+            "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")}),
+        "memory": (MEMORY_MODES, {"default": "full", "tooltip": (
             "low: a 15-view group at 1024 px within 12 GiB, same result, ~10% slower: only the UNet stays on "
             "the GPU, the rest visits it; guidance halves one at a time. Start ComfyUI with "
-            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")})
-        optional["compile"] = ("BOOLEAN", {"default": False, "tooltip": (
+            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")}),
+        "compile": ("BOOLEAN", {"default": False, "tooltip": (
             "Compile the UNet's and ControlNet's repeated blocks (full memory only): same result up to bf16 "
             "rounding, ~6% faster steps after a first run of ~80 s (H100); pays back on large scenes. Keeps "
-            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")})
-        return {"required": required, "optional": optional}
+            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")}),
+    }
 
     @classmethod
     def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
@@ -229,7 +228,7 @@ class LoadArtNVGModels:
         return (LoadedModels(load_once(key, load_models), target, keep_loaded, low_memory, compiled=compile),)
 
 
-class NVAttentionPatch:
+class NVAttentionPatch(ArtNVGNode):
     """Turn neighbouring-view attention on: every view of a group attends to all views of the group.
 
     The optional inputs trade exactness for speed (README: Presets): NV in the lowest-resolution
@@ -237,65 +236,51 @@ class NVAttentionPatch:
     """
 
     DISPLAY_NAME = "NV-Attention Patch Model"
-    CATEGORY = CATEGORY
     FUNCTION = "patch"
     RETURN_TYPES = (MODELS,)
     RETURN_NAMES = ("models",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "models": (MODELS,),
-                "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: each view attends only to itself."}),
-            },
-            "optional": {
-                "levels": (NV_LEVELS, {"default": "all", "tooltip": (
-                    "lowest: NV attention in the lowest-resolution level only (faster, approximate).")}),
-                "nearest_views": ("INT", {"default": 0, "min": 0, "max": 256, "tooltip": (
-                    "0: all views of the group; k: each view attends to its k nearest views (approximate).")}),
-                "kv_downsample": ("INT", {"default": 1, "min": 1, "max": 8, "tooltip": (
-                    "Pool the other views' keys/values by this factor per side (1: exact).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: each view attends only to itself."}),
+    }
+    OPTIONAL = {
+        "levels": (NV_LEVELS, {"default": "all", "tooltip": (
+            "lowest: NV attention in the lowest-resolution level only (faster, approximate).")}),
+        "nearest_views": ("INT", {"default": 0, "min": 0, "max": 256, "tooltip": (
+            "0: all views of the group; k: each view attends to its k nearest views (approximate).")}),
+        "kv_downsample": ("INT", {"default": 1, "min": 1, "max": 8, "tooltip": (
+            "Pool the other views' keys/values by this factor per side (1: exact).")}),
+    }
 
     def patch(self, models, enabled, levels="all", nearest_views=0, kv_downsample=1):
         return (dataclasses.replace(models, neighbour_views=enabled, nv_levels=levels,
                                     nv_nearest=nearest_views or None, nv_kv_downsample=kv_downsample),)
 
 
-class CSGOEncode:
+class CSGOEncode(ArtNVGNode):
     """Encode the style image (CSGO style tokens) and the prompt, shared by every group.
 
     Content tokens come from each view's content image and are encoded by Sample Group.
     """
 
     DISPLAY_NAME = "CSGO Style/Content Encode"
-    CATEGORY = CATEGORY
     FUNCTION = "encode"
     RETURN_TYPES = (EMBEDS,)
     RETURN_NAMES = ("embeds",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "models": (MODELS,),
-                "style_image": (IMAGE, {"tooltip": "The style reference (first image of the batch)."}),
-                "prompt": ("STRING", {"default": DEFAULT_PROMPT, "multiline": True}),
-                "negative_prompt": ("STRING", {"default": DEFAULT_NEGATIVE_PROMPT, "multiline": True, "tooltip": (
-                    "Blank: zero negative embeddings (SDXL's default for an empty negative prompt).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "style_image": STYLE_IMAGE_INPUT,
+        "prompt": ("STRING", {"default": DEFAULT_PROMPT, "multiline": True}),
+        "negative_prompt": ("STRING", {"default": DEFAULT_NEGATIVE_PROMPT, "multiline": True, "tooltip": (
+            "Blank: zero negative embeddings (SDXL's default for an empty negative prompt).")}),
+    }
 
     def encode(self, models, style_image, prompt, negative_prompt):
         with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
             return (prepare_conditioning(diffusion, style_image[:1], prompt, negative_prompt.strip() or None),)
 
 
-class SampleGroup:
+class SampleGroup(ArtNVGNode):
     """Stylize the content views group by group (or one chosen group) with CSGO control.
 
     Returns the stylized IMAGE batch in view order: every view, or the chosen group's views.
@@ -303,11 +288,9 @@ class SampleGroup:
     """
 
     DISPLAY_NAME = "Sample Group"
-    CATEGORY = CATEGORY
     FUNCTION = "sample"
     RETURN_TYPES = (IMAGE,)
     RETURN_NAMES = ("stylized_views",)
-    DESCRIPTION = __doc__
 
     @classmethod
     def INPUT_TYPES(cls):

@@ -9,7 +9,7 @@ import torch
 
 from artnvg_core.cameras import CameraSet, load_cameras
 from artnvg_core.key_views import covering_radius, select_key_views, view_distances
-from artnvg_core.scene import read_ply
+from artnvg_core.formats import read_ply
 
 
 def _random_cameras(count: int, seed: int) -> CameraSet:

@@ -71,6 +71,15 @@ def _load_pack_like_comfyui(name: str = "artnvg_pack_under_test"):
     return module
 
 
+def test_entry_file_imported_alone_loads_nothing():
+    """pytest imports the folder's __init__.py as a plain module named ``__init__`` when the folder's
+    name is not an identifier (custom_nodes/artnvg-comfyui): it must import cleanly, as no pack."""
+    spec = importlib.util.spec_from_file_location("__init__", REPO / "__init__.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert not hasattr(module, "NODE_CLASS_MAPPINGS")
+
+
 @pytest.fixture(scope="module")
 def pack():
     return _load_pack_like_comfyui()

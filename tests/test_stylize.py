@@ -11,8 +11,8 @@ from artnvg_core.diffusion.sampler import SamplerSettings
 from artnvg_core.diffusion.speed import SpeedOptions
 from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.formats import read_ply
 from artnvg_core.presets import PRESETS, Preset
-from artnvg_core.scene import read_ply
 from artnvg_core.stylize import DemoInputs, ModelPaths, stylize_diffusion
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files

@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import normalize_quats
+from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
-from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from ..scene import SH_C0, GaussianScene, describe_invalid, validate_scene
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -48,10 +48,8 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     scales = records["scale"].astype(np.float64)
     bad = ~(np.isfinite(scales) & (scales > 0)).all(1)
     if bad.any() and not drop_invalid:
-        raise ValueError(
-            f"{path}: scale: {int(bad.sum())} of {len(records)} Gaussians have a scale that is not a positive "
-            f"finite number (first at index {int(bad.nonzero()[0][0])}); pass drop_invalid=True to drop them"
-        )
+        problem = "have a scale that is not a positive finite number"
+        raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; pass drop_invalid=True to drop them")
     rotation = records["rotation"].astype(np.float64) - 128
     rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -78,11 +76,8 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     log_scales = cpu.log_scales.double().numpy()
     outside = ((log_scales < _LOG_SCALE_RANGE[0]) | (log_scales > _LOG_SCALE_RANGE[1])).any(1)
     if outside.any():
-        raise ValueError(
-            f"{path}: not written: log_scales: {int(outside.sum())} of {len(cpu)} Gaussians lie outside "
-            f"{list(_LOG_SCALE_RANGE)}, beyond the float32 linear scales of .splat "
-            f"(first at index {int(outside.nonzero()[0][0])})"
-        )
+        problem = f"lie outside {list(_LOG_SCALE_RANGE)}, beyond the float32 linear scales of .splat"
+        raise ValueError(f"{path}: not written: {describe_invalid('log_scales', outside, problem)}")
     if cpu.sh_degree > 0:
         _log.warning("%s: .splat holds SH degree 0 only; the degree %d view-dependent terms are dropped",
                      path, cpu.sh_degree)
@@ -91,6 +86,6 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     records["scale"] = np.exp(log_scales)
     colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
     records["rgba"][:, :3] = to_bytes(np.clip(colour, 0, 1) * 255)
-    records["rgba"][:, 3] = to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)
+    records["rgba"][:, 3] = opacity_bytes(cpu.opacity_logits)
     records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
     write_atomically(path, lambda stream: stream.write(records.tobytes()))

@@ -20,7 +20,7 @@ def render_gsplat(scene, world_to_cam, intrinsics, width, height, sh_degree, bac
     """
     from gsplat import rasterization
 
-    from ..cameras import normalize_quats
+    from ..cameras.geometry import normalize_quats
 
     sh = scene.sh[:, : (sh_degree + 1) ** 2]
     out, alpha, _ = rasterization(
