@@ -13,13 +13,14 @@ import torch
 from .cliutil import (
     ProgressBar,
     add_camera_arguments,
+    integer_at_least,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
     parse_devices,
     parse_view_indices,
-    integer_at_least,
     positive_number,
+    prepare_rasterizer,
     unit_interval,
 )
 from .devices import DEVICE_CHOICES
@@ -44,6 +45,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     scene = load_scene_verbose(args.scene, device)
     cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
     out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
@@ -113,6 +115,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
         try:

@@ -244,3 +244,37 @@ def test_a_view_that_sees_no_gaussian_is_skipped_with_a_warning(demo, caplog):
     assert not torch.equal(result.sh, scene.sh) and torch.isfinite(result.sh).all()
     with pytest.raises(ValueError, match="none of the 2 cameras sees any Gaussian"):
         finetune(scene, _looking_away(cameras.subset([0, 1])), style, config=config)
+
+
+def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatch):
+    """Gaussians 3 and 7 get NaN colour gradients at every step (as a rasterizer's NaN gradient of an
+    extreme Gaussian would), and step 2's render is NaN: the run goes on, says which step and which
+    Gaussians, those two keep their values, the others change, everything stays finite."""
+    import artnvg_core.finetune
+
+    scene, cameras, style = demo
+    calls = []
+
+    def poisoned(scene, cameras, **kwargs):
+        out = render(scene, cameras, **kwargs)
+        if torch.is_grad_enabled():
+            calls.append(len(calls) + 1)
+            scene.sh.register_hook(lambda grad: grad.index_fill(0, torch.tensor([3, 7]), float("nan")))
+            if len(calls) == 2:
+                out.rgb = out.rgb * float("nan")
+        return out
+
+    monkeypatch.setattr(artnvg_core.finetune, "render", poisoned)
+    config = FinetuneConfig(iterations=4, nnfm_max_side=32, color_transfer=False, optimize="all")
+    with caplog.at_level("WARNING"):
+        result = finetune(scene, cameras, style, config=config)
+    messages = [r.message for r in caplog.records]
+    assert messages[0] == ("finetune: step 1: 2 Gaussians have non-finite (or >= 1e+18) gradients (3, 7); "
+                           "they keep their last finite values this step")
+    assert messages[1].startswith("finetune: step 2: the loss is not finite (nnfm nan, content nan")
+    assert messages[2:] == ["finetune: 1 steps skipped for a non-finite loss (first at step 2)",
+                            "finetune: 3 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (3, 7)"]
+    for name, value in result.tensors().items():
+        assert torch.isfinite(value).all(), name
+        assert torch.equal(value[[3, 7]], getattr(scene, name)[[3, 7]]), name
+    assert not torch.equal(result.sh[8:], scene.sh[8:]) and not torch.equal(result.means[8:], scene.means[8:])

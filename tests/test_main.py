@@ -126,3 +126,22 @@ def test_out_of_memory_is_an_error_with_advice(tmp_path, capsys, monkeypatch, fa
     monkeypatch.setattr(artnvg_core.cameras, "load_cameras", lambda path: 1 / 0)
     with pytest.raises(ZeroDivisionError):  # other failures are not disguised
         main(["render", "scene.ply", "--cameras", "t.json", "--out", str(tmp_path)])
+
+
+def test_gsplat_kernel_build_is_announced_on_stdout_before_it_starts(monkeypatch, capsys):
+    """The commands load the rasterizer before their first render; gsplat's build (stood in for
+    here) is announced on stdout, before it starts and with its time after, once."""
+    import torch
+
+    from artnvg_core import cliutil, raster
+    from artnvg_core.raster import gsplat_backend
+
+    monkeypatch.setattr(raster, "choose_backend", lambda backend, device, dtype=None: "gsplat")
+    monkeypatch.setattr(gsplat_backend, "_loaded", False)
+    monkeypatch.setattr(gsplat_backend, "build_pending", lambda: True)
+    monkeypatch.setattr(gsplat_backend, "_import_kernels", lambda: print("(building)") or object())
+    cliutil.prepare_rasterizer(torch.device("cuda"))
+    cliutil.prepare_rasterizer(torch.device("cuda"))
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:2] == [gsplat_backend.BUILD_NOTICE, "(building)"] and len(lines) == 3
+    assert lines[2].startswith("gsplat: CUDA kernels built in ")
