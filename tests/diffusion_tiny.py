@@ -232,16 +232,25 @@ def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8, unet_co
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=tiny_image_encoder(), csgo=csgo)
 
 
+def diffusers_pipeline(base, scheduler, controlnet: ControlNetModel | None = None):
+    """diffusers' own SDXL pipeline over ``base``'s models (an SDXLBase; the ControlNet pipeline with
+    ``controlnet``), without watermarker or progress bar: the reference the tests compare with."""
+    from diffusers import StableDiffusionXLControlNetPipeline, StableDiffusionXLPipeline
+
+    parts = dict(vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2,
+                 tokenizer=base.tokenizer, tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=scheduler,
+                 add_watermarker=False)
+    pipe = (StableDiffusionXLPipeline(**parts) if controlnet is None
+            else StableDiffusionXLControlNetPipeline(controlnet=controlnet, **parts))
+    pipe.set_progress_bar_config(disable=True)
+    return pipe
+
+
 def write_model_files(root: Path) -> dict[str, Path]:
     """Tiny model files in the layouts the loaders read: a diffusers SDXL folder, a ControlNet folder,
     a transformers image encoder folder and a CSGO ``.bin``; returns their paths by role."""
-    from diffusers import StableDiffusionXLPipeline
-
     base = tiny_base()
-    StableDiffusionXLPipeline(
-        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=tiny_scheduler(),
-    ).save_pretrained(root / "sdxl")
+    diffusers_pipeline(base, tiny_scheduler()).save_pretrained(root / "sdxl")
     controlnet = tiny_controlnet(base.unet)
     controlnet.save_pretrained(root / "controlnet")
     tiny_image_encoder().save_pretrained(root / "image_encoder")
