@@ -21,6 +21,10 @@ if importlib.util.find_spec("artnvg_core") is None:
         del sys.modules["artnvg_core"]
         raise
 
-from .nodes import NODE_CLASS_MAPPINGS, NODE_DISPLAY_NAME_MAPPINGS
+# ComfyUI imports this folder as a package. pytest imports this file alone, as a plain module
+# named __init__, when the folder's name is not an identifier (custom_nodes/artnvg-comfyui): it
+# collects every folder holding an __init__.py as a test package. There is no pack to load then.
+if __package__:
+    from .nodes import NODE_CLASS_MAPPINGS, NODE_DISPLAY_NAME_MAPPINGS
 
-__all__ = ["NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS"]
+    __all__ = ["NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS"]

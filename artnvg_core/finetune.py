@@ -33,8 +33,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from .camera_rigs import scene_frame
-from .cameras import CameraSet
+from .cameras import CameraSet, scene_frame
 from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
 from .finite_steps import FiniteSteps
@@ -128,7 +127,7 @@ def _scene_of(params: dict[str, torch.Tensor], like: GaussianScene) -> GaussianS
 def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
     """The scale of the means' learning rate, in world units: gsplat's scene scale, 1.1 x the
     largest distance of a camera centre from the centres' mean. With fewer than two distinct
-    centres, 1.1 x the scene's robust radius (:func:`~artnvg_core.camera_rigs.scene_frame`).
+    centres, 1.1 x the scene's robust radius (:func:`~artnvg_core.cameras.scene_frame`).
     Far floaters never enter it."""
     centers = cameras.centers.detach().cpu().to(torch.float64)
     extent = float((centers - centers.mean(0)).norm(dim=-1).max())

@@ -29,9 +29,9 @@ from common import orbit_cameras, print_table, random_scene, timed
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.formats import read_ply
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.raster.gsplat_backend import gsplat_available
-from artnvg_core.scene import read_ply
 from artnvg_core.stylize import DemoInputs
 
 

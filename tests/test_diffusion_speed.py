@@ -208,12 +208,24 @@ def test_cached_hint_embedding_recomputes_a_changed_hint(models, step_inputs):
         assert first.grad_fn is not None
 
 
-def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models, step_inputs, monkeypatch):
+@pytest.fixture
+def fresh_dynamo():
+    """Dynamo with empty caches and counters; afterwards its recompile limit, which
+    compile_repeated_blocks raises process-wide, is put back, so no other test sees the change.
+    Dynamo's own config patch does the restoring: pytest 9.2's monkeypatch would undo a setting of
+    Dynamo's config module by deleting it, which hides the setting for the rest of the process."""
+    torch._dynamo.reset()
+    counters.clear()
+    with torch._dynamo.config.patch(recompile_limit=torch._dynamo.config.recompile_limit):
+        yield
+    torch._dynamo.reset()
+
+
+def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models, step_inputs, fresh_dynamo):
     """Dynamo traces every transformer/ResNet block (eager backend: no code generation on the CPU
     test machine); the noise prediction is unchanged and the models themselves stay uncompiled;
     Dynamo may keep a graph for each of SDXL's ~20 block shapes."""
-    torch._dynamo.reset()
-    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 8)
+    torch._dynamo.config.recompile_limit = 8
     variant = _copy(models)
     counts = [compile_repeated_blocks(model, backend="eager")
               for model in (variant.base.unet, variant.controlnet)]
@@ -223,15 +235,12 @@ def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models,
     assert variant.base.unet._compiled_call_impl is None
     assert torch._dynamo.config.recompile_limit >= BLOCK_RECOMPILE_LIMIT > 8
     assert _relative_l2(_noise(variant, step_inputs), _noise(models, step_inputs)) < TOLERANCE
-    torch._dynamo.reset()
 
 
 @pytest.mark.parametrize("dynamic", [True, None])
-def test_dynamic_regional_compile_keeps_its_graphs_for_a_new_group_size(models, dynamic):
+def test_dynamic_regional_compile_keeps_its_graphs_for_a_new_group_size(models, dynamic, fresh_dynamo):
     """With symbolic shapes, a group of another size reuses the blocks' graphs (Dynamo's default,
     dynamic=None, compiles them again); the output is unchanged at both sizes."""
-    torch._dynamo.reset()
-    counters.clear()
     variant = _copy(models)
     for model in (variant.base.unet, variant.controlnet):
         compile_repeated_blocks(model, backend="eager", dynamic=dynamic)
@@ -242,7 +251,6 @@ def test_dynamic_regional_compile_keeps_its_graphs_for_a_new_group_size(models, 
         graphs.append(counters["stats"]["unique_graphs"])
     assert graphs[0] > 0
     assert (graphs[1] == graphs[0]) == (dynamic is True), graphs
-    torch._dynamo.reset()
 
 
 def test_bad_speed_options_raise():

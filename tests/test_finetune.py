@@ -12,7 +12,8 @@ from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.progress import Cancelled
 from artnvg_core.raster import render
-from artnvg_core.scene import SH_C0, GaussianScene, read_ply
+from artnvg_core.formats import read_ply
+from artnvg_core.scene import SH_C0, GaussianScene
 from artnvg_core.stylize import DemoInputs, save_result, sheet_path, stylize_nnfm
 
 LAYERS = ("relu3_1", "relu3_2", "relu3_3")

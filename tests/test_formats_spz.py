@@ -231,7 +231,12 @@ def zstd_of_zeros(total: int) -> bytes:
 LOAD_AND_MEASURE = """
 import json, resource, sys, time
 from artnvg_core.formats import load_scene
-peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def peak():  # this process's own high-water mark: ru_maxrss would carry the forking parent's over exec
+    try:
+        status = open("/proc/self/status").read()
+        return int(status.split("VmHWM:")[1].split()[0]) * 1024
+    except (OSError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 before, start = peak(), time.perf_counter()
 try:
     load_scene(sys.argv[1])

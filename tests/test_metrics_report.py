@@ -12,6 +12,7 @@ from artnvg_core.__main__ import main
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
 from artnvg_core.metrics.report import (
     add_evaluate_arguments,
@@ -19,7 +20,6 @@ from artnvg_core.metrics.report import (
     load_view_images,
     render_views,
 )
-from artnvg_core.scene import load_scene, write_ply
 from artnvg_core.stylize import stylize_nnfm
 
 VIEWS = "0,1,2"

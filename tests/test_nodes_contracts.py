@@ -21,7 +21,7 @@ PUBLIC_INPUTS = {
     "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
     "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
-    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views"],
+    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views", "key_views"],
     "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
                                "loop"],
     "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
@@ -32,7 +32,7 @@ PUBLIC_INPUTS = {
     "ArtNVGNVAttentionPatch": ["models", "enabled", "levels", "nearest_views", "kv_downsample"],
     "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
                           "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler",
-                          "size_rule", "content_routing"],
+                          "size_rule", "content_routing", "cfg_until"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side", "color_transfer"],
@@ -69,6 +69,15 @@ def _load_pack_like_comfyui(name: str = "artnvg_pack_under_test"):
         for key in [k for k in sys.modules if k == name or k.startswith(name + ".")]:
             del sys.modules[key]
     return module
+
+
+def test_entry_file_imported_alone_loads_nothing():
+    """pytest imports the folder's __init__.py as a plain module named ``__init__`` when the folder's
+    name is not an identifier (custom_nodes/artnvg-comfyui): it must import cleanly, as no pack."""
+    spec = importlib.util.spec_from_file_location("__init__", REPO / "__init__.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert not hasattr(module, "NODE_CLASS_MAPPINGS")
 
 
 @pytest.fixture(scope="module")

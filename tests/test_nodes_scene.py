@@ -11,6 +11,7 @@ import torch
 from artnvg_core.cameras import interpolate_path, load_cameras, orbit_path
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.grouping import group_views
+from artnvg_core.key_views import select_key_views
 from artnvg_core.raster import render
 from artnvg_core.formats import load_scene, read_ply
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
@@ -99,6 +100,12 @@ def test_render_views_matches_the_core_renderer(small_bear, bear):
     images_by_stride, used_by_stride = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=60,
                                             views="")
     assert used_by_stride.names == used.names and torch.equal(images_by_stride, images)
+    key_images, keys = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=2, views="",
+                            key_views=3)
+    expected_cameras = cameras.subset(range(0, len(cameras), 2))
+    expected_cameras = expected_cameras.subset(select_key_views(expected_cameras, 3)).scaled(SCALE)
+    assert keys.names == expected_cameras.names and len(set(keys.names)) == 3
+    assert torch.equal(key_images, render(small_bear, expected_cameras).rgb.clamp(0, 1))
 
 
 def test_render_views_rejects_bad_view_lists(small_bear, bear):

@@ -16,7 +16,7 @@ import nodes.scene_nodes
 import nodes.splat_interop
 import nodes.splat_nodes
 from artnvg_core.activated import activate
-from artnvg_core.scene import read_ply
+from artnvg_core.formats import read_ply
 from nodes.node_errors import NodeInputError
 from tests import comfy_api_standin
 from tests.test_activated import opacities_agree, random_scene, ulps_apart

@@ -25,12 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from diffusers import (
-    AutoencoderKL,
-    ControlNetModel,
-    StableDiffusionXLPipeline,
-    UNet2DConditionModel,
-)
+from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
 from transformers import (
     CLIPTextModel,
     CLIPTextModelWithProjection,
@@ -54,7 +49,11 @@ from .model_files import (
     locate,
     require_path,
 )
+from .quiet_import import torchvision_fallback_notice_silenced
 from .sdxl_config import built_in_sdxl_config
+
+with torchvision_fallback_notice_silenced():  # its module imports transformers' image processors
+    from diffusers import StableDiffusionXLPipeline
 
 
 @dataclass

@@ -148,6 +148,14 @@ def cache_hint_embedding(controlnet: nn.Module, capacity: int = 2) -> None:
     embedding.forward = forward
 
 
+def _raise_recompile_limit(at_least: int) -> None:
+    """Raise ``torch._dynamo.config.recompile_limit`` to ``at_least`` graphs per function; older
+    PyTorch releases name it ``cache_size_limit`` (newer ones keep that name as an alias)."""
+    config = torch._dynamo.config
+    name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
+    setattr(config, name, max(getattr(config, name), at_least))
+
+
 def compile_repeated_blocks(model: nn.Module, **compile_kwargs) -> int:
     """``torch.compile(**compile_kwargs)`` in place every submodule of ``model`` whose class is in
     :data:`REPEATED_BLOCKS`; returns how many.
@@ -155,11 +163,10 @@ def compile_repeated_blocks(model: nn.Module, **compile_kwargs) -> int:
     All blocks of a class share one ``forward`` and so one Dynamo cache, which holds a graph per
     shape variant (SDXL's UNet and ControlNet have about 20 ResNet-block variants: channels,
     resolution, batch). Dynamo's default limit of 8 graphs per function would leave the rest
-    eager, so this raises ``torch._dynamo.config.recompile_limit`` (process-wide) to at least
+    eager, so this raises Dynamo's recompile limit (process-wide) to at least
     :data:`BLOCK_RECOMPILE_LIMIT`.
     """
-    dynamo_config = torch._dynamo.config
-    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, BLOCK_RECOMPILE_LIMIT)
+    _raise_recompile_limit(BLOCK_RECOMPILE_LIMIT)
     blocks = [module for module in model.modules() if type(module).__name__ in REPEATED_BLOCKS]
     for block in blocks:
         block.compile(**compile_kwargs)

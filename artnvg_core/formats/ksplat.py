@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import normalize_quats
+from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
 from .common import require_file, scene_to_write

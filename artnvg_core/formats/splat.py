@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import normalize_quats
+from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
-from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from ..scene import SH_C0, GaussianScene, describe_invalid, validate_scene
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -44,8 +44,7 @@ def colour_and_opacity(rgba: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
 def rgba_bytes(cpu: GaussianScene) -> np.ndarray:
     """[N, 4] uint8: colour SH_C0 * f_dc + 0.5 clamped to [0, 1], then sigmoid(opacity logit), x 255 rounded."""
     colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
-    return np.concatenate([to_bytes(np.clip(colour, 0, 1) * 255),
-                           to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)[:, None]], 1)
+    return np.concatenate([to_bytes(np.clip(colour, 0, 1) * 255), opacity_bytes(cpu.opacity_logits)[:, None]], 1)
 
 
 def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
@@ -54,11 +53,8 @@ def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
     log_scales = cpu.log_scales.double().numpy()
     outside = ((log_scales < LOG_SCALE_RANGE[0]) | (log_scales > LOG_SCALE_RANGE[1])).any(1)
     if outside.any():
-        raise ValueError(
-            f"{path}: not written: log_scales: {int(outside.sum())} of {len(cpu)} Gaussians lie outside "
-            f"{list(LOG_SCALE_RANGE)}, beyond the float32 linear scales of {kind} "
-            f"(first at index {int(outside.nonzero()[0][0])})"
-        )
+        problem = f"lie outside {list(LOG_SCALE_RANGE)}, beyond the float32 linear scales of {kind}"
+        raise ValueError(f"{path}: not written: {describe_invalid('log_scales', outside, problem)}")
     return np.exp(log_scales)
 
 
@@ -76,10 +72,8 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     scales = records["scale"].astype(np.float64)
     bad = ~(np.isfinite(scales) & (scales > 0)).all(1)
     if bad.any() and not drop_invalid:
-        raise ValueError(
-            f"{path}: scale: {int(bad.sum())} of {len(records)} Gaussians have a scale that is not a positive "
-            f"finite number (first at index {int(bad.nonzero()[0][0])}); pass drop_invalid=True to drop them"
-        )
+        problem = "have a scale that is not a positive finite number"
+        raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; pass drop_invalid=True to drop them")
     rotation = records["rotation"].astype(np.float64) - 128
     rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -53,11 +53,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import normalize_quats
+from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
 from .bounded import inflate_exactly, read_at_most
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -304,7 +304,7 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
     arrays = [
         _LEGACY_HEADER.pack(MAGIC, WRITTEN_VERSION, count, degree, bits, flags, 0),
         positions,
-        to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255),
+        opacity_bytes(cpu.opacity_logits),
         to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
         to_bytes((cpu.log_scales.double().numpy() + 10) * 16),
         _smallest_three(q),

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cameras import quat_to_rotmat
+from ..cameras.geometry import quat_to_rotmat
 
 BLUR_PX2 = 0.3
 ALPHA_MIN = 1.0 / 255.0

@@ -18,7 +18,7 @@ from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
 from test_workflows import STOCK_NODES
 from ws_client import WebSocket
 
-from artnvg_core.scene import read_ply
+from artnvg_core.formats import read_ply
 
 REPO = Path(__file__).resolve().parents[2]
 FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
