@@ -13,13 +13,14 @@ import torch
 from .cliutil import (
     ProgressBar,
     add_camera_arguments,
+    integer_at_least,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
     parse_devices,
     parse_view_indices,
-    integer_at_least,
     positive_number,
+    prepare_rasterizer,
     unit_interval,
 )
 from .devices import DEVICE_CHOICES
@@ -44,6 +45,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     scene = load_scene_verbose(args.scene, device)
     cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
     out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
@@ -62,6 +64,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
     from .fileio import check_output_file, load_image
     from .finetune import FinetuneConfig
+    from .formats import writable_scene_path
     from .presets import get_preset
     from .stylize import (
         DemoInputs,
@@ -84,7 +87,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    check_output_file(sheet_path(check_output_file(args.out, "--out")), "--out (its contact sheet)")
+    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
+                      "--out (its contact sheet)")
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
@@ -111,6 +115,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
         try:

@@ -120,6 +120,14 @@ class ProgressBar:
             self.bar.close()
 
 
+def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
+    """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
+    first-use kernel build (about 90 s on an H100) is announced on stdout before it starts."""
+    from .raster import prepare_backend
+
+    prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
+
+
 def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and time after."""
     from .formats import load_scene

@@ -23,7 +23,7 @@ from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
 from .raster import render
-from .formats import save_scene
+from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
 STYLIZERS = ("auto", "nnfm", "diffusion")
@@ -230,7 +230,7 @@ def save_result(original: GaussianScene, stylized: GaussianScene, cameras: Camer
                 out_ply: str | Path, backend: str = "auto") -> Path:
     """Write ``out_ply`` and its contact sheet together: both appear, or (on any failure) neither
     and nothing on disk changes. Returns the sheet's path."""
-    out_ply = Path(out_ply)
+    out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
         save_scene(stylized.to("cpu"), ply_file)

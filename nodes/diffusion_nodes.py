@@ -280,6 +280,14 @@ class CSGOEncode(ArtNVGNode):
             return (prepare_conditioning(diffusion, style_image[:1], prompt, negative_prompt.strip() or None),)
 
 
+_SAMPLER = SamplerSettings()  # Sample Group's defaults
+
+
+def _scale(default: float, tooltip: str) -> tuple:
+    """A FLOAT input for a conditioning strength in [0, 10]."""
+    return ("FLOAT", {"default": default, "min": 0.0, "max": 10.0, "step": 0.05, "tooltip": tooltip})
+
+
 class SampleGroup(ArtNVGNode):
     """Stylize the content views group by group (or one chosen group) with CSGO control.
 
@@ -291,47 +299,37 @@ class SampleGroup(ArtNVGNode):
     FUNCTION = "sample"
     RETURN_TYPES = (IMAGE,)
     RETURN_NAMES = ("stylized_views",)
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        defaults = SamplerSettings()
-
-        def scale(default, tooltip):
-            return ("FLOAT", {"default": default, "min": 0.0, "max": 10.0, "step": 0.05, "tooltip": tooltip})
-
-        return {
-            "required": {
-                "models": (MODELS,),
-                "embeds": (EMBEDS,),
-                "content_views": (IMAGE, {"tooltip": "Rendered views, in the cameras' order (from Render Views)."}),
-                "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
-                "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
-                    "-1: every group; otherwise only this group (0-based).")}),
-                "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
-                "steps": ("INT", {"default": defaults.steps, "min": 1, "max": 1000}),
-                "guidance_scale": ("FLOAT", {"default": defaults.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
-                "content_scale": scale(defaults.content_scale, (
-                    "Weight of the CSGO content tokens (down blocks; content_routing paper only).")),
-                "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
-                "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
-                "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
-                    "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
-                    "views' size.")}),
-                "scheduler": (tuple(SCHEDULERS), {"default": defaults.scheduler}),
-            },
-            "optional": {
-                "size_rule": (SIZE_RULES, {"default": defaults.size_rule, "tooltip": (
-                    "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
-                    "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
-                "content_routing": (CONTENT_ROUTINGS, {"default": defaults.content_routing, "tooltip": (
-                    "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
-                    "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
-                    "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
-                "cfg_until": ("FLOAT", {"default": defaults.cfg_until, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
-                    "Classifier-free guidance for this fraction of the steps only, then the conditional half alone "
-                    "(half the work per step); 1: every step (exact).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "embeds": (EMBEDS,),
+        "content_views": (IMAGE, {"tooltip": "Rendered views, in the cameras' order (from Render Views)."}),
+        "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
+        "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
+            "-1: every group; otherwise only this group (0-based).")}),
+        "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
+        "steps": ("INT", {"default": _SAMPLER.steps, "min": 1, "max": 1000}),
+        "guidance_scale": ("FLOAT", {"default": _SAMPLER.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
+        "content_scale": _scale(_SAMPLER.content_scale, (
+            "Weight of the CSGO content tokens (down blocks; content_routing paper only).")),
+        "style_scale": _scale(_SAMPLER.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
+        "control_scale": _scale(_SAMPLER.control_scale, "Tile ControlNet strength."),
+        "resolution": ("INT", {"default": _SAMPLER.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
+            "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
+            "views' size.")}),
+        "scheduler": (tuple(SCHEDULERS), {"default": _SAMPLER.scheduler}),
+    }
+    OPTIONAL = {
+        "size_rule": (SIZE_RULES, {"default": _SAMPLER.size_rule, "tooltip": (
+            "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
+            "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
+        "content_routing": (CONTENT_ROUTINGS, {"default": _SAMPLER.content_routing, "tooltip": (
+            "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
+            "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
+            "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
+        "cfg_until": ("FLOAT", {"default": _SAMPLER.cfg_until, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
+            "Classifier-free guidance for this fraction of the steps only, then the conditional half alone "
+            "(half the work per step); 1: every step (exact).")}),
+    }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,

@@ -9,6 +9,7 @@ from .comfy_bridge import (
     cancellable,
     compute_device,
     interrupt_requested,
+    prepare_rasterizer,
     progress_bar,
     trainable_copy,
 )
@@ -71,8 +72,10 @@ class FinetuneGaussians(ArtNVGNode):
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
                 nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer,
             )
+            device = compute_device()
+            prepare_rasterizer(device)
             result = finetune(
-                trainable_copy(scene).to(compute_device()), trainable_copy(cameras), style_image[:1].clone(),
+                trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
                 stylized=None if stylized_views is None else stylized_views.clone(), config=config,
                 progress=progress_bar(), should_stop=interrupt_requested,
             )

@@ -10,7 +10,7 @@ from artnvg_core.progress import check_stop
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 
-from .comfy_bridge import cancellable, compute_device, interrupt_requested, progress_bar
+from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
@@ -27,6 +27,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     stopping (core ``Cancelled``) between views when the user cancels.
     """
     device = compute_device()
+    prepare_rasterizer(device)
     scene, cameras = scene.to(device), cameras.to(device)
     report, frames = progress_bar(), []
     for index in range(len(cameras)):

@@ -18,7 +18,7 @@ SCENE_FILE = InputFile(
     "scene_file",
     "scene file",
     lambda: list_input_files(suffixes=SCENE_SUFFIXES),
-    tooltip="A .ply, .splat, .spz or .ckpt file in ComfyUI's input folder (subfolders included).",
+    tooltip="A .ply, .splat, .spz, .ksplat or .ckpt file in ComfyUI's input folder (subfolders included).",
     path_tooltip=("Scene file path; when not blank it is used instead of scene_file. "
                   "Relative paths start at the input folder."),
 )
@@ -26,7 +26,8 @@ SCENE_FILE = InputFile(
 
 class LoadGaussianScene(ArtNVGNode):
     """A Gaussian scene file from the input folder or a path: ``.ply`` (INRIA 3DGS, Mip-Splatting or
-    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic) or a nerfstudio splatfacto ``.ckpt``."""
+    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic), ``.ksplat`` (GaussianSplats3D) or a
+    nerfstudio splatfacto ``.ckpt``."""
 
     DISPLAY_NAME = "Load Gaussian Scene"
     FUNCTION = "load"
@@ -67,7 +68,8 @@ def _next_free_path(filename_prefix: str, suffix: str) -> Path:
 
 class SaveGaussianScene(ArtNVGNode):
     """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
-    by ``format`` a Niantic ``.spz`` or an antimatter15 ``.splat`` (smaller files, quantised).
+    by ``format`` a Niantic ``.spz``, an antimatter15 ``.splat`` or a GaussianSplats3D ``.ksplat`` (smaller
+    files, quantised).
 
     Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
@@ -86,7 +88,8 @@ class SaveGaussianScene(ArtNVGNode):
     OPTIONAL = {
         "format": ([suffix.lstrip(".") for suffix in SAVE_SUFFIXES], {"default": "ply", "tooltip": (
             "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
-            "splat: antimatter15 .splat, SH degree 0 only.")}),
+            "splat: antimatter15 .splat, SH degree 0 only. ksplat: GaussianSplats3D level 0, SH up to "
+            "degree 2.")}),
     }
 
     def save(self, scene, filename_prefix, format="ply"):

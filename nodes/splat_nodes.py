@@ -17,7 +17,8 @@ def _require_core_type(node: str) -> None:
 
 class SceneToSplat(ArtNVGNode):
     """The scene as ComfyUI's core Gaussian splat, for the core's splat nodes (render, transform, save as
-    .ply/.spz/.ksplat). Scales become linear, opacities sigmoid(logit), quaternions unit length."""
+    .ply/.spz/.ksplat). Scales become linear, opacities sigmoid(logit), quaternions unit length; the
+    scene's render settings (2D filter, antialiasing) ride along as the splat's render_settings."""
 
     DISPLAY_NAME = "Gaussian Scene to Splat"
     FUNCTION = "convert"
@@ -33,7 +34,8 @@ class SceneToSplat(ArtNVGNode):
 
 class SplatToScene(ArtNVGNode):
     """A splat from ComfyUI's core splat nodes (e.g. Get Splat from a .ply/.splat/.ksplat/.spz file) as a
-    scene for the ArtNVG nodes. Takes one splat (batch of one, cut to its count); SH degree up to 3."""
+    scene for the ArtNVG nodes. Takes one splat (batch of one, cut to its count); SH degree up to 3. Its
+    render_settings, when it has them, become the scene's (classic 3DGS otherwise)."""
 
     DISPLAY_NAME = "Splat to Gaussian Scene"
     FUNCTION = "convert"

@@ -2,12 +2,7 @@
 
 import pytest
 import torch
-from diffusers import (
-    DDIMScheduler,
-    DPMSolverMultistepScheduler,
-    StableDiffusionXLControlNetPipeline,
-    UniPCMultistepScheduler,
-)
+from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, UniPCMultistepScheduler
 from diffusers.models.attention_processor import AttnProcessor2_0
 
 from artnvg_core.cameras import CameraSet
@@ -25,7 +20,7 @@ from artnvg_core.diffusion.stylize import stylize_groups, stylize_views
 from artnvg_core.grouping import group_views
 from artnvg_core.progress import Cancelled
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
-from diffusion_tiny import tiny_models
+from diffusion_tiny import diffusers_pipeline, tiny_models
 
 PROMPT, NEGATIVE = "a garden, oil painting", "blurry"
 
@@ -58,18 +53,7 @@ def _diffusers_reference(models, images, scheduler, steps, guidance, control_sca
     saved = {name: dict(model.attn_processors) for name, model in (("unet", base.unet), ("cn", models.controlnet))}
     base.unet.set_attn_processor(AttnProcessor2_0())
     models.controlnet.set_attn_processor(AttnProcessor2_0())
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae,
-        text_encoder=base.text_encoder,
-        text_encoder_2=base.text_encoder_2,
-        tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2,
-        unet=base.unet,
-        controlnet=models.controlnet,
-        scheduler=SCHEDULERS[scheduler].from_config(base.scheduler_config),
-        add_watermarker=False,
-    )
-    pipe.set_progress_bar_config(disable=True)
+    pipe = diffusers_pipeline(base, SCHEDULERS[scheduler].from_config(base.scheduler_config), models.controlnet)
     try:
         out = pipe(
             prompt=[PROMPT] * len(images),
@@ -136,12 +120,7 @@ def test_csgo_tokens_match_diffusers_pipeline_at_a_non_square_size(csgo_models):
     images, style_image = _images(views, height=64, width=128), _images(1, seed=9)
     control = AttentionControl(num_content_tokens=4, num_style_tokens=8, content_scale=0.8, style_scale=0.7)
     base = models.base
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, controlnet=models.controlnet,
-        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config), add_watermarker=False,
-    )
-    pipe.set_progress_bar_config(disable=True)
+    pipe = diffusers_pipeline(base, SCHEDULERS["ddim"].from_config(base.scheduler_config), models.controlnet)
     text, negative_text, pooled, negative_pooled = pipe.encode_prompt(PROMPT, device=torch.device("cpu"),
                                                                       negative_prompt=NEGATIVE)
     style = models.csgo.tokens("style", image_features(models.image_encoder, style_image))
@@ -173,17 +152,7 @@ def test_csgo_tokens_match_diffusers_pipeline_at_a_non_square_size(csgo_models):
 
 def test_prompt_encoding_matches_diffusers(csgo_models):
     base = csgo_models.base
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae,
-        text_encoder=base.text_encoder,
-        text_encoder_2=base.text_encoder_2,
-        tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2,
-        unet=base.unet,
-        controlnet=csgo_models.controlnet,
-        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config),
-        add_watermarker=False,
-    )
+    pipe = diffusers_pipeline(base, SCHEDULERS["ddim"].from_config(base.scheduler_config), csgo_models.controlnet)
     for negative in (NEGATIVE, None):
         ours = encode_prompt(base, PROMPT, negative)
         theirs = pipe.encode_prompt(PROMPT, device=torch.device("cpu"), negative_prompt=negative)

@@ -179,12 +179,13 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
-def test_save_scene_format_picks_spz_or_splat_and_load_reads_them(comfy_dirs, small_bear):
-    for fmt in ("spz", "splat"):
+def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_dirs, small_bear):
+    for fmt in ("spz", "splat", "ksplat"):
         saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format=fmt)
         name = saved["ui"]["scenes"][0]["filename"]
         assert name == f"small_00001.{fmt}"
         (loaded,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / "artnvg" / name))
-        assert len(loaded) == len(small_bear) and loaded.sh_degree == (small_bear.sh_degree if fmt == "spz" else 0)
+        degree = {"spz": small_bear.sh_degree, "splat": 0, "ksplat": min(small_bear.sh_degree, 2)}[fmt]
+        assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):
-        call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="ksplat")
+        call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")

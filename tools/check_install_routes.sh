@@ -8,16 +8,16 @@
 #          of this pack installed: README, "Integration tests", makes one)
 #   ROUTE  git      clone into custom_nodes/artnvg, then `pip install -e artnvg` (README's git route,
 #                   also comfy-cli's)
-#          manager  clone into custom_nodes/artnvg-comfyui, then `pip install -r requirements.txt`
-#                   (what ComfyUI Manager's "Install via Git URL" and the Comfy registry do)
+#          manager  clone into custom_nodes/artnvg-comfyui, then `pip install -r requirements.txt` when
+#                   there is one (what ComfyUI Manager's "Install via Git URL" and the Comfy registry do)
 #          pip-git  clone into custom_nodes/artnvg, then `pip install git+URL` (the library from git,
 #                   not editable: checks that the package carries its demo and data files)
 #          default: all three
 #
 # Each route gets ROOT/routes/ROUTE/: a copy of ROOT/venv, and a ComfyUI base directory (custom
 # nodes, input, output) that ROOT/ComfyUI runs on (--base-directory, CPU, a free port). A route
-# passes when the server starts, lists every ArtNVG node that the shipped workflows use, logs no
-# import failure, and runs the NNFM demo workflow (README: the demo copied to input/artnvg_demo/,
+# passes when the server starts, lists every node of the pack (nodes/__init__.py), logs no import
+# failure, and runs the NNFM demo workflow (README: the demo copied to input/artnvg_demo/,
 # workflows/artnvg_nnfm_only_api.json at small settings, queued with workflows/queue_workflow.py)
 # to a saved scene. Logs: ROOT/routes/ROUTE/*.log. Exit status 0 when every route passed.
 set -uo pipefail
@@ -36,8 +36,8 @@ install() {
   local route=$1 nodes="$2/base/custom_nodes" python=$3
   case $route in
     git)     git clone -q "$REPO" "$nodes/artnvg" && (cd "$nodes" && "$python" -m pip install -q -e artnvg) ;;
-    manager) git clone -q "$REPO" "$nodes/artnvg-comfyui" &&
-             (cd "$nodes/artnvg-comfyui" && "$python" -m pip install -q -r requirements.txt) ;;
+    manager) git clone -q "$REPO" "$nodes/artnvg-comfyui" &&  # as Manager: no requirements.txt, no install
+             (cd "$nodes/artnvg-comfyui" && { [ ! -f requirements.txt ] || "$python" -m pip install -q -r requirements.txt; }) ;;
     pip-git) git clone -q "$REPO" "$nodes/artnvg" && "$python" -m pip install -q "git+file://$REPO@$COMMIT" ;;
     *) echo "unknown route $route"; return 2 ;;
   esac
@@ -46,7 +46,7 @@ install() {
 # check_route ROUTE: 0 when the route installs, loads and runs the demo workflow
 check_route() {
   local route=$1 dir="$ROOT/routes/$1" python pack port url server status=0
-  rm -rf "$dir" && mkdir -p "$dir/base/custom_nodes" "$dir/base/input" "$dir/base/output"
+  rm -rf "$dir" && mkdir -p "$dir"/base/{custom_nodes,input,output,user}
   echo "-- $route: copying ComfyUI's environment"
   cp -a "$ROOT/venv" "$dir/venv" || return 1
   python="$dir/venv/bin/python"
@@ -60,9 +60,9 @@ check_route() {
   (cd "$ROOT/ComfyUI" && exec "$python" main.py --cpu --listen 127.0.0.1 --port "$port" \
       --base-directory "$dir/base") > "$dir/server.log" 2>&1 &
   server=$!
-  "$python" - "$url" "$server" "$REPO/workflows" <<'EOF' || status=1
-import json, os, pathlib, sys, time, urllib.request
-url, pid, workflows = sys.argv[1], int(sys.argv[2]), pathlib.Path(sys.argv[3])
+  "$python" - "$url" "$server" "$pack/nodes/__init__.py" <<'EOF' || status=1
+import json, os, re, sys, time, urllib.request
+url, pid, mappings = sys.argv[1], int(sys.argv[2]), open(sys.argv[3]).read()
 deadline = time.monotonic() + 300
 while True:
     try:
@@ -73,10 +73,10 @@ while True:
         if time.monotonic() > deadline or not os.path.exists(f"/proc/{pid}"):
             sys.exit("ComfyUI did not start (server.log)")
         time.sleep(1)
-used = {node["class_type"] for path in workflows.glob("*_api.json") for node in json.loads(path.read_text()).values()}
-missing = sorted(name for name in used if name.startswith("ArtNVG") and name not in listed)
-print(f"ComfyUI lists {len(listed)} ArtNVG nodes" + (f"; missing: {missing}" if missing else ""))
-sys.exit(1 if missing else 0)
+packed = set(re.findall(r'^ *"(ArtNVG\w+)":', mappings, re.MULTILINE))  # NODE_CLASS_MAPPINGS' keys
+missing = sorted(packed - listed)
+print(f"ComfyUI lists {len(listed)} of the pack's {len(packed)} nodes" + (f"; missing: {missing}" if missing else ""))
+sys.exit(1 if missing or not packed else 0)
 EOF
   if grep -n -E "IMPORT FAILED|Cannot import .*artnvg" "$dir/server.log"; then status=1; fi
   if [ $status -eq 0 ]; then
@@ -98,7 +98,8 @@ for route in "${ROUTES[@]}"; do
   RESULT[$route]+=" ($((SECONDS - start)) s)"
 done
 echo
-echo "commit $COMMIT, $(date -u +%F), ComfyUI in $ROOT ($("$ROOT/venv/bin/python" --version 2>&1))"
+VERSION=$(sed -n 's/^__version__ = "\(.*\)"/\1/p' "$ROOT/ComfyUI/comfyui_version.py" 2>/dev/null)
+echo "commit $COMMIT, $(date -u +%F), ComfyUI ${VERSION:-(version unknown)} in $ROOT, $("$ROOT/venv/bin/python" --version 2>&1)"
 failed=0
 for route in "${ROUTES[@]}"; do
   echo "  $route: ${RESULT[$route]}"
