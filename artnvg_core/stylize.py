@@ -113,11 +113,30 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
+@dataclass
+class _KeptModels:
+    """What :func:`keep_models` keeps: the models :func:`load_models_for` loaded last, with its arguments."""
+
+    on: bool = False
+    key: tuple | None = None
+    models: object = None
+
+
+_KEPT = _KeptModels()
+
+
+def keep_models(keep: bool = True) -> None:
+    """From now on :func:`load_models_for` keeps the models it loaded last and returns them again when called
+    with the same arguments, so a process that stylizes scene after scene (a batch worker) loads them
+    once (``keep=False``: forget them). Off by default: a one-off run frees its models when it is done."""
+    _KEPT.on, _KEPT.key, _KEPT.models = keep, None, None
+
+
 def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool = False):
     """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
     loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
     ``compile_blocks`` sped up by :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only).
-    Any failure to load raises :class:`DiffusionModelsUnavailable` saying why.
+    Any failure to load raises :class:`DiffusionModelsUnavailable` saying why; see also :func:`keep_models`.
     A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
     from .diffusion.memory import enable_low_memory
     from .diffusion.models import load_diffusion_models
@@ -126,6 +145,10 @@ def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, c
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
+    key = (paths, low_memory, device, compile_blocks)
+    if _KEPT.on and _KEPT.key == key:
+        return _KEPT.models
+    _KEPT.key, _KEPT.models = None, None  # the models kept for other arguments go before others load
     dtype = torch.float16 if device.type == "cuda" else torch.float32
     try:
         models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
@@ -136,6 +159,8 @@ def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, c
         enable_low_memory(models, device)
     if compile_blocks:
         apply_speedups(models, COMPILED_BLOCKS)
+    if _KEPT.on:
+        _KEPT.key, _KEPT.models = key, models
     return models
 
 
@@ -149,6 +174,7 @@ def stylize_diffusion(
     preset: str = "paper",
     content_routing: str = "released",
     devices: Sequence[str | torch.device] | None = None,
+    ray_address: str | None = None,
     group_size: int = 15,
     compile_blocks: bool = False,
     sampling_progress: ProgressFn | None = None,
@@ -160,34 +186,35 @@ def stylize_diffusion(
 
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
     memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``); ``config.iterations`` is
-    used as given. ``devices`` (default: the scene's) share the groups, one worker process per device
-    beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`.
+    used as given. ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's
+    ``ray_address`` (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the
+    models (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`.
     Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
     """
     from .diffusion.conditioning import prepare_conditioning
-    from .diffusion.multi_gpu import stylize_groups_on_devices
     from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
     from .grouping import group_views
     from .presets import get_preset
 
     chosen = get_preset(preset)
     settings = replace(chosen.sampler, content_routing=content_routing)
-    devices = [scene.device] if not devices else [torch.device(d) for d in devices]
+    explicit = [torch.device(d) for d in devices] if devices else None
+    spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
-    models = load(devices[0])  # first: a model that cannot be loaded fails before any work
+    models = None if spread else load(explicit[0] if explicit else scene.device)  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
     groups = group_views(cameras, group_size)
-    conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
-    if len(devices) == 1:
+    if spread:
+        from .diffusion.executor import stylize_on_workers
+
+        views = stylize_on_workers(load, content, groups, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT,
+                                   settings, devices=explicit, address=ray_address, **common)
+    else:
+        conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
         views = stylize_groups(models, content, groups, conditioning, settings, **common)
         del models
-    else:
-        del models  # each worker loads its own copy
-        if torch.cuda.is_available():
-            torch.cuda.empty_cache()
-        views = stylize_groups_on_devices(load, content, groups, conditioning, settings, devices=devices, **common)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
     return result, views
 
