@@ -206,6 +206,7 @@ class BatchWorker:
         keep_models()
         self.lock = threading.Lock()
         self.running: tuple[str, int] | None = None  # (run, thread id) of the job running
+        self.stopped: set[str] = set()
 
     def ping(self) -> int:
         return os.getpid()
@@ -218,6 +219,8 @@ class BatchWorker:
         worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
         log, start, cwd = io.StringIO(), time.perf_counter(), os.getcwd()
         with self.lock:
+            if run in self.stopped:
+                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker, log="")
             self.running = (run, threading.get_ident())
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
@@ -239,8 +242,10 @@ class BatchWorker:
         return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, log=tail)
 
     def stop(self, run: str) -> None:
-        """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step)."""
+        """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step); the
+        jobs of ``run`` that start later return at once, cancelled."""
         with self.lock:
+            self.stopped.add(run)
             if self.running is not None and self.running[0] == run:
                 ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.running[1]), ctypes.py_object(Cancelled))
 
@@ -299,10 +304,11 @@ class BatchPool:
                 finish(JobResult(job, "skipped", "output complete"))
             else:
                 todo.append(job)
-        run, running = uuid.uuid4().hex, {}
+        run, running = uuid.uuid4().hex, {}  # job number -> (job, reference) while it runs
 
         def submit(actor, job: Job):
-            running[job.number] = reference = actor.run.remote(run, job.argv, str(job.folder))
+            reference = actor.run.remote(run, job.argv, str(job.folder))
+            running[job.number] = job, reference
             return reference
 
         def started(job: Job, index: int) -> None:
@@ -316,23 +322,41 @@ class BatchPool:
                     status = "cancelled" if isinstance(error, Cancelled) else "failed"
                     finish(JobResult(job, status, str(error)))
                 else:
-                    finish(JobResult(job, value["status"], value["message"], value["seconds"], value["worker"]))
+                    finish(_result(job, value))
         except (Cancelled, KeyboardInterrupt):
-            self._stop(ray, run, list(running.values()))
+            for job, result in self._stop(ray, run, list(running.values())):
+                finish(result)
             for job in todo:
                 if job.number not in results:
                     finish(JobResult(job, "cancelled", "batch stopped"))
         return [results[job.number] for job in jobs]
 
-    def _stop(self, ray, run: str, references: list) -> None:
+    def _stop(self, ray, run: str, running: list[tuple[Job, object]]) -> list[tuple[Job, JobResult]]:
+        """Stop the jobs of ``run`` and wait for them; the results of those that ended (cancelled, or
+        done just before). A worker whose job has not ended within :data:`STOP_SECONDS` is killed."""
         for actor in self.actors:
             actor.stop.remote(run)
-        if references:
-            _, late = ray.wait(references, num_returns=len(references), timeout=STOP_SECONDS)
-            if late:  # a job that did not reach a Python step in time: its worker goes
+        ended = []
+        if running:
+            references = [reference for _, reference in running]
+            ready, late = ray.wait(references, num_returns=len(references), timeout=STOP_SECONDS)
+            for job, reference in running:
+                if reference in ready:
+                    try:
+                        value = ray.get(reference)
+                    except Exception:  # its worker died meanwhile, or the stop came as it returned
+                        continue
+                    ended.append((job, _result(job, value)))
+            if late:  # a job that did not reach a Python step in time: the workers go
                 for actor in self.actors:
                     ray.kill(actor)
                 self.actors = []
+        return ended
+
+
+def _result(job: Job, value: dict) -> JobResult:
+    """The result of ``job`` from what :meth:`BatchWorker.run` returned."""
+    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"])
 
 
 def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:
@@ -344,8 +368,8 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     jobs = load_jobs(args.jobs, options)
     devices = parse_devices(args.devices)
     with ray_session(devices, args.ray_address, needed_by="batch") as workers:
-        place = f"the Ray cluster at {args.ray_address}" if args.ray_address else "a local Ray instance"
-        print(f"batch: {len(jobs)} jobs on {workers.count} {workers.kind} workers of {place}", flush=True)
+        place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
+        print(f"batch: {len(jobs)} jobs on {workers.count} {workers.kind} workers{place}", flush=True)
         bar = tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True)
 
         def report(kind: str, job: Job, detail) -> None:
