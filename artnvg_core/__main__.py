@@ -1,4 +1,4 @@
-"""Command line: ``python -m artnvg_core {render,stylize,evaluate} ...`` (``--help`` on each)."""
+"""Command line: ``python -m artnvg_core {render,stylize,evaluate,batch} ...`` (``--help`` on each)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import time
 
 import torch
 
+from .batch import add_batch_command
 from .cliutil import (
     ProgressBar,
     add_camera_arguments,
@@ -122,7 +123,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
-                                          devices=parse_devices(args.devices), compile_blocks=args.compile,
+                                          devices=parse_devices(args.devices), ray_address=args.ray_address,
+                                          compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
@@ -176,8 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="diffusion stage: compile the UNet's and ControlNet's repeated blocks (exact up to bf16 "
                         "rounding; ~6%% faster steps after a first call of ~80 s: pays back on large scenes; "
                         "not with --preset low-memory)")
-    p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1 "
-                   "(default: --device)")
+    p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1, "
+                   "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
+    p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
+                   "(auto, or HOST:PORT)")
     p.add_argument("--iters", type=int, default=None,
                    help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
@@ -197,13 +201,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("evaluate", help="metrics, comparison strip and preview of a stylized scene or 2D views")
     add_evaluate_arguments(p)
+
+    add_batch_command(commands)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        args.run(args)
+        status = args.run(args)
     except (ValueError, OSError) as error:  # bad input, or a file the system would not read or write
         print(f"error: {error}", file=sys.stderr)
         return 2
@@ -212,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"error: out of memory ({str(error)[:300]}); try a smaller --scale or fewer --views", file=sys.stderr)
         return 2
-    return 0
+    return status if isinstance(status, int) else 0  # batch gives its exit status; the others return 0
 
 
 if __name__ == "__main__":

@@ -165,6 +165,7 @@ def stylize_diffusion(
     sampler_changes: Mapping[str, object] | None = None,
     key_views: int | None = None,
     devices: Sequence[str | torch.device] | None = None,
+    ray_address: str | None = None,
     group_size: int = 15,
     compile_blocks: bool = False,
     sampling_progress: ProgressFn | None = None,
@@ -178,9 +179,11 @@ def stylize_diffusion(
     memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
     ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
     is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
-    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone. ``devices`` (default: the scene's) share the groups, one worker process per device
-    beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`; on one device
-    the compile artifacts are saved after the diffusion stage for the next run
+    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone.
+    ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's ``ray_address``
+    (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the models
+    (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`;
+    on one device the compile artifacts are saved after the diffusion stage for the next run
     (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`). The models stay loaded for the next
     call with the same files and options (:func:`load_models_for`).
     Returns the stylized scene and the stylized views [K, H, W, 3] of the K views used, in camera order
@@ -189,7 +192,6 @@ def stylize_diffusion(
     from .diffusion.compile_cache import save_compile_cache
     from .diffusion.conditioning import prepare_conditioning
     from .diffusion.model_cache import forget_models
-    from .diffusion.multi_gpu import stylize_groups_on_devices
     from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
     from .grouping import group_views
     from .key_views import select_key_views
@@ -203,25 +205,27 @@ def stylize_diffusion(
     settings = replace(chosen.sampler, content_routing=content_routing, **changes)
     keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
-    devices = [scene.device] if not devices else [torch.device(d) for d in devices]
+    explicit = [torch.device(d) for d in devices] if devices else None
+    spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
-    models = load(devices[0])  # first: a model that cannot be loaded fails before any work
+    device = explicit[0] if explicit else scene.device
+    models = None if spread else load(device)  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
     groups = group_views(cameras, group_size)
-    conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
-    if len(devices) == 1:
+    if spread:
+        from .diffusion.executor import stylize_on_workers
+
+        forget_models()  # the workers load their own copies; a set kept here would hold memory they need
+        views = stylize_on_workers(load, content, groups, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT,
+                                   settings, devices=explicit, address=ray_address, **common)
+    else:
+        conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
         views = stylize_groups(models, content, groups, conditioning, settings, **common)
         del models
         if compile_blocks:
-            save_compile_cache(devices[0])
-    else:
-        del models  # each worker loads its own copy
-        forget_models()
-        if torch.cuda.is_available():
-            torch.cuda.empty_cache()
-        views = stylize_groups_on_devices(load, content, groups, conditioning, settings, devices=devices, **common)
+            save_compile_cache(device)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
     return result, views
 

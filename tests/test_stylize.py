@@ -18,28 +18,28 @@ from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
 
-def test_low_memory_preset_two_devices_and_compile_are_wired_through(tmp_path, monkeypatch):
-    """Exact presets and device spreading change no view (beyond float32 rounding); the scene is
-    finetuned; the compile switch reaches the loaded models."""
+def _small_inputs(tmp_path, monkeypatch):
+    """(scene, 4 cameras at 64 px, style, paths of tiny model files, 2-iteration config); ``paper`` and
+    ``low-memory`` reduced to one sampling step."""
     small = Preset(SamplerSettings(steps=1, guidance_scale=3.0, resolution=None), 2, False, "test")
     monkeypatch.setitem(PRESETS, "paper", small)
     monkeypatch.setitem(PRESETS, "low-memory", dataclasses.replace(
         small, low_memory=True, sampler=dataclasses.replace(small.sampler, sequential_cfg=True)))
     demo = DemoInputs()
-    scene = read_ply(demo.scene)
     cameras = load_cameras(demo.cameras).subset(range(4))
-    cameras = cameras.scaled(64 / cameras.width)
-    style = load_image(demo.style)
-    paths = ModelPaths(**write_model_files(tmp_path))
-    config = FinetuneConfig(iterations=2, backend="torch")
+    return (read_ply(demo.scene), cameras.scaled(64 / cameras.width), load_image(demo.style),
+            ModelPaths(**write_model_files(tmp_path)), FinetuneConfig(iterations=2, backend="torch"))
 
+
+def test_low_memory_preset_and_compile_are_wired_through(tmp_path, monkeypatch):
+    """An exact preset changes no view (beyond float32 rounding); the scene is finetuned; the compile
+    switch reaches the loaded models."""
+    scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
     result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
     assert views.shape == (4, cameras.height, cameras.width, 3) and 0 <= views.min() and views.max() <= 1
     assert not torch.equal(result.sh, scene.sh) and torch.equal(result.means, scene.means)
     _, low = stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", group_size=2)
     torch.testing.assert_close(low, views, rtol=0, atol=1e-5)
-    _, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"], group_size=2)
-    torch.testing.assert_close(spread, views, rtol=0, atol=1e-5)
 
     # compile_blocks reaches the models (COMPILED_BLOCKS reduced to its exact hint cache: Inductor
     # takes minutes on a CPU); refused with low memory before anything loads
@@ -54,6 +54,14 @@ def test_low_memory_preset_two_devices_and_compile_are_wired_through(tmp_path, m
     assert applied == [SpeedOptions(cache_hint_embedding=True), ("load", cpu), ("save", cpu)]
     with pytest.raises(ValueError, match="compile: .* full-memory mode only"):
         stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", compile_blocks=True)
+
+
+def test_two_devices_spread_the_groups_over_ray_workers_with_the_same_result(tmp_path, monkeypatch, ray_local):
+    scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
+    result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
+    spread_result, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"],
+                                              group_size=2)
+    assert torch.equal(spread, views) and torch.equal(spread_result.sh, result.sh)
 
 
 def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_path, monkeypatch, capsys):
