@@ -24,7 +24,9 @@ scene is printed as the scale of "not stylized at all".
 Results are kept in ``--parts`` (a folder on the device machine that survives between calls):
 ``PART/<row>/group_NNN.pt`` (stylized images and times per group), ``PART/paper/scene.pt`` (the
 reference's finetuned scene) and ``PART/rows/<row>.json``; a row split over calls (``--groups``)
-finetunes once every group is there. ``--report`` prints the table of every finished row.
+finetunes once every group is there. ``--report`` prints the table of every finished row. The final-scene
+figures need only ``PART/paper/scene.pt`` (24 MB for the bear, small enough to carry to a fresh machine);
+the per-group deviation needs the paper's stylized images too and reads "n/a" without them.
 """
 
 from __future__ import annotations
@@ -262,7 +264,7 @@ def run_row(models, conditioning, row: Row, data: Scene, args, device: torch.dev
     paper_images = {v: image for part in paper_parts for v, image in zip(part["views"], part["images"])}
     record["group_rel_l2"] = [compare(torch.stack([stylized[used[v]] for v in g.views]),
                                       torch.stack([paper_images[used[v]] for v in g.views]))["rel_l2"]
-                              for g in groups]
+                              for g in groups] if all(used[v] in paper_images for g in groups for v in g.views) else []
     (args.parts / "rows").mkdir(exist_ok=True)
     (args.parts / "rows" / f"{folder.name}.json").write_text(json.dumps(record, indent=1))
     return record
@@ -293,11 +295,12 @@ HEADER = ("| row | views stylized (groups) | stylize s | finetune s (it) | total
 
 def table_line(record: dict) -> str:
     seconds, deviations = record["seconds"], sorted(record["group_rel_l2"])
+    deviation = f"{deviations[len(deviations) // 2]:.4f} / {deviations[-1]:.4f}" if deviations else "n/a"
     train, held, overall = record["train_views"], record["held_views"], record["all_views"]["rel_l2"]
     return (f"| {record['row']} | {record['views_stylized']} ({len(record['groups'])}) | {seconds['stylize']:.1f} | "
             f"{seconds['finetune']:.1f} ({record['iterations']}) | {seconds['total']:.1f} | {train['psnr_db']:.1f} | "
             f"{held['psnr_db']:.1f} | {overall:.4f} | {record['warp_rmse']:.4f} | "
-            f"{deviations[len(deviations) // 2]:.4f} / {deviations[-1]:.4f} |")
+            f"{deviation} |")
 
 
 def report(parts: Path) -> None:
