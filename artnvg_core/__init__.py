@@ -2,8 +2,9 @@
 
 The library imports nothing from ComfyUI. Main entry points:
 
-- :mod:`artnvg_core.scene`    -- ``GaussianScene`` and PLY / splatfacto checkpoint I/O
-- :mod:`artnvg_core.cameras`  -- ``CameraSet`` and camera loaders / paths
+- :mod:`artnvg_core.scene`    -- ``GaussianScene`` (the raw Gaussians) and its validation
+- :mod:`artnvg_core.formats`  -- ``load_scene`` / ``save_scene`` (PLY, SPZ, .splat, splatfacto .ckpt)
+- :mod:`artnvg_core.cameras`  -- ``CameraSet``, camera loaders, paths and rigs
 - :mod:`artnvg_core.raster`   -- ``render`` (differentiable Gaussian rasterizer)
 """
 

@@ -38,6 +38,32 @@ def positive_number(text: str) -> float:
     return value
 
 
+def integer_at_least(minimum: int):
+    """argparse type of ``--steps`` and the like: an integer >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+def unit_interval(text: str) -> float:
+    """argparse type of ``--cfg-until``: a number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
 def fraction(text: str) -> float:
     """argparse type of a threshold: a number in [0, 1)."""
     try:
@@ -94,8 +120,16 @@ class ProgressBar:
             self.bar.close()
 
 
+def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
+    """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
+    first-use kernel build (about 90 s on an H100) is announced on stdout before it starts."""
+    from .raster import prepare_backend
+
+    prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
+
+
 def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
-    """:func:`~artnvg_core.scene.load_scene` onto ``device``, printing the file size first and the count and time after."""
+    """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and time after."""
     from .formats import load_scene
 
     print(f"loading {path} ({os.path.getsize(path) / 2**20:,.1f} MiB)" if os.path.isfile(path) else f"loading {path}",
@@ -109,7 +143,7 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> Gaussia
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
-    from .camera_rigs import UP_AXES
+    from .cameras import UP_AXES
 
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
                         "the scene, built from the Gaussians alone (README: Scenes without cameras)")
@@ -122,8 +156,8 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
-    """:func:`~artnvg_core.camera_rigs.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
-    from .camera_rigs import orbit_cameras
+    """:func:`~artnvg_core.cameras.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
+    from .cameras import orbit_cameras
 
     parts = args.orbit_size.lower().split("x")
     if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):

@@ -1,4 +1,4 @@
-"""Gaussian scenes: the raw stored 3DGS parameters and their file I/O.
+"""Gaussian scenes: the raw stored 3DGS parameters and their validation (no file format).
 
 Conventions (INRIA 3DGS layout, see DESIGN.md):
 
@@ -20,8 +20,8 @@ How the trainer rendered them (defaults: gsplat "classic", the INRIA renderer):
   S the projected 2D covariance (splatfacto ``rasterize_mode="antialiased"``,
   Mip-Splatting, SPZ files flagged antialiased).
 
-File formats live in :mod:`artnvg_core.formats` (``load_scene``, ``save_scene``);
-every reader validates with :func:`validate_scene`: bad input raises
+Scenes are read and written by :mod:`artnvg_core.formats` (``load_scene``, ``save_scene``),
+which this module does not import; every reader validates with :func:`validate_scene`: bad input raises
 ``ValueError`` naming the file and the field; with ``drop_invalid=True``
 invalid Gaussians are dropped instead and reported as a warning on the
 ``artnvg_core.scene`` logger.
@@ -47,6 +47,13 @@ def sh_degree_for(num_coeffs: int) -> int:
         if (degree + 1) ** 2 == num_coeffs:
             return degree
     raise ValueError(f"sh: {num_coeffs} coefficients per channel is not (d+1)^2 for d in 0..3")
+
+
+def logit(p: torch.Tensor) -> torch.Tensor:
+    """Opacity logits log(p / (1 - p)), as log(p) - log1p(-p), of opacities ``p`` in [0, 1] (0 and 1 give
+    -inf and +inf): the inverse of the sigmoid that turns ``opacity_logits`` into opacities. Computed in
+    ``p``'s dtype; float64, rounded once to float32, gives correctly rounded float32 logits."""
+    return p.log() - (-p).log1p()
 
 
 @dataclass
@@ -120,6 +127,12 @@ _TENSOR_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # --------------------------------------------------------------------------- validation
 
 
+def describe_invalid(name: str, bad, problem: str) -> str:
+    """``"{name}: K of N Gaussians {problem} (first at index i)"`` for a bad-mask ``bad`` [N] (a torch
+    or numpy bool array with a True entry): the one wording of a per-Gaussian error."""
+    return f"{name}: {int(bad.sum())} of {len(bad)} Gaussians {problem} (first at index {int(bad.nonzero()[0][0])})"
+
+
 def invalid_gaussians(scene: GaussianScene) -> list[tuple[str, str, torch.Tensor]]:
     """(field, problem, bad-mask [N]) for every check, in field order."""
     n = len(scene)
@@ -150,12 +163,9 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         count = int(bad.sum())
         if count == 0:
             continue
-        first = int(bad.nonzero()[0, 0])
         if not drop_invalid:
-            raise ValueError(
-                f"{source}: {name}: {count} of {n} Gaussians have {problem} (first at index {first}); "
-                "pass drop_invalid=True to drop invalid Gaussians"
-            )
+            raise ValueError(f"{source}: {describe_invalid(name, bad, f'have {problem}')}; "
+                             "pass drop_invalid=True to drop invalid Gaussians")
         invalid |= bad
         reasons.append(f"{name}: {count} with {problem}")
     dropped = int(invalid.sum())
@@ -166,14 +176,3 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         scene = scene.select(~invalid)
     return scene, dropped
 
-
-_MOVED_TO_FORMATS = ("load_scene", "save_scene", "read_ply", "write_ply", "read_splatfacto_ckpt")
-
-
-def __getattr__(name: str):
-    """The file readers and writers live in :mod:`artnvg_core.formats`; their old names here still work."""
-    if name in _MOVED_TO_FORMATS:
-        from . import formats
-
-        return getattr(formats, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -34,8 +34,8 @@ from bench.diffusion import POOLED_DIM, build_models, run_step, step_inputs, wri
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.fileio import load_image  # noqa: E402
 from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
+from artnvg_core.formats import read_ply  # noqa: E402
 from artnvg_core.losses import ssim  # noqa: E402
-from artnvg_core.scene import read_ply  # noqa: E402
 from artnvg_core.stylize import DemoInputs  # noqa: E402
 
 CUDA = torch.device("cuda")

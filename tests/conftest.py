@@ -1,10 +1,12 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and the ``cuda`` marker's skip where no CUDA GPU is present."""
 
 import os
 from pathlib import Path
 
 import pytest
+import torch
 
+REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ARTNVG_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 
 
@@ -15,3 +17,30 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``cuda`` are skipped where torch sees no CUDA GPU."""
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU (marker 'cuda')")
+    for item in items:
+        if item.get_closest_marker("cuda") is not None:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def ray_local():
+    """One local Ray instance of two CPU workers for the whole test session (its start-up is paid
+    once); skips the test when Ray is not installed. Its workers import this checkout and its tests/
+    helpers (PYTHONPATH) and run ``ray_workers.setup_worker``."""
+    import logging
+
+    ray = pytest.importorskip("ray")
+    from ray_workers import setup_worker
+
+    paths = [str(REPO), str(REPO / "tests"), *filter(None, [os.environ.get("PYTHONPATH")])]
+    ray.init(num_cpus=2, num_gpus=0, include_dashboard=False, logging_level=logging.WARNING,
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(paths)}, "worker_process_setup_hook": setup_worker})
+    yield ray
+    ray.shutdown()

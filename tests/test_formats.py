@@ -3,7 +3,6 @@
 import pytest
 import torch
 
-from artnvg_core import scene as scene_module
 from artnvg_core.formats import SAVE_SUFFIXES, load_scene, save_scene
 from tests.test_formats_ply import assert_same_bits, random_scene
 
@@ -25,14 +24,6 @@ def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
         load_scene(tmp_path / "missing.ckpt")
     with pytest.raises(ValueError, match=r"scene\.ckpt: cannot write scene file type '\.ckpt'; expected one of"):
         save_scene(scene, tmp_path / "scene.ckpt")
-
-
-def test_old_import_names_still_work():
-    from artnvg_core.formats import read_ply, write_ply
-
-    assert (scene_module.load_scene, scene_module.read_ply, scene_module.write_ply) == (load_scene, read_ply, write_ply)
-    with pytest.raises(AttributeError):
-        scene_module.no_such_name  # noqa: B018
 
 
 @pytest.mark.parametrize("suffix", SAVE_SUFFIXES)

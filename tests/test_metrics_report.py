@@ -12,6 +12,7 @@ from artnvg_core.__main__ import main
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
 from artnvg_core.metrics.report import (
     add_evaluate_arguments,
@@ -19,7 +20,6 @@ from artnvg_core.metrics.report import (
     load_view_images,
     render_views,
 )
-from artnvg_core.scene import load_scene, write_ply
 from artnvg_core.stylize import stylize_nnfm
 
 VIEWS = "0,1,2"
@@ -182,7 +182,8 @@ def test_outputs_checked_before_any_work(inputs, tmp_path, capsys):
     (tmp_path / "taken_strip.png").mkdir()
     for out, message in [("", "--out: the output path is empty"), (tmp_path, "is a folder"),
                          (tmp_path / "file" / "r.json", "file is a file, not a folder"),
-                         (tmp_path / "taken.json", r"--out \(its strip taken_strip\.png\): .* is a folder")]:
+                         (tmp_path / "taken.json", r"--out \(its strip taken_strip\.png\): .* is a folder"),
+                         (tmp_path / "report.txt", r"--out: .*report\.txt: the report is JSON")]:
         assert _cli(inputs, "--out", str(out)) == 2
         err = capsys.readouterr().err
         assert "error: " in err and re.search(message, err) and "loading" not in err, err

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from artnvg_core.cameras import CameraSet, load_cameras, look_at
+from artnvg_core.formats import load_scene
 from artnvg_core.metrics.warp import reproject, warp_consistency
 from artnvg_core.raster import render
-from artnvg_core.scene import load_scene
 
 PLANE_Z = 5.0
 SIZE = 48

@@ -17,7 +17,8 @@ from PIL import Image
 
 from artnvg_core.cameras import CameraSet, load_nerfstudio
 from artnvg_core.raster import render
-from artnvg_core.scene import SH_C0, GaussianScene, read_ply, write_ply
+from artnvg_core.formats import read_ply, write_ply
+from artnvg_core.scene import SH_C0, GaussianScene
 
 DEMO = Path(__file__).resolve().parents[1] / "artnvg_core" / "demo"
 

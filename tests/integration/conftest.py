@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from artnvg_core.scene import read_ply, write_ply
+from artnvg_core.formats import read_ply, write_ply
 from artnvg_core.stylize import DemoInputs
 
 ROOT_ENV, PYTHON_ENV = "ARTNVG_COMFYUI_ROOT", "ARTNVG_COMFYUI_PYTHON"

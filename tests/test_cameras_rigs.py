@@ -6,8 +6,7 @@ import pytest
 import torch
 
 from artnvg_core.__main__ import main
-from artnvg_core.camera_rigs import orbit_cameras, parse_up, scene_frame
-from artnvg_core.cameras import load_cameras
+from artnvg_core.cameras import load_cameras, orbit_cameras, parse_up, scene_frame
 from artnvg_core.formats import load_scene
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene

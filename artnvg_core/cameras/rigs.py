@@ -31,8 +31,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .cameras import CameraSet, look_at
-from .scene import GaussianScene
+from ..scene import GaussianScene
+from .camera_set import CameraSet
+from .geometry import look_at
 
 _log = logging.getLogger(__name__)
 

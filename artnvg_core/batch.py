@@ -1,0 +1,408 @@
+"""``python -m artnvg_core batch JOBS``: many stylize jobs over the GPUs of one machine or of a Ray cluster.
+
+JOBS is a JSON list of objects, or a CSV file with a header row; each job (object or row) gives
+``stylize``'s options by name: ``scene``, ``cameras``, ``style``, ``out`` (required), ``stylizer``,
+``preset``, ``iters``, ``seed``, ``color_transfer``, ... (``_`` or ``-`` alike; a flag takes true/false;
+an empty value or null leaves the option out). Jobs are parsed by ``stylize``'s own parser, so every
+stylize option works here and none can drift. Relative paths start at the JOBS file's folder. Where
+jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
+
+Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the
+diffusion models loaded from one job to the next; the diffusion groups of a job run on that worker's
+GPU (``stylize --devices`` spreads one scene's groups over several GPUs instead). A job whose worker
+dies is run again on another worker; a job that fails (bad input, missing file) fails alone; a job
+whose output scene loads and whose contact sheet exists is skipped (``--redo`` runs it anyway); outputs
+are written whole or not at all (:func:`artnvg_core.fileio.written_together`). Ctrl-C stops the
+running jobs at their next Python step, so none leaves a file behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import ctypes
+import functools
+import io
+import json
+import os
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .cluster import Workers, dispatch, import_ray, ray_session
+from .progress import Cancelled, StopFn
+
+STATUSES = ("done", "failed", "skipped", "cancelled")
+NOT_PER_JOB = {"device": "--devices", "devices": "--devices", "ray-address": "--ray-address", "help": None}
+TRUE, FALSE = {"true", "1", "yes", "on"}, {"false", "0", "no", "off"}
+STOP_SECONDS = 30.0  # how long stopped jobs may take to unwind before their workers are killed
+
+
+@dataclass(frozen=True)
+class Job:
+    """One line of JOBS: ``number`` (from 1), ``argv`` (stylize's arguments), ``folder`` (where relative
+    paths start), ``out`` (absolute output scene) and ``error`` (why it cannot run, else None)."""
+
+    number: int
+    argv: tuple[str, ...]
+    folder: Path
+    out: Path | None
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class JobResult:
+    """What became of a job: ``status`` one of :data:`STATUSES`, ``message`` the error or reason,
+    ``seconds`` its run time, ``worker`` where it ran."""
+
+    job: Job
+    status: str
+    message: str = ""
+    seconds: float = 0.0
+    worker: str = ""
+
+
+def read_jobs(path: str | os.PathLike) -> list:
+    """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell).
+
+    ValueError naming the file when it cannot be read as a JSON list or a CSV table with a header;
+    an entry that is not an object is returned as it is (its job fails alone)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise ValueError(f"{path}: jobs file not found") from None
+    if path.suffix.lower() == ".csv":
+        rows = list(csv.DictReader(io.StringIO(text)))
+        for number, row in enumerate(rows, 1):
+            if None in row:
+                raise ValueError(f"{path}: row {number + 1} has more cells than the header has names")
+        entries = rows
+    else:
+        try:
+            entries = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path}: not valid JSON ({error}); expected a list of jobs, e.g. "
+                             '[{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}], or a .csv file') from None
+        if not isinstance(entries, list):
+            raise ValueError(f"{path}: expected a JSON list of jobs (objects of stylize options), "
+                             f"got a {type(entries).__name__}")
+    if not entries:
+        raise ValueError(f"{path}: no jobs")
+    return entries
+
+
+def job_arguments(entry, options: dict[str, argparse.Action], label: str) -> list[str]:
+    """``stylize``'s command-line arguments for one entry of JOBS (``options``: stylize's actions by option
+    string). ValueError starting with ``label`` for an unknown option, one the batch decides, a bad flag
+    value or a missing ``out``."""
+    if not isinstance(entry, dict):
+        raise ValueError(f"{label}: expected an object of stylize options, got {json.dumps(entry)[:80]}")
+    names = [str(key).strip().lower().replace("_", "-") for key in entry]
+    if "out" not in names or _empty(entry[list(entry)[names.index("out")]]):
+        raise ValueError(f"{label}: no out given (each job writes its own output scene)")
+    argv = []
+    for name, (key, value) in zip(names, entry.items()):
+        if name in NOT_PER_JOB:
+            where = f"; give {NOT_PER_JOB[name]} to the batch" if NOT_PER_JOB[name] else ""
+            raise ValueError(f"{label}: '{key}' is not a job option{where}")
+        if _empty(value):
+            continue
+        if name == "scene":
+            argv.insert(0, str(value))
+            continue
+        action = options.get(f"--{name}")
+        if action is None:
+            raise ValueError(f"{label}: unknown option '{key}' (stylize has no --{name}; "
+                             "see python -m artnvg_core stylize --help)")
+        if action.nargs == 0:
+            text = str(value).strip().lower()
+            if text not in TRUE | FALSE:
+                raise ValueError(f"{label}: '{key}' is a flag; expected true or false, got {value!r}")
+            if text in TRUE:
+                argv.append(f"--{name}")
+            elif f"--no-{name}" in options:
+                argv.append(f"--no-{name}")
+        elif isinstance(value, (bool, list, dict)):
+            raise ValueError(f"{label}: '{key}' takes one value, got {json.dumps(value)}")
+        else:
+            argv.append(f"--{name}={value}")
+    return argv
+
+
+def _empty(value) -> bool:
+    return value is None or (isinstance(value, str) and not value.strip())
+
+
+def parse_stylize(argv: Sequence[str], label: str) -> argparse.Namespace:
+    """``python -m artnvg_core stylize ARGV`` parsed by the command line's own parser; ValueError
+    starting with ``label`` with argparse's message instead of an exit."""
+    from .__main__ import build_parser
+
+    message = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(message):
+            return build_parser().parse_args(["stylize", *argv])
+    except SystemExit:
+        text = message.getvalue().strip().splitlines()
+        raise ValueError(f"{label}: {text[-1].split('error: ', 1)[-1] if text else 'cannot be parsed'}") from None
+
+
+def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> list[Job]:
+    """The jobs of a JOBS file (see the module docstring). A job that cannot be parsed, or whose output
+    another job writes too, carries its error; only a file that cannot be read raises ValueError."""
+    path = Path(path)
+    folder = path.resolve().parent
+    jobs, owners = [], {}
+    for number, entry in enumerate(read_jobs(path), 1):
+        label = f"{path.name} job {number}"
+        try:
+            argv = job_arguments(entry, options, label)
+            out = (folder / parse_stylize(argv, label).out).resolve()
+            if out in owners:
+                raise ValueError(f"{label}: writes {out}, as job {owners[out]} does; give each job its own out")
+        except ValueError as error:
+            jobs.append(Job(number, (), folder, None, str(error)))
+            continue
+        owners[out] = number
+        jobs.append(Job(number, tuple(argv), folder, out))
+    return jobs
+
+
+def output_complete(out: Path) -> bool:
+    """Whether ``out`` holds a finished job's output: the scene loads and its contact sheet exists."""
+    from .formats import load_scene
+    from .stylize import sheet_path
+
+    if not (out.is_file() and sheet_path(out).is_file()):
+        return False
+    try:
+        load_scene(out)
+    except (ValueError, OSError):
+        return False
+    return True
+
+
+class BatchWorker:
+    """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
+    between jobs (:func:`artnvg_core.stylize.load_models_for` keeps the latest set). Two threads: one runs
+    the job, the other answers ``ping`` (its process id) and ``stop``."""
+
+    def __init__(self, workers: Workers):
+        self.workers = workers
+        if workers.kind == "cuda":
+            torch.cuda.set_device(workers.device())
+        else:
+            torch.set_num_threads(1)
+        self.lock = threading.Lock()
+        self.running: tuple[str, int] | None = None  # (run, thread id) of the job running
+        self.stopped: set[str] = set()
+
+    def ping(self) -> int:
+        return os.getpid()
+
+    def run(self, run: str, argv: Sequence[str], folder: str) -> dict:
+        """Run one job (``argv``: stylize's arguments; relative paths from ``folder``); returns its
+        "status" (done, failed, cancelled), "message", "seconds", "worker" and the tail of its output, "log"."""
+        import ray
+
+        worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
+        log, start, cwd = io.StringIO(), time.perf_counter(), os.getcwd()
+        with self.lock:
+            if run in self.stopped:
+                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker, log="")
+            self.running = (run, threading.get_ident())
+        try:
+            args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
+            os.chdir(folder)
+            with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+                args.run(args)
+            status, message = "done", ""
+        except (Cancelled, KeyboardInterrupt):
+            status, message = "cancelled", "stopped by request"
+        except (ValueError, OSError) as error:
+            status, message = "failed", str(error)
+        except Exception as error:  # any other failure of one job is that job's, reported with its type
+            status, message = "failed", f"{type(error).__name__}: {error}"
+        finally:
+            with self.lock:
+                self.running = None
+            os.chdir(cwd)
+        tail = "\n".join(log.getvalue().replace("\r", "\n").splitlines()[-20:])
+        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, log=tail)
+
+    def stop(self, run: str) -> None:
+        """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step); the
+        jobs of ``run`` that start later return at once, cancelled."""
+        with self.lock:
+            self.stopped.add(run)
+            if self.running is not None and self.running[0] == run:
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.running[1]), ctypes.py_object(Cancelled))
+
+
+class BatchPool:
+    """``workers.count`` :class:`BatchWorker` actors (Ray must be connected: :func:`ray_session`);
+    :meth:`run` them over jobs, as often as needed. :meth:`close` (or leaving the ``with`` block) ends them."""
+
+    def __init__(self, workers: Workers):
+        ray = import_ray("batch")
+        actor = ray.remote(BatchWorker).options(**workers.actor_options(), max_concurrency=2)
+        self.actors = [actor.remote(workers) for _ in range(workers.count)]
+
+    def __enter__(self) -> BatchPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        ray = import_ray("batch")
+        for actor in self.actors:
+            ray.kill(actor)
+        self.actors = []
+
+    def run(
+        self,
+        jobs: Sequence[Job],
+        *,
+        redo: bool = False,
+        on_event: Callable[[str, Job, object], None] | None = None,
+        should_stop: StopFn | None = None,
+    ) -> list[JobResult]:
+        """One :class:`JobResult` per job, in job order.
+
+        Jobs with an error fail at once; jobs whose output is complete are skipped (unless ``redo``);
+        the others run on the workers in order. ``on_event("started", job, {"worker": i, "actor": actor})``
+        when a job is handed out (again, if its worker died) and ``on_event("finished", job, result)``
+        for every job. When ``should_stop`` says so, or on KeyboardInterrupt (Ctrl-C), the running jobs
+        are stopped (a worker whose job has not stopped within :data:`STOP_SECONDS` is killed), and
+        every job not finished is ``cancelled``.
+        """
+        ray = import_ray("batch")
+        results: dict[int, JobResult] = {}
+
+        def finish(result: JobResult) -> None:
+            results[result.job.number] = result
+            if on_event is not None:
+                on_event("finished", result.job, result)
+
+        todo = []
+        for job in jobs:
+            if job.error is not None:
+                finish(JobResult(job, "failed", job.error))
+            elif not redo and output_complete(job.out):
+                finish(JobResult(job, "skipped", "output complete"))
+            else:
+                todo.append(job)
+        run, running = uuid.uuid4().hex, {}  # job number -> (job, reference) while it runs
+
+        def submit(actor, job: Job):
+            reference = actor.run.remote(run, job.argv, str(job.folder))
+            running[job.number] = job, reference
+            return reference
+
+        def started(job: Job, index: int) -> None:
+            if on_event is not None:
+                on_event("started", job, {"worker": index, "actor": self.actors[index]})
+
+        try:
+            for job, _, value, error in dispatch(self.actors, todo, submit, on_start=started, should_stop=should_stop):
+                running.pop(job.number, None)
+                if error is not None:
+                    status = "cancelled" if isinstance(error, Cancelled) else "failed"
+                    finish(JobResult(job, status, str(error)))
+                else:
+                    finish(_result(job, value))
+        except (Cancelled, KeyboardInterrupt):
+            for job, result in self._stop(ray, run, list(running.values())):
+                finish(result)
+            for job in todo:
+                if job.number not in results:
+                    finish(JobResult(job, "cancelled", "batch stopped"))
+        return [results[job.number] for job in jobs]
+
+    def _stop(self, ray, run: str, running: list[tuple[Job, object]]) -> list[tuple[Job, JobResult]]:
+        """Stop the jobs of ``run`` and wait for them; the results of those that ended (cancelled, or
+        done just before). A worker whose job has not ended within :data:`STOP_SECONDS` is killed."""
+        for actor in self.actors:
+            actor.stop.remote(run)
+        ended = []
+        if running:
+            references = [reference for _, reference in running]
+            ready, late = ray.wait(references, num_returns=len(references), timeout=STOP_SECONDS)
+            for job, reference in running:
+                if reference in ready:
+                    try:
+                        value = ray.get(reference)
+                    except Exception:  # its worker died meanwhile, or the stop came as it returned
+                        continue
+                    ended.append((job, _result(job, value)))
+            if late:  # a job that did not reach a Python step in time: the workers go
+                for actor in self.actors:
+                    ray.kill(actor)
+                self.actors = []
+        return ended
+
+
+def _result(job: Job, value: dict) -> JobResult:
+    """The result of ``job`` from what :meth:`BatchWorker.run` returned."""
+    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"])
+
+
+def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:
+    """The ``batch`` command: 0 when every job is done or skipped, 1 when one failed, 130 when stopped."""
+    from tqdm import tqdm
+
+    from .cliutil import parse_devices
+
+    jobs = load_jobs(args.jobs, options)
+    devices = parse_devices(args.devices)
+    with ray_session(devices, args.ray_address, needed_by="batch") as workers:
+        place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
+        print(f"batch: {len(jobs)} jobs on {workers.count} {workers.kind} workers{place}", flush=True)
+        bar = tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True)
+
+        def report(kind: str, job: Job, detail) -> None:
+            if kind == "finished":
+                bar.update(1)
+                bar.write(_line(detail, len(jobs)), file=sys.stdout)
+
+        with BatchPool(workers) as pool:
+            results = pool.run(jobs, redo=args.redo, on_event=report)
+        bar.close()
+    counts = {status: sum(r.status == status for r in results) for status in STATUSES}
+    print("summary: " + ", ".join(f"{counts[s]} {s}" for s in STATUSES if counts[s] or s == "done"))
+    for result in results:
+        if result.status == "failed":
+            print(f"  failed job {result.job.number}: {result.message}")
+    return 130 if counts["cancelled"] else 1 if counts["failed"] else 0
+
+
+def _line(result: JobResult, total: int) -> str:
+    job = result.job
+    what = str(job.out) if job.out is not None else "(not run)"
+    extra = {"done": f"{result.seconds:.0f} s on {result.worker}", "skipped": result.message}.get(
+        result.status, result.message)
+    return f"{result.status:<9} job {job.number}/{total}  {what}  {extra}"
+
+
+def add_batch_command(commands) -> None:
+    """Register ``batch`` with the command line's subparsers (after ``stylize``, whose options jobs take)."""
+    stylize = commands.choices["stylize"]
+    options = {string: action for action in stylize._actions for string in action.option_strings}
+    p = commands.add_parser("batch", help="run many stylize jobs (a JSON or CSV list) over GPUs or a Ray cluster",
+                            description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("jobs", help="JSON list of jobs or CSV table; each job holds stylize's options by name")
+    p.add_argument("--devices", help="GPUs of this machine sharing the jobs, e.g. cuda:0,cuda:1 (default: every "
+                   "visible GPU, else one CPU worker; cpu,cpu: two CPU workers)")
+    p.add_argument("--ray-address", help="join a running Ray cluster (auto, or HOST:PORT) instead: one worker per "
+                   "GPU of the cluster")
+    p.add_argument("--redo", action="store_true", help="run jobs whose output is already complete, too")
+    p.set_defaults(run=functools.partial(cmd_batch, options=options))

@@ -1,0 +1,57 @@
+"""Cameras: OpenCV world-to-camera poses plus pinhole intrinsics, loaded, made or moved along paths.
+
+Conventions (DESIGN.md): OpenCV camera axes (x right, y down, z forward),
+``world_to_cam`` [C, 4, 4] maps world points to camera coordinates,
+``intrinsics`` [C, 3, 3] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels
+with pixel centres at +0.5 (the top-left pixel's centre is (0.5, 0.5)).
+All views of a set share one ``width`` x ``height`` in pixels.
+Other conventions (nerfstudio OpenGL camera-to-world, COLMAP) are converted
+at load time, in their loader's module only.
+
+Modules: :mod:`.camera_set` (:class:`CameraSet`), :mod:`.geometry` (quaternions
+in w x y z order, rigid poses, :func:`look_at`), the loaders :mod:`.nerfstudio`
+and :mod:`.colmap` (with :func:`load_cameras` here choosing between them),
+:mod:`.paths` (:func:`orbit_path`, :func:`interpolate_path`) and :mod:`.rigs`
+(:func:`orbit_cameras` for a scene without cameras). Loaders return float32 CPU
+tensors; all pose maths runs in float64. Lens distortion is ignored everywhere:
+these are pinhole cameras.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .camera_set import MAX_IMAGE_SIDE, CameraSet
+from .colmap import find_colmap_model, load_colmap
+from .geometry import look_at, normalize_quats, quat_to_rotmat, rotmat_to_quat
+from .nerfstudio import load_nerfstudio
+from .paths import interpolate_path, orbit_path
+from .rigs import UP_AXES, SceneFrame, orbit_cameras, parse_up, scene_frame
+
+__all__ = [
+    "MAX_IMAGE_SIDE", "UP_AXES", "CameraSet", "SceneFrame", "interpolate_path", "load_cameras", "load_colmap",
+    "load_nerfstudio", "look_at", "normalize_quats", "orbit_cameras", "orbit_path", "parse_up", "quat_to_rotmat",
+    "rotmat_to_quat", "scene_frame",
+]
+
+
+def load_cameras(path) -> CameraSet:
+    """Cameras from a nerfstudio or COLMAP capture, chosen by layout.
+
+    A ``.json`` file or a folder containing ``transforms.json`` loads with
+    :func:`load_nerfstudio` (preferred when a folder holds both); a COLMAP
+    model folder, or a folder with one in ``sparse/0`` or ``sparse``, with
+    :func:`load_colmap`.
+    """
+    path = Path(path)
+    if path.is_file() and path.suffix.lower() == ".json":
+        return load_nerfstudio(path)
+    if path.is_dir() and (path / "transforms.json").is_file():
+        return load_nerfstudio(path / "transforms.json")
+    if path.is_dir() and find_colmap_model(path) is not None:
+        return load_colmap(path)
+    raise ValueError(
+        f"{path}: not a supported camera source; expected a nerfstudio .json file (e.g. transforms.json), "
+        "a folder containing transforms.json, or a COLMAP model folder (cameras.bin + images.bin or "
+        "cameras.txt + images.txt, directly or in sparse/0)"
+    )

@@ -1,0 +1,90 @@
+"""The camera set: C pinhole views of one image size (conventions in :mod:`artnvg_core.cameras`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+from .geometry import camera_centers
+
+MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
+
+
+@dataclass
+class CameraSet:
+    """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`).
+
+    ``names`` are the views' image file stems (e.g. ``frame_00096``);
+    ``image_paths`` the source images when known (else ``None`` entries).
+    """
+
+    world_to_cam: torch.Tensor
+    intrinsics: torch.Tensor
+    width: int
+    height: int
+    names: list[str]
+    image_paths: list[Path | None] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        c = self.world_to_cam.shape[0] if self.world_to_cam.ndim == 3 else -1
+        if tuple(self.world_to_cam.shape) != (c, 4, 4) or c < 0:
+            raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")
+        if tuple(self.intrinsics.shape) != (c, 3, 3):
+            raise ValueError(f"CameraSet.intrinsics: expected shape ({c}, 3, 3), got {tuple(self.intrinsics.shape)}")
+        if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
+            raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
+                             f"got {self.width}x{self.height}")
+        if len(self.names) != c:
+            raise ValueError(f"CameraSet.names: expected {c} names, got {len(self.names)}")
+        if not self.image_paths:
+            self.image_paths = [None] * c
+        if len(self.image_paths) != c:
+            raise ValueError(f"CameraSet.image_paths: expected {c} entries, got {len(self.image_paths)}")
+
+    def __len__(self) -> int:
+        return self.world_to_cam.shape[0]
+
+    @property
+    def centers(self) -> torch.Tensor:
+        """Camera centres in world coordinates, [C, 3]."""
+        return camera_centers(self.world_to_cam)
+
+    def subset(self, indices) -> "CameraSet":
+        """The views at ``indices`` (a sequence of ints), in that order."""
+        idx = [int(i) for i in indices]
+        for i in idx:
+            if not -len(self) <= i < len(self):
+                raise ValueError(f"CameraSet.subset: view index {i} out of range for {len(self)} views")
+        sel = torch.tensor(idx, dtype=torch.long)
+        return replace(
+            self,
+            world_to_cam=self.world_to_cam[sel],
+            intrinsics=self.intrinsics[sel],
+            names=[self.names[i] for i in idx],
+            image_paths=[self.image_paths[i] for i in idx],
+        )
+
+    def scaled(self, factor: float) -> "CameraSet":
+        """The same views at ``factor`` times the resolution (rounded to whole pixels).
+
+        Intrinsics scale with the actual per-axis size ratio, so the image
+        plane keeps covering the same field of view.
+        """
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"CameraSet.scaled: factor must be a finite number > 0, got {factor}")
+        width = max(1, round(self.width * factor))
+        height = max(1, round(self.height * factor))
+        if max(width, height) > MAX_IMAGE_SIDE:
+            raise ValueError(f"CameraSet.scaled: factor {factor} makes {self.width}x{self.height} views "
+                             f"{width}x{height}, above the {MAX_IMAGE_SIDE} pixels a side a view may have")
+        k = self.intrinsics.clone()
+        k[:, 0, :] *= width / self.width
+        k[:, 1, :] *= height / self.height
+        return replace(self, intrinsics=k, width=width, height=height)
+
+    def to(self, device) -> "CameraSet":
+        return replace(self, world_to_cam=self.world_to_cam.to(device), intrinsics=self.intrinsics.to(device))
+

@@ -1,0 +1,294 @@
+"""COLMAP sparse models (``cameras`` + ``images``, binary or text): already OpenCV world-to-camera."""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .camera_set import MAX_IMAGE_SIDE, CameraSet
+from .common import PERSPECTIVE_MODELS, loaded_camera_set, pinhole_matrix, read_text, view_names
+from .geometry import quat_to_rotmat
+
+# COLMAP camera model id -> (name, number of parameters), as in COLMAP's models.h.
+_COLMAP_MODELS = {
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+    5: ("OPENCV_FISHEYE", 8),
+    6: ("FULL_OPENCV", 12),
+    7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4),
+    9: ("RADIAL_FISHEYE", 5),
+    10: ("THIN_PRISM_FISHEYE", 12),
+}
+_COLMAP_PARAM_COUNTS = dict(_COLMAP_MODELS.values())
+# Supported models whose parameters start with a single focal length: f, cx, cy, ...
+# (the others start with fx, fy, cx, cy, ...).
+_SINGLE_FOCAL_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+
+
+@dataclass
+class _ColmapCamera:
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+
+@dataclass
+class _ColmapImage:
+    quat: tuple[float, float, float, float]  # world-to-camera rotation, w x y z
+    translation: tuple[float, float, float]  # world-to-camera translation
+    camera_id: int
+    name: str
+
+
+def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
+    """(model folder, '.bin' or '.txt') of the COLMAP model in ``folder``, ``folder/sparse/0`` or ``folder/sparse``."""
+    for candidate in (folder, folder / "sparse" / "0", folder / "sparse"):
+        for ext in (".bin", ".txt"):
+            if (candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file():
+                return candidate, ext
+    return None
+
+
+class _BinaryReader:
+    """Little-endian reads from a file's bytes; truncation raises ValueError naming the file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            self.data = path.read_bytes()
+        except OSError as error:
+            raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
+        self.offset = 0
+
+    def unpack(self, fmt: str, what: str) -> tuple:
+        size = struct.calcsize("<" + fmt)
+        if self.offset + size > len(self.data):
+            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
+        values = struct.unpack_from("<" + fmt, self.data, self.offset)
+        self.offset += size
+        return values
+
+    def skip(self, size: int, what: str) -> None:
+        if self.offset + size > len(self.data):
+            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
+        self.offset += size
+
+    def c_string(self, what: str) -> str:
+        end = self.data.find(b"\0", self.offset)
+        if end < 0:
+            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
+        raw = self.data[self.offset : end]
+        self.offset = end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise ValueError(f"{self.path}: {what} is not UTF-8: {raw[:80]!r}") from None
+
+
+def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
+    reader = _BinaryReader(path)
+    (count,) = reader.unpack("Q", "the camera count")
+    cameras = {}
+    for index in range(count):
+        camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
+        if model_id not in _COLMAP_MODELS:
+            raise ValueError(f"{path}: camera {camera_id}: unknown camera model id {model_id}")
+        model, num_params = _COLMAP_MODELS[model_id]
+        params = reader.unpack(f"{num_params}d", f"the parameters of camera {camera_id}")
+        cameras[camera_id] = _ColmapCamera(model, width, height, params)
+    return cameras
+
+
+def _read_images_bin(path: Path) -> list[_ColmapImage]:
+    reader = _BinaryReader(path)
+    (count,) = reader.unpack("Q", "the image count")
+    images = []
+    for index in range(count):
+        image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
+        name = reader.c_string(f"the name of image {image_id}")
+        (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
+        reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
+        images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name))
+    return images
+
+
+def _text_records(path: Path) -> list[tuple[int, str]]:
+    """(line number, line) of a COLMAP text file, comments dropped, blank lines kept."""
+    lines = read_text(path).splitlines()
+    return [(number, line.strip()) for number, line in enumerate(lines, 1) if not line.startswith("#")]
+
+
+def _text_line_error(path: Path, number: int, expected: str, line: str) -> ValueError:
+    return ValueError(f"{path}: line {number}: expected {expected}, got {line[:120]!r}")
+
+
+def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
+    expected = "CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."
+    cameras = {}
+    for number, line in _text_records(path):
+        if not line:
+            continue
+        fields = line.split()
+        if len(fields) < 4 or fields[1] not in _COLMAP_PARAM_COUNTS:
+            if len(fields) >= 4:
+                raise ValueError(f"{path}: line {number}: unknown camera model {fields[1]!r}")
+            raise _text_line_error(path, number, expected, line)
+        model = fields[1]
+        if len(fields) != 4 + _COLMAP_PARAM_COUNTS[model]:
+            count = _COLMAP_PARAM_COUNTS[model]
+            raise _text_line_error(path, number, f"{expected} with {count} {model} parameters", line)
+        try:
+            camera_id, width, height = int(fields[0]), int(fields[2]), int(fields[3])
+            params = tuple(float(p) for p in fields[4:])
+        except ValueError:
+            raise _text_line_error(path, number, expected, line) from None
+        cameras[camera_id] = _ColmapCamera(model, width, height, params)
+    return cameras
+
+
+def _image_line(line: str) -> _ColmapImage | None:
+    """The record of an images.txt image line ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME``, else None."""
+    fields = line.split(maxsplit=9)
+    if len(fields) != 10:
+        return None
+    try:
+        int(fields[0])
+        numbers = [float(f) for f in fields[1:8]]
+        camera_id = int(fields[8])
+    except ValueError:
+        return None
+    return _ColmapImage(tuple(numbers[:4]), tuple(numbers[4:]), camera_id, fields[9])
+
+
+def _is_points_line(line: str) -> bool:
+    """True for an images.txt 2D-points line: ``X Y POINT3D_ID`` triples, or nothing."""
+    fields = line.split()
+    if len(fields) % 3:
+        return False
+    try:
+        for start in range(0, len(fields), 3):
+            float(fields[start]), float(fields[start + 1]), int(fields[start + 2])
+    except ValueError:
+        return False
+    return True
+
+
+def _read_images_txt(path: Path) -> list[_ColmapImage]:
+    """Image records, read by structure: each image line is followed by its 2D-points line
+    (possibly empty), as COLMAP writes them; files written without the points lines (an image
+    line straight after an image line) are read too. Anything else is an error naming the line."""
+    expected = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
+    records = _text_records(path)
+    images = []
+    index = 0
+    while index < len(records):
+        number, line = records[index]
+        index += 1
+        if not line:  # stray blank line between records or at the end
+            continue
+        image = _image_line(line)
+        if image is None:
+            raise _text_line_error(path, number, expected, line)
+        images.append(image)
+        if index < len(records) and (not records[index][1] or _is_points_line(records[index][1])):
+            index += 1  # its 2D points
+        elif index < len(records) and _image_line(records[index][1]) is None:
+            number, line = records[index]
+            raise _text_line_error(path, number, f"the 2D points (X Y POINT3D_ID ...) of image {image.name!r}", line)
+    return images
+
+
+def _colmap_intrinsics(camera: _ColmapCamera, where: str) -> list[list[float]]:
+    if camera.model not in PERSPECTIVE_MODELS:
+        raise ValueError(
+            f"{where}: camera model {camera.model} is not supported; expected one of {', '.join(PERSPECTIVE_MODELS)}"
+        )
+    if not (0 < camera.width <= MAX_IMAGE_SIDE and 0 < camera.height <= MAX_IMAGE_SIDE):
+        raise ValueError(f"{where}: image size {camera.width}x{camera.height}: expected 1 to {MAX_IMAGE_SIDE} pixels a side")
+    p = camera.params
+    fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if camera.model in _SINGLE_FOCAL_MODELS else p[:4]
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise ValueError(f"{where}: focal lengths must be finite and positive and the principal point finite, "
+                         f"got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    return pinhole_matrix(fx, fy, cx, cy)
+
+
+def _image_file(model_dir: Path, name: str) -> Path | None:
+    for images_dir in (model_dir.parent / "images", model_dir.parent.parent / "images"):
+        if (images_dir / name).is_file():
+            return images_dir / name
+    return None
+
+
+def load_colmap(path) -> CameraSet:
+    """Cameras of a COLMAP sparse model, sorted by image name.
+
+    ``path`` is the model folder (``cameras`` + ``images`` as ``.bin`` or
+    ``.txt``; binary preferred when both exist) or a folder holding it as
+    ``sparse/0`` or ``sparse``. Supported camera models: SIMPLE_PINHOLE,
+    PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, their radial/tangential
+    distortion ignored. COLMAP poses are already OpenCV world-to-camera.
+    ``names`` are the image name stems; COLMAP does not store the image
+    folder, so ``image_paths`` are set only where the file exists in an
+    ``images/`` folder one or two levels above the model folder (else None).
+
+    Raises ValueError for a missing model, malformed or truncated files,
+    unsupported models, unknown camera ids or mixed image sizes.
+    """
+    path = Path(path)
+    found = find_colmap_model(path)
+    if found is None:
+        raise ValueError(
+            f"{path}: no COLMAP model found; expected cameras.bin + images.bin or cameras.txt + images.txt "
+            "in this folder or in its sparse/0 or sparse subfolder"
+        )
+    model_dir, ext = found
+    cameras_file, images_file = model_dir / f"cameras{ext}", model_dir / f"images{ext}"
+    if ext == ".bin":
+        cameras, images = _read_cameras_bin(cameras_file), _read_images_bin(images_file)
+    else:
+        cameras, images = _read_cameras_txt(cameras_file), _read_images_txt(images_file)
+    if not images:
+        raise ValueError(f"{images_file}: the model has no registered images")
+
+    images.sort(key=lambda image: image.name)
+    poses, intrinsics = [], []
+    size = None
+    for image in images:
+        where = f"{images_file}: image {image.name!r}"
+        camera = cameras.get(image.camera_id)
+        if camera is None:
+            raise ValueError(f"{where}: camera id {image.camera_id} is not in {cameras_file}")
+        if size is None:
+            size = (camera.width, camera.height)
+        elif (camera.width, camera.height) != size:
+            raise ValueError(
+                f"{where}: camera {image.camera_id} is {camera.width}x{camera.height} but the first image's is "
+                f"{size[0]}x{size[1]}; all images must share one size"
+            )
+        intrinsics.append(_colmap_intrinsics(camera, f"{cameras_file}: camera {image.camera_id}"))
+        quat = torch.tensor(image.quat, dtype=torch.float64)
+        if not torch.isfinite(quat).all() or quat.norm() < 1e-12:
+            raise ValueError(f"{where}: quaternion QW QX QY QZ must be finite and non-zero, got {image.quat}")
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3] = quat_to_rotmat(quat)
+        pose[:3, 3] = torch.tensor(image.translation, dtype=torch.float64)
+        poses.append(pose)
+    return loaded_camera_set(
+        torch.stack(poses),
+        intrinsics,
+        size[0],
+        size[1],
+        view_names([image.name for image in images], images_file),
+        [_image_file(model_dir, image.name) for image in images],
+    )
+

@@ -1,0 +1,180 @@
+"""nerfstudio ``transforms.json`` cameras (OpenGL camera-to-world, converted to OpenCV world-to-camera here)."""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import partial
+from pathlib import Path
+
+import torch
+
+from .camera_set import MAX_IMAGE_SIDE, CameraSet
+from .common import PERSPECTIVE_MODELS, loaded_camera_set, pinhole_matrix, read_text, view_names
+from .geometry import check_rotation, rigid_inverse
+
+# Flips the y and z camera axes: OpenGL (x right, y up, z back) <-> OpenCV (x right, y down, z forward).
+_FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+# ``applied_transform`` that nerfstudio assumes for old COLMAP conversions that did not record it.
+_LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
+
+
+def _read_json_object(path: Path) -> dict:
+    try:
+        data = json.loads(read_text(path))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
+    return data
+
+
+def _number(value, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _image_size(value, where: str) -> int:
+    size = _number(value, where)
+    if not 0 < size <= MAX_IMAGE_SIDE or size != int(size):
+        raise ValueError(f"{where}: expected a whole number of pixels from 1 to {MAX_IMAGE_SIDE}, got {value!r}")
+    return int(size)
+
+
+def _affine_matrix(value, where: str) -> torch.Tensor:
+    """A 4x4 float64 affine matrix from a JSON 3x4 or 4x4 nested list (bottom row 0 0 0 1)."""
+    try:
+        matrix = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        matrix = None
+    if matrix is None or tuple(matrix.shape) not in ((3, 4), (4, 4)) or not torch.isfinite(matrix).all():
+        raise ValueError(f"{where}: expected a 3x4 or 4x4 matrix of finite numbers, got {str(value)[:120]}")
+    if matrix.shape[0] == 4:
+        if not torch.allclose(matrix[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6):
+            raise ValueError(f"{where}: the bottom row must be [0, 0, 0, 1], got {matrix[3].tolist()}")
+        return matrix
+    return torch.cat([matrix, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)])
+
+
+def _frame_value(frame: dict, meta: dict, where: str, key: str, default=None):
+    """A transforms.json key's value for one frame: the frame's own, else the top level's, else ``default``."""
+    for source in (frame, meta):
+        if key in source:
+            return source[key]
+    if default is None:
+        raise ValueError(f"{where}: missing key '{key}' (neither in the frame nor at the top level)")
+    return default
+
+
+def _check_camera_model(model, where: str) -> None:
+    if model not in PERSPECTIVE_MODELS:
+        raise ValueError(
+            f"{where}: camera model {model!r} is not supported; expected one of {', '.join(PERSPECTIVE_MODELS)}"
+        )
+
+
+def _dataparser_rigid_transform(path: Path, meta: dict, transforms_path: Path) -> tuple[torch.Tensor, float]:
+    """(rigid 4x4, scale) mapping the transforms.json frame to nerfstudio's dataparser frame.
+
+    nerfstudio saves ``transform`` relative to the *original* data frame, i.e.
+    already composed with the transforms.json's ``applied_transform`` A, and
+    ``scale`` multiplied by its ``applied_scale``; both are undone here.
+    """
+    data = _read_json_object(path)
+    for key in ("transform", "scale"):
+        if key not in data:
+            raise ValueError(f"{path}: missing key '{key}' (expected nerfstudio dataparser_transforms.json)")
+    transform = _affine_matrix(data["transform"], f"{path}: 'transform'")
+    scale = _number(data["scale"], f"{path}: 'scale'")
+    if scale <= 0:
+        raise ValueError(f"{path}: 'scale' must be positive, got {scale}")
+    applied = meta.get("applied_transform")
+    if applied is None and (transforms_path.parent / "colmap" / "sparse" / "0").is_dir():
+        applied = _LEGACY_COLMAP_APPLIED_TRANSFORM
+    if applied is not None:
+        applied_matrix = _affine_matrix(applied, f"{transforms_path}: 'applied_transform'")
+        check_rotation(applied_matrix[:3, :3], f"{transforms_path}: 'applied_transform'")
+        transform = transform @ rigid_inverse(applied_matrix)
+    if "applied_scale" in meta:
+        applied_scale = _number(meta["applied_scale"], f"{transforms_path}: 'applied_scale'")
+        if applied_scale <= 0:
+            raise ValueError(f"{transforms_path}: 'applied_scale' must be positive, got {applied_scale}")
+        scale /= applied_scale
+    check_rotation(transform[:3, :3], f"{path}: 'transform' (after undoing the transforms.json 'applied_transform')")
+    return transform, scale
+
+
+def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
+    """Cameras of a nerfstudio ``transforms.json``, in file order.
+
+    Intrinsics ``fl_x, fl_y, cx, cy, w, h`` (pixels) come from each frame or,
+    where a frame lacks a key, from the top level; ``cx``/``cy`` default to
+    ``w/2``/``h/2``. All frames must share one ``w`` x ``h``. Lens distortion
+    (``k1..k4, p1, p2``) is ignored. ``transform_matrix`` is an OpenGL
+    camera-to-world matrix; it is converted to an OpenCV world-to-camera one.
+    ``names`` are the image file stems, ``image_paths`` the ``file_path``s
+    resolved against the JSON file's folder.
+
+    ``dataparser_transforms``: optional path of the ``dataparser_transforms.json``
+    that nerfstudio writes into a training run's output folder. The poses are
+    then mapped into that run's (e.g. a splatfacto checkpoint's) frame:
+    ``c2w' = T @ c2w`` with the translation times ``scale``, where ``T`` is
+    relative to this file's frame (its ``applied_transform`` undone).
+
+    Raises ValueError naming the file, frame and key for missing or malformed
+    entries, non-rigid matrices, unsupported camera models or mixed image sizes.
+    """
+    path = Path(path)
+    meta = _read_json_object(path)
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{path}: expected a non-empty list under 'frames', got {str(frames)[:80]}")
+    if "camera_model" in meta:
+        _check_camera_model(meta["camera_model"], f"{path}: 'camera_model'")
+
+    poses, intrinsics, names, image_paths = [], [], [], []
+    size = None
+    for index, frame in enumerate(frames):
+        where = f"{path}: frame {index}"
+        if not isinstance(frame, dict):
+            raise ValueError(f"{where}: expected a JSON object, got {type(frame).__name__}")
+
+        value = partial(_frame_value, frame, meta, where)
+        if "camera_model" in frame:
+            _check_camera_model(frame["camera_model"], f"{where}: 'camera_model'")
+        width = _image_size(value("w"), f"{where}: 'w'")
+        height = _image_size(value("h"), f"{where}: 'h'")
+        if size is None:
+            size = (width, height)
+        elif (width, height) != size:
+            raise ValueError(
+                f"{where}: image size {width}x{height} differs from the first frame's {size[0]}x{size[1]}; "
+                "all frames must share one size"
+            )
+        fx, fy = (_number(value(key), f"{where}: '{key}'") for key in ("fl_x", "fl_y"))
+        if fx <= 0 or fy <= 0:
+            raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
+        cx = _number(value("cx", width / 2), f"{where}: 'cx'")
+        cy = _number(value("cy", height / 2), f"{where}: 'cy'")
+        intrinsics.append(pinhole_matrix(fx, fy, cx, cy))
+
+        file_path = value("file_path")
+        if not isinstance(file_path, str) or not file_path:
+            raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {file_path!r}")
+        names.append(file_path)
+        image_paths.append(path.parent / file_path)
+
+        pose = _affine_matrix(value("transform_matrix"), f"{where}: 'transform_matrix'")
+        check_rotation(pose[:3, :3], f"{where}: 'transform_matrix'")
+        poses.append(pose)
+
+    cam_to_world = torch.stack(poses) @ _FLIP_YZ
+    if dataparser_transforms is not None:
+        transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
+        cam_to_world = transform @ cam_to_world
+        cam_to_world[:, :3, 3] *= scale
+    world_to_cam = rigid_inverse(cam_to_world)
+    return loaded_camera_set(world_to_cam, intrinsics, size[0], size[1], view_names(names, path), image_paths)
+

@@ -1,0 +1,226 @@
+"""Ray, the optional engine behind several devices and machines (``pip install "artnvg[cluster]"``).
+
+* :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
+  already initialised in this process, or starts a local Ray instance with exactly the given devices
+  (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
+* :func:`dispatch` hands tasks to worker actors, one task at a time per actor, in the order given. A
+  task whose actor died (a killed process, a lost machine) is handed again to the next idle actor;
+  the dead actor restarts by itself (``max_restarts``) and rejoins once it answers.
+
+Ray is imported here, and only when one of these is called: without it installed nothing else changes.
+Actors see only the GPU Ray gave them, as ``cuda:0``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .progress import StopFn, check_stop
+
+RESTARTS = 1  # how often Ray restarts a worker actor whose process died
+ATTEMPTS = 3  # how often one task is handed out before it counts as failed
+POLL_SECONDS = 0.1  # how often dispatch checks should_stop and calls on_tick
+PROBES = 3  # how often a worker that lost its task is asked whether it is back before it is given up
+
+
+class RayUnavailable(ValueError):
+    """Ray is needed but not installed (the message says how to install it)."""
+
+
+class WorkerLost(RuntimeError):
+    """A task's worker died every time it was handed out."""
+
+
+def import_ray(needed_by: str):
+    """The ``ray`` module; :class:`RayUnavailable` naming ``needed_by`` when it is not installed."""
+    try:
+        import ray
+    except ImportError as error:
+        raise RayUnavailable(f"{needed_by} needs Ray, which is not installed: pip install \"artnvg[cluster]\" "
+                             "(or pip install ray)") from error
+    return ray
+
+
+@dataclass(frozen=True)
+class Workers:
+    """``count`` worker actors of ``kind`` ``"cuda"`` (one GPU each) or ``"cpu"`` (one CPU core and one
+    thread each: a stand-in for tests and machines without a GPU)."""
+
+    kind: str
+    count: int
+
+    def actor_options(self) -> dict:
+        """Ray resources and restarts of one worker actor."""
+        gpus = 1 if self.kind == "cuda" else 0
+        return dict(num_cpus=1, num_gpus=gpus, max_restarts=RESTARTS)
+
+    def device(self) -> torch.device:
+        """The device inside a worker actor: its one GPU (Ray shows it as ``cuda:0``) or the CPU."""
+        return torch.device("cuda", 0) if self.kind == "cuda" else torch.device("cpu")
+
+
+def plan_workers(devices: Sequence[str | torch.device] | None, option: str = "--devices") -> Workers | None:
+    """The workers for ``devices`` (all CUDA or all CPU; a GPU at most once), None for None.
+
+    ValueError naming ``option`` for a mixture, another kind of device or a repeated GPU."""
+    if devices is None:
+        return None
+    parsed = [torch.device(d) for d in devices]
+    kinds = {d.type for d in parsed}
+    if not parsed or len(kinds) > 1 or kinds - {"cuda", "cpu"}:
+        raise ValueError(f"{option}: expected CUDA devices such as cuda:0,cuda:1 (or cpu,cpu: one CPU worker each), "
+                         f"got {','.join(map(str, parsed)) or 'none'}")
+    if "cuda" in kinds:
+        indices = [d.index or 0 for d in parsed]
+        if len(set(indices)) != len(indices):
+            raise ValueError(f"{option}: a GPU appears twice in {','.join(map(str, parsed))}; each worker holds one")
+    return Workers(kinds.pop(), len(parsed))
+
+
+@contextlib.contextmanager
+def ray_session(devices: Sequence[str | torch.device] | None = None, address: str | None = None,
+                *, needed_by: str = "--devices") -> Iterator[Workers]:
+    """Ray connected for the block; yields the workers to start.
+
+    * ``address`` given: joins that cluster; the workers are ``devices``' count and kind, else one per
+      GPU of the cluster.
+    * Ray already initialised in this process: used as it is, workers as with ``address``.
+    * Otherwise a local Ray instance is started with exactly ``devices`` (default: every visible GPU,
+      else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only.
+
+    What the block started it shuts down (disconnects from a cluster); Ray's actors of this process go
+    with it.
+    """
+    ray = import_ray(needed_by)
+    workers = plan_workers(devices)
+    started = False
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, **_QUIET)
+        else:
+            workers = workers or _local_default()
+            _start_local(ray, workers, devices)
+        started = True
+    try:
+        yield workers or _cluster_gpus(ray, address)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+_QUIET = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+
+
+def _local_default() -> Workers:
+    count = torch.cuda.device_count()
+    return Workers("cuda", count) if count else Workers("cpu", 1)
+
+
+def _start_local(ray, workers: Workers, devices) -> None:
+    """A local Ray instance with ``workers``' resources; for CUDA devices only the GPUs named are visible
+    to it (Ray's GPU list is the CUDA_VISIBLE_DEVICES of the process that starts it)."""
+    if workers.kind == "cpu":
+        ray.init(num_cpus=workers.count, num_gpus=0, **_QUIET)
+        return
+    indices = [torch.device(d).index or 0 for d in devices] if devices else list(range(workers.count))
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    physical = visible.split(",") if visible else [str(i) for i in range(torch.cuda.device_count())]
+    if max(indices) >= len(physical):
+        raise ValueError(f"--devices: cuda:{max(indices)} asked for, but {len(physical)} CUDA devices are visible")
+    try:
+        os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(physical[i] for i in indices)
+        ray.init(num_gpus=len(indices), **_QUIET)
+    finally:
+        if visible is None:
+            del os.environ["CUDA_VISIBLE_DEVICES"]
+        else:
+            os.environ["CUDA_VISIBLE_DEVICES"] = visible
+
+
+def _cluster_gpus(ray, address: str | None) -> Workers:
+    count = int(ray.cluster_resources().get("GPU", 0))
+    if not count:
+        raise ValueError(f"the Ray cluster {address or '(already connected)'} has no GPU; "
+                         "give --devices cpu,cpu,... to run on CPU workers")
+    return Workers("cuda", count)
+
+
+def dispatch(
+    actors: Sequence[Any],
+    tasks: Sequence[Any],
+    submit: Callable[[Any, Any], Any],
+    *,
+    on_start: Callable[[Any, int], None] | None = None,
+    on_tick: Callable[[], None] | None = None,
+    should_stop: StopFn | None = None,
+) -> Iterator[tuple[Any, int, Any, BaseException | None]]:
+    """Run ``tasks`` on ``actors``; yields ``(task, actor index, value, error)`` as each task ends.
+
+    * ``submit(actor, task)`` starts a task and returns its Ray object reference; each actor runs one
+      task at a time, tasks start in the order given.
+    * ``error`` is the task's own exception (value None) or :class:`WorkerLost` when its actor died
+      :data:`ATTEMPTS` times with it. A task whose actor died is handed out again first; the actor is
+      asked (its ``ping`` method) whether it is back before it gets more work.
+    * ``on_start(task, actor index)`` after each hand-out; ``on_tick()`` every :data:`POLL_SECONDS`.
+      ``should_stop`` is checked as often: :class:`~artnvg_core.progress.Cancelled` is raised and
+      the tasks still running are left to the caller (stop or kill the actors).
+    * RuntimeError when every actor is gone with tasks left.
+    """
+    ray = import_ray("dispatch")
+    from ray.exceptions import ActorDiedError, RayActorError, RayTaskError
+
+    queue = deque(range(len(tasks)))
+    handed = [0] * len(tasks)
+    idle = deque(range(len(actors)))
+    running: dict[Any, tuple[int, int]] = {}  # reference -> (task, actor)
+    probing: dict[Any, tuple[int, int]] = {}  # ping reference -> (actor, probes so far)
+    while queue or running:
+        check_stop(should_stop)
+        while queue and idle:
+            task, actor = queue.popleft(), idle.popleft()
+            handed[task] += 1
+            running[submit(actors[actor], tasks[task])] = (task, actor)
+            if on_start is not None:
+                on_start(tasks[task], actor)
+        if not running and not probing:
+            raise RuntimeError(f"dispatch: every worker died; {len(queue)} tasks were left")
+        ready, _ = ray.wait([*running, *probing], num_returns=1, timeout=POLL_SECONDS)
+        for reference in ready:
+            if reference in probing:
+                actor, probes = probing.pop(reference)
+                try:
+                    ray.get(reference)
+                    idle.append(actor)
+                except ActorDiedError:
+                    pass  # restarts used up: gone for good
+                except RayActorError:
+                    if probes < PROBES:
+                        probing[actors[actor].ping.remote()] = (actor, probes + 1)
+                continue
+            task, actor = running.pop(reference)
+            try:
+                value = ray.get(reference)
+            except RayActorError as error:  # the actor's process died (or its machine): hand the task out again
+                probing[actors[actor].ping.remote()] = (actor, 1)
+                if handed[task] < ATTEMPTS:
+                    queue.appendleft(task)
+                else:
+                    yield tasks[task], actor, None, WorkerLost(
+                        f"its worker died each of the {ATTEMPTS} times it was handed out (last: {error})")
+                continue
+            except RayTaskError as error:
+                yield tasks[task], actor, None, error.cause if error.cause is not None else error
+                idle.append(actor)
+                continue
+            yield tasks[task], actor, value, None
+            idle.append(actor)
+        if on_tick is not None:
+            on_tick()

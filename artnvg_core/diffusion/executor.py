@@ -1,0 +1,258 @@
+"""Stylizing a scene's groups on several devices at once: Ray actors, one per device, each holding the models once.
+
+Groups are independent (each has its own seed and its own neighbouring-view attention), so a
+:class:`GroupExecutor` hands them to its workers as tasks, largest first so the devices finish at
+about the same time. Group ``g`` is sampled with seed ``seed + g`` whichever worker runs it, and the
+views come back into view order, so the result equals a one-device run on the same kind of device
+(bit for bit where the kernels are deterministic; on the CPU, with one thread as every CPU worker has).
+A group whose worker dies (a killed process, a lost machine) is handed to another worker, with the
+same seed: the result is unchanged. Needs Ray (``pip install "artnvg[cluster]"``; :mod:`artnvg_core.cluster`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import uuid
+from collections.abc import Callable, Sequence
+
+import torch
+
+from ..cluster import Workers, dispatch, import_ray, ray_session
+from ..grouping import ViewGroups
+from ..progress import ProgressFn, StopFn
+from .conditioning import StyleConditioning, prepare_conditioning
+from .images import check_images
+from .models import DiffusionModels
+from .sampler import SamplerSettings
+from .stylize import stylize_owned_views
+
+
+class GroupWorker:
+    """Ray actor (two threads: one stylizes, one answers progress and stop requests) holding the models
+    of ``load_models(device)`` on its device. A failed load is raised by every later call."""
+
+    def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
+        self.device = workers.device()
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)
+        else:
+            torch.set_num_threads(1)
+        self.steps: tuple[str, int, int] | None = None  # (run, group, steps done) of the group being sampled
+        self.stopped: set[str] = set()
+        try:
+            self.models, self.error = load_models(self.device), None
+        except Exception as error:  # raised to the caller by describe(), conditioning() and stylize()
+            self.models, self.error = None, error
+
+    def _check(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def describe(self) -> str:
+        """Where this worker runs, e.g. ``cuda (GPU 3) on 10.0.0.2, pid 4242``."""
+        import ray
+
+        self._check()
+        gpus = ray.get_gpu_ids()
+        where = f"{self.device.type}" + (f" (GPU {','.join(map(str, gpus))})" if gpus else "")
+        return f"{where} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
+
+    def ping(self) -> bool:
+        return True
+
+    def conditioning(self, style_image: torch.Tensor | None, prompt: str, negative_prompt: str | None) -> StyleConditioning:
+        """:func:`prepare_conditioning` with this worker's models, returned on the CPU."""
+        self._check()
+        return _moved(prepare_conditioning(self.models, style_image, prompt, negative_prompt), torch.device("cpu"))
+
+    def stylize(self, run: str, images: torch.Tensor, groups: ViewGroups, index: int, conditioning: StyleConditioning,
+                settings: SamplerSettings, seed: int) -> torch.Tensor:
+        """:func:`stylize_owned_views` of group ``index`` (on the CPU); stops when ``run`` is stopped."""
+        self._check()
+
+        def report(step: int, total: int, info: dict) -> None:
+            self.steps = (run, index, step)
+
+        views = stylize_owned_views(self.models, images, groups, index, _moved(conditioning, self.device), settings,
+                                    seed=seed, progress=report, should_stop=lambda: run in self.stopped)
+        return views.cpu()
+
+    def progress(self) -> tuple[str, int, int] | None:
+        return self.steps
+
+    def stop(self, run: str) -> None:
+        self.stopped.add(run)
+
+
+class GroupExecutor:
+    """``workers.count`` :class:`GroupWorker` actors (Ray must be connected: :func:`ray_session`).
+
+    ``load_models(device)`` runs once in each worker, so it must be picklable (a module-level function
+    or a ``functools.partial`` of one); every device needs the memory of a one-device run. The workers
+    load at once, in parallel; the first call that needs them waits. :meth:`close` (or leaving the
+    ``with`` block) ends them and frees their memory.
+    """
+
+    def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
+        ray = import_ray("GroupExecutor")
+        actor = ray.remote(GroupWorker).options(**workers.actor_options(), max_concurrency=2)
+        self.actors = [actor.remote(load_models, workers) for _ in range(workers.count)]
+
+    def __enter__(self) -> GroupExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        ray = import_ray("GroupExecutor")
+        for actor in self.actors:
+            ray.kill(actor)
+        self.actors = []
+
+    def describe(self) -> list[str]:
+        """Where each worker runs (waits until they are loaded; raises a worker's load error)."""
+        ray = import_ray("GroupExecutor")
+        return ray.get([actor.describe.remote() for actor in self.actors])
+
+    def conditioning(self, style_image: torch.Tensor | None, prompt: str, negative_prompt: str | None) -> StyleConditioning:
+        """:func:`prepare_conditioning` on the first worker (on the CPU)."""
+        ray = import_ray("GroupExecutor")
+        style_image = _moved(style_image, torch.device("cpu"))
+        return ray.get(self.actors[0].conditioning.remote(style_image, prompt, negative_prompt))
+
+    def stylize_groups(
+        self,
+        images: torch.Tensor,
+        groups: ViewGroups,
+        conditioning: StyleConditioning,
+        settings: SamplerSettings = SamplerSettings(),
+        *,
+        seed: int = 0,
+        group_indices: Sequence[int] | None = None,
+        progress: ProgressFn | None = None,
+        should_stop: StopFn | None = None,
+    ) -> torch.Tensor:
+        """:func:`~artnvg_core.diffusion.stylize.stylize_groups` with the chosen groups (default: all) spread
+        over the workers: a copy of ``images`` [V, H, W, 3] (CPU) with every view owned by a chosen
+        group replaced, equal to the one-device result.
+
+        progress(step, total, info) counts denoising steps over the chosen groups, sampled every
+        :data:`~artnvg_core.cluster.POLL_SECONDS` (not every step); info holds "group" (the latest),
+        "groups" and "device" (where it ran). should_stop is checked as often: the workers stop at their
+        next step and :class:`~artnvg_core.progress.Cancelled` is raised. A group's own error is
+        raised as it was raised in the worker, after the other workers were told to stop.
+        """
+        ray = import_ray("GroupExecutor")
+        images = check_images(images, "GroupExecutor.stylize_groups: images")
+        chosen = list(range(len(groups))) if group_indices is None else [int(g) for g in group_indices]
+        if any(not 0 <= g < len(groups) for g in chosen) or len(set(chosen)) != len(chosen):
+            raise ValueError(f"GroupExecutor.stylize_groups: group_indices must be distinct indices below "
+                             f"{len(groups)}, got {chosen}")
+        output = images.clone()
+        if not chosen:
+            return output
+        run = uuid.uuid4().hex
+        shared = ray.put(images), ray.put(_moved(conditioning, torch.device("cpu")))
+        largest_first = sorted(chosen, key=lambda g: -len(groups[g].all_views))
+        meter = _StepMeter(self.actors, run, chosen, settings.steps, len(groups), progress)
+
+        def submit(actor, index: int):
+            return actor.stylize.remote(run, shared[0], groups, index, shared[1], settings, seed)
+
+        try:
+            for index, actor, views, error in dispatch(self.actors, largest_first, submit, on_start=meter.started,
+                                                       on_tick=meter.poll, should_stop=should_stop):
+                if error is not None:
+                    raise error
+                output[list(groups[index].views)] = views
+                meter.finished(index, actor)
+        finally:
+            for actor in self.actors:
+                actor.stop.remote(run)  # no-op for a finished run; stops the others at their next step
+        return output
+
+
+class _StepMeter:
+    """Progress of one run over the workers: polls each busy worker's step count (one request in flight each)."""
+
+    def __init__(self, actors, run: str, chosen: list[int], steps: int, groups: int, progress: ProgressFn | None):
+        self.actors, self.run, self.steps, self.groups, self.progress = actors, run, steps, groups, progress
+        self.done = dict.fromkeys(chosen, 0)
+        self.busy: dict[int, int] = {}  # actor -> group
+        self.polls: dict[int, object] = {}  # actor -> progress reference
+        self.where: dict[int, str] = {}
+        self.reported = 0
+
+    def started(self, index: int, actor: int) -> None:
+        self.busy[actor] = index
+
+    def finished(self, index: int, actor: int) -> None:
+        self.busy.pop(actor, None)
+        self.done[index] = self.steps
+        self._report(index, actor)
+
+    def poll(self) -> None:
+        if self.progress is None:
+            return
+        ray = import_ray("GroupExecutor")
+        for actor, reference in list(self.polls.items()):
+            ready, _ = ray.wait([reference], timeout=0)
+            if ready:
+                del self.polls[actor]
+                try:
+                    state = ray.get(reference)
+                except Exception:  # a dead worker: its group is handed out again
+                    continue
+                if state is not None and state[0] == self.run and self.done[state[1]] < state[2]:
+                    self.done[state[1]] = state[2]
+                    self._report(state[1], actor)
+        for actor in self.busy:
+            if actor not in self.polls:
+                self.polls[actor] = self.actors[actor].progress.remote()
+
+    def _report(self, index: int, actor: int) -> None:
+        total = sum(self.done.values())
+        if self.progress is not None and total != self.reported:
+            self.reported = total
+            if actor not in self.where:
+                ray = import_ray("GroupExecutor")
+                self.where[actor] = ray.get(self.actors[actor].describe.remote())
+            self.progress(total, len(self.done) * self.steps,
+                          {"group": index, "groups": self.groups, "device": self.where[actor]})
+
+
+def stylize_on_workers(
+    load_models: Callable[[torch.device], DiffusionModels],
+    images: torch.Tensor,
+    groups: ViewGroups,
+    style_image: torch.Tensor | None,
+    prompt: str,
+    negative_prompt: str | None,
+    settings: SamplerSettings = SamplerSettings(),
+    *,
+    devices: Sequence[str | torch.device] | None = None,
+    address: str | None = None,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
+) -> torch.Tensor:
+    """Every group of ``images`` [V, H, W, 3] stylized by a :class:`GroupExecutor` in a
+    :func:`~artnvg_core.cluster.ray_session` of ``devices`` / ``address``; the conditioning is prepared
+    on the first worker. Returns the stylized views (CPU) in view order."""
+    with ray_session(devices, address) as workers, GroupExecutor(load_models, workers) as executor:
+        conditioning = executor.conditioning(style_image, prompt, negative_prompt)
+        return executor.stylize_groups(images, groups, conditioning, settings, seed=seed, progress=progress,
+                                       should_stop=should_stop)
+
+
+def _moved(value, device: torch.device):
+    """``value`` (a tensor, or a dataclass of tensors, dataclasses and None) on ``device``."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if dataclasses.is_dataclass(value):
+        return dataclasses.replace(
+            value, **{field.name: _moved(getattr(value, field.name), device) for field in dataclasses.fields(value)}
+        )
+    return value

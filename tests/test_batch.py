@@ -1,0 +1,197 @@
+"""batch: JOBS files become stylize arguments; on two CPU Ray workers a batch writes what single stylize
+runs write, byte for byte, also when a worker is killed mid-job; bad jobs fail alone; a second run
+skips complete outputs; a stop (Ctrl-C) cancels the running jobs without leaving a file."""
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from artnvg_core import __main__ as cli
+from artnvg_core.batch import Job, load_jobs, output_complete, read_jobs
+from artnvg_core.formats import load_scene, save_scene
+from artnvg_core.presets import PRESETS
+from artnvg_core.stylize import DemoInputs, sheet_path
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import write_model_files
+from ray_workers import TINY_FAST
+
+
+def _options() -> dict:
+    stylize = next(a for a in cli.build_parser()._actions if a.dest == "command").choices["stylize"]
+    return {string: action for action in stylize._actions for string in action.option_strings}
+
+
+def _write_jobs(path: Path, entries) -> Path:
+    path.write_text(json.dumps(entries))
+    return path
+
+
+def test_job_options_become_stylize_arguments_from_json_or_csv(tmp_path):
+    entries = [{"scene": "a.ply", "Style": "s.jpg", "out": "out/a.ply", "iters": 3, "seed": 7, "compile": True,
+                "color_transfer": False, "cameras": None, "preset": "", "orbit-size": "48x32", "up": "-y"}]
+    (from_json,) = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), _options())
+    (tmp_path / "jobs.csv").write_text("scene,Style,out,iters,seed,compile,color_transfer,cameras,preset,orbit-size,up\n"
+                                       "a.ply,s.jpg,out/a.ply,3,7,yes,false,,,48x32,-y\n")
+    (from_csv,) = load_jobs(tmp_path / "jobs.csv", _options())
+    assert from_json.error is None and from_json == from_csv
+    assert from_json.argv == ("a.ply", "--style=s.jpg", "--out=out/a.ply", "--iters=3", "--seed=7", "--compile",
+                              "--no-color-transfer", "--orbit-size=48x32", "--up=-y")
+    assert from_json.number == 1 and from_json.folder == tmp_path.resolve()
+    assert from_json.out == (tmp_path / "out" / "a.ply").resolve()  # relative to the JOBS file's folder
+
+
+def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
+    good = {"scene": "a.ply", "style": "s.jpg", "out": "a.ply"}
+    entries = [good, {**good, "out": "b.ply", "strength": 3}, {**good, "out": "c.ply", "devices": "cuda:0"},
+               {**good, "out": "d.ply", "compile": "maybe"}, {"scene": "a.ply"}, {**good, "out": "e.ply", "preset": "slow"},
+               {**good, "out": "f.ply", "iters": "many"}, "a.ply", {**good, "out": "./a.ply"},
+               {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "h.ply"}]
+    jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), _options())
+    errors = [job.error for job in jobs]
+    assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "a.ply"
+    expected = ["unknown option 'strength' (stylize has no --strength", "'devices' is not a job option; give --devices",
+                "'compile' is a flag; expected true or false, got 'maybe'", "no out given",
+                "argument --preset: invalid choice: 'slow'", "argument --iters: invalid int value: 'many'",
+                'expected an object of stylize options, got "a.ply"', "writes " + str(tmp_path.resolve() / "a.ply") +
+                ", as job 1 does", "'seed' takes one value, got [1, 2]"]
+    for number, (error, message) in enumerate(zip(errors[1:-1], expected), 2):
+        assert error.startswith(f"jobs.json job {number}: ") and message in error, (error, message)
+        assert jobs[number - 1].out is None and jobs[number - 1].argv == ()
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("missing.json", None, "jobs file not found"),
+    ("jobs.json", "[{", "not valid JSON"),
+    ("jobs.json", '{"scene": "a.ply"}', "expected a JSON list of jobs .* got a dict"),
+    ("jobs.json", "[]", "no jobs"),
+    ("jobs.csv", "scene,out\na.ply,a.ply,extra\n", "row 2 has more cells than the header has names"),
+    ("jobs.csv", "scene,out\n", "no jobs"),
+])
+def test_a_jobs_file_that_cannot_be_read_names_itself(tmp_path, name, text, message):
+    if text is not None:
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=f"{name}: {message}"):
+        read_jobs(tmp_path / name)
+
+
+def test_output_complete_needs_a_scene_that_loads_and_its_contact_sheet(tmp_path):
+    out = tmp_path / "a.ply"
+    assert not output_complete(out)
+    save_scene(load_scene(DemoInputs().scene), out)
+    assert not output_complete(out)
+    sheet_path(out).write_bytes(b"png")
+    assert output_complete(out)
+    out.write_bytes(out.read_bytes()[:1000])  # cut short
+    assert not output_complete(out)
+
+
+# --- on a local Ray cluster of two CPU workers ---------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """A JOBS file of three good jobs (nnfm with cameras, diffusion with cameras on tiny models, nnfm
+    on a bare .spz given by a relative path) and two bad ones (a missing scene, an unknown preset);
+    returns (jobs path, {job number: reference output path}) with the references written by single
+    ``stylize`` runs in this process."""
+    folder = tmp_path_factory.mktemp("batch")
+    demo = DemoInputs()
+    transforms = json.loads(demo.cameras.read_text())
+    transforms["frames"] = transforms["frames"][:4]
+    (folder / "cameras.json").write_text(json.dumps(transforms))
+    save_scene(load_scene(demo.scene), folder / "bare.spz")
+    models = write_model_files(folder)
+    small = {"style": str(demo.style), "iters": 2, "seed": 3}
+    with_cameras = {**small, "scene": str(demo.scene), "cameras": str(folder / "cameras.json"), "scale": 0.125}
+    entries = [
+        {**with_cameras, "stylizer": "nnfm", "out": "out/nnfm.ply"},
+        {**with_cameras, "stylizer": "diffusion", "preset": "fast", "out": "out/diffusion.ply",
+         **{role: str(path) for role, path in models.items()}},
+        {**small, "scene": "bare.spz", "stylizer": "nnfm", "orbit_views": 4, "orbit_size": 48, "out": "out/bare.ply"},
+        {**small, "scene": "missing.ply", "stylizer": "nnfm", "out": "out/missing.ply"},
+        {**small, "scene": "bare.spz", "preset": "slow", "out": "out/slow.ply"},
+    ]
+    jobs_path = _write_jobs(folder / "jobs.json", entries)
+    references = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(PRESETS, "fast", TINY_FAST)  # as in the Ray workers (ray_workers.setup_worker)
+        for job in load_jobs(jobs_path, _options())[:3]:
+            references[job.number] = folder / "reference" / job.out.name
+            argv = [*job.argv, f"--out={references[job.number]}", "--device=cpu"]
+            cwd = os.getcwd()
+            os.chdir(folder)
+            try:
+                assert cli.main(["stylize", *argv]) == 0
+            finally:
+                os.chdir(cwd)
+    return jobs_path, references
+
+
+@pytest.fixture(scope="module")
+def pool(ray_local):
+    from artnvg_core.batch import BatchPool
+    from artnvg_core.cluster import Workers
+
+    with BatchPool(Workers("cpu", 2)) as pool:
+        yield pool
+
+
+def _same_output(out: Path, reference: Path) -> bool:
+    return out.read_bytes() == reference.read_bytes() and sheet_path(out).read_bytes() == sheet_path(reference).read_bytes()
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs, pool, ray_local):
+    jobs_path, references = inputs
+    jobs = load_jobs(jobs_path, _options())
+    starts = []
+
+    def kill_the_first_worker(kind: str, job: Job, detail) -> None:
+        if kind == "started":
+            starts.append(job.number)
+            if starts == [1]:  # the worker that took job 1 dies as the job begins
+                os.kill(ray_local.get(detail["actor"].ping.remote()), signal.SIGKILL)
+
+    results = pool.run(jobs, on_event=kill_the_first_worker)
+    assert [r.status for r in results] == ["done", "done", "done", "failed", "failed"], results
+    assert starts.count(1) == 2 and sorted(set(starts)) == [1, 2, 3, 4]  # job 5 fails before it starts
+    for number, reference in references.items():
+        assert _same_output(jobs[number - 1].out, reference), number
+    assert "missing.ply" in results[3].message and "argument --preset: invalid choice: 'slow'" in results[4].message
+    assert not (jobs_path.parent / "out" / "missing.ply").exists() and not _leftovers(jobs_path.parent / "out")
+
+
+def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, capsys):
+    jobs_path, references = inputs
+    jobs = load_jobs(jobs_path, _options())
+    assert all(output_complete(jobs[n - 1].out) for n in references)  # the test above ran the batch
+    modified = {n: jobs[n - 1].out.stat().st_mtime_ns for n in references}
+    # the command line, on the three good jobs and the one that cannot be parsed: no job needs a
+    # worker (the module's pool holds the session's two CPUs)
+    entries = json.loads(jobs_path.read_text())
+    again = _write_jobs(jobs_path.parent / "again.json", entries[:3] + entries[4:])
+    assert cli.main(["batch", str(again), "--devices", "cpu,cpu"]) == 1  # the bad job still fails
+    printed = capsys.readouterr().out
+    assert printed.count("\nskipped ") == 3 and "summary: 0 done, 1 failed, 3 skipped" in printed
+    assert "failed job 4: again.json job 4: argument --preset: invalid choice: 'slow'" in printed
+    assert {n: jobs[n - 1].out.stat().st_mtime_ns for n in references} == modified
+
+    for number in (1, 3):
+        jobs[number - 1].out.unlink()
+
+    def ctrl_c(kind: str, job: Job, detail) -> None:
+        if kind == "started":
+            raise KeyboardInterrupt
+
+    results = pool.run(jobs, on_event=ctrl_c)
+    assert [r.status for r in results] == ["cancelled", "skipped", "cancelled", "cancelled", "failed"], results
+    assert not jobs[0].out.exists() and not jobs[2].out.exists() and not _leftovers(jobs_path.parent / "out")
+    results = pool.run(jobs)  # the workers go on: the cancelled jobs run now
+    assert [r.status for r in results] == ["done", "skipped", "done", "failed", "failed"], results
+    assert _same_output(jobs[0].out, references[1]) and _same_output(jobs[2].out, references[3])

@@ -1,0 +1,35 @@
+"""CameraSet: scaled and subset views, absurd image sizes refused."""
+
+import pytest
+import torch
+
+from artnvg_core.cameras import CameraSet, load_nerfstudio
+from camera_references import random_capture, rotation_of, write_transforms
+
+
+def test_scaled_and_subset():
+    quats, trans = random_capture(4, seed=11)
+    w2c = torch.eye(4).repeat(4, 1, 1)
+    w2c[:, :3, :3] = torch.stack([rotation_of(q) for q in quats]).float()
+    w2c[:, :3, 3] = trans.float()
+    k = torch.tensor([[100.0, 0, 64.0], [0, 90.0, 48.0], [0, 0, 1]]).repeat(4, 1, 1)
+    cameras = CameraSet(w2c, k, 128, 96, ["a", "b", "c", "d"])
+    half = cameras.scaled(0.5)
+    assert (half.width, half.height) == (64, 48)
+    assert torch.equal(half.intrinsics[0], torch.tensor([[50.0, 0, 32.0], [0, 45.0, 24.0], [0, 0, 1]]))
+    assert torch.equal(half.world_to_cam, cameras.world_to_cam)
+    picked = cameras.subset([3, 0, 2])
+    assert picked.names == ["d", "a", "c"]
+    assert torch.equal(picked.world_to_cam, w2c[[3, 0, 2]])
+
+
+@pytest.mark.parametrize("size", [1e20, 10**6, 16385])
+def test_absurd_image_sizes_refused_early(tmp_path, size):
+    quats, trans = random_capture(2, seed=6)
+    with pytest.raises(ValueError, match=r"transforms\.json: frame 0: 'w': expected a whole number of pixels from 1 to 16384"):
+        load_nerfstudio(write_transforms(tmp_path / "transforms.json", quats, trans, w=size))
+    cameras = load_nerfstudio(write_transforms(tmp_path / "ok.json", quats, trans))
+    for factor in (size, float("inf"), float("nan"), 0.0, -1.0):
+        with pytest.raises(ValueError, match="CameraSet.scaled: factor"):
+            cameras.scaled(factor)
+    assert cameras.scaled(1e-6).width == 1 and cameras.scaled(256).width == 16384

@@ -1,0 +1,149 @@
+"""COLMAP sparse models: binary and text agree, every supported model, errors naming file and field."""
+
+import pytest
+import torch
+
+from artnvg_core.cameras import load_cameras, load_colmap, load_nerfstudio
+from camera_references import assert_same_cameras, colmap_images, random_capture, rotate, write_colmap, write_transforms
+
+
+MODEL_PARAMS = {  # each gives fx = fy = 50, cx = 30.5, cy = 25 once distortion is ignored
+    "SIMPLE_PINHOLE": [50.0, 30.5, 25.0],
+    "PINHOLE": [50.0, 50.0, 30.5, 25.0],
+    "SIMPLE_RADIAL": [50.0, 30.5, 25.0, 0.01],
+    "RADIAL": [50.0, 30.5, 25.0, 0.01, -0.002],
+    "OPENCV": [50.0, 50.0, 30.5, 25.0, 0.01, -0.002, 0.001, 0.0005],
+}
+
+
+@pytest.mark.parametrize("model", MODEL_PARAMS)
+def test_colmap_text_and_binary_agree_for_each_model(tmp_path, model):
+    quats, trans = random_capture(5, seed=3)
+    cameras = {1: (model, 64, 48, MODEL_PARAMS[model])}
+    loaded = {
+        binary: load_colmap(write_colmap(tmp_path / str(binary), cameras, colmap_images(quats, trans), binary))
+        for binary in (False, True)
+    }
+    assert_same_cameras(loaded[False], loaded[True], atol=0)
+    cams = loaded[True]
+    assert cams.names == [f"view_{i:02d}" for i in range(5)]  # sorted by image name
+    assert (cams.width, cams.height) == (64, 48)
+    k = torch.tensor([[50, 0, 30.5], [0, 50, 25], [0, 0, 1]])
+    assert torch.equal(cams.intrinsics, k.expand(5, 3, 3))
+    points = torch.randn(7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    for i in range(5):  # COLMAP: x_cam = R(q) X + t, checked with Hamilton products
+        expected = rotate(quats[i], points) + trans[i]
+        got = points @ cams.world_to_cam[i, :3, :3].double().T + cams.world_to_cam[i, :3, 3].double()
+        assert torch.allclose(got, expected, atol=1e-5)
+
+
+def test_colmap_models_give_identical_camera_sets(tmp_path):
+    quats, trans = random_capture(4, seed=5)
+    sets = [
+        load_colmap(write_colmap(tmp_path / model, {1: (model, 64, 48, params)}, colmap_images(quats, trans), True))
+        for model, params in MODEL_PARAMS.items()
+    ]
+    for other in sets[1:]:
+        assert_same_cameras(sets[0], other, atol=0)
+
+
+def test_colmap_matches_equivalent_transforms_json(tmp_path):
+    quats, trans = random_capture(6, seed=6)
+    from_json = load_nerfstudio(write_transforms(tmp_path / "ns" / "transforms.json", quats, trans))
+    model = {1: ("PINHOLE", 64, 48, [50.0, 55.0, 30.5, 25.0])}
+    from_colmap = load_colmap(write_colmap(tmp_path / "colmap", model, colmap_images(quats, trans), binary=False))
+    assert_same_cameras(from_json, from_colmap)
+    assert torch.allclose(from_json.centers, from_colmap.centers, atol=1e-5)
+
+
+def test_colmap_finds_sparse_0_and_images(tmp_path):
+    quats, trans = random_capture(3, seed=7)
+    model = {1: ("PINHOLE", 64, 48, MODEL_PARAMS["PINHOLE"])}
+    write_colmap(tmp_path / "sparse" / "0", model, colmap_images(quats, trans), binary=True)
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "view_01.png").write_bytes(b"")
+    for source in (tmp_path, tmp_path / "sparse" / "0"):
+        cameras = load_colmap(source)
+        assert cameras.image_paths == [None, tmp_path / "images" / "view_01.png", None]
+    assert_same_cameras(load_cameras(tmp_path), load_colmap(tmp_path / "sparse" / "0"), atol=0)
+
+
+def test_colmap_errors_name_file_and_field(tmp_path):
+    quats, trans = random_capture(3, seed=8)
+    images = colmap_images(quats, trans, camera_ids=[1, 2, 1])
+
+    pinhole = ("PINHOLE", 64, 48, [50.0] * 4)
+    folder = write_colmap(tmp_path / "fisheye", {1: pinhole, 2: ("OPENCV_FISHEYE", 64, 48, [1.0] * 8)}, images, True)
+    with pytest.raises(ValueError, match=r"cameras\.bin: camera 2: camera model OPENCV_FISHEYE is not supported"):
+        load_colmap(folder)
+
+    folder = write_colmap(tmp_path / "sizes", {1: pinhole, 2: ("PINHOLE", 32, 48, [50.0] * 4)}, images, False)
+    with pytest.raises(ValueError, match=r"images\.txt: image 'view_01\.png': camera 2 is 32x48 .* 64x48"):
+        load_colmap(folder)
+
+    folder = write_colmap(tmp_path / "missing", {1: pinhole}, images, True)
+    with pytest.raises(ValueError, match=r"images\.bin: image 'view_01\.png': camera id 2 is not in .*cameras\.bin"):
+        load_colmap(folder)
+
+    data = (folder / "images.bin").read_bytes()
+    (folder / "images.bin").write_bytes(data[:-10])
+    with pytest.raises(ValueError, match=r"images\.bin: file ends inside .* \(truncated\?\)"):
+        load_colmap(folder)
+
+    folder = write_colmap(tmp_path / "badline", {1: pinhole}, images, False)
+    (folder / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 30\n")
+    with pytest.raises(ValueError, match=r"cameras\.txt: line 1: expected .* 4 PINHOLE parameters"):
+        load_colmap(folder)
+
+    with pytest.raises(ValueError, match=r"no COLMAP model found"):
+        load_colmap(tmp_path / "nothing")
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_non_utf8_text_and_names(tmp_path, binary):
+    quats, trans = random_capture(2, seed=1)
+    images = [(*record[:4], record[4].replace("view", "vi\xe9w"), record[5]) for record in colmap_images(quats, trans)]
+    folder = tmp_path / "model"
+    write_colmap(folder, {1: ("PINHOLE", 64, 48, [50.0] * 4)}, images, binary)
+    file = folder / f"images.{'bin' if binary else 'txt'}"
+    file.write_bytes(file.read_bytes().replace("\xe9".encode(), b"\xe9"))
+    with pytest.raises(ValueError, match=rf"images\.{'bin' if binary else 'txt'}: .*not UTF-8"):
+        load_colmap(folder)
+
+
+BAD_INTRINSICS = [  # (model, width, height, params), each with one thing wrong
+    ("PINHOLE", 64, 48, [float("nan"), 50.0, 30.0, 20.0]),
+    ("PINHOLE", 64, 48, [50.0, float("inf"), 30.0, 20.0]),
+    ("PINHOLE", 64, 48, [50.0, 0.0, 30.0, 20.0]),
+    ("SIMPLE_PINHOLE", 64, 48, [-50.0, 30.0, 20.0]),
+    ("SIMPLE_RADIAL", 64, 48, [50.0, float("nan"), 20.0, 0.0]),
+    ("PINHOLE", 0, 0, [50.0, 50.0, 30.0, 20.0]),
+    ("PINHOLE", 64, 0, [50.0, 50.0, 30.0, 20.0]),
+    ("PINHOLE", 10**6, 48, [50.0, 50.0, 30.0, 20.0]),
+]
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("camera", BAD_INTRINSICS)
+def test_colmap_bad_intrinsics_rejected_naming_file_and_camera(tmp_path, binary, camera):
+    quats, trans = random_capture(2, seed=2)
+    folder = write_colmap(tmp_path / "m", {7: camera}, colmap_images(quats, trans, camera_ids=[7, 7]), binary)
+    with pytest.raises(ValueError, match=rf"cameras\.{'bin' if binary else 'txt'}: camera 7: (focal|image size)"):
+        load_colmap(folder)
+
+
+def test_colmap_images_txt_is_read_by_structure(tmp_path):
+    """COLMAP writes two lines per image; files without the 2D-points lines hold every image too."""
+    quats, trans = random_capture(5, seed=4)
+    model = {1: ("PINHOLE", 64, 48, [50.0] * 4)}
+    full = load_colmap(write_colmap(tmp_path / "full", model, colmap_images(quats, trans), binary=False))
+    folder = write_colmap(tmp_path / "bare", model, colmap_images(quats, trans), binary=False)
+    lines = (folder / "images.txt").read_text().splitlines()
+    image_lines = [line for line in lines if line.startswith("#") or len(line.split()) == 10]
+    for kept in (image_lines, image_lines[:3] + lines[4:]):  # no points lines; some missing
+        (folder / "images.txt").write_text("\n".join(kept) + "\n")
+        assert_same_cameras(load_colmap(folder), full, atol=0)
+        assert load_colmap(folder).names == full.names
+    (folder / "images.txt").write_text("\n".join(image_lines[:3] + ["1.5 2.5"] + image_lines[3:]) + "\n")
+    with pytest.raises(ValueError, match=r"images\.txt: line 4: expected the 2D points .* of image 'view_04\.png'"):
+        load_colmap(folder)
