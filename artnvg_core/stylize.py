@@ -177,9 +177,10 @@ def stylize_diffusion(
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
     memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
     ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
-    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
-    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone. ``devices`` (default: the scene's) share the groups, one worker process per device
-    beyond the first (identical results). ``compile_blocks``: see :func:`load_models_for`; on one device
+    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen
+    to cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone.
+    ``devices`` (default: the scene's) share the groups, one worker process per device beyond the first
+    (identical results). ``compile_blocks``: see :func:`load_models_for`; on one device
     the compile artifacts are saved after the diffusion stage for the next run
     (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`). The models stay loaded for the next
     call with the same files and options (:func:`load_models_for`).
