@@ -212,8 +212,6 @@ def run_row(models, conditioning, row: Row, data: Scene, args, device: torch.dev
     settings = dataclasses.replace(at_size(row.sampler, args.size), noise_resolution=paper_resolution)
     seeds = [args.seed * 1_000_003 + v for v in used]  # per view of the scene: the same in every row
     chosen = range(len(groups)) if args.groups is None else range(len(groups))[_slice(args.groups)]
-    if row.low_memory:
-        enable_low_memory(models)
     for index in chosen:
         group = groups[index]
         needed = sorted(set(group.views) | set(group.context))
@@ -348,9 +346,12 @@ def end_to_end_table(models, conditioning, args, device: torch.device, report: d
           f"once, not counted): {data.build_s:.1f} s", flush=True)
     records, lines = report.setdefault("end_to_end", []), []
     for row in rows:
-        if row.low_memory and device.type == "cuda":
-            total = torch.cuda.get_device_properties(device).total_memory
-            torch.cuda.set_per_process_memory_fraction(min(1.0, args.memory_cap * 2**30 / total))
+        if row.low_memory:  # idle models to the CPU, then the whole row under the --memory-cap
+            enable_low_memory(models)
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+                total = torch.cuda.get_device_properties(device).total_memory
+                torch.cuda.set_per_process_memory_fraction(min(1.0, args.memory_cap * 2**30 / total))
         record = run_row(models, conditioning, row, data, args, device)
         if record is not None:
             records.append(record)
