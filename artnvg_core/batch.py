@@ -60,13 +60,15 @@ class Job:
 @dataclass(frozen=True)
 class JobResult:
     """What became of a job: ``status`` one of :data:`STATUSES`, ``message`` the error or reason,
-    ``seconds`` its run time, ``worker`` where it ran."""
+    ``seconds`` its run time, ``worker`` where it ran, ``peak_gib`` the most GPU memory it allocated
+    (GiB; None on the CPU or when it did not run)."""
 
     job: Job
     status: str
     message: str = ""
     seconds: float = 0.0
     worker: str = ""
+    peak_gib: float | None = None
 
 
 def read_jobs(path: str | os.PathLike) -> list:
@@ -213,17 +215,21 @@ class BatchWorker:
 
     def run(self, run: str, argv: Sequence[str], folder: str) -> dict:
         """Run one job (``argv``: stylize's arguments; relative paths from ``folder``); returns its
-        "status" (done, failed, cancelled), "message", "seconds", "worker" and the tail of its output, "log"."""
+        "status" (done, failed, cancelled), "message", "seconds", "worker", "peak_gib" and the tail of its
+        output, "log"."""
         import ray
 
         worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
         log, start, cwd = io.StringIO(), time.perf_counter(), os.getcwd()
         with self.lock:
             if run in self.stopped:
-                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker, log="")
+                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker, log="",
+                            peak_gib=None)
             self.running = (run, threading.get_ident())
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
+            if self.workers.kind == "cuda":
+                torch.cuda.reset_peak_memory_stats()
             os.chdir(folder)
             with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
                 args.run(args)
@@ -239,7 +245,9 @@ class BatchWorker:
                 self.running = None
             os.chdir(cwd)
         tail = "\n".join(log.getvalue().replace("\r", "\n").splitlines()[-20:])
-        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, log=tail)
+        peak = torch.cuda.max_memory_allocated() / 2**30 if self.workers.kind == "cuda" else None
+        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, log=tail,
+                    peak_gib=peak)
 
     def stop(self, run: str) -> None:
         """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step); the
@@ -356,7 +364,7 @@ class BatchPool:
 
 def _result(job: Job, value: dict) -> JobResult:
     """The result of ``job`` from what :meth:`BatchWorker.run` returned."""
-    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"])
+    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"], value["peak_gib"])
 
 
 def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:
