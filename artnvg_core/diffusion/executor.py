@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from ..cluster import Workers, dispatch, import_ray, ray_session
+from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..grouping import ViewGroups
 from ..progress import ProgressFn, StopFn
 from .conditioning import StyleConditioning, prepare_conditioning
@@ -97,31 +97,16 @@ class GroupWorker:
         self.stopped.add(run)
 
 
-class GroupExecutor:
-    """``workers.count`` :class:`GroupWorker` actors (Ray must be connected: :func:`ray_session`).
+class GroupExecutor(WorkerPool):
+    """``workers.count`` :class:`GroupWorker` actors (a :class:`~artnvg_core.cluster.WorkerPool`).
 
     ``load_models(device)`` runs once in each worker, so it must be picklable (a module-level function
     or a ``functools.partial`` of one); every device needs the memory of a one-device run. The workers
-    load at once, in parallel; the first call that needs them waits. :meth:`close` (or leaving the
-    ``with`` block) ends them and frees their memory.
+    load at once, in parallel; the first call that needs them waits.
     """
 
     def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
-        ray = import_ray("GroupExecutor")
-        actor = ray.remote(GroupWorker).options(**workers.actor_options(), max_concurrency=2)
-        self.actors = [actor.remote(load_models, workers) for _ in range(workers.count)]
-
-    def __enter__(self) -> GroupExecutor:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        ray = import_ray("GroupExecutor")
-        for actor in self.actors:
-            ray.kill(actor)
-        self.actors = []
+        super().__init__(GroupWorker, workers, load_models, workers)
 
     def describe(self) -> list[str]:
         """Where each worker runs (waits until they are loaded; raises a worker's load error)."""
