@@ -14,16 +14,22 @@ from .batch import add_batch_command
 from .cliutil import (
     ProgressBar,
     add_camera_arguments,
+    integer_at_least,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
     parse_devices,
     parse_view_indices,
     positive_number,
+    prepare_rasterizer,
+    unit_interval,
 )
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
 from .metrics.report import add_evaluate_arguments
+
+
+SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
 
 
 def cmd_render(args: argparse.Namespace) -> None:
@@ -40,6 +46,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     scene = load_scene_verbose(args.scene, device)
     cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
     out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
@@ -58,6 +65,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
     from .fileio import check_output_file, load_image
     from .finetune import FinetuneConfig
+    from .formats import writable_scene_path
     from .presets import get_preset
     from .stylize import (
         DemoInputs,
@@ -80,7 +88,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    check_output_file(sheet_path(check_output_file(args.out, "--out")), "--out (its contact sheet)")
+    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
+                      "--out (its contact sheet)")
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
@@ -99,15 +108,21 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         return args.iters if args.iters is not None else (60 if demo else default)
 
     iterations = iterations_for(stylizer)
-    print(f"stylizer: {stylizer} ({reason})" + (f"; preset {args.preset}: {preset.summary}" if stylizer == "diffusion" else ""))
+    changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
+    key_views = preset.key_views if args.key_views is None else args.key_views
+    described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
+                 + (f"; {key_views} key views" if key_views else ""))
+    print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
         try:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, paths, preset=args.preset,
-                                          content_routing=args.content_routing,
+                                          content_routing=args.content_routing, sampler_changes=changes,
+                                          key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
                                           compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
@@ -149,6 +164,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
                    help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
                    "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
+    p.add_argument("--scheduler", choices=("ddim", "euler", "euler_ancestral", "dpmpp_2m", "unipc"), default=None,
+                   help="diffusion sampler (default: the preset's, DDIM); dpmpp_2m and unipc are multistep solvers "
+                        "meant for fewer --steps")
+    p.add_argument("--steps", type=integer_at_least(1), default=None, help="denoising steps (default: the preset's)")
+    p.add_argument("--cfg-until", type=unit_interval, default=None,
+                   help="classifier-free guidance for this fraction of the steps only, then the conditional half "
+                        "alone (half the batch); 1 = every step (default: the preset's, 1)")
+    p.add_argument("--key-views", type=integer_at_least(0), default=None, metavar="K",
+                   help="diffusion: stylize only K views chosen to cover the scene (farthest camera poses) and "
+                        "finetune on them alone; 0 = every view (default: the preset's, every view)")
     p.add_argument("--compile", action="store_true",
                    help="diffusion stage: compile the UNet's and ControlNet's repeated blocks (exact up to bf16 "
                         "rounding; ~6%% faster steps after a first call of ~80 s: pays back on large scenes; "

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from .cameras.geometry import normalize_quats
-from .scene import GaussianScene, sh_degree_for
+from .scene import GaussianScene, describe_invalid, logit, sh_degree_for
 
 OPACITY_RANGE = (2.0**-126, 1 - 2.0**-24)  # float32 opacities with finite logits
 
@@ -65,8 +65,7 @@ def activate(scene: GaussianScene) -> ActivatedGaussians:
 def _check(source: str, name: str, bad: torch.Tensor, problem: str) -> None:
     """Raise naming ``source``, the field and the first offending Gaussian when ``bad`` [N] has any True."""
     if bad.any():
-        raise ValueError(f"{source}: {name}: {int(bad.sum())} of {bad.numel()} Gaussians {problem} "
-                         f"(first at index {int(bad.nonzero()[0, 0])})")
+        raise ValueError(f"{source}: {describe_invalid(name, bad, problem)}")
 
 
 def deactivate(gaussians: ActivatedGaussians, source: str) -> GaussianScene:
@@ -100,6 +99,6 @@ def deactivate(gaussians: ActivatedGaussians, source: str) -> GaussianScene:
         means=cpu.positions.clone(),
         quats=cpu.rotations.clone(),
         log_scales=cpu.scales.double().log().float(),
-        opacity_logits=(opacities.log() - (-opacities).log1p()).float(),
+        opacity_logits=logit(opacities).float(),
         sh=cpu.sh.clone(),
     )

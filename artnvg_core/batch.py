@@ -194,18 +194,15 @@ def output_complete(out: Path) -> bool:
 
 class BatchWorker:
     """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
-    between jobs (:func:`artnvg_core.stylize.keep_models`). Two threads: one runs the job, the other
-    answers ``ping`` (its process id) and ``stop``."""
+    between jobs (:func:`artnvg_core.stylize.load_models_for` keeps the latest set). Two threads: one runs
+    the job, the other answers ``ping`` (its process id) and ``stop``."""
 
     def __init__(self, workers: Workers):
-        from .stylize import keep_models
-
         self.workers = workers
         if workers.kind == "cuda":
             torch.cuda.set_device(workers.device())
         else:
             torch.set_num_threads(1)
-        keep_models()
         self.lock = threading.Lock()
         self.running: tuple[str, int] | None = None  # (run, thread id) of the job running
         self.stopped: set[str] = set()

@@ -38,6 +38,32 @@ def positive_number(text: str) -> float:
     return value
 
 
+def integer_at_least(minimum: int):
+    """argparse type of ``--steps`` and the like: an integer >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+
+    return parse
+
+
+def unit_interval(text: str) -> float:
+    """argparse type of ``--cfg-until``: a number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
 def fraction(text: str) -> float:
     """argparse type of a threshold: a number in [0, 1)."""
     try:
@@ -92,6 +118,14 @@ class ProgressBar:
         self.bar.update(step - self.bar.n)
         if step >= total:
             self.bar.close()
+
+
+def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
+    """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
+    first-use kernel build (about 90 s on an H100) is announced on stdout before it starts."""
+    from .raster import prepare_backend
+
+    prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:

@@ -3,9 +3,10 @@
 * :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
   already initialised in this process, or starts a local Ray instance with exactly the given devices
   (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
-* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them, one task at a time per actor, in the order given. A
-  task whose actor died (a killed process, a lost machine) is handed again to the next idle actor;
-  the dead actor restarts by itself (``max_restarts``) and rejoins once it answers.
+* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them, one task at a
+  time per actor, in the order given. A task whose actor died (a killed process, a lost machine) is
+  handed again to the next idle actor; the dead actor restarts by itself (``max_restarts``) and
+  rejoins once it answers.
 
 Ray is imported here, and only when one of these is called: without it installed nothing else changes.
 Actors see only the GPU Ray gave them, as ``cuda:0``.

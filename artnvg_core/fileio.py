@@ -84,13 +84,22 @@ def _check_writable_folder(folder: Path, option: str, target: Path) -> None:
 def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     """Files that appear together or not at all: yields a temporary path beside each of ``paths``
     (same suffix) for the block to write; when it ends without error every one is renamed onto its
-    path, else all are removed and no path is touched. Missing parent folders are created."""
+    path, else all are removed and no path is touched. Missing parent folders are created. A
+    ValueError raised in the block names the paths, not the temporaries."""
     targets = [Path(p) for p in paths]
     temporaries = [_temporary_name(t) for t in targets]
     try:
         for target in targets:
             target.parent.mkdir(parents=True, exist_ok=True)
-        yield temporaries
+        try:
+            yield temporaries
+        except ValueError as error:
+            message = str(error)
+            for temporary, target in zip(temporaries, targets):
+                message = message.replace(str(temporary), str(target))
+            if message == str(error):
+                raise
+            raise ValueError(message) from error
         missing = [str(t) for t in temporaries if not t.is_file()]
         if missing:
             raise RuntimeError(f"written_together: the block did not write {missing}")

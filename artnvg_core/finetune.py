@@ -36,6 +36,7 @@ import torch
 from .cameras import CameraSet, scene_frame
 from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
+from .finite_steps import FiniteSteps
 from .losses import NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import render
@@ -217,6 +218,9 @@ def finetune(
     progress(step, total, info): called after every step, ``info`` holding the
         loss terms as floats. should_stop(): checked before every step; when it
         returns True, :class:`~artnvg_core.progress.Cancelled` is raised.
+    No step writes a non-finite value (:mod:`artnvg_core.finite_steps`): a step with a
+    non-finite loss is skipped, Gaussians with non-finite gradients keep their last finite
+    values, and both are logged with the step and the Gaussians' indices.
     Deterministic for ``config.seed`` on CPU.
     """
     config = config or FinetuneConfig()
@@ -255,16 +259,18 @@ def finetune(
         del content
     params = _parameters(scene, config)
     optimizer = _optimizer(params, scene, cameras, config, stylized is not None)
+    steps = FiniteSteps(optimizer, params, "finetune")
     generator = torch.Generator().manual_seed(config.seed)
 
     blind: set[int] = set()
     for step in range(config.iterations):
         check_stop(should_stop)
         view = int(torch.randint(len(cameras), (1,), generator=generator))
-        image = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend).rgb.clamp(0, 1)
-        if not image.requires_grad:  # no Gaussian projects into this view: nothing to learn from it
+        out = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend)
+        if not (out.alpha > 0).any():  # no Gaussian reaches this view: nothing to learn from it
             _skip_blind_view(view, cameras, blind)
             continue
+        image = out.rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
             target = stylized[view : view + 1]
@@ -283,11 +289,13 @@ def finetune(
         if stylized is None and config.tv_weight > 0:
             terms["tv"] = config.tv_weight * _total_variation(image)
         loss = sum(terms.values()) if terms else image.sum() * 0
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        if steps.loss_is_finite(loss, step + 1, terms):
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            steps.step(step + 1)
         if progress is not None:
             progress(step + 1, config.iterations, {"view": view, "loss": loss.item(), **{k: v.item() for k, v in terms.items()}})
+    steps.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
         with torch.no_grad():

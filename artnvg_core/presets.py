@@ -14,12 +14,14 @@ from .diffusion.sampler import SamplerSettings
 @dataclass(frozen=True)
 class Preset:
     """sampler: the group sampler's settings; low_memory: :func:`artnvg_core.diffusion.memory.enable_low_memory`
-    and sequential guidance halves; finetune_iterations: length of the Gaussian finetune."""
+    and sequential guidance halves; finetune_iterations: length of the Gaussian finetune; key_views: stylize
+    and finetune on only that many views covering the scene (:mod:`artnvg_core.key_views`; 0: every view)."""
 
     sampler: SamplerSettings
     finetune_iterations: int
     low_memory: bool
     summary: str
+    key_views: int = 0
 
 
 PRESETS = {

@@ -49,6 +49,13 @@ def sh_degree_for(num_coeffs: int) -> int:
     raise ValueError(f"sh: {num_coeffs} coefficients per channel is not (d+1)^2 for d in 0..3")
 
 
+def logit(p: torch.Tensor) -> torch.Tensor:
+    """Opacity logits log(p / (1 - p)), as log(p) - log1p(-p), of opacities ``p`` in [0, 1] (0 and 1 give
+    -inf and +inf): the inverse of the sigmoid that turns ``opacity_logits`` into opacities. Computed in
+    ``p``'s dtype; float64, rounded once to float32, gives correctly rounded float32 logits."""
+    return p.log() - (-p).log1p()
+
+
 @dataclass
 class GaussianScene:
     """Raw 3DGS parameters of N Gaussians (shapes in the module docstring)."""
@@ -120,6 +127,12 @@ _TENSOR_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # --------------------------------------------------------------------------- validation
 
 
+def describe_invalid(name: str, bad, problem: str) -> str:
+    """``"{name}: K of N Gaussians {problem} (first at index i)"`` for a bad-mask ``bad`` [N] (a torch
+    or numpy bool array with a True entry): the one wording of a per-Gaussian error."""
+    return f"{name}: {int(bad.sum())} of {len(bad)} Gaussians {problem} (first at index {int(bad.nonzero()[0][0])})"
+
+
 def invalid_gaussians(scene: GaussianScene) -> list[tuple[str, str, torch.Tensor]]:
     """(field, problem, bad-mask [N]) for every check, in field order."""
     n = len(scene)
@@ -150,12 +163,9 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         count = int(bad.sum())
         if count == 0:
             continue
-        first = int(bad.nonzero()[0, 0])
         if not drop_invalid:
-            raise ValueError(
-                f"{source}: {name}: {count} of {n} Gaussians have {problem} (first at index {first}); "
-                "pass drop_invalid=True to drop invalid Gaussians"
-            )
+            raise ValueError(f"{source}: {describe_invalid(name, bad, f'have {problem}')}; "
+                             "pass drop_invalid=True to drop invalid Gaussians")
         invalid |= bad
         reasons.append(f"{name}: {count} with {problem}")
     dropped = int(invalid.sum())

@@ -11,8 +11,8 @@ Two stylizers:
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import torch
@@ -23,7 +23,7 @@ from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
 from .raster import render
-from .formats import save_scene
+from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
 STYLIZERS = ("auto", "nnfm", "diffusion")
@@ -113,42 +113,32 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
-@dataclass
-class _KeptModels:
-    """What :func:`keep_models` keeps: the models :func:`load_models_for` loaded last, with its arguments."""
-
-    on: bool = False
-    key: tuple | None = None
-    models: object = None
-
-
-_KEPT = _KeptModels()
-
-
-def keep_models(keep: bool = True) -> None:
-    """From now on :func:`load_models_for` keeps the models it loaded last and returns them again when called
-    with the same arguments, so a process that stylizes scene after scene (a batch worker) loads them
-    once (``keep=False``: forget them). Off by default: a one-off run frees its models when it is done."""
-    _KEPT.on, _KEPT.key, _KEPT.models = keep, None, None
-
-
 def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool = False):
     """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
     loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
-    ``compile_blocks`` sped up by :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only).
-    Any failure to load raises :class:`DiffusionModelsUnavailable` saying why; see also :func:`keep_models`.
+    ``compile_blocks`` sped up by :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only),
+    with an earlier run's compile artifacts loaded (:mod:`artnvg_core.diffusion.compile_cache`).
+    Loaded once per process: the same files, device and options return the same models
+    (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
+    :class:`DiffusionModelsUnavailable` saying why.
     A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
-    from .diffusion.memory import enable_low_memory
-    from .diffusion.models import load_diffusion_models
-    from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
+    from .diffusion.model_cache import file_key, load_once
 
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
-    key = (paths, low_memory, device, compile_blocks)
-    if _KEPT.on and _KEPT.key == key:
-        return _KEPT.models
-    _KEPT.key, _KEPT.models = None, None  # the models kept for other arguments go before others load
+    files = tuple(file_key(path) for path in (paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo))
+    key = ("load_models_for", files, str(device), low_memory, compile_blocks)
+    return load_once(key, functools.partial(_load_models, paths, low_memory, device, compile_blocks))
+
+
+def _load_models(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool):
+    """:func:`load_models_for` without the once-per-process cache."""
+    from .diffusion.compile_cache import load_compile_cache
+    from .diffusion.memory import enable_low_memory
+    from .diffusion.models import load_diffusion_models
+    from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
+
     dtype = torch.float16 if device.type == "cuda" else torch.float32
     try:
         models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
@@ -159,8 +149,7 @@ def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, c
         enable_low_memory(models, device)
     if compile_blocks:
         apply_speedups(models, COMPILED_BLOCKS)
-    if _KEPT.on:
-        _KEPT.key, _KEPT.models = key, models
+        load_compile_cache(device)
     return models
 
 
@@ -173,6 +162,8 @@ def stylize_diffusion(
     *,
     preset: str = "paper",
     content_routing: str = "released",
+    sampler_changes: Mapping[str, object] | None = None,
+    key_views: int | None = None,
     devices: Sequence[str | torch.device] | None = None,
     ray_address: str | None = None,
     group_size: int = 15,
@@ -185,23 +176,40 @@ def stylize_diffusion(
     SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
 
     ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``); ``config.iterations`` is
-    used as given. ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's
-    ``ray_address`` (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the
-    models (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`.
-    Returns the stylized scene and the stylized views [C, H, W, 3] in camera order.
+    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
+    ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
+    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
+    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone.
+    ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's ``ray_address``
+    (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the models
+    (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`;
+    on one device the compile artifacts are saved after the diffusion stage for the next run
+    (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`). The models stay loaded for the next
+    call with the same files and options (:func:`load_models_for`).
+    Returns the stylized scene and the stylized views [K, H, W, 3] of the K views used, in camera order
+    (every view's without key views).
     """
+    from .diffusion.compile_cache import save_compile_cache
     from .diffusion.conditioning import prepare_conditioning
+    from .diffusion.model_cache import forget_models
     from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
     from .grouping import group_views
+    from .key_views import select_key_views
     from .presets import get_preset
 
     chosen = get_preset(preset)
-    settings = replace(chosen.sampler, content_routing=content_routing)
+    changes = dict(sampler_changes or {})
+    unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
+    if unknown:
+        raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
+    settings = replace(chosen.sampler, content_routing=content_routing, **changes)
+    keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
+    cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
-    models = None if spread else load(explicit[0] if explicit else scene.device)  # first: a model that cannot be loaded fails before any work
+    device = explicit[0] if explicit else scene.device
+    models = None if spread else load(device)  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
     groups = group_views(cameras, group_size)
@@ -209,12 +217,15 @@ def stylize_diffusion(
     if spread:
         from .diffusion.executor import stylize_on_workers
 
+        forget_models()  # the workers load their own copies; a set kept here would hold memory they need
         views = stylize_on_workers(load, content, groups, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT,
                                    settings, devices=explicit, address=ray_address, **common)
     else:
         conditioning = prepare_conditioning(models, style_image, DEFAULT_PROMPT, DEFAULT_NEGATIVE_PROMPT)
         views = stylize_groups(models, content, groups, conditioning, settings, **common)
         del models
+        if compile_blocks:
+            save_compile_cache(device)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
     return result, views
 
@@ -223,7 +234,7 @@ def save_result(original: GaussianScene, stylized: GaussianScene, cameras: Camer
                 out_ply: str | Path, backend: str = "auto") -> Path:
     """Write ``out_ply`` and its contact sheet together: both appear, or (on any failure) neither
     and nothing on disk changes. Returns the sheet's path."""
-    out_ply = Path(out_ply)
+    out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
         save_scene(stylized.to("cpu"), ply_file)

@@ -40,7 +40,6 @@ import copy
 import dataclasses
 import gc
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -85,6 +84,7 @@ from artnvg_core.diffusion.speed import (  # noqa: E402
     apply_speedups,
     sdpa_backend,
 )
+from artnvg_core.fileio import write_atomically  # noqa: E402
 
 POOLED_DIM = 1280
 TEXT_TOKENS = 77
@@ -206,9 +206,7 @@ def write_json(path: Path | None, data: dict) -> None:
     if path is None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    write_atomically(path, lambda stream: stream.write(json.dumps(data, indent=2).encode()))
 
 
 def matmul_rate(device: torch.device, dtype: torch.dtype, size: int) -> float:

@@ -6,7 +6,7 @@ so neighbouring-view attention and the warp metric see real geometry. With rando
 deviation columns measure NUMERICAL deviation from the reference configuration on identical
 inputs, models and seeds, not stylization quality.
 
-Sections (no flag = all three):
+Sections (no flag = --accuracy, --memory and --end-to-end fast):
 
 * ``--accuracy``: one group (the first of ``group_views(cameras, 15)``). Reference: the paper
   configuration (50 DDIM steps, NV attention everywhere, 1024 px). Each row is one whole-group run
@@ -18,22 +18,28 @@ Sections (no flag = all three):
   guidance halves) for one group under a ``--memory-cap`` GiB cap
   (``torch.cuda.set_per_process_memory_fraction``), beside the full-memory mode: seconds per step
   (median of the steps), peak allocated and reserved GiB, deviation after ``--memory-steps`` steps.
-* ``--end-to-end PRESET ...``: every view of the scene: render the content views, stylize all
-  groups with the preset, finetune the preset's iterations (gsplat when available); phase times.
+* ``--end-to-end ROW ...`` (``--sweep`` adds :data:`bench.end_to_end.SWEEP`): the whole job on a real
+  scene (render the content views, stylize, finetune) for each row, a preset optionally changed
+  (``paper+key_views=28``, ``paper+scheduler=dpmpp_2m+steps=20``), priced on the FINAL finetuned scene
+  against the ``paper`` row's: PSNR at training and held-back views, warp consistency, per-group image
+  deviation (``bench/end_to_end.py`` says what each number can show). Results accumulate in ``--parts``;
+  ``--report`` prints the table of every finished row.
 
-    python bench/presets.py --scene .devdata/scenes/bear --json out/presets.json
-    python bench/presets.py --tiny --device cpu --size 64 --views 6   # smoke test
-    # the paper configuration end to end, split over two calls of at most 10 minutes on one
-    # machine (.parts is git-ignored and not carried, so it survives between calls):
-    python bench/presets.py --end-to-end paper --groups 0:4 --parts .parts
-    python bench/presets.py --end-to-end paper --groups 4: --parts .parts
+    python bench/presets.py --scene .devdata/scenes/bear --accuracy --json out/presets.json
+    python bench/presets.py --tiny --device cpu --size 64 --end-to-end paper fast paper+key_views=12 \
+        --parts /tmp/parts --iterations 3 --scene ../shared/data/scenes/bear   # smoke test
+    # on the device machine, calls of at most 10 minutes sharing .parts (git-ignored, not carried):
+    python bench/presets.py --end-to-end paper --groups 0:3 --parts .parts      # ~6 min on an H100
+    python bench/presets.py --end-to-end paper --groups 3: --parts .parts       # ~5.5 min, then the reference
+    python bench/presets.py --end-to-end fast "paper+scheduler=dpmpp_2m+steps=20+cfg_until=0.8+key_views=28" \
+        paper+key_views=14 paper+key_views=28 --parts .parts --json $OUT/e2e.json
+    python bench/presets.py --report --parts .parts
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import statistics
 import sys
 import time
@@ -43,26 +49,20 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import end_to_end as e2e  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning, write_json  # noqa: E402
+from bench.end_to_end import at_size, compare, render_all, synchronize  # noqa: E402
 
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.diffusion.memory import enable_low_memory  # noqa: E402
-from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group  # noqa: E402
+from artnvg_core.diffusion.sampler import stylize_group  # noqa: E402
 from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups  # noqa: E402
-from artnvg_core.diffusion.stylize import stylize_groups  # noqa: E402
-from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
 from artnvg_core.formats import read_ply  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
 from artnvg_core.metrics.warp import warp_consistency  # noqa: E402
 from artnvg_core.presets import PRESETS  # noqa: E402
-from artnvg_core.raster import render  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def measured(device: torch.device, run) -> tuple[object, float, float]:
@@ -78,14 +78,6 @@ def measured(device: torch.device, run) -> tuple[object, float, float]:
     return result, seconds, peak
 
 
-def compare(images: torch.Tensor, reference: torch.Tensor) -> dict:
-    """Relative L2 and PSNR (dB, peak 1) of IMAGE batches on the same views."""
-    difference = (images.double() - reference.double())
-    mse = difference.square().mean().item()
-    return {"rel_l2": (difference.norm() / reference.double().norm()).item(),
-            "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse)}
-
-
 def load_inputs(args, device: torch.device):
     """The scene, its cameras at --size (longer side), and the first group of --views views."""
     scene = read_ply(Path(args.scene) / "scene.ply").to(device)
@@ -95,31 +87,19 @@ def load_inputs(args, device: torch.device):
     return scene, cameras, groups
 
 
-def render_views(scene, cameras, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Content IMAGE [C, H, W, 3] on the CPU, depth and alpha [C, H, W, 1], rendered 8 views at a time."""
-    parts = []
-    with torch.no_grad():
-        for start in range(0, len(cameras), 8):
-            views = cameras.subset(range(start, min(start + 8, len(cameras))))
-            out = render(scene, views, return_depth=True, backend=backend)
-            parts.append((out.rgb.clamp(0, 1).cpu(), out.depth.cpu(), out.alpha.cpu()))
-    return tuple(torch.cat(p) for p in zip(*parts))
-
-
-def at_size(settings: SamplerSettings, size: int) -> SamplerSettings:
-    """``settings`` with its resolution scaled from 1024 to ``size`` (the presets are written for 1024),
-    at least SDXL's 64 px."""
-    return dataclasses.replace(settings, resolution=max(64, settings.resolution * size // 1024))
-
-
 def accuracy_rows(args):
-    """(name, settings, compared with) of the accuracy table at ``args.size``, reference first."""
+    """(name, settings, compared with, seed offset) of the accuracy table at ``args.size``, reference first.
+    The paper configuration with another seed gives the scale of "a different sample"."""
     paper = PRESETS["paper"].sampler
     approx = dataclasses.replace(paper, steps=args.approx_steps)
-    rows = [("paper (reference)", paper, None)]
+    rows = [("paper (reference)", paper, None), ("paper, another seed: a different sample", paper, None, 1)]
     rows += [(f"{steps} DDIM steps", dataclasses.replace(paper, steps=steps), None) for steps in (30, 20, 10)]
     rows += [("20 DPM-Solver++(2M) steps", dataclasses.replace(paper, steps=20, scheduler="dpmpp_2m"), None)]
-    rows += [(f"768 px, {paper.steps} steps", dataclasses.replace(paper, resolution=768), None)]
+    rows += [("20 UniPC steps", dataclasses.replace(paper, steps=20, scheduler="unipc"), None)]
+    rows += [(f"guidance for the first {until:.0%} of {paper.steps} steps", dataclasses.replace(paper, cfg_until=until),
+              None) for until in (0.8, 0.5)]
+    rows += [(f"768 px, {paper.steps} steps, noise of the 1024 px grid resampled",
+              dataclasses.replace(paper, resolution=768, noise_resolution=1024), None)]
     if args.approx_steps not in (30, 20, 10):
         rows.append((f"{args.approx_steps} DDIM steps", approx, None))
     rows += [
@@ -129,16 +109,17 @@ def accuracy_rows(args):
          approx),
         (f"no NV attention, {args.approx_steps} steps", dataclasses.replace(approx, neighbour_views=False), approx),
     ]
-    rows += [(f"preset {name}", PRESETS[name].sampler, None) for name in ("balanced", "fast")]
-    return [(name, at_size(settings, args.size), baseline and at_size(baseline, args.size))
-            for name, settings, baseline in rows]
+    rows += [(f"preset {name}", dataclasses.replace(PRESETS[name].sampler, noise_resolution=paper.resolution), None)
+             for name in ("balanced", "fast")]
+    return [(name, at_size(settings, args.size), baseline and at_size(baseline, args.size), seed_offset)
+            for name, settings, baseline, *seed_offset in rows for seed_offset in [seed_offset[0] if seed_offset else 0]]
 
 
 def accuracy_table(models, conditioning, args, device, report: dict) -> None:
     scene, cameras, groups = load_inputs(args, device)
     views = list(groups[0].views)
     group_cameras = cameras.subset(views)
-    content, depth, alpha = render_views(scene, group_cameras, backend="torch")  # no gsplat build needed
+    content, depth, alpha = render_all(scene, group_cameras, depth=True, backend="torch")  # no gsplat build needed
     centers = group_cameras.centers
 
     def warp(images):
@@ -150,21 +131,21 @@ def accuracy_table(models, conditioning, args, device, report: dict) -> None:
           "| warp RMSE step 1 |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     outputs, rows = {}, report.setdefault("accuracy", [])
-    for name, settings, baseline in accuracy_rows(args):
+    for name, settings, baseline, seed_offset in accuracy_rows(args):
         try:
             result, seconds, peak = measured(device, lambda: stylize_group(
-                models, content, conditioning, settings, seed=args.seed, view_centers=centers))
+                models, content, conditioning, settings, seed=args.seed + seed_offset, view_centers=centers))
         except Exception as error:  # out of memory, a missing kernel: record it, go on
             rows.append({"variant": name, "error": f"{type(error).__name__}: {str(error)[:200]}"})
             print(f"| {name} | {rows[-1]['error']} | | | | | |", flush=True)
             continue
-        outputs[settings] = result
-        reference = outputs[at_size(PRESETS["paper"].sampler, args.size)]
+        outputs[settings, seed_offset] = result
+        reference = outputs[at_size(PRESETS["paper"].sampler, args.size), 0]
         row = {"variant": name, "settings": dataclasses.asdict(settings), "seconds": seconds, "peak_gib": peak,
                **compare(result, reference), "warp_rmse": warp(result)}
         own = "-"
-        if baseline is not None and baseline in outputs:
-            row["rel_l2_vs_exact_nv"] = compare(result, outputs[baseline])["rel_l2"]
+        if baseline is not None and (baseline, 0) in outputs:
+            row["rel_l2_vs_exact_nv"] = compare(result, outputs[baseline, 0])["rel_l2"]
             own = f"{row['rel_l2_vs_exact_nv']:.4f}"
         rows.append(row)
         write_json(args.json, report)
@@ -224,80 +205,6 @@ def memory_table(models, conditioning, args, device, report: dict) -> None:
         torch.cuda.set_per_process_memory_fraction(1.0)
 
 
-def _group_range(text: str | None, count: int) -> range:
-    """``START:STOP`` (Python slice of the scene's groups) as a range; all groups when None."""
-    if text is None:
-        return range(count)
-    start, _, stop = text.partition(":")
-    return range(count)[slice(int(start) if start else None, int(stop) if stop else None)]
-
-
-def end_to_end(models, conditioning, args, device, name: str, report: dict) -> None:
-    """Render, stylize every group and finetune with preset ``name``; prints and records phase times.
-
-    With ``--groups START:STOP`` and ``--parts DIR`` (a run split over several calls), this call renders
-    and stylizes only those groups and saves each group's views, images and times to DIR; once DIR holds
-    every group, it finetunes on all of them and prints the phases summed over the parts.
-    """
-    preset = PRESETS[name]
-    scene, cameras, groups = load_inputs(args, device)
-    chosen = _group_range(args.groups, len(groups))
-    settings = at_size(preset.sampler, args.size)
-    times, parts = {"render content": 0.0, "stylize": 0.0}, []
-    peak = 0.0
-    for index in chosen:
-        views = list(groups[index].views)
-        needed = sorted(set(views) | set(groups[index].context))
-        content = torch.zeros(len(cameras), cameras.height, cameras.width, 3)
-        (content[needed], _, _), render_s, _ = measured(
-            device, lambda: render_views(scene, cameras.subset(needed), "torch"))
-        stylized_all, stylize_s, group_peak = measured(device, lambda: stylize_groups(
-            models, content, groups, conditioning, settings, seed=args.seed, group_indices=[index]))
-        images = stylized_all[views]
-        part = {"group": index, "views": views, "images": images.cpu(), "render_s": render_s,
-                "stylize_s": stylize_s, "peak_gib": group_peak}
-        times["render content"] += render_s
-        times["stylize"] += stylize_s
-        peak = max(peak, group_peak)
-        print(f"group {index}: {len(views)} views, rendered in {render_s:.1f} s (reference rasterizer), "
-              f"stylized in {stylize_s:.1f} s, peak {group_peak:.1f} GiB", flush=True)
-        if args.parts is not None:
-            args.parts.mkdir(parents=True, exist_ok=True)
-            torch.save(part, args.parts / f"group_{index:03d}.pt")
-        parts.append(part)
-    if args.parts is not None:
-        saved = {int(f.stem.split("_")[1]): f for f in args.parts.glob("group_*.pt")}
-        missing = sorted(set(range(len(groups))) - set(saved))
-        if missing:
-            print(f"\nparts saved in {args.parts}; groups {missing} still to stylize before the finetune")
-            return
-        parts = [torch.load(saved[i]) for i in range(len(groups))]
-        times = {"render content": sum(p["render_s"] for p in parts), "stylize": sum(p["stylize_s"] for p in parts)}
-        peak = max(p["peak_gib"] for p in parts)
-    stylized = torch.empty(len(cameras), cameras.height, cameras.width, 3)
-    for part in parts:
-        stylized[part["views"]] = part["images"]
-    _, build, _ = measured(device, lambda: render(scene, cameras.subset([0])))  # builds gsplat's kernels once
-    print(f"\n(first render with the default backend, building the rasterizer's kernels once: {build:.1f} s, "
-          "not counted)")
-    style = torch.rand(512, 512, 3, generator=torch.Generator().manual_seed(2)).to(device)
-    config = FinetuneConfig(iterations=preset.finetune_iterations)
-    _, times["finetune"], _ = measured(device, lambda: finetune(scene, cameras, style, stylized=stylized.to(device),
-                                                                config=config))
-    times["total"] = sum(times.values())
-    report.setdefault("end_to_end", []).append({"preset": name, "views": len(cameras), "groups": len(groups),
-                                                "group_sizes": [len(g.views) for g in groups],
-                                                "size": [cameras.width, cameras.height], "seconds": times,
-                                                "stylize_peak_gib": peak, "speed": args.speed})
-    write_json(args.json, report)
-    print(f"\nEnd to end, preset {name} ({preset.summary}): {len(cameras)} views in {len(groups)} groups of "
-          f"{sorted({len(g.views) for g in groups})} views at {cameras.width}x{cameras.height}, "
-          f"{preset.finetune_iterations} finetune iterations, speedups: {args.speed}; stylize peak {peak:.1f} GiB")
-    print("\n| phase | seconds |\n|---|---:|")
-    for phase, seconds in times.items():
-        print(f"| {phase} | {seconds:.1f} |", flush=True)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tiny", action="store_true", help="tiny models (CPU smoke test)")
@@ -312,16 +219,29 @@ def main() -> None:
     parser.add_argument("--memory", action="store_true")
     parser.add_argument("--memory-cap", type=float, default=12.0, help="GiB")
     parser.add_argument("--memory-steps", type=int, default=4)
-    parser.add_argument("--end-to-end", nargs="+", choices=sorted(PRESETS), default=[])
-    parser.add_argument("--groups", help="START:STOP: the end-to-end run stylizes only these groups (see --parts)")
-    parser.add_argument("--parts", type=Path, help="folder of a split end-to-end run's per-group results")
+    parser.add_argument("--end-to-end", nargs="+", default=[], metavar="ROW",
+                        help="PRESET[+FIELD=VALUE...], e.g. paper+key_views=28 (bench/end_to_end.py)")
+    parser.add_argument("--sweep", action="store_true", help="add bench/end_to_end.py's SWEEP rows to --end-to-end")
+    parser.add_argument("--report", action="store_true", help="print the table of every finished row in --parts")
+    parser.add_argument("--groups", help="START:STOP: the end-to-end rows stylize only these groups (see --parts)")
+    parser.add_argument("--parts", type=Path, default=Path(".parts"),
+                        help="folder keeping the end-to-end results between calls (default .parts)")
+    parser.add_argument("--hold-every", type=int, default=8,
+                        help="end to end: every n-th view is held back from every row (default 8)")
+    parser.add_argument("--iterations", type=int, help="end to end: finetune iterations of every row (smoke tests)")
     parser.add_argument("--speed", choices=["eager", "compiled-blocks"], default="eager",
                         help="compiled-blocks: what --compile switches on (speed.COMPILED_BLOCKS: the repeated "
                              "blocks compiled with dynamic shapes, the hint embedding cached; exact speedups)")
     parser.add_argument("--json", type=Path, help="write the results as JSON here")
     args = parser.parse_args()
+    if args.report:
+        e2e.report(args.parts)
+        return
+    args.end_to_end += list(e2e.SWEEP) if args.sweep else []
+    for text in args.end_to_end:  # bad rows fail before the models are built
+        e2e.parse_row(text)
     if not (args.accuracy or args.memory or args.end_to_end):
-        args.accuracy, args.memory, args.end_to_end = True, True, ["fast"]
+        args.accuracy, args.memory, args.end_to_end = True, True, ["paper", "fast"]
     device = torch.device(args.device)
     dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
     begin = time.perf_counter()
@@ -336,8 +256,8 @@ def main() -> None:
     report = {"setup": {"device": gpu, "command": " ".join(sys.argv), "torch": torch.__version__}}
     if args.accuracy:
         accuracy_table(models, conditioning, args, device, report)
-    for name in args.end_to_end:
-        end_to_end(models, conditioning, args, device, name, report)
+    if args.end_to_end:
+        e2e.end_to_end_table(models, conditioning, args, device, report, write_json)
     if args.memory:  # last: it moves the idle models to the CPU
         memory_table(models, conditioning, args, device, report)
 

@@ -2,55 +2,52 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from artnvg_core.cameras import load_cameras, orbit_cameras
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
-from .input_files import file_signature, list_input_files, resolve_input_path
+from .input_files import InputFile, list_input_files
+from .node_base import ArtNVGNode
 from .node_errors import node_input
-from .node_types import CAMERAS, CATEGORY, GROUPS, SCENE
+from .node_types import CAMERAS, GROUPS, SCENE
 
 COLMAP_MARKERS = ("cameras.bin", "cameras.txt")
 
+CAMERA_SOURCE = InputFile(
+    "camera_source",
+    "camera file or folder",
+    lambda: list_input_files(names=("transforms.json",), marker_files=COLMAP_MARKERS),
+    tooltip="A transforms.json or a COLMAP model folder in ComfyUI's input folder.",
+    path_tooltip=(
+        "A nerfstudio .json file, a folder holding transforms.json, or a COLMAP folder (directly or in "
+        "sparse/0); when not blank it is used instead of camera_source. Relative paths start at the "
+        "input folder."),
+    exists=Path.exists,
+    watched=lambda source: source / "transforms.json" if source.is_dir() else source,
+)
 
-class LoadCameras:
+
+class LoadCameras(ArtNVGNode):
     """Capture cameras from a nerfstudio transforms.json or a COLMAP model folder."""
 
     DISPLAY_NAME = "Load Cameras"
-    CATEGORY = CATEGORY
     FUNCTION = "load"
     RETURN_TYPES = (CAMERAS,)
     RETURN_NAMES = ("cameras",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "camera_source": (list_input_files(names=("transforms.json",), marker_files=COLMAP_MARKERS), {
-                    "tooltip": "A transforms.json or a COLMAP model folder in ComfyUI's input folder."}),
-            },
-            "optional": {
-                "path": ("STRING", {"default": "", "tooltip": (
-                    "A nerfstudio .json file, a folder holding transforms.json, or a COLMAP folder (directly or in "
-                    "sparse/0); when not blank it is used instead of camera_source. Relative paths start at the "
-                    "input folder.")}),
-            },
-        }
+    REQUIRED = {"camera_source": CAMERA_SOURCE.list_input}
+    OPTIONAL = {"path": CAMERA_SOURCE.path_input}
 
     @classmethod
     def VALIDATE_INPUTS(cls, camera_source, path=""):
-        source, input_name = resolve_input_path("camera_source", camera_source, path)
-        if not source.exists():
-            return f"{cls.DISPLAY_NAME}: input '{input_name}': camera file or folder not found: {source}"
-        return True
+        return CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
 
     @classmethod
     def IS_CHANGED(cls, camera_source, path=""):
-        source = resolve_input_path("camera_source", camera_source, path)[0]
-        return file_signature(source / "transforms.json" if source.is_dir() else source)
+        return CAMERA_SOURCE.signature(camera_source, path)
 
     def load(self, camera_source, path=""):
-        source, input_name = resolve_input_path("camera_source", camera_source, path)
+        source, input_name = CAMERA_SOURCE.resolve(camera_source, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_cameras(source),)
 
@@ -63,39 +60,32 @@ def _numbers(text: str, what: str) -> list[float]:
         raise ValueError(f"expected {what}, got {text!r}") from error
 
 
-class CamerasAroundScene:
+class CamerasAroundScene(ArtNVGNode):
     """Cameras for a scene that came without any: views on rings around the scene's centre, all looking at
     it, at the distance where its main subject fills the view. For Render Views, Finetune and the rest
     exactly like loaded capture cameras."""
 
     DISPLAY_NAME = "Cameras Around Scene"
-    CATEGORY = CATEGORY
     FUNCTION = "place"
     RETURN_TYPES = (CAMERAS,)
     RETURN_NAMES = ("cameras",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene": (SCENE,),
-                "count": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": (
-                    "Number of views, shared out over the rings (60: four neighbouring-view groups of 15).")}),
-                "fov_deg": ("FLOAT", {"default": 50.0, "min": 1.0, "max": 179.0, "step": 0.5, "tooltip": (
-                    "Horizontal field of view in degrees.")}),
-                "width": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image width in pixels."}),
-                "height": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image height in pixels."}),
-                "up": ("STRING", {"default": "auto", "tooltip": (
-                    "The world direction shown up in every view: auto (detected from the scene; a guess is "
-                    "logged), an axis such as -y or +z, or three numbers x, y, z.")}),
-                "elevations": ("STRING", {"default": "10, 30", "tooltip": (
-                    "One ring of views per angle (degrees above the horizontal plane through the centre), "
-                    "comma-separated, each between -90 and 90.")}),
-                "distance_factor": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 100.0, "step": 0.05, "tooltip": (
-                    "1: the main subject just fills the view; larger shows more of the surroundings.")}),
-            },
-        }
+    REQUIRED = {
+        "scene": (SCENE,),
+        "count": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": (
+            "Number of views, shared out over the rings (60: four neighbouring-view groups of 15).")}),
+        "fov_deg": ("FLOAT", {"default": 50.0, "min": 1.0, "max": 179.0, "step": 0.5, "tooltip": (
+            "Horizontal field of view in degrees.")}),
+        "width": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image width in pixels."}),
+        "height": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image height in pixels."}),
+        "up": ("STRING", {"default": "auto", "tooltip": (
+            "The world direction shown up in every view: auto (detected from the scene; a guess is "
+            "logged), an axis such as -y or +z, or three numbers x, y, z.")}),
+        "elevations": ("STRING", {"default": "10, 30", "tooltip": (
+            "One ring of views per angle (degrees above the horizontal plane through the centre), "
+            "comma-separated, each between -90 and 90.")}),
+        "distance_factor": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 100.0, "step": 0.05, "tooltip": (
+            "1: the main subject just fills the view; larger shows more of the surroundings.")}),
+    }
 
     def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor):
         with node_input(self.DISPLAY_NAME, "up"):
@@ -107,28 +97,21 @@ class CamerasAroundScene:
                                   elevations_deg=angles, distance_factor=distance_factor),)
 
 
-class GroupNeighbouringViews:
+class GroupNeighbouringViews(ArtNVGNode):
     """Split the cameras into balanced groups of nearby views, stylized together by Sample Group."""
 
     DISPLAY_NAME = "Group Neighbouring Views"
-    CATEGORY = CATEGORY
     FUNCTION = "group"
     RETURN_TYPES = (GROUPS,)
     RETURN_NAMES = ("groups",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "cameras": (CAMERAS,),
-                "group_size": ("INT", {"default": DEFAULT_GROUP_SIZE, "min": 1, "max": 256, "tooltip": (
-                    "Most views per group (the paper uses 15): the fewest groups that hold them, sizes differing by at "
-                    "most one.")}),
-                "context": ("INT", {"default": 0, "min": 0, "max": 64, "tooltip": (
-                    "Extra views each group borrows from its neighbours as shared context.")}),
-            },
-        }
+    REQUIRED = {
+        "cameras": (CAMERAS,),
+        "group_size": ("INT", {"default": DEFAULT_GROUP_SIZE, "min": 1, "max": 256, "tooltip": (
+            "Most views per group (the paper uses 15): the fewest groups that hold them, sizes differing by at "
+            "most one.")}),
+        "context": ("INT", {"default": 0, "min": 0, "max": 64, "tooltip": (
+            "Extra views each group borrows from its neighbours as shared context.")}),
+    }
 
     def group(self, cameras, group_size, context):
         with node_input(self.DISPLAY_NAME, "cameras"):

@@ -1,7 +1,8 @@
 """The pack's only contact with ComfyUI's own modules, each imported lazily and optionally.
 
 Inside ComfyUI this uses ``folder_paths`` (input/output/model folders),
-``comfy.utils.ProgressBar`` (the node's progress bar) and ``comfy.model_management``
+``comfy.utils.ProgressBar`` (the node's progress bar), ``server.PromptServer`` with
+``comfy_execution.utils`` (text under the running node) and ``comfy.model_management``
 (the user's interrupt, and the compute device), and ``comfy_api.latest.Types`` (the core's data
 classes, where present); it also lifts the ``torch.inference_mode``
 under which ComfyUI runs every node, for nodes that need gradients. Without ComfyUI
@@ -15,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import logging
 import os
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,6 +26,9 @@ import torch
 
 from artnvg_core.devices import best_device
 from artnvg_core.progress import Cancelled, ProgressFn
+from artnvg_core.raster import prepare_backend
+
+_log = logging.getLogger("artnvg")
 
 
 def comfy_module(name: str) -> ModuleType | None:
@@ -98,6 +103,13 @@ def comfy_types():
     return getattr(latest, "Types", None) if latest is not None else None
 
 
+def comfy_io():
+    """ComfyUI's ``comfy_api.latest.IO`` (its link types, each with an ``io_type`` name); None outside
+    ComfyUI or on a ComfyUI without that API."""
+    latest = comfy_module("comfy_api.latest")
+    return getattr(latest, "IO", None) if latest is not None else None
+
+
 # --------------------------------------------------------------------------- device
 
 
@@ -147,6 +159,22 @@ def progress_bar() -> ProgressFn | None:
         bar.update_absolute(step, total)
 
     return report
+
+
+def progress_text(message: str) -> None:
+    """Show ``message`` under the running node in ComfyUI's editor (its progress text) and in the
+    console log; without ComfyUI, in the log alone."""
+    _log.warning(message)
+    server, execution = comfy_module("server"), comfy_module("comfy_execution.utils")
+    context = execution.get_executing_context() if hasattr(execution, "get_executing_context") else None
+    if server is not None and context is not None:
+        server.PromptServer.instance.send_progress_text(message, context.node_id)
+
+
+def prepare_rasterizer(device: torch.device) -> None:
+    """Load the rasterizer that renders on ``device`` before a node's first render: gsplat's
+    first-use kernel build (about 90 s on an H100) is announced by :func:`progress_text` first."""
+    prepare_backend(device, announce=progress_text)
 
 
 def interrupt_requested() -> bool:

@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from artnvg_core.devices import DEVICE_CHOICES, device_for
+from artnvg_core.diffusion.compile_cache import load_compile_cache, save_compile_cache
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
@@ -26,6 +27,7 @@ from artnvg_core.diffusion.model_files import (
     check_model_files,
     locate,
 )
+from artnvg_core.diffusion.model_cache import file_key, load_once
 from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
 from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups
@@ -45,8 +47,9 @@ from .comfy_bridge import (
     model_folder_paths,
     progress_bar,
 )
+from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
-from .node_types import CATEGORY, EMBEDS, GROUPS, IMAGE, MODELS
+from .node_types import EMBEDS, GROUPS, IMAGE, MODELS
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -66,6 +69,11 @@ class ModelInput:
     @property
     def path_input(self) -> str:
         return f"{self.name}_path"
+
+    def list_input(self) -> tuple:
+        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache."""
+        return ([HF_CACHE, *model_files(self.folder)], {"tooltip": (
+            f"{self.source.description}: a file in models/{self.folder}, or {HF_CACHE} ({self.source.url}).")})
 
 
 MODEL_INPUTS = (
@@ -102,7 +110,8 @@ def _model_paths(node: str, listed: tuple[str, ...], overrides: tuple[str, ...])
 
 @dataclasses.dataclass
 class LoadedModels:
-    """The ``ARTNVG_MODELS`` value (see the module docstring)."""
+    """The ``ARTNVG_MODELS`` value (see the module docstring); ``compiled``: the loader compiled the blocks (Sample
+    Group then saves the compile artifacts for the next run)."""
 
     models: DiffusionModels
     device: torch.device
@@ -112,6 +121,7 @@ class LoadedModels:
     nv_levels: str = "all"
     nv_nearest: int | None = None
     nv_kv_downsample: int = 1
+    compiled: bool = False
 
 
 def _move(value, device: torch.device) -> None:
@@ -142,7 +152,7 @@ def models_on_device(loaded: LoadedModels):
                 model_management.soft_empty_cache()
 
 
-class LoadArtNVGModels:
+class LoadArtNVGModels(ArtNVGNode):
     """SDXL 1.0 base, the TTPlanet tile ControlNet, the IP-Adapter SDXL image encoder and CSGO weights.
 
     Each model comes from its ComfyUI model folder, from the Hugging Face cache, or from the
@@ -150,39 +160,32 @@ class LoadArtNVGModels:
     """
 
     DISPLAY_NAME = "Load ArtNVG Models"
-    CATEGORY = CATEGORY
     FUNCTION = "load"
     RETURN_TYPES = (MODELS,)
     RETURN_NAMES = ("models",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        required = {
-            model.name: ([HF_CACHE, *model_files(model.folder)], {"tooltip": (
-                f"{model.source.description}: a file in models/{model.folder}, or {HF_CACHE} ({model.source.url}).")})
-            for model in MODEL_INPUTS
-        }
-        required["dtype"] = (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."})
-        required["device"] = (DEVICE_CHOICES, {"default": "auto", "tooltip": "auto: ComfyUI's device (CUDA, Apple MPS or the CPU)."})
-        required["keep_loaded"] = ("BOOLEAN", {"default": True, "tooltip": (
-            "Keep the models on the device between runs; off moves them to the CPU after each node.")})
-        optional = {
-            model.path_input: ("STRING", {"default": "", "tooltip": f"Path overriding {model.name} when not blank."})
-            for model in MODEL_INPUTS
-        }
-        optional["sdxl_config_dir"] = ("STRING", {"default": "", "tooltip": (
+    REQUIRED = {
+        **{model.name: model.list_input for model in MODEL_INPUTS},
+        "dtype": (tuple(DTYPES), {"default": "float16", "tooltip": "Diffusion precision."}),
+        "device": (DEVICE_CHOICES, {"default": "auto", "tooltip": (
+            "auto: ComfyUI's device (CUDA, Apple MPS or the CPU).")}),
+        "keep_loaded": ("BOOLEAN", {"default": True, "tooltip": (
+            "Keep the models on the device between runs; off moves them to the CPU after each node.")}),
+    }
+    OPTIONAL = {
+        **{model.path_input: ("STRING", {"default": "", "tooltip": f"Path overriding {model.name} when not blank."})
+           for model in MODEL_INPUTS},
+        "sdxl_config_dir": ("STRING", {"default": "", "tooltip": (
             "A diffusers-format SDXL folder (model_index.json, configs, tokenizers) for a single-file "
-            "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")})
-        optional["memory"] = (MEMORY_MODES, {"default": "full", "tooltip": (
+            "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")}),
+        "memory": (MEMORY_MODES, {"default": "full", "tooltip": (
             "low: a 15-view group at 1024 px within 12 GiB, same result, ~10% slower: only the UNet stays on "
             "the GPU, the rest visits it; guidance halves one at a time. Start ComfyUI with "
-            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")})
-        optional["compile"] = ("BOOLEAN", {"default": False, "tooltip": (
+            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")}),
+        "compile": ("BOOLEAN", {"default": False, "tooltip": (
             "Compile the UNet's and ControlNet's repeated blocks (full memory only): same result up to bf16 "
             "rounding, ~6% faster steps after a first run of ~80 s (H100); pays back on large scenes. Keeps "
-            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")})
-        return {"required": required, "optional": optional}
+            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")}),
+    }
 
     @classmethod
     def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
@@ -209,17 +212,23 @@ class LoadArtNVGModels:
         if compile and low_memory:
             raise NodeInputError(f"{self.DISPLAY_NAME}: input 'compile' runs in the full-memory mode only; "
                                  "set 'memory' to full or 'compile' off")
-        with node_input(self.DISPLAY_NAME):
-            models = load_diffusion_models(
-                *paths, sdxl_config_dir=sdxl_config_dir.strip() or None, dtype=DTYPES[dtype],
-                device=target if keep_loaded and not low_memory else "cpu",
-            )
-        if compile:
-            apply_speedups(models, COMPILED_BLOCKS)
-        return (LoadedModels(models, target, keep_loaded, low_memory),)
+        config_dir = sdxl_config_dir.strip() or None
+        key = ("LoadArtNVGModels", tuple(file_key(path) for path in paths), file_key(config_dir), dtype, str(target),
+               keep_loaded, low_memory, compile)
+
+        def load_models():
+            with node_input(self.DISPLAY_NAME):
+                models = load_diffusion_models(*paths, sdxl_config_dir=config_dir, dtype=DTYPES[dtype],
+                                               device=target if keep_loaded and not low_memory else "cpu")
+            if compile:
+                apply_speedups(models, COMPILED_BLOCKS)
+                load_compile_cache(target)
+            return models
+
+        return (LoadedModels(load_once(key, load_models), target, keep_loaded, low_memory, compiled=compile),)
 
 
-class NVAttentionPatch:
+class NVAttentionPatch(ArtNVGNode):
     """Turn neighbouring-view attention on: every view of a group attends to all views of the group.
 
     The optional inputs trade exactness for speed (README: Presets): NV in the lowest-resolution
@@ -227,65 +236,59 @@ class NVAttentionPatch:
     """
 
     DISPLAY_NAME = "NV-Attention Patch Model"
-    CATEGORY = CATEGORY
     FUNCTION = "patch"
     RETURN_TYPES = (MODELS,)
     RETURN_NAMES = ("models",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "models": (MODELS,),
-                "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: each view attends only to itself."}),
-            },
-            "optional": {
-                "levels": (NV_LEVELS, {"default": "all", "tooltip": (
-                    "lowest: NV attention in the lowest-resolution level only (faster, approximate).")}),
-                "nearest_views": ("INT", {"default": 0, "min": 0, "max": 256, "tooltip": (
-                    "0: all views of the group; k: each view attends to its k nearest views (approximate).")}),
-                "kv_downsample": ("INT", {"default": 1, "min": 1, "max": 8, "tooltip": (
-                    "Pool the other views' keys/values by this factor per side (1: exact).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: each view attends only to itself."}),
+    }
+    OPTIONAL = {
+        "levels": (NV_LEVELS, {"default": "all", "tooltip": (
+            "lowest: NV attention in the lowest-resolution level only (faster, approximate).")}),
+        "nearest_views": ("INT", {"default": 0, "min": 0, "max": 256, "tooltip": (
+            "0: all views of the group; k: each view attends to its k nearest views (approximate).")}),
+        "kv_downsample": ("INT", {"default": 1, "min": 1, "max": 8, "tooltip": (
+            "Pool the other views' keys/values by this factor per side (1: exact).")}),
+    }
 
     def patch(self, models, enabled, levels="all", nearest_views=0, kv_downsample=1):
         return (dataclasses.replace(models, neighbour_views=enabled, nv_levels=levels,
                                     nv_nearest=nearest_views or None, nv_kv_downsample=kv_downsample),)
 
 
-class CSGOEncode:
+class CSGOEncode(ArtNVGNode):
     """Encode the style image (CSGO style tokens) and the prompt, shared by every group.
 
     Content tokens come from each view's content image and are encoded by Sample Group.
     """
 
     DISPLAY_NAME = "CSGO Style/Content Encode"
-    CATEGORY = CATEGORY
     FUNCTION = "encode"
     RETURN_TYPES = (EMBEDS,)
     RETURN_NAMES = ("embeds",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "models": (MODELS,),
-                "style_image": (IMAGE, {"tooltip": "The style reference (first image of the batch)."}),
-                "prompt": ("STRING", {"default": DEFAULT_PROMPT, "multiline": True}),
-                "negative_prompt": ("STRING", {"default": DEFAULT_NEGATIVE_PROMPT, "multiline": True, "tooltip": (
-                    "Blank: zero negative embeddings (SDXL's default for an empty negative prompt).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "style_image": STYLE_IMAGE_INPUT,
+        "prompt": ("STRING", {"default": DEFAULT_PROMPT, "multiline": True}),
+        "negative_prompt": ("STRING", {"default": DEFAULT_NEGATIVE_PROMPT, "multiline": True, "tooltip": (
+            "Blank: zero negative embeddings (SDXL's default for an empty negative prompt).")}),
+    }
 
     def encode(self, models, style_image, prompt, negative_prompt):
         with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
             return (prepare_conditioning(diffusion, style_image[:1], prompt, negative_prompt.strip() or None),)
 
 
-class SampleGroup:
+_SAMPLER = SamplerSettings()  # Sample Group's defaults
+
+
+def _scale(default: float, tooltip: str) -> tuple:
+    """A FLOAT input for a conditioning strength in [0, 10]."""
+    return ("FLOAT", {"default": default, "min": 0.0, "max": 10.0, "step": 0.05, "tooltip": tooltip})
+
+
+class SampleGroup(ArtNVGNode):
     """Stylize the content views group by group (or one chosen group) with CSGO control.
 
     Returns the stylized IMAGE batch in view order: every view, or the chosen group's views.
@@ -293,54 +296,45 @@ class SampleGroup:
     """
 
     DISPLAY_NAME = "Sample Group"
-    CATEGORY = CATEGORY
     FUNCTION = "sample"
     RETURN_TYPES = (IMAGE,)
     RETURN_NAMES = ("stylized_views",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        defaults = SamplerSettings()
-
-        def scale(default, tooltip):
-            return ("FLOAT", {"default": default, "min": 0.0, "max": 10.0, "step": 0.05, "tooltip": tooltip})
-
-        return {
-            "required": {
-                "models": (MODELS,),
-                "embeds": (EMBEDS,),
-                "content_views": (IMAGE, {"tooltip": "Rendered views, in the cameras' order (from Render Views)."}),
-                "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
-                "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
-                    "-1: every group; otherwise only this group (0-based).")}),
-                "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
-                "steps": ("INT", {"default": defaults.steps, "min": 1, "max": 1000}),
-                "guidance_scale": ("FLOAT", {"default": defaults.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
-                "content_scale": scale(defaults.content_scale, (
-                    "Weight of the CSGO content tokens (down blocks; content_routing paper only).")),
-                "style_scale": scale(defaults.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
-                "control_scale": scale(defaults.control_scale, "Tile ControlNet strength."),
-                "resolution": ("INT", {"default": defaults.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
-                    "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
-                    "views' size.")}),
-                "scheduler": (tuple(SCHEDULERS), {"default": defaults.scheduler}),
-            },
-            "optional": {
-                "size_rule": (SIZE_RULES, {"default": defaults.size_rule, "tooltip": (
-                    "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
-                    "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
-                "content_routing": (CONTENT_ROUTINGS, {"default": defaults.content_routing, "tooltip": (
-                    "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
-                    "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
-                    "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
-            },
-        }
+    REQUIRED = {
+        "models": (MODELS,),
+        "embeds": (EMBEDS,),
+        "content_views": (IMAGE, {"tooltip": "Rendered views, in the cameras' order (from Render Views)."}),
+        "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
+        "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
+            "-1: every group; otherwise only this group (0-based).")}),
+        "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1}),
+        "steps": ("INT", {"default": _SAMPLER.steps, "min": 1, "max": 1000}),
+        "guidance_scale": ("FLOAT", {"default": _SAMPLER.guidance_scale, "min": 0.0, "max": 50.0, "step": 0.1}),
+        "content_scale": _scale(_SAMPLER.content_scale, (
+            "Weight of the CSGO content tokens (down blocks; content_routing paper only).")),
+        "style_scale": _scale(_SAMPLER.style_scale, "Weight of the CSGO style tokens (up blocks, ControlNet)."),
+        "control_scale": _scale(_SAMPLER.control_scale, "Tile ControlNet strength."),
+        "resolution": ("INT", {"default": _SAMPLER.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
+            "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
+            "views' size.")}),
+        "scheduler": (tuple(SCHEDULERS), {"default": _SAMPLER.scheduler}),
+    }
+    OPTIONAL = {
+        "size_rule": (SIZE_RULES, {"default": _SAMPLER.size_rule, "tooltip": (
+            "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
+            "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
+        "content_routing": (CONTENT_ROUTINGS, {"default": _SAMPLER.content_routing, "tooltip": (
+            "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
+            "the Tile ControlNet; content_scale has no effect). paper: content tokens into every UNet "
+            "down-block cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
+        "cfg_until": ("FLOAT", {"default": _SAMPLER.cfg_until, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
+            "Classifier-free guidance for this fraction of the steps only, then the conditional half alone "
+            "(half the work per step); 1: every step (exact).")}),
+    }
 
     @cancellable
     def sample(self, models, embeds, content_views, groups, group_index, seed, steps, guidance_scale,
                content_scale, style_scale, control_scale, resolution, scheduler, size_rule=SamplerSettings.size_rule,
-               content_routing=SamplerSettings.content_routing):
+               content_routing=SamplerSettings.content_routing, cfg_until=SamplerSettings.cfg_until):
         if len(content_views) != groups.num_views:
             raise NodeInputError(
                 f"{self.DISPLAY_NAME}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -355,7 +349,7 @@ class SampleGroup:
                 steps=steps, guidance_scale=guidance_scale, content_scale=content_scale, style_scale=style_scale,
                 control_scale=control_scale, neighbour_views=models.neighbour_views,
                 content_routing=content_routing, resolution=resolution or None, size_rule=size_rule,
-                scheduler=scheduler,
+                scheduler=scheduler, cfg_until=cfg_until,
                 sequential_cfg=models.low_memory,
                 nv_levels=models.nv_levels, nv_nearest=models.nv_nearest, nv_kv_downsample=models.nv_kv_downsample,
             )
@@ -363,6 +357,8 @@ class SampleGroup:
         with node_input(self.DISPLAY_NAME), models_on_device(models) as diffusion:
             output = stylize_groups(diffusion, content_views, groups, embeds, settings, seed=seed, group_indices=chosen,
                                     progress=progress_bar(), should_stop=interrupt_requested)
+        if models.compiled:
+            save_compile_cache(models.device)
         if group_index >= 0:
             output = output[list(groups[group_index].views)]
         return (output,)

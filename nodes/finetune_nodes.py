@@ -9,11 +9,13 @@ from .comfy_bridge import (
     cancellable,
     compute_device,
     interrupt_requested,
+    prepare_rasterizer,
     progress_bar,
     trainable_copy,
 )
+from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import node_input
-from .node_types import CAMERAS, CATEGORY, IMAGE, SCENE
+from .node_types import CAMERAS, IMAGE, SCENE
 
 _DEFAULTS = FinetuneConfig()
 
@@ -22,7 +24,7 @@ def _weight(default: float, tooltip: str) -> tuple:
     return ("FLOAT", {"default": default, "min": 0.0, "max": 1000.0, "step": 0.01, "tooltip": tooltip})
 
 
-class FinetuneGaussians:
+class FinetuneGaussians(ArtNVGNode):
     """Finetune the original Gaussians so their renders take on the style.
 
     With stylized views (in the cameras' order, e.g. from Sample Group) the loss is
@@ -31,41 +33,34 @@ class FinetuneGaussians:
     """
 
     DISPLAY_NAME = "Finetune Gaussians"
-    CATEGORY = CATEGORY
     FUNCTION = "finetune"
     RETURN_TYPES = (SCENE,)
     RETURN_NAMES = ("scene",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene": (SCENE,),
-                "cameras": (CAMERAS, {"tooltip": "Training views, rendered at their own size (e.g. from Render Views)."}),
-                "style_image": (IMAGE, {"tooltip": "The style reference (first image of the batch)."}),
-                "iterations": ("INT", {"default": _DEFAULTS.iterations, "min": 0, "max": 100000, "tooltip": (
-                    "Optimisation steps, one random view each (the paper uses 1,000).")}),
-                "optimize": (OPTIMIZE_CHOICES, {"default": _DEFAULTS.optimize, "tooltip": (
-                    "appearance: colours and opacities only; all: geometry too.")}),
-                "l1_weight": _weight(_DEFAULTS.l1_weight, "L1 to the stylized views (only with stylized_views)."),
-                "ssim_weight": _weight(_DEFAULTS.ssim_weight, "1 - SSIM to the stylized views (only with stylized_views)."),
-                "nnfm_weight": _weight(_DEFAULTS.nnfm_weight, "Nearest-neighbour VGG feature match to the style image."),
-                "content_weight": _weight(_DEFAULTS.content_weight, (
-                    "VGG feature match to the original renders (only without stylized_views).")),
-                "tv_weight": _weight(_DEFAULTS.tv_weight, "Total variation of the renders (smoothness)."),
-                "seed": ("INT", {"default": _DEFAULTS.seed, "min": 0, "max": 2**31 - 1, "tooltip": "View order seed."}),
-            },
-            "optional": {
-                "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
-                "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
-                    "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
-                    "(512: ARF's half resolution for 1024 px views, about 2x faster there); 0: full resolution.")}),
-                "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
-                    "Without stylized_views: match the scene's colours to the style image's mean and covariance "
-                    "before and after finetuning, as ARF does (exact, no extra iterations).")}),
-            },
-        }
+    REQUIRED = {
+        "scene": (SCENE,),
+        "cameras": (CAMERAS, {"tooltip": "Training views, rendered at their own size (e.g. from Render Views)."}),
+        "style_image": STYLE_IMAGE_INPUT,
+        "iterations": ("INT", {"default": _DEFAULTS.iterations, "min": 0, "max": 100000, "tooltip": (
+            "Optimisation steps, one random view each (the paper uses 1,000).")}),
+        "optimize": (OPTIMIZE_CHOICES, {"default": _DEFAULTS.optimize, "tooltip": (
+            "appearance: colours and opacities only; all: geometry too.")}),
+        "l1_weight": _weight(_DEFAULTS.l1_weight, "L1 to the stylized views (only with stylized_views)."),
+        "ssim_weight": _weight(_DEFAULTS.ssim_weight, "1 - SSIM to the stylized views (only with stylized_views)."),
+        "nnfm_weight": _weight(_DEFAULTS.nnfm_weight, "Nearest-neighbour VGG feature match to the style image."),
+        "content_weight": _weight(_DEFAULTS.content_weight, (
+            "VGG feature match to the original renders (only without stylized_views).")),
+        "tv_weight": _weight(_DEFAULTS.tv_weight, "Total variation of the renders (smoothness)."),
+        "seed": ("INT", {"default": _DEFAULTS.seed, "min": 0, "max": 2**31 - 1, "tooltip": "View order seed."}),
+    }
+    OPTIONAL = {
+        "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
+        "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
+            "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
+            "(512: ARF's half resolution for 1024 px views, about 2x faster there); 0: full resolution.")}),
+        "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
+            "Without stylized_views: match the scene's colours to the style image's mean and covariance "
+            "before and after finetuning, as ARF does (exact, no extra iterations).")}),
+    }
 
     @cancellable
     def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
@@ -77,8 +72,10 @@ class FinetuneGaussians:
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
                 nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer,
             )
+            device = compute_device()
+            prepare_rasterizer(device)
             result = finetune(
-                trainable_copy(scene).to(compute_device()), trainable_copy(cameras), style_image[:1].clone(),
+                trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
                 stylized=None if stylized_views is None else stylized_views.clone(), config=config,
                 progress=progress_bar(), should_stop=interrupt_requested,
             )

@@ -3,12 +3,15 @@
 A loader has a list input (a path relative to the input folder, as listed by
 :func:`list_input_files`) and a text input ``path``; a non-blank ``path`` wins. Relative
 ``path`` values are taken relative to the input folder, ``~`` is expanded. Symbolic links
-to files are listed; linked folders are not entered.
+to files are listed; linked folders are not entered. :class:`InputFile` declares the two
+inputs of one loader and finds, checks and watches the file they choose.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from .comfy_bridge import input_directory
@@ -52,3 +55,43 @@ def file_signature(path: Path) -> str:
     except OSError:
         return ""
     return f"{path}:{stat.st_mtime_ns}:{stat.st_size}"
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """A loader's two inputs: list input ``name`` (what ``listing`` returns when ComfyUI asks) and text input
+    ``path``. ``what`` names the file in errors (e.g. "scene file"); ``exists`` tells whether a chosen path
+    can be loaded; ``watched`` gives the file whose changes make the node run again (default: the chosen one)."""
+
+    name: str
+    what: str
+    listing: Callable[[], list[str]]
+    tooltip: str
+    path_tooltip: str
+    exists: Callable[[Path], bool] = Path.is_file
+    watched: Callable[[Path], Path] | None = None
+
+    def list_input(self) -> tuple:
+        """The declaration of input ``name``, with the files listed now."""
+        return (self.listing(), {"tooltip": self.tooltip})
+
+    @property
+    def path_input(self) -> tuple:
+        """The declaration of input ``path``."""
+        return ("STRING", {"default": "", "tooltip": self.path_tooltip})
+
+    def resolve(self, listed: str, path: str) -> tuple[Path, str]:
+        """The file to load and the name of the input that chose it (:func:`resolve_input_path`)."""
+        return resolve_input_path(self.name, listed, path)
+
+    def check(self, node: str, listed: str, path: str) -> bool | str:
+        """A loader's ``VALIDATE_INPUTS`` answer: True, or the message naming ``node``, the input and the path."""
+        file, input_name = self.resolve(listed, path)
+        if not self.exists(file):
+            return f"{node}: input '{input_name}': {self.what} not found: {file}"
+        return True
+
+    def signature(self, listed: str, path: str) -> str:
+        """A loader's ``IS_CHANGED`` answer: :func:`file_signature` of the watched file (the chosen one by default)."""
+        file = self.resolve(listed, path)[0]
+        return file_signature(self.watched(file) if self.watched else file)

@@ -5,13 +5,15 @@ from __future__ import annotations
 import torch
 
 from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.key_views import select_key_views
 from artnvg_core.progress import check_stop
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 
-from .comfy_bridge import cancellable, compute_device, interrupt_requested, progress_bar
+from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
+from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
-from .node_types import CAMERAS, CATEGORY, IMAGE, SCENE
+from .node_types import CAMERAS, IMAGE, SCENE
 from .view_selection import parse_view_list, select_views
 
 SCALE_INPUT = ("FLOAT", {"default": 0.5, "min": 0.01, "max": 4.0, "step": 0.005, "tooltip": (
@@ -25,6 +27,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     stopping (core ``Cancelled``) between views when the user cancels.
     """
     device = compute_device()
+    prepare_rasterizer(device)
     scene, cameras = scene.to(device), cameras.to(device)
     report, frames = progress_bar(), []
     for index in range(len(cameras)):
@@ -37,74 +40,73 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     return torch.stack(frames)
 
 
-class RenderViews:
+def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: float) -> tuple[torch.Tensor, CameraSet]:
+    """(:func:`render_frames` of ``cameras`` at ``scale`` times their size, those cameras), errors naming ``node``'s
+    inputs ``scale`` and ``scene``: the outputs of the render nodes."""
+    with node_input(node, "scale"):
+        cameras = cameras.scaled(scale)
+    with node_input(node, "scene"):
+        return render_frames(scene, cameras), cameras
+
+
+class RenderViews(ArtNVGNode):
     """Render the scene from chosen capture cameras; also returns those cameras at the rendered size."""
 
     DISPLAY_NAME = "Render Views"
-    CATEGORY = CATEGORY
     FUNCTION = "render"
     RETURN_TYPES = (IMAGE, CAMERAS)
     RETURN_NAMES = ("images", "cameras")
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene": (SCENE,),
-                "cameras": (CAMERAS,),
-                "scale": SCALE_INPUT,
-                "stride": ("INT", {"default": 1, "min": 1, "max": 10000, "tooltip": (
-                    "Use every stride-th camera (0, stride, 2*stride, ...) when views is blank.")}),
-                "views": ("STRING", {"default": "", "tooltip": (
-                    "Comma-separated camera indices in file order (e.g. 0,5,9); blank uses stride.")}),
-            },
-        }
+    REQUIRED = {
+        "scene": (SCENE,),
+        "cameras": (CAMERAS,),
+        "scale": SCALE_INPUT,
+        "stride": ("INT", {"default": 1, "min": 1, "max": 10000, "tooltip": (
+            "Use every stride-th camera (0, stride, 2*stride, ...) when views is blank.")}),
+        "views": ("STRING", {"default": "", "tooltip": (
+            "Comma-separated camera indices in file order (e.g. 0,5,9); blank uses stride.")}),
+    }
+    OPTIONAL = {
+        "key_views": ("INT", {"default": 0, "min": 0, "max": 10000, "tooltip": (
+            "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
+            "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
+    }
 
     @cancellable
-    def render(self, scene, cameras, scale, stride, views):
+    def render(self, scene, cameras, scale, stride, views, key_views=0):
         with node_input(self.DISPLAY_NAME, "views"):
             chosen = cameras.subset(select_views(len(cameras), stride, views))
-        with node_input(self.DISPLAY_NAME, "scale"):
-            chosen = chosen.scaled(scale)
-        with node_input(self.DISPLAY_NAME, "scene"):
-            return render_frames(scene, chosen), chosen
+        with node_input(self.DISPLAY_NAME, "key_views"):
+            chosen = chosen.subset(select_key_views(chosen, key_views))
+        return render_scaled(self.DISPLAY_NAME, scene, chosen, scale)
 
 
 PATH_KINDS = ("orbit", "interpolate")
 
 
-class RenderCameraPath:
+class RenderCameraPath(ArtNVGNode):
     """Render preview frames along an orbit around the scene or a smooth path through chosen views.
 
     The IMAGE frames suit stock image and video save nodes.
     """
 
     DISPLAY_NAME = "Render Camera Path"
-    CATEGORY = CATEGORY
     FUNCTION = "render"
     RETURN_TYPES = (IMAGE, CAMERAS)
     RETURN_NAMES = ("frames", "path_cameras")
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene": (SCENE,),
-                "cameras": (CAMERAS,),
-                "path": (PATH_KINDS, {"default": "orbit", "tooltip": (
-                    "orbit: a horizontal circle around the scene centre; "
-                    "interpolate: a spline through key_views.")}),
-                "scale": SCALE_INPUT,
-                "num_frames": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": "Frames of the orbit."}),
-                "key_views": ("STRING", {"default": "", "tooltip": (
-                    "interpolate: comma-separated camera indices the path passes through, in order (at least two).")}),
-                "frames_per_segment": ("INT", {"default": 30, "min": 1, "max": 10000, "tooltip": (
-                    "interpolate: frames between consecutive key views.")}),
-                "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
-            },
-        }
+    REQUIRED = {
+        "scene": (SCENE,),
+        "cameras": (CAMERAS,),
+        "path": (PATH_KINDS, {"default": "orbit", "tooltip": (
+            "orbit: a horizontal circle around the scene centre; "
+            "interpolate: a spline through key_views.")}),
+        "scale": SCALE_INPUT,
+        "num_frames": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": "Frames of the orbit."}),
+        "key_views": ("STRING", {"default": "", "tooltip": (
+            "interpolate: comma-separated camera indices the path passes through, in order (at least two).")}),
+        "frames_per_segment": ("INT", {"default": 30, "min": 1, "max": 10000, "tooltip": (
+            "interpolate: frames between consecutive key views.")}),
+        "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
+    }
 
     @cancellable
     def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop):
@@ -118,7 +120,4 @@ class RenderCameraPath:
                 path_cameras = interpolate_path(
                     cameras, parse_view_list(key_views, len(cameras)), frames_per_segment, loop=loop
                 )
-        with node_input(self.DISPLAY_NAME, "scale"):
-            path_cameras = path_cameras.scaled(scale)
-        with node_input(self.DISPLAY_NAME, "scene"):
-            return render_frames(scene, path_cameras), path_cameras
+        return render_scaled(self.DISPLAY_NAME, scene, path_cameras, scale)

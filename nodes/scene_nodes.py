@@ -8,51 +8,48 @@ from pathlib import Path
 from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, load_scene, save_scene
 
 from .comfy_bridge import output_directory
-from .input_files import file_signature, list_input_files, resolve_input_path
+from .input_files import InputFile, list_input_files
+from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
-from .node_types import CATEGORY, SCENE
+from .node_types import SCENE
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_type
 
-class LoadGaussianScene:
+SCENE_FILE = InputFile(
+    "scene_file",
+    "scene file",
+    lambda: list_input_files(suffixes=SCENE_SUFFIXES),
+    tooltip="A .ply, .splat, .spz, .ksplat or .ckpt file in ComfyUI's input folder (subfolders included).",
+    path_tooltip=("Scene file path; when not blank it is used instead of scene_file. "
+                  "Relative paths start at the input folder."),
+)
+
+
+class LoadGaussianScene(ArtNVGNode):
     """A Gaussian scene file from the input folder or a path: ``.ply`` (INRIA 3DGS, Mip-Splatting or
-    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic) or a nerfstudio splatfacto ``.ckpt``."""
+    PlayCanvas/SuperSplat compressed), ``.splat``, ``.spz`` (Niantic), ``.ksplat`` (GaussianSplats3D) or a
+    nerfstudio splatfacto ``.ckpt``."""
 
     DISPLAY_NAME = "Load Gaussian Scene"
-    CATEGORY = CATEGORY
     FUNCTION = "load"
     RETURN_TYPES = (SCENE,)
     RETURN_NAMES = ("scene",)
-    DESCRIPTION = __doc__
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene_file": (list_input_files(suffixes=SCENE_SUFFIXES), {
-                    "tooltip": "A .ply, .splat, .spz or .ckpt file in ComfyUI's input folder (subfolders included)."}),
-            },
-            "optional": {
-                "path": ("STRING", {"default": "", "tooltip": (
-                    "Scene file path; when not blank it is used instead of scene_file. "
-                    "Relative paths start at the input folder.")}),
-                "drop_invalid": ("BOOLEAN", {"default": False, "tooltip": (
-                    "Drop Gaussians with non-finite values or zero quaternions instead of failing.")}),
-            },
-        }
+    REQUIRED = {"scene_file": SCENE_FILE.list_input}
+    OPTIONAL = {
+        "path": SCENE_FILE.path_input,
+        "drop_invalid": ("BOOLEAN", {"default": False, "tooltip": (
+            "Drop Gaussians with non-finite values or zero quaternions instead of failing.")}),
+    }
 
     @classmethod
     def VALIDATE_INPUTS(cls, scene_file, path=""):
-        file, input_name = resolve_input_path("scene_file", scene_file, path)
-        if not file.is_file():
-            return f"{cls.DISPLAY_NAME}: input '{input_name}': scene file not found: {file}"
-        return True
+        return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
 
     @classmethod
     def IS_CHANGED(cls, scene_file, path="", drop_invalid=False):
-        return file_signature(resolve_input_path("scene_file", scene_file, path)[0])
+        return SCENE_FILE.signature(scene_file, path)
 
     def load(self, scene_file, path="", drop_invalid=False):
-        file, input_name = resolve_input_path("scene_file", scene_file, path)
+        file, input_name = SCENE_FILE.resolve(scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_scene(file, drop_invalid=drop_invalid),)
 
@@ -69,35 +66,31 @@ def _next_free_path(filename_prefix: str, suffix: str) -> Path:
     return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}{suffix}"
 
 
-class SaveGaussianScene:
+class SaveGaussianScene(ArtNVGNode):
     """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
-    by ``format`` a Niantic ``.spz`` or an antimatter15 ``.splat`` (smaller files, quantised).
+    by ``format`` a Niantic ``.spz``, an antimatter15 ``.splat`` or a GaussianSplats3D ``.ksplat`` (smaller
+    files, quantised).
 
     Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
     DISPLAY_NAME = "Save Gaussian Scene"
-    CATEGORY = CATEGORY
     FUNCTION = "save"
     RETURN_TYPES = (file3d_link_type(SAVE_SUFFIXES),) if FILE3D_CLASS is not None else ()
     RETURN_NAMES = ("model_3d",) if FILE3D_CLASS is not None else ()
     OUTPUT_NODE = True
     DESCRIPTION = __doc__ if FILE3D_CLASS is not None else __doc__.split("\n\n")[0] + "\n\n" + MISSING_FILE3D
-
-    @classmethod
-    def INPUT_TYPES(cls):
-        return {
-            "required": {
-                "scene": (SCENE,),
-                "filename_prefix": ("STRING", {"default": "artnvg/stylized", "tooltip": (
-                    "File name start inside the output folder; may contain subfolders. "
-                    "A five-digit counter and the format's extension are appended.")}),
-            },
-            "optional": {
-                "format": ([suffix.lstrip(".") for suffix in SAVE_SUFFIXES], {"default": "ply", "tooltip": (
-                    "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
-                    "splat: antimatter15 .splat, SH degree 0 only.")}),
-            },
-        }
+    REQUIRED = {
+        "scene": (SCENE,),
+        "filename_prefix": ("STRING", {"default": "artnvg/stylized", "tooltip": (
+            "File name start inside the output folder; may contain subfolders. "
+            "A five-digit counter and the format's extension are appended.")}),
+    }
+    OPTIONAL = {
+        "format": ([suffix.lstrip(".") for suffix in SAVE_SUFFIXES], {"default": "ply", "tooltip": (
+            "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
+            "splat: antimatter15 .splat, SH degree 0 only. ksplat: GaussianSplats3D level 0, SH up to "
+            "degree 2.")}),
+    }
 
     def save(self, scene, filename_prefix, format="ply"):
         with node_input(self.DISPLAY_NAME, "format"):

@@ -3,7 +3,9 @@
 Mirrors ``comfy_api/latest/_util/geometry_types.py`` of comfyanonymous/ComfyUI (2026): the splat
 class (``Types.SPLAT``; ``Types.GAUSSIAN`` before the rename) with its constructor
 ``(positions, scales, rotations, opacities, sh, counts=None)`` and ``Types.File3D(source,
-file_format="")`` with ``format``, ``get_bytes()`` and ``save_to()``. Only what the pack uses.
+file_format="")`` with ``format``, ``get_bytes()`` and ``save_to()``; and of ``comfy_api/latest/_io.py``
+the link type ``IO.File3DSplatAny`` (``io_type`` "FILE_3D_SPLAT_ANY", a later addition). Only what the
+pack uses.
 """
 
 from __future__ import annotations
@@ -46,11 +48,14 @@ class File3D:
         return path
 
 
-def install(monkeypatch, splat_name: str = "SPLAT") -> types.SimpleNamespace:
-    """Make ``import comfy_api.latest`` give ``Types`` with ``splat_name`` and ``File3D``; returns ``Types``."""
+def install(monkeypatch, splat_name: str = "SPLAT", splat_any: bool = True) -> types.SimpleNamespace:
+    """Make ``import comfy_api.latest`` give ``Types`` with ``splat_name`` and ``File3D``, and ``IO`` with
+    the link type ``File3DSplatAny`` ("FILE_3D_SPLAT_ANY") when ``splat_any``; returns ``Types``."""
     api_types = types.SimpleNamespace(**{splat_name: Splat, "File3D": File3D})
     package, latest = types.ModuleType("comfy_api"), types.ModuleType("comfy_api.latest")
     latest.Types = api_types
+    latest.IO = types.SimpleNamespace(**({"File3DSplatAny": types.SimpleNamespace(io_type="FILE_3D_SPLAT_ANY")}
+                                         if splat_any else {}))
     package.latest = latest
     monkeypatch.setitem(sys.modules, "comfy_api", package)
     monkeypatch.setitem(sys.modules, "comfy_api.latest", latest)

@@ -2,8 +2,9 @@
 
 Same model classes and wiring as SDXL (dual CLIP text encoders, text_time additional
 embeddings, CrossAttn down/up blocks with several transformer layers, a ControlNet built
-from the UNet, an 8x VAE, a CLIP vision encoder with projection), with widths of a few
-channels so a whole sampling run takes a fraction of a second on a CPU.
+from the UNet, an 8x VAE, a CLIP vision encoder with projection): the library's reference
+configs (:mod:`artnvg_core.diffusion.architectures`) with widths of a few channels, so a whole
+sampling run takes a fraction of a second on a CPU.
 
 Test modules import the autouse fixture ``one_cpu_thread``.
 ``write_csgo_file`` writes a CSGO weight file in the released key layout, enumerating the
@@ -32,7 +33,13 @@ from transformers import (
 )
 from transformers.convert_slow_tokenizer import bytes_to_unicode
 
-from artnvg_core.diffusion.architectures import SDXL_SCHEDULER_CONFIG
+from artnvg_core.diffusion.architectures import (
+    CLIP_L_TEXT_CONFIG,
+    SDXL_SCHEDULER_CONFIG,
+    SDXL_UNET_CONFIG,
+    SDXL_VAE_CONFIG,
+    VIT_BIGG_IMAGE_ENCODER_CONFIG,
+)
 from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig
 
 TEXT_WIDTH = 8  # each text encoder; the UNet's cross-attention width is 2 * TEXT_WIDTH
@@ -54,23 +61,17 @@ def one_cpu_thread():
 
 def tiny_unet(seed: int = 0) -> UNet2DConditionModel:
     torch.manual_seed(seed)
-    return UNet2DConditionModel(
+    return UNet2DConditionModel(**dict(
+        SDXL_UNET_CONFIG,
         sample_size=8,
-        in_channels=4,
-        out_channels=4,
         block_out_channels=(8, 16, 32),
-        layers_per_block=2,
-        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
-        up_block_types=("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
         transformer_layers_per_block=(1, 1, 2),
         attention_head_dim=(2, 4, 8),
         cross_attention_dim=CROSS_DIM,
         norm_num_groups=4,
-        use_linear_projection=True,
-        addition_embed_type="text_time",
         addition_time_embed_dim=TIME_EMBED_DIM,
         projection_class_embeddings_input_dim=6 * TIME_EMBED_DIM + TEXT_WIDTH,
-    ).eval()
+    )).eval()
 
 
 def tiny_controlnet(unet: UNet2DConditionModel, seed: int = 1) -> ControlNetModel:
@@ -86,18 +87,9 @@ def tiny_controlnet(unet: UNet2DConditionModel, seed: int = 1) -> ControlNetMode
 
 def tiny_vae(seed: int = 2) -> AutoencoderKL:
     torch.manual_seed(seed)
-    return AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        down_block_types=("DownEncoderBlock2D",) * 4,
-        up_block_types=("UpDecoderBlock2D",) * 4,
-        block_out_channels=(4, 4, 8, 8),
-        layers_per_block=1,
-        latent_channels=4,
-        norm_num_groups=2,
-        sample_size=64,
-        scaling_factor=0.13025,
-    ).eval()
+    return AutoencoderKL(**dict(
+        SDXL_VAE_CONFIG, block_out_channels=(4, 4, 8, 8), layers_per_block=1, norm_num_groups=2, sample_size=64
+    )).eval()
 
 
 def tiny_tokenizer(pad_token: str = "<|endoftext|>") -> CLIPTokenizer:
@@ -110,18 +102,19 @@ def tiny_tokenizer(pad_token: str = "<|endoftext|>") -> CLIPTokenizer:
 
 
 def _text_config() -> CLIPTextConfig:
-    return CLIPTextConfig(
+    """CLIP ViT-L/14's text tower (both tiny encoders use it), over the byte vocabulary of :func:`tiny_tokenizer`."""
+    return CLIPTextConfig(**dict(
+        CLIP_L_TEXT_CONFIG,
         vocab_size=514,
         hidden_size=TEXT_WIDTH,
         intermediate_size=16,
         num_hidden_layers=2,
         num_attention_heads=2,
-        max_position_embeddings=77,
         projection_dim=TEXT_WIDTH,
         bos_token_id=512,
         eos_token_id=513,
         pad_token_id=513,
-    )
+    ))
 
 
 def tiny_text_encoders(seed: int = 3) -> tuple[CLIPTextModel, CLIPTextModelWithProjection]:
@@ -131,15 +124,14 @@ def tiny_text_encoders(seed: int = 3) -> tuple[CLIPTextModel, CLIPTextModelWithP
 
 def tiny_image_encoder(seed: int = 4) -> CLIPVisionModelWithProjection:
     torch.manual_seed(seed)
-    config = CLIPVisionConfig(
+    config = CLIPVisionConfig(**dict(
+        VIT_BIGG_IMAGE_ENCODER_CONFIG,
         hidden_size=ENCODER_WIDTH,
         intermediate_size=32,
         num_hidden_layers=3,
         num_attention_heads=2,
-        image_size=224,
-        patch_size=14,
         projection_dim=8,
-    )
+    ))
     return CLIPVisionModelWithProjection(config).eval()
 
 
@@ -240,16 +232,25 @@ def tiny_models(tmp_path: Path | None = None, num_style_tokens: int = 8, unet_co
     return DiffusionModels(base=base, controlnet=controlnet, image_encoder=tiny_image_encoder(), csgo=csgo)
 
 
+def diffusers_pipeline(base, scheduler, controlnet: ControlNetModel | None = None):
+    """diffusers' own SDXL pipeline over ``base``'s models (an SDXLBase; the ControlNet pipeline with
+    ``controlnet``), without watermarker or progress bar: the reference the tests compare with."""
+    from diffusers import StableDiffusionXLControlNetPipeline, StableDiffusionXLPipeline
+
+    parts = dict(vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2,
+                 tokenizer=base.tokenizer, tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=scheduler,
+                 add_watermarker=False)
+    pipe = (StableDiffusionXLPipeline(**parts) if controlnet is None
+            else StableDiffusionXLControlNetPipeline(controlnet=controlnet, **parts))
+    pipe.set_progress_bar_config(disable=True)
+    return pipe
+
+
 def write_model_files(root: Path) -> dict[str, Path]:
     """Tiny model files in the layouts the loaders read: a diffusers SDXL folder, a ControlNet folder,
     a transformers image encoder folder and a CSGO ``.bin``; returns their paths by role."""
-    from diffusers import StableDiffusionXLPipeline
-
     base = tiny_base()
-    StableDiffusionXLPipeline(
-        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=tiny_scheduler(),
-    ).save_pretrained(root / "sdxl")
+    diffusers_pipeline(base, tiny_scheduler()).save_pretrained(root / "sdxl")
     controlnet = tiny_controlnet(base.unet)
     controlnet.save_pretrained(root / "controlnet")
     tiny_image_encoder().save_pretrained(root / "image_encoder")

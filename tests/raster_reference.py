@@ -11,7 +11,9 @@ C0 = 0.28209479177387814
 
 
 def _rotation(q):
-    w, x, y, z = q / np.linalg.norm(q)
+    """Rotation matrix of quaternion w x y z of any norm; the zero quaternion is the identity."""
+    norm = np.linalg.norm(q)
+    w, x, y, z = q / norm if norm > 0 else (1.0, 0.0, 0.0, 0.0)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -72,17 +74,21 @@ def brute_force_render(means, quats, log_scales, opacity_logits, sh, w2c, K, wid
         if filter_3d is not None:
             opacity *= np.sqrt(np.prod(variances) / np.prod(variances + filter_3d[i] ** 2))
             variances = variances + filter_3d[i] ** 2
-        cov = _rotation(quats[i]) @ np.diag(variances) @ _rotation(quats[i]).T
-        cov_c = rot_w @ cov @ rot_w.T
         tx = p[2] * min((width - cx) / fx + 0.3 * 0.5 * width / fx, max(-(cx / fx + 0.3 * 0.5 * width / fx), p[0] / p[2]))
         ty = p[2] * min((height - cy) / fy + 0.3 * 0.5 * height / fy, max(-(cy / fy + 0.3 * 0.5 * height / fy), p[1] / p[2]))
         J = np.array([[fx / p[2], 0, -fx * tx / p[2] ** 2], [0, fy / p[2], -fy * ty / p[2] ** 2]])
-        cov2 = J @ cov_c @ J.T + blur * np.eye(2)
+        # cov2 = A A^T + blur I with A = J W R S; its determinant from A's 2x2 minors (Cauchy-Binet) and
+        # its inverse as adjugate / determinant: no cancellation for needles of any aspect ratio
+        A = J @ rot_w @ _rotation(quats[i]) @ np.diag(np.sqrt(variances))
+        cov2 = A @ A.T + blur * np.eye(2)
+        det_a = float((np.cross(A[0], A[1]) ** 2).sum())
+        det = det_a + blur * np.trace(A @ A.T) + blur * blur
         if antialiased:
-            opacity *= np.sqrt(np.linalg.det(cov2 - blur * np.eye(2)) / np.linalg.det(cov2))
+            opacity *= np.sqrt(det_a / det)
+        conic = np.array([[cov2[1, 1], -cov2[0, 1]], [-cov2[1, 0], cov2[0, 0]]]) / det
         color = _sh_color(sh[i], (means[i] - cam_center) / np.linalg.norm(means[i] - cam_center))
         mean2 = np.array([fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy])
-        splats.append((p[2], mean2, np.linalg.inv(cov2), opacity, color))
+        splats.append((p[2], mean2, conic, opacity, color))
     splats.sort(key=lambda s: s[0])
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
     rgb = np.zeros((height, width, 3))

@@ -45,14 +45,14 @@ def test_job_options_become_stylize_arguments_from_json_or_csv(tmp_path):
 
 def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
     good = {"scene": "a.ply", "style": "s.jpg", "out": "a.ply"}
-    entries = [good, {**good, "out": "b.ply", "steps": 3}, {**good, "out": "c.ply", "devices": "cuda:0"},
+    entries = [good, {**good, "out": "b.ply", "strength": 3}, {**good, "out": "c.ply", "devices": "cuda:0"},
                {**good, "out": "d.ply", "compile": "maybe"}, {"scene": "a.ply"}, {**good, "out": "e.ply", "preset": "slow"},
                {**good, "out": "f.ply", "iters": "many"}, "a.ply", {**good, "out": "./a.ply"},
                {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "h.ply"}]
     jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), _options())
     errors = [job.error for job in jobs]
     assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "a.ply"
-    expected = ["unknown option 'steps' (stylize has no --steps", "'devices' is not a job option; give --devices",
+    expected = ["unknown option 'strength' (stylize has no --strength", "'devices' is not a job option; give --devices",
                 "'compile' is a flag; expected true or false, got 'maybe'", "no out given",
                 "argument --preset: invalid choice: 'slow'", "argument --iters: invalid int value: 'many'",
                 'expected an object of stylize options, got "a.ply"', "writes " + str(tmp_path.resolve() / "a.ply") +

@@ -2,7 +2,7 @@
 
 import pytest
 import torch
-from diffusers import ControlNetModel, StableDiffusionXLPipeline
+from diffusers import ControlNetModel
 from safetensors.torch import save_file
 
 from artnvg_core.diffusion.model_files import CSGO_WEIGHTS, IMAGE_ENCODER, MissingModelError, hf_cache_path, locate
@@ -16,6 +16,7 @@ from artnvg_core.diffusion.models import (
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import (
     csgo_state,
+    diffusers_pipeline,
     tiny_base,
     tiny_controlnet,
     tiny_image_encoder,
@@ -34,16 +35,7 @@ def _same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 def sdxl_folder(tmp_path_factory):
     base = tiny_base()
     folder = tmp_path_factory.mktemp("sdxl")
-    StableDiffusionXLPipeline(
-        vae=base.vae,
-        text_encoder=base.text_encoder,
-        text_encoder_2=base.text_encoder_2,
-        tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2,
-        unet=base.unet,
-        scheduler=tiny_scheduler(),
-        add_watermarker=False,
-    ).save_pretrained(folder)
+    diffusers_pipeline(base, tiny_scheduler()).save_pretrained(folder)
     return folder, base
 
 

@@ -2,19 +2,25 @@
 
 import pytest
 import torch
-from diffusers import StableDiffusionXLControlNetPipeline
+from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, UniPCMultistepScheduler
 from diffusers.models.attention_processor import AttnProcessor2_0
 
 from artnvg_core.cameras import CameraSet
 from artnvg_core.diffusion.attention import AttentionControl
 from artnvg_core.diffusion.conditioning import encode_prompt, image_features, prepare_conditioning
 from artnvg_core.diffusion.memory import enable_low_memory, visiting
-from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings, stylize_group
-from artnvg_core.diffusion.stylize import stylize_views
+from artnvg_core.diffusion.sampler import (
+    SCHEDULERS,
+    SamplerSettings,
+    guided_steps,
+    resample_noise,
+    stylize_group,
+)
+from artnvg_core.diffusion.stylize import stylize_groups, stylize_views
 from artnvg_core.grouping import group_views
 from artnvg_core.progress import Cancelled
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
-from diffusion_tiny import tiny_models
+from diffusion_tiny import diffusers_pipeline, tiny_models
 
 PROMPT, NEGATIVE = "a garden, oil painting", "blurry"
 
@@ -29,23 +35,25 @@ def csgo_models(tmp_path_factory):
     return tiny_models(tmp_path_factory.mktemp("csgo"))
 
 
-def _diffusers_reference(models, images, scheduler, steps, guidance, control_scale, seed):
+def _stop_guidance_after(step_count: int):
+    """diffusers' callback for dynamic classifier-free guidance: after ``step_count`` steps, guidance off and
+    the conditional half of every doubled input kept (the documented "truncation of CFG" recipe)."""
+
+    def callback(pipe, step, timestep, tensors):
+        if step + 1 != step_count:
+            return {}
+        pipe._guidance_scale = 0.0
+        return {name: value.chunk(2)[1] for name, value in tensors.items()}
+
+    return callback
+
+
+def _diffusers_reference(models, images, scheduler, steps, guidance, control_scale, seed, guided_steps=None):
     base = models.base
     saved = {name: dict(model.attn_processors) for name, model in (("unet", base.unet), ("cn", models.controlnet))}
     base.unet.set_attn_processor(AttnProcessor2_0())
     models.controlnet.set_attn_processor(AttnProcessor2_0())
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae,
-        text_encoder=base.text_encoder,
-        text_encoder_2=base.text_encoder_2,
-        tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2,
-        unet=base.unet,
-        controlnet=models.controlnet,
-        scheduler=SCHEDULERS[scheduler].from_config(base.scheduler_config),
-        add_watermarker=False,
-    )
-    pipe.set_progress_bar_config(disable=True)
+    pipe = diffusers_pipeline(base, SCHEDULERS[scheduler].from_config(base.scheduler_config), models.controlnet)
     try:
         out = pipe(
             prompt=[PROMPT] * len(images),
@@ -58,6 +66,8 @@ def _diffusers_reference(models, images, scheduler, steps, guidance, control_sca
             controlnet_conditioning_scale=control_scale,
             generator=torch.Generator().manual_seed(seed),
             output_type="pt",
+            callback_on_step_end=None if guided_steps is None else _stop_guidance_after(guided_steps),
+            callback_on_step_end_tensor_inputs=["prompt_embeds", "add_text_embeds", "add_time_ids", "image"],
         ).images
     finally:
         base.unet.set_attn_processor(saved["unet"])
@@ -65,11 +75,15 @@ def _diffusers_reference(models, images, scheduler, steps, guidance, control_sca
     return out.permute(0, 2, 3, 1)
 
 
-@pytest.mark.parametrize("scheduler, guidance", [("ddim", 7.0), ("euler_ancestral", 5.0), ("ddim", 1.0)])
-def test_matches_diffusers_controlnet_pipeline(csgo_models, scheduler, guidance):
-    """NV attention off and CSGO scales 0: our sampler is diffusers' SDXL ControlNet pipeline."""
+@pytest.mark.parametrize("scheduler, guidance, cfg_until", [
+    ("ddim", 7.0, 1.0), ("euler_ancestral", 5.0, 1.0), ("ddim", 1.0, 1.0), ("dpmpp_2m", 7.0, 1.0),
+    ("unipc", 7.0, 0.5), ("ddim", 7.0, 0.3)])
+def test_matches_diffusers_controlnet_pipeline(csgo_models, scheduler, guidance, cfg_until):
+    """NV attention off and CSGO scales 0: our sampler is diffusers' SDXL ControlNet pipeline, with guidance
+    truncated as diffusers' dynamic-CFG callback truncates it (2 of 4 steps guided at 0.5, 2 at 0.3)."""
     images = _images(3)
-    expected = _diffusers_reference(csgo_models, images, scheduler, 4, guidance, 0.8, seed=7)
+    guided = None if cfg_until == 1 else {0.5: 2, 0.3: 2}[cfg_until]
+    expected = _diffusers_reference(csgo_models, images, scheduler, 4, guidance, 0.8, seed=7, guided_steps=guided)
     conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
     settings = SamplerSettings(
         steps=4,
@@ -80,6 +94,7 @@ def test_matches_diffusers_controlnet_pipeline(csgo_models, scheduler, guidance)
         neighbour_views=False,
         resolution=None,
         scheduler=scheduler,
+        cfg_until=cfg_until,
     )
     ours = stylize_group(csgo_models, images, conditioning, settings, seed=7)
     assert ours.shape == (3, 64, 64, 3)
@@ -105,12 +120,7 @@ def test_csgo_tokens_match_diffusers_pipeline_at_a_non_square_size(csgo_models):
     images, style_image = _images(views, height=64, width=128), _images(1, seed=9)
     control = AttentionControl(num_content_tokens=4, num_style_tokens=8, content_scale=0.8, style_scale=0.7)
     base = models.base
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, controlnet=models.controlnet,
-        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config), add_watermarker=False,
-    )
-    pipe.set_progress_bar_config(disable=True)
+    pipe = diffusers_pipeline(base, SCHEDULERS["ddim"].from_config(base.scheduler_config), models.controlnet)
     text, negative_text, pooled, negative_pooled = pipe.encode_prompt(PROMPT, device=torch.device("cpu"),
                                                                       negative_prompt=NEGATIVE)
     style = models.csgo.tokens("style", image_features(models.image_encoder, style_image))
@@ -142,17 +152,7 @@ def test_csgo_tokens_match_diffusers_pipeline_at_a_non_square_size(csgo_models):
 
 def test_prompt_encoding_matches_diffusers(csgo_models):
     base = csgo_models.base
-    pipe = StableDiffusionXLControlNetPipeline(
-        vae=base.vae,
-        text_encoder=base.text_encoder,
-        text_encoder_2=base.text_encoder_2,
-        tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2,
-        unet=base.unet,
-        controlnet=csgo_models.controlnet,
-        scheduler=SCHEDULERS["ddim"].from_config(base.scheduler_config),
-        add_watermarker=False,
-    )
+    pipe = diffusers_pipeline(base, SCHEDULERS["ddim"].from_config(base.scheduler_config), csgo_models.controlnet)
     for negative in (NEGATIVE, None):
         ours = encode_prompt(base, PROMPT, negative)
         theirs = pipe.encode_prompt(PROMPT, device=torch.device("cpu"), negative_prompt=negative)
@@ -161,11 +161,11 @@ def test_prompt_encoding_matches_diffusers(csgo_models):
     assert not encode_prompt(base, PROMPT, None).negative_text.any()
 
 
-def _run(models, images, seed=3, **changes):
+def _run(models, images, seed=3, noise_seeds=None, **changes):
     settings = dict(steps=2, guidance_scale=5.0, resolution=None)
     settings.update(changes)
     conditioning = prepare_conditioning(models, _images(1, seed=9), PROMPT, NEGATIVE)
-    return stylize_group(models, images, conditioning, SamplerSettings(**settings), seed=seed)
+    return stylize_group(models, images, conditioning, SamplerSettings(**settings), seed=seed, noise_seeds=noise_seeds)
 
 
 def test_switches_change_the_result(csgo_models):
@@ -212,6 +212,111 @@ def test_samples_at_the_working_size_and_returns_the_views_size(csgo_models, siz
     assert set(seen) == {latent}
     assert out.shape == (2, 50, 90, 3) and out.dtype == torch.float32
     assert out.min() >= 0 and out.max() <= 1
+
+
+def _unet_batches(models, run) -> list[int]:
+    """Batch sizes of the UNet calls made by ``run()``."""
+    seen = []
+    hook = models.base.unet.register_forward_pre_hook(lambda module, args: seen.append(len(args[0])))
+    try:
+        run()
+    finally:
+        hook.remove()
+    return seen
+
+
+@pytest.mark.parametrize("scheduler", ["ddim", "dpmpp_2m", "unipc"])
+def test_scheduler_and_steps_reach_diffusers(csgo_models, scheduler, monkeypatch):
+    """The named diffusers scheduler class is the one that steps, set to the requested step count; one
+    UNet call per step."""
+    used = []
+
+    class Recording(SCHEDULERS[scheduler]):
+        def set_timesteps(self, steps, *args, **kwargs):
+            used.append((type(self).__mro__[1], steps))
+            return super().set_timesteps(steps, *args, **kwargs)
+
+    monkeypatch.setitem(SCHEDULERS, scheduler, Recording)
+    batches = _unet_batches(csgo_models, lambda: _run(csgo_models, _images(2), steps=3, scheduler=scheduler))
+    expected = {"ddim": DDIMScheduler, "dpmpp_2m": DPMSolverMultistepScheduler, "unipc": UniPCMultistepScheduler}
+    assert used == [(expected[scheduler], 3)] and batches == [4, 4, 4]
+    config = Recording.from_config(csgo_models.base.scheduler_config).config
+    if scheduler == "dpmpp_2m":
+        assert (config.algorithm_type, config.solver_order) == ("dpmsolver++", 2)
+
+
+def test_guidance_truncation_halves_the_late_steps(csgo_models):
+    """cfg_until: the first ceil(fraction x steps) steps run both guidance halves (batch 2N), the rest the
+    conditional half (batch N); 1.0 is the untruncated run bit for bit, 0 the unguided run; sequential
+    halves agree."""
+    images = _images(3)
+    full = _run(csgo_models, images, steps=5)
+    assert torch.equal(_run(csgo_models, images, steps=5, cfg_until=1.0), full)
+    truncated = []
+    for cfg_until, sequential, expected in ((0.6, False, [6, 6, 6, 3, 3]), (0.6, True, [3, 3, 3, 3, 3, 3, 3, 3]),
+                                            (0.0, False, [3] * 5), (0.8, False, [6] * 4 + [3])):
+        batches = _unet_batches(csgo_models, lambda: truncated.append(
+            _run(csgo_models, images, steps=5, cfg_until=cfg_until, sequential_cfg=sequential)))
+        assert batches == expected, (cfg_until, sequential)
+    torch.testing.assert_close(truncated[1], truncated[0], rtol=0, atol=1e-5)
+    torch.testing.assert_close(truncated[2], _run(csgo_models, images, steps=5, guidance_scale=1.0), rtol=0, atol=1e-5)
+    assert (truncated[0] - full).abs().max() > 1e-4 and (truncated[0] - truncated[2]).abs().max() > 1e-4
+    assert guided_steps(SamplerSettings(steps=50, cfg_until=0.8), 50) == 40
+    assert guided_steps(SamplerSettings(steps=50, cfg_until=0.8, guidance_scale=1.0), 50) == 0
+    for value in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="SamplerSettings.cfg_until must be in \\[0, 1\\]"):
+            SamplerSettings(cfg_until=value)
+
+
+def _first_unet_input(models, run) -> torch.Tensor:
+    """The latents the UNet sees first in ``run()`` (DDIM: the initial noise itself)."""
+    seen = []
+    hook = models.base.unet.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
+    try:
+        run()
+    finally:
+        hook.remove()
+    return seen[0]
+
+
+def test_noise_resolution_resamples_the_noise_of_the_other_grid(csgo_models):
+    """At resolution 64 (latents 8x8) with noise_resolution 128, the first latents are the seeded 16x16 noise
+    resampled to 8x8; at its own resolution the setting changes nothing."""
+    images = _images(2)
+    noise = _first_unet_input(csgo_models, lambda: _run(csgo_models, images, resolution=64, noise_resolution=128))
+    expected = resample_noise(torch.randn((2, 4, 16, 16), generator=torch.Generator().manual_seed(3)), (8, 8))
+    torch.testing.assert_close(noise[:2], expected)
+    assert torch.equal(_run(csgo_models, images, resolution=64, noise_resolution=64),
+                       _run(csgo_models, images, resolution=64))
+    with pytest.raises(ValueError, match="SamplerSettings.noise_resolution"):
+        SamplerSettings(noise_resolution=32)
+
+
+def test_resample_noise_area_averages_and_standardises():
+    coarse = torch.randn(2, 4, 4, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    fine = coarse.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3)  # each coarse cell as 2x2 cells
+    out = resample_noise(fine, (4, 6))
+    standard = (coarse - coarse.mean((2, 3), keepdim=True)) / coarse.std((2, 3), keepdim=True)
+    torch.testing.assert_close(out, standard)
+    odd = resample_noise(torch.randn(3, 4, 16, 16, generator=torch.Generator().manual_seed(1)), (12, 12))
+    assert odd.shape == (3, 4, 12, 12)
+    torch.testing.assert_close(odd.mean((2, 3)), torch.zeros(3, 4), atol=1e-6, rtol=0)
+    torch.testing.assert_close(odd.std((2, 3)), torch.ones(3, 4), atol=1e-6, rtol=0)
+    assert resample_noise(coarse, (4, 6)) is coarse
+
+
+def test_noise_seeds_give_each_view_its_own_noise_whatever_its_group(csgo_models):
+    """With one seed per view and NV attention off (views independent), a view's result does not depend on
+    the group it is sampled in; its first latents are its own seeded noise."""
+    images = _images(3)
+    together = _run(csgo_models, images, neighbour_views=False, noise_seeds=[10, 11, 12])
+    alone = _run(csgo_models, images[1:2], neighbour_views=False, noise_seeds=[11])
+    torch.testing.assert_close(alone, together[1:2], rtol=0, atol=1e-5)
+    noise = _first_unet_input(csgo_models, lambda: _run(csgo_models, images[1:], noise_seeds=[11, 12]))
+    expected = torch.cat([torch.randn((1, 4, 8, 8), generator=torch.Generator().manual_seed(s)) for s in (11, 12)])
+    torch.testing.assert_close(noise[:2], expected)
+    with pytest.raises(ValueError, match="2 noise_seeds for 3 views"):
+        _run(csgo_models, images, noise_seeds=[1, 2])
 
 
 def test_progress_and_stop(csgo_models):
@@ -286,6 +391,22 @@ def test_scene_runs_groups_and_keeps_view_order(csgo_models):
     for index, views in enumerate(groups):
         expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=10 + index)
         torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)
+
+
+def test_scene_hands_each_group_its_views_noise_seeds(csgo_models):
+    images, cameras = _images(6), _line_cameras(6)
+    groups = group_views(cameras, 3)
+    conditioning = prepare_conditioning(csgo_models, _images(1, seed=9), PROMPT, NEGATIVE)
+    settings = SamplerSettings(steps=1, guidance_scale=5.0, resolution=None)
+    seeds = [100 + 7 * v for v in range(6)]
+    out = stylize_groups(csgo_models, images, groups, conditioning, settings, seed=4, noise_seeds=seeds)
+    for index, group in enumerate(groups):
+        views = list(group.views)
+        expected = stylize_group(csgo_models, images[views], conditioning, settings, seed=4 + index,
+                                 noise_seeds=[seeds[v] for v in views], view_centers=cameras.centers[views])
+        torch.testing.assert_close(out[views], expected, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="5 noise_seeds for 6 views"):
+        stylize_groups(csgo_models, images, groups, conditioning, settings, noise_seeds=seeds[:5])
 
 
 def test_sequential_guidance_halves_match_the_joint_batch(csgo_models):

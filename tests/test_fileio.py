@@ -129,3 +129,15 @@ def test_written_together_all_or_nothing(tmp_path):
             ta.write_text("a2")
             tb.write_text("b2")
     assert a.read_text() == "a" and b.is_dir() and sorted(os.listdir(a.parent)) == [b.name, a.name]
+
+
+def test_written_together_names_the_paths_in_a_refusal_from_the_block(tmp_path):
+    a, b = tmp_path / "a.ply", tmp_path / "a.contact.png"
+    with pytest.raises(ValueError) as refused:
+        with written_together(a, b) as (ta, tb):
+            raise ValueError(f"{ta}: not written: no Gaussians; {tb} neither")
+    assert str(refused.value) == f"{a}: not written: no Gaussians; {b} neither"
+    with pytest.raises(ValueError, match="^unrelated$"):
+        with written_together(a, b):
+            raise ValueError("unrelated")
+    assert os.listdir(tmp_path) == []

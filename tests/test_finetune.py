@@ -118,6 +118,16 @@ def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
     assert load_image(sheet).shape[0] == 2 * cameras.height + 4
 
 
+def test_save_result_refuses_a_scene_type_before_rendering_the_sheet(demo, tmp_path, monkeypatch):
+    import artnvg_core.stylize
+
+    scene, cameras, style = demo
+    monkeypatch.setattr(artnvg_core.stylize, "contact_sheet", lambda *args, **kwargs: pytest.fail("rendered"))
+    with pytest.raises(ValueError, match=r"result\.obj: cannot write scene file type '\.obj'"):
+        save_result(scene, scene, cameras, style, tmp_path / "result.obj")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_vgg_terms_see_the_render_and_style_sized_as_arf_does(demo):
     """Step 1's NNFM term (before any update) equals an independent computation on ARF's half-size
     render, ``interpolate(render, scale_factor=0.5, mode="bilinear")``, against the style image
@@ -234,3 +244,37 @@ def test_a_view_that_sees_no_gaussian_is_skipped_with_a_warning(demo, caplog):
     assert not torch.equal(result.sh, scene.sh) and torch.isfinite(result.sh).all()
     with pytest.raises(ValueError, match="none of the 2 cameras sees any Gaussian"):
         finetune(scene, _looking_away(cameras.subset([0, 1])), style, config=config)
+
+
+def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatch):
+    """Gaussians 3 and 7 get NaN colour gradients at every step (as a rasterizer's NaN gradient of an
+    extreme Gaussian would), and step 2's render is NaN: the run goes on, says which step and which
+    Gaussians, those two keep their values, the others change, everything stays finite."""
+    import artnvg_core.finetune
+
+    scene, cameras, style = demo
+    calls = []
+
+    def poisoned(scene, cameras, **kwargs):
+        out = render(scene, cameras, **kwargs)
+        if torch.is_grad_enabled():
+            calls.append(len(calls) + 1)
+            scene.sh.register_hook(lambda grad: grad.index_fill(0, torch.tensor([3, 7]), float("nan")))
+            if len(calls) == 2:
+                out.rgb = out.rgb * float("nan")
+        return out
+
+    monkeypatch.setattr(artnvg_core.finetune, "render", poisoned)
+    config = FinetuneConfig(iterations=4, nnfm_max_side=32, color_transfer=False, optimize="all")
+    with caplog.at_level("WARNING"):
+        result = finetune(scene, cameras, style, config=config)
+    messages = [r.message for r in caplog.records]
+    assert messages[0] == ("finetune: step 1: 2 Gaussians have non-finite (or >= 1e+18) gradients (3, 7); "
+                           "they keep their last finite values this step")
+    assert messages[1].startswith("finetune: step 2: the loss is not finite (nnfm nan, content nan")
+    assert messages[2:] == ["finetune: 1 steps skipped for a non-finite loss (first at step 2)",
+                            "finetune: 3 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (3, 7)"]
+    for name, value in result.tensors().items():
+        assert torch.isfinite(value).all(), name
+        assert torch.equal(value[[3, 7]], getattr(scene, name)[[3, 7]]), name
+    assert not torch.equal(result.sh[8:], scene.sh[8:]) and not torch.equal(result.means[8:], scene.means[8:])

@@ -1,5 +1,6 @@
 """nerfstudio splatfacto checkpoints: tensors, SH degree 0 colours, errors, the run's rasterize_mode."""
 
+import zipfile
 from fractions import Fraction
 from pathlib import Path
 
@@ -135,6 +136,25 @@ def test_files_that_are_not_splatfacto_checkpoints(tmp_path):
     truncated.write_bytes(save_splatfacto(tmp_path / "full.ckpt", splatfacto_params(3, 1)).read_bytes()[:300])
     with pytest.raises(ValueError, match=r"truncated\.ckpt: not a loadable torch checkpoint"):
         read_splatfacto_ckpt(truncated)
+
+
+def test_compressed_zip_records_are_refused_before_inflating(tmp_path):
+    """torch.save stores records uncompressed; one deflated record (here 64 MiB of zeros in 64 kB,
+    a tensor torch.load would inflate) is refused by the zip directory alone, naming the record.
+    Legacy (non-zip) checkpoints hold no compressed stream and still load."""
+    path = save_splatfacto(tmp_path / "plain.ckpt", splatfacto_params(5, 1))
+    bomb = tmp_path / "bomb.ckpt"
+    with zipfile.ZipFile(path) as plain, zipfile.ZipFile(bomb, "w") as out:
+        for record in plain.infolist():
+            out.writestr(record, plain.read(record))
+        out.writestr(f"{record.filename.split('/')[0]}/data/99", bytes(1 << 26), compress_type=zipfile.ZIP_DEFLATED)
+    assert bomb.stat().st_size < 2**17
+    with pytest.raises(ValueError, match=r"bomb\.ckpt: record '[^']*/data/99' is compressed \(67108864 bytes from"):
+        read_splatfacto_ckpt(bomb)
+    legacy = tmp_path / "legacy.ckpt"
+    torch.save({"pipeline": {PREFIX + k: v for k, v in splatfacto_params(5, 1).items()}}, legacy,
+               _use_new_zipfile_serialization=False)
+    assert len(read_splatfacto_ckpt(legacy)) == 5
 
 
 @pytest.mark.parametrize(("config", "antialiased"), [

@@ -2,7 +2,13 @@
 
 import dataclasses
 import gzip
+import json
+import re
 import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,10 +125,12 @@ def test_versions_1_and_2_and_the_antialiased_flag(tmp_path):
     [
         (lambda h: h[:4] + struct.pack("<I", 9) + h[8:], "version: 9 is not a supported SPZ version"),
         (lambda h: h[:8] + struct.pack("<I", 0) + h[12:], "numPoints: 0 is not a valid Gaussian count"),
-        (lambda h: h[:8] + struct.pack("<I", 9) + h[12:], "numPoints: the data holds"),
-        (lambda h: h[:8] + struct.pack("<I", 11) + h[12:], "numPoints: 11 Gaussians of SH degree 1 need 319 bytes"),
+        (lambda h: h[:8] + struct.pack("<I", 9) + h[12:],
+         "numPoints: 9 Gaussians of SH degree 1: the stream holds more than the 261 bytes expected"),
+        (lambda h: h[:8] + struct.pack("<I", 11) + h[12:],
+         "numPoints: 11 Gaussians of SH degree 1: 319 bytes expected, the stream ends after 290"),
         (lambda h: h[:12] + bytes([5]) + h[13:], "shDegree: 5 is above SPZ's maximum 4"),
-        (lambda h: h[:12] + bytes([2]) + h[13:], "numPoints: 10 Gaussians of SH degree 2 need"),
+        (lambda h: h[:12] + bytes([2]) + h[13:], "numPoints: 10 Gaussians of SH degree 2: 440 bytes expected"),
         (lambda h: b"XGSP" + h[4:], "magic: 0x50534758, expected 0x5053474e"),
     ],
 )
@@ -193,3 +201,76 @@ def test_antialiased_flag_round_trips(tmp_path):
     write_spz(scene, tmp_path / "aa.spz")
     assert payload_arrays(tmp_path / "aa.spz")[0][5] == 1
     assert read_spz(tmp_path / "aa.spz").antialiased
+
+
+BOMB_BYTES = 2**31  # what each bomb inflates to: 2 GiB
+
+
+def gzip_bomb(prefix: bytes, zeros: int) -> bytes:
+    """A valid gzip member of ``prefix`` then ``zeros`` zero bytes, about zeros / 1000 bytes long: the
+    deflate block of 1 MiB of zeros after a full flush is the same every time, so it is made once
+    and repeated."""
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    head = compressor.compress(prefix) + compressor.flush(zlib.Z_FULL_FLUSH)
+    block = compressor.compress(bytes(1 << 20)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    assert zeros % (1 << 26) == 0
+    crc, chunk = zlib.crc32(prefix), bytes(1 << 26)
+    for _ in range(zeros >> 26):
+        crc = zlib.crc32(chunk, crc)
+    body = head + block * (zeros >> 20) + compressor.flush(zlib.Z_FINISH)
+    return b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xff" + body + struct.pack("<II", crc, (len(prefix) + zeros) & 0xFFFFFFFF)
+
+
+def zstd_of_zeros(total: int) -> bytes:
+    """One zstd frame of ``total`` zero bytes whose header declares that size."""
+    compressor = zstandard.ZstdCompressor(level=1).compressobj(size=total)
+    chunk = bytes(1 << 26)
+    return b"".join([compressor.compress(chunk) for _ in range(total >> 26)] + [compressor.flush()])
+
+
+LOAD_AND_MEASURE = """
+import json, resource, sys, time
+from artnvg_core.formats import load_scene
+def peak():  # this process's own high-water mark: ru_maxrss would carry the forking parent's over exec
+    try:
+        status = open("/proc/self/status").read()
+        return int(status.split("VmHWM:")[1].split()[0]) * 1024
+    except (OSError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+before, start = peak(), time.perf_counter()
+try:
+    load_scene(sys.argv[1])
+    message = None
+except ValueError as error:
+    message = str(error)
+seconds = time.perf_counter() - start
+print(json.dumps({"message": message, "seconds": seconds, "peak": peak(), "growth": peak() - before}))
+"""
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_decompression_bomb_is_refused_quickly_in_little_memory(tmp_path, version):
+    """A 2 MB (gzip, version 3) or 66 kB (zstd, version 4) file with a valid header for 10 Gaussians
+    whose stream inflates to 2 GiB: refused after inflating one byte past the 650 bytes the header
+    implies, within 2 s and 1 GB for the whole process (measured in a fresh one, whose peak memory
+    the load raises by less than 64 MiB)."""
+    header = struct.pack("<IIIBBBB", 0x5053474E, 3, 10, 0, 12, 0, 0)
+    path = tmp_path / "bomb.spz"
+    if version == 3:
+        path.write_bytes(gzip_bomb(header, BOMB_BYTES))
+        expected = r"numPoints: 10 Gaussians of SH degree 0: the stream holds more than the 200 bytes expected"
+    else:
+        stream = zstd_of_zeros(BOMB_BYTES)
+        head = struct.pack("<IIIBBBBI12x", 0x5053474E, 4, 10, 0, 12, 0, 5, 32)
+        sizes = [90, 10, 30, 30, 40]
+        toc = struct.pack("<QQ", len(stream), sizes[0]) + b"".join(struct.pack("<QQ", 9, s) for s in sizes[1:])
+        tiny = zstandard.ZstdCompressor().compress(bytes(10))  # 9 bytes; never reached
+        path.write_bytes(head + toc + stream + tiny * 4)
+        expected = r"positions stream: the stream holds more than the 90 bytes expected"
+    assert path.stat().st_size < 2.2e6
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
+                            text=True, check=True, env={"OMP_NUM_THREADS": "1", "PATH": ""})
+    report = json.loads(result.stdout)
+    assert report["message"] is not None and re.search(expected, report["message"]), report
+    assert report["seconds"] < 2 and report["peak"] < 2**30 and report["growth"] < 2**26, report

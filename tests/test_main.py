@@ -71,6 +71,30 @@ def test_outputs_checked_before_loading(tmp_path, capsys, command):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken.contact.png"]
 
 
+def test_a_scene_type_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys):
+    demo = DemoInputs()
+    out = tmp_path / "result.txt"
+    assert main(["stylize", str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style),
+                 "--out", str(out), "--stylizer", "nnfm", "--iters", "1", "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == (f"error: --out: {out}: cannot write scene file type '.txt'; "
+                            "expected one of .ply, .spz, .splat, .ksplat\n")
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+
+
+def test_a_scene_refused_by_its_writer_is_named_by_the_users_path(tmp_path, capsys, monkeypatch):
+    """The writer sees a temporary file (both outputs appear together); its message names --out."""
+    import artnvg_core.stylize
+
+    monkeypatch.setattr(artnvg_core.stylize, "stylize_nnfm", lambda scene, *args, **kwargs: scene.select(slice(0, 0)))
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    out = tmp_path / "s" / "stylized.ply"
+    assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
+                 "--stylizer", "nnfm", "--scale", "0.05", "--device", "cpu"]) == 2
+    assert capsys.readouterr().err == f"error: {out}: not written: the scene contains no Gaussians\n"
+    assert list(out.parent.iterdir()) == []
+
+
 def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
     import artnvg_core.stylize
 
@@ -102,3 +126,22 @@ def test_out_of_memory_is_an_error_with_advice(tmp_path, capsys, monkeypatch, fa
     monkeypatch.setattr(artnvg_core.cameras, "load_cameras", lambda path: 1 / 0)
     with pytest.raises(ZeroDivisionError):  # other failures are not disguised
         main(["render", "scene.ply", "--cameras", "t.json", "--out", str(tmp_path)])
+
+
+def test_gsplat_kernel_build_is_announced_on_stdout_before_it_starts(monkeypatch, capsys):
+    """The commands load the rasterizer before their first render; gsplat's build (stood in for
+    here) is announced on stdout, before it starts and with its time after, once."""
+    import torch
+
+    from artnvg_core import cliutil, raster
+    from artnvg_core.raster import gsplat_backend
+
+    monkeypatch.setattr(raster, "choose_backend", lambda backend, device, dtype=None: "gsplat")
+    monkeypatch.setattr(gsplat_backend, "_loaded", False)
+    monkeypatch.setattr(gsplat_backend, "build_pending", lambda: True)
+    monkeypatch.setattr(gsplat_backend, "_import_kernels", lambda: print("(building)") or object())
+    cliutil.prepare_rasterizer(torch.device("cuda"))
+    cliutil.prepare_rasterizer(torch.device("cuda"))
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:2] == [gsplat_backend.BUILD_NOTICE, "(building)"] and len(lines) == 3
+    assert lines[2].startswith("gsplat: CUDA kernels built in ")

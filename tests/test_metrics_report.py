@@ -182,7 +182,8 @@ def test_outputs_checked_before_any_work(inputs, tmp_path, capsys):
     (tmp_path / "taken_strip.png").mkdir()
     for out, message in [("", "--out: the output path is empty"), (tmp_path, "is a folder"),
                          (tmp_path / "file" / "r.json", "file is a file, not a folder"),
-                         (tmp_path / "taken.json", r"--out \(its strip taken_strip\.png\): .* is a folder")]:
+                         (tmp_path / "taken.json", r"--out \(its strip taken_strip\.png\): .* is a folder"),
+                         (tmp_path / "report.txt", r"--out: .*report\.txt: the report is JSON")]:
         assert _cli(inputs, "--out", str(out)) == 2
         err = capsys.readouterr().err
         assert "error: " in err and re.search(message, err) and "loading" not in err, err

@@ -1,8 +1,9 @@
 """The pack's bridge to ComfyUI: folders, model lists, progress bar, interrupt and inference mode.
 
 ComfyUI's modules are replaced by small fakes with the same names and call signatures
-(``folder_paths``, ``comfy.utils.ProgressBar``, ``comfy.model_management``); the real
-server is exercised by tests/integration/.
+(``folder_paths``, ``comfy.utils.ProgressBar``, ``comfy.model_management``,
+``server.PromptServer.instance.send_progress_text``, ``comfy_execution.utils.get_executing_context``);
+the real server is exercised by tests/integration/.
 """
 
 import sys
@@ -90,8 +91,15 @@ class FakeComfy:
         management.soft_empty_cache = soft_empty_cache
         comfy = types.ModuleType("comfy")
         comfy.utils, comfy.model_management = utils, management
+        self.texts = []  # (text, node id) sent under a node
+        server = types.ModuleType("server")
+        server.PromptServer = types.SimpleNamespace(instance=types.SimpleNamespace(
+            send_progress_text=lambda text, node_id, sid=None: fake.texts.append((text, node_id))))
+        execution = types.ModuleType("comfy_execution.utils")
+        execution.get_executing_context = lambda: types.SimpleNamespace(prompt_id="p", node_id="7", list_index=None)
         self.modules = {"folder_paths": folder_paths, "comfy": comfy, "comfy.utils": utils,
-                        "comfy.model_management": management}
+                        "comfy.model_management": management, "server": server,
+                        "comfy_execution": types.ModuleType("comfy_execution"), "comfy_execution.utils": execution}
 
 
 @pytest.fixture
@@ -203,6 +211,37 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
         interrupt_after_first_step(value, total, None))
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         node.finetune(scene, cameras, style, 50, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
+
+
+def test_gsplat_kernel_build_is_announced_under_the_running_node(comfy, monkeypatch, caplog):
+    from artnvg_core import raster
+    from artnvg_core.raster import gsplat_backend
+
+    monkeypatch.setattr(raster, "choose_backend", lambda backend, device, dtype=None: "gsplat")
+    monkeypatch.setattr(gsplat_backend, "_loaded", False)
+    monkeypatch.setattr(gsplat_backend, "build_pending", lambda: True)
+    monkeypatch.setattr(gsplat_backend, "_import_kernels", lambda: object())
+    with caplog.at_level("WARNING", logger="artnvg"):
+        comfy_bridge.prepare_rasterizer(torch.device("cuda"))
+        comfy_bridge.prepare_rasterizer(torch.device("cuda"))
+    assert [text for text, _ in comfy.texts][0] == gsplat_backend.BUILD_NOTICE
+    assert len(comfy.texts) == 2 and {node for _, node in comfy.texts} == {"7"}
+    assert comfy.texts[1][0].startswith("gsplat: CUDA kernels built in ")
+    assert [r.message for r in caplog.records] == [text for text, _ in comfy.texts]
+
+
+def test_render_and_finetune_nodes_prepare_the_rasterizer_first(comfy, monkeypatch):
+    import nodes.finetune_nodes
+    import nodes.render_nodes
+
+    prepared = []
+    for module in (nodes.render_nodes, nodes.finetune_nodes):
+        monkeypatch.setattr(module, "prepare_rasterizer", prepared.append)
+    with torch.inference_mode():
+        RenderViews().render(_tiny_scene(), _tiny_cameras(1), 1.0, 1, "")
+        FinetuneGaussians().finetune(_tiny_scene(), _tiny_cameras(1), torch.rand(1, 8, 8, 3), 1, "appearance",
+                                     0.8, 0.2, 1.0, 0.5, 0.0, 0)
+    assert prepared == [torch.device("cpu"), torch.device("cpu")]
 
 
 def test_loader_change_signature_follows_the_file(comfy):

@@ -21,7 +21,7 @@ PUBLIC_INPUTS = {
     "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
     "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
-    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views"],
+    "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views", "key_views"],
     "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
                                "loop"],
     "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
@@ -32,7 +32,7 @@ PUBLIC_INPUTS = {
     "ArtNVGNVAttentionPatch": ["models", "enabled", "levels", "nearest_views", "kv_downsample"],
     "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
                           "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler",
-                          "size_rule", "content_routing"],
+                          "size_rule", "content_routing", "cfg_until"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side", "color_transfer"],
@@ -52,7 +52,7 @@ PUBLIC_OUTPUTS = {
     "ArtNVGNVAttentionPatch": ("ARTNVG_MODELS",),
     "ArtNVGSampleGroup": ("IMAGE",),
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
-    "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_PLY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
+    "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_SPLAT_ANY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),
 }

@@ -74,6 +74,15 @@ def test_loader_reads_every_model_from_its_path(loaded):
     assert loaded.keep_loaded and not loaded.neighbour_views
 
 
+def test_loader_loads_once_per_process(loaded, model_files):
+    """The same inputs give the models already loaded; another option loads afresh."""
+    inputs = dict(LISTED, dtype="float32", device="cpu", keep_loaded=True, **model_files)
+    (again,) = call(LoadArtNVGModels, **inputs)
+    assert again.models is loaded.models and again is not loaded
+    (other,) = call(LoadArtNVGModels, **dict(inputs, keep_loaded=False))
+    assert other.models is not loaded.models
+
+
 def test_missing_model_names_the_input_the_file_and_where_to_get_it(model_files, tmp_path, monkeypatch):
     listed = dict(LISTED, csgo_weights="csgo_4_32.bin")
     paths = dict(model_files, csgo_weights_path="")
@@ -154,6 +163,12 @@ def test_sample_group_all_groups_or_one_matches_the_core(loaded):
                              group_size=2, seed=7, prompt=PROMPT, negative_prompt=NEGATIVE)
     assert torch.equal(paper, expected) and not torch.equal(paper, every)
 
+    (truncated,) = call(SampleGroup, models=patched, embeds=embeds, content_views=content, groups=groups,
+                        group_index=-1, cfg_until=0.5, **SAMPLING)
+    expected = stylize_views(loaded.models, content, cameras, style, replace(settings, cfg_until=0.5),
+                             group_size=2, seed=7, prompt=PROMPT, negative_prompt=NEGATIVE)
+    assert torch.equal(truncated, expected) and not torch.equal(truncated, every)
+
 
 def test_sample_group_errors_name_the_input(loaded, monkeypatch):
     content, groups = _images(3, seed=6), group_views(_line_cameras(4), 2)
@@ -192,11 +207,14 @@ def test_patch_approximations_and_low_memory_reach_the_sampler(model_files):
 
 def test_compile_input_applies_the_compiled_blocks_in_full_memory_only(model_files, monkeypatch):
     """The loader's ``compile`` applies ``COMPILED_BLOCKS`` (here its exact hint cache alone: Inductor
-    takes minutes on a CPU) and gives the uncompiled result; with low memory it is refused by name."""
+    takes minutes on a CPU) and gives the uncompiled result; with low memory it is refused by name. A
+    compiled set loads an earlier run's compile artifacts; Sample Group saves them after sampling."""
     applied = []
     monkeypatch.setattr(diffusion_nodes, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
     monkeypatch.setattr(diffusion_nodes, "apply_speedups",
                         lambda models, options: applied.append(options) or apply_speedups(models, options))
+    monkeypatch.setattr(diffusion_nodes, "load_compile_cache", lambda device: applied.append(("load", device)))
+    monkeypatch.setattr(diffusion_nodes, "save_compile_cache", lambda device: applied.append(("save", device)))
     with pytest.raises(NodeInputError, match="Load ArtNVG Models: input 'compile' .* full-memory mode only"):
         call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, memory="low",
              compile=True, **model_files)
@@ -208,5 +226,6 @@ def test_compile_input_applies_the_compiled_blocks_in_full_memory_only(model_fil
                          negative_prompt=NEGATIVE)
         outputs.append(call(SampleGroup, models=loaded, embeds=embeds, content_views=_images(4, seed=6),
                             groups=group_views(_line_cameras(4), 4), group_index=-1, **SAMPLING)[0])
-    assert applied == [SpeedOptions(cache_hint_embedding=True)]
+    cpu = torch.device("cpu")
+    assert applied == [SpeedOptions(cache_hint_embedding=True), ("load", cpu), ("save", cpu)]
     assert torch.equal(outputs[1], outputs[0])

@@ -11,6 +11,7 @@ import torch
 from artnvg_core.cameras import interpolate_path, load_cameras, orbit_path
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.grouping import group_views
+from artnvg_core.key_views import select_key_views
 from artnvg_core.raster import render
 from artnvg_core.formats import load_scene, read_ply
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
@@ -99,6 +100,12 @@ def test_render_views_matches_the_core_renderer(small_bear, bear):
     images_by_stride, used_by_stride = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=60,
                                             views="")
     assert used_by_stride.names == used.names and torch.equal(images_by_stride, images)
+    key_images, keys = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=2, views="",
+                            key_views=3)
+    expected_cameras = cameras.subset(range(0, len(cameras), 2))
+    expected_cameras = expected_cameras.subset(select_key_views(expected_cameras, 3)).scaled(SCALE)
+    assert keys.names == expected_cameras.names and len(set(keys.names)) == 3
+    assert torch.equal(key_images, render(small_bear, expected_cameras).rgb.clamp(0, 1))
 
 
 def test_render_views_rejects_bad_view_lists(small_bear, bear):
@@ -172,12 +179,13 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
-def test_save_scene_format_picks_spz_or_splat_and_load_reads_them(comfy_dirs, small_bear):
-    for fmt in ("spz", "splat"):
+def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_dirs, small_bear):
+    for fmt in ("spz", "splat", "ksplat"):
         saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format=fmt)
         name = saved["ui"]["scenes"][0]["filename"]
         assert name == f"small_00001.{fmt}"
         (loaded,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / "artnvg" / name))
-        assert len(loaded) == len(small_bear) and loaded.sh_degree == (small_bear.sh_degree if fmt == "spz" else 0)
+        degree = {"spz": small_bear.sh_degree, "splat": 0, "ksplat": min(small_bear.sh_degree, 2)}[fmt]
+        assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):
-        call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="ksplat")
+        call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")

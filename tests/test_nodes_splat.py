@@ -4,6 +4,7 @@ With ComfyUI's 2026 types, tests/comfy_api_standin.py stands in for ``comfy_api.
 names of the splat type); without them (as in ComfyUI 0.3.64) the nodes say what is missing.
 """
 
+import dataclasses
 import importlib
 from types import SimpleNamespace
 
@@ -106,10 +107,37 @@ def test_counts_cut_the_item_and_bad_batches_are_refused(core):
             convert(core_splat(core.types, core.name, scene, **changes))
 
 
+@pytest.mark.parametrize(("blur", "antialiased"), [(0.1, True), (0.3, True), (0.1, False), (0.3, False)])
+def test_render_settings_travel_with_the_splat_both_ways(core, blur, antialiased):
+    scene = dataclasses.replace(random_scene(n=40, degree=1), blur_px2=blur, antialiased=antialiased)
+    (splat,) = core.splat_nodes.SceneToSplat().convert(scene)
+    assert splat.render_settings == {"eps2d": blur, "rasterize_mode": "antialiased" if antialiased else "classic"}
+    (back,) = core.splat_nodes.SplatToScene().convert(splat)
+    assert (back.blur_px2, back.antialiased) == (blur, antialiased)
+    moved = core_splat(core.types, core.name, scene)  # made anew, as a core node would, keeping the attribute
+    moved.render_settings = splat.render_settings
+    (again,) = core.splat_nodes.SplatToScene().convert(moved)
+    assert (again.blur_px2, again.antialiased) == (blur, antialiased)
+    (plain,) = core.splat_nodes.SplatToScene().convert(core_splat(core.types, core.name, scene))
+    assert (plain.blur_px2, plain.antialiased) == (0.3, False)  # no settings: classic
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"eps2d": -1.0}, r"render_settings\['eps2d'\]: expected a finite number >= 0, got -1\.0"),
+    ({"eps2d": float("nan")}, r"render_settings\['eps2d'\]: expected a finite number >= 0"),
+    ({"rasterize_mode": "mip"}, r"render_settings\['rasterize_mode'\]: expected one of \('classic', 'antialiased'\)"),
+])
+def test_bad_render_settings_are_refused(core, settings, message):
+    splat = core_splat(core.types, core.name, random_scene(n=5, degree=0))
+    splat.render_settings = settings
+    with pytest.raises(NodeInputError, match=r"^Splat to Gaussian Scene: input 'splat': " + message):
+        core.splat_nodes.SplatToScene().convert(splat)
+
+
 def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     save = core.scene_nodes.SaveGaussianScene
-    assert save.RETURN_TYPES == ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT",) and save.RETURN_NAMES == ("model_3d",)
+    assert save.RETURN_TYPES == ("FILE_3D_SPLAT_ANY",) and save.RETURN_NAMES == ("model_3d",)
     scene = random_scene(n=50)
     result = save().save(scene, "artnvg/stylized")
     (model_3d,) = result["result"]
@@ -122,3 +150,17 @@ def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path,
         assert np.array_equal(getattr(scene, name).numpy(), value.numpy()), name
     (spz,) = save().save(scene, "artnvg/stylized", "spz")["result"]
     assert spz.format == "spz" and spz.get_bytes() == (tmp_path / "output" / "artnvg" / "stylized_00001.spz").read_bytes()
+
+    (ksplat,) = save().save(scene, "artnvg/stylized", "ksplat")["result"]
+    assert ksplat.format == "ksplat"
+
+
+def test_before_file3d_splat_any_each_container_is_listed(monkeypatch):
+    """A ComfyUI with File3D but without FILE_3D_SPLAT_ANY: the output lists each container's type."""
+    comfy_api_standin.install(monkeypatch, "SPLAT", splat_any=False)
+    try:
+        _, _, scene_nodes = reload_all()
+        assert scene_nodes.SaveGaussianScene.RETURN_TYPES == ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT",)
+    finally:
+        monkeypatch.undo()
+        reload_all()

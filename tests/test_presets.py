@@ -7,14 +7,18 @@ import torch
 
 from artnvg_core.__main__ import build_parser
 from artnvg_core.cliutil import parse_devices
-from artnvg_core.diffusion.sampler import SamplerSettings
+from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings
 from artnvg_core.presets import PRESETS, get_preset
 
 
-def test_cli_offers_every_preset():
+def _stylize_choices(dest: str) -> tuple:
     stylize = build_parser()._subparsers._group_actions[0].choices["stylize"]
-    choices = next(action.choices for action in stylize._actions if action.dest == "preset")
-    assert tuple(choices) == tuple(PRESETS)
+    return tuple(next(action.choices for action in stylize._actions if action.dest == dest))
+
+
+def test_cli_offers_every_preset_and_scheduler():
+    assert _stylize_choices("preset") == tuple(PRESETS)
+    assert _stylize_choices("scheduler") == tuple(SCHEDULERS)
 
 
 def test_only_paper_is_exact_and_paper_is_the_default_sampler():

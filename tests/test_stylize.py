@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.diffusion import speed
+from artnvg_core.diffusion import compile_cache, speed
 from artnvg_core.diffusion.sampler import SamplerSettings
 from artnvg_core.diffusion.speed import SpeedOptions
 from artnvg_core.fileio import load_image
@@ -43,11 +43,15 @@ def test_low_memory_preset_and_compile_are_wired_through(tmp_path, monkeypatch):
 
     # compile_blocks reaches the models (COMPILED_BLOCKS reduced to its exact hint cache: Inductor
     # takes minutes on a CPU); refused with low memory before anything loads
+    # and the compile artifacts of an earlier run are loaded after it, this run's saved after sampling
     applied = []
     monkeypatch.setattr(speed, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
     monkeypatch.setattr(speed, "apply_speedups", lambda models, options: applied.append(options))
+    monkeypatch.setattr(compile_cache, "load_compile_cache", lambda device: applied.append(("load", device)))
+    monkeypatch.setattr(compile_cache, "save_compile_cache", lambda device: applied.append(("save", device)))
     stylize_diffusion(scene, cameras, style, config, paths, group_size=2, compile_blocks=True)
-    assert applied == [SpeedOptions(cache_hint_embedding=True)]
+    cpu = torch.device("cpu")
+    assert applied == [SpeedOptions(cache_hint_embedding=True), ("load", cpu), ("save", cpu)]
     with pytest.raises(ValueError, match="compile: .* full-memory mode only"):
         stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", compile_blocks=True)
 
@@ -93,3 +97,52 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
         capsys.readouterr().out
     assert cli.main(["stylize", *common, "--stylizer", "diffusion"]) == 2
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
+
+
+def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path, monkeypatch):
+    """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
+    the preset's settings run. --key-views K (or the preset's key_views) stylizes only the K views
+    select_key_views picks, grouped among themselves, and the finetune sees only those views."""
+    from artnvg_core import __main__ as cli
+    from artnvg_core import stylize
+    from artnvg_core.diffusion import stylize as diffusion_stylize
+    from artnvg_core.key_views import select_key_views
+
+    seen, stylized, trained = [], [], []
+
+    def record(models, images, groups, conditioning, settings, **kwargs):
+        seen.append(settings)
+        stylized.append((len(images), groups.num_views))
+        return images
+
+    def finetune(scene, cameras, style_image, stylized=None, **kwargs):
+        trained.append((cameras.names, len(stylized)))
+        return scene
+
+    monkeypatch.setattr(diffusion_stylize, "stylize_groups", record)
+    monkeypatch.setattr(stylize, "finetune", finetune)
+    monkeypatch.setattr(stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
+    files = write_model_files(tmp_path)
+    demo = DemoInputs()
+    common = [str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
+              "--scale", "0.05", "--iters", "0", "--out", str(tmp_path / "out.ply"), "--stylizer", "diffusion",
+              *[f"--{name.replace('_', '-')}={path}" for name, path in files.items()]]
+    assert cli.main(["stylize", *common, "--preset", "fast"]) == 0
+    assert cli.main(["stylize", *common, "--preset", "fast", "--scheduler", "unipc", "--steps", "7",
+                     "--cfg-until", "0.6"]) == 0
+    assert seen[0] == PRESETS["fast"].sampler
+    assert seen[1] == dataclasses.replace(PRESETS["fast"].sampler, scheduler="unipc", steps=7, cfg_until=0.6)
+    cameras = load_cameras(demo.cameras)
+    assert stylized[:2] == [(24, 24)] * 2 and trained[:2] == [(cameras.names, 24)] * 2
+    keys = [cameras.names[i] for i in select_key_views(cameras, 5)]
+    assert cli.main(["stylize", *common, "--key-views", "5"]) == 0
+    assert stylized[2] == (5, 5) and trained[2] == (keys, 5)
+    monkeypatch.setitem(PRESETS, "fast", dataclasses.replace(PRESETS["fast"], key_views=6))
+    assert cli.main(["stylize", *common, "--preset", "fast"]) == 0 and stylized[3] == (6, 6)
+    assert cli.main(["stylize", *common, "--preset", "fast", "--key-views", "0"]) == 0 and stylized[4] == (24, 24)
+    for bad in (["--steps", "0"], ["--cfg-until", "1.5"], ["--scheduler", "plms"], ["--key-views", "-1"]):
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args(["stylize", *bad])
+    with pytest.raises(ValueError, match="sampler_changes names no SamplerSettings field: \\['stpes'\\]"):
+        stylize_diffusion(read_ply(demo.scene), load_cameras(demo.cameras), load_image(demo.style),
+                          FinetuneConfig(iterations=0), ModelPaths(**files), sampler_changes={"stpes": 3})

@@ -175,5 +175,6 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
         transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
         cam_to_world = transform @ cam_to_world
         cam_to_world[:, :3, 3] *= scale
-    return loaded_camera_set(rigid_inverse(cam_to_world), intrinsics, size[0], size[1], view_names(names, path), image_paths)
+    world_to_cam = rigid_inverse(cam_to_world)
+    return loaded_camera_set(world_to_cam, intrinsics, size[0], size[1], view_names(names, path), image_paths)
 

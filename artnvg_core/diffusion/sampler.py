@@ -17,7 +17,9 @@ Approximations (each off by default; see :class:`SamplerSettings` and
 :mod:`artnvg_core.diffusion.attention`): NV attention on the lowest-resolution level only
 (``nv_levels="lowest"``), with each view's ``nv_nearest`` nearest views only, or with the
 other views' keys and values pooled by ``nv_kv_downsample``; fewer steps, another scheduler
-or a lower ``resolution``. ``sequential_cfg`` saves memory and is exact.
+(DPM-Solver++(2M), UniPC), guidance truncated after the ``cfg_until`` fraction of the steps
+(the conditional half alone afterwards: half the batch), or a lower ``resolution``.
+``sequential_cfg`` saves memory and is exact.
 
 With neighbouring-view attention off and zero CSGO scales this is exactly diffusers'
 ``StableDiffusionXLControlNetPipeline`` (same scheduler, seed and inputs).
@@ -26,7 +28,9 @@ With neighbouring-view attention off and zero CSGO scales this is exactly diffus
 from __future__ import annotations
 
 import inspect
-from dataclasses import dataclass
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import torch
 from diffusers import (
@@ -75,6 +79,12 @@ class SamplerSettings:
     attention_backend: scaled-dot-product attention backend of the denoising loop, one of
         ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
     sequential_cfg: run the two guidance halves one after the other (less memory; exact).
+    cfg_until: classifier-free guidance for the first ``cfg_until`` fraction of the steps only
+        (:func:`guided_steps`), then the conditional half alone, a batch of N instead of 2N
+        (1.0: every step, exact; 0: never, as guidance_scale 1).
+    noise_resolution: draw the initial noise on the latent grid this ``resolution`` would give and
+        resample it to the working grid (:func:`resample_noise`), so runs at different resolutions
+        start from the same noise field (None: drawn on the working grid).
     Approximations of NV attention (defaults: exact):
     nv_levels: "all", or "lowest" (NV in the lowest-resolution attention level, per view elsewhere).
     nv_nearest: each view attends to itself and its k nearest views of the group by camera centre
@@ -94,6 +104,8 @@ class SamplerSettings:
     scheduler: str = "ddim"
     attention_backend: str = "auto"
     sequential_cfg: bool = False
+    cfg_until: float = 1.0
+    noise_resolution: int | None = None
     nv_levels: str = "all"
     nv_nearest: int | None = None
     nv_kv_downsample: int = 1
@@ -108,6 +120,8 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.nv_kv_downsample must be >= 1, got {self.nv_kv_downsample}")
         if self.steps < 1:
             raise ValueError(f"SamplerSettings.steps must be >= 1, got {self.steps}")
+        if not 0 <= self.cfg_until <= 1:
+            raise ValueError(f"SamplerSettings.cfg_until must be in [0, 1], got {self.cfg_until}")
         if self.scheduler not in SCHEDULERS:
             raise ValueError(f"SamplerSettings.scheduler must be one of {sorted(SCHEDULERS)}, got {self.scheduler!r}")
         if self.content_routing not in CONTENT_ROUTINGS:
@@ -118,6 +132,16 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.size_rule must be one of {SIZE_RULES}, got {self.size_rule!r}")
         if self.resolution is not None and self.resolution < 64:
             raise ValueError(f"SamplerSettings.resolution must be >= 64 or None, got {self.resolution}")
+        if self.noise_resolution is not None and self.noise_resolution < 64:
+            raise ValueError(f"SamplerSettings.noise_resolution must be >= 64 or None, got {self.noise_resolution}")
+
+
+def guided_steps(settings: SamplerSettings, steps: int) -> int:
+    """How many of the first ``steps`` denoising steps use classifier-free guidance: ``ceil(cfg_until * steps)``
+    (rounded to 1e-6 first, so 0.8 x 50 is 40), or 0 when ``guidance_scale <= 1`` (no unconditional half)."""
+    if settings.guidance_scale <= 1:
+        return 0
+    return min(steps, math.ceil(round(settings.cfg_until * steps, 6)))
 
 
 def _time_ids(models: DiffusionModels, height: int, width: int, pooled_dim: int) -> torch.Tensor:
@@ -140,6 +164,46 @@ def working_size(models: DiffusionModels, settings: SamplerSettings, height: int
     vae_scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
     unet_scale = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
     return csgo_size(height, width, settings.resolution, vae_scale * unet_scale)
+
+
+def resample_noise(noise: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Gaussian noise [B, C, h, w] on another grid ``size`` (h', w'): area-averaged (each output cell the mean
+    of the input cells it covers; copied cells when enlarging), then every (view, channel) map shifted and
+    scaled to mean 0 and standard deviation 1, the statistics the sampler's initial noise has. The same
+    tensor when ``size`` is its own."""
+    if tuple(noise.shape[2:]) == tuple(size):
+        return noise
+    resampled = torch.nn.functional.interpolate(noise, size=size, mode="area")
+    mean = resampled.mean(dim=(2, 3), keepdim=True)
+    std = resampled.std(dim=(2, 3), keepdim=True).clamp_min(1e-12)
+    return (resampled - mean) / std
+
+
+def _initial_noise(
+    models: DiffusionModels,
+    settings: SamplerSettings,
+    latent_shape: tuple[int, int, int, int],
+    image_size: tuple[int, int],
+    generator: torch.Generator,
+    noise_seeds,
+) -> torch.Tensor:
+    """Standard Gaussian noise of ``latent_shape`` [N, C, h, w] (CPU, float32): from ``generator`` for the whole
+    group, or one generator per view seeded ``noise_seeds[i]``; on the grid of ``settings.noise_resolution``
+    and resampled to (h, w) when it is set."""
+    views, channels, height, width = latent_shape
+    grid = (height, width)
+    if settings.noise_resolution is not None:
+        size = working_size(models, replace(settings, resolution=settings.noise_resolution), *image_size)
+        scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
+        grid = (size[0] // scale, size[1] // scale)
+    if noise_seeds is None:
+        noise = torch.randn((views, channels, *grid), generator=generator)
+    else:
+        if len(noise_seeds) != views:
+            raise ValueError(f"stylize_group: {len(noise_seeds)} noise_seeds for {views} views")
+        noise = torch.cat([torch.randn((1, channels, *grid), generator=torch.Generator().manual_seed(int(s)))
+                           for s in noise_seeds])
+    return resample_noise(noise, (height, width))
 
 
 def _step_kwargs(scheduler, generator: torch.Generator) -> dict:
@@ -272,12 +336,16 @@ def stylize_group(
     settings: SamplerSettings = SamplerSettings(),
     *,
     seed: int = 0,
+    noise_seeds: Sequence[int] | None = None,
     view_centers: torch.Tensor | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> torch.Tensor:
     """Stylize one group of views jointly; returns IMAGE [N, H, W, 3] in the input order and size.
 
+    seed: the group's generator (initial noise, and the noise of stochastic schedulers' steps).
+    noise_seeds: one seed per view for its initial noise instead (a view then starts from the same noise in
+        whatever group it is sampled).
     view_centers: camera centres [N, 3] of the views (world units); needed by ``settings.nv_nearest``.
     Latents stay in float32 between steps; the models run in their own dtype.
     progress(step, steps, info) is called after every denoising step; should_stop() is checked
@@ -293,20 +361,24 @@ def stylize_group(
     control = _attention_control(models, conditioning, settings, latent_shape[2:], view_centers, views)
     halves = 2 if settings.guidance_scale > 1 else 1
     inputs = _model_inputs(models, images, work, conditioning, halves, control)
-    batches = _split_batch(inputs, halves if settings.sequential_cfg else 1)
+    per_half = _split_batch(inputs, halves)  # [uncond, cond] or [cond]
+    guided_batches = per_half if settings.sequential_cfg else [inputs]
 
     scheduler = SCHEDULERS[settings.scheduler].from_config(models.base.scheduler_config)
     scheduler.set_timesteps(settings.steps, device=unet.device)
     generator = torch.Generator().manual_seed(seed)
-    latents = (torch.randn(latent_shape, generator=generator) * scheduler.init_noise_sigma).to(unet.device)
+    noise = _initial_noise(models, settings, latent_shape, (height, width), generator, noise_seeds)
+    latents = (noise * scheduler.init_noise_sigma).to(unet.device)
     step_kwargs = _step_kwargs(scheduler, generator)
     timesteps = scheduler.timesteps
+    guided = guided_steps(settings, len(timesteps))
     for step, t in enumerate(timesteps):
         check_stop(should_stop)
         model_input = scheduler.scale_model_input(latents, t).to(unet.dtype)
+        batches = guided_batches if step < guided else per_half[-1:]
         with sdpa_backend(settings.attention_backend):
             noise = torch.cat([_predict_noise(models, model_input, t, b, settings.control_scale) for b in batches])
-        if halves == 2:
+        if step < guided:
             noise_uncond, noise_cond = noise.chunk(2)
             noise = noise_uncond + settings.guidance_scale * (noise_cond - noise_uncond)
         latents = scheduler.step(noise, t, latents, **step_kwargs, return_dict=False)[0]

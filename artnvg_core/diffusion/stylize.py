@@ -62,6 +62,7 @@ def stylize_groups(
     settings: SamplerSettings = SamplerSettings(),
     *,
     seed: int = 0,
+    noise_seeds: Sequence[int] | None = None,
     group_indices: Sequence[int] | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
@@ -69,8 +70,10 @@ def stylize_groups(
     """Stylize the chosen groups (default: all) of ``images`` [V, H, W, 3], in view order.
 
     Returns a copy of ``images`` in which every view owned by a chosen group is replaced by its
-    stylized version. Group ``g`` uses seed ``seed + g``; ``groups.centers`` (when recorded) give
-    the views' camera centres to ``settings.nv_nearest``. progress(step, total, info) counts
+    stylized version. Group ``g`` uses seed ``seed + g``; ``noise_seeds`` (one per view) give each
+    view its own initial noise instead, whatever its group (see :func:`stylize_group`).
+    ``groups.centers`` (when recorded) give the views' camera centres to ``settings.nv_nearest``.
+    progress(step, total, info) counts
     denoising steps over the chosen groups; info holds "group" and "groups".
     """
     chosen = list(range(len(groups))) if group_indices is None else [int(g) for g in group_indices]
@@ -83,7 +86,8 @@ def stylize_groups(
                 progress(done * steps + step, total, {**info, "group": index, "groups": len(groups)})
 
         output[list(groups[index].views)] = stylize_owned_views(models, images, groups, index, conditioning, settings,
-                                                                seed=seed, progress=report, should_stop=should_stop)
+                                                                seed=seed, noise_seeds=noise_seeds, progress=report,
+                                                                should_stop=should_stop)
     return output
 
 
@@ -96,14 +100,19 @@ def stylize_owned_views(
     settings: SamplerSettings = SamplerSettings(),
     *,
     seed: int = 0,
+    noise_seeds: Sequence[int] | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> torch.Tensor:
-    """Group ``index`` of ``images`` [V, H, W, 3] sampled with seed ``seed + index`` (its context views
-    included); returns its owned views' stylized images [len(views), H, W, 3] in ``groups[index].views`` order."""
+    """Group ``index`` of ``images`` [V, H, W, 3] sampled with seed ``seed + index`` (and the members' own
+    ``noise_seeds`` when given, one per view of ``images``), its context views included; returns its owned
+    views' stylized images [len(views), H, W, 3] in ``groups[index].views`` order."""
     group = groups[index]
     members = list(group.all_views)
     centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
+    if noise_seeds is not None and len(noise_seeds) != len(images):
+        raise ValueError(f"stylize_owned_views: {len(noise_seeds)} noise_seeds for {len(images)} views")
     result = stylize_group(models, images[members], conditioning, settings, seed=seed + index,
+                           noise_seeds=None if noise_seeds is None else [noise_seeds[v] for v in members],
                            view_centers=centers, progress=progress, should_stop=should_stop)
     return result[: len(group.views)]

@@ -1,9 +1,9 @@
 """Gaussian scene files: :func:`load_scene` and :func:`save_scene` choose the format by extension.
 
 Read: ``.ply`` (INRIA 3DGS, Mip-Splatting, PlayCanvas/SuperSplat compressed),
-``.splat`` (antimatter15), ``.spz`` (Niantic, versions 1-4), ``.ckpt``
-(nerfstudio splatfacto). Written: ``.ply`` (INRIA), ``.spz`` (version 3),
-``.splat``. Each format's module states its layout, coordinate convention and
+``.splat`` (antimatter15), ``.spz`` (Niantic, versions 1-4), ``.ksplat``
+(mkkellogg GaussianSplats3D, levels 0-2), ``.ckpt`` (nerfstudio splatfacto).
+Written: ``.ply`` (INRIA), ``.spz`` (version 3), ``.splat``, ``.ksplat`` (level 0). Each format's module states its layout, coordinate convention and
 quantisation; scenes are held in the INRIA layout and the PLY's axes, and
 axes are converted only inside the reader and writer of a format that stores
 others (SPZ). Every reader validates the scene (bad input: ValueError naming
@@ -17,16 +17,18 @@ import os
 from pathlib import Path
 
 from ..scene import GaussianScene
+from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
 from .splatfacto import read_splatfacto_ckpt
 from .spz import read_spz, write_spz
 
-READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ckpt": read_splatfacto_ckpt}
-WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat}
+READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ksplat": read_ksplat,
+           ".ckpt": read_splatfacto_ckpt}
+WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat, ".ksplat": write_ksplat}
 SCENE_SUFFIXES = tuple(READERS)
 SAVE_SUFFIXES = tuple(WRITERS)
-_DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz or .ckpt (nerfstudio splatfacto checkpoint)"
+_DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
 
 
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
@@ -40,11 +42,17 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     return reader(path, drop_invalid=drop_invalid)
 
 
-def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz or .splat."""
+def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> Path:
+    """``path`` when its extension (any case) names a format :func:`save_scene` writes, checked before
+    any work; otherwise a ValueError naming ``path`` (after ``option``, e.g. ``--out``, when given)."""
     path = Path(path)
-    writer = WRITERS.get(path.suffix.lower())
-    if writer is None:
-        raise ValueError(f"{path}: cannot write scene file type {path.suffix!r}; expected one of "
-                         f"{', '.join(SAVE_SUFFIXES)}")
-    writer(scene, path)
+    if path.suffix.lower() not in WRITERS:
+        raise ValueError(f"{option + ': ' if option else ''}{path}: cannot write scene file type {path.suffix!r}; "
+                         f"expected one of {', '.join(SAVE_SUFFIXES)}")
+    return path
+
+
+def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat."""
+    path = writable_scene_path(path)
+    WRITERS[path.suffix.lower()](scene, path)

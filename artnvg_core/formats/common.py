@@ -1,4 +1,4 @@
-"""What every scene file reader and writer shares: file checks, the scene check before writing, logits."""
+"""What every scene file reader and writer shares: file checks, the scene check before writing, 8-bit opacities."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..scene import GaussianScene, invalid_gaussians
+from ..scene import GaussianScene, describe_invalid, invalid_gaussians, logit
 
 
 def require_file(path: Path) -> None:
@@ -23,21 +23,8 @@ def scene_to_write(scene: GaussianScene, path: Path) -> GaussianScene:
         raise ValueError(f"{path}: not written: the scene contains no Gaussians")
     for name, problem, bad in invalid_gaussians(cpu):
         if bad.any():
-            raise ValueError(
-                f"{path}: not written: {name}: {int(bad.sum())} of {len(cpu)} Gaussians have {problem} "
-                f"(first at index {int(bad.nonzero()[0, 0])})"
-            )
+            raise ValueError(f"{path}: not written: {describe_invalid(name, bad, f'have {problem}')}")
     return cpu
-
-
-def logit(p: np.ndarray) -> np.ndarray:
-    """log(p / (1 - p)) in float64, for p in (0, 1)."""
-    p = np.asarray(p, np.float64)
-    return np.log(p) - np.log1p(-p)
-
-
-def sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
 
 
 # An 8-bit opacity byte b stands for b / 255; the two end bytes are read as b / 255 moved 0.25/255
@@ -47,7 +34,13 @@ _OPACITY_EDGE = 0.25 / 255
 
 def opacity_logits_from_bytes(values: np.ndarray) -> np.ndarray:
     """Opacity logits [N] (float64) of 8-bit opacities (0..255 for 0..1)."""
-    return logit(np.clip(np.asarray(values, np.float64) / 255, _OPACITY_EDGE, 1 - _OPACITY_EDGE))
+    opacities = np.clip(np.asarray(values, np.float64) / 255, _OPACITY_EDGE, 1 - _OPACITY_EDGE)
+    return logit(torch.from_numpy(opacities)).numpy()
+
+
+def opacity_bytes(logits: torch.Tensor) -> np.ndarray:
+    """8-bit opacities [N] (0..255 for 0..1, rounded half up) of opacity logits [N] (sigmoid in float64)."""
+    return to_bytes(torch.sigmoid(logits.double()).numpy() * 255)
 
 
 def to_bytes(values: np.ndarray) -> np.ndarray:

@@ -30,9 +30,9 @@ import torch
 from plyfile import PlyData, PlyListProperty
 
 from ..fileio import write_atomically
-from ..scene import GaussianScene, validate_scene
+from ..scene import GaussianScene, logit, validate_scene
 from . import compressed_ply
-from .common import logit, require_file, scene_to_write, sigmoid
+from .common import require_file, scene_to_write
 
 _PLY_ELEMENT = "vertex"
 _SH_DEGREE_FOR_REST_COUNT = {3 * ((d + 1) ** 2 - 1): d for d in range(4)}  # 0, 9, 24, 45
@@ -137,14 +137,13 @@ def _fold_filter_3d(path: Path, scene: GaussianScene, filter_3d: torch.Tensor) -
     s2 = torch.exp(2 * scene.log_scales.double())
     widened = s2 + f[:, None] ** 2
     log_coef = 0.5 * (torch.log(s2) - torch.log(widened)).sum(1)  # log sqrt(det ratio) <= 0
-    opacity = sigmoid(scene.opacity_logits.double().numpy()) * np.exp(log_coef.numpy())
-    with np.errstate(divide="ignore", invalid="ignore"):
-        logits = np.maximum(logit(opacity), -1e4)  # opacity 0 -> a logit far below the 1/255 cull
+    opacity = torch.sigmoid(scene.opacity_logits.double()) * torch.exp(log_coef)
+    logits = logit(opacity).clamp(min=-1e4)  # opacity 0 -> a logit far below the 1/255 cull
     return GaussianScene(
         means=scene.means,
         quats=scene.quats,
         log_scales=(0.5 * torch.log(widened)).float(),
-        opacity_logits=torch.from_numpy(logits).float(),
+        opacity_logits=logits.float(),
         sh=scene.sh,
         blur_px2=MIP_SPLATTING_BLUR_PX2,
         antialiased=True,

@@ -25,13 +25,37 @@ import torch
 
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
-from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from ..scene import SH_C0, GaussianScene, describe_invalid, validate_scene
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
-_LOG_SCALE_RANGE = (-87.0, 88.0)
+LOG_SCALE_RANGE = (-87.0, 88.0)  # log-scales whose linear scale float32 holds
+
+
+def colour_and_opacity(rgba: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """SH DC [N, 1, 3] and opacity logits [N] (float32) of RGBA bytes [N, 4] (colour SH_C0 * f_dc + 0.5)."""
+    colour = rgba[:, :3].astype(np.float64) / 255
+    return (torch.from_numpy((colour - 0.5) / SH_C0).float()[:, None, :],
+            torch.from_numpy(opacity_logits_from_bytes(rgba[:, 3])).float())
+
+
+def rgba_bytes(cpu: GaussianScene) -> np.ndarray:
+    """[N, 4] uint8: colour SH_C0 * f_dc + 0.5 clamped to [0, 1], then sigmoid(opacity logit), x 255 rounded."""
+    colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
+    return np.concatenate([to_bytes(np.clip(colour, 0, 1) * 255), opacity_bytes(cpu.opacity_logits)[:, None]], 1)
+
+
+def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
+    """exp(log-scales) [N, 3] (float64) for a format ``kind`` storing float32 linear scales; a ValueError
+    naming ``path`` when a log-scale lies outside LOG_SCALE_RANGE."""
+    log_scales = cpu.log_scales.double().numpy()
+    outside = ((log_scales < LOG_SCALE_RANGE[0]) | (log_scales > LOG_SCALE_RANGE[1])).any(1)
+    if outside.any():
+        problem = f"lie outside {list(LOG_SCALE_RANGE)}, beyond the float32 linear scales of {kind}"
+        raise ValueError(f"{path}: not written: {describe_invalid('log_scales', outside, problem)}")
+    return np.exp(log_scales)
 
 
 def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
@@ -48,21 +72,19 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     scales = records["scale"].astype(np.float64)
     bad = ~(np.isfinite(scales) & (scales > 0)).all(1)
     if bad.any() and not drop_invalid:
-        raise ValueError(
-            f"{path}: scale: {int(bad.sum())} of {len(records)} Gaussians have a scale that is not a positive "
-            f"finite number (first at index {int(bad.nonzero()[0][0])}); pass drop_invalid=True to drop them"
-        )
+        problem = "have a scale that is not a positive finite number"
+        raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; pass drop_invalid=True to drop them")
     rotation = records["rotation"].astype(np.float64) - 128
     rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
     with np.errstate(divide="ignore", invalid="ignore"):
         log_scales = np.log(scales)
-    colour = records["rgba"][:, :3].astype(np.float64) / 255
+    sh, opacity_logits = colour_and_opacity(records["rgba"])
     scene = GaussianScene(
         means=torch.from_numpy(records["position"].copy()),
         quats=torch.from_numpy(rotation / 128).float(),
         log_scales=torch.from_numpy(log_scales).float(),
-        opacity_logits=torch.from_numpy(opacity_logits_from_bytes(records["rgba"][:, 3])).float(),
-        sh=torch.from_numpy((colour - 0.5) / SH_C0).float()[:, None, :],
+        opacity_logits=opacity_logits,
+        sh=sh,
     )
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
 
@@ -75,22 +97,13 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     """
     path = Path(path)
     cpu = scene_to_write(scene, path)
-    log_scales = cpu.log_scales.double().numpy()
-    outside = ((log_scales < _LOG_SCALE_RANGE[0]) | (log_scales > _LOG_SCALE_RANGE[1])).any(1)
-    if outside.any():
-        raise ValueError(
-            f"{path}: not written: log_scales: {int(outside.sum())} of {len(cpu)} Gaussians lie outside "
-            f"{list(_LOG_SCALE_RANGE)}, beyond the float32 linear scales of .splat "
-            f"(first at index {int(outside.nonzero()[0][0])})"
-        )
+    scales = linear_scales(cpu, path, ".splat")
     if cpu.sh_degree > 0:
         _log.warning("%s: .splat holds SH degree 0 only; the degree %d view-dependent terms are dropped",
                      path, cpu.sh_degree)
     records = np.empty(len(cpu), dtype=RECORD)
     records["position"] = cpu.means.numpy()
-    records["scale"] = np.exp(log_scales)
-    colour = SH_C0 * cpu.sh[:, 0].double().numpy() + 0.5
-    records["rgba"][:, :3] = to_bytes(np.clip(colour, 0, 1) * 255)
-    records["rgba"][:, 3] = to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255)
+    records["scale"] = scales
+    records["rgba"] = rgba_bytes(cpu)
     records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
     write_atomically(path, lambda stream: stream.write(records.tobytes()))

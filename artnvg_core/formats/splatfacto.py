@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from ..scene import SH_C0, GaussianScene, validate_scene
+from .bounded import require_stored_zip
 from .common import require_file
 
 _log = logging.getLogger(__name__)
@@ -40,7 +41,9 @@ def trained_antialiased(path: Path) -> bool:
 
 
 def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
-    """The ``_model.gauss_params.*`` tensors of a checkpoint, by short name, as float32."""
+    """The ``_model.gauss_params.*`` tensors of a checkpoint, by short name, as float32; its zip
+    records must be stored uncompressed (:func:`~.bounded.require_stored_zip`)."""
+    require_stored_zip(path)
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch.load raises many types on corrupt or foreign files

@@ -12,7 +12,8 @@ float16 in version 1), opacities (uint8, value / 255), colours (uint8, f_dc =
 uint8), SH coefficients (uint8, (b - 128) / 128, coefficient-major with the
 colour channel inner). Flag 0x1 marks a scene trained antialiased (loaded
 with ``GaussianScene.antialiased``, written from it). Reading version 4 needs
-the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning).
+the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning). Streams are
+inflated only up to the size the header implies (:mod:`.bounded`).
 
 Coordinate rule: SPZ stores RUB axes (x right, y up, z back), the format's
 documented default and what Niantic's writer produces from a PLY's RDF axes
@@ -41,6 +42,7 @@ coefficients within 4.5 / 128 and higher degrees within 8.5 / 128 inside
 from __future__ import annotations
 
 import gzip
+import io
 import logging
 import math
 import os
@@ -54,7 +56,8 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes, require_file, scene_to_write, sigmoid, to_bytes
+from .bounded import inflate_exactly, read_at_most
+from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -125,26 +128,23 @@ def _check_header(path: Path, version: int, count: int, degree: int, valid_versi
 
 def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
     try:
-        data = gzip.decompress(raw)
+        with gzip.GzipFile(fileobj=io.BytesIO(raw)) as stream:
+            head = read_at_most(stream, _LEGACY_HEADER.size)
+            if len(head) < _LEGACY_HEADER.size:
+                raise ValueError(f"{path}: header: {len(head)} bytes, expected {_LEGACY_HEADER.size}")
+            magic, version, count, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(head)
+            if magic != MAGIC:
+                raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
+            _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
+            sizes = _array_sizes(count, degree, version)
+            # extension records may follow the arrays (flag 0x2); they are not read
+            data = inflate_exactly(stream, sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}",
+                                   trailing_allowed=bool(flags & FLAG_EXTENSIONS))
     except (OSError, EOFError, zlib.error) as error:
         raise ValueError(f"{path}: gzip stream: not readable ({error}); the file is truncated or corrupt") from error
-    if len(data) < _LEGACY_HEADER.size:
-        raise ValueError(f"{path}: header: {len(data)} bytes, expected {_LEGACY_HEADER.size}")
-    magic, version, count, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(data)
-    if magic != MAGIC:
-        raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
-    _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
-    sizes = _array_sizes(count, degree, version)
-    needed, held = sum(sizes.values()), len(data) - _LEGACY_HEADER.size
-    if held < needed:
-        raise ValueError(f"{path}: numPoints: {count} Gaussians of SH degree {degree} need {needed} bytes of data, "
-                         f"the file holds {held} (truncated, or numPoints is wrong)")
-    arrays, offset = {}, _LEGACY_HEADER.size
+    arrays, offset = {}, 0
     for name, size in sizes.items():
         arrays[name], offset = data[offset : offset + size], offset + size
-    if offset != len(data) and not flags & FLAG_EXTENSIONS:
-        raise ValueError(f"{path}: numPoints: the data holds {len(data) - offset} more bytes than {count} "
-                         "Gaussians need")
     header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
     return header, arrays, RUB
 
@@ -174,13 +174,11 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
         if compressed > len(raw) - offset:
             raise ValueError(f"{path}: {name} stream: runs {compressed - (len(raw) - offset)} bytes past the "
                              "end of the file (truncated)")
+        reader = zstandard.ZstdDecompressor().stream_reader(raw[offset : offset + compressed])
         try:
-            arrays[name] = zstandard.ZstdDecompressor().decompress(raw[offset : offset + compressed],
-                                                                   max_output_size=size)
+            arrays[name] = inflate_exactly(reader, size, path, f"{name} stream")
         except zstandard.ZstdError as error:
             raise ValueError(f"{path}: {name} stream: not valid zstd data ({error})") from error
-        if len(arrays[name]) != size:
-            raise ValueError(f"{path}: {name} stream: {len(arrays[name])} bytes, expected {size}")
         offset += compressed
     if offset != len(raw):
         raise ValueError(f"{path}: the file holds {len(raw) - offset} bytes after its last stream")
@@ -306,7 +304,7 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
     arrays = [
         _LEGACY_HEADER.pack(MAGIC, WRITTEN_VERSION, count, degree, bits, flags, 0),
         positions,
-        to_bytes(sigmoid(cpu.opacity_logits.numpy()) * 255),
+        opacity_bytes(cpu.opacity_logits),
         to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
         to_bytes((cpu.log_scales.double().numpy() + 10) * 16),
         _smallest_three(q),

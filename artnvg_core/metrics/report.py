@@ -36,6 +36,7 @@ from ..cliutil import (
     parse_device,
     parse_view_indices,
     positive_number,
+    prepare_rasterizer,
 )
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
@@ -238,9 +239,12 @@ def _write_json(report: dict, path: Path) -> None:
 
 
 def output_files(out: str) -> dict[str, Path]:
-    """The report ``--out`` and, beside it, the strip PNG and the preview GIF, each checked to be
-    writable (before any work: all three are written together at the end, or none)."""
+    """The report ``--out`` (a .json file) and, beside it, the strip PNG and the preview GIF, each
+    checked to be writable (before any work: all three are written together at the end, or none)."""
     report = check_output_file(out, "--out")
+    if report.suffix.lower() != ".json":
+        raise ValueError(f"--out: {report}: the report is JSON; give a file name ending in .json "
+                         f"(e.g. {report.with_suffix('.json')})")
     files = {"report": report, "strip": report.with_name(f"{report.stem}_strip.png"),
              "preview": report.with_name(f"{report.stem}_preview.gif")}
     for name in ("strip", "preview"):
@@ -272,6 +276,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, scoring)
     csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, scoring)
+    prepare_rasterizer(device)
     print(f"evaluating {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
 
     original = render_views(original_scene, cameras, depth=True, progress=ProgressBar("render original views"))

@@ -1,14 +1,16 @@
-"""Differentiable Gaussian rasterization: one public function, :func:`render`."""
+"""Differentiable Gaussian rasterization: :func:`render`, and :func:`prepare_backend` to load a backend
+before the first render (announcing gsplat's first-use kernel build)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
 from ..cameras import CameraSet
 from ..scene import GaussianScene
-from .gsplat_backend import gsplat_available, render_gsplat
+from .gsplat_backend import gsplat_available, load_kernels, rasterize_gsplat
 from .projection import project
 from .sh import sh_to_color
 from .torch_backend import rasterize
@@ -27,15 +29,27 @@ class RenderOutput:
     depth: torch.Tensor | None
 
 
-def choose_backend(backend: str, device: torch.device) -> str:
-    """Resolve ``auto`` to ``gsplat`` on CUDA when gsplat imports, else ``torch``."""
+def choose_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
+    """Resolve ``auto`` to ``gsplat`` for float32 CUDA tensors when gsplat imports, else ``torch``."""
     if backend not in BACKENDS:
         raise ValueError(f"render: backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
-        raise ValueError("render: backend 'gsplat' needs CUDA tensors and the gsplat package (pip install gsplat)")
+    if backend == "gsplat" and (device.type != "cuda" or dtype != torch.float32 or not gsplat_available()):
+        raise ValueError("render: backend 'gsplat' needs float32 CUDA tensors and the gsplat package (pip install gsplat)")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+        return "gsplat" if device.type == "cuda" and dtype == torch.float32 and gsplat_available() else "torch"
     return backend
+
+
+def prepare_backend(device: torch.device | str, backend: str = "auto",
+                    announce: Callable[[str], None] | None = None) -> str:
+    """Resolve ``backend`` for float32 scenes on ``device`` and load what it needs before the first
+    render, so that gsplat's first-use kernel build (about a minute and a half on an H100) is
+    announced through ``announce`` where the caller's user looks, before it starts. Returns the
+    backend. Without this, the first gsplat render announces it as a logged warning."""
+    name = choose_backend(backend, torch.device(device))
+    if name == "gsplat":
+        load_kernels(announce)
+    return name
 
 
 def _check_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int, background) -> None:
@@ -74,8 +88,10 @@ def render(
     sh_degree: SH degree to evaluate (default: the scene's); at most the scene's.
     background: [3] or [C, 3] colour composited behind the Gaussians (default black).
     return_depth: also return expected camera-space depth.
-    backend: "torch" (reference, CPU/CUDA), "gsplat" (CUDA) or "auto"
-        (gsplat when available on CUDA, else torch).
+    backend: "torch" (reference, CPU/CUDA), "gsplat" (float32 CUDA) or "auto"
+        (gsplat when available for float32 CUDA tensors, else torch). Both share the projection
+        and the colours; they differ only in the per-pixel compositing (the reference's PyTorch
+        tiles or gsplat's CUDA kernels, see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
@@ -84,22 +100,21 @@ def render(
     alpha < 1/255 skipped, front-to-back compositing in depth order stopping
     at transmittance 1e-4. Colour = max(SH(dir) + 0.5, 0), dir from the
     camera centre to the Gaussian. Any finite parameters give finite images and
-    gradients (reference backend): unnormalised quaternions of any norm,
+    gradients, on both backends: unnormalised quaternions of any norm,
     log-scales up to the float32 limit, SH up to 3e38 (colours are capped where
-    a pixel is already >= 1, see :mod:`.sh`). Returns a :class:`RenderOutput`.
+    a pixel is already >= 1, see :mod:`.sh`). A render that shows nothing back-propagates
+    zero gradients. Returns a :class:`RenderOutput`.
     """
     degree = scene.sh_degree if sh_degree is None else sh_degree
     _check_inputs(scene, cameras, degree, background)
     cameras = cameras.to(scene.device)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
+    composite = rasterize
+    if choose_backend(backend, scene.device, scene.means.dtype) == "gsplat":
+        load_kernels()
+        composite = rasterize_gsplat
     width, height = cameras.width, cameras.height
-    if choose_backend(backend, scene.device) == "gsplat":
-        rgb, alpha, depth = render_gsplat(
-            scene, cameras.world_to_cam, cameras.intrinsics, width, height, degree, background, return_depth, near_plane
-        )
-        return RenderOutput(rgb, alpha, depth)
-
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
         w2c, k = cameras.world_to_cam[c], cameras.intrinsics[c]
@@ -108,7 +123,8 @@ def render(
         center = cameras.centers[c]
         colors = sh_to_color(scene.sh[proj.index], scene.means[proj.index] - center, degree)
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors
-        blended, trans = rasterize(proj, features, width, height)
+        # nothing projected: the reference's empty image (kept in the autograd graph), for either backend
+        blended, trans = (composite if len(proj.index) else rasterize)(proj, features, width, height)
         rgb = blended[..., :3]
         if background is not None:
             rgb = rgb + trans[..., None] * background[c]

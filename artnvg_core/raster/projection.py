@@ -88,10 +88,13 @@ def project(
     # factored out, A = k A', so no square or minor overflows, and
     # conic = inverse(A'A'^T + u blur I) * u with u = 1/k^2, which underflows
     # to 0 (alpha = opacity everywhere) for a Gaussian far larger than any view.
-    log_s = log_scales[index]
+    # In float64 where the device has it (all but Apple's MPS): factored by k, a needle's thin axes
+    # (scale ratios past e^40) fall below float32's normal range and lose its precision.
+    work = torch.float32 if means.device.type == "mps" else torch.float64
+    log_s = log_scales[index].to(work)
     top = log_s.detach().amax(-1).clamp_min(0)
-    scaled_rot = quat_to_rotmat(quats[index]) * torch.exp(log_s - top[:, None])[:, None, :]
-    a_mat = jac @ (rot_w2c @ scaled_rot)
+    scaled_rot = quat_to_rotmat(quats[index]).to(work) * torch.exp(log_s - top[:, None])[:, None, :]
+    a_mat = jac.to(work) @ (rot_w2c.to(work) @ scaled_rot)
     r0, r1 = a_mat[:, 0], a_mat[:, 1]
     inv_k2 = torch.exp(-2 * top)
     blur = blur_px2 * inv_k2
@@ -102,14 +105,15 @@ def project(
     det_unblurred = (minors * minors).sum(-1)
     det = det_unblurred + blur * (cov_a + cov_c - blur)
     if antialiased:  # both determinants carry the same 1/k^4, so their ratio is exact
-        opacities = opacities * torch.sqrt(det_unblurred / det.clamp_min(torch.finfo(det.dtype).tiny))
-    conics = torch.stack([cov_c, -cov_b, cov_a], -1) * (inv_k2 / det.clamp_min(torch.finfo(det.dtype).tiny))[:, None]
+        opacities = opacities * torch.sqrt(det_unblurred / det.clamp_min(torch.finfo(work).tiny)).to(opacities.dtype)
+    conics = torch.stack([cov_c, -cov_b, cov_a], -1) * (inv_k2 / det.clamp_min(torch.finfo(work).tiny))[:, None]
+    conics = conics.to(means.dtype)
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
 
     with torch.no_grad():
         extent = torch.sqrt(2.0 * torch.log(opacities / ALPHA_MIN).clamp_min(0)).clamp_max(MAX_EXTENT)
         sigmas = torch.exp(top[:, None] + 0.5 * torch.log(torch.stack([cov_a, cov_c], -1)))  # may be inf
-        radii = torch.ceil(extent[:, None] * sigmas)
+        radii = torch.ceil(extent[:, None] * sigmas).to(means2d.dtype)
         on_screen = (
             (means2d[:, 0] + radii[:, 0] > 0)
             & (means2d[:, 0] - radii[:, 0] < width)

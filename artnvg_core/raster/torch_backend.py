@@ -141,7 +141,8 @@ def rasterize(
     features: [M, F] values to blend per projected Gaussian (e.g. colour, depth).
     chunk: Gaussians per tile composited at once; budget: the most elements
     in one [tiles, pixels, chunk] intermediate (default 2^21 on CPU, 2^25 on CUDA).
-    Returns blended features [H, W, F] (no background) and transmittance [H, W].
+    Returns blended features [H, W, F] (no background) and transmittance [H, W], in the autograd
+    graph of the inputs even when no Gaussian reaches a tile (their gradients are then zero).
     """
     order, starts, counts = _tile_lists(proj, width, height)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
@@ -159,6 +160,9 @@ def rasterize(
         out = checkpoint(_composite_tiles, *args, use_reentrant=False) if needs_grad else _composite_tiles(*args)
         blended = blended.index_copy(0, tiles, out[0])
         trans = trans.index_copy(0, tiles, out[1])
+    if needs_grad and len(occupied) == 0:  # nothing to composite: constant images, zero gradients
+        zero = sum(x[:0].sum() for x in inputs)
+        blended, trans = blended + zero, trans + zero
 
     def to_image(x):
         x = x.reshape(tiles_y, tiles_x, TILE, TILE, *x.shape[2:]).transpose(1, 2)

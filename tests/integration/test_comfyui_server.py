@@ -99,8 +99,9 @@ def _core_splat_type(info: dict) -> str | None:
 def test_object_info_lists_every_node_with_its_inputs(comfy_server):
     info = _get(comfy_server, "/object_info")
     core = _core_splat_type(info)
-    with_core_types = {"ArtNVGSaveGaussianScene": ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT",),
-                       "ArtNVGSceneToSplat": (core,)} if core else {}
+    saved_file = ("FILE_3D_SPLAT_ANY" if "FILE_3D_SPLAT_ANY" in json.dumps(info)
+                  else "FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT")
+    with_core_types = {"ArtNVGSaveGaussianScene": (saved_file,), "ArtNVGSceneToSplat": (core,)} if core else {}
     for name, inputs in PUBLIC_INPUTS.items():
         node = info[name]
         order = node["input_order"]

@@ -1,0 +1,59 @@
+"""Decompression bounded by what a file's header says it holds.
+
+A compressed stream can inflate to far more than its file (deflate up to about 1000x, zstd
+more). Readers therefore inflate streams piece by piece and stop one byte past the size the
+header implies: a stream that holds more is refused after inflating ``size + 1`` bytes, and
+memory follows the bytes actually inflated, never a size read from the file. Zip containers
+(splatfacto checkpoints, written by ``torch.save``) must store their records uncompressed, so
+nothing in them can inflate past the file's own size.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+from typing import BinaryIO
+
+CHUNK = 1 << 24  # bytes inflated per read
+
+
+def read_at_most(stream: BinaryIO, limit: int) -> bytearray:
+    """Up to ``limit`` bytes of a decompressing ``stream``, read ``CHUNK`` bytes at a time."""
+    data = bytearray()
+    while len(data) < limit:
+        piece = stream.read(min(CHUNK, limit - len(data)))
+        if not piece:
+            break
+        data += piece
+    return data
+
+
+def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trailing_allowed: bool = False) -> bytearray:
+    """The next ``size`` bytes of ``stream``; ValueError naming ``path`` and ``field`` when it ends
+    sooner or, unless ``trailing_allowed``, holds more (found by inflating one byte past ``size``)."""
+    data = read_at_most(stream, size if trailing_allowed else size + 1)
+    if len(data) < size:
+        raise ValueError(f"{path}: {field}: {size} bytes expected, the stream ends after {len(data)} "
+                         "(truncated, or the header's counts are wrong)")
+    if len(data) > size:
+        raise ValueError(f"{path}: {field}: the stream holds more than the {size} bytes expected "
+                         "(refused without inflating the rest)")
+    return data
+
+
+def require_stored_zip(path: Path) -> None:
+    """A zip file (e.g. a ``torch.save`` checkpoint) whose records are all stored uncompressed within
+    the file; ValueError naming the first record that is compressed or reaches past the file's end.
+    Files that are not zip archives pass (they hold no compressed streams)."""
+    if not zipfile.is_zipfile(path):
+        return
+    size = path.stat().st_size
+    with zipfile.ZipFile(path) as archive:
+        for record in archive.infolist():
+            if record.compress_type != zipfile.ZIP_STORED:
+                raise ValueError(f"{path}: record {record.filename!r} is compressed ({record.file_size} bytes "
+                                 f"from {record.compress_size}); torch.save stores records uncompressed, so "
+                                 "this file was made otherwise and is refused rather than inflated")
+            if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
+                raise ValueError(f"{path}: record {record.filename!r} claims {record.file_size} bytes, more than "
+                                 "the file holds (truncated or corrupt)")

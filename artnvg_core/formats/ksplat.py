@@ -1,0 +1,180 @@
+"""mkkellogg GaussianSplats3D ``.ksplat`` (its ``SplatBuffer``): read compression levels 0-2, write level 0.
+
+Layout (little-endian), as SplatBuffer.js reads it: a 4096-byte header (version major, minor
+as bytes 0-1, then uint32 maxSectionCount at 4, sectionCount 8, maxSplatCount 12, splatCount 16,
+uint16 compressionLevel at 20, float32 sceneCenter at 24, min / max SH coefficient at 36 / 40),
+``maxSectionCount`` 1024-byte section headers (uint32 splatCount 0, maxSplatCount 4, bucketSize 8,
+bucketCount 12, float32 bucketBlockSize 16, uint16 bucketStorageSizeBytes 20, uint32
+compressionScaleRange 24, storageSizeBytes 28, fullBucketCount 32, partiallyFilledBucketCount 36,
+uint16 sphericalHarmonicsDegree 40), then each section's data: partially filled bucket lengths
+(uint32), bucket centres (3 float32 each), and ``maxSplatCount`` records of
+
+- level 0: centre 3 x float32, linear scale 3 x float32, rotation w x y z 4 x float32, RGBA 4 x
+  uint8, SH 9 or 24 x float32 (44 + 4 x 9|24 bytes);
+- level 1: centre 3 x uint16 relative to its bucket's centre ((v - range) x blockSize / 2 /
+  range), scale and rotation as float16, RGBA, SH as float16;
+- level 2: as level 1 with SH as uint8 from the header's min..max (default -1.5..1.5).
+
+Colour is SH_C0 * f_dc + 0.5 and opacity sigmoid(logit), as bytes / 255 (as ``.splat``). SH
+(degrees 1 and 2 only) is stored per degree channel-major: the 9 degree-1 values are R's three
+coefficients, then G's, then B's; the 15 degree-2 values likewise. Coordinates are the PLY's
+axes, stored as they are. Scales that underflowed to 0 (float16 below 6e-8) are read as the
+smallest normal float32 (a flat Gaussian, as the viewer draws it).
+
+Written at level 0, one section: means, linear scales (log-scales in [-87, 88]), unit quaternions
+and SH degree 1-2 coefficients as float32 (exact to float32 rounding); colour and opacity as
+``.splat`` writes them (within 0.5 / 255, colour clamped to [0, 1]); degree-3 SH terms dropped
+with a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..cameras.geometry import normalize_quats
+from ..fileio import write_atomically
+from ..scene import GaussianScene, validate_scene
+from .common import require_file, scene_to_write
+from .splat import colour_and_opacity, linear_scales, rgba_bytes
+
+_log = logging.getLogger(__name__)
+
+HEADER_BYTES, SECTION_HEADER_BYTES = 4096, 1024
+VERSION = (0, 1)
+_HEADER = struct.Struct("<BBxxIIIIH2x3fff")
+_SECTION = struct.Struct("<IIIIfHxxIIIIH")
+_SH_VALUES = {0: 0, 1: 9, 2: 24}  # stored SH values per Gaussian by degree
+_DEFAULT_SCALE_RANGE = {0: 1, 1: 32767, 2: 32767}
+_DEFAULT_SH_RANGE = 1.5
+
+
+def _record(level: int, degree: int) -> np.dtype:
+    """The per-Gaussian record of compression ``level`` with SH ``degree``."""
+    half = "<f4" if level == 0 else "<f2"
+    fields = [("center", "<f4" if level == 0 else "<u2", 3), ("scale", half, 3), ("rotation", half, 4),
+              ("rgba", "u1", 4)]
+    if degree:
+        fields.append(("sh", {0: "<f4", 1: "<f2", 2: "u1"}[level], _SH_VALUES[degree]))
+    return np.dtype(fields)
+
+
+def _sh_rest(values: np.ndarray, degree: int) -> np.ndarray:
+    """[N, 0|9|24] stored SH (channel-major per degree) -> [N, 0|3|8, 3] coefficients (channel inner)."""
+    if degree == 0:
+        return np.zeros((len(values), 0, 3))
+    blocks = [values[:, :9].reshape(-1, 3, 3)] + ([values[:, 9:].reshape(-1, 3, 5)] if degree == 2 else [])
+    return np.concatenate([b.transpose(0, 2, 1) for b in blocks], 1)
+
+
+def _stored_sh(rest: np.ndarray) -> np.ndarray:
+    """[N, 3|8, 3] coefficients -> [N, 9|24] stored SH (inverse of :func:`_sh_rest`)."""
+    blocks = [rest[:, :3]] + ([rest[:, 3:8]] if rest.shape[1] > 3 else [])
+    return np.concatenate([b.transpose(0, 2, 1).reshape(len(rest), -1) for b in blocks], 1)
+
+
+def _bucket_of_each(section: dict, count: int) -> np.ndarray:
+    """[count] bucket index of each record: full buckets of ``bucketSize`` first, then the
+    partially filled ones with their stored lengths."""
+    full = min(section["full"] * section["bucket_size"], count)
+    index = np.arange(full) // max(section["bucket_size"], 1)
+    partial = np.repeat(section["full"] + np.arange(len(section["lengths"])), section["lengths"])
+    return np.concatenate([index, partial])[:count]
+
+
+def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+    """Read a ``.ksplat`` file of compression level 0, 1 or 2 (layout in the module docstring)."""
+    path = Path(path)
+    require_file(path)
+    data = path.read_bytes()
+    if len(data) < HEADER_BYTES:
+        raise ValueError(f"{path}: header: {len(data)} bytes, expected {HEADER_BYTES}")
+    major, minor, sections, _, _, _, level, *_, sh_min, sh_max = _HEADER.unpack_from(data)
+    if (major, minor) < VERSION or major != VERSION[0]:
+        raise ValueError(f"{path}: version: {major}.{minor} is not a supported .ksplat version (0.1 or later 0.x)")
+    if level not in _DEFAULT_SCALE_RANGE:
+        raise ValueError(f"{path}: compressionLevel: {level}, expected 0, 1 or 2")
+    if HEADER_BYTES + sections * SECTION_HEADER_BYTES > len(data):
+        raise ValueError(f"{path}: maxSectionCount: {sections} section headers do not fit the {len(data)}-byte file")
+    sh_min, sh_max = sh_min or -_DEFAULT_SH_RANGE, sh_max or _DEFAULT_SH_RANGE
+    offset, parts = HEADER_BYTES + sections * SECTION_HEADER_BYTES, []
+    for s in range(sections):
+        (count, capacity, bucket_size, buckets, block, bucket_bytes, scale_range, _, full, partial,
+         degree) = _SECTION.unpack_from(data, HEADER_BYTES + s * SECTION_HEADER_BYTES)
+        if degree not in _SH_VALUES:
+            raise ValueError(f"{path}: section {s}: sphericalHarmonicsDegree: {degree}, expected 0, 1 or 2")
+        if count > capacity:
+            raise ValueError(f"{path}: section {s}: splatCount: {count}, more than its maxSplatCount {capacity}")
+        record = _record(level, degree)
+        meta = partial * 4
+        storage = meta + bucket_bytes * buckets + record.itemsize * capacity
+        if offset + storage > len(data):
+            raise ValueError(f"{path}: section {s}: its counts need {storage} bytes, the file holds "
+                             f"{len(data) - offset} after its start (truncated, or the counts are wrong)")
+        rows = np.frombuffer(data, record, count, offset + meta + bucket_bytes * buckets)
+        means = rows["center"].astype(np.float64)
+        if level > 0:
+            section = {"full": full, "bucket_size": bucket_size,
+                       "lengths": np.frombuffer(data, "<u4", partial, offset).astype(np.int64)}
+            centres = np.frombuffer(data, "<f4", 3 * buckets, offset + meta).reshape(-1, 3).astype(np.float64)
+            scale_range = scale_range or _DEFAULT_SCALE_RANGE[level]
+            bucket = _bucket_of_each(section, count)
+            if len(bucket) < count or (count and bucket.max() >= buckets):
+                raise ValueError(f"{path}: section {s}: its buckets (fullBucketCount {full}, bucketSize "
+                                 f"{bucket_size}, {partial} partly filled) do not hold its {count} Gaussians")
+            means = (means - scale_range) * (block / 2 / scale_range) + centres[bucket]
+        sh = rows["sh"].astype(np.float64) if degree else np.zeros((count, 0))
+        if level == 2 and degree:
+            sh = sh / 255 * (sh_max - sh_min) + sh_min
+        parts.append((means, rows["scale"].astype(np.float64), rows["rotation"].astype(np.float64), rows["rgba"],
+                      sh, degree))
+        offset += storage
+    if offset != len(data):
+        raise ValueError(f"{path}: the file holds {len(data) - offset} bytes after its last section")
+    degree = min((p[5] for p in parts), default=0)
+    if not parts or sum(len(p[0]) for p in parts) == 0:
+        raise ValueError(f"{path}: the scene contains no Gaussians")
+    means, scales, rotations, rgba = (np.concatenate([p[i] for p in parts]) for i in range(4))
+    rest = np.concatenate([_sh_rest(p[4], p[5])[:, : (degree + 1) ** 2 - 1] for p in parts])
+    tiny = np.finfo(np.float32).tiny
+    dc, opacity_logits = colour_and_opacity(rgba)
+    scene = GaussianScene(
+        means=torch.from_numpy(means).float(),
+        quats=torch.from_numpy(rotations).float(),
+        log_scales=torch.from_numpy(np.log(np.maximum(np.abs(scales), tiny))).float(),
+        opacity_logits=opacity_logits,
+        sh=torch.cat([dc, torch.from_numpy(rest).float()], 1),
+    )
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+
+
+def write_ksplat(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring).
+
+    Refused with a ValueError before writing: non-finite values, zero quaternions, log-scales
+    outside [-87, 88].
+    """
+    path = Path(path)
+    cpu = scene_to_write(scene, path)
+    scales = linear_scales(cpu, path, ".ksplat")
+    degree = min(cpu.sh_degree, 2)
+    if cpu.sh_degree > 2:
+        _log.warning("%s: .ksplat holds SH up to degree 2; the degree-3 view-dependent terms are dropped", path)
+    n, record = len(cpu), _record(0, degree)
+    rows = np.zeros(n, record)
+    rows["center"] = cpu.means.numpy()
+    rows["scale"] = scales
+    rows["rotation"] = normalize_quats(cpu.quats.double()).numpy()
+    rows["rgba"] = rgba_bytes(cpu)
+    if degree:
+        rows["sh"] = _stored_sh(cpu.sh[:, 1 : (degree + 1) ** 2].double().numpy())
+    header = bytearray(HEADER_BYTES)
+    _HEADER.pack_into(header, 0, *VERSION, 1, 1, n, n, 0, 0.0, 0.0, 0.0, -_DEFAULT_SH_RANGE, _DEFAULT_SH_RANGE)
+    section = bytearray(SECTION_HEADER_BYTES)
+    _SECTION.pack_into(section, 0, n, n, 0, 0, 0.0, 0, 0, record.itemsize * n, 0, 0, degree)
+    write_atomically(path, lambda stream: stream.write(bytes(header) + bytes(section) + rows.tobytes()))

@@ -1,0 +1,44 @@
+"""How every node of the pack declares itself and its inputs: one base class, inputs as data.
+
+A node subclasses :class:`ArtNVGNode` and sets ``DISPLAY_NAME``, ``FUNCTION``, ``RETURN_TYPES`` and
+``RETURN_NAMES`` as ComfyUI reads them, and its inputs as ``REQUIRED`` and ``OPTIONAL``: dicts of
+input name -> ``(type,)`` or ``(type, options)``, in the order saved workflows store them. An entry
+may be a function returning the declaration instead, for choices read when ComfyUI asks (files in
+a folder). The class docstring is the node's ``DESCRIPTION`` unless the class sets one.
+
+Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names the node and the
+input in the error; a loader's file input is declared, found and checked by an
+:class:`~.input_files.InputFile`.
+"""
+
+from __future__ import annotations
+
+from .node_types import CATEGORY, IMAGE
+
+STYLE_IMAGE_INPUT = (IMAGE, {"tooltip": "The style reference (first image of the batch)."})
+
+
+def _declared(inputs: dict) -> dict:
+    """``inputs`` with every entry that is a function replaced by what it returns now."""
+    return {name: entry() if callable(entry) else entry for name, entry in inputs.items()}
+
+
+class ArtNVGNode:
+    """Base of the pack's nodes (module docstring): the menu category, the description, the inputs."""
+
+    CATEGORY = CATEGORY
+    REQUIRED: dict = {}
+    OPTIONAL: dict = {}
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if "DESCRIPTION" not in vars(cls):
+            cls.DESCRIPTION = cls.__doc__
+
+    @classmethod
+    def INPUT_TYPES(cls) -> dict:
+        """ComfyUI's input declaration: ``{"required": REQUIRED, "optional": OPTIONAL}`` (optional when any)."""
+        types = {"required": _declared(cls.REQUIRED)}
+        if cls.OPTIONAL:
+            types["optional"] = _declared(cls.OPTIONAL)
+        return types

@@ -1,0 +1,81 @@
+"""Models loaded once per process: the same key returns the kept set; another key, an edited file or
+forget_models loads afresh and lets the old set go."""
+
+import gc
+import os
+import weakref
+
+import pytest
+
+from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
+from artnvg_core.stylize import ModelPaths, load_models_for
+from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
+from diffusion_tiny import write_model_files
+
+
+class _Models:  # a stand-in that can be weakly referenced
+    pass
+
+
+@pytest.fixture(autouse=True)
+def empty_cache():
+    forget_models()
+    yield
+    forget_models()
+
+
+def test_same_key_loads_once_another_key_drops_the_kept_set():
+    loads = []
+
+    def load():
+        loads.append(1)
+        return _Models()
+
+    first = load_once(("a", 1), load)
+    assert load_once(("a", 1), load) is first and len(loads) == 1
+    kept = weakref.ref(first)
+    del first
+    second = load_once(("a", 2), load)
+    gc.collect()
+    assert len(loads) == 2 and kept() is None  # only one set is kept
+    assert load_once(("a", 2), load) is second
+    forget_models()
+    assert load_once(("a", 2), load) is not second and len(loads) == 3
+
+
+def test_a_failing_load_keeps_nothing():
+    def fail():
+        raise OSError("disk")
+
+    load_once("k", _Models)
+    with pytest.raises(OSError, match="disk"):
+        load_once("other", fail)
+    calls = []
+    load_once("k", lambda: calls.append(1) or _Models())
+    assert calls == [1]
+
+
+def test_file_key_follows_every_file_of_a_folder(tmp_path):
+    folder = tmp_path / "model"
+    (folder / "unet").mkdir(parents=True)
+    weights = folder / "unet" / "weights.bin"
+    weights.write_bytes(b"1234")
+    key = file_key(folder)
+    assert file_key(folder) == key and file_key(None) is None
+    os.utime(weights, ns=(weights.stat().st_atime_ns, weights.stat().st_mtime_ns + 10**9))
+    assert file_key(folder) != key
+    key = file_key(folder)
+    (folder / "config.json").write_text("{}")
+    assert file_key(folder) != key
+    assert file_key(weights) != file_key(folder) and file_key(tmp_path / "missing") == (str(tmp_path / "missing"), ())
+
+
+def test_load_models_for_reuses_the_loaded_models_until_a_file_changes(tmp_path):
+    paths = ModelPaths(**write_model_files(tmp_path))
+    models = load_models_for(paths, False, "cpu")
+    assert load_models_for(paths, False, "cpu") is models
+    low = load_models_for(paths, True, "cpu")
+    assert low is not models and load_models_for(paths, True, "cpu") is low
+    csgo = paths.csgo
+    os.utime(csgo, ns=(csgo.stat().st_atime_ns, csgo.stat().st_mtime_ns + 10**9))
+    assert load_models_for(paths, True, "cpu") is not low

@@ -1,0 +1,47 @@
+"""Bounded decompression: exactly the size a header implies, one byte past it at most."""
+
+import gzip
+import io
+from pathlib import Path
+
+import pytest
+
+from artnvg_core.formats import bounded
+from artnvg_core.formats.bounded import inflate_exactly, read_at_most
+
+
+class CountingReader(io.RawIOBase):
+    """A stream of ``size`` zero bytes that counts the bytes handed out."""
+
+    def __init__(self, size: int):
+        self.left, self.given = size, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        n = min(len(buffer), self.left)
+        buffer[:n] = bytes(n)
+        self.left, self.given = self.left - n, self.given + n
+        return n
+
+
+def test_exactly_the_implied_size_and_one_byte_past_it_at_most(monkeypatch):
+    monkeypatch.setattr(bounded, "CHUNK", 1000)  # several reads per call
+    where = Path("scene.spz")
+    assert len(inflate_exactly(CountingReader(2500), 2500, where, "data")) == 2500
+    endless = CountingReader(10**12)
+    with pytest.raises(ValueError, match=r"scene\.spz: data: the stream holds more than the 2500 bytes expected"):
+        inflate_exactly(endless, 2500, where, "data")
+    assert endless.given == 2501
+    with pytest.raises(ValueError, match=r"scene\.spz: data: 2500 bytes expected, the stream ends after 2499"):
+        inflate_exactly(CountingReader(2499), 2500, where, "data")
+    trailing = CountingReader(10**12)
+    assert len(inflate_exactly(trailing, 2500, where, "data", trailing_allowed=True)) == 2500
+    assert trailing.given == 2500
+
+
+def test_read_at_most_stops_at_the_limit_or_the_end():
+    stream = gzip.GzipFile(fileobj=io.BytesIO(gzip.compress(b"abcdef" * 1000)))
+    assert read_at_most(stream, 4) == b"abcd"
+    assert read_at_most(stream, 10**9) == (b"abcdef" * 1000)[4:]
