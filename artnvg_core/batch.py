@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from .cluster import Workers, dispatch, import_ray, ray_session
+from .cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from .progress import Cancelled, StopFn
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
@@ -60,13 +60,15 @@ class Job:
 @dataclass(frozen=True)
 class JobResult:
     """What became of a job: ``status`` one of :data:`STATUSES`, ``message`` the error or reason,
-    ``seconds`` its run time, ``worker`` where it ran."""
+    ``seconds`` its run time, ``worker`` where it ran, ``peak_gib`` the most GPU memory it allocated
+    (GiB; None on the CPU or when it did not run)."""
 
     job: Job
     status: str
     message: str = ""
     seconds: float = 0.0
     worker: str = ""
+    peak_gib: float | None = None
 
 
 def read_jobs(path: str | os.PathLike) -> list:
@@ -210,19 +212,23 @@ class BatchWorker:
 
     def run(self, run: str, argv: Sequence[str], folder: str) -> dict:
         """Run one job (``argv``: stylize's arguments; relative paths from ``folder``); returns its
-        "status" (done, failed, cancelled), "message", "seconds", "worker" and the tail of its output, "log"."""
+        "status" (done, failed, cancelled), "message", "seconds", "worker" and "peak_gib". What the job
+        prints (stylize's lines and progress bars) is dropped: the batch prints a line per job."""
         import ray
 
         worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
-        log, start, cwd = io.StringIO(), time.perf_counter(), os.getcwd()
+        start, cwd = time.perf_counter(), os.getcwd()
         with self.lock:
             if run in self.stopped:
-                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker, log="")
+                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker,
+                            peak_gib=None)
             self.running = (run, threading.get_ident())
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
+            if self.workers.kind == "cuda":
+                torch.cuda.reset_peak_memory_stats()
             os.chdir(folder)
-            with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+            with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
                 args.run(args)
             status, message = "done", ""
         except (Cancelled, KeyboardInterrupt):
@@ -235,8 +241,8 @@ class BatchWorker:
             with self.lock:
                 self.running = None
             os.chdir(cwd)
-        tail = "\n".join(log.getvalue().replace("\r", "\n").splitlines()[-20:])
-        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, log=tail)
+        peak = torch.cuda.max_memory_allocated() / 2**30 if self.workers.kind == "cuda" else None
+        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak)
 
     def stop(self, run: str) -> None:
         """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step); the
@@ -247,26 +253,12 @@ class BatchWorker:
                 ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.running[1]), ctypes.py_object(Cancelled))
 
 
-class BatchPool:
-    """``workers.count`` :class:`BatchWorker` actors (Ray must be connected: :func:`ray_session`);
-    :meth:`run` them over jobs, as often as needed. :meth:`close` (or leaving the ``with`` block) ends them."""
+class BatchPool(WorkerPool):
+    """``workers.count`` :class:`BatchWorker` actors (a :class:`~artnvg_core.cluster.WorkerPool`);
+    :meth:`run` them over jobs, as often as needed."""
 
     def __init__(self, workers: Workers):
-        ray = import_ray("batch")
-        actor = ray.remote(BatchWorker).options(**workers.actor_options(), max_concurrency=2)
-        self.actors = [actor.remote(workers) for _ in range(workers.count)]
-
-    def __enter__(self) -> BatchPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        ray = import_ray("batch")
-        for actor in self.actors:
-            ray.kill(actor)
-        self.actors = []
+        super().__init__(BatchWorker, workers, workers)
 
     def run(
         self,
@@ -345,15 +337,13 @@ class BatchPool:
                         continue
                     ended.append((job, _result(job, value)))
             if late:  # a job that did not reach a Python step in time: the workers go
-                for actor in self.actors:
-                    ray.kill(actor)
-                self.actors = []
+                self.close()
         return ended
 
 
 def _result(job: Job, value: dict) -> JobResult:
     """The result of ``job`` from what :meth:`BatchWorker.run` returned."""
-    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"])
+    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"], value["peak_gib"])
 
 
 def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:

@@ -3,9 +3,10 @@
 * :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
   already initialised in this process, or starts a local Ray instance with exactly the given devices
   (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
-* :func:`dispatch` hands tasks to worker actors, one task at a time per actor, in the order given. A
-  task whose actor died (a killed process, a lost machine) is handed again to the next idle actor;
-  the dead actor restarts by itself (``max_restarts``) and rejoins once it answers.
+* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them, one task at a
+  time per actor, in the order given. A task whose actor died (a killed process, a lost machine) is
+  handed again to the next idle actor; the dead actor restarts by itself (``max_restarts``) and
+  rejoins once it answers.
 
 Ray is imported here, and only when one of these is called: without it installed nothing else changes.
 Actors see only the GPU Ray gave them, as ``cuda:0``.
@@ -151,6 +152,29 @@ def _cluster_gpus(ray, address: str | None) -> Workers:
         raise ValueError(f"the Ray cluster {address or '(already connected)'} has no GPU; "
                          "give --devices cpu,cpu,... to run on CPU workers")
     return Workers("cuda", count)
+
+
+class WorkerPool:
+    """``workers.count`` Ray actors of class ``worker``, each built with ``args`` and given two threads
+    (one works, the other answers progress and stop requests); leaving the ``with`` block, or
+    :meth:`close`, ends them and frees their memory. Ray must be connected (:func:`ray_session`)."""
+
+    def __init__(self, worker: type, workers: Workers, *args):
+        ray = import_ray(worker.__name__)
+        actor = ray.remote(worker).options(**workers.actor_options(), max_concurrency=2)
+        self.actors = [actor.remote(*args) for _ in range(workers.count)]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        ray = import_ray("WorkerPool")
+        for actor in self.actors:
+            ray.kill(actor)
+        self.actors = []
 
 
 def dispatch(

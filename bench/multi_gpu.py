@@ -1,120 +1,257 @@
-"""Scaling of the diffusion stage over several GPUs (:func:`stylize_groups_on_devices`).
+"""What more GPUs buy, through Ray: one scene's groups (the executor) and a batch of scenes (``batch``).
 
-Stylizes the same ``--groups`` groups of ``--views`` random ``--size`` px views (NV on, DDIM,
-``--steps`` steps, random full-size models, bf16) on one GPU and on ``--workers`` GPUs (default:
-all visible), and prints wall time, speedup and the largest difference from the one-GPU output.
+* ``groups``: the bear's content views, rendered once, grouped as ``stylize`` groups them
+  (``--views`` evenly spaced cameras, groups of 15), stylized at each ``--presets`` preset's sampler
+  settings by a :class:`GroupExecutor` of 1 worker, then of ``--gpus`` workers (default: every
+  visible GPU), each with random full-size models built from one seed. Wall time from every
+  worker ready (models built) to the assembled result; the largest difference from the 1-GPU output.
+* ``batch``: ``--batch-scenes`` stylized whole (render, diffusion at ``--batch-preset``, finetune,
+  contact sheet, save) as ``batch`` jobs on 1 worker, then on ``--gpus`` workers, from random
+  full-size model files written once to ``--models``. Wall time from start to the last job,
+  including each worker's one model load; whether every output file equals the 1-GPU run's.
 
-Every process builds its models with the same seed (a weight checksum is printed per device).
-Wall time excludes building the models: the one-GPU run reuses models built beforehand in this
-process and is timed around the call; in the multi-GPU run each worker waits, after building,
-at a barrier shared with a timing thread here, and the time runs from the barrier (all workers
-ready) to the return of the call (so it includes sending the results back).
+For each run: speed-up over 1 GPU; per GPU the busy fraction (seconds inside group or job tasks over
+the wall: the rest is waiting for work, or loading) and the peak memory allocated. Both runs of a
+section go in one Ray session (a local instance with the GPUs given), one after the other.
 
-    python bench/multi_gpu.py                        # all visible GPUs
-    python bench/multi_gpu.py --tiny --device cpu    # smoke test: tiny models, 2 CPU processes
+    python bench/multi_gpu.py --sections groups --presets fast             # ~3 min on 2 H200s
+    python bench/multi_gpu.py --sections groups --presets paper --views 30 # 2 groups of 15
+    python bench/multi_gpu.py --sections batch                             # 4 scenes, fast
+    python bench/multi_gpu.py --tiny --device cpu --views 8 --presets fast --batch-scenes bear face  # CPU smoke test
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
+import json
 import sys
-import threading
+import tempfile
 import time
 from pathlib import Path
 
 import torch
-import torch.multiprocessing as mp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from artnvg_core.diffusion.multi_gpu import stylize_groups_on_devices  # noqa: E402
-from artnvg_core.diffusion.sampler import SamplerSettings  # noqa: E402
-from artnvg_core.grouping import ViewGroup, ViewGroups  # noqa: E402
-from bench.diffusion import (  # noqa: E402
-    POOLED_DIM,
-    TINY_POOLED_DIM,
-    build_models,
-    random_conditioning,
-)
+from artnvg_core.batch import BatchPool, load_jobs  # noqa: E402
+from artnvg_core.cameras import load_cameras  # noqa: E402
+from artnvg_core.cluster import Workers, ray_session  # noqa: E402
+from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402
+from artnvg_core.formats import load_scene  # noqa: E402
+from artnvg_core.grouping import group_views  # noqa: E402
+from artnvg_core.preview import evenly_spaced  # noqa: E402
+from artnvg_core.presets import PRESETS  # noqa: E402
+from artnvg_core.raster import render  # noqa: E402
+from artnvg_core.stylize import sheet_path  # noqa: E402
+from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning  # noqa: E402
 
-DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16, "fp32": torch.float32}
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+TINY_TEXT = dict(hidden_size=8, intermediate_size=16, num_hidden_layers=2, num_attention_heads=2)
 
 
-def seeded_models(tiny: bool, dtype: torch.dtype, seed: int, ready, device: torch.device):
-    """Random models built from ``seed`` on ``device``; prints a weight checksum, then waits at ``ready``."""
-    if device.type == "cpu":
-        torch.set_num_threads(1)
+def seeded_models(tiny: bool, seed: int, device: torch.device):
+    """Random models built from ``seed`` on ``device`` (bf16 on a GPU, float32 on the CPU)."""
     torch.manual_seed(seed)
-    models = build_models(tiny, device, dtype)
-    parts = (models.base.unet, models.controlnet, models.base.vae, models.image_encoder, models.csgo)
-    checksum = sum(next(part.parameters()).double().sum().item() for part in parts)
-    print(f"{device}: models built, checksum of the first weight of each model {checksum:.17g}", flush=True)
-    if ready is not None:
-        ready.wait()
-    return models
+    return build_models(tiny, device, torch.bfloat16 if device.type == "cuda" else torch.float32)
 
 
-def timed_from_barrier(run, ready) -> tuple[torch.Tensor, float]:
-    """``run()`` and the seconds from the release of barrier ``ready`` (one party is this timer) to its return."""
-    start = []
-    waiter = threading.Thread(target=lambda: (ready.wait(), start.append(time.perf_counter())), daemon=True)
-    waiter.start()
-    output = run()
-    waiter.join()
-    return output, time.perf_counter() - start[0]
+def content_views(scene_folder: Path, views: int | None, size: int | None) -> tuple[torch.Tensor, object]:
+    """The scene's content views [V, H, W, 3] (CPU; ``views`` evenly spaced cameras, long side ``size``)
+    and their groups, as ``stylize`` groups them."""
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    scene = load_scene(scene_folder / "scene.ply").to(device)
+    cameras = load_cameras(scene_folder / "transforms.json")
+    if views:
+        cameras = cameras.subset(evenly_spaced(len(cameras), views))
+    if size:
+        cameras = cameras.scaled(size / max(cameras.width, cameras.height))
+    with torch.no_grad():
+        images = torch.cat([render(scene, cameras.subset(range(i, min(i + 8, len(cameras))))).rgb.clamp(0, 1).cpu()
+                            for i in range(0, len(cameras), 8)])
+    return images, group_views(cameras, 15)
+
+
+def busy_row(label: str, workers: int, wall: float, reference_wall: float, stats: list[dict], equal: str) -> str:
+    busy = " / ".join(f"{s['busy_s'] / wall:.2f}" for s in stats)
+    peak = " / ".join("-" if s["peak_gib"] is None else f"{s['peak_gib']:.1f}" for s in stats)
+    return f"| {label} | {workers} | {wall:.1f} | {reference_wall / wall:.2f}x | {busy} | {peak} | {equal} |"
+
+
+def groups_section(args, devices: list[str], rows: list[str]) -> None:
+    images, groups = content_views(args.shared / "scenes" / "bear", args.views, args.size)
+    print(f"bear: {len(images)} views at {images.shape[2]}x{images.shape[1]}, {len(groups)} groups of "
+          f"{sorted({len(g.views) for g in groups})} views", flush=True)
+    device = torch.device(devices[0].split(":")[0])  # the conditioning, once, from models built here
+    models = seeded_models(args.tiny, args.seed, device)
+    with torch.no_grad():
+        conditioning = random_conditioning(models, device, models.base.unet.dtype,
+                                           TINY_POOLED_DIM if args.tiny else POOLED_DIM)
+    del models
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+    with ray_session(devices) as available:
+        load = functools.partial(seeded_models, args.tiny, args.seed)
+        for name in args.presets:
+            settings = PRESETS[name].sampler
+            if args.tiny:
+                settings = dataclasses.replace(settings, resolution=None)
+            reference, reference_wall = None, None
+            for count in sorted({1, available.count}):
+                with GroupExecutor(load, Workers(available.kind, count)) as executor:
+                    executor.describe()  # every worker has built its models
+                    start = time.perf_counter()
+                    output = executor.stylize_groups(images, groups, conditioning, settings, seed=args.seed)
+                    wall = time.perf_counter() - start
+                    stats = executor.stats()
+                reference = output if reference is None else reference
+                reference_wall = reference_wall or wall
+                difference = (output - reference).abs().max().item()
+                rows.append(busy_row(f"groups, {name}", count, wall, reference_wall, stats, f"max abs diff {difference:.3g}"))
+                print(rows[-1], flush=True)
+
+
+def write_random_model_files(folder: Path, tiny: bool, seed: int) -> dict[str, Path]:
+    """Random full-size (or tiny) model files in the layouts the loaders read, float16; returns their paths."""
+    from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection, CLIPVisionConfig, \
+        CLIPVisionModelWithProjection
+
+    from artnvg_core.diffusion.architectures import BIGG_TEXT_CONFIG, CLIP_L_TEXT_CONFIG, SDXL_UNET_CONFIG, \
+        SDXL_VAE_CONFIG, VIT_BIGG_IMAGE_ENCODER_CONFIG
+    from artnvg_core.diffusion.sdxl_config import write_sdxl_config_dir
+    from bench.diffusion import TINY_ENCODER, TINY_UNET, TINY_VAE
+
+    paths = {"sdxl": folder / "sdxl", "controlnet": folder / "controlnet", "image_encoder": folder / "image_encoder",
+             "csgo": folder / "csgo.bin"}
+    if all(p.exists() for p in paths.values()):
+        return paths
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    shrink = (lambda config, small: {**config, **small}) if tiny else (lambda config, small: config)
+    unet_config = shrink(SDXL_UNET_CONFIG, TINY_UNET)
+    text_l = shrink(CLIP_L_TEXT_CONFIG, TINY_TEXT)
+    text_g = shrink(BIGG_TEXT_CONFIG, {**TINY_TEXT, "projection_dim": TINY_POOLED_DIM})
+    write_sdxl_config_dir(paths["sdxl"], unet=unet_config, vae=shrink(SDXL_VAE_CONFIG, TINY_VAE),
+                          text_encoder=text_l, text_encoder_2=text_g)
+    torch.manual_seed(seed)
+    with torch.device(device):
+        unet = UNet2DConditionModel(**unet_config).half()
+        unet.save_pretrained(paths["sdxl"] / "unet")
+        ControlNetModel.from_unet(unet).half().save_pretrained(paths["controlnet"])
+        AutoencoderKL(**shrink(SDXL_VAE_CONFIG, TINY_VAE)).half().save_pretrained(paths["sdxl"] / "vae")
+        CLIPTextModel(CLIPTextConfig(**text_l)).half().save_pretrained(paths["sdxl"] / "text_encoder")
+        CLIPTextModelWithProjection(CLIPTextConfig(**text_g)).half().save_pretrained(paths["sdxl"] / "text_encoder_2")
+        encoder_config = CLIPVisionConfig(**shrink(VIT_BIGG_IMAGE_ENCODER_CONFIG, TINY_ENCODER))
+        CLIPVisionModelWithProjection(encoder_config).half().save_pretrained(paths["image_encoder"])
+        models = build_models(tiny, torch.device(device), torch.float16)  # CSGO's parts, in the released layout
+    torch.save(csgo_state(models), paths["csgo"])
+    return paths
+
+
+def csgo_state(models) -> dict[str, dict[str, torch.Tensor]]:
+    """A CSGO file's dict from ``models``' projections and image branches (keys indexed over the attention
+    processors in the released order, as :mod:`artnvg_core.diffusion.csgo_weights` reads them)."""
+    def branches(model, blocks: tuple[str, ...]) -> dict[str, torch.Tensor]:
+        state = {}
+        for index, name in enumerate(model.attn_processors):
+            if name.endswith("attn2.processor") and name.startswith(blocks):
+                layer = model.get_submodule(name[: -len(".processor")])
+                for part in ("to_k_ip", "to_v_ip"):
+                    shape = (layer.to_k.out_features, layer.to_k.in_features)
+                    state[f"{index}.{part}.weight"] = 0.02 * torch.randn(shape, dtype=torch.float16)
+        return state
+
+    return {"content_image_proj": models.csgo.content.state_dict(), "style_image_proj": models.csgo.style.state_dict(),
+            "ip_adapter": branches(models.base.unet, ("down_blocks", "up_blocks")),
+            "controlnet_adapter_modules": branches(models.controlnet, ("down_blocks",))}
+
+
+def batch_section(args, devices: list[str], rows: list[str]) -> None:
+    """With --tiny the model files are written and loaded once (a check of the writer), and the jobs
+    use the NNFM stylizer at 1/8 scale (a preset's 768 or 1024 px working size takes minutes a view
+    with tiny models on a CPU): it checks the plumbing, not the diffusion."""
+    files = write_random_model_files(args.models, args.tiny, args.seed)
+    if args.tiny:
+        from artnvg_core.stylize import ModelPaths, load_models_for
+
+        load_models_for(ModelPaths(**files), False, torch.device("cpu"))
+        stylizer = {"stylizer": "nnfm", "scale": 0.125, "iters": 2}
+    else:
+        stylizer = {"stylizer": "diffusion", "preset": args.batch_preset,
+                    **{role: str(path) for role, path in files.items()}}
+    style = sorted((args.shared / "styles").glob("*.jpg"))[0]
+    work = Path(tempfile.mkdtemp(prefix="artnvg-batch-bench-"))
+    entries = []
+    for number, name in enumerate(args.batch_scenes):
+        folder = args.shared / "scenes" / name
+        entries.append({"scene": str(folder / "scene.ply"), "cameras": str(folder / "transforms.json"),
+                        "style": str(style), "seed": args.seed + number, "out": f"OUT/{number}-{name}.ply", **stylizer})
+    with ray_session(devices) as available:
+        outputs, reference_wall = {}, None
+        for count in sorted({1, available.count}):
+            jobs_path = work / f"jobs-{count}.json"
+            jobs_path.write_text(json.dumps(entries).replace("OUT/", f"out-{count}/"))
+            jobs = load_jobs(jobs_path, _stylize_options())
+            with BatchPool(Workers(available.kind, count)) as pool:
+                start = time.perf_counter()
+                results = pool.run(jobs)
+                wall = time.perf_counter() - start
+            bad = [f"job {r.job.number}: {r.status} {r.message}" for r in results if r.status != "done"]
+            if bad:
+                raise RuntimeError("batch bench: " + "; ".join(bad))
+            per_worker = {}
+            for result in results:
+                entry = per_worker.setdefault(result.worker, {"busy_s": 0.0, "peak_gib": None})
+                entry["busy_s"] += result.seconds
+                if result.peak_gib is not None:
+                    entry["peak_gib"] = max(entry["peak_gib"] or 0.0, result.peak_gib)
+            files_now = {job.number: [job.out.read_bytes(), sheet_path(job.out).read_bytes()] for job in jobs}
+            equal = "reference" if not outputs else f"outputs equal: {files_now == outputs}"
+            outputs = outputs or files_now
+            reference_wall = reference_wall or wall
+            rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, wall, reference_wall,
+                                 list(per_worker.values()), equal))
+            print(rows[-1], flush=True)
+
+
+def _stylize_options() -> dict:
+    from artnvg_core.__main__ import build_parser
+
+    commands = next(a for a in build_parser()._actions if a.dest == "command")
+    return {string: action for action in commands.choices["stylize"]._actions for string in action.option_strings}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--tiny", action="store_true", help="tiny models (CPU smoke test)")
+    parser.add_argument("--sections", nargs="+", choices=["groups", "batch"], default=["groups", "batch"])
+    parser.add_argument("--presets", nargs="+", choices=sorted(PRESETS), default=["fast", "paper"])
+    parser.add_argument("--views", type=int, help="groups: this many evenly spaced cameras of the bear (default all 96)")
+    parser.add_argument("--size", type=int, help="groups: long side of the content views (default the cameras' 512)")
+    parser.add_argument("--batch-scenes", nargs="+", default=["bear", "face", "bear", "face"])
+    parser.add_argument("--batch-preset", choices=sorted(PRESETS), default="fast")
+    parser.add_argument("--gpus", type=int, help="GPUs of the multi-GPU runs (default: every visible one)")
     parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda")
-    parser.add_argument("--workers", type=int, help="devices of the multi-device run (default: all GPUs; CPU: 2)")
-    parser.add_argument("--dtype", choices=list(DTYPES), help="default: bf16 on a GPU, fp32 on the CPU")
-    parser.add_argument("--groups", type=int, default=4)
-    parser.add_argument("--views", type=int, default=15)
-    parser.add_argument("--size", type=int, help="view side in pixels (default 1024, tiny 64)")
-    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--tiny", action="store_true", help="tiny models, native view size (smoke test)")
+    parser.add_argument("--models", type=Path, default=Path(tempfile.gettempdir()) / "artnvg-random-models",
+                        help="batch: folder of the random model files (written once)")
+    parser.add_argument("--shared", type=Path, default=SHARED)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    cuda = args.device == "cuda"
-    workers = args.workers or (torch.cuda.device_count() if cuda else 2)
-    devices = [f"cuda:{i}" for i in range(workers)] if cuda else ["cpu"] * workers
-    dtype = DTYPES[args.dtype or ("bf16" if cuda else "fp32")]
-    size = args.size or (64 if args.tiny else 1024)
-    settings = SamplerSettings(steps=args.steps, resolution=size)
-    views = args.groups * args.views
-    images = torch.rand(views, size, size, 3, generator=torch.Generator().manual_seed(args.seed))
-    groups = ViewGroups([ViewGroup(range(g * args.views, (g + 1) * args.views)) for g in range(args.groups)], views)
-
-    name = torch.cuda.get_device_name(0) if cuda else "CPU (1 thread per process)"
-    print(
-        f"# Multi-device diffusion: {workers} x {name}, {str(dtype).removeprefix('torch.')}, "
-        f"{'tiny' if args.tiny else 'full-size'} random models, {args.groups} groups x {args.views} views "
-        f"at {size}x{size}, NV on, DDIM {args.steps} steps, torch {torch.__version__}"
-    )
-    print("# " + " ".join(["python", *sys.argv]))
-    models = seeded_models(args.tiny, dtype, args.seed, None, torch.device(devices[0]))
-    conditioning = random_conditioning(models, devices[0], dtype, TINY_POOLED_DIM if args.tiny else POOLED_DIM)
-    common = dict(images=images, groups=groups, conditioning=conditioning, settings=settings, seed=args.seed)
-
-    begin = time.perf_counter()
-    reference = stylize_groups_on_devices(lambda device, built=models: built, devices=devices[:1], **common)
-    rows = [(1, time.perf_counter() - begin, 0.0)]
-    del models
-    if cuda:
-        torch.cuda.empty_cache()
-    if workers > 1:
-        ready = mp.get_context("spawn").Barrier(workers + 1)
-        loader = functools.partial(seeded_models, args.tiny, dtype, args.seed, ready)
-        run = functools.partial(stylize_groups_on_devices, loader, devices=devices, **common)
-        output, seconds = timed_from_barrier(run, ready)
-        rows.append((workers, seconds, (output - reference).abs().max().item()))
-
-    print("\n| devices | wall s (models built) | speedup | max abs diff vs 1 device |")
-    print("|---:|---:|---:|---:|")
-    for count, seconds, difference in rows:
-        print(f"| {count} | {seconds:.1f} | {rows[0][1] / seconds:.2f}x | {difference:.3g} |")
+    if args.tiny:
+        args.models = args.models.with_name(args.models.name + "-tiny")
+    count = args.gpus or (torch.cuda.device_count() if args.device == "cuda" else 2)
+    devices = [f"cuda:{i}" for i in range(count)] if args.device == "cuda" else ["cpu"] * count
+    name = torch.cuda.get_device_name(0) if args.device == "cuda" else "CPU workers (1 thread each)"
+    print(f"# {count} x {name}, {'tiny' if args.tiny else 'full-size'} random models, torch {torch.__version__}")
+    print("# " + " ".join(["python", *sys.argv]), flush=True)
+    rows = ["| run | GPUs | wall s | speed-up | busy fraction per GPU | peak GiB per GPU | output |",
+            "|---|---:|---:|---:|---|---|---|"]
+    if "groups" in args.sections:
+        groups_section(args, devices, rows)
+    if "batch" in args.sections:
+        batch_section(args, devices, rows)
+    print("\n" + "\n".join(rows))
 
 
 if __name__ == "__main__":

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 import uuid
 from collections.abc import Callable, Sequence
 
 import torch
 
-from ..cluster import Workers, dispatch, import_ray, ray_session
+from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..grouping import ViewGroups
 from ..progress import ProgressFn, StopFn
 from .conditioning import StyleConditioning, prepare_conditioning
@@ -40,6 +41,7 @@ class GroupWorker:
             torch.set_num_threads(1)
         self.steps: tuple[str, int, int] | None = None  # (run, group, steps done) of the group being sampled
         self.stopped: set[str] = set()
+        self.busy_s = 0.0  # seconds spent stylizing groups
         try:
             self.models, self.error = load_models(self.device), None
         except Exception as error:  # raised to the caller by describe(), conditioning() and stylize()
@@ -74,9 +76,19 @@ class GroupWorker:
         def report(step: int, total: int, info: dict) -> None:
             self.steps = (run, index, step)
 
-        views = stylize_owned_views(self.models, images, groups, index, _moved(conditioning, self.device), settings,
-                                    seed=seed, progress=report, should_stop=lambda: run in self.stopped)
-        return views.cpu()
+        start = time.perf_counter()
+        try:
+            views = stylize_owned_views(self.models, images, groups, index, _moved(conditioning, self.device), settings,
+                                        seed=seed, progress=report, should_stop=lambda: run in self.stopped)
+            return views.cpu()
+        finally:
+            self.busy_s += time.perf_counter() - start
+
+    def stats(self) -> dict:
+        """"worker" (:meth:`describe`), "busy_s" (seconds spent stylizing groups) and "peak_gib" (the most
+        GPU memory allocated so far, GiB; None on the CPU)."""
+        peak = torch.cuda.max_memory_allocated(self.device) / 2**30 if self.device.type == "cuda" else None
+        return {"worker": self.describe(), "busy_s": self.busy_s, "peak_gib": peak}
 
     def progress(self) -> tuple[str, int, int] | None:
         return self.steps
@@ -85,36 +97,26 @@ class GroupWorker:
         self.stopped.add(run)
 
 
-class GroupExecutor:
-    """``workers.count`` :class:`GroupWorker` actors (Ray must be connected: :func:`ray_session`).
+class GroupExecutor(WorkerPool):
+    """``workers.count`` :class:`GroupWorker` actors (a :class:`~artnvg_core.cluster.WorkerPool`).
 
     ``load_models(device)`` runs once in each worker, so it must be picklable (a module-level function
     or a ``functools.partial`` of one); every device needs the memory of a one-device run. The workers
-    load at once, in parallel; the first call that needs them waits. :meth:`close` (or leaving the
-    ``with`` block) ends them and frees their memory.
+    load at once, in parallel; the first call that needs them waits.
     """
 
     def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
-        ray = import_ray("GroupExecutor")
-        actor = ray.remote(GroupWorker).options(**workers.actor_options(), max_concurrency=2)
-        self.actors = [actor.remote(load_models, workers) for _ in range(workers.count)]
-
-    def __enter__(self) -> GroupExecutor:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        ray = import_ray("GroupExecutor")
-        for actor in self.actors:
-            ray.kill(actor)
-        self.actors = []
+        super().__init__(GroupWorker, workers, load_models, workers)
 
     def describe(self) -> list[str]:
         """Where each worker runs (waits until they are loaded; raises a worker's load error)."""
         ray = import_ray("GroupExecutor")
         return ray.get([actor.describe.remote() for actor in self.actors])
+
+    def stats(self) -> list[dict]:
+        """Per worker: where it runs, the seconds it spent stylizing and its peak GPU memory (:meth:`GroupWorker.stats`)."""
+        ray = import_ray("GroupExecutor")
+        return ray.get([actor.stats.remote() for actor in self.actors])
 
     def conditioning(self, style_image: torch.Tensor | None, prompt: str, negative_prompt: str | None) -> StyleConditioning:
         """:func:`prepare_conditioning` on the first worker (on the CPU)."""
@@ -241,7 +243,8 @@ def stylize_on_workers(
     """Every group of ``images`` [V, H, W, 3] stylized by a :class:`GroupExecutor` in a
     :func:`~artnvg_core.cluster.ray_session` of ``devices`` / ``address``; the conditioning is prepared
     on the first worker. Returns the stylized views (CPU) in view order."""
-    with ray_session(devices, address) as workers, GroupExecutor(load_models, workers) as executor:
+    needed_by = "--ray-address" if address else "--devices"
+    with ray_session(devices, address, needed_by=needed_by) as workers, GroupExecutor(load_models, workers) as executor:
         conditioning = executor.conditioning(style_image, prompt, negative_prompt)
         return executor.stylize_groups(images, groups, conditioning, settings, seed=seed, progress=progress,
                                        should_stop=should_stop)
