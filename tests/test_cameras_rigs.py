@@ -175,6 +175,6 @@ def test_cli_stylize_and_render_without_cameras(tmp_path):
                  "--iters", "2", "--orbit-views", "3", "--orbit-size", "32", "--device", "cpu"]) == 0
     assert len(load_scene(out)) == len(load_scene(demo.scene))
     assert main(["render", str(out), "--out", str(tmp_path / "renders"), "--orbit-views", "2", "--orbit-size", "24x16",
-                 "--up=-x", "--device", "cpu"]) == 0
+                 "--orbit-around", "full", "--up=-x", "--device", "cpu"]) == 0
     assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == ["orbit_0000.png", "orbit_0001.png"]
     assert main(["render", str(out), "--out", str(tmp_path / "r"), "--orbit-size", "0x3"]) == 2

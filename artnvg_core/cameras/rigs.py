@@ -19,8 +19,10 @@
 
 :func:`orbit_cameras` places views on rings around the centre (roll-free, all
 looking at it), at the distance where the sphere of ``radius`` fills the field of
-view. World units and axes are the scene's; cameras follow the OpenCV convention
-of :mod:`artnvg_core.cameras`. All maths runs in float64 on the CPU.
+view: all round, or for a one-sided (forward-facing) capture on the arc the capture
+looked from (:func:`captured_arc`: probe views find the side from which floaters and
+the background the cameras saw do not hide the subject). World units and axes are
+the scene's; cameras follow the OpenCV convention of :mod:`artnvg_core.cameras`. All maths runs in float64 on the CPU.
 """
 
 from __future__ import annotations
@@ -259,9 +261,9 @@ def captured_arc(scene: GaussianScene, frame: SceneFrame, distance: float, half_
     mirrored = min(longest, _PROBE_AZIMUTHS - longest) * step
     span = max(mirrored - 2 * half_fov, mirrored / 2)
     axis = (gap_start + (longest - 1) / 2) * step + math.pi  # opposite the blocked run's middle
-    _log.info("the capture looked from one side: views around the rest are %.0f %% covered by floaters or "
-              "background; the views stay on a %.0f-degree arc", 100 * float(fractions[blocked].mean()),
-              math.degrees(span))
+    _log.info("a one-sided capture: from %.0f degrees of azimuth the subject is %.0f %% hidden by floaters or "
+              "background; the views stay on a %.0f-degree arc opposite", math.degrees(longest * step),
+              100 * float(fractions[blocked].mean()), math.degrees(span))
     return float(axis - span / 2), span
 
 
