@@ -22,7 +22,8 @@ looking at it), at the distance where the sphere of ``radius`` fills the field o
 view: all round, or for a one-sided (forward-facing) capture on the arc the capture
 looked from (:func:`captured_arc`: probe views find the side from which floaters and
 the background the cameras saw do not hide the subject). World units and axes are
-the scene's; cameras follow the OpenCV convention of :mod:`artnvg_core.cameras`. All maths runs in float64 on the CPU.
+the scene's; cameras follow the OpenCV convention of :mod:`artnvg_core.cameras`.
+All pose maths runs in float64 on the CPU; the probe renders in float32.
 """
 
 from __future__ import annotations
