@@ -153,6 +153,9 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     orbit.add_argument("--up", default="auto", choices=("auto", *UP_AXES),
                        help="the scene's up axis, e.g. --up=-y (default auto: detected; COLMAP scenes are often -y)")
     orbit.add_argument("--orbit-size", default="512", help="image size WIDTHxHEIGHT or N for NxN (default 512)")
+    orbit.add_argument("--orbit-around", default="auto", choices=("auto", "full"),
+                       help="auto (default): views on the side the capture looked from (all round for a 360 capture); "
+                       "full: all round always")
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
@@ -163,7 +166,8 @@ def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet
     if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
         raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
     width, height = int(parts[0]), int(parts[-1])
-    cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up)
+    cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
+                            around=args.orbit_around)
     print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
           flush=True)
     return cameras

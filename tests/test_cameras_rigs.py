@@ -7,9 +7,11 @@ import torch
 
 from artnvg_core.__main__ import main
 from artnvg_core.cameras import load_cameras, orbit_cameras, parse_up, scene_frame
-from artnvg_core.formats import load_scene
+from artnvg_core.cameras.rigs import horizontal_axes
+from artnvg_core.formats import load_scene, save_scene
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
+from artnvg_core.preview import evenly_spaced
 from artnvg_core.stylize import DemoInputs
 
 
@@ -39,6 +41,73 @@ def test_shared_scene_views_see_the_scene_and_up_matches_the_capture(shared_data
     distances = (cameras.centers.double() - frame.center).norm(dim=1)
     assert torch.allclose(distances, torch.full_like(distances, frame.radius / math.sin(math.radians(25))))
     assert (-cameras.world_to_cam[:, 1, :3].double() @ frame.up > 0.8).all()
+
+
+def angles_to_capture(cameras, capture, center):
+    """Degrees [C] between each view's direction from ``center`` and the nearest capture camera's."""
+    views = torch.nn.functional.normalize(cameras.centers.double() - center, dim=1)
+    seen = torch.nn.functional.normalize(capture.centers.double() - center, dim=1)
+    return torch.rad2deg(torch.acos((views @ seen.T).max(1).values.clamp(-1, 1)))
+
+
+def azimuths_deg(cameras, frame):
+    """Sorted azimuths in degrees [C] of the views about ``frame.up``."""
+    side, front = horizontal_axes(frame.up)
+    offsets = cameras.centers.double() - frame.center
+    return torch.rad2deg(torch.atan2(offsets @ front, offsets @ side)).sort().values
+
+
+@pytest.fixture(scope="module")
+def face(shared_data):
+    folder = shared_data / "scenes" / "face"
+    return load_scene(folder / "scene.ply"), load_cameras(folder / "transforms.json")
+
+
+def test_forward_facing_views_stay_on_the_captured_side_also_from_spz(face, tmp_path):
+    scene, capture = face  # the capture's cameras are withheld from the rig; used only to check it
+    frame = scene_frame(scene)
+    sheet = evenly_spaced(60, 4)  # the views stylize's contact sheet shows
+    all_round = angles_to_capture(orbit_cameras(scene, 60, width=32, height=32, around="full"), capture, frame.center)
+    assert (all_round[sheet] > 70).sum() >= 2  # all round, the sheet shows the never-captured sides and back
+    cameras = orbit_cameras(scene, 60, width=32, height=32)
+    angles = angles_to_capture(cameras, capture, frame.center)
+    assert angles.max() < 35, angles  # measured 31.7 degrees (the capture spans 65 degrees of azimuth)
+    spread = azimuths_deg(cameras, frame)
+    assert 60 < float(spread[-1] - spread[0]) < 100  # an arc, not a handful of views at one place
+    path = tmp_path / "face.spz"
+    save_scene(scene, path)
+    again = orbit_cameras(load_scene(path), 60, width=32, height=32)
+    again_angles = angles_to_capture(again, capture, frame.center)
+    assert again_angles.max() < 35 and (again_angles - angles).abs().max() < 1
+
+
+@pytest.mark.parametrize("name", ["bear", "garden"])
+def test_captures_all_round_keep_views_all_round(shared_data, name):
+    scene = load_scene(shared_data / "scenes" / name / "scene.ply")
+    cameras = orbit_cameras(scene, 24, width=32, height=32)
+    assert torch.equal(cameras.world_to_cam, orbit_cameras(scene, 24, width=32, height=32, around="full").world_to_cam)
+    azimuths = azimuths_deg(cameras, scene_frame(scene))
+    gaps = torch.cat([azimuths.diff(), azimuths[:1] + 360 - azimuths[-1:]])
+    assert gaps.max() < 30  # 13 and 11 views on the two rings (27.7 and 32.7 degrees apart), offset
+
+
+def test_a_wall_behind_the_subject_puts_the_views_opposite_it():
+    g = torch.Generator().manual_seed(3)
+    subject = 0.5 * torch.nn.functional.normalize(torch.randn(6000, 3, generator=g), dim=1)  # a head's surface
+    angles = torch.rand(1500, generator=g) * math.radians(100) + math.radians(130)  # azimuths 130..230 degrees
+    heights = torch.rand(1500, generator=g) * 8 - 3
+    wall = torch.stack([1.5 * torch.cos(angles), 1.5 * torch.sin(angles), heights], 1)  # a curved wall at x < 0
+    scene = blob(torch.cat([subject, wall]))
+    scene.log_scales[6000:] = math.log(0.15)
+    scene.opacity_logits[6000:] = 4.0
+    cameras = orbit_cameras(scene, 12, width=32, height=32, up="+z")
+    directions = torch.nn.functional.normalize(cameras.centers.double()[:, :2], dim=1)
+    assert (directions[:, 0] > math.cos(math.radians(60))).all()  # every view from the side facing the wall
+    frame = scene_frame(scene, up="+z")
+    spread = azimuths_deg(cameras, frame)
+    assert float(spread[-1] - spread[0]) > 30
+    assert not torch.equal(cameras.world_to_cam, orbit_cameras(scene, 12, width=32, height=32, up="+z",
+                                                                around="full").world_to_cam)
 
 
 def test_far_floaters_and_a_sky_shell_do_not_move_the_frame():
@@ -93,7 +162,8 @@ def test_bad_scenes_raise_instead_of_nan_cameras():
         orbit_cameras(point)
     some_nan = blob(torch.cat([torch.full((5, 3), float("nan")), torch.randn(50, 3)]))
     assert torch.isfinite(orbit_cameras(some_nan, 4).world_to_cam).all()
-    for kwargs in ({"count": 0}, {"fov_deg": 180}, {"elevations_deg": (90,)}, {"distance_factor": 0}):
+    for kwargs in ({"count": 0}, {"fov_deg": 180}, {"elevations_deg": (90,)}, {"distance_factor": 0},
+                   {"around": "half"}):
         with pytest.raises(ValueError, match="orbit_cameras"):
             orbit_cameras(some_nan, **kwargs)
 
@@ -105,6 +175,6 @@ def test_cli_stylize_and_render_without_cameras(tmp_path):
                  "--iters", "2", "--orbit-views", "3", "--orbit-size", "32", "--device", "cpu"]) == 0
     assert len(load_scene(out)) == len(load_scene(demo.scene))
     assert main(["render", str(out), "--out", str(tmp_path / "renders"), "--orbit-views", "2", "--orbit-size", "24x16",
-                 "--up=-x", "--device", "cpu"]) == 0
+                 "--orbit-around", "full", "--up=-x", "--device", "cpu"]) == 0
     assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == ["orbit_0000.png", "orbit_0001.png"]
     assert main(["render", str(out), "--out", str(tmp_path / "r"), "--orbit-size", "0x3"]) == 2

@@ -19,8 +19,11 @@
 
 :func:`orbit_cameras` places views on rings around the centre (roll-free, all
 looking at it), at the distance where the sphere of ``radius`` fills the field of
-view. World units and axes are the scene's; cameras follow the OpenCV convention
-of :mod:`artnvg_core.cameras`. All maths runs in float64 on the CPU.
+view: all round, or for a one-sided (forward-facing) capture on the arc the capture
+looked from (:func:`captured_arc`: probe views find the side from which floaters and
+the background the cameras saw do not hide the subject). World units and axes are
+the scene's; cameras follow the OpenCV convention of :mod:`artnvg_core.cameras`.
+All pose maths runs in float64 on the CPU; the probe renders in float32.
 """
 
 from __future__ import annotations
@@ -41,6 +44,11 @@ UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 _BOUNDS_QUANTILE = 0.9  # the Gaussians whose principal axes give the up direction
 _GROUND_FLATNESS = 0.6  # smallest / middle principal extent below this: a ground-dominated scene
 _CORE_QUANTILE = 0.3  # the dense core whose long axis is the up guess of a scene without a ground
+AROUND = ("auto", "full")
+_PROBE_AZIMUTHS = 24  # probe views per ring when looking for the side the capture saw
+_PROBE_PIXELS = 24  # their size, square
+_BLOCKED = 0.75  # a probe view with more of it covered by foreground than this is blocked
+_MIN_GAP_DEG = 90.0  # blocked azimuths spanning at least this: a one-sided capture
 
 
 @dataclass(frozen=True)
@@ -170,6 +178,96 @@ def _ring_counts(count: int, elevations: list[float]) -> list[int]:
     return counts.tolist()
 
 
+def _eyes(frame: SceneFrame, distance: float, azimuths: torch.Tensor, elevation_deg: float) -> torch.Tensor:
+    """Camera centres [A, 3] at ``distance`` from the centre, at ``azimuths`` [A] (radians about
+    up, from :func:`horizontal_axes`' first axis towards its second) and one elevation in degrees."""
+    side, front = horizontal_axes(frame.up)
+    horizontal = torch.cos(azimuths)[:, None] * side + torch.sin(azimuths)[:, None] * front
+    lift = math.radians(elevation_deg)
+    return frame.center + distance * (math.cos(lift) * horizontal + math.sin(lift) * frame.up)
+
+
+def horizontal_axes(up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors [3] orthogonal to unit ``up`` [3] and to each other: azimuth 0 and 90 degrees."""
+    side = torch.linalg.cross(up, torch.eye(3, dtype=up.dtype)[up.abs().argmin()])
+    side = side / side.norm()
+    return side, torch.linalg.cross(up, side)
+
+
+def occluded_fractions(scene: GaussianScene, frame: SceneFrame, eyes: torch.Tensor, half_fov: float) -> torch.Tensor:
+    """Fraction [V] of each probe view covered by what lies in front of the subject sphere.
+
+    eyes: [V, 3] float64 camera centres looking at ``frame.center`` with half field of view
+    ``half_fov`` (radians). Only the Gaussians whose depth along the view axis is positive and
+    short of the subject sphere are rendered (the reference rasterizer, float32 on the CPU,
+    :data:`_PROBE_PIXELS` square, SH degree 0); the fraction is their mean alpha.
+    """
+    from ..raster import render  # here: the rasterizer imports this package
+
+    means = scene.means.detach().cpu().to(torch.float64)
+    world_to_cam = look_at(eyes, frame.center, frame.up).to(torch.float32)
+    focal = _PROBE_PIXELS / 2 / math.tan(half_fov)
+    intrinsics = torch.tensor([[[focal, 0, _PROBE_PIXELS / 2], [0, focal, _PROBE_PIXELS / 2], [0, 0, 1]]])
+    fractions = torch.zeros(len(eyes), dtype=torch.float64)
+    for view, eye in enumerate(eyes):
+        axis = frame.center - eye
+        depth = (means - eye) @ (axis / axis.norm())
+        front = torch.nonzero((depth > 0) & (depth < axis.norm() - frame.radius)).flatten()
+        if len(front) == 0:
+            continue
+        probe = CameraSet(world_to_cam[view : view + 1], intrinsics, _PROBE_PIXELS, _PROBE_PIXELS, ["probe"])
+        occluders = scene.select(front.to(scene.device)).detach().to("cpu", torch.float32)
+        with torch.no_grad():
+            fractions[view] = render(occluders, probe, sh_degree=0, backend="torch").alpha.mean().double()
+    return fractions
+
+
+def captured_arc(scene: GaussianScene, frame: SceneFrame, distance: float, half_fov: float,
+                 elevations_deg: list[float]) -> tuple[float, float]:
+    """(start, span) in radians of the azimuths the capture looked from (:func:`_eyes`' convention);
+    span is 2 pi for a capture all round.
+
+    A capture camera sees its subject unobstructed, so 3DGS training leaves the space between
+    them empty; seen from where no camera stood, the subject hides behind floaters and behind
+    what the cameras saw beyond it (a portrait's wall). Probe views at ``distance`` on every
+    ring of ``elevations_deg``, every 360 / :data:`_PROBE_AZIMUTHS` degrees, measure
+    :func:`occluded_fractions`; an azimuth whose mean over the rings exceeds :data:`_BLOCKED`
+    is blocked. When the longest run of blocked azimuths spans at least :data:`_MIN_GAP_DEG`
+    degrees the capture was one-sided: the cameras stood about opposite the background they saw
+    behind the subject, and each saw it across its field of view, so the run is about the
+    capture's arc mirrored through the centre and widened by a field of view. The arc is centred
+    opposite the run's middle, as wide as the run (no wider than the clear rest of the circle)
+    less ``2 * half_fov`` (the probe's, standing in for the capture's unknown one), but at least
+    half that width. Otherwise (the scattered bushes and trees of a 360-degree capture) it is the
+    whole circle.
+    """
+    step = 2 * math.pi / _PROBE_AZIMUTHS
+    azimuths = torch.arange(_PROBE_AZIMUTHS, dtype=torch.float64) * step
+    eyes = torch.cat([_eyes(frame, distance, azimuths, elevation) for elevation in elevations_deg])
+    fractions = occluded_fractions(scene, frame, eyes, half_fov).view(len(elevations_deg), -1).mean(0)
+    blocked = (fractions > _BLOCKED).tolist()
+    if all(blocked):
+        _log.warning("every view around the scene looks through foreground (%.0f %% of it covered on average); "
+                     "orbiting all round", 100 * float(fractions.mean()))
+    if all(blocked) or not any(blocked):
+        return 0.0, 2 * math.pi
+    first_clear = blocked.index(False)
+    longest, run, gap_start = 0, 0, 0
+    for k in range(first_clear + 1, first_clear + 1 + _PROBE_AZIMUTHS):  # circularly, from a clear azimuth
+        run = run + 1 if blocked[k % _PROBE_AZIMUTHS] else 0
+        if run > longest:
+            longest, gap_start = run, k - run + 1
+    if longest * step < math.radians(_MIN_GAP_DEG):
+        return 0.0, 2 * math.pi
+    mirrored = min(longest, _PROBE_AZIMUTHS - longest) * step
+    span = max(mirrored - 2 * half_fov, mirrored / 2)
+    axis = (gap_start + (longest - 1) / 2) * step + math.pi  # opposite the blocked run's middle
+    _log.info("a one-sided capture: from %.0f degrees of azimuth the subject is %.0f %% hidden by floaters or "
+              "background; the views stay on a %.0f-degree arc opposite", math.degrees(longest * step),
+              100 * float(fractions[blocked].mean()), math.degrees(span))
+    return float(axis - span / 2), span
+
+
 def orbit_cameras(
     scene: GaussianScene,
     count: int = 60,
@@ -181,6 +279,7 @@ def orbit_cameras(
     elevations_deg=(10.0, 30.0),
     quantile: float = 0.5,
     distance_factor: float = 1.0,
+    around: str = "auto",
 ) -> CameraSet:
     """``count`` views around ``scene`` on rings about its up axis, all looking at its centre.
 
@@ -197,6 +296,9 @@ def orbit_cameras(
     distance_factor: the cameras sit ``distance_factor * radius / sin(half fov)`` from
         the centre (the smaller of the horizontal and vertical half angles), so at 1
         the subject sphere just fills the view; above 1 it shows more surroundings.
+    around: "auto" puts the rings on the side the capture looked from
+        (:func:`captured_arc`: all round for a 360-degree capture, an arc for a
+        forward-facing one); "full" always orbits all round.
     Views are named ``orbit_0000``...; float32 CPU tensors.
     """
     if isinstance(count, bool) or int(count) != count or count < 1:
@@ -206,6 +308,8 @@ def orbit_cameras(
     if not (distance_factor > 0 and math.isfinite(distance_factor)):
         raise ValueError(f"orbit_cameras: distance_factor must be a positive number, got {distance_factor!r}")
     elevations = [float(e) for e in elevations_deg]
+    if around not in AROUND:
+        raise ValueError(f"orbit_cameras: around must be one of {AROUND}, got {around!r}")
     if not elevations or not all(-90 < e < 90 for e in elevations):
         raise ValueError(f"orbit_cameras: elevations_deg must be angles in (-90, 90), got {elevations_deg!r}")
     width, height = int(width), int(height)
@@ -216,18 +320,17 @@ def orbit_cameras(
     focal = width / 2 / math.tan(math.radians(fov_deg) / 2)
     half_fov = min(math.atan(width / 2 / focal), math.atan(height / 2 / focal))
     distance = distance_factor * frame.radius / math.sin(half_fov)
+    start, span = (0.0, 2 * math.pi) if around == "full" else captured_arc(scene, frame, distance, half_fov, elevations)
 
-    up_vector = frame.up
-    side = torch.linalg.cross(up_vector, torch.eye(3, dtype=torch.float64)[up_vector.abs().argmin()])
-    side = side / side.norm()
-    front = torch.linalg.cross(up_vector, side)
     eyes = []
     for ring, (elevation, views) in enumerate(zip(elevations, _ring_counts(int(count), elevations))):
-        azimuths = (torch.arange(views, dtype=torch.float64) + 0.5 * (ring % 2)) * (2 * math.pi / max(views, 1))
-        horizontal = torch.cos(azimuths)[:, None] * side + torch.sin(azimuths)[:, None] * front
-        lift = math.radians(elevation)
-        eyes.append(frame.center + distance * (math.cos(lift) * horizontal + math.sin(lift) * up_vector))
-    world_to_cam = look_at(torch.cat(eyes), frame.center, up_vector)
+        steps = torch.arange(views, dtype=torch.float64)
+        if span < 2 * math.pi:  # an arc: each ring spread over it, half a step in from its ends
+            azimuths = start + (steps + 0.5) * (span / max(views, 1))
+        else:  # all round: each ring offset by half a step from the previous one
+            azimuths = start + (steps + 0.5 * (ring % 2)) * (span / max(views, 1))
+        eyes.append(_eyes(frame, distance, azimuths, elevation))
+    world_to_cam = look_at(torch.cat(eyes), frame.center, frame.up)
     intrinsics = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64)
     return CameraSet(
         world_to_cam=world_to_cam.to(torch.float32),
