@@ -27,12 +27,17 @@ def parse_device(name: str) -> torch.device:
         raise ValueError(f"--device {error}") from error
 
 
-def positive_number(text: str) -> float:
-    """argparse type of ``--scale`` and the like: a finite number > 0."""
+def _number(text: str) -> float:
+    """``float(text)``, or the argparse error every number option gives."""
     try:
-        value = float(text)
+        return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def positive_number(text: str) -> float:
+    """argparse type of ``--scale`` and the like: a finite number > 0."""
+    value = _number(text)
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
     return value
@@ -55,10 +60,7 @@ def integer_at_least(minimum: int):
 
 def unit_interval(text: str) -> float:
     """argparse type of ``--cfg-until``: a number in [0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    value = _number(text)
     if not 0 <= value <= 1:
         raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
     return value
@@ -66,10 +68,7 @@ def unit_interval(text: str) -> float:
 
 def fraction(text: str) -> float:
     """argparse type of a threshold: a number in [0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    value = _number(text)
     if not 0 <= value < 1:
         raise argparse.ArgumentTypeError(f"expected a number from 0 up to (not including) 1, got {text!r}")
     return value
