@@ -274,3 +274,44 @@ def test_a_decompression_bomb_is_refused_quickly_in_little_memory(tmp_path, vers
     report = json.loads(result.stdout)
     assert report["message"] is not None and re.search(expected, report["message"]), report
     assert report["seconds"] < 2 and report["peak"] < 2**30 and report["growth"] < 2**26, report
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_header_count_beyond_the_inflation_cap_is_refused_before_inflating(tmp_path, version):
+    """A header claiming 2^31 - 1 Gaussians over a 2 MB (gzip) or 66 kB (zstd) stream of 2 GiB of
+    zeros: refused from the file's size alone (64x the file at most), in a fresh process within 2 s,
+    its peak memory raised by less than 64 MiB (the header's own count once set the bound: 1.8-3.4 GB)."""
+    count = 2**31 - 1
+    path = tmp_path / "claims.spz"
+    if version == 3:
+        path.write_bytes(gzip_bomb(struct.pack("<IIIBBBB", 0x5053474E, 3, count, 0, 12, 0, 0), BOMB_BYTES))
+    else:
+        stream = zstd_of_zeros(BOMB_BYTES)
+        head = struct.pack("<IIIBBBBI12x", 0x5053474E, 4, count, 0, 12, 0, 5, 32)
+        sizes = [9 * count, count, 3 * count, 3 * count, 4 * count]
+        path.write_bytes(head + b"".join(struct.pack("<QQ", len(stream), s) for s in sizes) + stream)
+    size = path.stat().st_size
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
+                            text=True, check=True, env={"OMP_NUM_THREADS": "1", "PATH": ""})
+    report = json.loads(result.stdout)
+    expected = (rf"claims\.spz: numPoints: {count} Gaussians of SH degree 0: needs {20 * count:,} bytes inflated "
+                rf"from a {size:,}-byte file, more than the cap of 64x the file's size \({max(64 * size, 2**24):,} bytes\)")
+    assert report["message"] is not None and re.search(expected, report["message"]), report
+    assert report["seconds"] < 2 and report["growth"] < 2**26, report
+
+
+def test_the_inflation_cap_admits_real_scenes_and_states_its_bound(tmp_path, monkeypatch):
+    """A real scene's file (1.3x to 4.5x inflation) loads; with the cap lowered under its ratio it is
+    refused naming the cap."""
+    from artnvg_core.formats import bounded
+
+    scene = plain_scene(3000, 3, seed=4)
+    write_spz(scene, tmp_path / "real.spz")
+    inflated = len(gzip.decompress((tmp_path / "real.spz").read_bytes()))
+    assert len(read_spz(tmp_path / "real.spz")) == 3000
+    monkeypatch.setattr(bounded, "INFLATION_FLOOR", 0)
+    monkeypatch.setattr(bounded, "MAX_INFLATION", 1)
+    assert inflated > (tmp_path / "real.spz").stat().st_size
+    with pytest.raises(ValueError, match=r"real\.spz: numPoints: 3000 Gaussians of SH degree 3: needs .* cap of 1x"):
+        read_spz(tmp_path / "real.spz")

@@ -13,7 +13,8 @@ uint8), SH coefficients (uint8, (b - 128) / 128, coefficient-major with the
 colour channel inner). Flag 0x1 marks a scene trained antialiased (loaded
 with ``GaussianScene.antialiased``, written from it). Reading version 4 needs
 the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning). Streams are
-inflated only up to the size the header implies (:mod:`.bounded`).
+inflated only up to the size the header implies, which may be at most 64 times the file's
+size (:mod:`.bounded`).
 
 Coordinate rule: SPZ stores RUB axes (x right, y up, z back), the format's
 documented default and what Niantic's writer produces from a PLY's RDF axes
@@ -56,7 +57,7 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
-from .bounded import inflate_exactly, read_at_most
+from .bounded import inflate_exactly, read_at_most, require_inflatable
 from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
@@ -137,8 +138,10 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
                 raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
             _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
             sizes = _array_sizes(count, degree, version)
+            field = f"numPoints: {count} Gaussians of SH degree {degree}"
+            require_inflatable(sum(sizes.values()), path, field)
             # extension records may follow the arrays (flag 0x2); they are not read
-            data = inflate_exactly(stream, sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}",
+            data = inflate_exactly(stream, sum(sizes.values()), path, field,
                                    trailing_allowed=bool(flags & FLAG_EXTENSIONS))
     except (OSError, EOFError, zlib.error) as error:
         raise ValueError(f"{path}: gzip stream: not readable ({error}); the file is truncated or corrupt") from error
@@ -155,6 +158,7 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
     _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
     _check_header(path, version, count, degree, range(4, LATEST_VERSION + 1))
     sizes = {name: size for name, size in _array_sizes(count, degree, version).items() if size}
+    require_inflatable(sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}")
     if streams != len(sizes):
         raise ValueError(f"{path}: numStreams: {streams}, expected {len(sizes)} for SH degree {degree}")
     body = toc + 16 * streams
