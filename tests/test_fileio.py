@@ -12,6 +12,7 @@ from artnvg_core.fileio import (
     MAX_IMAGE_PIXELS,
     check_output_file,
     check_output_folder,
+    image_size,
     load_image,
     written_together,
 )
@@ -82,6 +83,33 @@ def test_huge_images_refused_before_decoding_with_their_size(tmp_path, width, he
     _png_header_only(path, width, height)
     with pytest.raises(ValueError, match=rf"huge.png: image .*({width}x{height}|{width * height} pixels)"):
         load_image(path)
+
+
+def test_pixel_budget_is_read_from_the_header_before_decoding(tmp_path):
+    """9400 x 9400 lies under Pillow's own limit (89 MP) and once decoded to 3.1 GB: refused from its
+    header by the stated 64 MP budget, naming the file, the field and the cap; image_size reads the
+    header alone."""
+    assert 9400 * 9400 < Image.MAX_IMAGE_PIXELS
+    _png_header_only(tmp_path / "big.png", 9400, 9400)
+    for read in (load_image, image_size):
+        with pytest.raises(ValueError, match=r"big\.png: image size: 9400x9400 pixels, more than the 64,000,000 "
+                           r"pixels \(e\.g\. 8000x8000\) decoded at most"):
+            read(tmp_path / "big.png")
+    _png_header_only(tmp_path / "wide.png", 8000, 8000)
+    assert image_size(tmp_path / "wide.png") == (8000, 8000)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_a_fifo_or_folder_is_refused_without_reading(tmp_path):
+    """A read of a FIFO waits for a writer for ever: refused from its file type, as is a folder."""
+    os.mkfifo(tmp_path / "style.png")
+    (tmp_path / "folder.png").mkdir()
+    for name, kind in [("style.png", r"FIFO \(named pipe\)"), ("folder.png", "folder")]:
+        for read in (load_image, image_size):
+            with pytest.raises(ValueError, match=rf"{name}: image file is a {kind}, not a regular file"):
+                read(tmp_path / name)
+    with pytest.raises(ValueError, match=r"gone\.png: image file not found"):
+        load_image(tmp_path / "gone.png")
 
 
 def test_output_file_checks(tmp_path):

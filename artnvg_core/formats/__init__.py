@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..fileio import require_regular_file
 from ..scene import GaussianScene
 from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
@@ -37,8 +38,10 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     reader = READERS.get(path.suffix.lower())
     if reader is None:
         raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
-    if not path.is_file():
-        raise ValueError(f"{path}: scene file not found; expected {_DESCRIBED}")
+    try:
+        require_regular_file(path, "scene file")
+    except ValueError as error:
+        raise ValueError(f"{error}; expected {_DESCRIBED}") from None
     return reader(path, drop_invalid=drop_invalid)
 
 
