@@ -315,3 +315,26 @@ def test_the_inflation_cap_admits_real_scenes_and_states_its_bound(tmp_path, mon
     assert inflated > (tmp_path / "real.spz").stat().st_size
     with pytest.raises(ValueError, match=r"real\.spz: numPoints: 3000 Gaussians of SH degree 3: needs .* cap of 1x"):
         read_spz(tmp_path / "real.spz")
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_versions_2_to_4_load_at_every_sh_degree(tmp_path, degree):
+    """The same Gaussians as version 2 (x y z rotation bytes), 3 (gzip) and 4 (zstd; at degree 0 it has
+    no SH stream, which once raised KeyError 'sh') read alike: version 4 bit for bit, version 2 but for
+    its coarser rotations."""
+    write_spz(plain_scene(40, degree, seed=degree), tmp_path / "v3.spz")
+    header, arrays = payload_arrays(tmp_path / "v3.spz")
+    v3 = read_spz(tmp_path / "v3.spz")
+    assert v3.sh_degree == degree
+    (tmp_path / "v4.spz").write_bytes(version_4(header, arrays))
+    xyzw = v3.quats[:, [1, 2, 3, 0]].double() * torch.tensor([1.0, -1, -1, 1])  # back to the file's RUB axes
+    xyzw = xyzw * torch.where(xyzw[:, 3:] < 0, -1.0, 1.0) / xyzw.norm(dim=1, keepdim=True)
+    v2_arrays = dict(arrays, rotations=np.clip(np.floor((xyzw[:, :3].numpy() + 1) * 127.5 + 0.5), 0, 255).astype(np.uint8).tobytes())
+    (tmp_path / "v2.spz").write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 2, *header[2:]) +
+                                                    b"".join(v2_arrays.values())))
+    for version in ("v4", "v2"):
+        back = read_spz(tmp_path / f"{version}.spz")
+        for name, value in v3.tensors().items():
+            if name != "quats":
+                assert torch.equal(getattr(back, name), value), (version, name)
+        assert quat_error(back.quats, v3.quats) <= (0 if version == "v4" else 0.1)  # v2: w from 8-bit x y z

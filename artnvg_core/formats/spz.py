@@ -237,7 +237,8 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
     q = _rotations_xyzw(header, arrays["rotations"])
     q[:, :3] *= (y * z, x * z, x * y)
     coefficients = (degree + 1) ** 2 - 1
-    sh_rest = (np.frombuffer(arrays["sh"], np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
+    sh = arrays.get("sh", b"")  # version 4 has no SH stream at degree 0
+    sh_rest = (np.frombuffer(sh, np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
     if degree > 3:
         _log.warning("%s: SH degree %d read as degree 3 (the degree-4 terms are dropped)", path, degree)
         sh_rest, degree = sh_rest[:, :15], 3
