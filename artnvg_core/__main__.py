@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
     p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
-                   help="diffusion speed/accuracy preset (README: Presets)")
+                   help="diffusion speed/accuracy preset (docs/presets.md)")
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
                    help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
                    "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")

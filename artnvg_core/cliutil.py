@@ -145,7 +145,7 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     from .cameras import UP_AXES
 
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
-                        "the scene, built from the Gaussians alone (README: Scenes without cameras)")
+                        "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
     orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
     orbit.add_argument("--orbit-views", type=int, default=60, help="number of views (default 60: four groups of 15)")
     orbit.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")

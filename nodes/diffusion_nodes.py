@@ -231,7 +231,7 @@ class LoadArtNVGModels(ArtNVGNode):
 class NVAttentionPatch(ArtNVGNode):
     """Turn neighbouring-view attention on: every view of a group attends to all views of the group.
 
-    The optional inputs trade exactness for speed (README: Presets): NV in the lowest-resolution
+    The optional inputs trade exactness for speed (docs/presets.md): NV in the lowest-resolution
     level only, each view's k nearest views only, the other views' keys/values pooled.
     """
 
