@@ -12,7 +12,7 @@ import stat
 import tempfile
 import uuid
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -79,6 +79,36 @@ def _check_writable_folder(folder: Path, option: str, target: Path) -> None:
             pass
     except OSError as error:
         raise ValueError(f"{option}: cannot write {target}: folder {existing} is not writable ({error.strerror})") from None
+
+
+def _identity(path: Path) -> tuple:
+    """What makes two paths one file: device and inode for a file that exists (hard links and symlinks
+    included), else the path with symlinks and ``..`` resolved."""
+    try:
+        status = path.stat()
+    except OSError:
+        return ("path", os.path.realpath(path))
+    return ("file", status.st_dev, status.st_ino)
+
+
+def refuse_overwrites(outputs: Sequence[tuple[str, str | os.PathLike]],
+                      inputs: Sequence[tuple[str, str | os.PathLike | None]]) -> None:
+    """Before any work: ValueError when one of ``outputs`` ((label, path) pairs, e.g. ("--out", "a.ply"))
+    is the same file as one of ``inputs`` (None entries skipped) or as another output, by resolved path
+    or, for files that exist, by device and inode (hard links). The message names both labels and paths."""
+    seen: dict[tuple, tuple[str, Path]] = {}
+    for label, path in inputs:
+        if path is not None:
+            seen.setdefault(_identity(Path(path)), (label, Path(path)))
+    kept_inputs = set(seen)
+    for label, path in outputs:
+        key = _identity(Path(path))
+        if key in seen:
+            other_label, other = seen[key]
+            what = "its own input" if key in kept_inputs else "another output of the same run"
+            raise ValueError(f"{label}: {path} is the same file as {other_label} {other}: the run would write "
+                             f"over {what}; choose another path")
+        seen[key] = (label, Path(path))
 
 
 @contextlib.contextmanager

@@ -14,6 +14,7 @@ from artnvg_core.fileio import (
     check_output_folder,
     image_size,
     load_image,
+    refuse_overwrites,
     written_together,
 )
 
@@ -169,3 +170,28 @@ def test_written_together_names_the_paths_in_a_refusal_from_the_block(tmp_path):
         with written_together(a, b):
             raise ValueError("unrelated")
     assert os.listdir(tmp_path) == []
+
+
+def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
+    """By resolved path (.., symlinks) and, for files that exist, by device and inode (hard links)."""
+    scene, style = tmp_path / "scene.ply", tmp_path / "style.png"
+    scene.write_text("s")
+    style.write_text("i")
+    os.link(scene, tmp_path / "hard.ply")
+    os.symlink(style, tmp_path / "soft.png")
+    (tmp_path / "sub").mkdir()
+    inputs = [("SCENE", scene), ("--style", style), ("--cameras", None)]
+    refuse_overwrites([("--out", tmp_path / "out.ply"), ("sheet", tmp_path / "out.contact.png")], inputs)
+    cases = [
+        ([("--out", scene)], r"--out: .*scene\.ply is the same file as SCENE .*scene\.ply: the run would write over "
+                             r"its own input"),
+        ([("--out", tmp_path / "sub" / ".." / "scene.ply")], "same file as SCENE"),
+        ([("--out", tmp_path / "hard.ply")], r"hard\.ply is the same file as SCENE .*scene\.ply"),
+        ([("--out", tmp_path / "x.ply"), ("sheet", tmp_path / "soft.png")], r"sheet: .*soft\.png is the same file as "
+                                                                             r"--style .*style\.png"),
+        ([("job 1 --out", tmp_path / "a.png"), ("job 2 sheet", tmp_path / "sub" / ".." / "a.png")],
+         r"job 2 sheet: .* is the same file as job 1 --out .*a\.png: the run would write over another output"),
+    ]
+    for outputs, message in cases:
+        with pytest.raises(ValueError, match=message):
+            refuse_overwrites(outputs, inputs)
