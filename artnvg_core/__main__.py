@@ -14,7 +14,9 @@ from .batch import add_batch_command
 from .cliutil import (
     ProgressBar,
     add_camera_arguments,
+    check_style_image,
     integer_at_least,
+    is_out_of_memory,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
@@ -26,15 +28,17 @@ from .cliutil import (
 )
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
+from .formats import SAVE_SUFFIXES
 from .metrics.report import add_evaluate_arguments
 
 
+SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .ckpt"
 SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
 
 
 def cmd_render(args: argparse.Namespace) -> None:
     from .cameras import load_cameras
-    from .fileio import check_output_folder, save_png
+    from .fileio import check_output_folder, refuse_overwrites, save_png
     from .raster import render
 
     device = parse_device(args.device)
@@ -42,9 +46,15 @@ def cmd_render(args: argparse.Namespace) -> None:
     def chosen(cameras):
         return cameras.subset(parse_view_indices(args.views, len(cameras))).scaled(args.scale)
 
+    inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
     cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
-    scene = load_scene_verbose(args.scene, device)
-    cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
+    if cameras is not None:  # e.g. --out into the capture's own image folder
+        refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
+                          inputs + [("the capture's image", image) for image in cameras.image_paths])
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid)
+    if cameras is None:
+        cameras = chosen(orbit_from_args(args, scene))
+        refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
     out_dir.mkdir(parents=True, exist_ok=True)
     prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
@@ -62,21 +72,11 @@ def cmd_render(args: argparse.Namespace) -> None:
 
 
 def cmd_stylize(args: argparse.Namespace) -> None:
+    # every check that needs no model comes before the diffusion libraries are imported (seconds)
     from .cameras import load_cameras
-    from .fileio import check_output_file, load_image
-    from .finetune import FinetuneConfig
-    from .formats import writable_scene_path
-    from .presets import get_preset
-    from .stylize import (
-        DemoInputs,
-        DiffusionModelsUnavailable,
-        ModelPaths,
-        choose_stylizer,
-        save_result,
-        sheet_path,
-        stylize_diffusion,
-        stylize_nnfm,
-    )
+    from .fileio import check_output_file, load_image, refuse_overwrites
+    from .formats import check_geometry_writable, writable_scene_path
+    from .stylize import DemoInputs, sheet_path
 
     given = [args.scene, args.style]
     if any(given + [args.cameras]) and not all(given):
@@ -88,17 +88,37 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
-                      "--out (its contact sheet)")
+    out = writable_scene_path(check_output_file(args.out, "--out"), "--out")
+    sheet = check_output_file(sheet_path(out), "--out (its contact sheet)")
+    refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
+                      [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
+    check_style_image(args.style)
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
-    scene = load_scene_verbose(args.scene, device)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid)
+    try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
+        check_geometry_writable(scene, out)
+    except ValueError as error:
+        raise ValueError(f"--out: {error}; the stylized scene keeps these positions and scales, so "
+                         f"{out.suffix} cannot hold it: choose .ply") from None
     cameras = load_cameras(args.cameras) if args.cameras else orbit_from_args(args, scene)
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
+
+    from .finetune import FinetuneConfig
+    from .presets import get_preset  # imports the diffusion libraries
+    from .stylize import (
+        DiffusionModelsUnavailable,
+        ModelPaths,
+        choose_stylizer,
+        save_result,
+        stylize_diffusion,
+        stylize_nnfm,
+    )
+
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     stylizer, reason = choose_stylizer(args.stylizer, paths)
     preset = get_preset(args.preset)
@@ -133,8 +153,14 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
-    sheet = save_result(scene, result, cameras, style, args.out)
-    print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
+    sheet = save_result(scene, result, cameras, style, out)
+    print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+def add_drop_invalid(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--drop-invalid", action="store_true",
+                        help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
+                        "warning) instead of refusing the file")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,22 +168,25 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     p = commands.add_parser("render", help="render a scene's views to PNG files")
-    p.add_argument("scene", help="scene file: .ply (INRIA or compressed), .splat, .spz or splatfacto .ckpt")
+    p.add_argument("scene", help=f"scene file: {SCENE_FILES}")
     add_camera_arguments(p)
     p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
+    add_drop_invalid(p)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.set_defaults(run=cmd_render)
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
-    p.add_argument("scene", nargs="?", help=".ply, .splat, .spz or splatfacto .ckpt (omit all inputs for the demo)")
+    p.add_argument("scene", nargs="?", help=f"scene file: {SCENE_FILES} (omit all inputs for the demo)")
     add_camera_arguments(p)
     p.add_argument("--style", help="style image file")
-    p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
+    p.add_argument("--out", default="out/stylized.ply",
+                   help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
+                   "NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
     p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
                    help="diffusion speed/accuracy preset (docs/presets.md)")
@@ -182,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
-    p.add_argument("--iters", type=int, default=None,
+    p.add_argument("--iters", type=integer_at_least(0), default=None,
                    help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
                    help="nnfm: match the scene's colours to the style image's before and after finetuning, "
@@ -191,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
+    add_drop_invalid(p)
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
@@ -214,9 +244,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as error:  # torch's CPU allocator raises a bare RuntimeError
-        if not isinstance(error, (MemoryError, torch.OutOfMemoryError)) and "can't allocate memory" not in str(error):
+        if not is_out_of_memory(error):
             raise
-        print(f"error: out of memory ({str(error)[:300]}); try a smaller --scale or fewer --views", file=sys.stderr)
+        advice = getattr(error, "advice", "try a smaller --scale or fewer --views")
+        print(f"error: out of memory ({str(error)[:300]}); {advice}", file=sys.stderr)
         return 2
     return status if isinstance(status, int) else 0  # batch gives its exit status; the others return 0
 

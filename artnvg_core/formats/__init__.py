@@ -18,6 +18,8 @@ from pathlib import Path
 
 from ..fileio import require_regular_file
 from ..scene import GaussianScene
+from . import ksplat, splat, spz
+from .common import scene_to_write
 from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
@@ -27,6 +29,7 @@ from .spz import read_spz, write_spz
 READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ksplat": read_ksplat,
            ".ckpt": read_splatfacto_ckpt}
 WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat, ".ksplat": write_ksplat}
+GEOMETRY_CHECKS = {".spz": spz.check_geometry, ".splat": splat.check_geometry, ".ksplat": ksplat.check_geometry}
 SCENE_SUFFIXES = tuple(READERS)
 SAVE_SUFFIXES = tuple(WRITERS)
 _DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
@@ -53,6 +56,17 @@ def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> P
         raise ValueError(f"{option + ': ' if option else ''}{path}: cannot write scene file type {path.suffix!r}; "
                          f"expected one of {', '.join(SAVE_SUFFIXES)}")
     return path
+
+
+def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """The refusals :func:`save_scene` would make of ``scene``'s geometry (means, log-scales, quaternions)
+    for ``path``'s format, made now: for callers about to change the appearance alone (a finetune that
+    keeps the geometry), so that a scene the format cannot hold is refused before the work, not after.
+    ValueError naming ``path`` and the field."""
+    path = writable_scene_path(path)
+    check = GEOMETRY_CHECKS.get(path.suffix.lower())
+    if check is not None:
+        check(scene_to_write(scene, path), path)
 
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:

@@ -162,6 +162,11 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
 
 
+def check_geometry(cpu: GaussianScene, path: Path) -> None:
+    """What :func:`write_ksplat` refuses of the geometry alone (log-scales outside [-87, 88]), checked now."""
+    linear_scales(cpu, path, ".ksplat")
+
+
 def write_ksplat(scene: GaussianScene, path: str | os.PathLike) -> None:
     """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring).
 

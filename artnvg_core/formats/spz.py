@@ -267,6 +267,11 @@ def _fractional_bits(path: Path, means: np.ndarray) -> int:
     return bits
 
 
+def check_geometry(cpu: GaussianScene, path: Path) -> None:
+    """What :func:`write_spz` refuses of the geometry alone (|coordinate| >= 2^23), checked now."""
+    _fractional_bits(path, cpu.means.double().numpy())
+
+
 def _quantized_sh(values: np.ndarray, bits: int) -> np.ndarray:
     """SH coefficients as bytes, rounded to a bucket of 2^(8 - bits) as the reference writer does."""
     bucket = 1 << (8 - bits)
