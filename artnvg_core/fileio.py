@@ -81,7 +81,7 @@ def _check_writable_folder(folder: Path, option: str, target: Path) -> None:
         raise ValueError(f"{option}: cannot write {target}: folder {existing} is not writable ({error.strerror})") from None
 
 
-def _identity(path: Path) -> tuple:
+def file_identity(path: Path) -> tuple:
     """What makes two paths one file: device and inode for a file that exists (hard links and symlinks
     included), else the path with symlinks and ``..`` resolved."""
     try:
@@ -99,10 +99,10 @@ def refuse_overwrites(outputs: Sequence[tuple[str, str | os.PathLike]],
     seen: dict[tuple, tuple[str, Path]] = {}
     for label, path in inputs:
         if path is not None:
-            seen.setdefault(_identity(Path(path)), (label, Path(path)))
+            seen.setdefault(file_identity(Path(path)), (label, Path(path)))
     kept_inputs = set(seen)
     for label, path in outputs:
-        key = _identity(Path(path))
+        key = file_identity(Path(path))
         if key in seen:
             other_label, other = seen[key]
             what = "its own input" if key in kept_inputs else "another output of the same run"
