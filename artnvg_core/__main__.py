@@ -28,7 +28,7 @@ from .cliutil import (
 )
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
-from .formats import SAVE_SUFFIXES
+from .formats import SAVE_SUFFIXES, SPZ_AXES
 from .metrics.report import add_evaluate_arguments
 
 
@@ -51,7 +51,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
-    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
     if cameras is None:
         cameras = chosen(orbit_from_args(args, scene))
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
@@ -98,7 +98,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
-    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
         check_geometry_writable(scene, out)
     except ValueError as error:
@@ -153,14 +153,19 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
-    sheet = save_result(scene, result, cameras, style, out)
+    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
-def add_drop_invalid(parser: argparse.ArgumentParser) -> None:
+def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -> None:
+    """``--drop-invalid`` and ``--spz-axes``: how the scene file is read (and ``written``, when the command writes one)."""
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
                         "warning) instead of refusing the file")
+    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="rub",
+                        help=f"axes of a .spz scene{written} that does not name its own: rub (default), the SPZ "
+                        "format's rule, as Niantic's tools write; ply: the PLY's axes, as PlayCanvas splat-transform "
+                        "and SuperSplat write .spz (such files load upside down with rub)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -175,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
-    add_drop_invalid(p)
+    add_scene_file_options(p)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.set_defaults(run=cmd_render)
@@ -221,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
-    add_drop_invalid(p)
+    add_scene_file_options(p, " (and of --out)")
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")

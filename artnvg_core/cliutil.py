@@ -128,8 +128,9 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
     prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
 
 
-def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False) -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and
+def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
+                       spz_axes: str = "rub") -> GaussianScene:
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on), printing the file size first and the count and
     time after. The library's advice on invalid Gaussians is given as the ``--drop-invalid`` option; running
     out of memory while loading says so (the other options cannot make a scene file smaller)."""
     from .formats import load_scene
@@ -139,7 +140,7 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
     start = time.perf_counter()
     try:
-        scene = load_scene(path, drop_invalid=drop_invalid).to(device)
+        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise

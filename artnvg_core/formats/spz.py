@@ -24,8 +24,11 @@ of the 8 axis-flip systems; the 90-degree-rotated ones are refused). Loading
 converts to RDF, saving converts RDF to RUB: flip y and z of positions, the
 x/y... components of quaternions as (x, -y, -z), and each SH coefficient by
 the parity of its basis function under that flip. Writers that store PLY
-axes without saying so (some version-4 exporters) therefore load upside
-down; flip them back with a 180-degree rotation about x.
+axes without saying so load upside down under that rule: PlayCanvas
+splat-transform (3.7, the converter behind SuperSplat) writes version 4 files
+in PLY axes with no extension record. ``axes="ply"`` reads (and writes) files
+without a record in the PLY's axes instead, as those tools do; a record in
+the file always wins. No other field of the format tells the two apart.
 
 Written as version 3 (gzip; every SPZ reader reads it, the stdlib writes it),
 with the reference's default quantisation: 12 fractional bits (fewer when the
@@ -72,6 +75,7 @@ _LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fractio
 _HEADER = struct.Struct("<IIIBBBBI12x")  # ... numStreams tocByteOffset reserved[12]
 _COORDINATE_EXTENSION = 0xADBE0003
 RUB, RDF = 4, 6  # the reference's CoordinateSystem values; 1..8 differ by axis flips only
+AXES = {"rub": RUB, "ply": RDF}  # the axes of files without a record: the format's rule, or the PLY's
 _SQRT1_2 = math.sqrt(0.5)
 _MAX_DEGREE = 4
 
@@ -92,8 +96,8 @@ def _axis_flips(stored: int, path: Path) -> np.ndarray:
     return np.array([-1.0 if differ >> bit & 1 else 1.0 for bit in range(3)])
 
 
-def _stored_system(path: Path, zone: bytes) -> int:
-    """The coordinate system named by an extension record in ``zone`` (RUB when none names one)."""
+def _stored_system(path: Path, zone: bytes) -> int | None:
+    """The coordinate system named by an extension record in ``zone`` (None when none names one)."""
     offset = 0
     while offset + 8 <= len(zone):
         kind, length = struct.unpack_from("<II", zone, offset)
@@ -102,7 +106,7 @@ def _stored_system(path: Path, zone: bytes) -> int:
         if kind == _COORDINATE_EXTENSION and length >= 4:
             return struct.unpack_from("<I", zone, offset + 8)[0] or RUB
         offset += 8 + length
-    return RUB
+    return None
 
 
 def _array_sizes(count: int, degree: int, version: int) -> dict[str, int]:
@@ -127,7 +131,7 @@ def _check_header(path: Path, version: int, count: int, degree: int, valid_versi
         raise ValueError(f"{path}: shDegree: {degree} is above SPZ's maximum 4")
 
 
-def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
     try:
         with gzip.GzipFile(fileobj=io.BytesIO(raw)) as stream:
             head = read_at_most(stream, _LEGACY_HEADER.size)
@@ -149,10 +153,10 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
     for name, size in sizes.items():
         arrays[name], offset = data[offset : offset + size], offset + size
     header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
-    return header, arrays, RUB
+    return header, arrays, None
 
 
-def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
     if len(raw) < _HEADER.size:
         raise ValueError(f"{path}: header: {len(raw)} bytes, expected {_HEADER.size}")
     _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
@@ -164,7 +168,7 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
     body = toc + 16 * streams
     if toc < _HEADER.size or body > len(raw):
         raise ValueError(f"{path}: tocByteOffset: {toc} puts the table outside the {len(raw)}-byte file")
-    system = _stored_system(path, raw[_HEADER.size : toc]) if flags & FLAG_EXTENSIONS else RUB
+    system = _stored_system(path, raw[_HEADER.size : toc]) if flags & FLAG_EXTENSIONS else None
     try:
         import zstandard
     except ImportError as error:
@@ -220,9 +224,19 @@ def _rotations_xyzw(header: dict, raw: bytes) -> np.ndarray:
     return q
 
 
-def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
-    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring)."""
+def _system(axes: str) -> int:
+    """The coordinate system of files without an extension record: ``axes`` "rub" (the format's rule) or
+    "ply" (the PLY's axes, as PlayCanvas splat-transform writes them)."""
+    if axes not in AXES:
+        raise ValueError(f"spz axes: expected one of {', '.join(AXES)}, got {axes!r}")
+    return AXES[axes]
+
+
+def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "rub") -> GaussianScene:
+    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring); a file
+    without a coordinate-system record is taken to hold ``axes`` ("rub", the format's rule, or "ply")."""
     path = Path(path)
+    default = _system(axes)
     require_file(path)
     raw = path.read_bytes()
     if raw[:4] == struct.pack("<I", MAGIC):
@@ -232,7 +246,7 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
     else:
         raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
     count, degree = header["count"], header["degree"]
-    flips = _axis_flips(system, path)
+    flips = _axis_flips(default if system is None else system, path)
     x, y, z = flips
     q = _rotations_xyzw(header, arrays["rotations"])
     q[:, :3] *= (y * z, x * z, x * y)
@@ -293,15 +307,16 @@ def _smallest_three(q: np.ndarray) -> np.ndarray:
     return comp.astype("<u4")
 
 
-def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring).
+def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "rub") -> None:
+    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring), or with
+    ``axes="ply"`` in the PLY's axes, as PlayCanvas splat-transform writes and reads them.
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, a coordinate of magnitude 2^23 or more.
     """
     path = Path(path)
     cpu = scene_to_write(scene, path)
-    x, y, z = _axis_flips(RUB, path)
+    x, y, z = _axis_flips(_system(axes), path)
     means = cpu.means.double().numpy() * (x, y, z)
     bits = _fractional_bits(path, means)
     fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
