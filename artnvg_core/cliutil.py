@@ -130,8 +130,8 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
                        spz_axes: str = "rub") -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on), printing the file size first and the count and
-    time after. The library's advice on invalid Gaussians is given as the ``--drop-invalid`` option; running
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on),
+    printing the file size first and the count and time after. The library's advice on invalid Gaussians is given as the ``--drop-invalid`` option; running
     out of memory while loading says so (the other options cannot make a scene file smaller)."""
     from .formats import load_scene
     from .scene import DROP_INVALID_HINT

@@ -33,9 +33,22 @@ def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None])
         with open(temporary, "xb") as stream:
             write(stream)
         os.replace(temporary, path)
+    except OSError as error:  # e.g. a full disk: named by the file being written, not the temporary one
+        temporary.unlink(missing_ok=True)
+        raise _naming(error, {temporary: path}, path) from error
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def _naming(error: OSError, temporaries: dict[Path, Path], default) -> OSError:
+    """``error`` (same errno and type) naming the file the user asked for: a temporary's target, or
+    ``default`` when it names no file."""
+    filename = error.filename
+    target = temporaries.get(Path(filename)) if filename is not None else default
+    if target is None:
+        return error
+    return OSError(error.errno, error.strerror or str(error), str(target))
 
 
 def _temporary_name(path: Path) -> Path:
@@ -131,6 +144,11 @@ def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
             if message == str(error):
                 raise
             raise ValueError(message) from error
+        except OSError as error:  # e.g. a full disk: named by the files being written
+            named = _naming(error, dict(zip(temporaries, targets)), ", ".join(str(t) for t in targets))
+            if named is error:
+                raise
+            raise named from error
         missing = [str(t) for t in temporaries if not t.is_file()]
         if missing:
             raise RuntimeError(f"written_together: the block did not write {missing}")

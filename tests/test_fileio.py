@@ -15,6 +15,7 @@ from artnvg_core.fileio import (
     image_size,
     load_image,
     refuse_overwrites,
+    write_atomically,
     written_together,
 )
 
@@ -195,3 +196,17 @@ def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
     for outputs, message in cases:
         with pytest.raises(ValueError, match=message):
             refuse_overwrites(outputs, inputs)
+
+
+def test_a_full_disk_is_named_by_the_file_being_written(tmp_path):
+    """The error names the user's path, never the hidden temporary file, and keeps its errno and type."""
+    def full(stream):
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match=r"\[Errno 28\] No space left on device: '.*scene\.ply'") as error:
+        write_atomically(tmp_path / "scene.ply", full)
+    assert error.value.errno == 28
+    with pytest.raises(PermissionError, match=r"\[Errno 13\] Permission denied: '.*a\.ply'"):
+        with written_together(tmp_path / "a.ply", tmp_path / "b.png") as (first, _):
+            raise PermissionError(13, "Permission denied", str(first))
+    assert list(tmp_path.iterdir()) == []

@@ -108,7 +108,8 @@ def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
     out.write_text("an earlier result")
     assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
                  "--stylizer", "nnfm", "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
-    assert "error: [Errno 28] No space left on device" in capsys.readouterr().err
+    assert capsys.readouterr().err.endswith(f"error: [Errno 28] No space left on device: '{out}, "
+                                            f"{out.parent / 'stylized.contact.png'}'\n")
     assert [p.name for p in out.parent.iterdir()] == ["stylized.ply"] and out.read_text() == "an earlier result"
 
 
@@ -254,7 +255,7 @@ def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_i
 def test_out_of_memory_while_loading_does_not_advise_a_smaller_scale(tmp_path, capsys, monkeypatch):
     import artnvg_core.formats
 
-    def exhausted(path, drop_invalid=False):
+    def exhausted(path, **options):
         raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 9 GB")
 
     monkeypatch.setattr(artnvg_core.formats, "load_scene", exhausted)
