@@ -150,7 +150,8 @@ def render(
         proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height,
                        near_plane, scene.blur_px2, scene.antialiased)
         center = cameras.centers[c]
-        colors = sh_to_color(scene.sh[proj.index], scene.means[proj.index] - center, degree)
+        colors = sh_to_color(scene.sh.index_select(0, proj.index), scene.means.index_select(0, proj.index) - center,
+                             degree)
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors
         # nothing projected: the reference's empty image (kept in the autograd graph), for either backend
         blended, trans = (composite if len(proj.index) else rasterize)(proj, features, width, height)

@@ -68,7 +68,8 @@ def project(
     opacities = torch.sigmoid(opacity_logits)
     keep = (mean_c[:, 2] > near_plane) & (opacities >= ALPHA_MIN)
     index = keep.nonzero()[:, 0]
-    mean_c, opacities = mean_c[index], opacities[index]
+    # index_select, not x[index]: its backward adds with atomics where indexing's sorts the indices
+    mean_c, opacities = mean_c.index_select(0, index), opacities.index_select(0, index)
 
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     x, y, z = mean_c.unbind(-1)
@@ -92,9 +93,9 @@ def project(
     # rows of J (whose zeros are known) rather than as a batched matrix product: batched float64
     # 3x3 products are slow GEMMs on GPUs.
     work = torch.float32 if means.device.type == "mps" else torch.float64
-    log_s = log_scales[index].to(work)
+    log_s = log_scales.index_select(0, index).to(work)
     top = log_s.detach().amax(-1).clamp_min(0)
-    scaled_rot = quat_to_rotmat(quats[index]).to(work) * torch.exp(log_s - top[:, None])[:, None, :]
+    scaled_rot = quat_to_rotmat(quats.index_select(0, index)).to(work) * torch.exp(log_s - top[:, None])[:, None, :]
     cam_rot = (rot_w2c.to(work) @ scaled_rot.transpose(1, 2).reshape(-1, 3).T).T.reshape(-1, 3, 3)  # rows: W R S' columns
     j_x, j_xz = (fx / z).to(work)[:, None], (-fx * tx / (z * z)).to(work)[:, None]  # J's non-zero entries
     j_y, j_yz = (fy / z).to(work)[:, None], (-fy * ty / (z * z)).to(work)[:, None]
@@ -131,9 +132,9 @@ def project(
         radii = torch.minimum(radii, reach).clamp_max(MAX_RADIUS_PX)
     return Projection(
         index=index[sel],
-        means2d=means2d[sel],
-        conics=conics[sel],
-        depths=z[sel],
-        opacities=opacities[sel],
+        means2d=means2d.index_select(0, sel),
+        conics=conics.index_select(0, sel),
+        depths=z.index_select(0, sel),
+        opacities=opacities.index_select(0, sel),
         radii=radii[sel].to(torch.long),
     )
