@@ -187,12 +187,35 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
         trans = tl.max(before, axis=1)
 
 
+@triton.jit
+def _emit_kernel(x0_ptr, y0_ptr, span_x_ptr, counts_ptr, ends_ptr, gauss_ptr, tile_ptr, id_ptr, n, tiles_x,
+                 BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
+    """Gaussian i's (tile id, Gaussian id) pairs go to ends[i] - counts[i]..ends[i]; one program
+    writes those of BLOCK_G Gaussians, BLOCK_T tiles of each at a time."""
+    i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
+    inside = i < n
+    x0 = tl.load(x0_ptr + i, mask=inside, other=0)
+    y0 = tl.load(y0_ptr + i, mask=inside, other=0)
+    span_x = tl.maximum(tl.load(span_x_ptr + i, mask=inside, other=1), 1)
+    count = tl.load(counts_ptr + i, mask=inside, other=0)
+    start = tl.load(ends_ptr + i, mask=inside, other=0) - count
+    gauss = tl.load(gauss_ptr + i, mask=inside, other=0).to(tl.int32)
+    for k in range(0, tl.max(count, axis=0), BLOCK_T):
+        local = k + tl.arange(0, BLOCK_T)[None, :]
+        tile = (y0[:, None] + local // span_x[:, None]) * tiles_x + x0[:, None] + local % span_x[:, None]
+        where = start[:, None] + local
+        mask = local < count[:, None]
+        tl.store(tile_ptr + where, tile.to(tl.int32), mask=mask)
+        tl.store(id_ptr + where, gauss[:, None] + tl.zeros_like(local).to(tl.int32), mask=mask)
+
+
 def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
     """Depth-sorted Gaussian lists per tile, as the reference's ``_tile_lists`` orders them.
 
     Returns (ids [I] int32 indices into the projection, grouped by tile, depth-sorted within one,
     ties in projection order; offsets [tiles + 1] int32, tile t's run is ids[offsets[t]:offsets[t+1]]).
-    One host synchronisation (the number of intersections sizes the lists).
+    One host synchronisation (the number of intersections sizes the lists); a Triton kernel writes
+    the (tile, Gaussian) pairs, one stable radix sort by tile groups them.
     """
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     device = proj.means2d.device
@@ -205,14 +228,16 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
         y0 = torch.floor((center[:, 1] - radii[:, 1]) / tile).clamp(0, tiles_y).long()
         y1 = torch.ceil((center[:, 1] + radii[:, 1]) / tile).clamp(0, tiles_y).long()
         span_x = x1 - x0
-        per_gauss = span_x * (y1 - y0)
-        ends = torch.cumsum(per_gauss, 0)
+        counts = span_x * (y1 - y0)
+        ends = torch.cumsum(counts, 0)
         total = int(ends[-1])
-        owner = torch.repeat_interleave(torch.arange(len(by_depth), device=device), per_gauss, output_size=total)
-        local = torch.arange(total, device=device) - (ends - per_gauss)[owner]
-        tile_id = (y0[owner] + local // span_x[owner]) * tiles_x + x0[owner] + local % span_x[owner]
-        tile_id, order = torch.sort(tile_id.to(torch.int32), stable=True)
-        ids = by_depth[owner[order]].to(torch.int32)
+        tile_id = torch.empty(total, dtype=torch.int32, device=device)
+        ids = torch.empty(total, dtype=torch.int32, device=device)
+        grid = (triton.cdiv(len(by_depth), 32),)
+        _emit_kernel[grid](x0, y0, span_x, counts, ends, by_depth, tile_id, ids, len(by_depth), tiles_x,
+                           BLOCK_G=32, BLOCK_T=32, num_warps=4)
+        tile_id, order = torch.sort(tile_id, stable=True)
+        ids = ids[order]
         bounds = torch.arange(tiles_x * tiles_y + 1, device=device, dtype=torch.int32)
         offsets = torch.searchsorted(tile_id, bounds, out_int32=True)
     return ids, offsets
