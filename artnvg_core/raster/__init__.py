@@ -68,10 +68,14 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     """Resolve ``backend`` for float32 scenes on ``device`` and load what it needs before the first
     render, so that gsplat's first-use kernel build (about a minute and a half on an H100) is
     announced through ``announce`` where the caller's user looks, before it starts. Returns the
-    backend. Without this, the first gsplat render announces it as a logged warning."""
+    backend. Without this, the first gsplat render announces it as a logged warning. Triton
+    compiles its kernels at their first launch in a process that finds no cached build (seconds,
+    see docs/cuda_run.md); here it is only imported."""
     name = choose_backend(backend, torch.device(device))
     if name == "gsplat":
         load_kernels(announce)
+    elif name == "triton":
+        from . import triton_backend  # noqa: F401  (import errors surface before the first render)
     return name
 
 

@@ -7,13 +7,13 @@ alpha = min(0.999, o * exp(-sigma)), samples with sigma < 0 or alpha < 1/255 ski
 in depth order (ties in projection order) stopping before the first Gaussian that would bring the
 transmittance to <= 1e-4.
 
-Each Triton program owns one ``tile`` x ``tile`` pixel tile and walks the tile's depth-sorted list
-``chunk`` Gaussians at a time as a [pixels, chunk] block (alpha, transmittance by a scan along the
-chunk). The forward pass keeps, per pixel, the final transmittance and the end of the list prefix
-that contributed. The backward pass replays the lists back to front from there (as gsplat does):
-the transmittance before each Gaussian is recovered by division from the final one, and the colour
-still to come is a suffix sum, so no difference of large sums loses precision. Per-Gaussian
-gradients are summed over the tile's pixels, then added with atomics.
+Each Triton program owns one ``tile`` x ``tile`` pixel tile. The forward pass walks the tile's
+depth-sorted list one Gaussian at a time over the tile's pixels, keeping per pixel the final
+transmittance and the end of the list prefix that contributed. The backward pass replays the lists
+back to front from there (as gsplat does), ``chunk`` Gaussians at a time as a [pixels, chunk] block:
+the transmittance before each Gaussian is recovered by division from the final one (a reversed
+scan along the chunk), and the colour still to come is a suffix sum, so no difference of large sums
+loses precision. Per-Gaussian gradients are summed over the tile's pixels, then added with atomics.
 
 The kernels run on CUDA tensors, or on the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set
 before this module is imported), which is how the tests check them where no GPU is.
@@ -29,8 +29,9 @@ from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
 
 TILE = 16  # pixels per tile side
-CHUNK = 32  # Gaussians per [pixels, chunk] block
-_PARAMS = 6  # packed per projected Gaussian: mean x, mean y, conic a, b, c, opacity
+CHUNK = 8  # Gaussians per [pixels, chunk] block of the backward pass
+CHECK = 32  # Gaussians between the forward pass's checks for a finished tile
+WARPS = 4  # per program (a tile); measured on an H100 with CHUNK (8 warps or larger chunks spill)
 
 
 @triton.jit
@@ -83,12 +84,14 @@ def _pixels(width, height, tiles_x, TILE: tl.constexpr):
 
 @triton.jit
 def _forward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, out_ptr, trans_ptr, last_ptr,
-                    width, height, tiles_x, F: tl.constexpr, TILE: tl.constexpr, CHUNK: tl.constexpr,
+                    width, height, tiles_x, F: tl.constexpr, TILE: tl.constexpr, CHECK: tl.constexpr,
                     ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr):
+    """One Gaussian at a time over the tile's pixels; whether any pixel is still open is checked
+    every CHECK Gaussians. Stores blended features, final transmittance and, per pixel, one past
+    the list position of the last Gaussian that contributed (``start`` when none)."""
     tile, pix, px, py, inside = _pixels(width, height, tiles_x, TILE)
     start = tl.load(offsets_ptr + tile)
     end = tl.load(offsets_ptr + tile + 1)
-    cols = tl.arange(0, CHUNK)
     trans = tl.full([TILE * TILE], 1.0, tl.float32)
     acc0 = tl.zeros([TILE * TILE], tl.float32)
     acc1 = tl.zeros([TILE * TILE], tl.float32)
@@ -99,23 +102,29 @@ def _forward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, out_ptr, trans_p
     cur = start
     alive = end > start
     while alive:
-        j = cur + cols
-        valid = j < end
-        gid, ca, cb, cc, dx, dy, vis, raw, alpha, hit = _chunk_alpha(params_ptr, ids_ptr, j, valid, px, py, ALPHA_MIN, ALPHA_MAX)
-        alpha = tl.where(done[:, None], 0.0, alpha)
-        after = trans[:, None] * tl.cumprod(1.0 - alpha, axis=1)
-        stop = after <= T_MIN
-        alpha = tl.where(stop, 0.0, alpha)
-        weight = alpha * (after / (1.0 - alpha))
-        f0, f1, f2, f3 = _features(feat_ptr, gid, valid, F)
-        acc0 += tl.sum(weight * f0[None, :], axis=1)
-        acc1 += tl.sum(weight * f1[None, :], axis=1)
-        acc2 += tl.sum(weight * f2[None, :], axis=1)
-        acc3 += tl.sum(weight * f3[None, :], axis=1)
-        last = tl.maximum(last, tl.max(tl.where(alpha > 0, j[None, :] + 1, 0), axis=1))
-        trans = tl.minimum(trans, tl.min(tl.where(stop, 1.0, after), axis=1))
-        done = done | (tl.max(stop.to(tl.int32), axis=1) > 0)
-        cur += CHUNK
+        until = tl.minimum(cur + CHECK, end)
+        for j in range(cur, until):
+            gid = tl.load(ids_ptr + j).to(tl.int64)
+            base = params_ptr + gid * 6
+            dx = px - tl.load(base + 0)
+            dy = py - tl.load(base + 1)
+            sigma = 0.5 * (tl.load(base + 2) * dx * dx + tl.load(base + 4) * dy * dy) + tl.load(base + 3) * dx * dy
+            alpha = tl.minimum(tl.load(base + 5) * tl.exp(-sigma), ALPHA_MAX)
+            hit = (sigma >= 0) & (alpha >= ALPHA_MIN) & ~done
+            after = trans * (1.0 - alpha)
+            stop = hit & (after <= T_MIN)
+            used = hit & ~stop
+            weight = tl.where(used, alpha * trans, 0.0)
+            feat = feat_ptr + gid * F
+            acc0 += weight * tl.load(feat + 0)
+            acc1 += weight * tl.load(feat + 1)
+            acc2 += weight * tl.load(feat + 2)
+            if F == 4:
+                acc3 += weight * tl.load(feat + 3)
+            trans = tl.where(used, after, trans)
+            last = tl.where(used, j + 1, last)
+            done = done | stop
+        cur = until
         alive = (cur < end) & (tl.min(done.to(tl.int32), axis=0) == 0)
     base = out_ptr + pix.to(tl.int64) * F
     tl.store(base + 0, acc0, mask=inside)
@@ -243,10 +252,6 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
     return ids, offsets
 
 
-def _warps(tile: int) -> int:
-    return 8 if tile >= 16 else 4
-
-
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, ids, offsets, width, height, tile, chunk):
@@ -259,8 +264,8 @@ class _Composite(torch.autograd.Function):
         tiles_x = -(-width // tile)
         grid = (tiles_x * -(-height // tile),)
         _forward_kernel[grid](params, features, ids, offsets, out, trans, last, width, height, tiles_x,
-                              F=channels, TILE=tile, CHUNK=chunk, ALPHA_MIN=ALPHA_MIN, ALPHA_MAX=ALPHA_MAX,
-                              T_MIN=T_MIN, num_warps=_warps(tile))
+                              F=channels, TILE=tile, CHECK=CHECK, ALPHA_MIN=ALPHA_MIN, ALPHA_MAX=ALPHA_MAX,
+                              T_MIN=T_MIN, num_warps=WARPS)
         ctx.save_for_backward(params, features, ids, offsets, trans, last)
         ctx.shape = (width, height, tile, chunk)
         return out, trans
@@ -278,7 +283,7 @@ class _Composite(torch.autograd.Function):
         _backward_kernel[grid](params, features, ids, offsets, trans, last, grad_out.contiguous(),
                                grad_trans.contiguous(), grad_params, grad_features, width, height, tiles_x,
                                F=features.shape[1], TILE=tile, CHUNK=chunk, ALPHA_MIN=ALPHA_MIN,
-                               ALPHA_MAX=ALPHA_MAX, num_warps=_warps(tile))
+                               ALPHA_MAX=ALPHA_MAX, num_warps=WARPS)
         return (grad_params[:, :2], grad_params[:, 2:5], grad_params[:, 5], grad_features,
                 None, None, None, None, None, None)
 
