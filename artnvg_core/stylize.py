@@ -171,22 +171,45 @@ def stylize_diffusion(
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
-    """The ArtNVG pipeline: render content views, stylize them group by group with
-    SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
+    """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
+    ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
+    loaded for the next call with the same files and options (:func:`load_models_for`).
 
-    ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
-    ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
-    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
-    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone.
-    ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's ``ray_address``
-    (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the models
-    (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`;
-    on one device the compile artifacts are saved after the diffusion stage for the next run
-    (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`). The models stay loaded for the next
-    call with the same files and options (:func:`load_models_for`).
-    Returns the stylized scene and the stylized views [K, H, W, 3] of the K views used, in camera order
-    (every view's without key views).
+    Args:
+        scene (`GaussianScene`): the scene to stylize, on its compute device; not modified.
+        cameras (`CameraSet`): the views to stylize and finetune on (OpenCV world-to-camera, pixels).
+        style_image (`torch.Tensor`): the style image, float32 [H, W, 3] in [0, 1], on the scene's device.
+        config (`FinetuneConfig`): the finetune's settings; ``config.iterations`` is used as given,
+            ``config.seed`` also seeds the sampling (group ``g`` uses ``seed + g``) and ``config.backend``
+            renders the content views.
+        files (`ModelFiles`): the four model files (a None field: the Hugging Face cache).
+        preset (`str`, defaults to ``"paper"``): a name of :data:`artnvg_core.presets.PRESETS`; gives the
+            sampler settings, the memory mode and the default ``key_views``.
+        content_routing (`str`, defaults to ``"released"``): replaces the preset's (``"released"`` or
+            ``"paper"``; see :class:`~artnvg_core.diffusion.sampler.SamplerSettings`).
+        sampler_changes (`Mapping[str, object]` or None, defaults to None): fields of
+            :class:`~artnvg_core.diffusion.sampler.SamplerSettings` replacing the preset's, e.g.
+            ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``; an unknown name is a ValueError.
+        key_views (`int` or None, defaults to None): stylize only that many views, chosen to cover the
+            scene (:func:`artnvg_core.key_views.select_key_views`), and finetune on them alone; 0: every
+            view; None: the preset's.
+        devices (sequence of `str` or `torch.device`, or None, defaults to None): devices sharing the
+            groups; several go through Ray workers, one per device, each holding the models
+            (:mod:`artnvg_core.diffusion.executor`; identical results). None: the scene's device.
+        ray_address (`str` or None, defaults to None): a running Ray cluster (``"auto"`` or
+            ``"HOST:PORT"``) whose GPUs share the groups.
+        group_size (`int`, defaults to 15): the most views in a neighbouring-view group (the paper's N).
+        compile_blocks (`bool`, defaults to False): compile the repeated blocks (:func:`load_models_for`;
+            full memory only); on one device the compile artifacts are saved after the diffusion stage
+            for the next run (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`).
+        sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
+        progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
+        should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
+            :class:`~artnvg_core.progress.Cancelled` before anything is returned.
+
+    Returns:
+        The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
+        views used, in camera order (every view without key views).
     """
     from .diffusion.compile_cache import save_compile_cache
     from .diffusion.conditioning import prepare_conditioning
