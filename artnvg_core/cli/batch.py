@@ -39,8 +39,10 @@ from pathlib import Path
 
 import torch
 
-from .cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
-from .progress import Cancelled, StopFn
+from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..progress import Cancelled, StopFn
+from .common import parse_devices
+from .stylize import add_stylize_arguments
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
 NOT_PER_JOB = {"device": "--devices", "devices": "--devices", "ray-address": "--ray-address", "help": None}
@@ -147,14 +149,12 @@ def _empty(value) -> bool:
 
 
 def parse_stylize(argv: Sequence[str], label: str) -> argparse.Namespace:
-    """``python -m artnvg_core stylize ARGV`` parsed by the command line's own parser; ValueError
-    starting with ``label`` with argparse's message instead of an exit."""
-    from .__main__ import build_parser
-
+    """``python -m artnvg_core stylize ARGV`` parsed by stylize's own options; ValueError starting with
+    ``label`` with argparse's message instead of an exit."""
     message = io.StringIO()
     try:
         with contextlib.redirect_stderr(message):
-            return build_parser().parse_args(["stylize", *argv])
+            return stylize_parser().parse_args(argv)
     except SystemExit:
         text = message.getvalue().strip().splitlines()
         raise ValueError(f"{label}: {text[-1].split('error: ', 1)[-1] if text else 'cannot be parsed'}") from None
@@ -164,8 +164,8 @@ def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> l
     """The jobs of a JOBS file (see the module docstring). A job that cannot be parsed, that would write
     over one of its own inputs, or whose output or contact sheet another job writes too (``a.ply`` and
     ``a.spz`` share ``a.contact.png``), carries its error; only a file that cannot be read raises ValueError."""
-    from .fileio import file_identity, refuse_overwrites
-    from .stylize import DemoInputs, sheet_path
+    from ..fileio import file_identity, refuse_overwrites
+    from ..stylize import DemoInputs, sheet_path
 
     path = Path(path)
     folder = path.resolve().parent
@@ -201,8 +201,8 @@ def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> l
 
 def output_complete(out: Path) -> bool:
     """Whether ``out`` holds a finished job's output: the scene loads and its contact sheet exists."""
-    from .formats import load_scene
-    from .stylize import sheet_path
+    from ..formats import load_scene
+    from ..stylize import sheet_path
 
     if not (out.is_file() and sheet_path(out).is_file()):
         return False
@@ -372,8 +372,6 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     (Ctrl-C), 143 when terminated (SIGTERM)."""
     from tqdm import tqdm
 
-    from .cliutil import parse_devices
-
     jobs = load_jobs(args.jobs, options)
     devices = parse_devices(args.devices)
     # the terminate handler goes in after Ray's (ray.init sets one that exits mid-call, with a C stack)
@@ -427,10 +425,21 @@ def _line(result: JobResult, total: int) -> str:
     return f"{result.status:<9} job {job.number}/{total}  {what}  {extra}"
 
 
+def stylize_parser() -> argparse.ArgumentParser:
+    """A parser of stylize's options alone (:func:`~artnvg_core.cli.stylize.add_stylize_arguments`)."""
+    parser = argparse.ArgumentParser(prog="python -m artnvg_core stylize")
+    add_stylize_arguments(parser)
+    return parser
+
+
+def stylize_options() -> dict[str, argparse.Action]:
+    """stylize's argparse actions by option string (``--preset``, ``--no-color-transfer``, ...)."""
+    return {string: action for action in stylize_parser()._actions for string in action.option_strings}
+
+
 def add_batch_command(commands) -> None:
-    """Register ``batch`` with the command line's subparsers (after ``stylize``, whose options jobs take)."""
-    stylize = commands.choices["stylize"]
-    options = {string: action for action in stylize._actions for string in action.option_strings}
+    """Register ``batch`` with the command line's subparsers; its jobs take stylize's options."""
+    options = stylize_options()
     p = commands.add_parser("batch", help="run many stylize jobs (a JSON or CSV list) over GPUs or a Ray cluster",
                             description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("jobs", help="JSON list of jobs or CSV table; each job holds stylize's options by name")

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .devices import device_for
+from ..devices import device_for
 
 if TYPE_CHECKING:
     import argparse
 
-    from .cameras import CameraSet
-    from .scene import GaussianScene
+    from ..cameras import CameraSet
+    from ..scene import GaussianScene
 
 
 def parse_device(name: str) -> torch.device:
@@ -88,20 +88,6 @@ def parse_devices(text: str | None) -> list[torch.device] | None:
     return devices
 
 
-def parse_view_indices(text: str | None, count: int) -> list[int]:
-    """Indices from ``--views`` text such as ``0,5,9`` (default: all ``count`` views)."""
-    if not text:
-        return list(range(count))
-    try:
-        indices = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
-    bad = [i for i in indices if not 0 <= i < count]
-    if bad or not indices:
-        raise ValueError(f"--views: indices {bad or text!r} out of range for {count} cameras")
-    return indices
-
-
 class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it."""
 
@@ -122,8 +108,8 @@ class ProgressBar:
 
 def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
     """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
-    first-use kernel build (about 90 s on an H100) is announced on stdout before it starts."""
-    from .raster import prepare_backend
+    first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced on stdout before it starts."""
+    from ..raster import prepare_backend
 
     prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
 
@@ -131,10 +117,11 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
                        spz_axes: str = "rub") -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on),
-    printing the file size first and the count and time after. The library's advice on invalid Gaussians is given as the ``--drop-invalid`` option; running
-    out of memory while loading says so (the other options cannot make a scene file smaller)."""
-    from .formats import load_scene
-    from .scene import DROP_INVALID_HINT
+    printing the file size first and the count and time after. The library's advice on invalid Gaussians
+    is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
+    options cannot make a scene file smaller)."""
+    from ..formats import load_scene
+    from ..scene import DROP_INVALID_HINT
 
     size = os.path.getsize(path) if os.path.isfile(path) else None
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
@@ -170,7 +157,7 @@ def check_style_image(path: str | os.PathLike, option: str = "--style") -> tuple
     ``option`` and ``path`` for a file that is missing, not a regular file or not an image, one over the
     pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`), or one longer than :data:`MAX_STYLE_ASPECT`
     times its width."""
-    from .fileio import image_size
+    from ..fileio import image_size
 
     try:
         width, height = image_size(path)
@@ -183,9 +170,26 @@ def check_style_image(path: str | os.PathLike, option: str = "--style") -> tuple
     return width, height
 
 
+SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .ckpt"
+
+
+def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -> None:
+    """``--drop-invalid`` and ``--spz-axes``: how the scene file is read (and ``written``, when the command
+    writes one)."""
+    from ..formats import SPZ_AXES
+
+    parser.add_argument("--drop-invalid", action="store_true",
+                        help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
+                        "warning) instead of refusing the file")
+    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="rub",
+                        help=f"axes of a .spz scene{written} that does not name its own: rub (default), the SPZ "
+                        "format's rule, as Niantic's tools write; ply: the PLY's axes, as PlayCanvas splat-transform "
+                        "and SuperSplat write .spz (such files load upside down with rub)")
+
+
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
-    from .cameras import UP_AXES
+    from ..cameras import UP_AXES
 
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
                         "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
@@ -201,8 +205,8 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
-    """:func:`~artnvg_core.cameras.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
-    from .cameras import orbit_cameras
+    """:func:`~artnvg_core.orbit.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
+    from ..orbit import orbit_cameras
 
     parts = args.orbit_size.lower().split("x")
     if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
