@@ -8,7 +8,8 @@ outputs. Add new inputs only at the end of a node's ``optional`` inputs.
 from __future__ import annotations
 
 from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
-from .comfy_bridge import register_model_folder
+from .comfy_bridge import comfy_module, input_directory, register_model_folder
+from .demo_inputs import install_demo_inputs
 from .diffusion_nodes import (
     CSGO_EXTENSIONS,
     CSGO_FOLDER,
@@ -23,6 +24,8 @@ from .scene_nodes import LoadGaussianScene, SaveGaussianScene
 from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
+if comfy_module("folder_paths") is not None:  # inside ComfyUI: the shipped workflows' inputs
+    install_demo_inputs(input_directory())
 
 NODE_CLASS_MAPPINGS = {
     "ArtNVGLoadGaussianScene": LoadGaussianScene,

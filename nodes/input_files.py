@@ -88,7 +88,9 @@ class InputFile:
         """A loader's ``VALIDATE_INPUTS`` answer: True, or the message naming ``node``, the input and the path."""
         file, input_name = self.resolve(listed, path)
         if not self.exists(file):
-            return f"{node}: input '{input_name}': {self.what} not found: {file}"
+            return (f"{node}: input '{input_name}': {self.what} not found: {file}. Put it into ComfyUI's input "
+                    f"folder ({input_directory()}) and pick it in '{self.name}', or type its full path into 'path' "
+                    f"(the shipped workflows' demo files come back into the input folder when ComfyUI restarts)")
         return True
 
     def signature(self, listed: str, path: str) -> str:

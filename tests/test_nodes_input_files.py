@@ -33,8 +33,10 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     assert scene_file.resolve("a.ply", "sub/b.ply") == (input_folder / "sub" / "b.ply", "path")
     assert scene_file.check("Load", "a.ply", "") is True
     missing = input_folder / "gone.ply"
-    assert scene_file.check("Load", "gone.ply", "") == f"Load: input 'scene_file': scene file not found: {missing}"
-    assert scene_file.check("Load", "a.ply", "/no/b.ply") == "Load: input 'path': scene file not found: /no/b.ply"
+    message = scene_file.check("Load", "gone.ply", "")
+    assert message.startswith(f"Load: input 'scene_file': scene file not found: {missing}. ")
+    assert f"input folder ({input_folder.resolve()})" in message and "full path into 'path'" in message
+    assert scene_file.check("Load", "a.ply", "/no/b.ply").startswith("Load: input 'path': scene file not found: /no/b.ply. ")
     (input_folder / "folder.ply").mkdir()
     assert "not found" in scene_file.check("Load", "folder.ply", "")  # a folder is no scene file
 

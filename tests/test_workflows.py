@@ -16,6 +16,7 @@ from typing import ClassVar
 import pytest
 
 from nodes import NODE_CLASS_MAPPINGS
+from nodes.demo_inputs import DEMO_STYLE, demo_files
 
 REPO = Path(__file__).resolve().parents[1]
 WORKFLOWS = REPO / "workflows"
@@ -168,14 +169,15 @@ def test_api_and_ui_files_describe_the_same_graph(path):
 
 
 @pytest.mark.parametrize("path", API_FILES, ids=lambda p: p.name)
-def test_input_files_are_the_bundled_demo_copied_into_the_input_folder(path):
-    """Copying artnvg_core/demo/ to ComfyUI/input/artnvg_demo/ gives every input file a workflow names."""
-    demo = REPO / "artnvg_core" / "demo"
+def test_input_files_are_the_demo_files_the_pack_installs(path, tmp_path):
+    """Every input file a workflow names is one the pack puts into the input folder at load, from the demo."""
+    installed = demo_files()
     for node in json.loads(path.read_text()).values():
         for name in ("scene_file", "camera_source", "image"):
             if name in node["inputs"]:
-                folder, _, file = node["inputs"][name].partition("/")
-                assert folder == "artnvg_demo" and (demo / file).is_file(), (path.name, node["inputs"][name])
+                assert node["inputs"][name] in installed, (path.name, node["inputs"][name])
+    assert [n["inputs"]["image"] for n in json.loads(path.read_text()).values()
+            if n["class_type"] == "LoadImage"] == [DEMO_STYLE]  # top level: Load Image's list shows it
 
 
 def test_nnfm_only_workflow_needs_no_diffusion_weights():
