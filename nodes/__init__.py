@@ -19,13 +19,15 @@ from .diffusion_nodes import (
     SampleGroup,
 )
 from .finetune_nodes import FinetuneGaussians
+from .prompt_checks import register_prompt_check
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
 from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
-if comfy_module("folder_paths") is not None:  # inside ComfyUI: the shipped workflows' inputs
+if comfy_module("folder_paths") is not None:  # inside ComfyUI: the shipped workflows' inputs, whole-prompt checks
     install_demo_inputs(input_directory())
+    register_prompt_check()
 
 NODE_CLASS_MAPPINGS = {
     "ArtNVGLoadGaussianScene": LoadGaussianScene,

@@ -50,6 +50,7 @@ from .comfy_bridge import (
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import EMBEDS, GROUPS, IMAGE, MODELS
+from .prompt_checks import HIDDEN, check_result
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -71,8 +72,9 @@ class ModelInput:
         return f"{self.name}_path"
 
     def list_input(self) -> tuple:
-        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache."""
-        return ([HF_CACHE, *model_files(self.folder)], {"tooltip": (
+        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache (a COMBO,
+        whose value ComfyUI leaves to the loader's check: see ``prompt_checks``)."""
+        return ("COMBO", {"options": [HF_CACHE, *model_files(self.folder)], "tooltip": (
             f"{self.source.description}: a file in models/{self.folder}, or {HF_CACHE} ({self.source.url}).")})
 
 
@@ -106,6 +108,27 @@ def _model_path(node: str, model: ModelInput, listed: str, path: str) -> Path:
 def _model_paths(node: str, listed: tuple[str, ...], overrides: tuple[str, ...]) -> list[Path]:
     """:func:`_model_path` of every entry of :data:`MODEL_INPUTS`, given their list and path inputs in that order."""
     return [_model_path(node, model, name, path) for model, name, path in zip(MODEL_INPUTS, listed, overrides)]
+
+
+def missing_models(node: str, listed: tuple[str, ...], overrides: tuple[str, ...], config_dir: str | None) -> str | None:
+    """None when every model file the loader reads is there, else one message naming each missing one once
+    (input, file, where it was looked for, where to get it)."""
+    problems, paths = [], []
+    for model, name, path in zip(MODEL_INPUTS, listed, overrides):
+        try:
+            paths.append(_model_path(node, model, name, path))
+        except NodeInputError as error:
+            problems.append(str(error).removeprefix(f"{node}: "))
+    if not problems:
+        try:
+            check_model_files(*paths, sdxl_config_dir=config_dir)
+        except ValueError as error:
+            problems.append(str(error))
+    if not problems:
+        return None
+    count = f"{len(problems)} model file{'s' if len(problems) > 1 else ''}"
+    return (f"{node}: {count} missing, so nothing was run:\n"
+            + "\n".join(f"- {problem}" for problem in problems))
 
 
 @dataclasses.dataclass
@@ -187,23 +210,28 @@ class LoadArtNVGModels(ArtNVGNode):
             "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")}),
     }
 
+    HIDDEN = HIDDEN
+
     @classmethod
-    def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
-                        sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
-                        sdxl_config_dir=""):
-        """True when every file the load reads is there, else the message naming what is missing."""
-        try:
-            paths = _model_paths(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
-                                 (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
-            with node_input(cls.DISPLAY_NAME):
-                check_model_files(*paths, sdxl_config_dir=sdxl_config_dir.strip() or None)
-        except NodeInputError as error:
-            return str(error)
-        return True
+    def check_files(cls, sdxl_checkpoint=HF_CACHE, controlnet=HF_CACHE, image_encoder=HF_CACHE, csgo_weights=HF_CACHE,
+                    sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
+                    sdxl_config_dir="", **_other_inputs) -> str | None:
+        """:func:`missing_models` of the node's values (``prompt_checks``)."""
+        return missing_models(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
+                              (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path),
+                              sdxl_config_dir.strip() or None)
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)
 
     def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
              sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
-             sdxl_config_dir="", memory="full", compile=False):
+             sdxl_config_dir="", memory="full", compile=False, files=None):
+        problem = self.check_files(sdxl_checkpoint, controlnet, image_encoder, csgo_weights, sdxl_checkpoint_path,
+                                   controlnet_path, image_encoder_path, csgo_weights_path, sdxl_config_dir)
+        if problem:
+            raise NodeInputError(problem)
         paths = _model_paths(self.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
                              (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
         with node_input(self.DISPLAY_NAME, "device"):
