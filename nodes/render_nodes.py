@@ -11,6 +11,7 @@ from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
+from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
@@ -32,7 +33,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     report, frames = progress_bar(), []
     for index in range(len(cameras)):
         check_stop(interrupt_requested)
-        with torch.no_grad():
+        with torch.no_grad(), cpu_threads(device):
             rgb = render(scene, cameras.subset([index])).rgb[0]
         frames.append(rgb.clamp(0, 1).float().cpu())
         if report is not None:

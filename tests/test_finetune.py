@@ -278,3 +278,14 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
         assert torch.isfinite(value).all(), name
         assert torch.equal(value[[3, 7]], getattr(scene, name)[[3, 7]]), name
     assert not torch.equal(result.sh[8:], scene.sh[8:]) and not torch.equal(result.means[8:], scene.means[8:])
+
+
+def test_renders_before_and_after_the_steps_report_each_view(demo):
+    """Without stylized views (colour transfer on) every view is rendered before and after the steps."""
+    scene, cameras, style = demo
+    seen = []
+    finetune(scene, cameras.subset([0, 1, 2]), style,
+             config=FinetuneConfig(iterations=1), render_progress=lambda view, views, info: seen.append(
+                 (view, views, info["stage"])))
+    assert seen == [(1, 3, "setup"), (2, 3, "setup"), (3, 3, "setup"), (1, 3, "final"), (2, 3, "final"),
+                    (3, 3, "final")]

@@ -72,3 +72,16 @@ def test_inputs_are_data_and_choices_are_listed_when_asked(input_folder):
     assert (Loader.CATEGORY, Loader.DESCRIPTION) == ("ArtNVG", "Loads things.")
     assert Described.DESCRIPTION == "Own words."
     assert Described.INPUT_TYPES() == {"required": {}, "optional": {"flag": ("BOOLEAN", {"default": False})}}
+
+
+def test_descriptions_are_plain_text_paragraphs():
+    from nodes import NODE_CLASS_MAPPINGS
+    from nodes.node_base import plain_text
+
+    assert plain_text("""Reads ``*.ply`` files,
+        one per line.
+
+        Second ``paragraph``.""") == "Reads *.ply files, one per line.\n\nSecond paragraph."
+    for name, node in NODE_CLASS_MAPPINGS.items():
+        assert "``" not in node.DESCRIPTION and "\n\n\n" not in node.DESCRIPTION, name
+        assert all(paragraph == " ".join(paragraph.split()) for paragraph in node.DESCRIPTION.split("\n\n")), name

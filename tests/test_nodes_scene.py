@@ -171,6 +171,9 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
     folder = comfy_dirs / "output" / "artnvg"
     assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
     assert _same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
+    size = (folder / "stylized_00002.ply").stat().st_size
+    assert saved[1]["ui"]["text"] == [f"wrote output/artnvg/stylized_00002.ply ({size / 1e6:.1f} MB, "
+                                      f"{len(small_bear):,} Gaussians)"]
     (folder / "stylized_00007.ply").write_bytes(b"")
     (folder / "stylized_extra_00009.ply").write_bytes(b"")  # another prefix: not counted
     call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")
