@@ -5,8 +5,8 @@ import dataclasses
 import pytest
 import torch
 
-from artnvg_core.__main__ import build_parser
-from artnvg_core.cliutil import parse_devices
+from artnvg_core.cli.main import build_parser
+from artnvg_core.cli.common import parse_devices
 from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings
 from artnvg_core.presets import PRESETS, get_preset
 
