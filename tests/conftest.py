@@ -7,6 +7,10 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+# Triton's kernels run in its CPU interpreter where no GPU is; the variable must be set before the
+# first import of a kernel module, whichever test imports it first ("auto" still renders with torch on the CPU)
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 SHARED_DATA = Path(os.environ.get("ARTNVG_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 
 
