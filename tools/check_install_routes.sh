@@ -18,7 +18,8 @@
 # nodes, input, output) that ROOT/ComfyUI runs on (--base-directory, CPU, a free port). A route
 # passes when the server starts, lists every node of the pack (nodes/__init__.py), logs no import
 # failure, and runs the NNFM demo workflow (docs/comfyui.md: the demo copied to input/artnvg_demo/,
-# workflows/artnvg_nnfm_only_api.json at small settings, queued with workflows/queue_workflow.py)
+# workflows_api/ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json at small settings, queued with
+# workflows_api/queue_workflow.py)
 # to a saved scene. Logs: ROOT/routes/ROUTE/*.log. Exit status 0 when every route passed.
 set -uo pipefail
 ROOT=$(cd "${1:?usage: tools/check_install_routes.sh ROOT [git|manager|pip-git ...]}" && pwd); shift
@@ -81,7 +82,8 @@ EOF
   if grep -n -E "IMPORT FAILED|Cannot import .*artnvg" "$dir/server.log"; then status=1; fi
   if [ $status -eq 0 ]; then
     echo "-- $route: queueing the demo workflow"
-    "$python" "$pack/workflows/queue_workflow.py" "$pack/workflows/artnvg_nnfm_only_api.json" \
+    "$python" "$pack/workflows_api/queue_workflow.py" \
+        "$pack/workflows_api/ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json" \
         --server "$url" --timeout 900 "${SMALL[@]}" > "$dir/queue.log" 2>&1 || status=1
     tail -5 "$dir/queue.log"
     ls "$dir"/base/output/artnvg/nnfm*.ply > /dev/null 2>&1 || { echo "no scene saved"; status=1; }

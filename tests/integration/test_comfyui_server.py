@@ -109,8 +109,8 @@ def test_object_info_lists_every_node_with_its_inputs(comfy_server):
         assert tuple(node["output"]) == with_core_types.get(name, PUBLIC_OUTPUTS[name]), name
         assert node["category"] == "ArtNVG" and node["display_name"]
     folder = comfy_server.test_folder
-    assert f"{folder}/scene.ply" in info["ArtNVGLoadGaussianScene"]["input"]["required"]["scene_file"][0]
-    assert f"{folder}/transforms.json" in info["ArtNVGLoadCameras"]["input"]["required"]["camera_source"][0]
+    assert f"{folder}/scene.ply" in info["ArtNVGLoadGaussianScene"]["input"]["required"]["scene_file"][1]["options"]
+    assert f"{folder}/transforms.json" in info["ArtNVGLoadCameras"]["input"]["required"]["camera_source"][1]["options"]
     assert info["ArtNVGSaveGaussianScene"]["output_node"] is True
     for name, (types, outputs, display_name) in STOCK_NODES.items():  # what tests/test_workflows.py assumes
         assert set(info[name]["input"]["required"]) == set(types["required"]), name
@@ -137,7 +137,8 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
         comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm"))
     summary = queue.run_summary(entry)
     assert summary["status"] == "success", summary["error"]
-    assert _finetune_progress(messages)[-1] == (3, 3)
+    progress = _finetune_progress(messages)  # 2 views rendered before the steps, 3 steps, the 2 views again
+    assert progress == [(1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (1, 2), (2, 2)], progress
     saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
     assert len(saved) == 1 and saved[0]["type"] == "output"
     path = comfy_server.output_dir / saved[0]["file"]
@@ -194,9 +195,9 @@ def test_missing_scene_file_fails_validation_naming_the_file(comfy_server, input
     shown = value.format(folder=comfy_server.test_folder)
     with pytest.raises(queue.RejectedError) as rejected:
         queue.queue_prompt(comfy_server.url, _workflow(comfy_server, f"Load Gaussian Scene.{input_name}={shown}"))
-    errors = rejected.value.details["node_errors"]["1"]["errors"]
-    assert any(f"input '{input_name}': scene file not found" in error["details"] and shown in error["details"]
-               for error in errors), errors
+    (error,) = rejected.value.details["node_errors"]["1"]["errors"]  # once, not once per input
+    assert f"input '{input_name}': scene file not found" in error["details"] and shown in error["details"], error
+    assert "Put it into ComfyUI's input folder" in error["details"]
 
 
 def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_server):
