@@ -26,7 +26,9 @@ from .cliutil import (
 )
 from .devices import DEVICE_CHOICES
 from .diffusion.csgo import CONTENT_ROUTINGS
+from .diffusion.settings import SCHEDULER_NAMES
 from .metrics.report import add_evaluate_arguments
+from .presets import PRESETS, get_preset
 
 
 SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
@@ -66,7 +68,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from .fileio import check_output_file, load_image
     from .finetune import FinetuneConfig
     from .formats import writable_scene_path
-    from .presets import get_preset
     from .stylize import (
         DemoInputs,
         DiffusionModelsUnavailable,
@@ -87,7 +88,12 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         inputs = DemoInputs()
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
-    scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
+    preset = get_preset(args.preset)
+    diffusion_free = preset.sampler is None  # the preview: its own length, resolution and stylizer
+    if diffusion_free and args.stylizer == "diffusion":
+        raise ValueError(f"--preset {args.preset} runs without diffusion: use --stylizer nnfm (or auto), or "
+                         "another preset")
+    scale = args.scale if args.scale is not None else (preset.scale if diffusion_free else 0.25 if demo else 1.0)
     check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
                       "--out (its contact sheet)")
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
@@ -100,12 +106,17 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
     paths = ModelPaths(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
-    stylizer, reason = choose_stylizer(args.stylizer, paths)
-    preset = get_preset(args.preset)
+    if diffusion_free:
+        stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
+    else:
+        stylizer, reason = choose_stylizer(args.stylizer, paths)
 
     def iterations_for(stylizer: str) -> int:
-        default = preset.finetune_iterations if stylizer == "diffusion" else 1000
-        return args.iters if args.iters is not None else (60 if demo else default)
+        if args.iters is not None:
+            return args.iters
+        if diffusion_free or stylizer == "diffusion":
+            return preset.finetune_iterations
+        return 60 if demo else 1000
 
     iterations = iterations_for(stylizer)
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
@@ -115,7 +126,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
-    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
+                            views_per_step=preset.views_per_step)
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -159,12 +171,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--style", help="style image file")
     p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
-    p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
-                   help="diffusion speed/accuracy preset (README: Presets)")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="paper",
+                   help="speed/accuracy preset (README: Presets); preview: a first look in seconds, without diffusion")
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
                    help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
                    "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
-    p.add_argument("--scheduler", choices=("ddim", "euler", "euler_ancestral", "dpmpp_2m", "unipc"), default=None,
+    p.add_argument("--scheduler", choices=SCHEDULER_NAMES, default=None,
                    help="diffusion sampler (default: the preset's, DDIM); dpmpp_2m and unipc are multistep solvers "
                         "meant for fewer --steps")
     p.add_argument("--steps", type=integer_at_least(1), default=None, help="denoising steps (default: the preset's)")
@@ -183,12 +195,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
     p.add_argument("--iters", type=int, default=None,
-                   help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
+                   help="finetune iterations (default: the preset's for diffusion and preview, 1000 for nnfm; 60 for "
+                        "the demo)")
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
                    help="nnfm: match the scene's colours to the style image's before and after finetuning, "
                    "as ARF does (default on)")
     p.add_argument("--scale", type=positive_number, default=None,
-                   help="render resolution factor (default 1; 0.25 for the demo)")
+                   help="render resolution factor (default 1, preview's 0.5; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=int, default=0)

@@ -1,27 +1,32 @@
-"""Named speed/accuracy presets of the diffusion pipeline (sampler settings, memory mode, finetune length).
+"""Named speed/accuracy presets (sampler settings, memory mode, finetune length, resolution).
 
 Only ``paper`` is exact; the others trade accuracy for speed or memory, as measured in
-BENCHMARKS.md (numerical deviation from ``paper`` on identical inputs and models).
+BENCHMARKS.md (numerical deviation from ``paper`` on identical inputs and models). ``preview`` is
+diffusion-free: the NNFM stylizer, short and at reduced resolution, for a first look in seconds.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .diffusion.sampler import SamplerSettings
+from .diffusion.settings import SamplerSettings
 
 
 @dataclass(frozen=True)
 class Preset:
-    """sampler: the group sampler's settings; low_memory: :func:`artnvg_core.diffusion.memory.enable_low_memory`
-    and sequential guidance halves; finetune_iterations: length of the Gaussian finetune; key_views: stylize
-    and finetune on only that many views covering the scene (:mod:`artnvg_core.key_views`; 0: every view)."""
+    """sampler: the group sampler's settings (None: diffusion-free, the NNFM stylizer); low_memory:
+    :func:`artnvg_core.diffusion.memory.enable_low_memory` and sequential guidance halves; finetune_iterations:
+    length of the Gaussian finetune; key_views: stylize and finetune on only that many views covering the scene
+    (:mod:`artnvg_core.key_views`; 0: every view); scale: the views' resolution factor (1: as given);
+    views_per_step: ``FinetuneConfig.views_per_step``."""
 
-    sampler: SamplerSettings
+    sampler: SamplerSettings | None
     finetune_iterations: int
     low_memory: bool
     summary: str
     key_views: int = 0
+    scale: float = 1.0
+    views_per_step: int = 1
 
 
 PRESETS = {
@@ -38,6 +43,9 @@ PRESETS = {
                    key_views=42),
     "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
                          "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
+    "preview": Preset(None, 200, False,
+                      "a first look without diffusion: the NNFM stylizer, 200 iterations of 2 views at half "
+                      "resolution", scale=0.5, views_per_step=2),
 }
 
 

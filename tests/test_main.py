@@ -145,3 +145,24 @@ def test_gsplat_kernel_build_is_announced_on_stdout_before_it_starts(monkeypatch
     lines = capsys.readouterr().out.splitlines()
     assert lines[:2] == [gsplat_backend.BUILD_NOTICE, "(building)"] and len(lines) == 3
     assert lines[2].startswith("gsplat: CUDA kernels built in ")
+
+
+def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
+    """A whole ``stylize --preset preview`` run in a fresh process (the demo at 1/8 size, 2 steps) never
+    imports diffusers, transformers or peft: seconds of start-up the preview does not need. (torch._dynamo
+    is not asserted: on the CPU the reference rasterizer's activation checkpointing imports it.)"""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "preview.ply"
+    code = ("import sys\nfrom artnvg_core.__main__ import main\n"
+            f"assert main(['stylize', '--preset', 'preview', '--iters', '2', '--scale', '0.125', '--device', 'cpu', "
+            f"'--out', {str(out)!r}]) == 0\n"
+            "print(sorted(m for m in ('diffusers', 'transformers', 'peft') if m in sys.modules))")
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    assert any(line.startswith("stylizer: nnfm (preset preview: ") for line in lines), done.stdout
+    assert lines[-1] == "[]" and out.is_file()
