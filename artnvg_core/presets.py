@@ -1,8 +1,9 @@
 """Named speed/accuracy presets (sampler settings, memory mode, finetune length, resolution).
 
-Only ``paper`` is exact; the others trade accuracy for speed or memory, as measured in
-BENCHMARKS.md (numerical deviation from ``paper`` on identical inputs and models). ``preview`` is
-diffusion-free: the NNFM stylizer, short and at reduced resolution, for a first look in seconds.
+Only ``paper`` (and ``low-memory``, up to rounding) give the paper's result; ``balanced`` and ``fast``
+trade accuracy for speed. What each costs in time and in the final scene: BENCHMARKS.md, "Presets on
+the final scene" (docs/presets.md explains them). ``preview`` is diffusion-free: the NNFM stylizer,
+short and at reduced resolution, a first look in seconds (BENCHMARKS.md, "A first look").
 """
 
 from __future__ import annotations
@@ -32,20 +33,21 @@ class Preset:
 PRESETS = {
     "paper": Preset(SamplerSettings(), 1000, False,
                     "the paper: 50 DDIM steps, NV attention in every layer, 1024 px; exact"),
-    # re-tuned from the measured curve (BENCHMARKS.md, "Every preset priced on the final scene": H100, the
-    # bear's 84 training views at 1024 px; PSNR of the final scene's renders against the paper run's)
+    # chosen from the measured curve of final-scene deviation against time (BENCHMARKS.md, "Presets on the
+    # final scene")
     "balanced": Preset(SamplerSettings(steps=18, cfg_until=0.5), 1000, False,
-                       "18 DDIM steps, guidance in the first half only; final scene 43 dB from paper's in 180 s "
-                       "(H100, 84 views)"),
+                       "18 DDIM steps, guidance in the first half only (its cost: BENCHMARKS.md, Presets)"),
     "fast": Preset(SamplerSettings(steps=6, cfg_until=0.5, resolution=768, nv_levels="lowest"), 300, False,
                    "a first look: 42 key views, 6 DDIM steps at 768 px, guidance in the first half, NV attention "
-                   "in the lowest level, 300 finetune iterations; 26 s (H100, 84 views), 23 dB from paper's",
+                   "in the lowest level, 300 finetune iterations (its cost: BENCHMARKS.md, Presets)",
                    key_views=42),
     "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
                          "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
+    # chosen from the measured curve of time against the final scene's distance from the 1,000-iteration NNFM
+    # result (BENCHMARKS.md, "A first look")
     "preview": Preset(None, 200, False,
                       "a first look without diffusion: the NNFM stylizer, 200 iterations of 2 views at half "
-                      "resolution", scale=0.5, views_per_step=2),
+                      "resolution (its cost: BENCHMARKS.md, A first look)", scale=0.5, views_per_step=2),
 }
 
 

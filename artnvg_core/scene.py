@@ -1,6 +1,6 @@
 """Gaussian scenes: the raw stored 3DGS parameters and their validation (no file format).
 
-Conventions (INRIA 3DGS layout, see DESIGN.md):
+Conventions (INRIA 3DGS layout, see docs/design.md):
 
 - ``means``          [N, 3]  world positions
 - ``quats``          [N, 4]  rotation quaternions, w x y z, *unnormalised*

@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from .cameras import CameraSet
+from .diffusion.model_files import ModelFiles
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
@@ -69,32 +70,22 @@ def stylize_nnfm(
     return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
 
 
-@dataclass(frozen=True)
-class ModelPaths:
-    """Explicit model paths for the diffusion stylizer; None looks in the Hugging Face cache."""
-
-    sdxl: str | Path | None = None
-    controlnet: str | Path | None = None
-    image_encoder: str | Path | None = None
-    csgo: str | Path | None = None
-
-
 class DiffusionModelsUnavailable(ValueError):
     """The diffusion models could not be loaded (the message says why)."""
 
 
-def find_diffusion_models(paths: ModelPaths) -> str | None:
+def find_diffusion_models(files: ModelFiles) -> str | None:
     """None when every file the diffusion models' load reads is there, else the first missing one's message."""
     from .diffusion.model_files import MissingModelError, check_model_files
 
     try:
-        check_model_files(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo)
+        check_model_files(files)
     except MissingModelError as error:
         return str(error)
     return None
 
 
-def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
+def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
     """Resolve ``auto`` / ``nnfm`` / ``diffusion`` to the stylizer that runs, with the reason.
 
     ``diffusion`` with a model file missing raises the loader's error (which names the file).
@@ -103,7 +94,7 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
         raise ValueError(f"stylizer: expected one of {STYLIZERS}, got {requested!r}")
     if requested == "nnfm":
         return "nnfm", "requested"
-    missing = find_diffusion_models(paths)
+    missing = find_diffusion_models(files)
     if requested == "diffusion":
         if missing:
             raise ValueError(f"--stylizer diffusion: {missing}")
@@ -113,39 +104,47 @@ def choose_stylizer(requested: str, paths: ModelPaths) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
-def load_models_for(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool = False):
-    """The diffusion models for ``device`` (float16 on CUDA, float32 on the CPU); with ``low_memory``
+def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
+                    *, dtype: torch.dtype | None = None, sdxl_config_dir: str | Path | None = None,
+                    on_cpu: bool = False):
+    """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
+    workers and ComfyUI's Load ArtNVG Models.
+
+    dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
     loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
-    ``compile_blocks`` sped up by :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only),
-    with an earlier run's compile artifacts loaded (:mod:`artnvg_core.diffusion.compile_cache`).
-    Loaded once per process: the same files, device and options return the same models
-    (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
-    :class:`DiffusionModelsUnavailable` saying why.
-    A module-level function, so a ``functools.partial`` of it can be sent to worker processes."""
+    ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
+    :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only: with ``low_memory`` a
+    ValueError) and loads an earlier run's compile artifacts (:mod:`artnvg_core.diffusion.compile_cache`).
+    Loaded once per process: the same files (path, size and modification time), device and options return
+    the same models (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
+    :class:`DiffusionModelsUnavailable` saying why. A module-level function, so a ``functools.partial``
+    of it can be sent to worker processes."""
     from .diffusion.model_cache import file_key, load_once
 
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
-    files = tuple(file_key(path) for path in (paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo))
-    key = ("load_models_for", files, str(device), low_memory, compile_blocks)
-    return load_once(key, functools.partial(_load_models, paths, low_memory, device, compile_blocks))
+    dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
+    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()), file_key(sdxl_config_dir),
+           str(dtype), str(device), low_memory, compile_blocks, on_cpu)
+    return load_once(key, functools.partial(_load_models, files, low_memory, device, compile_blocks, dtype,
+                                            sdxl_config_dir, on_cpu))
 
 
-def _load_models(paths: ModelPaths, low_memory: bool, device: torch.device, compile_blocks: bool):
+def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, compile_blocks: bool,
+                 dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool):
     """:func:`load_models_for` without the once-per-process cache."""
     from .diffusion.compile_cache import load_compile_cache
     from .diffusion.memory import enable_low_memory
     from .diffusion.models import load_diffusion_models
     from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
 
-    dtype = torch.float16 if device.type == "cuda" else torch.float32
     try:
-        models = load_diffusion_models(paths.sdxl, paths.controlnet, paths.image_encoder, paths.csgo, dtype=dtype,
-                                       device="cpu" if low_memory else device)
+        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype,
+                                       device="cpu" if low_memory or on_cpu else device)
     except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
         raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
-    if low_memory:
+    if low_memory and not on_cpu:
         enable_low_memory(models, device)
     if compile_blocks:
         apply_speedups(models, COMPILED_BLOCKS)
@@ -158,7 +157,7 @@ def stylize_diffusion(
     cameras: CameraSet,
     style_image: torch.Tensor,
     config: FinetuneConfig,
-    paths: ModelPaths,
+    files: ModelFiles,
     *,
     preset: str = "paper",
     content_routing: str = "released",
@@ -172,22 +171,45 @@ def stylize_diffusion(
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
-    """The ArtNVG pipeline: render content views, stylize them group by group with
-    SDXL + CSGO + Tile ControlNet and neighbouring-view attention, then finetune toward them.
+    """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
+    ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
+    loaded for the next call with the same files and options (:func:`load_models_for`).
 
-    ``preset`` (a name of :data:`artnvg_core.presets.PRESETS`) gives the sampler settings and the
-    memory mode; ``content_routing`` replaces its own (see ``SamplerSettings``), and so does each field named in
-    ``sampler_changes`` (e.g. ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``); ``config.iterations``
-    is used as given. ``key_views`` (default: the preset's; 0: every view) stylizes only that many views, chosen to
-    cover the scene (:func:`artnvg_core.key_views.select_key_views`), and finetunes on them alone.
-    ``devices`` (default: the scene's) share the groups; several devices, or a Ray cluster's ``ray_address``
-    (``auto`` or ``HOST:PORT``), go through Ray workers, one per device, each holding the models
-    (:mod:`artnvg_core.diffusion.executor`; identical results). ``compile_blocks``: see :func:`load_models_for`;
-    on one device the compile artifacts are saved after the diffusion stage for the next run
-    (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`). The models stay loaded for the next
-    call with the same files and options (:func:`load_models_for`).
-    Returns the stylized scene and the stylized views [K, H, W, 3] of the K views used, in camera order
-    (every view's without key views).
+    Args:
+        scene (`GaussianScene`): the scene to stylize, on its compute device; not modified.
+        cameras (`CameraSet`): the views to stylize and finetune on (OpenCV world-to-camera, pixels).
+        style_image (`torch.Tensor`): the style image, float32 [H, W, 3] in [0, 1], on the scene's device.
+        config (`FinetuneConfig`): the finetune's settings; ``config.iterations`` is used as given,
+            ``config.seed`` also seeds the sampling (group ``g`` uses ``seed + g``) and ``config.backend``
+            renders the content views.
+        files (`ModelFiles`): the four model files (a None field: the Hugging Face cache).
+        preset (`str`, defaults to ``"paper"``): a name of :data:`artnvg_core.presets.PRESETS`; gives the
+            sampler settings, the memory mode and the default ``key_views``.
+        content_routing (`str`, defaults to ``"released"``): replaces the preset's (``"released"`` or
+            ``"paper"``; see :class:`~artnvg_core.diffusion.sampler.SamplerSettings`).
+        sampler_changes (`Mapping[str, object]` or None, defaults to None): fields of
+            :class:`~artnvg_core.diffusion.sampler.SamplerSettings` replacing the preset's, e.g.
+            ``{"scheduler": "dpmpp_2m", "steps": 20, "cfg_until": 0.8}``; an unknown name is a ValueError.
+        key_views (`int` or None, defaults to None): stylize only that many views, chosen to cover the
+            scene (:func:`artnvg_core.key_views.select_key_views`), and finetune on them alone; 0: every
+            view; None: the preset's.
+        devices (sequence of `str` or `torch.device`, or None, defaults to None): devices sharing the
+            groups; several go through Ray workers, one per device, each holding the models
+            (:mod:`artnvg_core.diffusion.executor`; identical results). None: the scene's device.
+        ray_address (`str` or None, defaults to None): a running Ray cluster (``"auto"`` or
+            ``"HOST:PORT"``) whose GPUs share the groups.
+        group_size (`int`, defaults to 15): the most views in a neighbouring-view group (the paper's N).
+        compile_blocks (`bool`, defaults to False): compile the repeated blocks (:func:`load_models_for`;
+            full memory only); on one device the compile artifacts are saved after the diffusion stage
+            for the next run (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`).
+        sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
+        progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
+        should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
+            :class:`~artnvg_core.progress.Cancelled` before anything is returned.
+
+    Returns:
+        The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
+        views used, in camera order (every view without key views).
     """
     from .diffusion.compile_cache import save_compile_cache
     from .diffusion.conditioning import prepare_conditioning
@@ -209,7 +231,7 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, paths, chosen.low_memory, compile_blocks=compile_blocks)
+    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks)
     device = explicit[0] if explicit else scene.device
     models = None if spread else load(device)  # first: a model that cannot be loaded fails before any work
     with torch.no_grad():

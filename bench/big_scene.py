@@ -28,7 +28,7 @@ import torch
 
 from common import print_table
 
-from artnvg_core.cameras import orbit_cameras
+from artnvg_core.orbit import orbit_cameras
 from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import load_scene, save_scene

@@ -1,4 +1,4 @@
-"""Shared helpers for the benchmarks: timing, memory, random scenes and cameras."""
+"""Shared helpers for the benchmarks: timing, memory, warp error, random scenes and cameras."""
 
 from __future__ import annotations
 
@@ -13,7 +13,31 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from artnvg_core.cameras import CameraSet, look_at  # noqa: E402
+from artnvg_core.metrics.warp import warp_consistency  # noqa: E402
 from artnvg_core.scene import GaussianScene  # noqa: E402
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for ``device``'s queued work (CUDA); nothing elsewhere."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed_call(device: torch.device, run):
+    """(result, seconds) of one synchronised call of ``run``."""
+    synchronize(device)
+    begin = time.perf_counter()
+    result = run()
+    synchronize(device)
+    return result, time.perf_counter() - begin
+
+
+def warp_rmse(images: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, cameras: CameraSet,
+              step: int = 1) -> float:
+    """Warp RMSE (:func:`~artnvg_core.metrics.warp.warp_consistency`) of IMAGE ``images`` [C, H, W, 3]
+    between views ``step`` apart, with the original scene's ``depth`` and ``alpha`` [C, H, W, 1]
+    (moved to the images' device)."""
+    return warp_consistency(images, depth.to(images.device), alpha.to(images.device), cameras, step=step).rmse
 
 
 def timed(fn, device: torch.device, repeats: int = 5, warmup: int = 2) -> float:

@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import time
 from pathlib import Path
 
 import torch
@@ -46,9 +45,10 @@ from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import read_ply
 from artnvg_core.grouping import group_views
 from artnvg_core.key_views import select_key_views
-from artnvg_core.metrics.warp import warp_consistency
 from artnvg_core.presets import PRESETS
 from artnvg_core.raster import render
+from artnvg_core.raster.views import render_views
+from bench.common import timed_call, warp_rmse
 
 REFERENCE = "paper"
 ROW_FIELDS = {f.name for f in dataclasses.fields(SamplerSettings)} | {"key_views", "iterations"}
@@ -142,39 +142,15 @@ class Scene:
     build_s: float
 
 
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(device: torch.device, run):
-    """(result, seconds) of one synchronised call."""
-    synchronize(device)
-    begin = time.perf_counter()
-    result = run()
-    synchronize(device)
-    return result, time.perf_counter() - begin
-
-
-def render_all(scene, cameras, depth: bool = False, backend: str = "auto"):
-    """IMAGE [C, H, W, 3] on the CPU (and depth, alpha [C, H, W, 1] with ``depth``), 8 views at a time."""
-    parts = []
-    with torch.no_grad():
-        for start in range(0, len(cameras), 8):
-            out = render(scene, cameras.subset(range(start, min(start + 8, len(cameras)))), return_depth=depth,
-                         backend=backend)
-            parts.append((out.rgb.clamp(0, 1).cpu(),) + ((out.depth.cpu(), out.alpha.cpu()) if depth else ()))
-    return tuple(torch.cat(p) for p in zip(*parts)) if depth else torch.cat([p[0] for p in parts])
-
-
 def load_scene(folder: Path, size: int, hold_every: int, device: torch.device) -> Scene:
     from artnvg_core.cameras import load_cameras
 
     scene = read_ply(folder / "scene.ply").to(device)
     cameras = load_cameras(folder / "transforms.json")
     cameras = cameras.scaled(size / max(cameras.width, cameras.height))
-    _, build_s = timed(device, lambda: render(scene, cameras.subset([0])))  # gsplat's kernels built once
-    original, depth, alpha = render_all(scene, cameras, depth=True)
+    _, build_s = timed_call(device, lambda: render(scene, cameras.subset([0])))  # gsplat's kernels built once
+    original = render_views(scene, cameras, depth=True, cpu=True)
+    original, depth, alpha = original.rgb, original.depth, original.alpha
     held = list(range(0, len(cameras), hold_every))
     train = [v for v in range(len(cameras)) if v not in held]
     style = torch.rand(512, 512, 3, generator=torch.Generator().manual_seed(2))
@@ -187,11 +163,6 @@ def compare(images: torch.Tensor, reference: torch.Tensor) -> dict:
     mse = difference.square().mean().item()
     return {"rel_l2": (difference.norm() / reference.double().norm()).item(),
             "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse)}
-
-
-def warp_rmse(images: torch.Tensor, data: Scene, device: torch.device) -> float:
-    return warp_consistency(images.to(device), data.depth.to(device), data.alpha.to(device), data.cameras,
-                            step=1).rmse
 
 
 def _row_dir(parts: Path, name: str) -> Path:
@@ -216,10 +187,11 @@ def run_row(models, conditioning, row: Row, data: Scene, args, device: torch.dev
         group = groups[index]
         needed = sorted(set(group.views) | set(group.context))
         content = torch.zeros(len(cameras), cameras.height, cameras.width, 3)
-        content[needed], render_s = timed(device, lambda: render_all(data.scene, cameras.subset(needed)))
+        content[needed], render_s = timed_call(device,
+                                          lambda: render_views(data.scene, cameras.subset(needed), cpu=True).rgb)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        stylized, stylize_s = timed(device, lambda: stylize_groups(
+        stylized, stylize_s = timed_call(device, lambda: stylize_groups(
             models, content, groups, conditioning, settings, seed=args.seed, noise_seeds=seeds, group_indices=[index]))
         peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
         views = [used[v] for v in group.views]
@@ -238,21 +210,21 @@ def run_row(models, conditioning, row: Row, data: Scene, args, device: torch.dev
     stylized = {v: image for part in parts for v, image in zip(part["views"], part["images"])}
     targets = torch.stack([stylized[v] for v in used])
     config = FinetuneConfig(iterations=row.iterations)
-    result, finetune_s = timed(device, lambda: finetune(data.scene, cameras, data.style.to(device),
+    result, finetune_s = timed_call(device, lambda: finetune(data.scene, cameras, data.style.to(device),
                                                         stylized=targets.to(device), config=config))
-    final = render_all(result, data.cameras)
+    final = render_views(result, data.cameras, cpu=True).rgb
     times = {"render content": sum(p["render_s"] for p in parts), "stylize": sum(p["stylize_s"] for p in parts),
              "finetune": finetune_s}
     times["total"] = sum(times.values())
     record = {"row": row.name, "settings": dataclasses.asdict(settings), "key_views": row.key_views,
               "views_stylized": len(used), "groups": [len(g.views) for g in groups], "iterations": row.iterations,
               "seconds": times, "stylize_peak_gib": max(p["peak_gib"] for p in parts),
-              "warp_rmse": warp_rmse(final, data, device)}
+              "warp_rmse": warp_rmse(final.to(device), data.depth, data.alpha, data.cameras)}
     if row.name == REFERENCE:
         torch.save({k: v.detach().cpu() for k, v in result.tensors().items()}, folder / "scene.pt")
     reference = dataclasses.replace(data.scene, **{k: v.to(device) for k, v in torch.load(
         _row_dir(args.parts, REFERENCE) / "scene.pt").items()})
-    paper_final = render_all(reference, data.cameras)
+    paper_final = render_views(reference, data.cameras, cpu=True).rgb
     record["all_views"] = compare(final, paper_final)
     record["train_views"] = compare(final[data.train], paper_final[data.train])
     record["held_views"] = compare(final[data.held], paper_final[data.held])
@@ -280,10 +252,10 @@ def floors(data: Scene, args, device: torch.device) -> dict | None:
     if not path.is_file():
         return None
     reference = dataclasses.replace(data.scene, **{k: v.to(device) for k, v in torch.load(path).items()})
-    paper_final = render_all(reference, data.cameras)
+    paper_final = render_views(reference, data.cameras, cpu=True).rgb
     return {"original_vs_paper_train": compare(data.original[data.train], paper_final[data.train]),
             "original_vs_paper_held": compare(data.original[data.held], paper_final[data.held]),
-            "original_warp_rmse": warp_rmse(data.original, data, device)}
+            "original_warp_rmse": warp_rmse(data.original.to(device), data.depth, data.alpha, data.cameras)}
 
 
 HEADER = ("| row | views stylized (groups) | stylize s | finetune s (it) | total s | PSNR vs paper, training views dB "

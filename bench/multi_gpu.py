@@ -35,7 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from artnvg_core.batch import BatchPool, load_jobs  # noqa: E402
+from artnvg_core.cli.batch import BatchPool, load_jobs, stylize_options  # noqa: E402
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.cluster import Workers, ray_session  # noqa: E402
 from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402
@@ -43,7 +43,7 @@ from artnvg_core.formats import load_scene  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
 from artnvg_core.preview import evenly_spaced  # noqa: E402
 from artnvg_core.presets import PRESETS  # noqa: E402
-from artnvg_core.raster import render  # noqa: E402
+from artnvg_core.raster.views import render_views  # noqa: E402
 from artnvg_core.stylize import sheet_path  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning  # noqa: E402
 
@@ -67,10 +67,7 @@ def content_views(scene_folder: Path, views: int | None, size: int | None) -> tu
         cameras = cameras.subset(evenly_spaced(len(cameras), views))
     if size:
         cameras = cameras.scaled(size / max(cameras.width, cameras.height))
-    with torch.no_grad():
-        images = torch.cat([render(scene, cameras.subset(range(i, min(i + 8, len(cameras))))).rgb.clamp(0, 1).cpu()
-                            for i in range(0, len(cameras), 8)])
-    return images, group_views(cameras, 15)
+    return render_views(scene, cameras, cpu=True).rgb, group_views(cameras, 15)
 
 
 def busy_row(label: str, workers: int, wall: float, reference_wall: float, stats: list[dict], equal: str) -> str:
@@ -173,9 +170,10 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
     with tiny models on a CPU): it checks the plumbing, not the diffusion."""
     files = write_random_model_files(args.models, args.tiny, args.seed)
     if args.tiny:
-        from artnvg_core.stylize import ModelPaths, load_models_for
+        from artnvg_core.diffusion.model_files import ModelFiles
+        from artnvg_core.stylize import load_models_for
 
-        load_models_for(ModelPaths(**files), False, torch.device("cpu"))
+        load_models_for(ModelFiles(**files), False, torch.device("cpu"))
         stylizer = {"stylizer": "nnfm", "scale": 0.125, "iters": 2}
     else:
         stylizer = {"stylizer": "diffusion", "preset": args.batch_preset,
@@ -192,7 +190,7 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
         for count in sorted({1, available.count}):
             jobs_path = work / f"jobs-{count}.json"
             jobs_path.write_text(json.dumps(entries).replace("OUT/", f"out-{count}/"))
-            jobs = load_jobs(jobs_path, _stylize_options())
+            jobs = load_jobs(jobs_path, stylize_options())
             with BatchPool(Workers(available.kind, count)) as pool:
                 start = time.perf_counter()
                 results = pool.run(jobs)
@@ -213,13 +211,6 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
             rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, wall, reference_wall,
                                  list(per_worker.values()), equal))
             print(rows[-1], flush=True)
-
-
-def _stylize_options() -> dict:
-    from artnvg_core.__main__ import build_parser
-
-    commands = next(a for a in build_parser()._actions if a.dest == "command")
-    return {string: action for action in commands.choices["stylize"]._actions for string in action.option_strings}
 
 
 def main() -> None:

@@ -52,7 +52,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import end_to_end as e2e  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning, write_json  # noqa: E402
-from bench.end_to_end import at_size, compare, render_all, synchronize  # noqa: E402
+from bench.common import synchronize, warp_rmse  # noqa: E402
+from bench.end_to_end import at_size, compare  # noqa: E402
 
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.diffusion.memory import enable_low_memory  # noqa: E402
@@ -60,8 +61,8 @@ from artnvg_core.diffusion.sampler import stylize_group  # noqa: E402
 from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups  # noqa: E402
 from artnvg_core.formats import read_ply  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
-from artnvg_core.metrics.warp import warp_consistency  # noqa: E402
 from artnvg_core.presets import PRESETS  # noqa: E402
+from artnvg_core.raster.views import render_views  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -120,11 +121,12 @@ def accuracy_table(models, conditioning, args, device, report: dict) -> None:
     scene, cameras, groups = load_inputs(args, device)
     views = list(groups[0].views)
     group_cameras = cameras.subset(views)
-    content, depth, alpha = render_all(scene, group_cameras, depth=True, backend="torch")  # no gsplat build needed
+    rendered = render_views(scene, group_cameras, depth=True, backend="torch", cpu=True)  # no gsplat build needed
+    content, depth, alpha = rendered.rgb, rendered.depth, rendered.alpha
     centers = group_cameras.centers
 
     def warp(images):
-        return warp_consistency(images, depth, alpha, group_cameras, step=1).rmse
+        return warp_rmse(images, depth, alpha, group_cameras)
 
     print(f"\nOne group of {len(views)} views of {args.scene} at {group_cameras.width}x{group_cameras.height} "
           f"(content warp RMSE, the floor: {warp(content):.4f}); deviation from the paper configuration; random weights.")

@@ -24,22 +24,18 @@ from pathlib import Path
 
 import torch
 
-from common import print_table
+from common import print_table, warp_rmse
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, resize_image, save_png
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import load_scene
-from artnvg_core.metrics import cfsd_scores, warp_consistency
+from artnvg_core.metrics import cfsd_scores
 from artnvg_core.metrics.color import color_distances
-from artnvg_core.metrics.report import render_views
+from artnvg_core.raster.views import render_views
 from artnvg_core.preview import GAP, evenly_spaced
 
 SHEET_VIEWS = 3
-
-
-def warp_rmse(images, reference, cameras, step):
-    return warp_consistency(images, reference.depth, reference.alpha, cameras, step=step).rmse
 
 
 def contact_sheet(rows: list[torch.Tensor], styles: list[torch.Tensor], rows_per_style: int) -> torch.Tensor:
@@ -96,8 +92,8 @@ def main() -> None:
             style = load_image(shared / "styles" / f"{style_name}.jpg").to(device)
             distances = color_distances(original.rgb, style)
             rows.append([name, style_name, "(original)", size, distances["histogram"], distances["mean_cov"], 0.0,
-                         warp_rmse(original.rgb, original, cameras, 1),
-                         warp_rmse(original.rgb, original, cameras, args.long_step), None])
+                         warp_rmse(original.rgb, original.depth, original.alpha, cameras, 1),
+                         warp_rmse(original.rgb, original.depth, original.alpha, cameras, args.long_step), None])
             for transfer in settings:
                 start = time.perf_counter()
                 config = FinetuneConfig(iterations=args.iters, color_transfer=transfer)
@@ -107,7 +103,8 @@ def main() -> None:
                 distances = color_distances(images, style)
                 rows.append([name, style_name, "on" if transfer else "off", size, distances["histogram"],
                              distances["mean_cov"], cfsd_scores(original.rgb, images).mean().item(),
-                             warp_rmse(images, original, cameras, 1), warp_rmse(images, original, cameras, args.long_step),
+                             warp_rmse(images, original.depth, original.alpha, cameras, 1),
+                             warp_rmse(images, original.depth, original.alpha, cameras, args.long_step),
                              seconds])
                 sheet_rows.append(images[sheet_views])
                 print(rows[-1], flush=True)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from artnvg_core.cameras import load_cameras, orbit_cameras
+from artnvg_core.cameras import load_cameras
+from artnvg_core.orbit import orbit_cameras
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
 from .input_files import InputFile, list_input_files

@@ -173,7 +173,7 @@ def progress_text(message: str) -> None:
 
 def prepare_rasterizer(device: torch.device) -> None:
     """Load the rasterizer that renders on ``device`` before a node's first render: gsplat's
-    first-use kernel build (about 90 s on an H100) is announced by :func:`progress_text` first."""
+    first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced by :func:`progress_text` first."""
     prepare_backend(device, announce=progress_text)
 
 

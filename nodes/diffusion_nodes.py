@@ -14,28 +14,19 @@ from pathlib import Path
 import torch
 
 from artnvg_core.devices import DEVICE_CHOICES, device_for
-from artnvg_core.diffusion.compile_cache import load_compile_cache, save_compile_cache
+from artnvg_core.diffusion.compile_cache import save_compile_cache
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
-from artnvg_core.diffusion.model_files import (
-    CSGO_WEIGHTS,
-    IMAGE_ENCODER,
-    SDXL_BASE,
-    TILE_CONTROLNET,
-    ModelSource,
-    check_model_files,
-    locate,
-)
-from artnvg_core.diffusion.model_cache import file_key, load_once
-from artnvg_core.diffusion.models import DiffusionModels, load_diffusion_models
+from artnvg_core.diffusion.model_files import MODEL_SOURCES, ModelFiles, ModelSource, check_model_files, locate
+from artnvg_core.diffusion.models import DiffusionModels
 from artnvg_core.diffusion.settings import NV_LEVELS, SCHEDULER_NAMES, SIZE_RULES, SamplerSettings
-from artnvg_core.diffusion.speed import COMPILED_BLOCKS, apply_speedups
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
     DEFAULT_PROMPT,
     stylize_groups,
 )
+from artnvg_core.stylize import load_models_for
 
 from .comfy_bridge import (
     cancellable,
@@ -60,11 +51,16 @@ MEMORY_MODES = ("full", "low")
 
 @dataclasses.dataclass(frozen=True)
 class ModelInput:
-    """One model of the loader: list input ``name`` over ComfyUI model ``folder``, text input ``<name>_path``."""
+    """One model of the loader: list input ``name`` over ComfyUI model ``folder``, text input ``<name>_path``;
+    ``field``: its :class:`~artnvg_core.diffusion.model_files.ModelFiles` field."""
 
     name: str
     folder: str
-    source: ModelSource
+    field: str
+
+    @property
+    def source(self) -> ModelSource:
+        return MODEL_SOURCES[self.field]
 
     @property
     def path_input(self) -> str:
@@ -77,10 +73,10 @@ class ModelInput:
 
 
 MODEL_INPUTS = (
-    ModelInput("sdxl_checkpoint", "checkpoints", SDXL_BASE),
-    ModelInput("controlnet", "controlnet", TILE_CONTROLNET),
-    ModelInput("image_encoder", "clip_vision", IMAGE_ENCODER),
-    ModelInput("csgo_weights", CSGO_FOLDER, CSGO_WEIGHTS),
+    ModelInput("sdxl_checkpoint", "checkpoints", "sdxl"),
+    ModelInput("controlnet", "controlnet", "controlnet"),
+    ModelInput("image_encoder", "clip_vision", "image_encoder"),
+    ModelInput("csgo_weights", CSGO_FOLDER, "csgo"),
 )
 
 
@@ -103,9 +99,10 @@ def _model_path(node: str, model: ModelInput, listed: str, path: str) -> Path:
     return found
 
 
-def _model_paths(node: str, listed: tuple[str, ...], overrides: tuple[str, ...]) -> list[Path]:
-    """:func:`_model_path` of every entry of :data:`MODEL_INPUTS`, given their list and path inputs in that order."""
-    return [_model_path(node, model, name, path) for model, name, path in zip(MODEL_INPUTS, listed, overrides)]
+def _model_paths(node: str, inputs: dict[str, str]) -> ModelFiles:
+    """:func:`_model_path` of every entry of :data:`MODEL_INPUTS`, from the node's inputs by name."""
+    return ModelFiles(**{model.field: _model_path(node, model, inputs[model.name], inputs.get(model.path_input, ""))
+                         for model in MODEL_INPUTS})
 
 
 @dataclasses.dataclass
@@ -178,13 +175,14 @@ class LoadArtNVGModels(ArtNVGNode):
             "A diffusers-format SDXL folder (model_index.json, configs, tokenizers) for a single-file "
             "checkpoint; blank: SDXL 1.0 base's configs and CLIP tokenizers shipped with the pack (no download).")}),
         "memory": (MEMORY_MODES, {"default": "full", "tooltip": (
-            "low: a 15-view group at 1024 px within 12 GiB, same result, ~10% slower: only the UNet stays on "
-            "the GPU, the rest visits it; guidance halves one at a time. Start ComfyUI with "
-            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")}),
+            "low: a 15-view group at 1024 px within 12 GiB, same result, a little slower (BENCHMARKS.md, "
+            "Memory): only the UNet stays on the GPU, the rest visits it; guidance halves one at a time. Start "
+            "ComfyUI with PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True.")}),
         "compile": ("BOOLEAN", {"default": False, "tooltip": (
             "Compile the UNet's and ControlNet's repeated blocks (full memory only): same result up to bf16 "
-            "rounding, ~6% faster steps after a first run of ~80 s (H100); pays back on large scenes. Keeps "
-            "the last group's ControlNet hint features (~0.3 GiB for 14 views at 1024 px).")}),
+            "rounding, slightly faster steps after a long first run, so it pays back on large scenes only "
+            "(BENCHMARKS.md, Diffusion step). Keeps the last group's ControlNet hint features (~0.3 GiB for "
+            "14 views at 1024 px).")}),
     }
 
     @classmethod
@@ -193,10 +191,9 @@ class LoadArtNVGModels(ArtNVGNode):
                         sdxl_config_dir=""):
         """True when every file the load reads is there, else the message naming what is missing."""
         try:
-            paths = _model_paths(cls.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
-                                 (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+            files = _model_paths(cls.DISPLAY_NAME, locals())
             with node_input(cls.DISPLAY_NAME):
-                check_model_files(*paths, sdxl_config_dir=sdxl_config_dir.strip() or None)
+                check_model_files(files, sdxl_config_dir=sdxl_config_dir.strip() or None)
         except NodeInputError as error:
             return str(error)
         return True
@@ -204,34 +201,21 @@ class LoadArtNVGModels(ArtNVGNode):
     def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
              sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
              sdxl_config_dir="", memory="full", compile=False):
-        paths = _model_paths(self.DISPLAY_NAME, (sdxl_checkpoint, controlnet, image_encoder, csgo_weights),
-                             (sdxl_checkpoint_path, controlnet_path, image_encoder_path, csgo_weights_path))
+        files = _model_paths(self.DISPLAY_NAME, locals())
         with node_input(self.DISPLAY_NAME, "device"):
             target = compute_device() if device == "auto" else device_for(device)
         low_memory = memory == "low"
-        if compile and low_memory:
-            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'compile' runs in the full-memory mode only; "
-                                 "set 'memory' to full or 'compile' off")
-        config_dir = sdxl_config_dir.strip() or None
-        key = ("LoadArtNVGModels", tuple(file_key(path) for path in paths), file_key(config_dir), dtype, str(target),
-               keep_loaded, low_memory, compile)
-
-        def load_models():
-            with node_input(self.DISPLAY_NAME):
-                models = load_diffusion_models(*paths, sdxl_config_dir=config_dir, dtype=DTYPES[dtype],
-                                               device=target if keep_loaded and not low_memory else "cpu")
-            if compile:
-                apply_speedups(models, COMPILED_BLOCKS)
-                load_compile_cache(target)
-            return models
-
-        return (LoadedModels(load_once(key, load_models), target, keep_loaded, low_memory, compiled=compile),)
+        with node_input(self.DISPLAY_NAME):  # the core's refusal of compile with low memory names the input
+            models = load_models_for(files, low_memory, target, compile, dtype=DTYPES[dtype],
+                                     sdxl_config_dir=sdxl_config_dir.strip() or None,
+                                     on_cpu=not keep_loaded or low_memory)
+        return (LoadedModels(models, target, keep_loaded, low_memory, compiled=compile),)
 
 
 class NVAttentionPatch(ArtNVGNode):
     """Turn neighbouring-view attention on: every view of a group attends to all views of the group.
 
-    The optional inputs trade exactness for speed (README: Presets): NV in the lowest-resolution
+    The optional inputs trade exactness for speed (docs/presets.md): NV in the lowest-resolution
     level only, each view's k nearest views only, the other views' keys/values pooled.
     """
 

@@ -5,16 +5,15 @@ from __future__ import annotations
 import torch
 
 from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.cameras.selection import parse_views
 from artnvg_core.key_views import select_key_views
-from artnvg_core.progress import check_stop
-from artnvg_core.raster import render
+from artnvg_core.raster.views import render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
-from .view_selection import parse_view_list, select_views
 
 SCALE_INPUT = ("FLOAT", {"default": 0.5, "min": 0.01, "max": 4.0, "step": 0.005, "tooltip": (
     "Resolution factor applied to the cameras' image size (0.5 renders 512x512 views at 256x256).")})
@@ -28,16 +27,8 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     """
     device = compute_device()
     prepare_rasterizer(device)
-    scene, cameras = scene.to(device), cameras.to(device)
-    report, frames = progress_bar(), []
-    for index in range(len(cameras)):
-        check_stop(interrupt_requested)
-        with torch.no_grad():
-            rgb = render(scene, cameras.subset([index])).rgb[0]
-        frames.append(rgb.clamp(0, 1).float().cpu())
-        if report is not None:
-            report(index + 1, len(cameras), {})
-    return torch.stack(frames)
+    return render_views(scene.to(device), cameras.to(device), chunk=1, cpu=True, progress=progress_bar(),
+                        should_stop=interrupt_requested).rgb
 
 
 def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: float) -> tuple[torch.Tensor, CameraSet]:
@@ -63,7 +54,7 @@ class RenderViews(ArtNVGNode):
         "stride": ("INT", {"default": 1, "min": 1, "max": 10000, "tooltip": (
             "Use every stride-th camera (0, stride, 2*stride, ...) when views is blank.")}),
         "views": ("STRING", {"default": "", "tooltip": (
-            "Comma-separated camera indices in file order (e.g. 0,5,9); blank uses stride.")}),
+            "Comma-separated camera indices in file order (e.g. 0,5,9); blank: every view, thinned by stride.")}),
     }
     OPTIONAL = {
         "key_views": ("INT", {"default": 0, "min": 0, "max": 10000, "tooltip": (
@@ -74,7 +65,8 @@ class RenderViews(ArtNVGNode):
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0):
         with node_input(self.DISPLAY_NAME, "views"):
-            chosen = cameras.subset(select_views(len(cameras), stride, views))
+            listed = parse_views(views, len(cameras))
+            chosen = cameras.subset(listed if views.strip() else listed[::stride])
         with node_input(self.DISPLAY_NAME, "key_views"):
             chosen = chosen.subset(select_key_views(chosen, key_views))
         return render_scaled(self.DISPLAY_NAME, scene, chosen, scale)
@@ -102,7 +94,8 @@ class RenderCameraPath(ArtNVGNode):
         "scale": SCALE_INPUT,
         "num_frames": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": "Frames of the orbit."}),
         "key_views": ("STRING", {"default": "", "tooltip": (
-            "interpolate: comma-separated camera indices the path passes through, in order (at least two).")}),
+            "interpolate: comma-separated camera indices the path passes through, in order (at least two); "
+            "blank: every view.")}),
         "frames_per_segment": ("INT", {"default": 30, "min": 1, "max": 10000, "tooltip": (
             "interpolate: frames between consecutive key views.")}),
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
@@ -118,6 +111,6 @@ class RenderCameraPath(ArtNVGNode):
         else:
             with node_input(self.DISPLAY_NAME, "key_views"):
                 path_cameras = interpolate_path(
-                    cameras, parse_view_list(key_views, len(cameras)), frames_per_segment, loop=loop
+                    cameras, parse_views(key_views, len(cameras)), frames_per_segment, loop=loop
                 )
         return render_scaled(self.DISPLAY_NAME, scene, path_cameras, scale)

@@ -6,7 +6,7 @@ import sys
 import pytest
 import torch
 
-from artnvg_core import __main__ as cli
+from artnvg_core.cli import main as cli
 from artnvg_core.cluster import RayUnavailable, Workers, plan_workers, ray_session
 
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from artnvg_core.cliutil import parse_device
+from artnvg_core.cli.common import parse_device
 from artnvg_core.devices import DEVICE_CHOICES, best_device, device_for
 from nodes.comfy_bridge import compute_device
 
@@ -42,7 +42,7 @@ def test_named_devices_must_be_present(machine):
 
 
 def test_every_device_input_offers_mps():
-    from artnvg_core.__main__ import build_parser
+    from artnvg_core.cli.main import build_parser
     from nodes.diffusion_nodes import LoadArtNVGModels
 
     assert "mps" in DEVICE_CHOICES

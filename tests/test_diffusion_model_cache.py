@@ -8,7 +8,8 @@ import weakref
 import pytest
 
 from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
-from artnvg_core.stylize import ModelPaths, load_models_for
+from artnvg_core.diffusion.model_files import ModelFiles
+from artnvg_core.stylize import load_models_for
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
@@ -71,7 +72,7 @@ def test_file_key_follows_every_file_of_a_folder(tmp_path):
 
 
 def test_load_models_for_reuses_the_loaded_models_until_a_file_changes(tmp_path):
-    paths = ModelPaths(**write_model_files(tmp_path))
+    paths = ModelFiles(**write_model_files(tmp_path))
     models = load_models_for(paths, False, "cpu")
     assert load_models_for(paths, False, "cpu") is models
     low = load_models_for(paths, True, "cpu")

@@ -5,7 +5,14 @@ import torch
 from diffusers import ControlNetModel
 from safetensors.torch import save_file
 
-from artnvg_core.diffusion.model_files import CSGO_WEIGHTS, IMAGE_ENCODER, MissingModelError, hf_cache_path, locate
+from artnvg_core.diffusion.model_files import (
+    CSGO_WEIGHTS,
+    IMAGE_ENCODER,
+    MissingModelError,
+    ModelFiles,
+    hf_cache_path,
+    locate,
+)
 from artnvg_core.diffusion.models import (
     load_controlnet,
     load_diffusion_models,
@@ -215,10 +222,7 @@ def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
     state = csgo_state(base.unet, controlnet, num_style_tokens=16)
     write_csgo_file(tmp_path / "csgo.bin", state)
     models = load_diffusion_models(
-        folder,
-        tmp_path / "controlnet",
-        tmp_path / "image_encoder",
-        tmp_path / "csgo.bin",
+        ModelFiles(folder, tmp_path / "controlnet", tmp_path / "image_encoder", tmp_path / "csgo.bin"),
         dtype=torch.float32,
         hf_cache_dir=tmp_path / "no_cache",
     )
@@ -227,10 +231,7 @@ def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
     assert torch.equal(processors[1].to_k_ip.weight, state["ip_adapter"]["1.to_k_ip.weight"])
     with pytest.raises(MissingModelError, match="CSGO content/style weights .* not found"):
         load_diffusion_models(
-            folder,
-            tmp_path / "controlnet",
-            tmp_path / "image_encoder",
-            None,
+            ModelFiles(folder, tmp_path / "controlnet", tmp_path / "image_encoder", None),
             dtype=torch.float32,
             hf_cache_dir=tmp_path / "no_cache",
         )

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from artnvg_core.cameras import orbit_cameras
+from artnvg_core.orbit import orbit_cameras
 from nodes.camera_nodes import CamerasAroundScene
 from nodes.node_errors import NodeInputError
 from tests.test_activated import random_scene

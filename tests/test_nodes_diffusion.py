@@ -13,6 +13,7 @@ from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
 from artnvg_core.cameras import CameraSet
+from artnvg_core.diffusion import compile_cache, speed
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.sampler import SamplerSettings
 from artnvg_core.diffusion.speed import SpeedOptions, apply_speedups
@@ -210,12 +211,12 @@ def test_compile_input_applies_the_compiled_blocks_in_full_memory_only(model_fil
     takes minutes on a CPU) and gives the uncompiled result; with low memory it is refused by name. A
     compiled set loads an earlier run's compile artifacts; Sample Group saves them after sampling."""
     applied = []
-    monkeypatch.setattr(diffusion_nodes, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
-    monkeypatch.setattr(diffusion_nodes, "apply_speedups",
+    monkeypatch.setattr(speed, "COMPILED_BLOCKS", SpeedOptions(cache_hint_embedding=True))
+    monkeypatch.setattr(speed, "apply_speedups",
                         lambda models, options: applied.append(options) or apply_speedups(models, options))
-    monkeypatch.setattr(diffusion_nodes, "load_compile_cache", lambda device: applied.append(("load", device)))
+    monkeypatch.setattr(compile_cache, "load_compile_cache", lambda device: applied.append(("load", device)))
     monkeypatch.setattr(diffusion_nodes, "save_compile_cache", lambda device: applied.append(("save", device)))
-    with pytest.raises(NodeInputError, match="Load ArtNVG Models: input 'compile' .* full-memory mode only"):
+    with pytest.raises(NodeInputError, match="Load ArtNVG Models: compile: .* full-memory mode only"):
         call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, memory="low",
              compile=True, **model_files)
     outputs = []

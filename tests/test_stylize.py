@@ -13,7 +13,8 @@ from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import read_ply
 from artnvg_core.presets import PRESETS, Preset
-from artnvg_core.stylize import DemoInputs, ModelPaths, stylize_diffusion
+from artnvg_core.diffusion.model_files import ModelFiles
+from artnvg_core.stylize import DemoInputs, stylize_diffusion
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
@@ -28,7 +29,7 @@ def _small_inputs(tmp_path, monkeypatch):
     demo = DemoInputs()
     cameras = load_cameras(demo.cameras).subset(range(4))
     return (read_ply(demo.scene), cameras.scaled(64 / cameras.width), load_image(demo.style),
-            ModelPaths(**write_model_files(tmp_path)), FinetuneConfig(iterations=2, backend="torch"))
+            ModelFiles(**write_model_files(tmp_path)), FinetuneConfig(iterations=2, backend="torch"))
 
 
 def test_low_memory_preset_and_compile_are_wired_through(tmp_path, monkeypatch):
@@ -69,18 +70,18 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
     command line fall back too, saying why. ``diffusion`` asked for explicitly fails instead."""
     import shutil
 
-    from artnvg_core import __main__ as cli
+    from artnvg_core.cli import main as cli
     from artnvg_core import stylize
     from artnvg_core.stylize import DiffusionModelsUnavailable, choose_stylizer, load_models_for
 
     files = write_model_files(tmp_path)
     shutil.rmtree(files["sdxl"] / "unet")
-    stylizer, reason = choose_stylizer("auto", ModelPaths(**files))
+    stylizer, reason = choose_stylizer("auto", ModelFiles(**files))
     assert stylizer == "nnfm" and "SDXL diffusers folder component 'unet'" in reason and "csgo" not in reason.lower()
 
     files = write_model_files(tmp_path / "broken")
     files["csgo"].write_bytes(b"not a torch file")
-    paths = ModelPaths(**files)
+    paths = ModelFiles(**files)
     assert choose_stylizer("auto", paths) == ("diffusion", "auto: all diffusion model files found")
     with pytest.raises(DiffusionModelsUnavailable, match="could not be loaded: CSGO weights .* not a readable"):
         load_models_for(paths, False, "cpu")
@@ -103,7 +104,7 @@ def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path,
     """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
     the preset's settings run. --key-views K (or the preset's key_views) stylizes only the K views
     select_key_views picks, grouped among themselves, and the finetune sees only those views."""
-    from artnvg_core import __main__ as cli
+    from artnvg_core.cli import main as cli
     from artnvg_core import stylize
     from artnvg_core.diffusion import stylize as diffusion_stylize
     from artnvg_core.key_views import select_key_views
@@ -145,4 +146,4 @@ def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path,
             cli.build_parser().parse_args(["stylize", *bad])
     with pytest.raises(ValueError, match="sampler_changes names no SamplerSettings field: \\['stpes'\\]"):
         stylize_diffusion(read_ply(demo.scene), load_cameras(demo.cameras), load_image(demo.style),
-                          FinetuneConfig(iterations=0), ModelPaths(**files), sampler_changes={"stpes": 3})
+                          FinetuneConfig(iterations=0), ModelFiles(**files), sampler_changes={"stpes": 3})

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# Check README's ComfyUI install routes with a real ComfyUI, each from a clean clone of this
+# Check the ComfyUI install routes of docs/comfyui.md with a real ComfyUI, each from a clean clone of this
 # repository's HEAD and in its own copy of ComfyUI's Python environment.
 #
 # usage: tools/check_install_routes.sh ROOT [ROUTE...]
 #   ROOT   a folder holding ComfyUI/ (a ComfyUI checkout; its main.py must take --base-directory,
 #          as 0.3.64 does) and venv/ (a Python environment in which that ComfyUI runs, with nothing
-#          of this pack installed: README, "Integration tests", makes one)
-#   ROUTE  git      clone into custom_nodes/artnvg, then `pip install -e artnvg` (README's git route,
+#          of this pack installed: docs/comfyui.md, "Integration tests", makes one)
+#   ROUTE  git      clone into custom_nodes/artnvg, then `pip install -e artnvg` (the git route,
 #                   also comfy-cli's)
 #          manager  clone into custom_nodes/artnvg-comfyui, then `pip install -r requirements.txt` when
 #                   there is one (what ComfyUI Manager's "Install via Git URL" and the Comfy registry do)
@@ -17,7 +17,7 @@
 # Each route gets ROOT/routes/ROUTE/: a copy of ROOT/venv, and a ComfyUI base directory (custom
 # nodes, input, output) that ROOT/ComfyUI runs on (--base-directory, CPU, a free port). A route
 # passes when the server starts, lists every node of the pack (nodes/__init__.py), logs no import
-# failure, and runs the NNFM demo workflow (README: the demo copied to input/artnvg_demo/,
+# failure, and runs the NNFM demo workflow (docs/comfyui.md: the demo copied to input/artnvg_demo/,
 # workflows/artnvg_nnfm_only_api.json at small settings, queued with workflows/queue_workflow.py)
 # to a saved scene. Logs: ROOT/routes/ROUTE/*.log. Exit status 0 when every route passed.
 set -uo pipefail

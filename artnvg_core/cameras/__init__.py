@@ -1,6 +1,6 @@
 """Cameras: OpenCV world-to-camera poses plus pinhole intrinsics, loaded, made or moved along paths.
 
-Conventions (DESIGN.md): OpenCV camera axes (x right, y down, z forward),
+Conventions (docs/design.md): OpenCV camera axes (x right, y down, z forward),
 ``world_to_cam`` [C, 4, 4] maps world points to camera coordinates,
 ``intrinsics`` [C, 3, 3] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels
 with pixel centres at +0.5 (the top-left pixel's centre is (0.5, 0.5)).
@@ -11,8 +11,9 @@ at load time, in their loader's module only.
 Modules: :mod:`.camera_set` (:class:`CameraSet`), :mod:`.geometry` (quaternions
 in w x y z order, rigid poses, :func:`look_at`), the loaders :mod:`.nerfstudio`
 and :mod:`.colmap` (with :func:`load_cameras` here choosing between them),
-:mod:`.paths` (:func:`orbit_path`, :func:`interpolate_path`) and :mod:`.rigs`
-(:func:`orbit_cameras` for a scene without cameras). Loaders return float32 CPU
+:mod:`.paths` (:func:`orbit_path`, :func:`interpolate_path`) and :mod:`.framing`
+(:func:`scene_frame`: where a scene is and which way is up; the views built around a
+scene without cameras are :mod:`artnvg_core.orbit`'s). Loaders return float32 CPU
 tensors; all pose maths runs in float64. Lens distortion is ignored everywhere:
 these are pinhole cameras.
 """
@@ -24,13 +25,13 @@ from pathlib import Path
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .colmap import find_colmap_model, load_colmap
 from .geometry import look_at, normalize_quats, quat_to_rotmat, rotmat_to_quat
+from .framing import UP_AXES, SceneFrame, parse_up, scene_frame
 from .nerfstudio import load_nerfstudio
 from .paths import interpolate_path, orbit_path
-from .rigs import UP_AXES, SceneFrame, orbit_cameras, parse_up, scene_frame
 
 __all__ = [
     "MAX_IMAGE_SIDE", "UP_AXES", "CameraSet", "SceneFrame", "interpolate_path", "load_cameras", "load_colmap",
-    "load_nerfstudio", "look_at", "normalize_quats", "orbit_cameras", "orbit_path", "parse_up", "quat_to_rotmat",
+    "load_nerfstudio", "look_at", "normalize_quats", "orbit_path", "parse_up", "quat_to_rotmat",
     "rotmat_to_quat", "scene_frame",
 ]
 

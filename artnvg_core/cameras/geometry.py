@@ -3,8 +3,8 @@
 Quaternions are w x y z; rotation matrices act on column vectors; poses are 4x4 rigid
 transforms (rotation + translation). Cameras use the OpenCV convention of
 :mod:`artnvg_core.cameras` (world-to-camera, x right, y down, z forward). Used by the
-camera loaders, paths and rigs, the rasterizer, the scene file formats and the activated
-Gaussians.
+camera loaders, paths and framing, the views around a scene, the rasterizer, the scene file
+formats and the activated Gaussians.
 """
 
 from __future__ import annotations

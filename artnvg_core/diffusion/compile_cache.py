@@ -1,7 +1,7 @@
 """Compile work kept across runs: PyTorch's compile cache artifacts in one file per machine kind.
 
-``torch.compile`` spends its first call on tracing and generating kernels (about 80 s for the UNet's
-and the ControlNet's repeated blocks on an H100, BENCHMARKS.md) and keeps Inductor's results in the
+``torch.compile`` spends its first call on tracing and generating kernels (for the UNet's and the
+ControlNet's repeated blocks, over a minute: BENCHMARKS.md, "Diffusion step") and keeps Inductor's results in the
 system's temporary folder, which a reboot or a fresh container empties. PyTorch can export what a
 process compiled or found in that cache (``torch.compiler.save_cache_artifacts``: generated code,
 AOTAutograd graphs, autotuning results) and load it into another process before it compiles

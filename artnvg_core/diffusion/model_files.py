@@ -1,14 +1,15 @@
 """Finding model files on disk, never downloading: an explicit path, else the Hugging Face cache.
 
 Each model ArtNVG needs is a :class:`ModelSource`: what it is, its Hugging Face repository
-and the file or folder inside it. :func:`locate` returns an existing path or raises
+and the file or folder inside it. The four files of the diffusion stylizer travel together as one
+:class:`ModelFiles` (:data:`MODEL_SOURCES` names the source of each field). :func:`locate` returns an existing path or raises
 :class:`MissingModelError` saying which file, where it was looked for and where to get it.
 (The ComfyUI layer maps its model folders onto explicit paths before calling in.)
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 
@@ -65,6 +66,25 @@ IMAGE_ENCODER = ModelSource(
 CSGO_WEIGHTS = ModelSource("CSGO content/style weights (4 content / 32 style tokens)", "InstantX/CSGO", "csgo_4_32.bin")
 
 
+MODEL_SOURCES = {"sdxl": SDXL_BASE, "controlnet": TILE_CONTROLNET, "image_encoder": IMAGE_ENCODER,
+                 "csgo": CSGO_WEIGHTS}
+
+
+@dataclass(frozen=True)
+class ModelFiles:
+    """The diffusion stylizer's four model files or folders; None: the Hugging Face cache.
+    Each field's model is ``MODEL_SOURCES[field]``."""
+
+    sdxl: str | Path | None = None
+    controlnet: str | Path | None = None
+    image_encoder: str | Path | None = None
+    csgo: str | Path | None = None
+
+    def items(self) -> list[tuple[str, str | Path | None]]:
+        """(field name, path) of the four, in the order SDXL, ControlNet, image encoder, CSGO."""
+        return [(field.name, getattr(self, field.name)) for field in fields(self)]
+
+
 def hf_cache_path(source: ModelSource, cache_dir: str | Path | None = None) -> Path:
     """Where ``source`` would lie in the Hugging Face cache (main revision); may not exist."""
     if cache_dir is None:
@@ -117,21 +137,18 @@ def check_sdxl(path: Path, config_dir: str | Path | None = None) -> None:
 
 
 def check_model_files(
-    sdxl: str | Path | None = None,
-    controlnet: str | Path | None = None,
-    image_encoder: str | Path | None = None,
-    csgo: str | Path | None = None,
+    files: ModelFiles,
     *,
     sdxl_config_dir: str | Path | None = None,
     hf_cache_dir: str | Path | None = None,
-) -> tuple[Path, Path, Path, Path]:
-    """The paths of SDXL, the ControlNet, the image encoder and CSGO (None = the Hugging Face cache), after
-    checking without loading anything that each file or folder holds what its loader reads.
+) -> ModelFiles:
+    """The existing paths of ``files`` (a None field: the Hugging Face cache), after checking without
+    loading anything that each file or folder holds what its loader reads.
     Raises :class:`MissingModelError` naming the first thing missing, and only that."""
-    paths = tuple(locate(source, path, hf_cache_dir=hf_cache_dir) for source, path in (
-        (SDXL_BASE, sdxl), (TILE_CONTROLNET, controlnet), (IMAGE_ENCODER, image_encoder), (CSGO_WEIGHTS, csgo)))
-    check_sdxl(paths[0], sdxl_config_dir)
-    for path, what in ((paths[1], "ControlNet folder"), (paths[2], "image encoder folder")):
+    found = ModelFiles(**{name: locate(MODEL_SOURCES[name], path, hf_cache_dir=hf_cache_dir)
+                          for name, path in files.items()})
+    check_sdxl(found.sdxl, sdxl_config_dir)
+    for path, what in ((found.controlnet, "ControlNet folder"), (found.image_encoder, "image encoder folder")):
         if path.is_dir():
             require_path(path / "config.json", what)
-    return paths
+    return found

@@ -44,6 +44,7 @@ from .model_files import (
     SDXL_VAE_FP16_FIX,
     TILE_CONTROLNET,
     MissingModelError,
+    ModelFiles,
     check_model_files,
     check_sdxl,
     locate,
@@ -243,10 +244,7 @@ def load_image_encoder(
 
 
 def load_diffusion_models(
-    sdxl: str | Path | None = None,
-    controlnet: str | Path | None = None,
-    image_encoder: str | Path | None = None,
-    csgo: str | Path | None = None,
+    files: ModelFiles,
     *,
     sdxl_config_dir: str | Path | None = None,
     vae: str | Path | None = None,
@@ -255,17 +253,17 @@ def load_diffusion_models(
     query_chunk_size: int | None = None,
     hf_cache_dir: str | Path | None = None,
 ) -> DiffusionModels:
-    """Load every model (None = the Hugging Face cache; ``vae`` None = SDXL's own VAE) and attach CSGO.
+    """Load every model of ``files`` (a None field = the Hugging Face cache; ``vae`` None = SDXL's own
+    VAE) and attach CSGO.
 
     All files are checked (:func:`check_model_files`) before any is loaded, so a missing one fails fast.
     query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
     """
-    sdxl, controlnet, image_encoder, csgo = check_model_files(
-        sdxl, controlnet, image_encoder, csgo, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
-    base = load_sdxl(sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device, hf_cache_dir=hf_cache_dir)
+    found = check_model_files(files, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
+    base = load_sdxl(found.sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device, hf_cache_dir=hf_cache_dir)
     if vae is not None:
         base.vae = load_vae(vae, dtype=dtype, device=device)
-    control = load_controlnet(controlnet, unet_config=dict(base.unet.config), dtype=dtype, device=device)
-    encoder = load_image_encoder(image_encoder, dtype=dtype, device=device)
-    projections = load_csgo(csgo, base.unet, control, query_chunk_size=query_chunk_size)
+    control = load_controlnet(found.controlnet, unet_config=dict(base.unet.config), dtype=dtype, device=device)
+    encoder = load_image_encoder(found.image_encoder, dtype=dtype, device=device)
+    projections = load_csgo(found.csgo, base.unet, control, query_chunk_size=query_chunk_size)
     return DiffusionModels(base=base, controlnet=control, image_encoder=encoder, csgo=projections)

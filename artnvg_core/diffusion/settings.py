@@ -18,32 +18,50 @@ SIZE_RULES = ("long_side", "area")
 
 @dataclass(frozen=True)
 class SamplerSettings:
-    """Sampling parameters. Defaults: the paper's scales (content 1.0, style 0.6, control 1.0) and
-    DDIM; guidance 10 and 50 steps as in CSGO's inference script.
+    """How one neighbouring-view group is sampled. Defaults: the paper's scales (content 1.0, style 0.6,
+    control 1.0) and DDIM; guidance 10 and 50 steps as in CSGO's inference script. The approximations
+    (``nv_levels``, ``nv_nearest``, ``nv_kv_downsample``) are off by default; every other field is exact
+    up to floating-point rounding or changes the method itself.
 
-    content_routing: "released" (CSGO's released inference: UNet down blocks read text only, content
-        comes through the Tile ControlNet and content_scale has no effect) or "paper" (content tokens
-        into every UNet down-block attn2; needs the CSGO file's content entries).
-    resolution: working size of a view (None: keep the content size, rounded to 64); see size_rule.
-    size_rule: "long_side": CSGO's ``resize_content``, the long side becomes ``resolution`` (a 16:9 view
-        samples at 1024x576), sides floored to what the UNet halves exactly (multiples of 32 on SDXL);
-        "area": about ``resolution``² pixels, multiples of 64 (SDXL's training sizes; 1344x768 for 16:9,
-        1.75x the tokens). Outputs come back at each view's own size either way.
-    neighbour_views: neighbouring-view attention on (False: the paper's "w/o NV" ablation).
-    attention_backend: scaled-dot-product attention backend of the denoising loop, one of
-        ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice; every backend is exact up to rounding).
-    sequential_cfg: run the two guidance halves one after the other (less memory; exact).
-    cfg_until: classifier-free guidance for the first ``cfg_until`` fraction of the steps only
-        (:func:`guided_steps`), then the conditional half alone, a batch of N instead of 2N
-        (1.0: every step, exact; 0: never, as guidance_scale 1).
-    noise_resolution: draw the initial noise on the latent grid this ``resolution`` would give and
-        resample it to the working grid (:func:`resample_noise`), so runs at different resolutions
-        start from the same noise field (None: drawn on the working grid).
-    Approximations of NV attention (defaults: exact):
-    nv_levels: "all", or "lowest" (NV in the lowest-resolution attention level, per view elsewhere).
-    nv_nearest: each view attends to itself and its k nearest views of the group by camera centre
-        (None: all views; needs the views' camera centres).
-    nv_kv_downsample: the other views' keys and values average-pooled by this factor per side.
+    Args:
+        steps (`int`, defaults to 50): denoising steps, >= 1.
+        guidance_scale (`float`, defaults to 10.0): classifier-free guidance scale (unitless); <= 1 runs
+            the conditional half alone.
+        content_scale (`float`, defaults to 1.0): weight of the CSGO content tokens' attention (unitless);
+            no effect with ``content_routing="released"``.
+        style_scale (`float`, defaults to 0.6): weight of the CSGO style tokens' attention (unitless).
+        control_scale (`float`, defaults to 1.0): Tile ControlNet conditioning scale (unitless).
+        content_routing (`str`, defaults to ``"released"``): ``"released"`` (CSGO's released inference: UNet
+            down blocks read text only, content comes through the Tile ControlNet) or ``"paper"`` (content
+            tokens into every UNet down-block attn2; needs the CSGO file's content entries).
+        neighbour_views (`bool`, defaults to True): neighbouring-view attention on (False: the paper's
+            "w/o NV" ablation).
+        resolution (`int` or None, defaults to 1024): working size of a view in pixels, >= 64, read by
+            ``size_rule`` (None: keep the content size, rounded to 64).
+        size_rule (`str`, defaults to ``"long_side"``): ``"long_side"``, CSGO's ``resize_content``: the long
+            side becomes ``resolution`` (a 16:9 view samples at 1024x576), sides floored to what the UNet
+            halves exactly (multiples of 32 on SDXL); ``"area"``: about ``resolution``² pixels, multiples of
+            64 (SDXL's training sizes; 1344x768 for 16:9, 1.75x the tokens). Outputs come back at each
+            view's own size either way.
+        scheduler (`str`, defaults to ``"ddim"``): one of :data:`SCHEDULER_NAMES` (``ddim``, ``euler``,
+            ``euler_ancestral``, ``dpmpp_2m``, ``unipc``).
+        attention_backend (`str`, defaults to ``"auto"``): scaled-dot-product attention backend of the
+            denoising loop, one of ``speed.SDPA_BACKENDS`` ("auto" = PyTorch's choice).
+        sequential_cfg (`bool`, defaults to False): run the two guidance halves one after the other
+            (less memory).
+        cfg_until (`float`, defaults to 1.0): fraction in [0, 1] of the steps that use classifier-free
+            guidance (the first ``ceil(cfg_until * steps)``, :func:`guided_steps`); after them the
+            conditional half alone, a batch of N views instead of 2N (1.0: every step; 0: never).
+        noise_resolution (`int` or None, defaults to None): draw the initial noise on the latent grid this
+            resolution (pixels, >= 64) would give and resample it to the working grid
+            (:func:`resample_noise`), so runs at different resolutions start from the same noise field
+            (None: drawn on the working grid).
+        nv_levels (`str`, defaults to ``"all"``): approximation: ``"lowest"`` keeps NV attention in the
+            lowest-resolution attention level only, per-view attention elsewhere.
+        nv_nearest (`int` or None, defaults to None): approximation: each view attends to itself and its k
+            nearest views of the group by camera centre, k >= 1 (None: all views; needs the camera centres).
+        nv_kv_downsample (`int`, defaults to 1): approximation: the other views' keys and values
+            average-pooled by this factor per side, >= 1 (1: exact).
     """
 
     steps: int = 50

@@ -194,6 +194,6 @@ def apply_speedups(models, options: SpeedOptions) -> None:
 
 # What users switch on (command line ``--compile``, Load ArtNVG Models' ``compile``): regional
 # compilation with dynamic shapes and the cached hint embedding; exact up to bf16 rounding.
-# BENCHMARKS.md: about 6% faster steps after a first call of about 80 s on an H100.
+# Its speed-up, first-call cost and pay-back: BENCHMARKS.md, "Diffusion step".
 COMPILED_BLOCKS = SpeedOptions(compile="default", compile_scope="blocks", compile_dynamic=True,
                                cache_hint_embedding=True)

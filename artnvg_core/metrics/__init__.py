@@ -1,10 +1,9 @@
-"""Evaluation metrics and pictures of a stylization.
+"""Evaluation metrics of a stylization (the ``evaluate`` command that reports them: :mod:`artnvg_core.cli.evaluate`).
 
 - :mod:`.cfsd`    -- ``cfsd_scores``: content fidelity (VGG19 relu3_1 self-similarity KL), real weights offline
 - :mod:`.warp`    -- ``warp_consistency``: weight-free multi-view consistency via depth reprojection
 - :mod:`.clip_dc` -- ``clip_dc_scores``: CLIP direction consistency along a camera path (CLIP weights needed)
 - :mod:`.csd`     -- ``csd_scores``: CSD style similarity to the style image (CSD weights needed)
-- :mod:`.report`  -- the ``evaluate`` command (``add_evaluate_arguments`` / ``run_evaluate``)
 """
 
 from .cfsd import CFSD_LAYER, cfsd_scores

@@ -1,5 +1,6 @@
 """Differentiable Gaussian rasterization: :func:`render`, and :func:`prepare_backend` to load a backend
-before the first render (announcing gsplat's first-use kernel build)."""
+before the first render (announcing gsplat's first-use kernel build). :mod:`.views` renders every view
+of a camera set in chunks (``render_views``)."""
 
 from __future__ import annotations
 
@@ -43,7 +44,7 @@ def choose_backend(backend: str, device: torch.device, dtype: torch.dtype = torc
 def prepare_backend(device: torch.device | str, backend: str = "auto",
                     announce: Callable[[str], None] | None = None) -> str:
     """Resolve ``backend`` for float32 scenes on ``device`` and load what it needs before the first
-    render, so that gsplat's first-use kernel build (about a minute and a half on an H100) is
+    render, so that gsplat's first-use kernel build (minutes; BENCHMARKS.md, "First look") is
     announced through ``announce`` where the caller's user looks, before it starts. Returns the
     backend. Without this, the first gsplat render announces it as a logged warning."""
     name = choose_backend(backend, torch.device(device))

@@ -10,8 +10,8 @@ minors, opacity culling, footprints cut to the image) and colours (:mod:`.sh`, c
 ``COLOR_MAX``), and its CUDA kernels do the per-pixel work: tile intersection, depth sort and
 front-to-back compositing, forward and backward (``isect_tiles``, ``rasterize_to_pixels``).
 
-gsplat builds its CUDA kernels the first time they are used after installing it (about
-``BUILD_SECONDS`` on an H100); :func:`load_kernels` announces that build before it starts.
+gsplat builds its CUDA kernels the first time they are used after installing it (minutes; the measured
+time is in BENCHMARKS.md, "First look"); :func:`load_kernels` announces that build before it starts.
 """
 
 from __future__ import annotations
@@ -29,9 +29,8 @@ from .projection import Projection
 _log = logging.getLogger(__name__)
 
 TILE = 16  # gsplat's tile size, pixels
-BUILD_SECONDS = 90  # gsplat 1.5.3's first-use kernel build, measured on an H100 (torch 2.11, CUDA 13.0)
-BUILD_NOTICE = (f"gsplat: building its CUDA kernels, once after installing it (about {BUILD_SECONDS} s on an "
-                "H100; longer on smaller GPUs and CPUs); later runs start at once")
+BUILD_NOTICE = ("gsplat: building its CUDA kernels, once after installing it (a matter of minutes, measured in "
+                "BENCHMARKS.md, \"First look\"); later runs start at once")
 _INT32_MAX = 2**31 - 1
 _loaded = False
 

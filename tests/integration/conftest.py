@@ -106,7 +106,7 @@ def _start(python: str, comfy: Path, port: int, log: Path) -> subprocess.Popen:
 def comfy_server() -> ComfyServer:
     root = os.environ.get(ROOT_ENV)
     if not root:
-        pytest.skip(f"set {ROOT_ENV} to a ComfyUI checkout (README: Integration tests)")
+        pytest.skip(f"set {ROOT_ENV} to a ComfyUI checkout (docs/comfyui.md: Integration tests)")
     root = Path(root).resolve()
     comfy = _comfy_checkout(root)
     _link_pack(comfy)

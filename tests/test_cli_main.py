@@ -1,10 +1,10 @@
-"""The command line's own output: progress while loading and rendering (evaluate: tests/test_metrics_report.py)."""
+"""The command line's own output: progress while loading and rendering (evaluate: tests/test_cli_evaluate.py)."""
 
 import re
 
 import pytest
 
-from artnvg_core.__main__ import main
+from artnvg_core.cli.main import main
 from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.stylize import DemoInputs
@@ -133,15 +133,16 @@ def test_gsplat_kernel_build_is_announced_on_stdout_before_it_starts(monkeypatch
     here) is announced on stdout, before it starts and with its time after, once."""
     import torch
 
-    from artnvg_core import cliutil, raster
+    from artnvg_core import raster
+    from artnvg_core.cli import common
     from artnvg_core.raster import gsplat_backend
 
     monkeypatch.setattr(raster, "choose_backend", lambda backend, device, dtype=None: "gsplat")
     monkeypatch.setattr(gsplat_backend, "_loaded", False)
     monkeypatch.setattr(gsplat_backend, "build_pending", lambda: True)
     monkeypatch.setattr(gsplat_backend, "_import_kernels", lambda: print("(building)") or object())
-    cliutil.prepare_rasterizer(torch.device("cuda"))
-    cliutil.prepare_rasterizer(torch.device("cuda"))
+    common.prepare_rasterizer(torch.device("cuda"))
+    common.prepare_rasterizer(torch.device("cuda"))
     lines = capsys.readouterr().out.splitlines()
     assert lines[:2] == [gsplat_backend.BUILD_NOTICE, "(building)"] and len(lines) == 3
     assert lines[2].startswith("gsplat: CUDA kernels built in ")
@@ -156,7 +157,7 @@ def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     from pathlib import Path
 
     out = tmp_path / "preview.ply"
-    code = ("import sys\nfrom artnvg_core.__main__ import main\n"
+    code = ("import sys\nfrom artnvg_core.cli.main import main\n"
             f"assert main(['stylize', '--preset', 'preview', '--iters', '2', '--scale', '0.125', '--device', 'cpu', "
             f"'--out', {str(out)!r}]) == 0\n"
             "print(sorted(m for m in ('diffusers', 'transformers', 'peft') if m in sys.modules))")

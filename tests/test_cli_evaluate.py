@@ -8,13 +8,13 @@ import pytest
 import torch
 from PIL import Image
 
-from artnvg_core.__main__ import main
+from artnvg_core.cli.main import main
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
-from artnvg_core.metrics.report import (
+from artnvg_core.cli.evaluate import (
     add_evaluate_arguments,
     camera_path,
     load_view_images,
@@ -191,7 +191,7 @@ def test_outputs_checked_before_any_work(inputs, tmp_path, capsys):
 
 
 def test_a_failing_evaluate_writes_none_of_its_outputs(inputs, tmp_path, monkeypatch, capsys):
-    from artnvg_core.metrics import report
+    from artnvg_core.cli import evaluate as report
 
     out = tmp_path / "eval" / "r.json"
     out.parent.mkdir()

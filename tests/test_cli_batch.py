@@ -9,19 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from artnvg_core import __main__ as cli
-from artnvg_core.batch import Job, load_jobs, output_complete, read_jobs
+from artnvg_core.cli import main as cli
+from artnvg_core.cli.batch import Job, load_jobs, output_complete, read_jobs, stylize_options
 from artnvg_core.formats import load_scene, save_scene
 from artnvg_core.presets import PRESETS
 from artnvg_core.stylize import DemoInputs, sheet_path
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 from ray_workers import TINY_FAST
-
-
-def _options() -> dict:
-    stylize = next(a for a in cli.build_parser()._actions if a.dest == "command").choices["stylize"]
-    return {string: action for action in stylize._actions for string in action.option_strings}
 
 
 def _write_jobs(path: Path, entries) -> Path:
@@ -32,10 +27,10 @@ def _write_jobs(path: Path, entries) -> Path:
 def test_job_options_become_stylize_arguments_from_json_or_csv(tmp_path):
     entries = [{"scene": "a.ply", "Style": "s.jpg", "out": "out/a.ply", "iters": 3, "seed": 7, "compile": True,
                 "color_transfer": False, "cameras": None, "preset": "", "orbit-size": "48x32", "up": "-y"}]
-    (from_json,) = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), _options())
+    (from_json,) = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
     (tmp_path / "jobs.csv").write_text("scene,Style,out,iters,seed,compile,color_transfer,cameras,preset,orbit-size,up\n"
                                        "a.ply,s.jpg,out/a.ply,3,7,yes,false,,,48x32,-y\n")
-    (from_csv,) = load_jobs(tmp_path / "jobs.csv", _options())
+    (from_csv,) = load_jobs(tmp_path / "jobs.csv", stylize_options())
     assert from_json.error is None and from_json == from_csv
     assert from_json.argv == ("a.ply", "--style=s.jpg", "--out=out/a.ply", "--iters=3", "--seed=7", "--compile",
                               "--no-color-transfer", "--orbit-size=48x32", "--up=-y")
@@ -49,7 +44,7 @@ def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
                {**good, "out": "d.ply", "compile": "maybe"}, {"scene": "a.ply"}, {**good, "out": "e.ply", "preset": "slow"},
                {**good, "out": "f.ply", "iters": "many"}, "a.ply", {**good, "out": "./a.ply"},
                {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "h.ply"}]
-    jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), _options())
+    jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
     errors = [job.error for job in jobs]
     assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "a.ply"
     expected = ["unknown option 'strength' (stylize has no --strength", "'devices' is not a job option; give --devices",
@@ -118,7 +113,7 @@ def inputs(tmp_path_factory):
     references = {}
     with pytest.MonkeyPatch.context() as patch:
         patch.setitem(PRESETS, "fast", TINY_FAST)  # as in the Ray workers (ray_workers.setup_worker)
-        for job in load_jobs(jobs_path, _options())[:3]:
+        for job in load_jobs(jobs_path, stylize_options())[:3]:
             references[job.number] = folder / "reference" / job.out.name
             argv = [*job.argv, f"--out={references[job.number]}", "--device=cpu"]
             cwd = os.getcwd()
@@ -132,7 +127,7 @@ def inputs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def pool(ray_local):
-    from artnvg_core.batch import BatchPool
+    from artnvg_core.cli.batch import BatchPool
     from artnvg_core.cluster import Workers
 
     with BatchPool(Workers("cpu", 2)) as pool:
@@ -149,7 +144,7 @@ def _leftovers(folder: Path) -> list[str]:
 
 def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs, pool, ray_local):
     jobs_path, references = inputs
-    jobs = load_jobs(jobs_path, _options())
+    jobs = load_jobs(jobs_path, stylize_options())
     starts = []
 
     def kill_the_first_worker(kind: str, job: Job, detail) -> None:
@@ -169,7 +164,7 @@ def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs,
 
 def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, capsys):
     jobs_path, references = inputs
-    jobs = load_jobs(jobs_path, _options())
+    jobs = load_jobs(jobs_path, stylize_options())
     assert all(output_complete(jobs[n - 1].out) for n in references)  # the test above ran the batch
     modified = {n: jobs[n - 1].out.stat().st_mtime_ns for n in references}
     # the command line, on the three good jobs and the one that cannot be parsed: no job needs a

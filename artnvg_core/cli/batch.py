@@ -36,8 +36,10 @@ from pathlib import Path
 
 import torch
 
-from .cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
-from .progress import Cancelled, StopFn
+from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..progress import Cancelled, StopFn
+from .common import parse_devices
+from .stylize import add_stylize_arguments
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
 NOT_PER_JOB = {"device": "--devices", "devices": "--devices", "ray-address": "--ray-address", "help": None}
@@ -144,14 +146,12 @@ def _empty(value) -> bool:
 
 
 def parse_stylize(argv: Sequence[str], label: str) -> argparse.Namespace:
-    """``python -m artnvg_core stylize ARGV`` parsed by the command line's own parser; ValueError
-    starting with ``label`` with argparse's message instead of an exit."""
-    from .__main__ import build_parser
-
+    """``python -m artnvg_core stylize ARGV`` parsed by stylize's own options; ValueError starting with
+    ``label`` with argparse's message instead of an exit."""
     message = io.StringIO()
     try:
         with contextlib.redirect_stderr(message):
-            return build_parser().parse_args(["stylize", *argv])
+            return stylize_parser().parse_args(argv)
     except SystemExit:
         text = message.getvalue().strip().splitlines()
         raise ValueError(f"{label}: {text[-1].split('error: ', 1)[-1] if text else 'cannot be parsed'}") from None
@@ -180,8 +180,8 @@ def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> l
 
 def output_complete(out: Path) -> bool:
     """Whether ``out`` holds a finished job's output: the scene loads and its contact sheet exists."""
-    from .formats import load_scene
-    from .stylize import sheet_path
+    from ..formats import load_scene
+    from ..stylize import sheet_path
 
     if not (out.is_file() and sheet_path(out).is_file()):
         return False
@@ -350,8 +350,6 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     """The ``batch`` command: 0 when every job is done or skipped, 1 when one failed, 130 when stopped."""
     from tqdm import tqdm
 
-    from .cliutil import parse_devices
-
     jobs = load_jobs(args.jobs, options)
     devices = parse_devices(args.devices)
     with ray_session(devices, args.ray_address, needed_by="batch") as workers:
@@ -383,10 +381,21 @@ def _line(result: JobResult, total: int) -> str:
     return f"{result.status:<9} job {job.number}/{total}  {what}  {extra}"
 
 
+def stylize_parser() -> argparse.ArgumentParser:
+    """A parser of stylize's options alone (:func:`~artnvg_core.cli.stylize.add_stylize_arguments`)."""
+    parser = argparse.ArgumentParser(prog="python -m artnvg_core stylize")
+    add_stylize_arguments(parser)
+    return parser
+
+
+def stylize_options() -> dict[str, argparse.Action]:
+    """stylize's argparse actions by option string (``--preset``, ``--no-color-transfer``, ...)."""
+    return {string: action for action in stylize_parser()._actions for string in action.option_strings}
+
+
 def add_batch_command(commands) -> None:
-    """Register ``batch`` with the command line's subparsers (after ``stylize``, whose options jobs take)."""
-    stylize = commands.choices["stylize"]
-    options = {string: action for action in stylize._actions for string in action.option_strings}
+    """Register ``batch`` with the command line's subparsers; its jobs take stylize's options."""
+    options = stylize_options()
     p = commands.add_parser("batch", help="run many stylize jobs (a JSON or CSV list) over GPUs or a Ray cluster",
                             description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("jobs", help="JSON list of jobs or CSV table; each job holds stylize's options by name")

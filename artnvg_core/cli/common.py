@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .devices import device_for
+from ..devices import device_for
 
 if TYPE_CHECKING:
     import argparse
 
-    from .cameras import CameraSet
-    from .scene import GaussianScene
+    from ..cameras import CameraSet
+    from ..scene import GaussianScene
 
 
 def parse_device(name: str) -> torch.device:
@@ -87,20 +87,6 @@ def parse_devices(text: str | None) -> list[torch.device] | None:
     return devices
 
 
-def parse_view_indices(text: str | None, count: int) -> list[int]:
-    """Indices from ``--views`` text such as ``0,5,9`` (default: all ``count`` views)."""
-    if not text:
-        return list(range(count))
-    try:
-        indices = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise ValueError(f"--views: expected comma-separated integers such as 0,5,9, got {text!r}") from error
-    bad = [i for i in indices if not 0 <= i < count]
-    if bad or not indices:
-        raise ValueError(f"--views: indices {bad or text!r} out of range for {count} cameras")
-    return indices
-
-
 class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it."""
 
@@ -121,15 +107,15 @@ class ProgressBar:
 
 def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
     """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
-    first-use kernel build (about 90 s on an H100) is announced on stdout before it starts."""
-    from .raster import prepare_backend
+    first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced on stdout before it starts."""
+    from ..raster import prepare_backend
 
     prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and time after."""
-    from .formats import load_scene
+    from ..formats import load_scene
 
     print(f"loading {path} ({os.path.getsize(path) / 2**20:,.1f} MiB)" if os.path.isfile(path) else f"loading {path}",
           flush=True)
@@ -142,10 +128,10 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> Gaussia
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
-    from .cameras import UP_AXES
+    from ..cameras import UP_AXES
 
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
-                        "the scene, built from the Gaussians alone (README: Scenes without cameras)")
+                        "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
     orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
     orbit.add_argument("--orbit-views", type=int, default=60, help="number of views (default 60: four groups of 15)")
     orbit.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")
@@ -158,8 +144,8 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
-    """:func:`~artnvg_core.cameras.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
-    from .cameras import orbit_cameras
+    """:func:`~artnvg_core.orbit.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
+    from ..orbit import orbit_cameras
 
     parts = args.orbit_size.lower().split("x")
     if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):

@@ -4,12 +4,13 @@
 [--cameras CAMERAS] --style IMAGE [--out report.json] ...`` renders the original scene (colour,
 alpha, depth) and the stylized scene at the capture views, then reports
 
-- CFSD (content fidelity, :mod:`.cfsd`) of each stylized view against the original render;
-- warp consistency (:mod:`.warp`) at short range (step 1) and long range (``--long-step``),
+- CFSD (content fidelity, :mod:`artnvg_core.metrics.cfsd`) of each stylized view against the
+  original render;
+- warp consistency (:mod:`artnvg_core.metrics.warp`) at short range (step 1) and long range (``--long-step``),
   for the stylized views and, as the floor, for the original renders;
-- CSD score (:mod:`.csd`) of each view against the style image, for the stylized views and
+- CSD score (:mod:`artnvg_core.metrics.csd`) of each view against the style image, for the stylized views and
   the original renders (baseline), when CSD weights are found;
-- CLIP-DC (:mod:`.clip_dc`) along a novel camera path (``--path``, ``--frames``), or along
+- CLIP-DC (:mod:`artnvg_core.metrics.clip_dc`) along a novel camera path (``--path``, ``--frames``), or along
   the evaluated views for 2D stylized images, when CLIP weights are found.
 
 Outputs beside ``--out``: the JSON report (resolution, views, metric parameters, values),
@@ -27,14 +28,14 @@ from pathlib import Path
 import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
-from ..cliutil import (
+from ..cameras.selection import parse_views
+from .common import (
     ProgressBar,
     add_camera_arguments,
     fraction,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
-    parse_view_indices,
     positive_number,
     prepare_rasterizer,
 )
@@ -42,16 +43,15 @@ from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, load_image, resize_image, write_atomically, written_together
 from ..preview import evenly_spaced, save_gif, save_strip
-from ..progress import ProgressFn
-from ..raster import RenderOutput, render
-from .cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
-from .clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
-from .csd import CSD_WEIGHTS, csd_scores, load_csd
-from .warp import warp_consistency
+from ..raster import RenderOutput
+from ..raster.views import render_views
+from ..metrics.cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
+from ..metrics.clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
+from ..metrics.csd import CSD_WEIGHTS, csd_scores, load_csd
+from ..metrics.warp import warp_consistency
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
 STRIP_VIEWS = 6
-RENDER_CHUNK = 8
 
 
 # --------------------------------------------------------------------------- arguments
@@ -85,22 +85,6 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # --------------------------------------------------------------------------- inputs
-
-
-@torch.no_grad()
-def render_views(scene, cameras: CameraSet, *, depth: bool = False, progress: ProgressFn | None = None) -> RenderOutput:
-    """Render ``cameras`` in chunks, calling ``progress(views done, views, {})`` after each; rgb clamped to [0, 1]."""
-    outputs = []
-    for start in range(0, len(cameras), RENDER_CHUNK):
-        views = range(start, min(start + RENDER_CHUNK, len(cameras)))
-        outputs.append(render(scene, cameras.subset(views), return_depth=depth))
-        if progress is not None:
-            progress(views.stop, len(cameras), {})
-    return RenderOutput(
-        rgb=torch.cat([o.rgb for o in outputs]).clamp(0, 1),
-        alpha=torch.cat([o.alpha for o in outputs]),
-        depth=torch.cat([o.depth for o in outputs]) if depth else None,
-    )
 
 
 def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
@@ -270,7 +254,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     style = load_image(args.style)
     original_scene = load_scene_verbose(args.original, device)
     all_cameras = orbit_from_args(args, original_scene) if all_cameras is None else all_cameras
-    indices = parse_view_indices(args.views, len(all_cameras))
+    indices = parse_views(args.views, len(all_cameras), "--views")
     cameras = all_cameras.subset(indices).scaled(args.scale)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks

@@ -1,0 +1,31 @@
+"""Which views of a camera set to use, from text: the one view-list grammar of the command line's
+``--views`` and the nodes' view inputs.
+
+Grammar: view indices in file order, separated by commas (or semicolons), e.g. ``0, 5, 9``; each in
+``0..count-1``; repeats and any order are kept as written. Blank text (or None, or separators
+alone) means every view.
+"""
+
+from __future__ import annotations
+
+
+def parse_views(text: str | None, count: int, what: str | None = None) -> list[int]:
+    """Indices from ``text`` (the module's grammar) for a set of ``count`` views: every view when blank.
+
+    Raises ValueError naming the offending entry, after ``what:`` (an option's name) when given.
+    """
+    where = f"{what}: " if what else ""
+    indices = []
+    for part in (text or "").replace(";", ",").split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            index = int(part)
+        except ValueError:
+            raise ValueError(f"{where}expected comma-separated view indices such as 0,5,9, got {part!r} "
+                             f"in {text!r}") from None
+        if not 0 <= index < count:
+            raise ValueError(f"{where}view index {index} is out of range for {count} cameras (0..{count - 1})")
+        indices.append(index)
+    return indices or list(range(count))

@@ -1,0 +1,98 @@
+"""Command line: ``python -m artnvg_core {render,stylize,evaluate,batch} ...`` (``--help`` on each).
+
+This module holds ``render``, the parser of every command and :func:`main`; ``stylize``,
+``evaluate`` and ``batch`` have a module each in this package."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import torch
+
+from ..cameras.selection import parse_views
+from ..devices import DEVICE_CHOICES
+from .batch import add_batch_command
+from .common import (
+    add_camera_arguments,
+    load_scene_verbose,
+    orbit_from_args,
+    parse_device,
+    positive_number,
+    prepare_rasterizer,
+)
+from .evaluate import add_evaluate_arguments
+from .stylize import add_stylize_arguments
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    from ..cameras import load_cameras
+    from ..fileio import check_output_folder, save_png
+    from ..raster import render
+
+    device = parse_device(args.device)
+    out_dir = check_output_folder(args.out, "--out")
+    def chosen(cameras):
+        return cameras.subset(parse_views(args.views, len(cameras), "--views")).scaled(args.scale)
+
+    cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
+    scene = load_scene_verbose(args.scene, device)
+    cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
+    out_dir.mkdir(parents=True, exist_ok=True)
+    prepare_rasterizer(device, args.backend)
+    print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
+    for i in range(len(cameras)):
+        view = cameras.subset([i])
+        start = time.perf_counter()
+        with torch.no_grad():
+            image = render(scene, view, sh_degree=args.sh_degree, backend=args.backend).rgb[0]
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        elapsed = time.perf_counter() - start
+        path = out_dir / f"{view.names[0]}.png"
+        save_png(image, path)
+        print(f"[{i + 1}/{len(cameras)}] {path}  {elapsed * 1000:.0f} ms", flush=True)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m artnvg_core", description="Stylize 3D Gaussian Splatting "
+                                     "scenes with a style image (docs/command_line.md); --help on each command.")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    p = commands.add_parser("render", help="render a scene's views to PNG files")
+    p.add_argument("scene", help="scene file: .ply (INRIA or compressed), .splat, .spz or splatfacto .ckpt")
+    add_camera_arguments(p)
+    p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
+    p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
+    p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
+    p.add_argument("--backend", choices=("auto", "torch", "gsplat"), default="auto")
+    p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                   help="auto: CUDA, else Apple MPS, else the CPU")
+    p.set_defaults(run=cmd_render)
+
+    p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
+    add_stylize_arguments(p)
+
+    p = commands.add_parser("evaluate", help="metrics, comparison strip and preview of a stylized scene or 2D views")
+    add_evaluate_arguments(p)
+
+    add_batch_command(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        status = args.run(args)
+    except (ValueError, OSError) as error:  # bad input, or a file the system would not read or write
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except (MemoryError, RuntimeError) as error:  # torch's CPU allocator raises a bare RuntimeError
+        if not isinstance(error, (MemoryError, torch.OutOfMemoryError)) and "can't allocate memory" not in str(error):
+            raise
+        print(f"error: out of memory ({str(error)[:300]}); try a smaller --scale or fewer --views", file=sys.stderr)
+        return 2
+    return status if isinstance(status, int) else 0  # batch gives its exit status; the others return 0
+

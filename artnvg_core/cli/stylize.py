@@ -1,0 +1,169 @@
+"""``python -m artnvg_core stylize``: one scene stylized with a style image, NNFM or diffusion (ArtNVG).
+
+:func:`add_stylize_arguments` gives a parser stylize's options (the command line's ``stylize`` and
+each job of ``batch`` are parsed by them); :func:`cmd_stylize` runs the parsed options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+
+import torch
+
+from ..devices import DEVICE_CHOICES
+from ..diffusion.csgo import CONTENT_ROUTINGS
+from ..diffusion.model_files import ModelFiles
+from ..diffusion.settings import SCHEDULER_NAMES
+from ..presets import PRESETS, get_preset
+from .common import (
+    ProgressBar,
+    add_camera_arguments,
+    integer_at_least,
+    load_scene_verbose,
+    orbit_from_args,
+    parse_device,
+    parse_devices,
+    positive_number,
+    prepare_rasterizer,
+    unit_interval,
+)
+
+SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
+
+
+def cmd_stylize(args: argparse.Namespace) -> None:
+    from ..cameras import load_cameras
+    from ..fileio import check_output_file, load_image
+    from ..finetune import FinetuneConfig
+    from ..formats import writable_scene_path
+    from ..stylize import (
+        DemoInputs,
+        DiffusionModelsUnavailable,
+        choose_stylizer,
+        save_result,
+        sheet_path,
+        stylize_diffusion,
+        stylize_nnfm,
+    )
+
+    given = [args.scene, args.style]
+    if any(given + [args.cameras]) and not all(given):
+        raise ValueError("stylize: give SCENE and --style (and --cameras, else views orbiting the scene are built), "
+                         "or none of them for the bundled demo")
+    demo = not any(given)
+    if demo:
+        inputs = DemoInputs()
+        args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
+        print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
+    preset = get_preset(args.preset)
+    diffusion_free = preset.sampler is None  # the preview: its own length, resolution and stylizer
+    if diffusion_free and args.stylizer == "diffusion":
+        raise ValueError(f"--preset {args.preset} runs without diffusion: use --stylizer nnfm (or auto), or "
+                         "another preset")
+    scale = args.scale if args.scale is not None else (preset.scale if diffusion_free else 0.25 if demo else 1.0)
+    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
+                      "--out (its contact sheet)")
+    if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
+        os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
+    device = parse_device(args.device)
+    torch.manual_seed(args.seed)
+
+    scene = load_scene_verbose(args.scene, device)
+    cameras = load_cameras(args.cameras) if args.cameras else orbit_from_args(args, scene)
+    cameras = cameras.scaled(scale)
+    style = load_image(args.style)
+    files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
+    if diffusion_free:
+        stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
+    else:
+        stylizer, reason = choose_stylizer(args.stylizer, files)
+
+    def iterations_for(stylizer: str) -> int:
+        if args.iters is not None:
+            return args.iters
+        if diffusion_free or stylizer == "diffusion":
+            return preset.finetune_iterations
+        return 60 if demo else 1000
+
+    iterations = iterations_for(stylizer)
+    changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
+    key_views = preset.key_views if args.key_views is None else args.key_views
+    described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
+                 + (f"; {key_views} key views" if key_views else ""))
+    print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
+    print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
+          f"{iterations} iterations on {device}")
+    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
+                            views_per_step=preset.views_per_step)
+    prepare_rasterizer(device)
+    start = time.perf_counter()
+    if stylizer == "diffusion":
+        try:
+            result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, preset=args.preset,
+                                          content_routing=args.content_routing, sampler_changes=changes,
+                                          key_views=key_views,
+                                          devices=parse_devices(args.devices), ray_address=args.ray_address,
+                                          compile_blocks=args.compile,
+                                          sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
+        except DiffusionModelsUnavailable as error:
+            if args.stylizer != "auto":
+                raise
+            stylizer, config = "nnfm", dataclasses.replace(config, iterations=iterations_for("nnfm"))
+            print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
+    if stylizer == "nnfm":
+        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
+    sheet = save_result(scene, result, cameras, style, args.out)
+    print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
+    """stylize's options and ``run`` = :func:`cmd_stylize` on ``p``."""
+    p.add_argument("scene", nargs="?", help=".ply, .splat, .spz or splatfacto .ckpt (omit all inputs for the demo)")
+    add_camera_arguments(p)
+    p.add_argument("--style", help="style image file")
+    p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
+    p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="paper",
+                   help="speed/accuracy preset (docs/presets.md); preview: a first look in seconds, without diffusion")
+    p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
+                   help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
+                   "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
+    p.add_argument("--scheduler", choices=SCHEDULER_NAMES, default=None,
+                   help="diffusion sampler (default: the preset's, DDIM); dpmpp_2m and unipc are multistep solvers "
+                        "meant for fewer --steps")
+    p.add_argument("--steps", type=integer_at_least(1), default=None, help="denoising steps (default: the preset's)")
+    p.add_argument("--cfg-until", type=unit_interval, default=None,
+                   help="classifier-free guidance for this fraction of the steps only, then the conditional half "
+                        "alone (half the batch); 1 = every step (default: the preset's, 1)")
+    p.add_argument("--key-views", type=integer_at_least(0), default=None, metavar="K",
+                   help="diffusion: stylize only K views chosen to cover the scene (farthest camera poses) and "
+                        "finetune on them alone; 0 = every view (default: the preset's, every view)")
+    p.add_argument("--compile", action="store_true",
+                   help="diffusion stage: compile the UNet's and ControlNet's repeated blocks (exact up to bf16 "
+                        "rounding; slightly faster steps after a long first call, so it pays back on large scenes only: "
+                        "BENCHMARKS.md, Diffusion step; "
+                        "not with --preset low-memory)")
+    p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1, "
+                   "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
+    p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
+                   "(auto, or HOST:PORT)")
+    p.add_argument("--iters", type=int, default=None,
+                   help="finetune iterations (default: the preset's for diffusion and preview, 1000 for nnfm; 60 for "
+                        "the demo)")
+    p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
+                   help="nnfm: match the scene's colours to the style image's before and after finetuning, "
+                   "as ARF does (default on)")
+    p.add_argument("--scale", type=positive_number, default=None,
+                   help="render resolution factor (default 1, preview's 0.5; 0.25 for the demo)")
+    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                   help="auto: CUDA, else Apple MPS, else the CPU")
+    p.add_argument("--seed", type=int, default=0)
+    models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
+    models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")
+    models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
+    models.add_argument("--image-encoder", help="IP-Adapter SDXL image encoder folder (ViT-bigG/14)")
+    models.add_argument("--csgo", help="csgo_4_32.bin or csgo.bin")
+    p.set_defaults(run=cmd_stylize)

@@ -1,0 +1,42 @@
+"""Where a scene is and which way is up, from the Gaussians alone: a robust frame, an explicit up."""
+
+import math
+
+import pytest
+import torch
+
+from artnvg_core.cameras import parse_up, scene_frame
+from artnvg_core.scene import GaussianScene
+
+
+def blob(means, seed=0):
+    """Gaussians of scale 0.05 and opacity 0.5 at ``means`` [N, 3]."""
+    n = len(means)
+    g = torch.Generator().manual_seed(seed)
+    return GaussianScene(means, torch.randn(n, 4, generator=g), torch.full((n, 3), math.log(0.05)),
+                         torch.zeros(n), 0.3 * torch.randn(n, 1, 3, generator=g))
+
+
+def test_far_floaters_and_a_sky_shell_do_not_move_the_frame():
+    g = torch.Generator().manual_seed(1)
+    ground = torch.cat([torch.rand(3000, 2, generator=g) * 4 - 2, 0.02 * torch.randn(3000, 1, generator=g)], 1)
+    statue = torch.rand(1000, 3, generator=g) * torch.tensor([0.6, 0.6, 1.5])
+    scene = blob(torch.cat([ground, statue]))
+    frame = scene_frame(scene)
+    assert frame.up_source == "ground normal" and float(frame.up[2]) > 0.99  # +z, the statue's side
+    sky = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=1) * 1000  # 7 % of the weight
+    floaters = torch.tensor([[3e5, 0.0, 0.0], [0.0, -2e5, 7e4]])
+    noisy = blob(torch.cat([ground, statue, sky, floaters]))
+    noisy.log_scales[4000:4300] = math.log(50.0)  # huge sky splats count no more than ordinary ones
+    again = scene_frame(noisy)
+    assert (again.center - frame.center).norm() < 0.1 and abs(again.radius - frame.radius) < 0.25 * frame.radius
+    assert float(again.up @ frame.up) > 0.99
+
+
+def test_up_override_and_names():
+    assert parse_up("auto") is None and parse_up(None) is None
+    assert parse_up("-y").tolist() == [0.0, -1.0, 0.0] and parse_up("z").tolist() == [0.0, 0.0, 1.0]
+    assert torch.allclose(parse_up([0, 3, 4]), torch.tensor([0, 0.6, 0.8], dtype=torch.float64))
+    for bad in ("up", "+w", [0, 0, 0], [1, float("nan"), 0], [1, 2]):
+        with pytest.raises(ValueError, match="up"):
+            parse_up(bad)

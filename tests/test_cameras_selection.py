@@ -1,0 +1,24 @@
+"""The view-list grammar shared by --views and the nodes: indices in file order, blank = every view."""
+
+import pytest
+
+from artnvg_core.cameras.selection import parse_views
+
+
+def test_indices_as_written_and_blank_is_every_view():
+    assert parse_views("0, 5,9", 10) == [0, 5, 9]
+    assert parse_views("9;2,2", 10) == [9, 2, 2]  # order and repeats as written
+    for blank in (None, "", "  ", ",", " ; , "):
+        assert parse_views(blank, 4) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("text, count, message", [
+    ("0,x", 10, r"^--views: expected comma-separated view indices such as 0,5,9, got 'x' in '0,x'$"),
+    ("1.5", 10, r"got '1.5'"),
+    ("3,10", 10, r"^--views: view index 10 is out of range for 10 cameras \(0..9\)$"),
+    ("-1", 10, r"view index -1 is out of range"),
+    ("0", 0, r"view index 0 is out of range for 0 cameras"),
+])
+def test_bad_entries_are_named(text, count, message):
+    with pytest.raises(ValueError, match=message):
+        parse_views(text, count, "--views")

@@ -1,0 +1,42 @@
+"""render_views: every view in chunks equals one render per view; progress, stop and the CPU copy."""
+
+import pytest
+import torch
+
+from artnvg_core.progress import Cancelled
+from artnvg_core.raster import render
+from artnvg_core.raster.views import render_views
+
+from raster_scenes import hard_scene, make_cameras
+
+EYES = [(0.0, -0.5, -3.0), (2.5, -0.4, -1.5), (-2.5, -0.6, -1.5), (0.3, -2.9, -0.5), (1.0, 0.5, 2.8)]
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 8])
+def test_chunks_give_each_view_as_rendered_alone(chunk):
+    scene, cameras = hard_scene(seed=3), make_cameras(EYES)
+    calls = []
+    out = render_views(scene, cameras, chunk=chunk, depth=True, progress=lambda *a: calls.append(a))
+    for view in range(len(cameras)):
+        alone = render(scene, cameras.subset([view]), return_depth=True)
+        assert torch.equal(out.rgb[view], alone.rgb[0].clamp(0, 1))
+        assert torch.equal(out.alpha[view], alone.alpha[0]) and torch.equal(out.depth[view], alone.depth[0])
+    assert out.rgb.max() <= 1 and out.rgb.min() >= 0 and not out.rgb.requires_grad
+    done = list(range(chunk, len(cameras), chunk)) + [len(cameras)]
+    assert calls == [(n, len(cameras), {}) for n in done]
+
+
+def test_without_depth_and_stopped_before_a_chunk():
+    scene, cameras = hard_scene(seed=4), make_cameras(EYES)
+    assert render_views(scene, cameras, cpu=True).depth is None
+    asked = []
+
+    def stop_after_two_chunks():
+        asked.append(True)
+        return len(asked) > 2
+
+    with pytest.raises(Cancelled):
+        render_views(scene, cameras, chunk=2, should_stop=stop_after_two_chunks)
+    assert len(asked) == 3
+    with pytest.raises(ValueError, match="chunk"):
+        render_views(scene, cameras, chunk=0)
