@@ -219,8 +219,8 @@ def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneCo
 
 
 def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet) -> None:
-    """Warn once about each view found (``blind [C]``, on the device) to see no Gaussian; ValueError once
-    every view is such."""
+    """Warn once about each view found to see no Gaussian (``blind [C]``, on the device: how many steps
+    each view saw none); ValueError once every view is such."""
     found = blind.nonzero()[:, 0].tolist()
     for view in sorted(set(found) - warned):
         _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
@@ -304,14 +304,14 @@ def finetune(
     # every step's views drawn up front and copied to the device once: a copy per step would wait for it
     schedule = torch.randint(len(cameras), (config.iterations, config.views_per_step), generator=generator)
     schedule_on_device = schedule.to(device)
-    blind = torch.zeros(len(cameras), dtype=torch.bool, device=device)
+    blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
     for step in range(1, config.iterations + 1):
         check_stop(should_stop)
         views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
         out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend)
         sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
-        blind.index_fill_(0, views_on_device[~sees], True)
+        blind.index_add_(0, views_on_device, (~sees).int())
         image = out.rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
