@@ -25,7 +25,7 @@ Results are kept in ``--parts`` (a folder on the device machine that survives be
 ``PART/<row>/group_NNN.pt`` (stylized images and times per group), ``PART/paper/scene.pt`` (the
 reference's finetuned scene) and ``PART/rows/<row>.json``; a row split over calls (``--groups``)
 finetunes once every group is there. ``--report`` prints the table of every finished row. The final-scene
-figures need only ``PART/paper/scene.pt`` (24 MB for the bear, small enough to carry to a fresh machine);
+figures need only ``PART/paper/scene.pt`` (24 MB for the bear, small enough to copy to another machine);
 the per-group deviation needs the paper's stylized images too and reads "n/a" without them.
 """
 
@@ -52,7 +52,7 @@ from bench.common import timed_call, warp_rmse
 
 REFERENCE = "paper"
 ROW_FIELDS = {f.name for f in dataclasses.fields(SamplerSettings)} | {"key_views", "iterations"}
-# --sweep: what the issue asks priced, in the order a budget should spend on them (H100 estimates for the
+# --sweep: what the issue asks priced, most informative first (H100 estimates for the
 # bear's 84 training views in 6 groups of 14, eager; the paper reference itself ~9.5 min over two calls)
 SWEEP = (
     "fast",                                                         # ~1 min

@@ -1,4 +1,4 @@
-"""gsplat parity sweep: how the gsplat backend agrees with the float64 references on the hard cases.
+"""Parity sweep: how the triton and gsplat backends agree with the float64 references on the hard cases.
 
     python bench/gsplat_parity.py [--out DIR] [--large 5000000] [--speed 100000,1000000]
 
@@ -9,13 +9,14 @@ random Gaussians, prints the PSNR of the renders against the brute-force float64
 (tests/raster_reference.py; the float32 reference rasterizer for the large scene) and the largest
 relative gradient error against the reference rasterizer in float64, for
 
+- ``triton`` (this project's default on CUDA: Triton compositing over the reference projection),
 - ``gsplat`` (this project's backend: gsplat's compositor over the reference projection),
 - ``gsplat fused`` (gsplat's own ``rasterization()`` fed as the backend fed it before: exp of the
   log-scales, unit quaternions, raw SH), to show what the backend no longer does,
 - ``torch`` (the reference rasterizer in float32, the float32 floor).
 
 With ``--speed``: forward and forward+backward milliseconds per 512x512 and 1024x1024 frame of
-random scenes for ``gsplat``, ``gsplat fused`` and ``torch``. ``--out`` gets the rows as JSON.
+random scenes for ``triton``, ``gsplat``, ``gsplat fused`` and ``torch``. ``--out`` gets the rows as JSON.
 Needs CUDA and gsplat.
 """
 
@@ -81,6 +82,7 @@ def parity_rows(large: int) -> list[list]:
     cases = hard_cases() + ([many_gaussians(large)] if large else [])
     for case in cases:
         ours = parity(case, "gsplat", "cuda")
+        triton = parity(case, "triton", "cuda")
         floor = parity(case, "torch", "cuda")
         # the fused path against the same references parity used
         if len(case.scene) <= 10_000:
@@ -95,7 +97,8 @@ def parity_rows(large: int) -> list[list]:
         else:
             reference_rgb, reference_grads = gradients(case.scene, case.cameras, "torch", "cuda")
         before = fused_parity(case, reference_rgb, reference_grads)
-        rows.append([case.name, f"{len(case.scene):,}", ours["psnr"], ours["grad_error"], ours["finite"],
+        rows.append([case.name, f"{len(case.scene):,}", triton["psnr"], triton["grad_error"], triton["finite"],
+                     ours["psnr"], ours["grad_error"], ours["finite"],
                      before["psnr"], before["grad_error"], before["finite"], floor["psnr"], floor["grad_error"]])
         print(rows[-1], flush=True)
     return rows
@@ -108,7 +111,8 @@ def speed_rows(counts: list[int], sizes=(512, 1024)) -> list[list]:
         scene = random_scene(count, device=device)
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
-            runs = {"gsplat": lambda s: render(s, camera, backend="gsplat").rgb,
+            runs = {"triton": lambda s: render(s, camera, backend="triton").rgb,
+                    "gsplat": lambda s: render(s, camera, backend="gsplat").rgb,
                     "gsplat fused": lambda s: fused_render(s, camera)[0],
                     "torch": lambda s: render(s, camera, backend="torch").rgb}
             for name, run in runs.items():
@@ -139,9 +143,9 @@ def main() -> None:
 
     prepare_backend("cuda", "gsplat", announce=print)
     rows = parity_rows(args.large)
-    header = ["case", "Gaussians", "gsplat PSNR dB", "gsplat grad rel err", "gsplat grads finite",
+    header = ["case", "Gaussians", "triton PSNR dB", "triton grad rel err", "triton grads finite", "gsplat PSNR dB", "gsplat grad rel err", "gsplat grads finite",
               "fused PSNR dB", "fused grad rel err", "fused grads finite", "torch f32 PSNR dB", "torch f32 grad rel err"]
-    print_table("gsplat parity on hard cases (PSNR vs float64, gradient error vs float64 reference)",
+    print_table("Parity on hard cases (PSNR vs float64, gradient error vs float64 reference)",
                 header, rows, command)
     speed = speed_rows([int(c) for c in args.speed.split(",") if c]) if args.speed else []
     if speed:

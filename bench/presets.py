@@ -52,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import end_to_end as e2e  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning, write_json  # noqa: E402
-from bench.common import synchronize, warp_rmse  # noqa: E402
+from bench.common import synchronize, timed_call, warp_rmse  # noqa: E402
 from bench.end_to_end import at_size, compare  # noqa: E402
 
 from artnvg_core.cameras import load_cameras  # noqa: E402
@@ -69,13 +69,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 def measured(device: torch.device, run) -> tuple[object, float, float]:
     """(result, seconds, peak GiB allocated) of one synchronised call of ``run``."""
-    synchronize(device)
     if device.type == "cuda":
+        synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
-    begin = time.perf_counter()
-    result = run()
-    synchronize(device)
-    seconds = time.perf_counter() - begin
+    result, seconds = timed_call(device, run)
     peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
     return result, seconds, peak
 

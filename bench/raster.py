@@ -1,11 +1,17 @@
 """Rasterizer benchmark: time, memory and accuracy of each backend.
 
     python bench/raster.py [--device cpu|cuda] [--sizes 512,1024] [--counts 100000,1000000]
+                           [--stages 1000000] [--first-use]
 
 Speed: forward and forward+backward time per frame (median of 5 after 2 warm-ups,
-synchronised on CUDA) and peak CUDA memory, on random scenes viewed from an orbit.
+synchronised on CUDA) and peak CUDA memory, on random scenes viewed from an orbit, for the
+backends (torch, triton and, where installed, gsplat) and gsplat's own fused ``rasterization()``.
 Accuracy: each backend against the float64 brute-force evaluator (tests/raster_reference.py)
 on a small random scene, max abs error and PSNR of the images.
+``--stages N``: where the triton backend's time goes for N Gaussians at the largest size (the
+projection, colours, tile lists, compositing; each timed alone).
+``--first-use``: the first Triton render (forward+backward) in a fresh process with an empty
+Triton cache, then the second (CUDA).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 import torch
 
 from common import orbit_cameras, peak_memory, print_table, random_scene, timed
+from gsplat_parity import fused_render
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from artnvg_core.raster import render  # noqa: E402
@@ -28,7 +35,9 @@ from raster_reference import brute_force_render  # noqa: E402
 
 
 def backends_for(device: torch.device) -> list[str]:
-    return ["torch", "gsplat"] if device.type == "cuda" and gsplat_available() else ["torch"]
+    if device.type != "cuda":
+        return ["torch"]
+    return ["torch", "triton"] + (["gsplat"] if gsplat_available() else [])
 
 
 def speed_rows(device, sizes, counts):
@@ -39,13 +48,16 @@ def speed_rows(device, sizes, counts):
         trainable = GaussianScene(**params)
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
-            for backend in backends_for(device):
-                def forward():
+            paths = {name: (lambda s, name=name: render(s, camera, backend=name).rgb) for name in backends_for(device)}
+            if device.type == "cuda" and gsplat_available():
+                paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
+            for backend, run in paths.items():
+                def forward(run=run):
                     with torch.no_grad():
-                        render(scene, camera, backend=backend)
+                        run(scene)
 
-                def forward_backward():
-                    render(trainable, camera, backend=backend).rgb.sum().backward()
+                def forward_backward(run=run):
+                    run(trainable).sum().backward()
 
                 repeats = 5 if device.type == "cuda" else 2
                 fwd = timed(forward, device, repeats=repeats, warmup=1)
@@ -76,23 +88,112 @@ def accuracy_rows(device, count=2000, size=128):
     return rows
 
 
+def stage_rows(device, count, size):
+    """Milliseconds of each stage of the triton backend, each timed alone, and the whole render."""
+    from artnvg_core.raster.projection import project
+    from artnvg_core.raster.sh import sh_to_color
+    from artnvg_core.raster.triton_backend import rasterize_triton, tile_lists
+
+    scene = random_scene(count, device=device)
+    camera = orbit_cameras(1, size).to(device)
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
+    w2c, k, center = camera.world_to_cam[0], camera.intrinsics[0], camera.centers[0]
+
+    def projected(p=params):
+        return project(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], w2c, k, size, size)
+
+    def colours(proj, p=params):
+        return sh_to_color(p["sh"][proj.index], p["means"][proj.index] - center, scene.sh_degree)
+
+    proj = projected()
+    detached = proj.__class__(**{name: v.detach() for name, v in vars(proj).items()})
+    feats = colours(proj).detach()
+    ids, _ = tile_lists(detached, size, size)
+    leaf = [x.clone().requires_grad_(True) for x in (detached.means2d, detached.conics, detached.opacities, feats)]
+    leaf_proj = detached.__class__(**{**vars(detached), "means2d": leaf[0], "conics": leaf[1], "opacities": leaf[2]})
+    grad_sum = lambda x: sum(t.sum() for t in x) if isinstance(x, tuple) else x.sum()  # noqa: E731
+    stages = {
+        "projection": (lambda: projected(), lambda: (lambda p: p.means2d.sum() + p.conics.sum()
+                                                      + p.opacities.sum())(projected()).backward()),
+        "SH colours": (lambda: colours(detached), lambda: colours(detached).sum().backward()),
+        "tile lists (sort)": (lambda: tile_lists(detached, size, size), None),
+        "compositing": (lambda: rasterize_triton(detached, feats, size, size),
+                        lambda: grad_sum(rasterize_triton(leaf_proj, leaf[3], size, size)).backward()),
+        "whole render": (lambda: render(scene, camera, backend="triton"),
+                         lambda: render(GaussianScene(**params), camera, backend="triton").rgb.sum().backward()),
+    }
+    rows = []
+    for name, (fwd, both) in stages.items():
+        with torch.no_grad():
+            forward_ms = timed(fwd, device) * 1e3
+        rows.append([name, f"{count:,}", f"{size}x{size}", forward_ms, timed(both, device) * 1e3 if both else None])
+        print(rows[-1], flush=True)
+    rows.append(["(intersections)", f"{len(ids):,}", "", None, None])
+    return rows
+
+
+FIRST_USE = """
+import time, torch, sys
+sys.path.insert(0, {bench!r})
+from common import orbit_cameras, random_scene
+from artnvg_core.raster import render
+from artnvg_core.scene import GaussianScene
+scene = random_scene(10000, device="cuda")
+camera = orbit_cameras(1, 256).to("cuda")
+times = []
+for _ in range(2):
+    params = {{k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}}
+    torch.cuda.synchronize(); start = time.perf_counter()
+    render(GaussianScene(**params), camera, backend="triton").rgb.sum().backward()
+    torch.cuda.synchronize(); times.append(time.perf_counter() - start)
+print(f"{{times[0]:.2f}} {{times[1]:.4f}}")
+"""
+
+
+def first_use_row():
+    """Seconds of the first triton render (forward+backward) in a fresh process with an empty Triton
+    cache (the kernels' JIT compilation), and of the second."""
+    import os
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, TRITON_CACHE_DIR=cache)
+        env.pop("TRITON_INTERPRET", None)
+        code = FIRST_USE.format(bench=str(Path(__file__).resolve().parent))
+        first, second = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
+                                       text=True).stdout.split()[-2:]
+    return [["triton", "fresh process, empty Triton cache", float(first), float(second)]]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--sizes", default="512,1024")
     parser.add_argument("--counts", default="100000,1000000")
+    parser.add_argument("--stages", type=int, default=0, help="Gaussians of the stage breakdown (0: none)")
+    parser.add_argument("--first-use", action="store_true", help="time the first Triton render (CUDA)")
     args = parser.parse_args()
     device = torch.device(args.device)
     sizes = [int(s) for s in args.sizes.split(",")]
-    counts = [int(c) for c in args.counts.split(",")]
+    counts = [int(c) for c in args.counts.split(",") if c]
     command = "python " + " ".join(sys.argv)
+    first = first_use_row() if args.first_use else []
     accuracy = accuracy_rows(device)
-    speed = speed_rows(device, sizes, counts)
+    stages = stage_rows(device, args.stages, max(sizes)) if args.stages else []
+    speed = speed_rows(device, sizes, counts) if counts else []
     print_table("Rasterizer accuracy against the float64 brute-force evaluator",
                 ["backend", "device", "Gaussians", "size", "max abs error", "PSNR dB"], accuracy, command)
-    print_table("Rasterizer speed per frame",
-                ["backend", "device", "Gaussians", "size", "forward ms", "fwd+bwd ms", "peak GiB fwd", "peak GiB fwd+bwd"],
-                speed, command)
+    if speed:
+        print_table("Rasterizer speed per frame",
+                    ["backend", "device", "Gaussians", "size", "forward ms", "fwd+bwd ms", "peak GiB fwd",
+                     "peak GiB fwd+bwd"], speed, command)
+    if stages:
+        print_table("Triton backend: time per stage (each timed alone)",
+                    ["stage", "Gaussians", "size", "forward ms", "fwd+bwd ms"], stages, command)
+    if first:
+        print_table("First use (JIT compilation)", ["backend", "process", "first render s", "second render s"],
+                    first, command)
 
 
 if __name__ == "__main__":

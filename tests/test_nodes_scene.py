@@ -126,8 +126,13 @@ def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
                         num_frames=60, key_views="0,30", frames_per_segment=2, loop=False)
     expected_path = interpolate_path(cameras, [0, 30], 2).scaled(SCALE)
     assert frames.shape == (3, 64, 64, 3) and torch.allclose(path.world_to_cam, expected_path.world_to_cam)
+    # blank key_views: through every view (the view-list grammar), here both views of a two-view set
+    blank_frames, blank_path = call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([0, 30]),
+                                    path="interpolate", scale=SCALE, num_frames=60, key_views="",
+                                    frames_per_segment=2, loop=False)
+    assert torch.equal(blank_frames, frames) and torch.equal(blank_path.world_to_cam, path.world_to_cam)
     with pytest.raises(NodeInputError, match="Render Camera Path: input 'key_views': .*at least 2"):
-        call(RenderCameraPath, scene=small_bear, cameras=cameras, path="interpolate", scale=SCALE,
+        call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([5]), path="interpolate", scale=SCALE,
              num_frames=60, key_views="", frames_per_segment=2, loop=False)
 
 

@@ -66,9 +66,12 @@ def test_a_render_that_shows_nothing_gives_zero_gradients(gsplat_on_cuda, cull):
 
 
 @pytest.mark.cuda
-def test_a_finetune_with_an_extreme_gaussian_loses_nothing(gsplat_on_cuda, caplog):
+@pytest.mark.parametrize("backend", ["gsplat", "triton"])
+def test_a_finetune_with_an_extreme_gaussian_loses_nothing(backend, caplog):
     """One Gaussian of log-scale 45 covering the view (once all of gsplat's gradients went NaN):
-    every step applies, nothing is held back, the result is finite and has changed."""
+    every step applies, nothing is held back, the result is finite and has changed; on gsplat and
+    on the Triton backend (the default on CUDA)."""
+    pytest.importorskip(backend)
     from artnvg_core.cameras import load_cameras
     from artnvg_core.fileio import load_image
     from artnvg_core.finetune import FinetuneConfig, finetune
@@ -81,7 +84,7 @@ def test_a_finetune_with_an_extreme_gaussian_loses_nothing(gsplat_on_cuda, caplo
                                opacity_logits=torch.tensor([-0.24]))
     scene = GaussianScene(**{k: torch.cat([v, getattr(huge, k)]) for k, v in scene.tensors().items()}).to("cuda")
     cameras = load_cameras(demo.cameras).subset([0, 6]).scaled(0.25)
-    config = FinetuneConfig(iterations=5, nnfm_max_side=64, backend="gsplat", optimize="all")
+    config = FinetuneConfig(iterations=5, nnfm_max_side=64, backend=backend, optimize="all")
     with caplog.at_level(logging.WARNING):
         result = finetune(scene, cameras, load_image(demo.style), config=config)
     assert not [r for r in caplog.records if r.name == "artnvg_core.finite_steps"], caplog.text

@@ -1,9 +1,16 @@
 """Differentiable Gaussian rasterization: :func:`render`, and :func:`prepare_backend` to load a backend
 before the first render (announcing gsplat's first-use kernel build). :mod:`.views` renders every view
-of a camera set in chunks (``render_views``)."""
+of a camera set in chunks (``render_views``).
+
+Backends share the projection (:mod:`.projection`) and colours (:mod:`.sh`) and differ in the
+per-pixel compositing: ``torch`` (the reference, any device and dtype), ``triton`` (Triton kernels,
+float32 CUDA, the default there; :mod:`.triton_backend`) and ``gsplat`` (gsplat's CUDA kernels,
+optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 
 from __future__ import annotations
 
+import importlib.util
+import os
 from dataclasses import dataclass
 from typing import Callable
 
@@ -16,7 +23,7 @@ from .projection import project
 from .sh import sh_to_color
 from .torch_backend import rasterize
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "triton", "gsplat")
 
 
 @dataclass
@@ -30,14 +37,30 @@ class RenderOutput:
     depth: torch.Tensor | None
 
 
+def triton_available() -> bool:
+    """True when the ``triton`` package can be imported (torch's CUDA builds bring it)."""
+    return importlib.util.find_spec("triton") is not None
+
+
+def _triton_runs(device: torch.device, dtype: torch.dtype) -> bool:
+    """Triton can composite float32 tensors on ``device``: CUDA, or the CPU in Triton's interpreter."""
+    if dtype != torch.float32 or not triton_available():
+        return False
+    return device.type == "cuda" or (device.type == "cpu" and os.environ.get("TRITON_INTERPRET", "0") == "1")
+
+
 def choose_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
-    """Resolve ``auto`` to ``gsplat`` for float32 CUDA tensors when gsplat imports, else ``torch``."""
+    """Resolve ``auto`` to ``triton`` for float32 CUDA tensors when Triton imports, else ``torch``."""
     if backend not in BACKENDS:
         raise ValueError(f"render: backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "gsplat" and (device.type != "cuda" or dtype != torch.float32 or not gsplat_available()):
-        raise ValueError("render: backend 'gsplat' needs float32 CUDA tensors and the gsplat package (pip install gsplat)")
+        raise ValueError("render: backend 'gsplat' needs float32 CUDA tensors and the gsplat package "
+                         '(pip install gsplat, or ".[gsplat]")')
+    if backend == "triton" and not _triton_runs(device, dtype):
+        raise ValueError("render: backend 'triton' needs float32 CUDA tensors (or TRITON_INTERPRET=1 on the CPU) "
+                         "and the triton package (it comes with torch's CUDA builds)")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and dtype == torch.float32 and gsplat_available() else "torch"
+        return "triton" if device.type == "cuda" and _triton_runs(device, dtype) else "torch"
     return backend
 
 
@@ -46,10 +69,14 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     """Resolve ``backend`` for float32 scenes on ``device`` and load what it needs before the first
     render, so that gsplat's first-use kernel build (minutes; BENCHMARKS.md, "First look") is
     announced through ``announce`` where the caller's user looks, before it starts. Returns the
-    backend. Without this, the first gsplat render announces it as a logged warning."""
+    backend. Without this, the first gsplat render announces it as a logged warning. Triton
+    compiles its kernels at their first launch in a process that finds no cached build (seconds,
+    see docs/cuda_run.md); here it is only imported."""
     name = choose_backend(backend, torch.device(device))
     if name == "gsplat":
         load_kernels(announce)
+    elif name == "triton":
+        from . import triton_backend  # noqa: F401  (import errors surface before the first render)
     return name
 
 
@@ -89,10 +116,11 @@ def render(
     sh_degree: SH degree to evaluate (default: the scene's); at most the scene's.
     background: [3] or [C, 3] colour composited behind the Gaussians (default black).
     return_depth: also return expected camera-space depth.
-    backend: "torch" (reference, CPU/CUDA), "gsplat" (float32 CUDA) or "auto"
-        (gsplat when available for float32 CUDA tensors, else torch). Both share the projection
-        and the colours; they differ only in the per-pixel compositing (the reference's PyTorch
-        tiles or gsplat's CUDA kernels, see :mod:`.gsplat_backend`).
+    backend: "torch" (reference, CPU/CUDA), "triton" (float32 CUDA), "gsplat" (float32 CUDA,
+        optional package) or "auto" (triton for float32 CUDA tensors when Triton imports, else
+        torch). All share the projection and the colours; they differ only in the per-pixel
+        compositing (the reference's PyTorch tiles, :mod:`.triton_backend`'s kernels or gsplat's,
+        see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
@@ -101,7 +129,7 @@ def render(
     alpha < 1/255 skipped, front-to-back compositing in depth order stopping
     at transmittance 1e-4. Colour = max(SH(dir) + 0.5, 0), dir from the
     camera centre to the Gaussian. Any finite parameters give finite images and
-    gradients, on both backends: unnormalised quaternions of any norm,
+    gradients, on every backend: unnormalised quaternions of any norm,
     log-scales up to the float32 limit, SH up to 3e38 (colours are capped where
     a pixel is already >= 1, see :mod:`.sh`). A render that shows nothing back-propagates
     zero gradients. Returns a :class:`RenderOutput`.
@@ -112,9 +140,14 @@ def render(
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
     composite = rasterize
-    if choose_backend(backend, scene.device, scene.means.dtype) == "gsplat":
+    name = choose_backend(backend, scene.device, scene.means.dtype)
+    if name == "gsplat":
         load_kernels()
         composite = rasterize_gsplat
+    elif name == "triton":
+        from .triton_backend import rasterize_triton  # imports Triton: only when it renders
+
+        composite = rasterize_triton
     width, height = cameras.width, cameras.height
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
@@ -122,7 +155,8 @@ def render(
         proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height,
                        near_plane, scene.blur_px2, scene.antialiased)
         center = cameras.centers[c]
-        colors = sh_to_color(scene.sh[proj.index], scene.means[proj.index] - center, degree)
+        colors = sh_to_color(scene.sh.index_select(0, proj.index), scene.means.index_select(0, proj.index) - center,
+                             degree)
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors
         # nothing projected: the reference's empty image (kept in the autograd graph), for either backend
         blended, trans = (composite if len(proj.index) else rasterize)(proj, features, width, height)

@@ -34,30 +34,31 @@ def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tens
     dirs: [N, 3] viewing directions (camera centre -> Gaussian), any length > 0.
     Returns [N, 3] = SH(dirs) + 0.5 clamped to [0, COLOR_MAX] (no image clamped to [0, 1] changes).
     """
-    result = SH_C0 * sh[:, 0]
+    c = sh.unbind(1)  # one stack in the backward pass, where slicing would write 16 zero-filled copies
+    result = SH_C0 * c[0]
     if degree > 0:
         d = torch.nn.functional.normalize(dirs, dim=-1, eps=1e-12)
-        x, y, z = (d[:, i : i + 1] for i in range(3))
-        result = result - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+        x, y, z = (v[:, None] for v in d.unbind(-1))
+        result = result - SH_C1 * y * c[1] + SH_C1 * z * c[2] - SH_C1 * x * c[3]
         if degree > 1:
             xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
             result = (
                 result
-                + SH_C2[0] * xy * sh[:, 4]
-                + SH_C2[1] * yz * sh[:, 5]
-                + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6]
-                + SH_C2[3] * xz * sh[:, 7]
-                + SH_C2[4] * (xx - yy) * sh[:, 8]
+                + SH_C2[0] * xy * c[4]
+                + SH_C2[1] * yz * c[5]
+                + SH_C2[2] * (2 * zz - xx - yy) * c[6]
+                + SH_C2[3] * xz * c[7]
+                + SH_C2[4] * (xx - yy) * c[8]
             )
             if degree > 2:
                 result = (
                     result
-                    + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9]
-                    + SH_C3[1] * xy * z * sh[:, 10]
-                    + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
-                    + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-                    + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
-                    + SH_C3[5] * z * (xx - yy) * sh[:, 14]
-                    + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15]
+                    + SH_C3[0] * y * (3 * xx - yy) * c[9]
+                    + SH_C3[1] * xy * z * c[10]
+                    + SH_C3[2] * y * (4 * zz - xx - yy) * c[11]
+                    + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * c[12]
+                    + SH_C3[4] * x * (4 * zz - xx - yy) * c[13]
+                    + SH_C3[5] * z * (xx - yy) * c[14]
+                    + SH_C3[6] * x * (xx - 3 * yy) * c[15]
                 )
     return torch.clamp(result + 0.5, 0.0, COLOR_MAX)
