@@ -73,7 +73,7 @@ class FinetuneConfig:
         nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= 16, of the renders the
             VGG terms see (shrunk to it, never enlarged; None: full resolution); the style image is resized
             to that long side.
-        nnfm_search (`str`, defaults to ``"bf16"``): arithmetic of NNFM's nearest-neighbour search, one of
+        nnfm_search (`str`, defaults to ``"tf32"``): arithmetic of NNFM's nearest-neighbour search, one of
             :data:`artnvg_core.losses.SEARCH_PRECISIONS` (the loss itself is float32 either way; its price:
             BENCHMARKS.md, NNFM search precision).
         views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
@@ -108,7 +108,7 @@ class FinetuneConfig:
     vgg: str = "vgg19"
     vgg_weights: str | None = None
     nnfm_max_side: int | None = 512
-    nnfm_search: str = "bf16"
+    nnfm_search: str = "tf32"
     views_per_step: int = 1
     color_transfer: bool = True
     lr_sh_dc: float | None = None

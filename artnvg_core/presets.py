@@ -45,9 +45,9 @@ PRESETS = {
                          "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
     # chosen from the measured curve of time against the final scene's distance from the 1,000-iteration NNFM
     # result (BENCHMARKS.md, "A first look")
-    "preview": Preset(None, 200, False,
-                      "a first look without diffusion: the NNFM stylizer, 200 iterations of 2 views at half "
-                      "resolution (its cost: BENCHMARKS.md, A first look)", scale=0.5, views_per_step=2),
+    "preview": Preset(None, 100, False,
+                      "a first look without diffusion: the NNFM stylizer, 100 iterations at the views' own size "
+                      "(its cost: BENCHMARKS.md, First look)"),
 }
 
 

@@ -5,7 +5,7 @@
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and
 1024x1024 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with each
-available backend, without stylized views (NNFM + content term, the NNFM-only stylizer) and
+available backend (the reference torch backend on the CPU; triton and gsplat on CUDA), without stylized views (NNFM + content term, the NNFM-only stylizer) and
 with random ones (L1 + SSIM + NNFM, the ArtNVG finetune), the VGG terms at ARF's resolution
 (the default ``nnfm_max_side`` 512) and, at 1024, at full resolution; the first backend's rows with
 each ``--searches`` precision of the NNFM match search (the others with the default); and the NNFM
@@ -34,6 +34,7 @@ from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import read_ply
 from artnvg_core.losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, style_image_features
+from artnvg_core.raster import triton_available
 from artnvg_core.raster.gsplat_backend import gsplat_available
 from artnvg_core.stylize import DemoInputs
 
@@ -81,7 +82,9 @@ def main() -> None:
     default_search = FinetuneConfig().nnfm_search
     demo = DemoInputs()
     style = load_image(demo.style).to(device)
-    backends = ["gsplat", "torch"] if device.type == "cuda" and gsplat_available() else ["torch"]
+    backends = ["torch"]
+    if device.type == "cuda":  # the reference backend's speed: BENCHMARKS.md, Rasterizer
+        backends = [name for name, there in (("triton", triton_available()), ("gsplat", gsplat_available())) if there]
     cases = [("demo (40k)", read_ply(demo.scene), load_cameras(demo.cameras).scaled(0.25))] if "demo" in wanted else []
     if device.type == "cuda":
         bear = Path(args.shared) / "scenes" / "bear"
