@@ -55,7 +55,8 @@ class FiniteAdam:
         count, device = first.shape[0], first.device
         self.exp_avg = {name: torch.zeros_like(p) for name, p in self.params.items()}
         self.exp_avg_sq = {name: torch.zeros_like(p) for name, p in self.params.items()}
-        self.taken = torch.zeros((), dtype=torch.float64, device=device)  # steps applied (skipped ones not)
+        # steps applied (skipped ones not); float64 as torch.optim.Adam's Python floats, float32 on MPS (no float64)
+        self.taken = torch.zeros((), dtype=torch.float32 if device.type == "mps" else torch.float64, device=device)
         self.first_held = torch.zeros(count, dtype=torch.long, device=device)  # step first held back; 0: never
         self.held_steps = torch.zeros((), dtype=torch.long, device=device)
         self.skipped_steps = torch.zeros((), dtype=torch.long, device=device)  # for a non-finite loss
@@ -82,9 +83,9 @@ class FiniteAdam:
         bad &= ~skipped
         self.first_held.copy_(torch.where(bad & (self.first_held == 0), step, self.first_held))
         self.held_steps += bad.any()
-        taken = self.taken + (~skipped).double()
+        taken = self.taken + (~skipped).to(self.taken.dtype)
         beta1, beta2 = self.betas
-        correction1 = 1 - beta1**taken  # in float64, as torch.optim.Adam computes them in Python
+        correction1 = 1 - beta1**taken  # in float64 (but on MPS), as torch.optim.Adam computes them in Python
         correction2_sqrt = (1 - beta2**taken).sqrt().float()
         for name, p in self.params.items():
             if p.grad is None:

@@ -76,12 +76,21 @@ def _matmul_precision(precision: str, device: torch.device) -> Iterator[None]:
         yield
         return
     matmul = torch.backends.cuda.matmul
-    before = matmul.fp32_precision
-    matmul.fp32_precision = "tf32"
+    setting, value = ("fp32_precision", "tf32") if _has_setting(matmul, "fp32_precision") else ("allow_tf32", True)
+    before = getattr(matmul, setting)  # fp32_precision from PyTorch 2.9 on; allow_tf32 before it
+    setattr(matmul, setting, value)
     try:
         yield
     finally:
-        matmul.fp32_precision = before
+        setattr(matmul, setting, before)
+
+
+def _has_setting(backend, name: str) -> bool:
+    try:
+        getattr(backend, name)
+    except AttributeError:
+        return False
+    return True
 
 
 @torch.no_grad()
