@@ -36,14 +36,15 @@ import torch
 from .cameras import CameraSet, scene_frame
 from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
-from .finite_steps import FiniteSteps
-from .losses import NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
+from .finite_steps import FiniteAdam
+from .losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import render
 from .scene import GaussianScene
 
 OPTIMIZE_CHOICES = ("appearance", "all")
 APPEARANCE = ("sh", "opacity_logits")
+REPORT_EVERY = 50  # steps between the loss values handed to ``progress`` (reading them waits for the device)
 _log = logging.getLogger(__name__)
 
 
@@ -54,7 +55,7 @@ class FinetuneConfig:
     the units of the stored parameter (world units for means, log-scale units, logit units, SH units).
 
     Args:
-        iterations (`int`, defaults to 1000): optimisation steps, one random view each, >= 0.
+        iterations (`int`, defaults to 1000): optimisation steps, ``views_per_step`` random views each, >= 0.
         optimize (`str`, defaults to ``"appearance"``): ``"appearance"`` trains SH and opacities (geometry
             kept, as the paper's appearance edit); ``"all"`` also means, scales and rotations.
         l1_weight (`float`, defaults to 0.8): weight of the L1 term toward the stylized views.
@@ -72,6 +73,11 @@ class FinetuneConfig:
         nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= 16, of the renders the
             VGG terms see (shrunk to it, never enlarged; None: full resolution); the style image is resized
             to that long side.
+        nnfm_search (`str`, defaults to ``"tf32"``): arithmetic of NNFM's nearest-neighbour search, one of
+            :data:`artnvg_core.losses.SEARCH_PRECISIONS` (the loss itself is float32 either way; its price:
+            BENCHMARKS.md, NNFM search precision).
+        views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
+            possible), their terms averaged into one loss.
         color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and
             after the optimisation (module docstring); ignored with stylized views.
         lr_sh_dc (`float` or None, defaults to None): learning rate of the SH DC coefficients; None:
@@ -102,6 +108,8 @@ class FinetuneConfig:
     vgg: str = "vgg19"
     vgg_weights: str | None = None
     nnfm_max_side: int | None = 512
+    nnfm_search: str = "tf32"
+    views_per_step: int = 1
     color_transfer: bool = True
     lr_sh_dc: float | None = None
     lr_sh_rest: float | None = None
@@ -118,6 +126,10 @@ class FinetuneConfig:
             raise ValueError(f"FinetuneConfig.optimize: expected one of {OPTIMIZE_CHOICES}, got {self.optimize!r}")
         if self.iterations < 0:
             raise ValueError(f"FinetuneConfig.iterations: expected >= 0, got {self.iterations}")
+        if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
+            raise ValueError(f"FinetuneConfig.views_per_step: expected an integer >= 1, got {self.views_per_step!r}")
+        if self.nnfm_search not in SEARCH_PRECISIONS:
+            raise ValueError(f"FinetuneConfig.nnfm_search: expected one of {SEARCH_PRECISIONS}, got {self.nnfm_search!r}")
         for f in fields(self):
             value = getattr(self, f.name)
             if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
@@ -166,8 +178,8 @@ def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
 
 
 def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig,
-               has_targets: bool) -> torch.optim.Adam:
-    """Adam with per-parameter learning rates (see :class:`FinetuneConfig`)."""
+               has_targets: bool) -> FiniteAdam:
+    """Adam with per-parameter learning rates (see :class:`FinetuneConfig`), finite steps only."""
     extent = camera_extent(cameras, scene) if config.optimize == "all" else 1.0
     default_dc, default_rest = (0.0025, 0.0025 / 20) if has_targets else (0.03, 0.003)
     rates = {
@@ -178,12 +190,7 @@ def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: C
         "log_scales": config.lr_scales,
         "quats": config.lr_quats,
     }
-    groups = [
-        {"params": [value], "lr": rates[name]}
-        for name, value in params.items()
-        if value.requires_grad and value.numel() > 0
-    ]
-    return torch.optim.Adam(groups, eps=1e-15)
+    return FiniteAdam(params, rates, "finetune", eps=1e-15)
 
 
 def _nchw(images: torch.Tensor) -> torch.Tensor:
@@ -211,13 +218,14 @@ def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneCo
     return torch.nn.functional.interpolate(style, size=size, mode="bilinear", align_corners=False)
 
 
-def _skip_blind_view(view: int, cameras: CameraSet, blind: set[int]) -> None:
-    """Warn once about a view that sees no Gaussian; ValueError once every view is such."""
-    if view in blind:
-        return
-    blind.add(view)
-    _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
-    if len(blind) == len(cameras):
+def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet) -> None:
+    """Warn once about each view found to see no Gaussian (``blind [C]``, on the device: how many steps
+    each view saw none); ValueError once every view is such."""
+    found = blind.nonzero()[:, 0].tolist()
+    for view in sorted(set(found) - warned):
+        _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
+    warned.update(found)
+    if len(warned) == len(cameras):
         raise ValueError(f"finetune: none of the {len(cameras)} cameras sees any Gaussian; check that the "
                          "cameras and the scene share one coordinate frame")
 
@@ -258,15 +266,19 @@ def finetune(
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
     stylized: optional [C, H', W', 3] stylized views in camera order, resized to
         the camera size when they differ; None runs the NNFM-only stylizer.
-    progress(step, total, info): called after every step, ``info`` holding the
-        loss terms as floats. should_stop(): checked before every step; when it
-        returns True, :class:`~artnvg_core.progress.Cancelled` is raised.
+    progress(step, total, info): called after every step with the step's view (``view``, or ``views``
+        with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
+        holds the loss terms as floats (reading them waits for the device, so not every step).
+        should_stop(): checked before every step; when it returns True,
+        :class:`~artnvg_core.progress.Cancelled` is raised.
     render_progress(view, views, info): called after each view of the renders of every camera
         before the steps (``info["stage"] == "setup"``: colour transfer, content term) and after
         them (``"final"``: colour transfer), which ``should_stop`` can also end.
     No step writes a non-finite value (:mod:`artnvg_core.finite_steps`): a step with a
     non-finite loss is skipped, Gaussians with non-finite gradients keep their last finite
-    values, and both are logged with the step and the Gaussians' indices.
+    values, and both are logged with the step and the Gaussians' indices; so is a view that sees no
+    Gaussian (a step none of whose views sees one is skipped). None of these checks waits for the
+    device: they are read at the steps the loss values are.
     Deterministic for ``config.seed`` on CPU.
     """
     config = config or FinetuneConfig()
@@ -289,7 +301,7 @@ def finetune(
     layers = config.nnfm_layers
     style_image = style_image.to(device, torch.float32)
     style_feats = style_image_features(vgg, _vgg_style(style_image, cameras, config), layers, None)
-    nnfm = NNFMLoss(style_feats, layer_groups=(layers,))
+    nnfm = NNFMLoss(style_feats, layer_groups=(layers,), precision=config.nnfm_search)
 
     color_transfer = stylized is None and config.color_transfer
     originals = None
@@ -303,22 +315,23 @@ def finetune(
             originals = _vgg_input(content, config)
         del content
     params = _parameters(scene, config)
-    optimizer = _optimizer(params, scene, cameras, config, stylized is not None)
-    steps = FiniteSteps(optimizer, params, "finetune")
+    adam = _optimizer(params, scene, cameras, config, stylized is not None)
     generator = torch.Generator().manual_seed(config.seed)
-
-    blind: set[int] = set()
-    for step in range(config.iterations):
+    # every step's views drawn up front and copied to the device once: a copy per step would wait for it
+    schedule = torch.randint(len(cameras), (config.iterations, config.views_per_step), generator=generator)
+    schedule_on_device = schedule.to(device)
+    blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
+    warned: set[int] = set()
+    for step in range(1, config.iterations + 1):
         check_stop(should_stop)
-        view = int(torch.randint(len(cameras), (1,), generator=generator))
-        out = render(_scene_of(params, scene), cameras.subset([view]), backend=config.backend)
-        if not (out.alpha > 0).any():  # no Gaussian reaches this view: nothing to learn from it
-            _skip_blind_view(view, cameras, blind)
-            continue
+        views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
+        out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend)
+        sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
+        blind.index_add_(0, views_on_device, (~sees).int())
         image = out.rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
-            target = stylized[view : view + 1]
+            target = stylized[views_on_device]
             terms["l1"] = config.l1_weight * (image - target).abs().mean()
             terms["ssim"] = config.ssim_weight * (1 - ssim(_nchw(image), _nchw(target)))
         needs_content = originals is not None
@@ -327,20 +340,23 @@ def finetune(
             terms["nnfm"] = config.nnfm_weight * nnfm(feats)
         if needs_content:
             with torch.no_grad():
-                reference = vgg(originals[view : view + 1], layers)
+                reference = vgg(originals[views_on_device], layers)
             terms["content"] = config.content_weight * sum(
                 ((feats[k] - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
             ) / len(layers)
         if stylized is None and config.tv_weight > 0:
             terms["tv"] = config.tv_weight * _total_variation(image)
         loss = sum(terms.values()) if terms else image.sum() * 0
-        if steps.loss_is_finite(loss, step + 1, terms):
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            steps.step(step + 1)
+        loss.backward()
+        adam.step(step, loss, terms, skip=~sees.any())
+        info: dict = {"view": views[0]} if len(views) == 1 else {"views": tuple(views)}
+        if step == 1 or step % REPORT_EVERY == 0 or step == config.iterations:
+            adam.report()
+            _check_blind_views(blind, warned, cameras)
+            info.update(loss=loss.item(), **{k: v.item() for k, v in terms.items()})
         if progress is not None:
-            progress(step + 1, config.iterations, {"view": view, "loss": loss.item(), **{k: v.item() for k, v in terms.items()}})
-    steps.summary()
+            progress(step, config.iterations, info)
+    adam.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
         renders = _render_views(result, cameras, config, "final", render_progress, should_stop)

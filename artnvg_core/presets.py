@@ -1,28 +1,33 @@
-"""Named speed/accuracy presets of the diffusion pipeline (sampler settings, memory mode, finetune length).
+"""Named speed/accuracy presets (sampler settings, memory mode, finetune length, resolution).
 
 Only ``paper`` (and ``low-memory``, up to rounding) give the paper's result; ``balanced`` and ``fast``
 trade accuracy for speed. What each costs in time and in the final scene: BENCHMARKS.md, "Presets on
-the final scene" (docs/presets.md explains them).
+the final scene" (docs/presets.md explains them). ``preview`` is diffusion-free: the NNFM stylizer,
+short and at reduced resolution, a first look in seconds (BENCHMARKS.md, "A first look").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .diffusion.sampler import SamplerSettings
+from .diffusion.settings import SamplerSettings
 
 
 @dataclass(frozen=True)
 class Preset:
-    """sampler: the group sampler's settings; low_memory: :func:`artnvg_core.diffusion.memory.enable_low_memory`
-    and sequential guidance halves; finetune_iterations: length of the Gaussian finetune; key_views: stylize
-    and finetune on only that many views covering the scene (:mod:`artnvg_core.key_views`; 0: every view)."""
+    """sampler: the group sampler's settings (None: diffusion-free, the NNFM stylizer); low_memory:
+    :func:`artnvg_core.diffusion.memory.enable_low_memory` and sequential guidance halves; finetune_iterations:
+    length of the Gaussian finetune; key_views: stylize and finetune on only that many views covering the scene
+    (:mod:`artnvg_core.key_views`; 0: every view); scale: the views' resolution factor (1: as given);
+    views_per_step: ``FinetuneConfig.views_per_step``."""
 
-    sampler: SamplerSettings
+    sampler: SamplerSettings | None
     finetune_iterations: int
     low_memory: bool
     summary: str
     key_views: int = 0
+    scale: float = 1.0
+    views_per_step: int = 1
 
 
 PRESETS = {
@@ -38,6 +43,11 @@ PRESETS = {
                    key_views=42),
     "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
                          "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
+    # chosen from the measured curve of time against the final scene's distance from the 1,000-iteration NNFM
+    # result (BENCHMARKS.md, "A first look")
+    "preview": Preset(None, 100, False,
+                      "a first look without diffusion: the NNFM stylizer, 100 iterations at the views' own size "
+                      "(its cost: BENCHMARKS.md, First look)"),
 }
 
 

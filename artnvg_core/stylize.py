@@ -227,6 +227,8 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
+    if chosen.sampler is None:
+        raise ValueError(f"stylize_diffusion: preset {preset!r} is diffusion-free (run stylize_nnfm)")
     changes = dict(sampler_changes or {})
     unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
     if unknown:

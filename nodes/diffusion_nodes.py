@@ -20,7 +20,7 @@ from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
 from artnvg_core.diffusion.model_files import MODEL_SOURCES, ModelFiles, ModelSource, check_model_files, locate
 from artnvg_core.diffusion.models import DiffusionModels
-from artnvg_core.diffusion.sampler import NV_LEVELS, SCHEDULERS, SIZE_RULES, SamplerSettings
+from artnvg_core.diffusion.settings import NV_LEVELS, SCHEDULER_NAMES, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.stylize import (
     DEFAULT_NEGATIVE_PROMPT,
     DEFAULT_PROMPT,
@@ -326,7 +326,7 @@ class SampleGroup(ArtNVGNode):
         "resolution": ("INT", {"default": _SAMPLER.resolution, "min": 0, "max": 4096, "step": 64, "tooltip": (
             "Sampling size (see size_rule; 1024 for SDXL); 0 keeps the views' size. Outputs keep the "
             "views' size.")}),
-        "scheduler": (tuple(SCHEDULERS), {"default": _SAMPLER.scheduler}),
+        "scheduler": (SCHEDULER_NAMES, {"default": _SAMPLER.scheduler}),
     }
     OPTIONAL = {
         "size_rule": (SIZE_RULES, {"default": _SAMPLER.size_rule, "tooltip": (

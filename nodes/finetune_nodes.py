@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, finetune
+from artnvg_core.losses import SEARCH_PRECISIONS
+from artnvg_core.presets import PRESETS
 
 from .comfy_bridge import (
     autograd_enabled,
@@ -20,6 +22,8 @@ from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE
 
 _DEFAULTS = FinetuneConfig()
+_PREVIEW = PRESETS["preview"]
+PRESET_CHOICES = ("custom", "preview")
 STAGES = {"setup": "rendering the {} views before finetuning", "steps": "finetuning: {} steps",
           "final": "rendering the {} finetuned views for the colour match"}
 
@@ -79,17 +83,32 @@ class FinetuneGaussians(ArtNVGNode):
         "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
             "Without stylized_views: match the scene's colours to the style image's mean and covariance "
             "before and after finetuning, as ARF does (exact, no extra iterations).")}),
+        "preset": (PRESET_CHOICES, {"default": "custom", "tooltip": (
+            f"preview: a first look in seconds: {_PREVIEW.finetune_iterations} iterations of "
+            f"{_PREVIEW.views_per_step} views at {_PREVIEW.scale:g} x the cameras' size replace iterations, "
+            "views_per_step and the size (BENCHMARKS.md, First look); custom: the inputs as set.")}),
+        "views_per_step": ("INT", {"default": _DEFAULTS.views_per_step, "min": 1, "max": 64, "tooltip": (
+            "Views rendered and compared per step, their losses averaged.")}),
+        "nnfm_search": (SEARCH_PRECISIONS, {"default": _DEFAULTS.nnfm_search, "tooltip": (
+            "Arithmetic of NNFM's nearest-neighbour search (the loss stays float32): bf16 is the fastest, "
+            "fp32 the exact one (BENCHMARKS.md, NNFM search precision).")}),
     }
 
     @cancellable
     def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
                  content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side,
-                 color_transfer=_DEFAULTS.color_transfer):
+                 color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
+                 nnfm_search=_DEFAULTS.nnfm_search):
         with node_input(self.DISPLAY_NAME), autograd_enabled():
+            if preset == "preview":
+                chosen = PRESETS["preview"]
+                iterations, views_per_step = chosen.finetune_iterations, chosen.views_per_step
+                cameras = cameras.scaled(chosen.scale)
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
-                nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer,
+                nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer, views_per_step=views_per_step,
+                nnfm_search=nnfm_search,
             )
             device = compute_device()
             prepare_rasterizer(device)

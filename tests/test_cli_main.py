@@ -312,3 +312,24 @@ def test_spz_axes_option_reads_and_writes_spz_in_the_plys_axes(tmp_path, capsys)
     assert _stylize(scene, demo.style, tmp_path / "out.spz", "--spz-axes", "ply") == 0
     kept = load_scene(tmp_path / "out.spz", spz_axes="ply").means
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
+
+
+def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
+    """A whole ``stylize --preset preview`` run in a fresh process (the demo at 1/8 size, 2 steps) never
+    imports diffusers, transformers or peft: seconds of start-up the preview does not need. (torch._dynamo
+    is not asserted: on the CPU the reference rasterizer's activation checkpointing imports it.)"""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "preview.ply"
+    code = ("import sys\nfrom artnvg_core.cli.main import main\n"
+            f"assert main(['stylize', '--preset', 'preview', '--iters', '2', '--scale', '0.125', '--device', 'cpu', "
+            f"'--out', {str(out)!r}]) == 0\n"
+            "print(sorted(m for m in ('diffusers', 'transformers', 'peft') if m in sys.modules))")
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    assert any(line.startswith("stylizer: nnfm (preset preview: ") for line in lines), done.stdout
+    assert lines[-1] == "[]" and out.is_file()

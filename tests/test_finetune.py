@@ -135,7 +135,7 @@ def test_vgg_terms_see_the_render_and_style_sized_as_arf_does(demo):
     scene, cameras, style = demo
     side = max(cameras.width, cameras.height) // 2
     seen = []
-    config = FinetuneConfig(iterations=1, nnfm_max_side=side, color_transfer=False)
+    config = FinetuneConfig(iterations=1, nnfm_max_side=side, color_transfer=False, nnfm_search="fp32")
     finetune(scene, cameras, style, config=config, progress=lambda step, total, info: seen.append(info))
     style = torch.nn.functional.interpolate(style.permute(2, 0, 1)[None], size=(round(side * 203 / 256), side), mode="area")
     vgg = load_vgg("vgg19")
@@ -146,6 +146,25 @@ def test_vgg_terms_see_the_render_and_style_sized_as_arf_does(demo):
         expected = float(loss(vgg(half, LAYERS)))
     assert seen[0]["nnfm"] == pytest.approx(expected, rel=1e-5)
     assert seen[0]["content"] == 0.0  # the untouched scene matches its own (shrunk) renders
+
+
+def test_several_views_per_step_average_their_nnfm_terms(demo):
+    """With 3 views per step, step 1's NNFM term is the mean of the three views' own NNFM terms (positions
+    of equal-size views averaged together), each computed independently on its render."""
+    scene, cameras, style = demo
+    seen = []
+    config = FinetuneConfig(iterations=1, views_per_step=3, color_transfer=False, nnfm_search="fp32")
+    finetune(scene, cameras, style, config=config, progress=lambda step, total, info: seen.append(info))
+    vgg = load_vgg("vgg19")
+    side = max(cameras.width, cameras.height)
+    small = torch.nn.functional.interpolate(style.permute(2, 0, 1)[None], size=(round(side * 203 / 256), side),
+                                            mode="area")
+    loss = NNFMLoss(vgg(small, LAYERS), layer_groups=(LAYERS,))
+    with torch.no_grad():
+        each = [float(loss(vgg(render(scene, cameras.subset([v])).rgb.clamp(0, 1).permute(0, 3, 1, 2), LAYERS)))
+                for v in seen[0]["views"]]
+    assert len(seen[0]["views"]) == 3
+    assert seen[0]["nnfm"] == pytest.approx(sum(each) / 3, rel=1e-5)
 
 
 def test_color_transfer_moves_the_palette_to_the_style(demo):
@@ -180,7 +199,8 @@ def test_color_transfer_on_an_all_black_scene_stays_finite(demo):
     "kwargs, field",
     [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
      ({"lr_means": -1.0}, "lr_means"), ({"nnfm_max_side": 8}, "nnfm_max_side"),
-     ({"nnfm_max_side": 256.0}, "nnfm_max_side")],
+     ({"nnfm_max_side": 256.0}, "nnfm_max_side"), ({"views_per_step": 0}, "views_per_step"),
+     ({"nnfm_search": "fp16"}, "nnfm_search")],
 )
 def test_bad_config_rejected(kwargs, field):
     with pytest.raises(ValueError, match=field):

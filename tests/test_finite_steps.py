@@ -1,9 +1,12 @@
-"""Finite optimizer steps: Gaussians with unusable gradients are held back exactly; others step as Adam does."""
+"""FiniteAdam: Adam as torch.optim.Adam computes it; Gaussians with unusable gradients held back exactly;
+non-finite losses and caller-skipped steps change nothing; what happened is logged when reported."""
 
 import pytest
 import torch
 
-from artnvg_core.finite_steps import GRAD_LIMIT, FiniteSteps
+from artnvg_core.finite_steps import GRAD_LIMIT, FiniteAdam
+
+LRS = {"sh": 0.1, "opacity": 0.03}
 
 
 def _params(seed=0):
@@ -18,12 +21,35 @@ def _grads(seed):
     return {"sh": torch.randn(6, 4, 3, generator=g), "opacity": torch.randn(6, generator=g)}
 
 
+def _torch_adam(params):
+    return torch.optim.Adam([{"params": [params[name]], "lr": lr} for name, lr in LRS.items()], eps=1e-15,
+                            foreach=False)
+
+
+def _set(params, grads):
+    for name, grad in grads.items():
+        params[name].grad = grad.clone()
+
+
+def test_finite_steps_are_torch_adam():
+    ours, ref = _params(), _params()
+    adam, reference = FiniteAdam(ours, LRS, "test"), _torch_adam(ref)
+    for step in range(1, 8):
+        grads = _grads(step)
+        _set(ours, grads)
+        _set(ref, grads)
+        adam.step(step, torch.tensor(1.0), {"l1": torch.tensor(1.0)})
+        reference.step()
+        for name in LRS:
+            torch.testing.assert_close(ours[name], ref[name], rtol=2e-6, atol=1e-7)
+            assert ours[name].grad is None
+    assert torch.equal(ours["frozen"], ref["frozen"])
+
+
 @pytest.mark.parametrize("poison", [float("nan"), float("inf"), -GRAD_LIMIT, 3e38])
 def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poison, caplog):
     guarded, plain = _params(), _params()
-    opt_g = torch.optim.Adam([guarded["sh"], guarded["opacity"]], lr=0.1)
-    opt_p = torch.optim.Adam([plain["sh"], plain["opacity"]], lr=0.1)
-    steps = FiniteSteps(opt_g, guarded, "test")
+    adam, reference = FiniteAdam(guarded, LRS, "test"), _torch_adam(plain)
     for step in (1, 2, 3):
         grads = _grads(step)
         if step >= 2:
@@ -31,32 +57,51 @@ def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poiso
             grads["opacity"][4] = poison  # Gaussian 4 at step 2 only
             if step == 3:
                 grads["opacity"][4] = 0.5
-        for params, opt in ((guarded, opt_g), (plain, opt_p)):
-            opt.zero_grad()
-            for name, grad in grads.items():
-                params[name].grad = grad.clone()
+        _set(guarded, grads)
         with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
-            steps.step(step)
-        for name in grads:  # the reference: plain Adam with those Gaussians' gradients zeroed
-            plain[name].grad[[2, 4] if step == 2 else [2] if step == 3 else []] = 0
-        opt_p.step()
+            adam.step(step, torch.tensor(1.0), {})
+        held = [2, 4] if step == 2 else [2] if step == 3 else []
+        for name, grad in grads.items():  # the reference: Adam with those Gaussians' gradients and moments zeroed
+            grad[held] = 0
+            reference.state.get(plain[name], {}).get("exp_avg", torch.zeros(6, 1))[held] = 0
+            reference.state.get(plain[name], {}).get("exp_avg_sq", torch.zeros(6, 1))[held] = 0
+        _set(plain, grads)
+        reference.step()
         if step == 1:
             after_first = {k: v.detach().clone() for k, v in guarded.items()}
+    assert caplog.records == []  # nothing is logged before a report: a step never waits for the device
     keep = [0, 1, 3, 5]
     for name in ("sh", "opacity"):
         assert torch.isfinite(guarded[name]).all()
-        assert torch.equal(guarded[name][keep], plain[name][keep]), name
+        torch.testing.assert_close(guarded[name][keep], plain[name][keep], rtol=2e-6, atol=1e-7)
         assert torch.equal(guarded[name][2], after_first[name][2]), name  # held back at steps 2 and 3
+    torch.testing.assert_close(guarded["opacity"][4], plain["opacity"][4], rtol=2e-6, atol=1e-7)
     assert not torch.equal(guarded["opacity"][4], after_first["opacity"][4])  # stepped again at step 3
+    with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
+        adam.report()
+        adam.report()  # nothing new
     assert [r.message for r in caplog.records] == [
         "test: step 2: 2 Gaussians have non-finite (or >= 1e+18) gradients (2, 4); they keep their last "
         "finite values this step"]
-    caplog.clear()
+
+
+def test_a_non_finite_loss_or_a_skipped_step_changes_nothing(caplog):
+    params = _params()
+    adam = FiniteAdam(params, LRS, "test")
+    _set(params, _grads(1))
+    adam.step(1, torch.tensor(1.0), {"l1": torch.tensor(1.0)})
+    before = {k: v.detach().clone() for k, v in params.items()}
+    moments = {k: (adam.exp_avg[k].clone(), adam.exp_avg_sq[k].clone()) for k in LRS}
+    _set(params, {k: g * float("nan") for k, g in _grads(2).items()})  # a NaN loss gives NaN gradients
+    adam.step(2, torch.tensor(float("nan")), {"l1": torch.tensor(float("nan")), "tv": torch.tensor(0.5)})
+    _set(params, _grads(3))
+    adam.step(3, torch.tensor(1.0), {"l1": torch.tensor(1.0), "tv": torch.tensor(0.5)}, skip=torch.tensor(True))
+    for name in LRS:
+        assert torch.equal(params[name], before[name])
+        assert torch.equal(adam.exp_avg[name], moments[name][0]) and torch.equal(adam.exp_avg_sq[name], moments[name][1])
+    assert float(adam.taken) == 1
     with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
-        assert not steps.loss_is_finite(torch.tensor(float("nan")), 4, {"l1": torch.tensor(float("nan"))})
-        assert steps.loss_is_finite(torch.tensor(1.0), 5, {})
-        steps.summary()
+        adam.summary()
     assert [r.message for r in caplog.records] == [
-        "test: step 4: the loss is not finite (l1 nan); the step is skipped",
-        "test: 1 steps skipped for a non-finite loss (first at step 4)",
-        "test: 2 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (2, 4)"]
+        "test: step 2: the loss is not finite (l1 nan, tv 0.5); the step is skipped",
+        "test: 1 steps skipped for a non-finite loss (first at step 2)"]

@@ -159,3 +159,37 @@ def test_halving_equals_arfs_bilinear_half_and_gradients_flow():
     torch.testing.assert_close(image.grad, torch.full_like(image, 0.25))
     assert shrink_to_max_side(image, 64) is image and shrink_to_max_side(image, None) is image
     assert shrink_to_max_side(torch.rand(1, 3, 5, 300), 30).shape == (1, 3, 1, 30)  # never below one pixel
+
+
+@pytest.mark.parametrize("precision, tolerance", [("fp32", 1e-6), ("tf32", 1e-6), ("bf16", 2**-7)])
+def test_search_precision_picks_a_match_within_its_rounding_of_the_best(precision, tolerance):
+    """Against the float64 brute force on ReLU-like features of VGG's relu3 width (768 = 3 x 256): every
+    match the search picks has a true cosine within ``tolerance`` of the best (on the CPU "tf32" is
+    float32), every position whose best match leads the second best by more than that is matched to the
+    best itself, and the loss on the chosen matches equals the float64 loss on the same matches (the
+    search changes which match, never how the loss is computed)."""
+    gen = torch.Generator().manual_seed(14)
+    render = torch.rand(1, 768, 24, 20, generator=gen).clamp_min(0.3) - 0.3
+    style = torch.rand(1, 768, 30, 16, generator=gen).clamp_min(0.3) - 0.3
+    cos = brute_force_cosines(render, style)
+    chosen = nearest_style_indices(_unit(render), _unit(style), 2**12, precision)
+    best = cos.max(dim=1).values
+    picked = cos.gather(1, chosen[:, None])[:, 0]
+    assert float((best - picked).max()) <= tolerance
+    top2 = cos.topk(2, dim=1).values
+    clear = top2[:, 0] - top2[:, 1] > tolerance
+    assert clear.sum() > 10 and torch.equal(chosen[clear], cos.argmax(dim=1)[clear])
+    loss = NNFMLoss({"a": style}, (("a",),), precision=precision)({"a": render})
+    assert loss.item() == pytest.approx(float((1 - picked).mean()), abs=1e-6)
+    with pytest.raises(ValueError, match="precision"):
+        NNFMLoss({"a": style}, (("a",),), precision="fp16")
+
+
+def _unit(features: torch.Tensor) -> torch.Tensor:
+    rows = features.permute(0, 2, 3, 1).reshape(-1, features.shape[1])
+    return torch.nn.functional.normalize(rows, dim=1)
+
+
+def brute_force_cosines(render: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+    """Float64 cosine of every render position [N] with every style position [M]: [N, M]."""
+    return _unit(render.double()) @ _unit(style.double()).T

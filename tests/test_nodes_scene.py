@@ -169,6 +169,26 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
              optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)
 
 
+def test_finetune_node_preview_preset_is_the_cores_preview(small_bear, bear, monkeypatch):
+    """preset "preview" replaces iterations, views per step and the cameras' size by the preview preset's
+    (PRESETS["preview"], shortened here): the same scene as the core's finetune with those settings."""
+    import dataclasses
+
+    from artnvg_core.presets import PRESETS
+
+    preview = dataclasses.replace(PRESETS["preview"], finetune_iterations=3)
+    monkeypatch.setitem(PRESETS, "preview", preview)
+    cameras = bear["cameras"].subset([0, 24, 48, 72]).scaled(SCALE)
+    style = torch.rand(1, 32, 40, 3, generator=torch.Generator().manual_seed(0))
+    weights = {"l1_weight": 0.8, "ssim_weight": 0.2, "nnfm_weight": 1.0, "content_weight": 0.5, "tv_weight": 0.1}
+    (result,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
+                     optimize="appearance", seed=3, preset="preview", nnfm_search="fp32", **weights)
+    config = FinetuneConfig(iterations=preview.finetune_iterations, views_per_step=preview.views_per_step,
+                            optimize="appearance", seed=3, nnfm_search="fp32", **weights)
+    expected = finetune(small_bear, cameras.scaled(preview.scale), style[0], config=config)
+    assert _same_scene(result, expected)
+
+
 def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, small_bear):
     saved = [call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized") for _ in range(2)]
     assert [s["ui"]["scenes"][0]["filename"] for s in saved] == ["stylized_00001.ply", "stylized_00002.ply"]

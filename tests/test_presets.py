@@ -7,7 +7,8 @@ import torch
 
 from artnvg_core.cli.main import build_parser
 from artnvg_core.cli.common import parse_devices
-from artnvg_core.diffusion.sampler import SCHEDULERS, SamplerSettings
+from artnvg_core.diffusion.sampler import SCHEDULERS
+from artnvg_core.diffusion.settings import SCHEDULER_NAMES, SamplerSettings
 from artnvg_core.presets import PRESETS, get_preset
 
 
@@ -18,13 +19,15 @@ def _stylize_choices(dest: str) -> tuple:
 
 def test_cli_offers_every_preset_and_scheduler():
     assert _stylize_choices("preset") == tuple(PRESETS)
-    assert _stylize_choices("scheduler") == tuple(SCHEDULERS)
+    assert _stylize_choices("scheduler") == tuple(SCHEDULERS) == SCHEDULER_NAMES
 
 
 def test_only_paper_is_exact_and_paper_is_the_default_sampler():
     assert PRESETS["paper"].sampler == SamplerSettings() and not PRESETS["paper"].low_memory
     exact_fields = ("attention_backend", "sequential_cfg")
     for name, preset in PRESETS.items():
+        if preset.sampler is None:  # diffusion-free (preview): nothing of the paper's diffusion stage
+            continue
         changed = {f.name for f in dataclasses.fields(SamplerSettings)
                    if getattr(preset.sampler, f.name) != getattr(SamplerSettings(), f.name)}
         assert (name in ("paper", "low-memory")) == changed.issubset(exact_fields), name
@@ -32,9 +35,20 @@ def test_only_paper_is_exact_and_paper_is_the_default_sampler():
 
 
 def test_unknown_preset_and_device_raise():
-    with pytest.raises(ValueError, match=r"preset must be one of \['balanced', 'fast', 'low-memory', 'paper'\]"):
+    with pytest.raises(ValueError, match=r"preset must be one of \['balanced', 'fast', 'low-memory', 'paper', 'preview'\]"):
         get_preset("turbo")
     assert parse_devices("cuda:0, cuda:1") == [torch.device("cuda", 0), torch.device("cuda", 1)]
     assert parse_devices(None) is None
     with pytest.raises(ValueError, match="--devices: 'gpu0' is not a device"):
         parse_devices("cuda:0,gpu0")
+
+
+def test_preview_is_the_only_diffusion_free_preset_and_refuses_the_diffusion_stylizer(tmp_path, capsys):
+    from artnvg_core.cli.main import main
+
+    assert [name for name, preset in PRESETS.items() if preset.sampler is None] == ["preview"]
+    preview = PRESETS["preview"]
+    assert preview.finetune_iterations < PRESETS["paper"].finetune_iterations and not preview.low_memory
+    assert main(["stylize", "--preset", "preview", "--stylizer", "diffusion", "--out", str(tmp_path / "s.ply")]) == 2
+    assert "--preset preview runs without diffusion" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

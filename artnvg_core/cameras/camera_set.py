@@ -52,13 +52,15 @@ class CameraSet:
         """Camera centres in world coordinates, [C, 3]."""
         return camera_centers(self.world_to_cam)
 
-    def subset(self, indices) -> "CameraSet":
-        """The views at ``indices`` (a sequence of ints), in that order."""
+    def subset(self, indices, on_device: torch.Tensor | None = None) -> "CameraSet":
+        """The views at ``indices`` (a sequence of ints), in that order. ``on_device``: the same indices as
+        a long tensor on the cameras' device, which selects without copying indices to it (such a copy
+        waits for the device to finish its queued work)."""
         idx = [int(i) for i in indices]
         for i in idx:
             if not -len(self) <= i < len(self):
                 raise ValueError(f"CameraSet.subset: view index {i} out of range for {len(self)} views")
-        sel = torch.tensor(idx, dtype=torch.long)
+        sel = torch.tensor(idx, dtype=torch.long) if on_device is None else on_device
         return replace(
             self,
             world_to_cam=self.world_to_cam[sel],

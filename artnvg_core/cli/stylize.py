@@ -14,9 +14,11 @@ import time
 import torch
 
 from ..devices import DEVICE_CHOICES
-from ..diffusion.model_files import ModelFiles
 from ..diffusion.csgo import CONTENT_ROUTINGS
+from ..diffusion.model_files import ModelFiles
+from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
+from ..presets import PRESETS, get_preset
 from .common import (
     SCENE_FILES,
     ProgressBar,
@@ -52,7 +54,12 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         inputs = DemoInputs()
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
-    scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
+    preset = get_preset(args.preset)
+    diffusion_free = preset.sampler is None  # the preview: its own length, resolution and stylizer
+    if diffusion_free and args.stylizer == "diffusion":
+        raise ValueError(f"--preset {args.preset} runs without diffusion: use --stylizer nnfm (or auto), or "
+                         "another preset")
+    scale = args.scale if args.scale is not None else (preset.scale if diffusion_free else 0.25 if demo else 1.0)
     out = writable_scene_path(check_output_file(args.out, "--out"), "--out")
     sheet = check_output_file(sheet_path(out), "--out (its contact sheet)")
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
@@ -74,16 +81,20 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     style = load_image(args.style)
 
     from ..finetune import FinetuneConfig
-    from ..presets import get_preset  # imports the diffusion libraries
     from ..stylize import DiffusionModelsUnavailable, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
 
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
-    stylizer, reason = choose_stylizer(args.stylizer, files)
-    preset = get_preset(args.preset)
+    if diffusion_free:
+        stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
+    else:
+        stylizer, reason = choose_stylizer(args.stylizer, files)
 
     def iterations_for(stylizer: str) -> int:
-        default = preset.finetune_iterations if stylizer == "diffusion" else 1000
-        return args.iters if args.iters is not None else (60 if demo else default)
+        if args.iters is not None:
+            return args.iters
+        if diffusion_free or stylizer == "diffusion":
+            return preset.finetune_iterations
+        return 60 if demo else 1000
 
     iterations = iterations_for(stylizer)
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
@@ -93,7 +104,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
-    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer)
+    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
+                            views_per_step=preset.views_per_step)
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -124,12 +136,12 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
                    "NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
-    p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
-                   help="diffusion speed/accuracy preset (docs/presets.md)")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="paper",
+                   help="speed/accuracy preset (docs/presets.md); preview: a first look in seconds, without diffusion")
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
                    help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
                    "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
-    p.add_argument("--scheduler", choices=("ddim", "euler", "euler_ancestral", "dpmpp_2m", "unipc"), default=None,
+    p.add_argument("--scheduler", choices=SCHEDULER_NAMES, default=None,
                    help="diffusion sampler (default: the preset's, DDIM); dpmpp_2m and unipc are multistep solvers "
                         "meant for fewer --steps")
     p.add_argument("--steps", type=integer_at_least(1), default=None, help="denoising steps (default: the preset's)")
@@ -149,7 +161,8 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
     p.add_argument("--iters", type=integer_at_least(0), default=None,
-                   help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
+                   help="finetune iterations (default: the preset's for diffusion and preview, 1000 for nnfm; 60 for "
+                        "the demo)")
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
                    help="nnfm: match the scene's colours to the style image's before and after finetuning, "
                    "as ARF does (default on)")

@@ -4,7 +4,8 @@ Entry points (import them from their modules; this package imports nothing heavy
 
 - :mod:`.models`       -- ``load_diffusion_models`` (and per-model loaders) -> ``DiffusionModels``
 - :mod:`.stylize`      -- ``stylize_views``: a whole scene, group by group
-- :mod:`.sampler`      -- ``stylize_group``, ``SamplerSettings``: one neighbouring-view group
+- :mod:`.sampler`      -- ``stylize_group``: one neighbouring-view group
+- :mod:`.settings`     -- ``SamplerSettings`` and the names it chooses from (imports no diffusers)
 - :mod:`.conditioning` -- ``prepare_conditioning``: prompt embeddings and style tokens
 - :mod:`.csgo_weights` -- ``load_csgo``: CSGO's weights in every layout the released loader reads
 - :mod:`.csgo`         -- token routing, processor installation, ``CSGOProjections``

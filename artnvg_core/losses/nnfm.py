@@ -11,13 +11,21 @@ images in a batch are averaged together; several style images pool their positio
 Memory is bounded: similarities are computed in chunks of at most ``max_chunk_elements``
 (rendered x style positions) under ``no_grad`` to pick the matches; the loss is then
 recomputed with gradient from the gathered matches only, which is exact since the gradient
-of a max is the gradient of its argmax. Normalisation and similarities are computed in
-float32 whatever the input dtype or autocast state.
+of a max is the gradient of its argmax. Normalisation and the loss are computed in float32
+whatever the input dtype or autocast state.
+
+The search for the matches (the argmax only) runs in one of :data:`SEARCH_PRECISIONS`:
+``"fp32"`` (float32 products), ``"tf32"`` (float32 inputs rounded to TF32's 10-bit mantissa by
+the tensor cores of a CUDA GPU; float32 elsewhere) or ``"bf16"`` (unit vectors rounded to
+bfloat16, products summed in float32). Where the cheaper search picks the same match the loss is
+identical; where it does not, the match it picks has a true cosine within the rounding (about
+2^-7 for bf16, 2^-10 for TF32) of the best one's. BENCHMARKS.md prices each on the final scene.
 """
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from contextlib import contextmanager
+from typing import Iterator, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -27,6 +35,7 @@ from .vgg import VGGFeatures
 
 ARF_LAYER_GROUPS = (("relu3_1", "relu3_2", "relu3_3"),)
 NORM_EPS = 1e-8  # added to the squared norm: a zero feature vector normalises to zero, no NaN
+SEARCH_PRECISIONS = ("fp32", "tf32", "bf16")
 
 
 def normalize_features(features: torch.Tensor) -> torch.Tensor:
@@ -49,29 +58,70 @@ def _group_positions(feats: Mapping[str, torch.Tensor], group: Sequence[str], wh
     return stacked.permute(0, 2, 3, 1).reshape(-1, stacked.shape[1])
 
 
+def _check_precision(precision: str) -> str:
+    if precision not in SEARCH_PRECISIONS:
+        raise ValueError(f"NNFM search precision: expected one of {SEARCH_PRECISIONS}, got {precision!r}")
+    return precision
+
+
+def search_operand(unit: torch.Tensor, precision: str) -> torch.Tensor:
+    """Unit rows as the search of ``precision`` multiplies them (bfloat16 for ``"bf16"``, else as given)."""
+    return unit.bfloat16() if _check_precision(precision) == "bf16" else unit
+
+
+@contextmanager
+def _matmul_precision(precision: str, device: torch.device) -> Iterator[None]:
+    """float32 CUDA products in TF32 inside, for ``"tf32"`` on a CUDA device; the setting is restored after."""
+    if precision != "tf32" or device.type != "cuda":
+        yield
+        return
+    matmul = torch.backends.cuda.matmul
+    setting, value = ("fp32_precision", "tf32") if _has_setting(matmul, "fp32_precision") else ("allow_tf32", True)
+    before = getattr(matmul, setting)  # fp32_precision from PyTorch 2.9 on; allow_tf32 before it
+    setattr(matmul, setting, value)
+    try:
+        yield
+    finally:
+        setattr(matmul, setting, before)
+
+
+def _has_setting(backend, name: str) -> bool:
+    try:
+        getattr(backend, name)
+    except AttributeError:
+        return False
+    return True
+
+
 @torch.no_grad()
 def nearest_style_indices(
-    render_unit: torch.Tensor, style_unit: torch.Tensor, max_chunk_elements: int
+    render_unit: torch.Tensor, style_unit: torch.Tensor, max_chunk_elements: int, precision: str = "fp32"
 ) -> torch.Tensor:
     """Index into ``style_unit [M, C]`` of the most similar row for each ``render_unit [N, C]`` row.
 
-    Both inputs are unit-length float32 rows. At most ``max_chunk_elements`` similarities are
-    held at once; ties go to the lowest index.
+    Both inputs are unit-length rows (float32; ``style_unit`` may already be :func:`search_operand`'s).
+    At most ``max_chunk_elements`` similarities are held at once; ties go to the lowest index;
+    ``precision``: the products' arithmetic (module docstring).
     """
+    render_unit, style_unit = search_operand(render_unit, precision), search_operand(style_unit, precision)
     num_style = style_unit.shape[0]
     cols = max(1, min(num_style, max_chunk_elements))
     rows = max(1, max_chunk_elements // cols)
     best_index = torch.empty(render_unit.shape[0], dtype=torch.long, device=render_unit.device)
-    for r0 in range(0, render_unit.shape[0], rows):
-        chunk = render_unit[r0 : r0 + rows]
-        best_sim = torch.full((chunk.shape[0],), -torch.inf, device=chunk.device)
-        best = torch.zeros(chunk.shape[0], dtype=torch.long, device=chunk.device)
-        for c0 in range(0, num_style, cols):
-            sim, index = (chunk @ style_unit[c0 : c0 + cols].T).max(dim=1)
-            better = sim > best_sim
-            best_sim = torch.where(better, sim, best_sim)
-            best = torch.where(better, index + c0, best)
-        best_index[r0 : r0 + rows] = best
+    with _matmul_precision(precision, render_unit.device):
+        for r0 in range(0, render_unit.shape[0], rows):
+            chunk = render_unit[r0 : r0 + rows]
+            if cols == num_style:  # one block of columns: the argmax is the answer
+                best_index[r0 : r0 + rows] = (chunk @ style_unit.T).argmax(dim=1)
+                continue
+            best_sim = torch.full((chunk.shape[0],), -torch.inf, device=chunk.device, dtype=chunk.dtype)
+            best = torch.zeros(chunk.shape[0], dtype=torch.long, device=chunk.device)
+            for c0 in range(0, num_style, cols):
+                sim, index = (chunk @ style_unit[c0 : c0 + cols].T).max(dim=1)
+                better = sim > best_sim
+                best_sim = torch.where(better, sim, best_sim)
+                best = torch.where(better, index + c0, best)
+            best_index[r0 : r0 + rows] = best
     return best_index
 
 
@@ -81,6 +131,7 @@ class NNFMLoss(nn.Module):
     ``style_feats``: ``{layer: [B_s, C, h, w]}`` from the same extractor as the renders (see
     :func:`style_image_features`); held as unit vectors without gradient (non-persistent
     buffers, moved by ``.to``). ``layer_groups``: layers matched jointly (concatenated).
+    ``precision``: the match search's arithmetic, one of :data:`SEARCH_PRECISIONS` (module docstring).
     ``forward(render_feats {layer: [B, C, h, w]}) -> scalar`` (float32).
     """
 
@@ -89,6 +140,7 @@ class NNFMLoss(nn.Module):
         style_feats: Mapping[str, torch.Tensor],
         layer_groups: Sequence[Sequence[str]] = ARF_LAYER_GROUPS,
         max_chunk_elements: int = 2**26,
+        precision: str = "fp32",
     ):
         super().__init__()
         if not layer_groups or any(not group for group in layer_groups):
@@ -97,10 +149,12 @@ class NNFMLoss(nn.Module):
             raise ValueError(f"max_chunk_elements: expected >= 1, got {max_chunk_elements}")
         self.layer_groups = tuple(tuple(group) for group in layer_groups)
         self.max_chunk_elements = max_chunk_elements
+        self.precision = _check_precision(precision)
         for g, group in enumerate(self.layer_groups):
             with torch.no_grad():
                 style = normalize_features(_group_positions(style_feats, group, "style_feats"))
             self.register_buffer(f"style_unit_{g}", style, persistent=False)
+            self.register_buffer(f"style_search_{g}", search_operand(style, precision), persistent=False)
 
     def forward(self, render_feats: Mapping[str, torch.Tensor]) -> torch.Tensor:
         total = 0.0
@@ -113,7 +167,8 @@ class NNFMLoss(nn.Module):
                 )
             with torch.autocast(render.device.type, enabled=False):
                 render_unit = normalize_features(render)
-                matches = nearest_style_indices(render_unit.detach(), style, self.max_chunk_elements)
+                searched = getattr(self, f"style_search_{g}")
+                matches = nearest_style_indices(render_unit.detach(), searched, self.max_chunk_elements, self.precision)
                 total = total + (1.0 - (render_unit * style[matches]).sum(-1)).mean()
         return total
 

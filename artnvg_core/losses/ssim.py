@@ -17,6 +17,8 @@ there, which Adam's normalised steps would turn into full-size parameter updates
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 import torch.nn.functional as F
 
@@ -29,6 +31,13 @@ def gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     offsets = torch.arange(size, dtype=torch.float32) - size // 2
     window = torch.exp(-offsets.square() / (2 * sigma**2))
     return window / window.sum()
+
+
+@lru_cache(maxsize=16)
+def _window_on(size: int, sigma: float, device: torch.device) -> torch.Tensor:
+    """:func:`gaussian_window_1d` on ``device``, copied there once (a copy to a GPU waits for its queued work)."""
+    with torch.inference_mode(False):
+        return gaussian_window_1d(size, sigma).to(device)
 
 
 def _blur(maps: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
@@ -55,7 +64,7 @@ def ssim(
         raise ValueError(f"ssim: window_size must be a positive odd number, got {window_size}")
     with torch.autocast(a.device.type, enabled=False):
         a, b = a.float(), b.float()
-        window = gaussian_window_1d(window_size, sigma).to(a.device)
+        window = _window_on(window_size, float(sigma), a.device)
         channels = a.shape[1]
         diff = a - b
         stats = _blur(torch.cat([a, b, a * a, b * b, diff, diff * diff], dim=1), window)
