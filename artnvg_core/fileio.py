@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 import uuid
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -32,9 +33,22 @@ def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None])
         with open(temporary, "xb") as stream:
             write(stream)
         os.replace(temporary, path)
+    except OSError as error:  # e.g. a full disk: named by the file being written, not the temporary one
+        temporary.unlink(missing_ok=True)
+        raise _naming(error, {temporary: path}, path) from error
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def _naming(error: OSError, temporaries: dict[Path, Path], default) -> OSError:
+    """``error`` (same errno and type) naming the file the user asked for: a temporary's target, or
+    ``default`` when it names no file."""
+    filename = error.filename
+    target = temporaries.get(Path(filename)) if filename is not None else default
+    if target is None:
+        return error
+    return OSError(error.errno, error.strerror or str(error), str(target))
 
 
 def _temporary_name(path: Path) -> Path:
@@ -80,6 +94,36 @@ def _check_writable_folder(folder: Path, option: str, target: Path) -> None:
         raise ValueError(f"{option}: cannot write {target}: folder {existing} is not writable ({error.strerror})") from None
 
 
+def file_identity(path: Path) -> tuple:
+    """What makes two paths one file: device and inode for a file that exists (hard links and symlinks
+    included), else the path with symlinks and ``..`` resolved."""
+    try:
+        status = path.stat()
+    except OSError:
+        return ("path", os.path.realpath(path))
+    return ("file", status.st_dev, status.st_ino)
+
+
+def refuse_overwrites(outputs: Sequence[tuple[str, str | os.PathLike]],
+                      inputs: Sequence[tuple[str, str | os.PathLike | None]]) -> None:
+    """Before any work: ValueError when one of ``outputs`` ((label, path) pairs, e.g. ("--out", "a.ply"))
+    is the same file as one of ``inputs`` (None entries skipped) or as another output, by resolved path
+    or, for files that exist, by device and inode (hard links). The message names both labels and paths."""
+    seen: dict[tuple, tuple[str, Path]] = {}
+    for label, path in inputs:
+        if path is not None:
+            seen.setdefault(file_identity(Path(path)), (label, Path(path)))
+    kept_inputs = set(seen)
+    for label, path in outputs:
+        key = file_identity(Path(path))
+        if key in seen:
+            other_label, other = seen[key]
+            what = "its own input" if key in kept_inputs else "another output of the same run"
+            raise ValueError(f"{label}: {path} is the same file as {other_label} {other}: the run would write "
+                             f"over {what}; choose another path")
+        seen[key] = (label, Path(path))
+
+
 @contextlib.contextmanager
 def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     """Files that appear together or not at all: yields a temporary path beside each of ``paths``
@@ -100,6 +144,11 @@ def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
             if message == str(error):
                 raise
             raise ValueError(message) from error
+        except OSError as error:  # e.g. a full disk: named by the files being written
+            named = _naming(error, dict(zip(temporaries, targets)), ", ".join(str(t) for t in targets))
+            if named is error:
+                raise
+            raise named from error
         missing = [str(t) for t in temporaries if not t.is_file()]
         if missing:
             raise RuntimeError(f"written_together: the block did not write {missing}")
@@ -113,11 +162,32 @@ def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
             temporary.unlink(missing_ok=True)
 
 
-MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS  # Pillow's decompression-bomb limit, 89,478,485 pixels
+def require_regular_file(path: str | os.PathLike, what: str) -> Path:
+    """``path`` as a regular file to read; ValueError naming ``path`` and ``what`` (e.g. "scene file")
+    when it is missing, unreadable, or not a regular file (a FIFO, which a read would wait on for
+    ever, a device or a folder)."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise ValueError(f"{path}: {what} not found") from None
+    except OSError as error:
+        raise ValueError(f"{path}: {what} cannot be read ({error.strerror})") from None
+    if not stat.S_ISREG(mode):
+        kind = "folder" if stat.S_ISDIR(mode) else "FIFO (named pipe)" if stat.S_ISFIFO(mode) else "special file"
+        raise ValueError(f"{path}: {what} is a {kind}, not a regular file")
+    return path
+
+
+# Pixels an image may have, read from its header before it is decoded (8000 x 8000). Decoding peaks
+# near 18 bytes a pixel (the decoded bytes, then float32 RGB): about 1.2 GB at the cap.
+MAX_IMAGE_PIXELS = 64_000_000
 
 
 def _open_image(path: Path) -> Image.Image:
-    """Pillow's lazy ``Image.open``: the header only; a file over MAX_IMAGE_PIXELS is refused here."""
+    """Pillow's lazy ``Image.open`` of a regular file: the header only; an image of more than
+    MAX_IMAGE_PIXELS pixels is refused here, before it is decoded."""
+    require_regular_file(path, "image file")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # refused below, with the size
@@ -126,9 +196,20 @@ def _open_image(path: Path) -> Image.Image:
         raise ValueError(f"{path}: image too large to decode ({error}); downsize it first") from error
     if image.width * image.height > MAX_IMAGE_PIXELS:
         image.close()
-        raise ValueError(f"{path}: image of {image.width}x{image.height} pixels is too large to decode "
-                         f"(limit {MAX_IMAGE_PIXELS:,} pixels); downsize it first")
+        raise ValueError(f"{path}: image size: {image.width}x{image.height} pixels, more than the "
+                         f"{MAX_IMAGE_PIXELS:,} pixels (e.g. 8000x8000) decoded at most; downsize it first")
     return image
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file from its header, without decoding it; ValueError naming ``path``
+    for a file that is missing, not a regular file, not an image, or over MAX_IMAGE_PIXELS."""
+    path = Path(path)
+    try:
+        with _open_image(path) as image:
+            return image.size
+    except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
+        raise ValueError(f"{path}: not a readable image ({error})") from error
 
 
 def _single_channel(image: Image.Image, path: Path) -> np.ndarray:
@@ -156,7 +237,8 @@ def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch
     Any bit depth: 8-bit images of any mode (greyscale, palette, RGBA with its alpha dropped,
     CMYK) are divided by 255; 16-bit, 32-bit integer and float greyscale images (16-bit PNG,
     float TIFF) are scaled as :func:`_single_channel` says. Greyscale becomes three equal
-    channels. An image over MAX_IMAGE_PIXELS is refused before it is decoded.
+    channels. A file that is not a regular file (a FIFO), or an image over MAX_IMAGE_PIXELS, is refused
+    before it is read or decoded.
     ``max_side`` downsizes (Lanczos, aspect kept) so the longer side is at most that.
     """
     path = Path(path)
@@ -173,9 +255,7 @@ def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch
             else:
                 rgb = image.convert("RGB")
                 rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
-                array = np.asarray(rgb, dtype=np.float32) / 255.0
-    except FileNotFoundError as error:
-        raise ValueError(f"{path}: image file not found") from error
+                return torch.from_numpy(np.array(rgb)).float().div_(255)  # bytes, then one float32 copy
     except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
         raise ValueError(f"{path}: not a readable image ({error})") from error
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))

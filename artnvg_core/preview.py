@@ -27,22 +27,25 @@ def evenly_spaced(count: int, limit: int) -> list[int]:
 def comparison_strip(original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
     """One image: the original views on top, the stylized views below, the style image at the right.
 
-    original, stylized [V, H, W, 3]; style [h, w, 3], resized to the two rows' height (aspect kept).
-    Returns [2H + GAP, V (W + GAP) + w', 3] on a white background.
+    original, stylized [V, H, W, 3]; style [h, w, 3], resized to fit a tile as high as the two rows and at
+    most twice as wide (aspect kept, centred on white: a 80000x1 image becomes a line, not a 10 GB strip).
+    Returns [2H + GAP, V (W + GAP) + w', 3] on a white background, w' <= 2 (2H + GAP).
     """
     if original.shape != stylized.shape or original.ndim != 4:
         raise ValueError(f"comparison_strip: expected two [V, H, W, 3] batches of one shape, "
                          f"got {tuple(original.shape)} and {tuple(stylized.shape)}")
     views, height, width = original.shape[:3]
-    style_height = 2 * height + GAP
-    style_width = max(1, round(style.shape[1] * style_height / style.shape[0]))
+    tile_height = 2 * height + GAP
+    factor = min(tile_height / style.shape[0], 2 * tile_height / style.shape[1])
+    style_height, style_width = (max(1, round(side * factor)) for side in style.shape[:2])
     style = resize_image(style.float().cpu(), style_height, style_width).clamp(0, 1)
-    canvas = torch.ones(style_height, views * (width + GAP) + style_width, 3)
+    canvas = torch.ones(tile_height, views * (width + GAP) + style_width, 3)
     for v in range(views):
         left = v * (width + GAP)
         canvas[:height, left:left + width] = original[v].float().cpu().clamp(0, 1)
         canvas[height + GAP:, left:left + width] = stylized[v].float().cpu().clamp(0, 1)
-    canvas[:, views * (width + GAP):] = style
+    top = (tile_height - style_height) // 2
+    canvas[top:top + style_height, views * (width + GAP):] = style
     return canvas
 
 

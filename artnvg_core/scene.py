@@ -39,6 +39,8 @@ import torch
 _log = logging.getLogger(__name__)
 
 SH_C0 = 0.28209479177387814
+# The end of every invalid-Gaussian refusal; callers with their own words for the option replace it.
+DROP_INVALID_HINT = "pass drop_invalid=True to drop invalid Gaussians"
 
 
 def sh_degree_for(num_coeffs: int) -> int:
@@ -164,8 +166,7 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         if count == 0:
             continue
         if not drop_invalid:
-            raise ValueError(f"{source}: {describe_invalid(name, bad, f'have {problem}')}; "
-                             "pass drop_invalid=True to drop invalid Gaussians")
+            raise ValueError(f"{source}: {describe_invalid(name, bad, f'have {problem}')}; {DROP_INVALID_HINT}")
         invalid |= bad
         reasons.append(f"{name}: {count} with {problem}")
     dropped = int(invalid.sum())

@@ -46,10 +46,17 @@ def sheet_path(out_ply: str | Path) -> Path:
     return out_ply.with_name(out_ply.stem + ".contact.png")
 
 
+SHEET_VIEW_SIDE = 1024  # longest side of a view on the contact sheet, in pixels
+
+
 def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                   views: int = 4, backend: str = "auto") -> torch.Tensor:
-    """Original vs stylized renders of ``views`` evenly spaced cameras, plus the style image."""
+    """Original vs stylized renders of ``views`` evenly spaced cameras, plus the style image; views larger
+    than :data:`SHEET_VIEW_SIDE` on their long side are rendered shrunk to it, so the sheet's size is
+    bounded whatever the cameras and the style image (:func:`~artnvg_core.preview.comparison_strip`)."""
     subset = cameras.subset(evenly_spaced(len(cameras), views))
+    longest = max(subset.width, subset.height)
+    subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
     with torch.no_grad():
         before = render(original, subset, backend=backend).rgb
         after = render(stylized, subset, backend=backend).rgb
@@ -253,12 +260,13 @@ def stylize_diffusion(
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto") -> Path:
-    """Write ``out_ply`` and its contact sheet together: both appear, or (on any failure) neither
-    and nothing on disk changes. Returns the sheet's path."""
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "rub") -> Path:
+    """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
+    contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
+    Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
-        save_scene(stylized.to("cpu"), ply_file)
+        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes)
         save_png(sheet, sheet_file)
     return sheet_path(out_ply)

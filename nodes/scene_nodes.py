@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, load_scene, save_scene
+from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
 
 from .comfy_bridge import output_directory
 from .input_files import InputFile, list_input_files
@@ -38,6 +38,9 @@ class LoadGaussianScene(ArtNVGNode):
         "path": SCENE_FILE.path_input,
         "drop_invalid": ("BOOLEAN", {"default": False, "tooltip": (
             "Drop Gaussians with non-finite values or zero quaternions instead of failing.")}),
+        "spz_axes": (list(SPZ_AXES), {"default": "rub", "tooltip": (
+            "Axes of a .spz file that does not name its own. rub: the SPZ format's rule (Niantic's tools). "
+            "ply: the PLY's axes, as PlayCanvas splat-transform and SuperSplat write .spz (upside down with rub).")}),
     }
 
     @classmethod
@@ -45,13 +48,13 @@ class LoadGaussianScene(ArtNVGNode):
         return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
 
     @classmethod
-    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False):
+    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="rub"):
         return SCENE_FILE.signature(scene_file, path)
 
-    def load(self, scene_file, path="", drop_invalid=False):
+    def load(self, scene_file, path="", drop_invalid=False, spz_axes="rub"):
         file, input_name = SCENE_FILE.resolve(scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
-            return (load_scene(file, drop_invalid=drop_invalid),)
+            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes),)
 
 
 def _next_free_path(filename_prefix: str, suffix: str) -> Path:

@@ -39,22 +39,47 @@ def test_job_options_become_stylize_arguments_from_json_or_csv(tmp_path):
 
 
 def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
-    good = {"scene": "a.ply", "style": "s.jpg", "out": "a.ply"}
+    good = {"scene": "in.ply", "style": "s.jpg", "out": "a.ply"}
     entries = [good, {**good, "out": "b.ply", "strength": 3}, {**good, "out": "c.ply", "devices": "cuda:0"},
                {**good, "out": "d.ply", "compile": "maybe"}, {"scene": "a.ply"}, {**good, "out": "e.ply", "preset": "slow"},
                {**good, "out": "f.ply", "iters": "many"}, "a.ply", {**good, "out": "./a.ply"},
                {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "h.ply"}]
     jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
     errors = [job.error for job in jobs]
-    assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "a.ply"
+    assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "in.ply"
     expected = ["unknown option 'strength' (stylize has no --strength", "'devices' is not a job option; give --devices",
                 "'compile' is a flag; expected true or false, got 'maybe'", "no out given",
-                "argument --preset: invalid choice: 'slow'", "argument --iters: invalid int value: 'many'",
+                "argument --preset: invalid choice: 'slow'", "argument --iters: expected an integer, got 'many'",
                 'expected an object of stylize options, got "a.ply"', "writes " + str(tmp_path.resolve() / "a.ply") +
                 ", as job 1 does", "'seed' takes one value, got [1, 2]"]
     for number, (error, message) in enumerate(zip(errors[1:-1], expected), 2):
         assert error.startswith(f"jobs.json job {number}: ") and message in error, (error, message)
         assert jobs[number - 1].out is None and jobs[number - 1].argv == ()
+
+
+def test_jobs_writing_over_their_inputs_or_each_others_outputs_are_refused_before_work(tmp_path):
+    """a.ply and a.spz share a.contact.png: the second job is refused, so a resumed batch can tell the
+    first job's completion by its own outputs; so is a job whose out or contact sheet is one of its inputs
+    (a hard link included). A scene named -x.ply is a scene, not an option."""
+    import os
+
+    (tmp_path / "in.ply").write_text("scene")
+    os.link(tmp_path / "in.ply", tmp_path / "linked.ply")
+    entries = [{"scene": "in.ply", "style": "s.jpg", "out": "a.ply"},
+               {"scene": "in.ply", "style": "s.jpg", "out": "a.spz"},
+               {"scene": "in.ply", "style": "s.jpg", "out": "in.ply"},
+               {"scene": "in.ply", "style": "S.contact.png", "out": "S.ply"},
+               {"scene": "in.ply", "style": "s.jpg", "out": "linked.ply"},
+               {"scene": "-x.ply", "style": "s.jpg", "out": "b.ply"}]
+    jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
+    folder = tmp_path.resolve()
+    expected = [None, f"jobs.json job 2: writes {folder / 'a.contact.png'} (its contact sheet), as job 1 does",
+                f"jobs.json job 3: out: {folder / 'in.ply'} is the same file as scene {folder / 'in.ply'}",
+                f"jobs.json job 4: out (its contact sheet): {folder / 'S.contact.png'} is the same file as style",
+                f"jobs.json job 5: out: {folder / 'linked.ply'} is the same file as scene {folder / 'in.ply'}", None]
+    for job, message in zip(jobs, expected):
+        assert (job.error is None) if message is None else job.error.startswith(message), (job.error, message)
+    assert jobs[5].argv[0] == os.path.join(".", "-x.ply") and jobs[5].out == folder / "b.ply"
 
 
 @pytest.mark.parametrize("name, text, message", [
@@ -81,6 +106,45 @@ def test_output_complete_needs_a_scene_that_loads_and_its_contact_sheet(tmp_path
     assert output_complete(out)
     out.write_bytes(out.read_bytes()[:1000])  # cut short
     assert not output_complete(out)
+
+
+SIGTERM_DURING_A_BATCH = """
+import contextlib, os, signal, sys, time
+from artnvg_core.cli import batch, main as cli
+from artnvg_core.cluster import Workers
+
+@contextlib.contextmanager
+def session(devices, address, needed_by):  # as ray.init does: SIGTERM exits mid-call
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(signum))
+    yield Workers("cpu", 1)
+
+class Pool:  # stops as BatchPool does on Ctrl-C: every job cancelled
+    def __init__(self, workers): pass
+    def __enter__(self): return self
+    def __exit__(self, *exc): pass
+    def run(self, jobs, redo=False, on_event=None):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(60)
+        except KeyboardInterrupt:
+            return [batch.JobResult(job, "cancelled", "batch stopped") for job in jobs]
+
+batch.ray_session, batch.BatchPool = session, Pool
+sys.exit(cli.main(["batch", sys.argv[1]]))
+"""
+
+
+def test_sigterm_stops_a_batch_as_ctrl_c_does(tmp_path):
+    """SIGTERM during the jobs cancels them through the Ctrl-C path and exits 143 with the summary, no
+    traceback (Ray's own handler once exited mid-call and printed a C stack)."""
+    import subprocess
+    import sys
+
+    jobs = _write_jobs(tmp_path / "jobs.json", [{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}])
+    result = subprocess.run([sys.executable, "-c", SIGTERM_DURING_A_BATCH, str(jobs)], capture_output=True, text=True,
+                            timeout=120, env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(Path(__file__).parents[1]))
+    assert result.returncode == 143, (result.returncode, result.stderr[-2000:])
+    assert "summary: 0 done, 1 cancelled" in result.stdout and "Traceback" not in result.stderr
 
 
 # --- on a local Ray cluster of two CPU workers ---------------------------------------------------

@@ -108,7 +108,8 @@ def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
     out.write_text("an earlier result")
     assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
                  "--stylizer", "nnfm", "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
-    assert "error: [Errno 28] No space left on device" in capsys.readouterr().err
+    assert capsys.readouterr().err.endswith(f"error: [Errno 28] No space left on device: '{out}, "
+                                            f"{out.parent / 'stylized.contact.png'}'\n")
     assert [p.name for p in out.parent.iterdir()] == ["stylized.ply"] and out.read_text() == "an earlier result"
 
 
@@ -146,3 +147,168 @@ def test_gsplat_kernel_build_is_announced_on_stdout_before_it_starts(monkeypatch
     lines = capsys.readouterr().out.splitlines()
     assert lines[:2] == [gsplat_backend.BUILD_NOTICE, "(building)"] and len(lines) == 3
     assert lines[2].startswith("gsplat: CUDA kernels built in ")
+
+
+def _stylize(scene, style, out, *extra):
+    demo = DemoInputs()
+    return main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(style), "--out", str(out),
+                 "--stylizer", "nnfm", "--iters", "1", "--scale", "0.05", "--device", "cpu", *extra])
+
+
+def test_stylize_never_writes_over_its_inputs(tmp_path, capsys):
+    """The scene, the style image (as the contact sheet: S.contact.png for --out S.ply) and a hard link to
+    the scene are refused as outputs before anything is loaded; every input is left as it was."""
+    import os
+
+    scene = _small_scene(tmp_path)
+    style = tmp_path / "S.contact.png"
+    style.write_bytes(DemoInputs().style.read_bytes())
+    os.link(scene, tmp_path / "linked.ply")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    cases = [(scene, DemoInputs().style, r"--out: .*scene\.ply is the same file as SCENE"),
+             (tmp_path / "S.ply", style, r"--out's contact sheet: .*S\.contact\.png is the same file as --style"),
+             (tmp_path / "linked.ply", DemoInputs().style, r"--out: .*linked\.ply is the same file as SCENE")]
+    for out, style_image, message in cases:
+        assert _stylize(scene, style_image, out) == 2
+        captured = capsys.readouterr()
+        assert re.search(r"^error: " + message + r".*would write over its own input", captured.err), captured.err
+        assert "loading" not in captured.out
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_render_never_writes_over_the_captures_photos(tmp_path, capsys):
+    import json
+
+    demo = DemoInputs()
+    transforms = json.loads(demo.cameras.read_text())
+    for frame in transforms["frames"]:
+        frame["file_path"] = frame["file_path"].replace(".jpg", ".png")
+    (tmp_path / "images").mkdir()
+    for frame in transforms["frames"][:3]:
+        (tmp_path / frame["file_path"]).write_bytes(b"a photo")
+    (tmp_path / "transforms.json").write_text(json.dumps(transforms))
+    scene = _small_scene(tmp_path)
+    assert main(["render", str(scene), "--cameras", str(tmp_path / "transforms.json"), "--out",
+                 str(tmp_path / "images"), "--views", "0,1", "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert re.search(r"error: --out: .*frame_\d+\.png is the same file as the capture's image .*frame_\d+\.png",
+                     captured.err) and "loading" not in captured.out
+    assert all(p.read_bytes() == b"a photo" for p in (tmp_path / "images").iterdir())
+
+
+@pytest.mark.parametrize("suffix, field, value, message", [
+    (".splat", "log_scales", 95.0, r"log_scales: 1 of 1,?000 Gaussians lie outside \[-87\.0, 88\.0\]"),
+    (".ksplat", "log_scales", -95.0, r"log_scales: 1 of 1,?000 Gaussians lie outside"),
+    (".spz", "means", 1e30, r"means: \|coordinate\| 1e\+30 does not fit SPZ's 24-bit fixed point"),
+])
+def test_a_scene_the_output_format_cannot_hold_is_refused_before_the_finetune(tmp_path, capsys, monkeypatch,
+                                                                              suffix, field, value, message):
+    """The finetune keeps positions and scales: a log-scale of 95 (.splat, .ksplat) or a coordinate of
+    1e30 (.spz) is refused right after loading, not at the save after the whole finetune."""
+    import artnvg_core.stylize
+
+    def no_finetune(*args, **kwargs):
+        raise AssertionError("the finetune ran")
+
+    monkeypatch.setattr(artnvg_core.stylize, "stylize_nnfm", no_finetune)
+    scene = load_scene(DemoInputs().scene).select(slice(0, None, 40))
+    getattr(scene, field)[3, 1] = value
+    write_ply(scene, tmp_path / "scene.ply")
+    out = tmp_path / f"out{suffix}"
+    assert _stylize(tmp_path / "scene.ply", DemoInputs().style, out) == 2
+    err = capsys.readouterr().err
+    assert re.search(rf"^error: --out: .*out\{suffix}: not written: {message}.*choose \.ply", err), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
+def test_a_style_image_too_long_for_its_width_is_refused_before_loading(tmp_path, capsys):
+    """80000x1 pixels (318 bytes) once passed every check and asked 10.8 GB for the contact sheet after the work."""
+    from PIL import Image
+
+    Image.new("RGB", (80000, 1), (200, 30, 30)).save(tmp_path / "line.png")
+    assert (tmp_path / "line.png").stat().st_size < 1000
+    assert _stylize(_small_scene(tmp_path), tmp_path / "line.png", tmp_path / "out.ply") == 2
+    captured = capsys.readouterr()
+    assert captured.err == (f"error: --style: {tmp_path / 'line.png'}: image size: 80000x1 pixels; a style image may "
+                            "be at most 32 times as long as it is wide (its features are matched at the renders' "
+                            "size); crop it\n") and "loading" not in captured.out
+
+
+def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_invalid(tmp_path, capsys):
+    import struct
+
+    path = _small_scene(tmp_path)
+    data = path.read_bytes()
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    record = (len(data) - body) // 1000
+    path.write_bytes(data[: body + 5 * record] + struct.pack("<f", float("nan")) + data[body + 5 * record + 4 :])  # x of 5
+    (tmp_path / "nan.ply").write_bytes(path.read_bytes())
+    demo, out = DemoInputs(), tmp_path / "r"
+    command = ["render", str(tmp_path / "nan.ply"), "--cameras", str(demo.cameras), "--out", str(out), "--views", "0",
+               "--scale", "0.05", "--device", "cpu"]
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert err.rstrip().endswith("give --drop-invalid to drop them") and "drop_invalid=True" not in err
+    assert main(command + ["--drop-invalid"]) == 0
+    assert "loaded 999 Gaussians" in capsys.readouterr().out
+
+
+def test_out_of_memory_while_loading_does_not_advise_a_smaller_scale(tmp_path, capsys, monkeypatch):
+    import artnvg_core.formats
+
+    def exhausted(path, **options):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 9 GB")
+
+    monkeypatch.setattr(artnvg_core.formats, "load_scene", exhausted)
+    assert main(["render", str(_small_scene(tmp_path)), "--out", str(tmp_path / "r"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory (") and "scene.ply needs more memory to load than is free on cpu" in err
+    assert "--scale" not in err
+
+
+@pytest.mark.parametrize("option, value", [("--seed", "-1"), ("--seed", str(2**64)), ("--iters", "-5")])
+def test_seed_and_iters_are_checked_by_the_parser_naming_the_option(capsys, option, value):
+    with pytest.raises(SystemExit) as exit_:
+        main(["stylize", "scene.ply", "--style", "s.png", option, value])
+    assert exit_.value.code == 2 and f"error: argument {option}: expected an integer >= 0" in capsys.readouterr().err
+
+
+def test_help_names_every_scene_format(capsys):
+    for command in ("render", "stylize"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert ".ksplat" in text and ".spz" in text and ".ckpt" in text, command
+
+
+def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_path):
+    """The refusal must come within the command's start-up (it once took 5-9 s importing diffusers)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from artnvg_core.cli.main import main; "
+            f"status = main(['stylize', {str(_small_scene(tmp_path))!r}, '--style', {str(DemoInputs().style)!r}, "
+            f"'--out', {str(tmp_path / 'out.txt')!r}]); "
+            "print(status, sorted(m for m in ('diffusers', 'transformers') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+    assert result.stdout.split("\n")[0] == "2 []" and "cannot write scene file type '.txt'" in result.stderr
+
+
+def test_spz_axes_option_reads_and_writes_spz_in_the_plys_axes(tmp_path, capsys):
+    """render --spz-axes ply renders a .spz written in the PLY's axes (as splat-transform writes) as the
+    scene itself; stylize --spz-axes ply writes its .spz so."""
+    from artnvg_core.formats import save_scene
+
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    save_scene(load_scene(scene), tmp_path / "ply_axes.spz", spz_axes="ply")
+    renders = {}
+    for name, extra in [("spz", ["--spz-axes", "ply"]), ("ply", [])]:
+        source = tmp_path / ("ply_axes.spz" if name == "spz" else "scene.ply")
+        assert main(["render", str(source), "--cameras", str(demo.cameras), "--out", str(tmp_path / name),
+                     "--views", "0", "--scale", "0.1", "--device", "cpu", *extra]) == 0
+        renders[name] = load_image(next((tmp_path / name).glob("*.png")))
+    assert (renders["spz"] - renders["ply"]).abs().mean() < 0.01
+    assert _stylize(scene, demo.style, tmp_path / "out.spz", "--spz-axes", "ply") == 0
+    kept = load_scene(tmp_path / "out.spz", spz_axes="ply").means
+    assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12

@@ -12,7 +12,10 @@ from artnvg_core.fileio import (
     MAX_IMAGE_PIXELS,
     check_output_file,
     check_output_folder,
+    image_size,
     load_image,
+    refuse_overwrites,
+    write_atomically,
     written_together,
 )
 
@@ -84,6 +87,33 @@ def test_huge_images_refused_before_decoding_with_their_size(tmp_path, width, he
         load_image(path)
 
 
+def test_pixel_budget_is_read_from_the_header_before_decoding(tmp_path):
+    """9400 x 9400 lies under Pillow's own limit (89 MP) and once decoded to 3.1 GB: refused from its
+    header by the stated 64 MP budget, naming the file, the field and the cap; image_size reads the
+    header alone."""
+    assert 9400 * 9400 < Image.MAX_IMAGE_PIXELS
+    _png_header_only(tmp_path / "big.png", 9400, 9400)
+    for read in (load_image, image_size):
+        with pytest.raises(ValueError, match=r"big\.png: image size: 9400x9400 pixels, more than the 64,000,000 "
+                           r"pixels \(e\.g\. 8000x8000\) decoded at most"):
+            read(tmp_path / "big.png")
+    _png_header_only(tmp_path / "wide.png", 8000, 8000)
+    assert image_size(tmp_path / "wide.png") == (8000, 8000)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_a_fifo_or_folder_is_refused_without_reading(tmp_path):
+    """A read of a FIFO waits for a writer for ever: refused from its file type, as is a folder."""
+    os.mkfifo(tmp_path / "style.png")
+    (tmp_path / "folder.png").mkdir()
+    for name, kind in [("style.png", r"FIFO \(named pipe\)"), ("folder.png", "folder")]:
+        for read in (load_image, image_size):
+            with pytest.raises(ValueError, match=rf"{name}: image file is a {kind}, not a regular file"):
+                read(tmp_path / name)
+    with pytest.raises(ValueError, match=r"gone\.png: image file not found"):
+        load_image(tmp_path / "gone.png")
+
+
 def test_output_file_checks(tmp_path):
     for bad, message in [("", "empty"), ("  ", "empty"), (tmp_path, "is a folder")]:
         with pytest.raises(ValueError, match=f"--out: .*{message}"):
@@ -141,3 +171,42 @@ def test_written_together_names_the_paths_in_a_refusal_from_the_block(tmp_path):
         with written_together(a, b):
             raise ValueError("unrelated")
     assert os.listdir(tmp_path) == []
+
+
+def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
+    """By resolved path (.., symlinks) and, for files that exist, by device and inode (hard links)."""
+    scene, style = tmp_path / "scene.ply", tmp_path / "style.png"
+    scene.write_text("s")
+    style.write_text("i")
+    os.link(scene, tmp_path / "hard.ply")
+    os.symlink(style, tmp_path / "soft.png")
+    (tmp_path / "sub").mkdir()
+    inputs = [("SCENE", scene), ("--style", style), ("--cameras", None)]
+    refuse_overwrites([("--out", tmp_path / "out.ply"), ("sheet", tmp_path / "out.contact.png")], inputs)
+    cases = [
+        ([("--out", scene)], r"--out: .*scene\.ply is the same file as SCENE .*scene\.ply: the run would write over "
+                             r"its own input"),
+        ([("--out", tmp_path / "sub" / ".." / "scene.ply")], "same file as SCENE"),
+        ([("--out", tmp_path / "hard.ply")], r"hard\.ply is the same file as SCENE .*scene\.ply"),
+        ([("--out", tmp_path / "x.ply"), ("sheet", tmp_path / "soft.png")], r"sheet: .*soft\.png is the same file as "
+                                                                             r"--style .*style\.png"),
+        ([("job 1 --out", tmp_path / "a.png"), ("job 2 sheet", tmp_path / "sub" / ".." / "a.png")],
+         r"job 2 sheet: .* is the same file as job 1 --out .*a\.png: the run would write over another output"),
+    ]
+    for outputs, message in cases:
+        with pytest.raises(ValueError, match=message):
+            refuse_overwrites(outputs, inputs)
+
+
+def test_a_full_disk_is_named_by_the_file_being_written(tmp_path):
+    """The error names the user's path, never the hidden temporary file, and keeps its errno and type."""
+    def full(stream):
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match=r"\[Errno 28\] No space left on device: '.*scene\.ply'") as error:
+        write_atomically(tmp_path / "scene.ply", full)
+    assert error.value.errno == 28
+    with pytest.raises(PermissionError, match=r"\[Errno 13\] Permission denied: '.*a\.ply'"):
+        with written_together(tmp_path / "a.ply", tmp_path / "b.png") as (first, _):
+            raise PermissionError(13, "Permission denied", str(first))
+    assert list(tmp_path.iterdir()) == []

@@ -278,3 +278,23 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
         assert torch.isfinite(value).all(), name
         assert torch.equal(value[[3, 7]], getattr(scene, name)[[3, 7]]), name
     assert not torch.equal(result.sh[8:], scene.sh[8:]) and not torch.equal(result.means[8:], scene.means[8:])
+
+
+def test_the_contact_sheet_is_bounded_whatever_the_cameras_and_the_style_image(demo):
+    """An 80000x1 style image (once a 10.8 GB sheet) becomes a line in a tile at most twice as wide as
+    high; 4x the cameras' size renders the sheet's views at 1024 px on their long side."""
+    from artnvg_core.stylize import SHEET_VIEW_SIDE, contact_sheet
+
+    scene, cameras, style = demo
+    line = torch.rand(1, 80000, 3)
+    big = cameras.scaled(1024 * 4 / max(cameras.width, cameras.height))
+    sheet = contact_sheet(scene.select(slice(0, None, 10)), scene.select(slice(0, None, 10)), big, line)
+    view_height = round(big.height * SHEET_VIEW_SIDE / max(big.width, big.height))
+    view_width = round(big.width * SHEET_VIEW_SIDE / max(big.width, big.height))
+    assert sheet.shape[0] == 2 * view_height + 4
+    assert sheet.shape[1] == 4 * (view_width + 4) + 2 * sheet.shape[0]
+    tile = sheet[:, 4 * (view_width + 4):]
+    assert (tile != 1).any(dim=(1, 2)).sum() == 1  # the style image is one line, the rest white
+    wide = contact_sheet(scene, scene, cameras.subset([0]), style, views=1)
+    height = 2 * cameras.height + 4  # an ordinary style image keeps its aspect at the rows' height
+    assert wide.shape[:2] == (height, cameras.width + 4 + round(style.shape[1] * height / style.shape[0]))

@@ -1,9 +1,11 @@
 """The extension dispatch of load_scene / save_scene, and the writers' shared refusals."""
 
+import os
+
 import pytest
 import torch
 
-from artnvg_core.formats import SAVE_SUFFIXES, load_scene, save_scene
+from artnvg_core.formats import READERS, SAVE_SUFFIXES, load_scene, save_scene
 from tests.test_formats_ply import assert_same_bits, random_scene
 
 
@@ -46,3 +48,13 @@ def test_float64_beyond_float32_is_refused_not_written_as_inf(tmp_path):
     with pytest.raises(ValueError, match=r"huge\.ply: not written: sh: 1 of 3 .*non-finite"):
         save_scene(scene, tmp_path / "huge.ply")
     assert torch.isfinite(scene.sh).all()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+@pytest.mark.parametrize("suffix", [".ply", ".spz", ".splat", ".ksplat", ".ckpt"])
+def test_a_fifo_is_refused_by_every_reader_without_reading(tmp_path, suffix):
+    os.mkfifo(tmp_path / f"pipe{suffix}")
+    with pytest.raises(ValueError, match=rf"pipe\{suffix}: scene file is a FIFO \(named pipe\), not a regular file"):
+        load_scene(tmp_path / f"pipe{suffix}")
+    with pytest.raises(ValueError, match=rf"pipe\{suffix}: scene file is a FIFO"):
+        READERS[suffix](tmp_path / f"pipe{suffix}")

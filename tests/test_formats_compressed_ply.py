@@ -15,15 +15,17 @@ COLOURS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 
 
-def write_compressed(path, chunks: np.ndarray, packed: np.ndarray, sh: np.ndarray | None = None, colours=None):
-    """A compressed PLY from chunk rows [C, 12], packed codes [N, 4] and SH bytes [N, M] (INRIA order)."""
+def write_compressed(path, chunks: np.ndarray, packed: np.ndarray, sh: np.ndarray | None = None, colours=None,
+                     packed_type: str = "<u4"):
+    """A compressed PLY from chunk rows [C, 12], packed codes [N, 4] (declared ``packed_type``) and SH
+    bytes [N, M] (INRIA order)."""
     names = BOUNDS + (COLOURS if colours is not None else [])
     chunk = np.empty(len(chunks), dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(BOUNDS):
         chunk[name] = chunks[:, i]
     for i, name in enumerate(COLOURS if colours is not None else []):
         chunk[name] = colours[:, i]
-    vertex = np.empty(len(packed), dtype=[(name, "<u4") for name in PACKED])
+    vertex = np.empty(len(packed), dtype=[(name, packed_type) for name in PACKED])
     for i, name in enumerate(PACKED):
         vertex[name] = packed[:, i]
     elements = [PlyElement.describe(chunk, "chunk"), PlyElement.describe(vertex, "vertex")]
@@ -151,3 +153,24 @@ def test_fuzzed_and_truncated_files_raise_only_value_error(tmp_path):
         assert_only_value_errors(load_scene, path, original[:length], f"cut to {length}")
         with pytest.raises(ValueError, match=r"cut\.ply: "):
             load_scene(path)
+
+
+@pytest.mark.parametrize("declared", ["<f8", "<f4", "<i4"])
+def test_packed_columns_are_read_by_their_declared_type(tmp_path, declared):
+    """packed_* declared as double, float (codes under 2^24, exact in float32) or int32 read as the
+    same codes as uint32 (a float column once raised TypeError); a fractional or negative code is named."""
+    scene = plain_scene(300, 1)
+    chunks, packed, sh = encode(scene)
+    packed &= (1 << 24) - 1  # every code exact in float32
+    write_compressed(tmp_path / "u4.ply", chunks, packed, sh)
+    reference = load_scene(tmp_path / "u4.ply")
+    write_compressed(tmp_path / "typed.ply", chunks, packed.astype(declared), sh, packed_type=declared)
+    back = load_scene(tmp_path / "typed.ply")
+    for name, value in reference.tensors().items():
+        assert torch.equal(getattr(back, name), value), name
+    bad = packed.astype(np.float64)
+    bad[7, 2] = -1.0 if declared == "<i4" else 0.5
+    write_compressed(tmp_path / "bad.ply", chunks, bad.astype(declared), sh, packed_type=declared)
+    with pytest.raises(ValueError, match=r"bad\.ply: element 'vertex': packed_\* values must be whole numbers from 0 "
+                       r"to 2\^32 - 1 \(declared (float|int)"):
+        load_scene(tmp_path / "bad.ply")

@@ -138,3 +138,37 @@ def test_fuzzed_and_truncated_files_raise_only_value_error(tmp_path):
         assert_only_value_errors(read_ksplat, tmp_path / "fuzzed.ksplat", bytes(data), f"case {case}")
     for length in list(range(0, 5200, 97)) + list(range(5200, len(original), 13)):
         assert_only_value_errors(read_ksplat, tmp_path / "cut.ksplat", original[:length], f"{length} bytes")
+
+
+def _level_1_file(lengths: list[int], full: int = 0, bucket_size: int = 2, buckets: int = 1, count: int = 1) -> bytes:
+    """A level-1, SH degree 0 file of ``count`` zero records and ``buckets`` bucket centres at the
+    origin, whose section header gives ``full`` full buckets of ``bucket_size`` and partly filled
+    buckets of ``lengths``."""
+    rows = np.zeros(count, [("center", "<u2", 3), ("scale", "<f2", 3), ("rotation", "<f2", 4), ("rgba", "u1", 4)])
+    rows["scale"], rows["rotation"] = 1, [1, 0, 0, 0]
+    data = np.asarray(lengths, "<u4").tobytes() + bytes(12 * buckets) + rows.tobytes()
+    return header(1, count, 1) + section_header(count, bucket_size, buckets, 4.0, 0, len(data), full, len(lengths)) + data
+
+
+def test_bucket_lengths_are_checked_against_the_count_before_any_array_of_their_size(tmp_path):
+    """A 5 kB file whose one partly filled bucket claims 2^24 Gaussians for a count of 1 is refused
+    naming the field, with numpy's allocations under 1 MB (the lengths once made a 2^24-entry index)."""
+    import tracemalloc
+
+    path = tmp_path / "buckets.ksplat"
+    path.write_bytes(_level_1_file([1]))
+    assert len(read_ksplat(path)) == 1
+    cases = [([2**24], 0, r"lengths adding up to 16777216\) hold 16777216 Gaussians, not its splatCount 1"),
+             ([0], 0, r"hold 0 Gaussians, not its splatCount 1"),
+             ([1], 1, r"fullBucketCount 1 \+ partiallyFilledBucketCount 1 is more than its bucketCount 1")]
+    for lengths, full, message in cases:
+        path.write_bytes(_level_1_file(lengths, full))
+        assert path.stat().st_size < 6000
+        tracemalloc.start()
+        try:
+            with pytest.raises(ValueError, match=rf"buckets\.ksplat: section 0: .*{message}"):
+                read_ksplat(path)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 2**20, peak

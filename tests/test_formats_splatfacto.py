@@ -169,3 +169,30 @@ def test_rasterize_mode_comes_from_the_runs_config(tmp_path, config, antialiased
         (tmp_path / "run" / "config.yml").write_text(config)
     scene = read_splatfacto_ckpt(save_splatfacto(models / "step-000029999.ckpt", splatfacto_params(4, 1)))
     assert scene.antialiased is antialiased and scene.blur_px2 == 0.3
+
+
+@pytest.mark.parametrize("layout", ["stride 0", "sparse_coo"])
+def test_tensors_standing_for_more_than_the_file_holds_are_refused_before_made_dense(tmp_path, layout):
+    """A 3 kB checkpoint whose means, scales, ... are stride-0 (or sparse, all zero) tensors of 2^20
+    Gaussians would be 58 MB dense: refused naming the cap (4x the file, 16 MiB at least) and the
+    layouts; 2^16 such Gaussians (3.7 MB, under the floor) load."""
+    widths = {"means": 3, "scales": 3, "quats": 4, "features_dc": 3, "opacities": 1}
+
+    def save(n: int) -> Path:
+        def tensor(width: int) -> torch.Tensor:
+            if layout == "stride 0":
+                return torch.tensor([[0.5] * width]).expand(n, width)
+            return torch.sparse_coo_tensor(torch.zeros(2, 0, dtype=torch.long), torch.zeros(0), (n, width), check_invariants=True)
+
+        params = {name: tensor(width) for name, width in widths.items()}
+        params["quats"] = torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4)
+        return save_splatfacto(tmp_path / f"{n}.ckpt", params)
+
+    path = save(2**20)
+    assert path.stat().st_size < 4000
+    needed = 4 * 2**20 * 14
+    with pytest.raises(ValueError, match=rf"{2**20}\.ckpt: _model\.gauss_params\.\*: the Gaussian tensors take "
+                       rf"{needed:,} bytes as dense float32, more than the cap of 4x .*\(16,777,216 bytes\).*"
+                       rf"means \({2**20}, 3\) \({layout}\)"):
+        read_splatfacto_ckpt(path)
+    assert len(read_splatfacto_ckpt(save(2**16))) == 2**16

@@ -274,3 +274,67 @@ def test_a_decompression_bomb_is_refused_quickly_in_little_memory(tmp_path, vers
     report = json.loads(result.stdout)
     assert report["message"] is not None and re.search(expected, report["message"]), report
     assert report["seconds"] < 2 and report["peak"] < 2**30 and report["growth"] < 2**26, report
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_header_count_beyond_the_inflation_cap_is_refused_before_inflating(tmp_path, version):
+    """A header claiming 2^31 - 1 Gaussians over a 2 MB (gzip) or 66 kB (zstd) stream of 2 GiB of
+    zeros: refused from the file's size alone (64x the file at most), in a fresh process within 2 s,
+    its peak memory raised by less than 64 MiB (the header's own count once set the bound: 1.8-3.4 GB)."""
+    count = 2**31 - 1
+    path = tmp_path / "claims.spz"
+    if version == 3:
+        path.write_bytes(gzip_bomb(struct.pack("<IIIBBBB", 0x5053474E, 3, count, 0, 12, 0, 0), BOMB_BYTES))
+    else:
+        stream = zstd_of_zeros(BOMB_BYTES)
+        head = struct.pack("<IIIBBBBI12x", 0x5053474E, 4, count, 0, 12, 0, 5, 32)
+        sizes = [9 * count, count, 3 * count, 3 * count, 4 * count]
+        path.write_bytes(head + b"".join(struct.pack("<QQ", len(stream), s) for s in sizes) + stream)
+    size = path.stat().st_size
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
+                            text=True, check=True, env={"OMP_NUM_THREADS": "1", "PATH": ""})
+    report = json.loads(result.stdout)
+    expected = (rf"claims\.spz: numPoints: {count} Gaussians of SH degree 0: needs {20 * count:,} bytes inflated "
+                rf"from a {size:,}-byte file, more than the cap of 64x the file's size \({max(64 * size, 2**24):,} bytes\)")
+    assert report["message"] is not None and re.search(expected, report["message"]), report
+    assert report["seconds"] < 2 and report["growth"] < 2**26, report
+
+
+def test_the_inflation_cap_admits_real_scenes_and_states_its_bound(tmp_path, monkeypatch):
+    """A real scene's file (1.3x to 4.5x inflation) loads; with the cap lowered under its ratio it is
+    refused naming the cap."""
+    from artnvg_core.formats import bounded
+
+    scene = plain_scene(3000, 3, seed=4)
+    write_spz(scene, tmp_path / "real.spz")
+    inflated = len(gzip.decompress((tmp_path / "real.spz").read_bytes()))
+    assert len(read_spz(tmp_path / "real.spz")) == 3000
+    monkeypatch.setattr(bounded, "INFLATION_FLOOR", 0)
+    monkeypatch.setattr(bounded, "MAX_INFLATION", 1)
+    assert inflated > (tmp_path / "real.spz").stat().st_size
+    with pytest.raises(ValueError, match=r"real\.spz: numPoints: 3000 Gaussians of SH degree 3: needs .* cap of 1x"):
+        read_spz(tmp_path / "real.spz")
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_versions_2_to_4_load_at_every_sh_degree(tmp_path, degree):
+    """The same Gaussians as version 2 (x y z rotation bytes), 3 (gzip) and 4 (zstd; at degree 0 it has
+    no SH stream, which once raised KeyError 'sh') read alike: version 4 bit for bit, version 2 but for
+    its coarser rotations."""
+    write_spz(plain_scene(40, degree, seed=degree), tmp_path / "v3.spz")
+    header, arrays = payload_arrays(tmp_path / "v3.spz")
+    v3 = read_spz(tmp_path / "v3.spz")
+    assert v3.sh_degree == degree
+    (tmp_path / "v4.spz").write_bytes(version_4(header, arrays))
+    xyzw = v3.quats[:, [1, 2, 3, 0]].double() * torch.tensor([1.0, -1, -1, 1])  # back to the file's RUB axes
+    xyzw = xyzw * torch.where(xyzw[:, 3:] < 0, -1.0, 1.0) / xyzw.norm(dim=1, keepdim=True)
+    v2_arrays = dict(arrays, rotations=np.clip(np.floor((xyzw[:, :3].numpy() + 1) * 127.5 + 0.5), 0, 255).astype(np.uint8).tobytes())
+    (tmp_path / "v2.spz").write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 2, *header[2:]) +
+                                                    b"".join(v2_arrays.values())))
+    for version in ("v4", "v2"):
+        back = read_spz(tmp_path / f"{version}.spz")
+        for name, value in v3.tensors().items():
+            if name != "quats":
+                assert torch.equal(getattr(back, name), value), (version, name)
+        assert quat_error(back.quats, v3.quats) <= (0 if version == "v4" else 0.1)  # v2: w from 8-bit x y z

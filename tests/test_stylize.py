@@ -88,7 +88,7 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
 
     finetuned = []
     monkeypatch.setattr(stylize, "stylize_nnfm", lambda scene, *args, **kwargs: finetuned.append(kwargs) or scene)
-    monkeypatch.setattr(stylize, "save_result", lambda *args: tmp_path / "sheet.png")
+    monkeypatch.setattr(stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
     demo = DemoInputs()
     common = [str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
               "--out", str(tmp_path / "out.ply"), "--sdxl", str(files["sdxl"]), "--controlnet", str(files["controlnet"]),

@@ -10,10 +10,12 @@ jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the
 diffusion models loaded from one job to the next; the diffusion groups of a job run on that worker's
 GPU (``stylize --devices`` spreads one scene's groups over several GPUs instead). A job whose worker
-dies is run again on another worker; a job that fails (bad input, missing file) fails alone; a job
-whose output scene loads and whose contact sheet exists is skipped (``--redo`` runs it anyway); outputs
-are written whole or not at all (:func:`artnvg_core.fileio.written_together`). Ctrl-C stops the
-running jobs at their next Python step, so none leaves a file behind.
+dies is run again on another worker; a job that fails (bad input, missing file) fails alone, as does one
+that would write over its own inputs or over another job's output or contact sheet (``a.ply`` and
+``a.spz`` share ``a.contact.png``), refused before any work; a job whose output scene loads and whose
+contact sheet exists, both its own, is skipped (``--redo`` runs it anyway); outputs
+are written whole or not at all (:func:`artnvg_core.fileio.written_together`). Ctrl-C or SIGTERM stops
+the running jobs at their next Python step, so none leaves a file behind.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import functools
 import io
 import json
 import os
+import signal
 import sys
 import threading
 import time
@@ -119,8 +122,8 @@ def job_arguments(entry, options: dict[str, argparse.Action], label: str) -> lis
             raise ValueError(f"{label}: '{key}' is not a job option{where}")
         if _empty(value):
             continue
-        if name == "scene":
-            argv.insert(0, str(value))
+        if name == "scene":  # a name starting with "-" would read as an option
+            argv.insert(0, os.path.join(os.curdir, str(value)) if str(value).startswith("-") else str(value))
             continue
         action = options.get(f"--{name}")
         if action is None:
@@ -158,8 +161,12 @@ def parse_stylize(argv: Sequence[str], label: str) -> argparse.Namespace:
 
 
 def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> list[Job]:
-    """The jobs of a JOBS file (see the module docstring). A job that cannot be parsed, or whose output
-    another job writes too, carries its error; only a file that cannot be read raises ValueError."""
+    """The jobs of a JOBS file (see the module docstring). A job that cannot be parsed, that would write
+    over one of its own inputs, or whose output or contact sheet another job writes too (``a.ply`` and
+    ``a.spz`` share ``a.contact.png``), carries its error; only a file that cannot be read raises ValueError."""
+    from ..fileio import file_identity, refuse_overwrites
+    from ..stylize import DemoInputs, sheet_path
+
     path = Path(path)
     folder = path.resolve().parent
     jobs, owners = [], {}
@@ -167,13 +174,27 @@ def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> l
         label = f"{path.name} job {number}"
         try:
             argv = job_arguments(entry, options, label)
-            out = (folder / parse_stylize(argv, label).out).resolve()
-            if out in owners:
-                raise ValueError(f"{label}: writes {out}, as job {owners[out]} does; give each job its own out")
+            args = parse_stylize(argv, label)
+            out = (folder / args.out).resolve()
+            outputs = {out: "", sheet_path(out): " (its contact sheet)"}
+            demo = DemoInputs()
+            inputs = (args.scene, args.style, args.cameras) if args.scene or args.style else (
+                demo.scene, demo.style, demo.cameras)
+            try:
+                refuse_overwrites([(f"out{what}", file) for file, what in outputs.items()],
+                                  [(name, folder / given) for name, given in zip(("scene", "style", "cameras"), inputs)
+                                   if given])
+            except ValueError as error:
+                raise ValueError(f"{label}: {error}") from None
+            for file, what in outputs.items():
+                owner = owners.get(file_identity(file))
+                if owner is not None:
+                    raise ValueError(f"{label}: writes {file}{what}, as job {owner} does; give each job its own out "
+                                     "(a.ply and a.spz share a.contact.png)")
         except ValueError as error:
             jobs.append(Job(number, (), folder, None, str(error)))
             continue
-        owners[out] = number
+        owners.update((file_identity(file), number) for file in outputs)
         jobs.append(Job(number, tuple(argv), folder, out))
     return jobs
 
@@ -347,12 +368,14 @@ def _result(job: Job, value: dict) -> JobResult:
 
 
 def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:
-    """The ``batch`` command: 0 when every job is done or skipped, 1 when one failed, 130 when stopped."""
+    """The ``batch`` command: 0 when every job is done or skipped, 1 when one failed, 130 when stopped
+    (Ctrl-C), 143 when terminated (SIGTERM)."""
     from tqdm import tqdm
 
     jobs = load_jobs(args.jobs, options)
     devices = parse_devices(args.devices)
-    with ray_session(devices, args.ray_address, needed_by="batch") as workers:
+    # the terminate handler goes in after Ray's (ray.init sets one that exits mid-call, with a C stack)
+    with ray_session(devices, args.ray_address, needed_by="batch") as workers, terminate_as_interrupt() as terminated:
         place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
         print(f"batch: {len(jobs)} jobs on {workers.count} {workers.kind} workers{place}", flush=True)
         bar = tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True)
@@ -370,7 +393,28 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     for result in results:
         if result.status == "failed":
             print(f"  failed job {result.job.number}: {result.message}")
-    return 130 if counts["cancelled"] else 1 if counts["failed"] else 0
+    return 143 if terminated else 130 if counts["cancelled"] else 1 if counts["failed"] else 0
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """For the block, SIGTERM (``kill``, a scheduler's stop) raises KeyboardInterrupt in the main thread, so
+    the batch stops as on Ctrl-C: running jobs cancelled, nothing half-written, Ray shut down. Yields a
+    list that holds the signal once one came. Outside the main thread, or without SIGTERM, nothing changes."""
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    if not hasattr(signal, "SIGTERM") or threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _line(result: JobResult, total: int) -> str:

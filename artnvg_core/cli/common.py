@@ -43,16 +43,17 @@ def positive_number(text: str) -> float:
     return value
 
 
-def integer_at_least(minimum: int):
-    """argparse type of ``--steps`` and the like: an integer >= ``minimum``."""
+def integer_at_least(minimum: int, maximum: int | None = None):
+    """argparse type of ``--steps`` and the like: an integer >= ``minimum`` (and <= ``maximum`` when given)."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        if value < minimum or (maximum is not None and value > maximum):
+            upper = f" and <= {maximum}" if maximum is not None else ""
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}{upper}, got {text!r}")
         return value
 
     return parse
@@ -113,17 +114,77 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
     prepare_backend(device, backend, announce=lambda message: print(message, flush=True))
 
 
-def load_scene_verbose(path: str | os.PathLike, device: torch.device) -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device``, printing the file size first and the count and time after."""
+def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
+                       spz_axes: str = "rub") -> GaussianScene:
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on),
+    printing the file size first and the count and time after. The library's advice on invalid Gaussians
+    is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
+    options cannot make a scene file smaller)."""
     from ..formats import load_scene
+    from ..scene import DROP_INVALID_HINT
 
-    print(f"loading {path} ({os.path.getsize(path) / 2**20:,.1f} MiB)" if os.path.isfile(path) else f"loading {path}",
-          flush=True)
+    size = os.path.getsize(path) if os.path.isfile(path) else None
+    print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
     start = time.perf_counter()
-    scene = load_scene(path).to(device)
+    try:
+        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes).to(device)
+    except ValueError as error:
+        if DROP_INVALID_HINT not in str(error):
+            raise
+        raise ValueError(str(error).replace(DROP_INVALID_HINT, "give --drop-invalid to drop them")) from None
+    except (MemoryError, RuntimeError) as error:
+        if is_out_of_memory(error):
+            error.advice = f"{path} needs more memory to load than is free on {device}"
+        raise
     print(f"loaded {len(scene):,} Gaussians (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
           flush=True)
     return scene
+
+
+def is_out_of_memory(error: BaseException) -> bool:
+    """Whether ``error`` is running out of memory (torch's CPU allocator raises a bare RuntimeError)."""
+    return isinstance(error, (MemoryError, torch.OutOfMemoryError)) or (
+        isinstance(error, RuntimeError) and "can't allocate memory" in str(error))
+
+
+# A style image may be at most this many times as long as it is wide: the finetune sizes it to the long
+# side of the renders its VGG sees (down to 128 px), and its relu3 features need 4 px across there.
+MAX_STYLE_ASPECT = 32
+
+
+def check_style_image(path: str | os.PathLike, option: str = "--style") -> tuple[int, int]:
+    """(width, height) of the style image at ``path`` from its header, before any work: ValueError naming
+    ``option`` and ``path`` for a file that is missing, not a regular file or not an image, one over the
+    pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`), or one longer than :data:`MAX_STYLE_ASPECT`
+    times its width."""
+    from ..fileio import image_size
+
+    try:
+        width, height = image_size(path)
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
+    if max(width, height) > MAX_STYLE_ASPECT * min(width, height):
+        raise ValueError(f"{option}: {path}: image size: {width}x{height} pixels; a style image may be at most "
+                         f"{MAX_STYLE_ASPECT} times as long as it is wide (its features are matched at the "
+                         "renders' size); crop it")
+    return width, height
+
+
+SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .ckpt"
+
+
+def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -> None:
+    """``--drop-invalid`` and ``--spz-axes``: how the scene file is read (and ``written``, when the command
+    writes one)."""
+    from ..formats import SPZ_AXES
+
+    parser.add_argument("--drop-invalid", action="store_true",
+                        help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
+                        "warning) instead of refusing the file")
+    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="rub",
+                        help=f"axes of a .spz scene{written} that does not name its own: rub (default), the SPZ "
+                        "format's rule, as Niantic's tools write; ply: the PLY's axes, as PlayCanvas splat-transform "
+                        "and SuperSplat write .spz (such files load upside down with rub)")
 
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:

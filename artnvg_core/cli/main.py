@@ -15,7 +15,10 @@ from ..cameras.selection import parse_views
 from ..devices import DEVICE_CHOICES
 from .batch import add_batch_command
 from .common import (
+    SCENE_FILES,
     add_camera_arguments,
+    add_scene_file_options,
+    is_out_of_memory,
     load_scene_verbose,
     orbit_from_args,
     parse_device,
@@ -28,7 +31,7 @@ from .stylize import add_stylize_arguments
 
 def cmd_render(args: argparse.Namespace) -> None:
     from ..cameras import load_cameras
-    from ..fileio import check_output_folder, save_png
+    from ..fileio import check_output_folder, refuse_overwrites, save_png
     from ..raster import render
 
     device = parse_device(args.device)
@@ -36,9 +39,15 @@ def cmd_render(args: argparse.Namespace) -> None:
     def chosen(cameras):
         return cameras.subset(parse_views(args.views, len(cameras), "--views")).scaled(args.scale)
 
+    inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
     cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
-    scene = load_scene_verbose(args.scene, device)
-    cameras = chosen(orbit_from_args(args, scene)) if cameras is None else cameras
+    if cameras is not None:  # e.g. --out into the capture's own image folder
+        refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
+                          inputs + [("the capture's image", image) for image in cameras.image_paths])
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
+    if cameras is None:
+        cameras = chosen(orbit_from_args(args, scene))
+        refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
     out_dir.mkdir(parents=True, exist_ok=True)
     prepare_rasterizer(device, args.backend)
     print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
@@ -61,13 +70,14 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     p = commands.add_parser("render", help="render a scene's views to PNG files")
-    p.add_argument("scene", help="scene file: .ply (INRIA or compressed), .splat, .spz or splatfacto .ckpt")
+    p.add_argument("scene", help=f"scene file: {SCENE_FILES}")
     add_camera_arguments(p)
     p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto")
     p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
+    add_scene_file_options(p)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.set_defaults(run=cmd_render)
@@ -90,9 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as error:  # torch's CPU allocator raises a bare RuntimeError
-        if not isinstance(error, (MemoryError, torch.OutOfMemoryError)) and "can't allocate memory" not in str(error):
+        if not is_out_of_memory(error):
             raise
-        print(f"error: out of memory ({str(error)[:300]}); try a smaller --scale or fewer --views", file=sys.stderr)
+        advice = getattr(error, "advice", "try a smaller --scale or fewer --views")
+        print(f"error: out of memory ({str(error)[:300]}); {advice}", file=sys.stderr)
         return 2
     return status if isinstance(status, int) else 0  # batch gives its exit status; the others return 0
 

@@ -16,9 +16,13 @@ import torch
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import ModelFiles
 from ..diffusion.csgo import CONTENT_ROUTINGS
+from ..formats import SAVE_SUFFIXES
 from .common import (
+    SCENE_FILES,
     ProgressBar,
     add_camera_arguments,
+    add_scene_file_options,
+    check_style_image,
     integer_at_least,
     load_scene_verbose,
     orbit_from_args,
@@ -33,20 +37,11 @@ SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that re
 
 
 def cmd_stylize(args: argparse.Namespace) -> None:
+    # every check that needs no model comes before the diffusion libraries are imported (seconds)
     from ..cameras import load_cameras
-    from ..fileio import check_output_file, load_image
-    from ..finetune import FinetuneConfig
-    from ..formats import writable_scene_path
-    from ..presets import get_preset
-    from ..stylize import (
-        DemoInputs,
-        DiffusionModelsUnavailable,
-        choose_stylizer,
-        save_result,
-        sheet_path,
-        stylize_diffusion,
-        stylize_nnfm,
-    )
+    from ..fileio import check_output_file, load_image, refuse_overwrites
+    from ..formats import check_geometry_writable, writable_scene_path
+    from ..stylize import DemoInputs, sheet_path
 
     given = [args.scene, args.style]
     if any(given + [args.cameras]) and not all(given):
@@ -58,17 +53,30 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
     scale = args.scale if args.scale is not None else (0.25 if demo else 1.0)
-    check_output_file(sheet_path(writable_scene_path(check_output_file(args.out, "--out"), "--out")),
-                      "--out (its contact sheet)")
+    out = writable_scene_path(check_output_file(args.out, "--out"), "--out")
+    sheet = check_output_file(sheet_path(out), "--out (its contact sheet)")
+    refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
+                      [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
+    check_style_image(args.style)
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
-    scene = load_scene_verbose(args.scene, device)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
+    try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
+        check_geometry_writable(scene, out)
+    except ValueError as error:
+        raise ValueError(f"--out: {error}; the stylized scene keeps these positions and scales, so "
+                         f"{out.suffix} cannot hold it: choose .ply") from None
     cameras = load_cameras(args.cameras) if args.cameras else orbit_from_args(args, scene)
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
+
+    from ..finetune import FinetuneConfig
+    from ..presets import get_preset  # imports the diffusion libraries
+    from ..stylize import DiffusionModelsUnavailable, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
+
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     stylizer, reason = choose_stylizer(args.stylizer, files)
     preset = get_preset(args.preset)
@@ -103,16 +111,18 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
-    sheet = save_result(scene, result, cameras, style, args.out)
-    print(f"wrote {args.out} and {sheet} in {time.perf_counter() - start:.0f} s")
+    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
+    print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
 def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     """stylize's options and ``run`` = :func:`cmd_stylize` on ``p``."""
-    p.add_argument("scene", nargs="?", help=".ply, .splat, .spz or splatfacto .ckpt (omit all inputs for the demo)")
+    p.add_argument("scene", nargs="?", help=f"scene file: {SCENE_FILES} (omit all inputs for the demo)")
     add_camera_arguments(p)
     p.add_argument("--style", help="style image file")
-    p.add_argument("--out", default="out/stylized.ply", help="output scene, .ply (default), .spz or .splat by extension; a NAME.contact.png is written beside it")
+    p.add_argument("--out", default="out/stylized.ply",
+                   help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
+                   "NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
     p.add_argument("--preset", choices=("paper", "balanced", "fast", "low-memory"), default="paper",
                    help="diffusion speed/accuracy preset (docs/presets.md)")
@@ -138,7 +148,7 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
-    p.add_argument("--iters", type=int, default=None,
+    p.add_argument("--iters", type=integer_at_least(0), default=None,
                    help="finetune iterations (default: the preset's for diffusion, 1000 for nnfm; 60 for the demo)")
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
                    help="nnfm: match the scene's colours to the style image's before and after finetuning, "
@@ -147,7 +157,8 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
+    add_scene_file_options(p, " (and of --out)")
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")

@@ -16,7 +16,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..fileio import require_regular_file
 from ..scene import GaussianScene
+from . import ksplat, splat, spz
+from .common import scene_to_write
 from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
@@ -26,19 +29,29 @@ from .spz import read_spz, write_spz
 READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ksplat": read_ksplat,
            ".ckpt": read_splatfacto_ckpt}
 WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat, ".ksplat": write_ksplat}
+GEOMETRY_CHECKS = {".spz": spz.check_geometry, ".splat": splat.check_geometry, ".ksplat": ksplat.check_geometry}
 SCENE_SUFFIXES = tuple(READERS)
+SPZ_AXES = tuple(spz.AXES)
 SAVE_SUFFIXES = tuple(WRITERS)
 _DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
 
 
-def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
-    """Read a Gaussian scene, the reader chosen by the file's extension (any case)."""
+def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "rub") -> GaussianScene:
+    """Read a Gaussian scene, the reader chosen by the file's extension (any case). ``spz_axes``: the axes
+    of a ``.spz`` that does not name its own, "rub" (the format's rule) or "ply" (as PlayCanvas
+    splat-transform writes them; :mod:`.spz`)."""
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
+    if spz_axes not in SPZ_AXES:
+        raise ValueError(f"spz_axes: expected one of {', '.join(SPZ_AXES)}, got {spz_axes!r}")
     if reader is None:
         raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
-    if not path.is_file():
-        raise ValueError(f"{path}: scene file not found; expected {_DESCRIBED}")
+    try:
+        require_regular_file(path, "scene file")
+    except ValueError as error:
+        raise ValueError(f"{error}; expected {_DESCRIBED}") from None
+    if reader is read_spz:
+        return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes)
     return reader(path, drop_invalid=drop_invalid)
 
 
@@ -52,7 +65,24 @@ def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> P
     return path
 
 
-def save_scene(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat."""
+def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> None:
+    """The refusals :func:`save_scene` would make of ``scene``'s geometry (means, log-scales, quaternions)
+    for ``path``'s format, made now: for callers about to change the appearance alone (a finetune that
+    keeps the geometry), so that a scene the format cannot hold is refused before the work, not after.
+    ValueError naming ``path`` and the field."""
     path = writable_scene_path(path)
-    WRITERS[path.suffix.lower()](scene, path)
+    check = GEOMETRY_CHECKS.get(path.suffix.lower())
+    if check is not None:
+        check(scene_to_write(scene, path), path)
+
+
+def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "rub") -> None:
+    """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
+    a ``.spz`` in ``spz_axes`` (as :func:`load_scene`)."""
+    path = writable_scene_path(path)
+    if spz_axes not in SPZ_AXES:
+        raise ValueError(f"spz_axes: expected one of {', '.join(SPZ_AXES)}, got {spz_axes!r}")
+    if path.suffix.lower() == ".spz":
+        write_spz(scene, path, axes=spz_axes)
+    else:
+        WRITERS[path.suffix.lower()](scene, path)

@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fileio import require_regular_file
 from ..scene import GaussianScene, describe_invalid, invalid_gaussians, logit
 
 
 def require_file(path: Path) -> None:
-    if not path.is_file():
-        raise ValueError(f"{path}: scene file not found")
+    """ValueError naming ``path`` unless it is a regular file (a FIFO would block the read)."""
+    require_regular_file(path, "scene file")
 
 
 def scene_to_write(scene: GaussianScene, path: Path) -> GaussianScene:

@@ -10,7 +10,8 @@ the chunk's min..max when given) and packed_rotation (2 bits: the index of
 the largest component of w x y z, then the other three in order, 10 bits each,
 in [-1/sqrt2, 1/sqrt2]); an optional ``sh`` element with uchar f_rest_0..M-1
 (M in 9, 24, 45; value (b + 0.5) / 256 * 8 - 4, with 0 and 255 the ends -4 and 4).
-Coordinates are stored as they are (the PLY's axes).
+Coordinates are stored as they are (the PLY's axes). Every column is read by its declared type:
+packed_* codes declared as float or double are read as their (whole-number) values.
 """
 
 from __future__ import annotations
@@ -79,8 +80,10 @@ def _rotations(packed: np.ndarray) -> np.ndarray:
 def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = False) -> GaussianScene:
     """The scene of a parsed compressed PLY (layout in the module docstring)."""
     packed = _columns(path, ply, "vertex", _PACKED)
-    if (packed < 0).any() or (packed >= 1 << 32).any():
-        raise ValueError(f"{path}: element 'vertex': packed_* values must be uint32")
+    if (packed < 0).any() or (packed >= 1 << 32).any() or (packed != np.floor(packed)).any():
+        raise ValueError(f"{path}: element 'vertex': packed_* values must be whole numbers from 0 to 2^32 - 1 "
+                         f"(declared {', '.join(sorted({str(ply['vertex'].data.dtype[n]) for n in _PACKED}))})")
+    packed = packed.astype(np.int64)  # codes declared as float (any exact whole number) read as their value
     n = len(packed)
     chunks = (n + CHUNK_SIZE - 1) // CHUNK_SIZE
     if ply["chunk"].count != chunks:

@@ -78,13 +78,22 @@ def _stored_sh(rest: np.ndarray) -> np.ndarray:
     return np.concatenate([b.transpose(0, 2, 1).reshape(len(rest), -1) for b in blocks], 1)
 
 
-def _bucket_of_each(section: dict, count: int) -> np.ndarray:
-    """[count] bucket index of each record: full buckets of ``bucketSize`` first, then the
-    partially filled ones with their stored lengths."""
+def _bucket_of_each(path: Path, s: int, section: dict, count: int) -> np.ndarray:
+    """[count] bucket index of each record: full buckets of ``bucketSize`` first, then the partially
+    filled ones with their stored lengths. The lengths' sum is checked against ``count`` before any
+    array of that size is made: memory follows ``count``, which the file's bytes bound, never a length
+    read from the file. ValueError naming ``path`` and section ``s`` when the buckets do not hold
+    exactly ``count`` Gaussians."""
     full = min(section["full"] * section["bucket_size"], count)
+    lengths = section["lengths"]
+    held = section["full"] * section["bucket_size"] + int(lengths.sum())
+    if held != count:
+        raise ValueError(f"{path}: section {s}: its buckets (fullBucketCount {section['full']}, bucketSize "
+                         f"{section['bucket_size']}, {len(lengths)} partly filled of lengths adding up to "
+                         f"{int(lengths.sum())}) hold {held} Gaussians, not its splatCount {count}")
     index = np.arange(full) // max(section["bucket_size"], 1)
-    partial = np.repeat(section["full"] + np.arange(len(section["lengths"])), section["lengths"])
-    return np.concatenate([index, partial])[:count]
+    partial = np.repeat(section["full"] + np.arange(len(lengths)), lengths)
+    return np.concatenate([index, partial])
 
 
 def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
@@ -123,10 +132,10 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
                        "lengths": np.frombuffer(data, "<u4", partial, offset).astype(np.int64)}
             centres = np.frombuffer(data, "<f4", 3 * buckets, offset + meta).reshape(-1, 3).astype(np.float64)
             scale_range = scale_range or _DEFAULT_SCALE_RANGE[level]
-            bucket = _bucket_of_each(section, count)
-            if len(bucket) < count or (count and bucket.max() >= buckets):
-                raise ValueError(f"{path}: section {s}: its buckets (fullBucketCount {full}, bucketSize "
-                                 f"{bucket_size}, {partial} partly filled) do not hold its {count} Gaussians")
+            if full + partial > buckets:
+                raise ValueError(f"{path}: section {s}: fullBucketCount {full} + partiallyFilledBucketCount "
+                                 f"{partial} is more than its bucketCount {buckets}")
+            bucket = _bucket_of_each(path, s, section, count)
             means = (means - scale_range) * (block / 2 / scale_range) + centres[bucket]
         sh = rows["sh"].astype(np.float64) if degree else np.zeros((count, 0))
         if level == 2 and degree:
@@ -151,6 +160,11 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
         sh=torch.cat([dc, torch.from_numpy(rest).float()], 1),
     )
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+
+
+def check_geometry(cpu: GaussianScene, path: Path) -> None:
+    """What :func:`write_ksplat` refuses of the geometry alone (log-scales outside [-87, 88]), checked now."""
+    linear_scales(cpu, path, ".ksplat")
 
 
 def write_ksplat(scene: GaussianScene, path: str | os.PathLike) -> None:

@@ -25,7 +25,7 @@ import torch
 
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
-from ..scene import SH_C0, GaussianScene, describe_invalid, validate_scene
+from ..scene import DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
 from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
@@ -58,6 +58,11 @@ def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
     return np.exp(log_scales)
 
 
+def check_geometry(cpu: GaussianScene, path: Path) -> None:
+    """What :func:`write_splat` refuses of the geometry alone (log-scales outside [-87, 88]), checked now."""
+    linear_scales(cpu, path, ".splat")
+
+
 def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
     """Read a ``.splat`` file (layout in the module docstring) as an SH degree 0 scene."""
     path = Path(path)
@@ -73,7 +78,7 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     bad = ~(np.isfinite(scales) & (scales > 0)).all(1)
     if bad.any() and not drop_invalid:
         problem = "have a scale that is not a positive finite number"
-        raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; pass drop_invalid=True to drop them")
+        raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; {DROP_INVALID_HINT}")
     rotation = records["rotation"].astype(np.float64) - 128
     rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
     with np.errstate(divide="ignore", invalid="ignore"):

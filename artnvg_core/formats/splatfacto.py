@@ -4,7 +4,8 @@ nerfstudio keeps the training config beside the checkpoint
 (``<run>/config.yml``, the checkpoint in ``<run>/nerfstudio_models/``); a run
 trained with ``rasterize_mode: antialiased`` there is rendered with gsplat's
 antialiased mode (``GaussianScene.antialiased``). Without a config the scene is
-classic.
+classic. Tensors saved sparse or expanded (stride 0) are made dense only when the dense
+Gaussians take at most 4 times the file's size; larger ones are refused before they are made.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ from .common import require_file
 _log = logging.getLogger(__name__)
 _SPLATFACTO_PREFIX = "_model.gauss_params."
 _SPLATFACTO_REQUIRED = ("means", "scales", "quats", "features_dc", "opacities")
+# Dense float32 Gaussian tensors may take at most this many times the checkpoint's bytes (float16
+# files double; at least EXPANSION_FLOOR for small files).
+MAX_EXPANSION = 4
+EXPANSION_FLOOR = 1 << 24
 _RASTERIZE_MODE = re.compile(r"^\s*rasterize_mode:\s*['\"]?(\w+)", re.MULTILINE)
 
 
@@ -59,8 +64,31 @@ def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
     missing = [_SPLATFACTO_PREFIX + name for name in _SPLATFACTO_REQUIRED if name not in params]
     if missing:
         raise ValueError(f"{path}: not a splatfacto checkpoint, pipeline lacks tensors {', '.join(missing)}")
+    _require_dense_within_cap(path, params)
     # to_dense: tensors saved in a sparse layout (COO, CSR, ...) read as the dense values they hold
     return {name: value.detach().to_dense().to(torch.float32) for name, value in params.items()}
+
+
+def _require_dense_within_cap(path: Path, params: dict[str, torch.Tensor]) -> None:
+    """ValueError naming ``path`` when the dense float32 Gaussian tensors would take more than
+    :data:`MAX_EXPANSION` times the file's size (at least :data:`EXPANSION_FLOOR`): a sparse or
+    stride-0 tensor holds a shape far larger than its stored values, so its shape is checked, before
+    it is made dense."""
+    needed = 4 * sum(value.numel() for value in params.values())
+    file_size = path.stat().st_size
+    cap = max(MAX_EXPANSION * file_size, EXPANSION_FLOOR)
+    if needed > cap:
+        shapes = ", ".join(f"{name} {tuple(value.shape)} ({_layout(value)})" for name, value in params.items())
+        raise ValueError(f"{path}: {_SPLATFACTO_PREFIX}*: the Gaussian tensors take {needed:,} bytes as dense float32, "
+                         f"more than the cap of {MAX_EXPANSION}x the {file_size:,}-byte file ({cap:,} bytes); "
+                         f"sparse or stride-0 tensors that stand for far more values than the file holds ({shapes})")
+
+
+def _layout(value: torch.Tensor) -> str:
+    """``sparse_coo`` and the like, ``stride 0`` for an expanded tensor, else ``dense``."""
+    if value.layout != torch.strided:
+        return str(value.layout).removeprefix("torch.")
+    return "stride 0" if 0 in value.stride() and value.numel() > 1 else "dense"
 
 
 def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, ...]) -> None:

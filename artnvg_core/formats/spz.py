@@ -13,7 +13,8 @@ uint8), SH coefficients (uint8, (b - 128) / 128, coefficient-major with the
 colour channel inner). Flag 0x1 marks a scene trained antialiased (loaded
 with ``GaussianScene.antialiased``, written from it). Reading version 4 needs
 the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning). Streams are
-inflated only up to the size the header implies (:mod:`.bounded`).
+inflated only up to the size the header implies, which may be at most 64 times the file's
+size (:mod:`.bounded`).
 
 Coordinate rule: SPZ stores RUB axes (x right, y up, z back), the format's
 documented default and what Niantic's writer produces from a PLY's RDF axes
@@ -23,8 +24,11 @@ of the 8 axis-flip systems; the 90-degree-rotated ones are refused). Loading
 converts to RDF, saving converts RDF to RUB: flip y and z of positions, the
 x/y... components of quaternions as (x, -y, -z), and each SH coefficient by
 the parity of its basis function under that flip. Writers that store PLY
-axes without saying so (some version-4 exporters) therefore load upside
-down; flip them back with a 180-degree rotation about x.
+axes without saying so load upside down under that rule: PlayCanvas
+splat-transform (3.7, the converter behind SuperSplat) writes version 4 files
+in PLY axes with no extension record. ``axes="ply"`` reads (and writes) files
+without a record in the PLY's axes instead, as those tools do; a record in
+the file always wins. No other field of the format tells the two apart.
 
 Written as version 3 (gzip; every SPZ reader reads it, the stdlib writes it),
 with the reference's default quantisation: 12 fractional bits (fewer when the
@@ -56,7 +60,7 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
-from .bounded import inflate_exactly, read_at_most
+from .bounded import inflate_exactly, read_at_most, require_inflatable
 from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
@@ -71,6 +75,7 @@ _LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fractio
 _HEADER = struct.Struct("<IIIBBBBI12x")  # ... numStreams tocByteOffset reserved[12]
 _COORDINATE_EXTENSION = 0xADBE0003
 RUB, RDF = 4, 6  # the reference's CoordinateSystem values; 1..8 differ by axis flips only
+AXES = {"rub": RUB, "ply": RDF}  # the axes of files without a record: the format's rule, or the PLY's
 _SQRT1_2 = math.sqrt(0.5)
 _MAX_DEGREE = 4
 
@@ -91,8 +96,8 @@ def _axis_flips(stored: int, path: Path) -> np.ndarray:
     return np.array([-1.0 if differ >> bit & 1 else 1.0 for bit in range(3)])
 
 
-def _stored_system(path: Path, zone: bytes) -> int:
-    """The coordinate system named by an extension record in ``zone`` (RUB when none names one)."""
+def _stored_system(path: Path, zone: bytes) -> int | None:
+    """The coordinate system named by an extension record in ``zone`` (None when none names one)."""
     offset = 0
     while offset + 8 <= len(zone):
         kind, length = struct.unpack_from("<II", zone, offset)
@@ -101,7 +106,7 @@ def _stored_system(path: Path, zone: bytes) -> int:
         if kind == _COORDINATE_EXTENSION and length >= 4:
             return struct.unpack_from("<I", zone, offset + 8)[0] or RUB
         offset += 8 + length
-    return RUB
+    return None
 
 
 def _array_sizes(count: int, degree: int, version: int) -> dict[str, int]:
@@ -126,7 +131,7 @@ def _check_header(path: Path, version: int, count: int, degree: int, valid_versi
         raise ValueError(f"{path}: shDegree: {degree} is above SPZ's maximum 4")
 
 
-def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
     try:
         with gzip.GzipFile(fileobj=io.BytesIO(raw)) as stream:
             head = read_at_most(stream, _LEGACY_HEADER.size)
@@ -137,8 +142,10 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
                 raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
             _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
             sizes = _array_sizes(count, degree, version)
+            field = f"numPoints: {count} Gaussians of SH degree {degree}"
+            require_inflatable(sum(sizes.values()), path, field)
             # extension records may follow the arrays (flag 0x2); they are not read
-            data = inflate_exactly(stream, sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}",
+            data = inflate_exactly(stream, sum(sizes.values()), path, field,
                                    trailing_allowed=bool(flags & FLAG_EXTENSIONS))
     except (OSError, EOFError, zlib.error) as error:
         raise ValueError(f"{path}: gzip stream: not readable ({error}); the file is truncated or corrupt") from error
@@ -146,21 +153,22 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
     for name, size in sizes.items():
         arrays[name], offset = data[offset : offset + size], offset + size
     header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
-    return header, arrays, RUB
+    return header, arrays, None
 
 
-def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int]:
+def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
     if len(raw) < _HEADER.size:
         raise ValueError(f"{path}: header: {len(raw)} bytes, expected {_HEADER.size}")
     _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
     _check_header(path, version, count, degree, range(4, LATEST_VERSION + 1))
     sizes = {name: size for name, size in _array_sizes(count, degree, version).items() if size}
+    require_inflatable(sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}")
     if streams != len(sizes):
         raise ValueError(f"{path}: numStreams: {streams}, expected {len(sizes)} for SH degree {degree}")
     body = toc + 16 * streams
     if toc < _HEADER.size or body > len(raw):
         raise ValueError(f"{path}: tocByteOffset: {toc} puts the table outside the {len(raw)}-byte file")
-    system = _stored_system(path, raw[_HEADER.size : toc]) if flags & FLAG_EXTENSIONS else RUB
+    system = _stored_system(path, raw[_HEADER.size : toc]) if flags & FLAG_EXTENSIONS else None
     try:
         import zstandard
     except ImportError as error:
@@ -216,9 +224,19 @@ def _rotations_xyzw(header: dict, raw: bytes) -> np.ndarray:
     return q
 
 
-def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
-    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring)."""
+def _system(axes: str) -> int:
+    """The coordinate system of files without an extension record: ``axes`` "rub" (the format's rule) or
+    "ply" (the PLY's axes, as PlayCanvas splat-transform writes them)."""
+    if axes not in AXES:
+        raise ValueError(f"spz axes: expected one of {', '.join(AXES)}, got {axes!r}")
+    return AXES[axes]
+
+
+def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "rub") -> GaussianScene:
+    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring); a file
+    without a coordinate-system record is taken to hold ``axes`` ("rub", the format's rule, or "ply")."""
     path = Path(path)
+    default = _system(axes)
     require_file(path)
     raw = path.read_bytes()
     if raw[:4] == struct.pack("<I", MAGIC):
@@ -228,12 +246,13 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
     else:
         raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
     count, degree = header["count"], header["degree"]
-    flips = _axis_flips(system, path)
+    flips = _axis_flips(default if system is None else system, path)
     x, y, z = flips
     q = _rotations_xyzw(header, arrays["rotations"])
     q[:, :3] *= (y * z, x * z, x * y)
     coefficients = (degree + 1) ** 2 - 1
-    sh_rest = (np.frombuffer(arrays["sh"], np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
+    sh = arrays.get("sh", b"")  # version 4 has no SH stream at degree 0
+    sh_rest = (np.frombuffer(sh, np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
     if degree > 3:
         _log.warning("%s: SH degree %d read as degree 3 (the degree-4 terms are dropped)", path, degree)
         sh_rest, degree = sh_rest[:, :15], 3
@@ -262,6 +281,11 @@ def _fractional_bits(path: Path, means: np.ndarray) -> int:
     return bits
 
 
+def check_geometry(cpu: GaussianScene, path: Path) -> None:
+    """What :func:`write_spz` refuses of the geometry alone (|coordinate| >= 2^23), checked now."""
+    _fractional_bits(path, cpu.means.double().numpy())
+
+
 def _quantized_sh(values: np.ndarray, bits: int) -> np.ndarray:
     """SH coefficients as bytes, rounded to a bucket of 2^(8 - bits) as the reference writer does."""
     bucket = 1 << (8 - bits)
@@ -283,15 +307,16 @@ def _smallest_three(q: np.ndarray) -> np.ndarray:
     return comp.astype("<u4")
 
 
-def write_spz(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring).
+def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "rub") -> None:
+    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring), or with
+    ``axes="ply"`` in the PLY's axes, as PlayCanvas splat-transform writes and reads them.
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, a coordinate of magnitude 2^23 or more.
     """
     path = Path(path)
     cpu = scene_to_write(scene, path)
-    x, y, z = _axis_flips(RUB, path)
+    x, y, z = _axis_flips(_system(axes), path)
     means = cpu.means.double().numpy() * (x, y, z)
     bits = _fractional_bits(path, means)
     fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
