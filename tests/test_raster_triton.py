@@ -173,10 +173,10 @@ def _fused_errors(scene, cameras, cam=0, degree=None, seed=1):
 
 def test_fused_projection_and_colours_match_float64_on_every_hard_case():
     """Every hard case (both cameras): the same Gaussians kept with the same radii, every output and
-    gradient finite and at float32's precision against float64 (measured: at most ~3e-7)."""
+    gradient finite and at float32's precision against float64 (measured: at most 4e-7)."""
     for i, case in enumerate(HARD.values()):
         same, finite, errors = _fused_errors(case.scene, case.cameras, cam=i % 2)
-        assert same and finite and max(errors.values()) <= 1e-5, (case.name, errors)
+        assert same and finite and max(errors.values()) <= 2e-6, (case.name, errors)
 
 
 def _ordinary_scene(seed, degree, antialiased):
@@ -204,7 +204,7 @@ def test_fused_backward_matches_float64_vector_jacobian_products(degree, antiali
     scene = _ordinary_scene(degree, degree, antialiased)
     cams = make_cameras(EYES[:1])
     same, finite, errors = _fused_errors(scene, cams, degree=degree)
-    assert same and finite and max(errors.values()) <= 1e-5, errors
+    assert same and finite and max(errors.values()) <= 2e-6, errors
     proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, cams.world_to_cam[0],
                    cams.intrinsics[0], cams.width, cams.height)
     assert {0, 4, 5, 6, 7} <= set(proj.index.tolist())  # the hard rows are kept, so their gradients count
