@@ -227,6 +227,19 @@ def _total_variation(images: torch.Tensor) -> torch.Tensor:
     return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
 
 
+def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
+                  report: ProgressFn | None, should_stop: StopFn | None) -> torch.Tensor:
+    """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], one view at a time, reporting each."""
+    views = []
+    for index in range(len(cameras)):
+        check_stop(should_stop)
+        with torch.no_grad():
+            views.append(render(scene, cameras.subset([index]), backend=config.backend).rgb.clamp(0, 1))
+        if report is not None:
+            report(index + 1, len(cameras), {"stage": stage})
+    return torch.cat(views)
+
+
 def finetune(
     scene: GaussianScene,
     cameras: CameraSet,
@@ -236,6 +249,7 @@ def finetune(
     config: FinetuneConfig | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    render_progress: ProgressFn | None = None,
 ) -> GaussianScene:
     """Finetune ``scene`` so its renders from ``cameras`` take on the style.
 
@@ -247,6 +261,9 @@ def finetune(
     progress(step, total, info): called after every step, ``info`` holding the
         loss terms as floats. should_stop(): checked before every step; when it
         returns True, :class:`~artnvg_core.progress.Cancelled` is raised.
+    render_progress(view, views, info): called after each view of the renders of every camera
+        before the steps (``info["stage"] == "setup"``: colour transfer, content term) and after
+        them (``"final"``: colour transfer), which ``should_stop`` can also end.
     No step writes a non-finite value (:mod:`artnvg_core.finite_steps`): a step with a
     non-finite loss is skipped, Gaussians with non-finite gradients keep their last finite
     values, and both are logged with the step and the Gaussians' indices.
@@ -277,8 +294,7 @@ def finetune(
     color_transfer = stylized is None and config.color_transfer
     originals = None
     if color_transfer or (stylized is None and config.content_weight > 0):
-        with torch.no_grad():
-            content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1)
+        content = _render_views(scene, cameras, config, "setup", render_progress, should_stop)
         if color_transfer:
             transform = match_colors(content, style_image)
             scene = recolor_scene(scene, transform)
@@ -327,7 +343,6 @@ def finetune(
     steps.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
-        with torch.no_grad():
-            renders = render(result, cameras, backend=config.backend).rgb.clamp(0, 1)
+        renders = _render_views(result, cameras, config, "final", render_progress, should_stop)
         result = recolor_scene(result, match_colors(renders, style_image))
     return result

@@ -8,7 +8,8 @@ outputs. Add new inputs only at the end of a node's ``optional`` inputs.
 from __future__ import annotations
 
 from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
-from .comfy_bridge import register_model_folder
+from .comfy_bridge import comfy_module, input_directory, register_model_folder
+from .demo_inputs import install_demo_inputs
 from .diffusion_nodes import (
     CSGO_EXTENSIONS,
     CSGO_FOLDER,
@@ -18,11 +19,15 @@ from .diffusion_nodes import (
     SampleGroup,
 )
 from .finetune_nodes import FinetuneGaussians
+from .prompt_checks import register_prompt_check
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
 from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
+if comfy_module("folder_paths") is not None:  # inside ComfyUI: the shipped workflows' inputs, whole-prompt checks
+    install_demo_inputs(input_directory())
+    register_prompt_check()
 
 NODE_CLASS_MAPPINGS = {
     "ArtNVGLoadGaussianScene": LoadGaussianScene,

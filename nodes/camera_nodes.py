@@ -12,6 +12,7 @@ from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, GROUPS, SCENE
+from .prompt_checks import HIDDEN, check_result
 
 COLMAP_MARKERS = ("cameras.bin", "cameras.txt")
 
@@ -39,15 +40,23 @@ class LoadCameras(ArtNVGNode):
     REQUIRED = {"camera_source": CAMERA_SOURCE.list_input}
     OPTIONAL = {"path": CAMERA_SOURCE.path_input}
 
-    @classmethod
-    def VALIDATE_INPUTS(cls, camera_source, path=""):
-        return CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
+    HIDDEN = HIDDEN
 
     @classmethod
-    def IS_CHANGED(cls, camera_source, path=""):
+    def check_files(cls, camera_source="", path="", **_other_inputs) -> str | None:
+        """The message when the chosen file or folder is missing (``prompt_checks``), else None."""
+        result = CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
+        return None if result is True else result
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)
+
+    @classmethod
+    def IS_CHANGED(cls, camera_source, path="", files=None):
         return CAMERA_SOURCE.signature(camera_source, path)
 
-    def load(self, camera_source, path=""):
+    def load(self, camera_source, path="", files=None):
         source, input_name = CAMERA_SOURCE.resolve(camera_source, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_cameras(source),)

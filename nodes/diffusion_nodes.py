@@ -41,6 +41,7 @@ from .comfy_bridge import (
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import EMBEDS, GROUPS, IMAGE, MODELS
+from .prompt_checks import HIDDEN, check_result
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -67,8 +68,9 @@ class ModelInput:
         return f"{self.name}_path"
 
     def list_input(self) -> tuple:
-        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache."""
-        return ([HF_CACHE, *model_files(self.folder)], {"tooltip": (
+        """The declaration of input ``name``: the folder's files, listed now, after the Hugging Face cache (a COMBO,
+        whose value ComfyUI leaves to the loader's check: see ``prompt_checks``)."""
+        return ("COMBO", {"options": [HF_CACHE, *model_files(self.folder)], "tooltip": (
             f"{self.source.description}: a file in models/{self.folder}, or {HF_CACHE} ({self.source.url}).")})
 
 
@@ -103,6 +105,26 @@ def _model_paths(node: str, inputs: dict[str, str]) -> ModelFiles:
     """:func:`_model_path` of every entry of :data:`MODEL_INPUTS`, from the node's inputs by name."""
     return ModelFiles(**{model.field: _model_path(node, model, inputs[model.name], inputs.get(model.path_input, ""))
                          for model in MODEL_INPUTS})
+
+
+def missing_models(node: str, inputs: dict[str, str], config_dir: str | None) -> str | None:
+    """None when every model file the loader reads is there, else one message naming each missing one once
+    (input, file, where it was looked for, where to get it); ``inputs``: the node's inputs by name."""
+    problems, found = [], {}
+    for model in MODEL_INPUTS:
+        try:
+            found[model.field] = _model_path(node, model, inputs[model.name], inputs.get(model.path_input, ""))
+        except NodeInputError as error:
+            problems.append(str(error).removeprefix(f"{node}: "))
+    if not problems:
+        try:
+            check_model_files(ModelFiles(**found), sdxl_config_dir=config_dir)
+        except ValueError as error:
+            problems.append(str(error))
+    if not problems:
+        return None
+    count = f"{len(problems)} model file{'s' if len(problems) > 1 else ''}"
+    return f"{node}: {count} missing, so nothing was run:\n" + "\n".join(f"- {problem}" for problem in problems)
 
 
 @dataclasses.dataclass
@@ -185,22 +207,26 @@ class LoadArtNVGModels(ArtNVGNode):
             "14 views at 1024 px).")}),
     }
 
+    HIDDEN = HIDDEN
+
     @classmethod
-    def VALIDATE_INPUTS(cls, sdxl_checkpoint, controlnet, image_encoder, csgo_weights,
-                        sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
-                        sdxl_config_dir=""):
-        """True when every file the load reads is there, else the message naming what is missing."""
-        try:
-            files = _model_paths(cls.DISPLAY_NAME, locals())
-            with node_input(cls.DISPLAY_NAME):
-                check_model_files(files, sdxl_config_dir=sdxl_config_dir.strip() or None)
-        except NodeInputError as error:
-            return str(error)
-        return True
+    def check_files(cls, sdxl_checkpoint=HF_CACHE, controlnet=HF_CACHE, image_encoder=HF_CACHE, csgo_weights=HF_CACHE,
+                    sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
+                    sdxl_config_dir="", **_other_inputs) -> str | None:
+        """:func:`missing_models` of the node's values (``prompt_checks``)."""
+        inputs = locals()
+        return missing_models(cls.DISPLAY_NAME, inputs, sdxl_config_dir.strip() or None)
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)
 
     def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
              sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
-             sdxl_config_dir="", memory="full", compile=False):
+             sdxl_config_dir="", memory="full", compile=False, files=None):
+        problem = missing_models(self.DISPLAY_NAME, locals(), sdxl_config_dir.strip() or None)
+        if problem:
+            raise NodeInputError(problem)
         files = _model_paths(self.DISPLAY_NAME, locals())
         with node_input(self.DISPLAY_NAME, "device"):
             target = compute_device() if device == "auto" else device_for(device)

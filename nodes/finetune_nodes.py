@@ -11,13 +11,32 @@ from .comfy_bridge import (
     interrupt_requested,
     prepare_rasterizer,
     progress_bar,
+    progress_text,
     trainable_copy,
 )
+from .cpu_threads import cpu_threads
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE
 
 _DEFAULTS = FinetuneConfig()
+STAGES = {"setup": "rendering the {} views before finetuning", "steps": "finetuning: {} steps",
+          "final": "rendering the {} finetuned views for the colour match"}
+
+
+def staged_progress():
+    """A core ``ProgressFn`` for the node's bar that also names each stage under the node when it starts
+    (``info["stage"]``: setup, final, else the steps); None without ComfyUI."""
+    report = progress_bar()
+    if report is None:
+        return None
+
+    def staged(step: int, total: int, info: dict) -> None:
+        if step == 1:
+            progress_text(f"Finetune Gaussians: {STAGES[info.get('stage', 'steps')].format(total)}")
+        report(step, total, info)
+
+    return staged
 
 
 def _weight(default: float, tooltip: str) -> tuple:
@@ -74,9 +93,11 @@ class FinetuneGaussians(ArtNVGNode):
             )
             device = compute_device()
             prepare_rasterizer(device)
-            result = finetune(
-                trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
-                stylized=None if stylized_views is None else stylized_views.clone(), config=config,
-                progress=progress_bar(), should_stop=interrupt_requested,
-            )
+            report = staged_progress()
+            with cpu_threads(device):
+                result = finetune(
+                    trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
+                    stylized=None if stylized_views is None else stylized_views.clone(), config=config,
+                    progress=report, render_progress=report, should_stop=interrupt_requested,
+                )
         return (result.to("cpu"),)

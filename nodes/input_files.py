@@ -72,8 +72,9 @@ class InputFile:
     watched: Callable[[Path], Path] | None = None
 
     def list_input(self) -> tuple:
-        """The declaration of input ``name``, with the files listed now."""
-        return (self.listing(), {"tooltip": self.tooltip})
+        """The declaration of input ``name``, with the files listed now: a COMBO, whose value ComfyUI leaves
+        to :meth:`check` (see ``prompt_checks``)."""
+        return ("COMBO", {"options": self.listing(), "tooltip": self.tooltip})
 
     @property
     def path_input(self) -> tuple:
@@ -85,10 +86,12 @@ class InputFile:
         return resolve_input_path(self.name, listed, path)
 
     def check(self, node: str, listed: str, path: str) -> bool | str:
-        """A loader's ``VALIDATE_INPUTS`` answer: True, or the message naming ``node``, the input and the path."""
+        """True, or the message naming ``node``, the input and the path, and saying what to do."""
         file, input_name = self.resolve(listed, path)
         if not self.exists(file):
-            return f"{node}: input '{input_name}': {self.what} not found: {file}"
+            return (f"{node}: input '{input_name}': {self.what} not found: {file}. Put it into ComfyUI's input "
+                    f"folder ({input_directory()}) and pick it in '{self.name}', or type its full path into 'path' "
+                    f"(the shipped workflows' demo files come back into the input folder when ComfyUI restarts)")
         return True
 
     def signature(self, listed: str, path: str) -> str:

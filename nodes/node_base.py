@@ -4,7 +4,8 @@ A node subclasses :class:`ArtNVGNode` and sets ``DISPLAY_NAME``, ``FUNCTION``, `
 ``RETURN_NAMES`` as ComfyUI reads them, and its inputs as ``REQUIRED`` and ``OPTIONAL``: dicts of
 input name -> ``(type,)`` or ``(type, options)``, in the order saved workflows store them. An entry
 may be a function returning the declaration instead, for choices read when ComfyUI asks (files in
-a folder). The class docstring is the node's ``DESCRIPTION`` unless the class sets one.
+a folder). The class docstring is the node's ``DESCRIPTION`` unless the class sets one; either is
+shown as plain text (:func:`plain_text`), as the editor shows it.
 
 Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names the node and the
 input in the error; a loader's file input is declared, found and checked by an
@@ -18,6 +19,13 @@ from .node_types import CATEGORY, IMAGE
 STYLE_IMAGE_INPUT = (IMAGE, {"tooltip": "The style reference (first image of the batch)."})
 
 
+def plain_text(doc: str) -> str:
+    """``doc`` (a docstring) as the editor's plain text: paragraphs (split at blank lines) each on one
+    line, without the reStructuredText literal marks ``.. ``."""
+    paragraphs = (" ".join(line.strip() for line in block.splitlines()) for block in doc.strip().split("\n\n"))
+    return "\n\n".join(paragraph.replace("``", "") for paragraph in paragraphs if paragraph)
+
+
 def _declared(inputs: dict) -> dict:
     """``inputs`` with every entry that is a function replaced by what it returns now."""
     return {name: entry() if callable(entry) else entry for name, entry in inputs.items()}
@@ -29,16 +37,19 @@ class ArtNVGNode:
     CATEGORY = CATEGORY
     REQUIRED: dict = {}
     OPTIONAL: dict = {}
+    HIDDEN: dict = {}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
-        if "DESCRIPTION" not in vars(cls):
-            cls.DESCRIPTION = cls.__doc__
+        cls.DESCRIPTION = plain_text(vars(cls).get("DESCRIPTION") or cls.__doc__ or "")
 
     @classmethod
     def INPUT_TYPES(cls) -> dict:
-        """ComfyUI's input declaration: ``{"required": REQUIRED, "optional": OPTIONAL}`` (optional when any)."""
+        """ComfyUI's input declaration: ``{"required": REQUIRED, "optional": OPTIONAL, "hidden": HIDDEN}`` (the last
+        two when any)."""
         types = {"required": _declared(cls.REQUIRED)}
         if cls.OPTIONAL:
             types["optional"] = _declared(cls.OPTIONAL)
+        if cls.HIDDEN:
+            types["hidden"] = dict(cls.HIDDEN)
         return types

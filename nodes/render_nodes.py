@@ -11,6 +11,7 @@ from artnvg_core.raster.views import render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
+from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
@@ -27,8 +28,9 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     """
     device = compute_device()
     prepare_rasterizer(device)
-    return render_views(scene.to(device), cameras.to(device), chunk=1, cpu=True, progress=progress_bar(),
-                        should_stop=interrupt_requested).rgb
+    with cpu_threads(device):
+        return render_views(scene.to(device), cameras.to(device), chunk=1, cpu=True, progress=progress_bar(),
+                            should_stop=interrupt_requested).rgb
 
 
 def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: float) -> tuple[torch.Tensor, CameraSet]:

@@ -7,11 +7,12 @@ from pathlib import Path
 
 from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
 
-from .comfy_bridge import output_directory
+from .comfy_bridge import output_directory, progress_text
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import SCENE
+from .prompt_checks import HIDDEN, check_result
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_type
 
 SCENE_FILE = InputFile(
@@ -43,15 +44,23 @@ class LoadGaussianScene(ArtNVGNode):
             "ply: the PLY's axes, as PlayCanvas splat-transform and SuperSplat write .spz (upside down with rub).")}),
     }
 
-    @classmethod
-    def VALIDATE_INPUTS(cls, scene_file, path=""):
-        return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
+    HIDDEN = HIDDEN
 
     @classmethod
-    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="rub"):
+    def check_files(cls, scene_file="", path="", **_other_inputs) -> str | None:
+        """The message when the chosen file is missing (``prompt_checks``), else None."""
+        result = SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
+        return None if result is True else result
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)
+
+    @classmethod
+    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="rub", files=None):
         return SCENE_FILE.signature(scene_file, path)
 
-    def load(self, scene_file, path="", drop_invalid=False, spz_axes="rub"):
+    def load(self, scene_file, path="", drop_invalid=False, spz_axes="rub", files=None):
         file, input_name = SCENE_FILE.resolve(scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes),)
@@ -69,10 +78,15 @@ def _next_free_path(filename_prefix: str, suffix: str) -> Path:
     return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}{suffix}"
 
 
+def saved_text(name: str, size: int, gaussians: int) -> str:
+    """What Save Gaussian Scene shows under itself: the file (inside the output folder), its size, its Gaussians."""
+    return f"wrote output/{name} ({size / 1e6:.1f} MB, {gaussians:,} Gaussians)"
+
+
 class SaveGaussianScene(ArtNVGNode):
     """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
     by ``format`` a Niantic ``.spz``, an antimatter15 ``.splat`` or a GaussianSplats3D ``.ksplat`` (smaller
-    files, quantised).
+    files, quantised). Shows the file it wrote under itself: name, size, Gaussians.
 
     Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
 
@@ -108,5 +122,8 @@ class SaveGaussianScene(ArtNVGNode):
             raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
-        ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}]}
+        written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
+        progress_text(written)
+        ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
+              "text": [written]}
         return {"ui": ui, "result": (file3d(file),)} if FILE3D_CLASS is not None else {"ui": ui}

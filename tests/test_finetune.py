@@ -298,3 +298,14 @@ def test_the_contact_sheet_is_bounded_whatever_the_cameras_and_the_style_image(d
     wide = contact_sheet(scene, scene, cameras.subset([0]), style, views=1)
     height = 2 * cameras.height + 4  # an ordinary style image keeps its aspect at the rows' height
     assert wide.shape[:2] == (height, cameras.width + 4 + round(style.shape[1] * height / style.shape[0]))
+
+
+def test_renders_before_and_after_the_steps_report_each_view(demo):
+    """Without stylized views (colour transfer on) every view is rendered before and after the steps."""
+    scene, cameras, style = demo
+    seen = []
+    finetune(scene, cameras.subset([0, 1, 2]), style,
+             config=FinetuneConfig(iterations=1), render_progress=lambda view, views, info: seen.append(
+                 (view, views, info["stage"])))
+    assert seen == [(1, 3, "setup"), (2, 3, "setup"), (3, 3, "setup"), (1, 3, "final"), (2, 3, "final"),
+                    (3, 3, "final")]

@@ -158,7 +158,7 @@ def test_folders_and_model_lists_come_from_comfyui(comfy):
     assert comfy_bridge.model_files("checkpoints") == ["sdxl.safetensors"]
     assert comfy_bridge.model_file_path("checkpoints", "sdxl.safetensors") == root / "models/checkpoints/sdxl.safetensors"
     assert comfy_bridge.model_file_path("checkpoints", "other.safetensors") is None
-    assert LoadArtNVGModels.INPUT_TYPES()["required"]["sdxl_checkpoint"][0] == [HF_CACHE, "sdxl.safetensors"]
+    assert LoadArtNVGModels.INPUT_TYPES()["required"]["sdxl_checkpoint"][1]["options"] == [HF_CACHE, "sdxl.safetensors"]
 
 
 def test_register_model_folder_keeps_user_paths(comfy):
@@ -202,7 +202,8 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
         (result,) = node.finetune(scene, cameras, style, 2, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
     assert not torch.equal(result.sh, scene.sh)
     assert torch.equal(result.means, scene.means)  # appearance only
-    assert comfy.bars == [[(1, 2), (2, 2)]]
+    # one bar, three stages: the 2 views rendered before (colour transfer), the 2 steps, the 2 views after
+    assert comfy.bars == [[(1, 2), (2, 2), (1, 2), (2, 2), (1, 2), (2, 2)]]
 
     def interrupt_after_first_step(step, total, info):
         comfy.interrupted = True

@@ -107,6 +107,8 @@ def test_public_inputs_and_outputs_are_pinned(pack):
 
 def _check_widget(where: str, kind, options: dict) -> None:
     default = options.get("default")
+    if kind == "COMBO":
+        kind = options["options"]
     if isinstance(kind, (list, tuple)):
         assert all(isinstance(choice, str) for choice in kind), where
         assert default is None or default in kind, where
@@ -133,7 +135,7 @@ def test_every_node_contract_is_valid_and_consistent(pack):
         for input_name, spec in inputs.items():
             assert isinstance(spec, tuple) and 1 <= len(spec) <= 2, (name, input_name)
             kind, options = spec[0], (spec[1] if len(spec) == 2 else {})
-            if isinstance(kind, (list, tuple)) or kind in WIDGET_TYPES:
+            if isinstance(kind, (list, tuple)) or kind in WIDGET_TYPES or kind == "COMBO":
                 _check_widget(f"{name}.{input_name}", kind, options)
             else:
                 assert kind in CORE_TYPES or kind.startswith("ARTNVG_"), (name, input_name, kind)
@@ -145,25 +147,31 @@ def test_every_node_contract_is_valid_and_consistent(pack):
         assert node.RETURN_TYPES or getattr(node, "OUTPUT_NODE", False), name  # a node without outputs saves
 
         parameters = inspect.signature(getattr(node, node.FUNCTION)).parameters
-        assert list(parameters)[1:] == list(inputs), name  # self, then every input in order
+        hidden = list(node.INPUT_TYPES().get("hidden", {}))
+        assert list(parameters)[1:] == list(inputs) + hidden, name  # self, then every input in order, then hidden
+        for hidden_name in hidden:
+            assert parameters[hidden_name].default is None, (name, hidden_name)
         for input_name in list(inputs)[len(required):]:
             assert parameters[input_name].default is not inspect.Parameter.empty, (name, input_name)
         for hook in ("VALIDATE_INPUTS", "IS_CHANGED"):
             if hasattr(node, hook):
                 hook_parameters = inspect.signature(getattr(node, hook)).parameters
-                assert set(hook_parameters) <= set(inputs), (name, hook)
+                assert set(hook_parameters) <= set(inputs) | set(hidden), (name, hook)
                 assert all(p.default is not inspect.Parameter.empty
                            for key, p in hook_parameters.items() if key not in required), (name, hook)
     assert {kind for kind in consumed if kind.startswith("ARTNVG_")} <= produced
 
 
-def test_list_inputs_validated_by_the_node_are_only_file_choices(pack):
-    """ComfyUI skips its own list check for inputs named in VALIDATE_INPUTS: those must be file lists."""
+FILE_CHOICES = {"scene_file", "camera_source", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
+
+
+def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_them(pack):
+    """ComfyUI does not compare a COMBO input's value with its options: only the file lists are COMBOs, and
+    their nodes check the files themselves (check_files, run on the whole prompt: nodes/prompt_checks.py)."""
     for name, node in pack.NODE_CLASS_MAPPINGS.items():
-        if not hasattr(node, "VALIDATE_INPUTS"):
-            continue
-        inputs = _all_inputs(node)
-        for input_name in inspect.signature(node.VALIDATE_INPUTS).parameters:
-            kind = inputs[input_name][0]
-            assert kind == "STRING" or input_name in {"scene_file", "camera_source", "sdxl_checkpoint", "controlnet",
-                                                       "image_encoder", "csgo_weights"}, (name, input_name)
+        combos = {input_name for input_name, spec in _all_inputs(node).items() if spec[0] == "COMBO"}
+        assert combos <= FILE_CHOICES, name
+        if combos:
+            checked = set(inspect.signature(node.check_files).parameters)
+            assert combos <= checked and "_other_inputs" in checked, name
+            assert list(inspect.signature(node.VALIDATE_INPUTS).parameters) == ["files"], name

@@ -64,7 +64,7 @@ LISTED = {"sdxl_checkpoint": HF_CACHE, "controlnet": HF_CACHE, "image_encoder": 
 
 @pytest.fixture(scope="module")
 def loaded(model_files):
-    assert LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **model_files) is True
+    assert LoadArtNVGModels.check_files(**LISTED, **model_files) is None
     (models,) = call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True, **model_files)
     return models
 
@@ -87,34 +87,54 @@ def test_loader_loads_once_per_process(loaded, model_files):
 def test_missing_model_names_the_input_the_file_and_where_to_get_it(model_files, tmp_path, monkeypatch):
     listed = dict(LISTED, csgo_weights="csgo_4_32.bin")
     paths = dict(model_files, csgo_weights_path="")
-    message = LoadArtNVGModels.VALIDATE_INPUTS(**listed, **paths)
+    message = LoadArtNVGModels.check_files(**listed, **paths)
     assert "input 'csgo_weights'" in message and "'csgo_4_32.bin'" in message
     assert "'csgo' model folder" in message and "huggingface.co/InstantX/CSGO" in message
 
     partial = tmp_path / "partial_sdxl"  # the loader would fail on it: validation says so, naming only that
     partial.mkdir()
     (partial / "model_index.json").write_text("{}")
-    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(partial)))
-    assert message.startswith("Load ArtNVG Models: SDXL diffusers folder component 'unet'") and "vae" not in message
+    message = LoadArtNVGModels.check_files(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(partial)))
+    assert message.startswith("Load ArtNVG Models: 1 model file missing, so nothing was run:\n- SDXL diffusers "
+                              "folder component 'unet'") and "vae" not in message
     single = tmp_path / "sd_xl_base_1.0.safetensors"
     single.write_bytes(b"")
-    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single)),
+    message = LoadArtNVGModels.check_files(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single)),
                                                sdxl_config_dir=str(tmp_path / "configs"))
     assert "SDXL configs for the single-file checkpoint" in message and "configs/model_index.json" in message
-    assert LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single))) is True
+    assert LoadArtNVGModels.check_files(**LISTED, **dict(model_files, sdxl_checkpoint_path=str(single))) is None
 
     missing = tmp_path / "nowhere" / "csgo.bin"
-    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, csgo_weights_path=str(missing)))
+    message = LoadArtNVGModels.check_files(**LISTED, **dict(model_files, csgo_weights_path=str(missing)))
     assert "input 'csgo_weights_path'" in message and str(missing) in message
 
     from huggingface_hub import constants
 
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty_cache"))
-    message = LoadArtNVGModels.VALIDATE_INPUTS(**LISTED, **dict(model_files, controlnet_path=""))
+    message = LoadArtNVGModels.check_files(**LISTED, **dict(model_files, controlnet_path=""))
     assert "input 'controlnet'" in message and "empty_cache" in message and "TTPLanet" in message
-    with pytest.raises(NodeInputError, match="Load ArtNVG Models: input 'controlnet'"):
+    with pytest.raises(NodeInputError, match="Load ArtNVG Models: 1 model file missing.*\n- input 'controlnet'"):
         call(LoadArtNVGModels, **LISTED, dtype="float32", device="cpu", keep_loaded=True,
              **dict(model_files, controlnet_path=""))
+
+
+def test_every_missing_model_is_named_once_with_its_folder_and_source(tmp_path, monkeypatch):
+    from huggingface_hub import constants
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty_cache"))
+    shipped = {"sdxl_checkpoint": "sd_xl_base_1.0.safetensors", "controlnet": "tile.safetensors",
+               "image_encoder": HF_CACHE, "csgo_weights": "csgo_4_32.bin"}
+    message = LoadArtNVGModels.check_files(**shipped, dtype="float16")  # other inputs are ignored
+    lines = message.splitlines()
+    assert lines[0] == "Load ArtNVG Models: 4 model files missing, so nothing was run:"
+    assert [line.split("'")[1] for line in lines[1:]] == ["sdxl_checkpoint", "controlnet", "image_encoder",
+                                                           "csgo_weights"]
+    for name in ("'sd_xl_base_1.0.safetensors'", "'tile.safetensors'", "'csgo_4_32.bin'", "empty_cache"):
+        assert message.count(name) == 1, name
+    for line, url in zip(lines[1:], ("stabilityai/stable-diffusion-xl-base-1.0", "TTPlanet/", "h94/IP-Adapter",
+                                     "InstantX/CSGO")):
+        assert f"huggingface.co/{url}" in line
+    assert "'checkpoints' model folder" in lines[1] and "'csgo' model folder" in lines[4]
 
 
 def test_patch_turns_neighbouring_view_attention_on_without_touching_the_input(loaded):

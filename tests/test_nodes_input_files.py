@@ -33,8 +33,10 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     assert scene_file.resolve("a.ply", "sub/b.ply") == (input_folder / "sub" / "b.ply", "path")
     assert scene_file.check("Load", "a.ply", "") is True
     missing = input_folder / "gone.ply"
-    assert scene_file.check("Load", "gone.ply", "") == f"Load: input 'scene_file': scene file not found: {missing}"
-    assert scene_file.check("Load", "a.ply", "/no/b.ply") == "Load: input 'path': scene file not found: /no/b.ply"
+    message = scene_file.check("Load", "gone.ply", "")
+    assert message.startswith(f"Load: input 'scene_file': scene file not found: {missing}. ")
+    assert f"input folder ({input_folder.resolve()})" in message and "full path into 'path'" in message
+    assert scene_file.check("Load", "a.ply", "/no/b.ply").startswith("Load: input 'path': scene file not found: /no/b.ply. ")
     (input_folder / "folder.ply").mkdir()
     assert "not found" in scene_file.check("Load", "folder.ply", "")  # a folder is no scene file
 
@@ -70,3 +72,16 @@ def test_inputs_are_data_and_choices_are_listed_when_asked(input_folder):
     assert (Loader.CATEGORY, Loader.DESCRIPTION) == ("ArtNVG", "Loads things.")
     assert Described.DESCRIPTION == "Own words."
     assert Described.INPUT_TYPES() == {"required": {}, "optional": {"flag": ("BOOLEAN", {"default": False})}}
+
+
+def test_descriptions_are_plain_text_paragraphs():
+    from nodes import NODE_CLASS_MAPPINGS
+    from nodes.node_base import plain_text
+
+    assert plain_text("""Reads ``*.ply`` files,
+        one per line.
+
+        Second ``paragraph``.""") == "Reads *.ply files, one per line.\n\nSecond paragraph."
+    for name, node in NODE_CLASS_MAPPINGS.items():
+        assert "``" not in node.DESCRIPTION and "\n\n\n" not in node.DESCRIPTION, name
+        assert all(paragraph == " ".join(paragraph.split()) for paragraph in node.DESCRIPTION.split("\n\n")), name

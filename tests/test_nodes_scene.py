@@ -58,18 +58,18 @@ def comfy_dirs(tmp_path, monkeypatch, bear):
 
 
 def test_load_scene_from_input_folder_or_path(comfy_dirs, bear):
-    listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"][0]
-    assert listed == ["bear/scene.ply"]
-    assert LoadGaussianScene.VALIDATE_INPUTS("bear/scene.ply") is True
+    listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"]
+    assert listed[0] == "COMBO" and listed[1]["options"] == ["bear/scene.ply"]
+    assert LoadGaussianScene.check_files(scene_file="bear/scene.ply", drop_invalid=True) is None
     (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")
     (from_path,) = call(LoadGaussianScene, scene_file="", path=str(bear["folder"] / "scene.ply"))
     assert _same_scene(from_list, bear["scene"]) and _same_scene(from_path, bear["scene"])
 
 
 def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
-    message = LoadGaussianScene.VALIDATE_INPUTS("bear/nothing.ply")
+    message = LoadGaussianScene.check_files(scene_file="bear/nothing.ply")
     assert "scene_file" in message and "bear/nothing.ply" in message
-    message = LoadGaussianScene.VALIDATE_INPUTS("bear/scene.ply", path="/no/such/scene.ply")
+    message = LoadGaussianScene.check_files(scene_file="bear/scene.ply", path="/no/such/scene.ply")
     assert "'path'" in message and "/no/such/scene.ply" in message
     with pytest.raises(NodeInputError, match=r"Load Gaussian Scene: input 'path': .*/no/such/scene\.ply"):
         call(LoadGaussianScene, scene_file="bear/scene.ply", path="/no/such/scene.ply")
@@ -79,14 +79,15 @@ def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
 
 
 def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
-    listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"][0]
-    assert listed == ["bear/transforms.json"]
+    listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"]
+    assert listed[1]["options"] == ["bear/transforms.json"]
     (from_list,) = call(LoadCameras, camera_source="bear/transforms.json")
     (from_folder,) = call(LoadCameras, camera_source="", path=str(bear["folder"]))
     for cameras in (from_list, from_folder):
         assert torch.equal(cameras.world_to_cam, bear["cameras"].world_to_cam)
         assert cameras.names == bear["cameras"].names
-    assert "camera_source" in LoadCameras.VALIDATE_INPUTS("bear/missing.json")
+    assert "camera_source" in LoadCameras.check_files(camera_source="bear/missing.json")
+    assert LoadCameras.check_files(camera_source="", path=str(bear["folder"])) is None
 
 
 def test_render_views_matches_the_core_renderer(small_bear, bear):
@@ -175,6 +176,9 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
     folder = comfy_dirs / "output" / "artnvg"
     assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
     assert _same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
+    size = (folder / "stylized_00002.ply").stat().st_size
+    assert saved[1]["ui"]["text"] == [f"wrote output/artnvg/stylized_00002.ply ({size / 1e6:.1f} MB, "
+                                      f"{len(small_bear):,} Gaussians)"]
     (folder / "stylized_00007.ply").write_bytes(b"")
     (folder / "stylized_extra_00009.ply").write_bytes(b"")  # another prefix: not counted
     call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")

@@ -1,8 +1,9 @@
 """The shareable workflows (UI and API format) and the queueing script, without ComfyUI.
 
-Checks that every workflow references only existing node types, that links connect
-matching types, that widget values fit the inputs, and that each API file describes the
-same graph as its UI file. The stock ComfyUI nodes used are described in STOCK_NODES;
+Checks that workflows/ (the folder ComfyUI's template browser reads) holds only UI workflows,
+each with its thumbnail and a Note describing it, laid out without overlapping nodes; that every
+workflow references only existing node types, that links connect matching types, that widget
+values fit the inputs, and that each API file (workflows_api/) describes the same graph as its UI file. The stock ComfyUI nodes used are described in STOCK_NODES;
 tests/integration/ compares that description with a real server's /object_info.
 """
 
@@ -14,11 +15,16 @@ from pathlib import Path
 from typing import ClassVar
 
 import pytest
+from PIL import Image
 
 from nodes import NODE_CLASS_MAPPINGS
+from nodes.demo_inputs import DEMO_STYLE, demo_files
 
 REPO = Path(__file__).resolve().parents[1]
 WORKFLOWS = REPO / "workflows"
+API_WORKFLOWS = REPO / "workflows_api"
+FRONTEND_ONLY = {"Note", "MarkdownNote"}  # editor-side nodes: not in the API prompt
+TITLE_HEIGHT = 30  # the editor draws a node's title bar above its pos
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
 FILE_LISTS = {"scene_file", "camera_source", "image", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
 SEED_CONTROL = ("fixed", "increment", "decrement", "randomize")
@@ -34,7 +40,7 @@ UPLOAD_WIDGET_VALUE = "image"  # LoadImage's upload button, stored after the fil
 
 
 def load_queue_script():
-    spec = importlib.util.spec_from_file_location("queue_workflow", WORKFLOWS / "queue_workflow.py")
+    spec = importlib.util.spec_from_file_location("queue_workflow", API_WORKFLOWS / "queue_workflow.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -59,12 +65,14 @@ def required_inputs(class_type: str) -> set[str]:
 
 
 def is_widget(spec) -> bool:
-    return isinstance(spec[0], (list, tuple)) or spec[0] in WIDGET_TYPES
+    return isinstance(spec[0], (list, tuple)) or spec[0] in WIDGET_TYPES or spec[0] == "COMBO"
 
 
 def widget_problem(name: str, spec, value) -> str | None:
     """Why ``value`` does not fit widget input ``name`` with ``spec``, or None."""
     kind, options = spec[0], (spec[1] if len(spec) > 1 else {})
+    if kind == "COMBO":
+        kind = options["options"]
     if isinstance(kind, (list, tuple)):
         if name in FILE_LISTS:
             return None if isinstance(value, str) and value else f"{name}: expected a file name, got {value!r}"
@@ -103,6 +111,8 @@ def ui_to_api(ui: dict) -> dict:
     links = {link[0]: link for link in ui["links"]}
     api = {}
     for node in ui["nodes"]:
+        if node["type"] in FRONTEND_ONLY:
+            continue
         inputs = dict(widget_values_by_name(node["type"], node.get("widgets_values", [])))
         for socket in node.get("inputs", []):
             if socket.get("link") is not None:
@@ -113,13 +123,71 @@ def ui_to_api(ui: dict) -> dict:
     return api
 
 
-UI_FILES = sorted(p for p in WORKFLOWS.glob("*.json") if not p.stem.endswith("_api"))
-API_FILES = sorted(WORKFLOWS.glob("*_api.json"))
+UI_FILES = sorted(WORKFLOWS.glob("*.json"))
+API_FILES = sorted(API_WORKFLOWS.glob("*_api.json"))
+NNFM_API = API_WORKFLOWS / "ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json"
+CAMERA_FREE_API = API_WORKFLOWS / "ArtNVG_2_scene_without_cameras_NNFM_api.json"
+FULL_API = API_WORKFLOWS / "ArtNVG_3_full_method_CSGO_SDXL_needs_4_model_files_api.json"
 
 
-def test_each_workflow_comes_in_both_formats():
-    assert [p.stem for p in UI_FILES] == ["artnvg_camera_free", "artnvg_full", "artnvg_nnfm_only"]
-    assert [p.stem for p in API_FILES] == [f"{p.stem}_api" for p in UI_FILES]
+def api_twin(ui_path: Path) -> Path:
+    return API_WORKFLOWS / f"{ui_path.stem}_api.json"
+
+
+def test_each_workflow_comes_in_both_formats_and_the_template_folder_holds_ui_workflows_only():
+    assert [p.stem for p in UI_FILES] == ["ArtNVG_1_quick_start_NNFM_no_model_downloads",
+                                          "ArtNVG_2_scene_without_cameras_NNFM",
+                                          "ArtNVG_3_full_method_CSGO_SDXL_needs_4_model_files"]
+    assert API_FILES == [api_twin(p) for p in UI_FILES]
+    assert all("nodes" in json.loads(p.read_text()) for p in UI_FILES)  # the browser opens only UI workflows
+    assert sorted(p.name for p in WORKFLOWS.iterdir()) == sorted(
+        name for p in UI_FILES for name in (p.name, f"{p.stem}.jpg"))
+
+
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.stem)
+def test_each_template_has_a_small_thumbnail_and_a_note(path):
+    """The browser shows ``<name>.jpg`` as the card and the name (``_`` as spaces) as its description."""
+    image = Image.open(path.with_suffix(".jpg"))
+    assert image.format == "JPEG" and 128 <= min(image.size) and max(image.size) <= 512
+    assert path.with_suffix(".jpg").stat().st_size < 60_000
+    notes = [n for n in json.loads(path.read_text())["nodes"] if n["type"] == "Note"]
+    assert len(notes) == 1 and len(notes[0]["widgets_values"][0]) > 200
+
+
+def node_rectangles(ui: dict) -> dict[int, tuple[float, float, float, float]]:
+    """Node id -> (left, top, right, bottom) as the editor draws it: the title bar above ``pos``."""
+    return {n["id"]: (n["pos"][0], n["pos"][1] - TITLE_HEIGHT, n["pos"][0] + n["size"][0], n["pos"][1] + n["size"][1])
+            for n in ui["nodes"]}
+
+
+def overlapping(rectangles: dict) -> list[tuple[int, int]]:
+    """Pairs of ids whose rectangles share some area (touching edges do not count)."""
+    items = sorted(rectangles.items())
+    return [(a, b) for i, (a, (l1, t1, r1, b1)) in enumerate(items) for b, (l2, t2, r2, b2) in items[i + 1:]
+            if min(r1, r2) > max(l1, l2) and min(b1, b2) > max(t1, t2)]
+
+
+def test_overlap_check_sees_a_covered_corner_and_not_neighbours():
+    ui = {"nodes": [{"id": 1, "pos": [0, 0], "size": [100, 100]}, {"id": 2, "pos": [100, 0], "size": [50, 50]},
+                    {"id": 3, "pos": [90, 125], "size": [20, 20]}, {"id": 4, "pos": [0, 230], "size": [10, 10]}]}
+    assert overlapping(node_rectangles(ui)) == [(1, 3)]  # 3's title bar reaches into 1; 4's stops at 200
+
+
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.stem)
+def test_no_nodes_overlap_at_the_sizes_the_editor_needs(path):
+    """Every node is at least as tall as the editor makes it (MIN_HEIGHTS, measured in ComfyUI 0.3.64's
+    editor; tests/integration checks the live editor), and no two nodes overlap."""
+    ui = json.loads(path.read_text())
+    for node in ui["nodes"]:
+        assert node["size"][1] >= MIN_HEIGHTS.get(node["type"], 0), (path.stem, node["type"])
+    assert overlapping(node_rectangles(ui)) == []
+
+
+# heights the 0.3.64 editor gives each node (its computeSize), the Save node with room for the file it wrote
+MIN_HEIGHTS = {"ArtNVGLoadGaussianScene": 106, "ArtNVGLoadCameras": 82, "LoadImage": 326, "ArtNVGRenderViews": 150,
+               "ArtNVGFinetuneGaussians": 358, "ArtNVGSaveGaussianScene": 150, "ArtNVGRenderCameraPath": 198,
+               "ArtNVGCamerasAroundScene": 202, "ArtNVGLoadModels": 370, "ArtNVGGroupNeighbouringViews": 82,
+               "ArtNVGNVAttentionPatch": 130, "ArtNVGCSGOEncode": 162, "ArtNVGSampleGroup": 406}
 
 
 @pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.name)
@@ -136,6 +204,8 @@ def test_ui_workflow_links_and_widgets(path):
         assert socket["link"] == link_id and socket["type"] == kind
         assert node_spec(nodes[target]["type"])[0][socket["name"]][0] == kind, (path.name, link_id)
     for node in ui["nodes"]:
+        if node["type"] in FRONTEND_ONLY:
+            continue
         inputs, outputs = node_spec(node["type"])
         assert [o["type"] for o in node.get("outputs", [])] == list(outputs), node["type"]
         connected = {s["name"] for s in node.get("inputs", []) if s.get("link") is not None}
@@ -163,30 +233,31 @@ def test_api_workflow_links_and_widgets(path):
 @pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.name)
 def test_api_and_ui_files_describe_the_same_graph(path):
     ui = json.loads(path.read_text())
-    api = json.loads(path.with_name(f"{path.stem}_api.json").read_text())
+    api = json.loads(api_twin(path).read_text())
     assert ui_to_api(ui) == api
 
 
 @pytest.mark.parametrize("path", API_FILES, ids=lambda p: p.name)
-def test_input_files_are_the_bundled_demo_copied_into_the_input_folder(path):
-    """Copying artnvg_core/demo/ to ComfyUI/input/artnvg_demo/ gives every input file a workflow names."""
-    demo = REPO / "artnvg_core" / "demo"
+def test_input_files_are_the_demo_files_the_pack_installs(path, tmp_path):
+    """Every input file a workflow names is one the pack puts into the input folder at load, from the demo."""
+    installed = demo_files()
     for node in json.loads(path.read_text()).values():
         for name in ("scene_file", "camera_source", "image"):
             if name in node["inputs"]:
-                folder, _, file = node["inputs"][name].partition("/")
-                assert folder == "artnvg_demo" and (demo / file).is_file(), (path.name, node["inputs"][name])
+                assert node["inputs"][name] in installed, (path.name, node["inputs"][name])
+    assert [n["inputs"]["image"] for n in json.loads(path.read_text()).values()
+            if n["class_type"] == "LoadImage"] == [DEMO_STYLE]  # top level: Load Image's list shows it
 
 
 def test_nnfm_only_workflow_needs_no_diffusion_weights():
-    api = json.loads((WORKFLOWS / "artnvg_nnfm_only_api.json").read_text())
+    api = json.loads((NNFM_API).read_text())
     used = {node["class_type"] for node in api.values()}
     assert {"ArtNVGFinetuneGaussians", "ArtNVGSaveGaussianScene"} <= used
     assert not used & {"ArtNVGLoadModels", "ArtNVGCSGOEncode", "ArtNVGNVAttentionPatch", "ArtNVGSampleGroup"}
 
 
 def test_camera_free_workflow_needs_only_a_scene_file_and_a_style_image():
-    api = json.loads((WORKFLOWS / "artnvg_camera_free_api.json").read_text())
+    api = json.loads((CAMERA_FREE_API).read_text())
     used = {node["class_type"] for node in api.values()}
     assert "ArtNVGLoadCameras" not in used and {"ArtNVGCamerasAroundScene", "ArtNVGFinetuneGaussians"} <= used
     assert not used & {"ArtNVGLoadModels", "ArtNVGSampleGroup"}  # the NNFM stylizer
@@ -196,7 +267,7 @@ def test_camera_free_workflow_needs_only_a_scene_file_and_a_style_image():
 
 
 def test_full_workflow_feeds_stylized_views_to_the_finetune():
-    api = json.loads((WORKFLOWS / "artnvg_full_api.json").read_text())
+    api = json.loads((FULL_API).read_text())
     finetune = next(node for node in api.values() if node["class_type"] == "ArtNVGFinetuneGaussians")
     source, _ = finetune["inputs"]["stylized_views"]
     assert api[source]["class_type"] == "ArtNVGSampleGroup"
@@ -214,7 +285,7 @@ def queue():
 
 
 def test_overrides_by_id_or_title(queue):
-    workflow = queue.load_api_workflow(WORKFLOWS / "artnvg_nnfm_only_api.json")
+    workflow = queue.load_api_workflow(NNFM_API)
     queue.apply_override(workflow, "Load Gaussian Scene.path=/data/my scene.ply")
     queue.apply_override(workflow, "6.iterations=25")
     queue.apply_override(workflow, "Render Views.views=0,5")
@@ -231,7 +302,7 @@ def test_overrides_by_id_or_title(queue):
 
 def test_ui_format_is_refused_with_advice(queue):
     with pytest.raises(queue.WorkflowError, match="UI-format workflow; queue the API-format file"):
-        queue.load_api_workflow(WORKFLOWS / "artnvg_nnfm_only.json")
+        queue.load_api_workflow(UI_FILES[0])
 
 
 def _history_entry(status: str, messages: list, outputs: dict) -> dict:
@@ -251,6 +322,14 @@ def test_summary_of_success_error_and_interrupt(queue):
         queue.run_summary(failed)["error"]
     stopped = _history_entry("error", [["execution_interrupted", {"node_id": "6"}]], {})
     assert queue.run_summary(stopped)["status"] == "interrupted"
+
+
+def test_text_summary_is_one_line_per_node_and_kind(queue):
+    frames = [{"node": "9", "kind": "images", "file": f"ComfyUI_temp_{i:05d}_.png", "type": "temp"} for i in range(12)]
+    scene = [{"node": "7", "kind": "scenes", "file": "artnvg/nnfm_00001.ply", "type": "output"}]
+    text = queue.summary_text({"status": "success", "error": None, "outputs": scene + frames})
+    assert text.splitlines() == ["success", "  node 7 scenes: artnvg/nnfm_00001.ply [output]",
+                                 "  node 9 images: ComfyUI_temp_00000_.png (+11 more) [temp]"]
 
 
 class _FakeServer(http.server.BaseHTTPRequestHandler):
@@ -298,7 +377,7 @@ def fake_server():
 
 
 def test_main_queues_waits_and_reports(queue, fake_server, capsys):
-    status = queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", fake_server,
+    status = queue.main([str(NNFM_API), "--server", fake_server,
                          "--set", "6.iterations=3", "--json"])
     assert status == 0
     assert _FakeServer.posted[0]["prompt"]["6"]["inputs"]["iterations"] == 3
@@ -308,10 +387,10 @@ def test_main_queues_waits_and_reports(queue, fake_server, capsys):
 
 def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, capsys):
     _FakeServer.reject = True
-    assert queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", fake_server]) == 2
+    assert queue.main([str(NNFM_API), "--server", fake_server]) == 2
     assert "scene_file - scene file not found: /in/x.ply" in capsys.readouterr().err
     closed = http.server.HTTPServer(("127.0.0.1", 0), _FakeServer)
     address = f"http://127.0.0.1:{closed.server_address[1]}"
     closed.server_close()
-    assert queue.main([str(WORKFLOWS / "artnvg_nnfm_only_api.json"), "--server", address]) == 3
+    assert queue.main([str(NNFM_API), "--server", address]) == 3
     assert "cannot reach the server" in capsys.readouterr().err

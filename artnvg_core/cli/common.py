@@ -148,7 +148,8 @@ def is_out_of_memory(error: BaseException) -> bool:
 
 
 # A style image may be at most this many times as long as it is wide: the finetune sizes it to the long
-# side of the renders its VGG sees (down to 128 px), and its relu3 features need 4 px across there.
+# side of the renders its VGG sees (128 px for the bundled demo), and its relu3 features, two 2x poolings
+# down, need it 4 px across there.
 MAX_STYLE_ASPECT = 32
 
 

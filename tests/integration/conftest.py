@@ -5,7 +5,8 @@ folder holding main.py) or a folder holding one as ComfyUI/. The server runs on 
 the Python of ARTNVG_COMFYUI_PYTHON, else of a venv/ beside or inside the checkout, else the one
 running the tests; the pack's dependencies must be installed there. The session starts its own
 server on a free port and stops it at the end (log: ROOT/artnvg_server.log). The project is
-linked as ComfyUI/custom_nodes/artnvg (created if missing), and test inputs are written under
+linked as ComfyUI/custom_nodes/artnvg-comfyui (unless a link to it is there already), the demo
+files the pack installs are removed from the input folder first (a fresh install), and test inputs are written under
 ComfyUI/input/artnvg_test/: the bundled demo (artnvg_core/demo: the bear thinned out to 10,000
 Gaussians for quick CPU renders, its 24 cameras and the style image).
 """
@@ -26,11 +27,13 @@ import pytest
 
 from artnvg_core.formats import read_ply, write_ply
 from artnvg_core.stylize import DemoInputs
+from nodes.demo_inputs import demo_files
 
 ROOT_ENV, PYTHON_ENV = "ARTNVG_COMFYUI_ROOT", "ARTNVG_COMFYUI_PYTHON"
 REPO = Path(__file__).resolve().parents[2]
 TEST_FOLDER = "artnvg_test"
 TEST_GAUSSIANS = 10_000
+PACK_FOLDER = "artnvg-comfyui"  # the name a clone of the repository gets
 
 
 @dataclass
@@ -40,6 +43,7 @@ class ComfyServer:
     input_dir: Path
     output_dir: Path
     log: Path
+    pack: str  # the pack's folder name in custom_nodes (the template browser's module name)
     test_folder: str = TEST_FOLDER  # under input_dir: scene.ply, transforms.json, style.jpg
 
 
@@ -65,13 +69,23 @@ def _python(root: Path, comfy: Path) -> str:
     return sys.executable
 
 
-def _link_pack(comfy: Path) -> None:
-    link = comfy / "custom_nodes" / "artnvg"
+def _link_pack(comfy: Path) -> str:
+    """The pack's folder name in custom_nodes: an existing link to this checkout, else a new ``artnvg-comfyui``."""
+    folder = comfy / "custom_nodes"
+    for entry in sorted(folder.iterdir()):
+        if entry.is_symlink() and entry.resolve() == REPO:
+            return entry.name
+    link = folder / PACK_FOLDER
     if link.is_symlink() or link.exists():
-        if link.resolve() != REPO:
-            pytest.fail(f"{link} exists but is not a link to {REPO}; remove it or point it here")
-    else:
-        link.symlink_to(REPO, target_is_directory=True)
+        pytest.fail(f"{link} exists but is not a link to {REPO}; remove it or point it here")
+    link.symlink_to(REPO, target_is_directory=True)
+    return link.name
+
+
+def _remove_demo_inputs(input_dir: Path) -> None:
+    """A fresh install's input folder: without the demo files the pack puts there when it loads."""
+    for name in demo_files():
+        (input_dir / name).unlink(missing_ok=True)
 
 
 def _write_inputs(input_dir: Path) -> None:
@@ -109,12 +123,13 @@ def comfy_server() -> ComfyServer:
         pytest.skip(f"set {ROOT_ENV} to a ComfyUI checkout (docs/comfyui.md: Integration tests)")
     root = Path(root).resolve()
     comfy = _comfy_checkout(root)
-    _link_pack(comfy)
+    pack = _link_pack(comfy)
+    _remove_demo_inputs(comfy / "input")
     _write_inputs(comfy / "input")
     port, log = _free_port(), root / "artnvg_server.log"
     server = _start(_python(root, comfy), comfy, port, log)
     try:
-        yield ComfyServer(f"http://127.0.0.1:{port}", root, comfy / "input", comfy / "output", log)
+        yield ComfyServer(f"http://127.0.0.1:{port}", root, comfy / "input", comfy / "output", log, pack)
     finally:
         server.terminate()
         try:

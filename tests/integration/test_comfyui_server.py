@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
-from test_workflows import STOCK_NODES
+from test_workflows import CAMERA_FREE_API, NNFM_API, STOCK_NODES
 from ws_client import WebSocket
 
 from artnvg_core.formats import read_ply
@@ -25,7 +25,7 @@ FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
 
 
 def _queue_script():
-    spec = importlib.util.spec_from_file_location("queue_workflow", REPO / "workflows" / "queue_workflow.py")
+    spec = importlib.util.spec_from_file_location("queue_workflow", REPO / "workflows_api" / "queue_workflow.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -49,7 +49,7 @@ def _workflow(server, *overrides: str) -> dict:
         "Render Views.scale=0.125", "Render Views.stride=12",  # 2 of the 24 demo views
         "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
     ]
-    workflow = queue.load_api_workflow(REPO / "workflows" / "artnvg_nnfm_only_api.json")
+    workflow = queue.load_api_workflow(NNFM_API)
     for assignment in [*small, *overrides]:
         queue.apply_override(workflow, assignment)
     return workflow
@@ -84,7 +84,7 @@ def _finetune_progress(messages: list[dict]) -> list[tuple[int, int]]:
 
 def test_pack_loads_without_import_errors(comfy_server):
     log = comfy_server.log.read_text()
-    lines = [line for line in log.splitlines() if line.rstrip().endswith("custom_nodes/artnvg")]
+    lines = [line for line in log.splitlines() if line.rstrip().endswith(f"custom_nodes/{comfy_server.pack}")]
     assert lines, f"the pack is not in the import report of {comfy_server.log}"
     assert "IMPORT FAILED" not in lines[0]
     assert "Cannot import" not in log
@@ -151,7 +151,7 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
 
 def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
     folder = comfy_server.test_folder
-    workflow = queue.load_api_workflow(REPO / "workflows" / "artnvg_camera_free_api.json")
+    workflow = queue.load_api_workflow(CAMERA_FREE_API)
     for assignment in (f"Load Gaussian Scene.scene_file={folder}/scene.ply", f"Style image.image={folder}/style.jpg",
                        "Cameras Around Scene.count=3", "Render Views.scale=0.125", "Finetune Gaussians.iterations=3",
                        "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",

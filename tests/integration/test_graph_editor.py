@@ -2,9 +2,12 @@
 
 Runs only when ARTNVG_COMFYUI_ROOT is set (see conftest.py) and a ``chromium`` binary is on
 PATH (Debian: ``apt-get install chromium``). Drives the page over the DevTools protocol,
-loads each workflow with the editor's own ``app.loadGraphData``, checks node types, links
-and widget values, checks that the editor's own API export equals the shipped API file,
-and keeps a screenshot per workflow in ROOT/artnvg_screenshots/.
+loads each workflow with the editor's own ``app.loadGraphData``, checks node types, links,
+widget values and that no two nodes overlap as drawn, checks that the editor's own API export
+equals the shipped API file; opens each card of the template browser (thumbnail, description);
+runs the full workflow without its model files (refused as a whole, each file named once) and
+the quick start as shipped (it finishes; Save Gaussian Scene shows its file). Screenshots are
+kept in artnvg_screenshots/ of the pytest run's temporary folder (pytest prints its base).
 """
 
 from __future__ import annotations
@@ -18,10 +21,11 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from test_workflows import api_twin
 from ws_client import WebSocket
 
 REPO = Path(__file__).resolve().parents[2]
-UI_WORKFLOWS = sorted(p for p in (REPO / "workflows").glob("*.json") if not p.stem.endswith("_api"))
+UI_WORKFLOWS = sorted((REPO / "workflows").glob("*.json"))
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 INSPECT = """
@@ -44,7 +48,13 @@ INSPECT = """
   for (const node of graph.serialize().nodes) widgets[node.id] = node.widgets_values || [];
   const dialogs = [...document.querySelectorAll(".p-dialog")].map((d) => d.innerText);
   const prompt = await app.graphToPrompt();
-  return {missing, problems, links: links.length, widgets, dialogs, output: prompt.output};
+  const boxes = graph._nodes.map((n) => [n.id, n.getBounding()]);
+  const overlaps = [];
+  for (const [i, [a, r]] of boxes.entries())
+    for (const [b, q] of boxes.slice(i + 1))
+      if (Math.min(r[0] + r[2], q[0] + q[2]) > Math.max(r[0], q[0]) && Math.min(r[1] + r[3], q[1] + q[3]) > Math.max(r[1], q[1]))
+        overlaps.push([a, b]);
+  return {missing, problems, links: links.length, widgets, dialogs, output: prompt.output, overlaps};
 })()
 """
 
@@ -120,17 +130,40 @@ def editor(comfy_server, tmp_path_factory):
         browser.wait(timeout=30)
 
 
+@pytest.fixture(scope="module")
+def screenshots(tmp_path_factory) -> Path:
+    """The folder the screenshots are kept in: artnvg_screenshots/ in this pytest run's temporary folder."""
+    folder = tmp_path_factory.getbasetemp() / "artnvg_screenshots"
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+def _screenshot(editor: DevTools, path: Path) -> bytes:
+    image = base64.b64decode(editor.call("Page.captureScreenshot", format="png")["data"])
+    path.write_bytes(image)
+    return image
+
+
+def _close_dialogs(editor: DevTools) -> None:
+    editor.evaluate("document.querySelectorAll('.p-dialog-close-button').forEach((b) => b.click())")
+
+
+def _wait(editor: DevTools, expression: str, seconds: float) -> None:
+    deadline = time.monotonic() + seconds
+    while not editor.evaluate(expression):
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {seconds:g} s waiting for {expression}")
+        time.sleep(1)
+
+
 @pytest.mark.parametrize("path", UI_WORKFLOWS, ids=lambda p: p.stem)
-def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, path):
+def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots, path):
     workflow = json.loads(path.read_text())
+    _close_dialogs(editor)
     first_event = len(editor.events)
     report = editor.evaluate(INSPECT % json.dumps(workflow))
     exceptions = [e for e in editor.events[first_event:] if e.get("method") == "Runtime.exceptionThrown"]
-
-    screenshots = comfy_server.root / "artnvg_screenshots"
-    screenshots.mkdir(exist_ok=True)
-    image = base64.b64decode(editor.call("Page.captureScreenshot", format="png")["data"])
-    (screenshots / f"{path.stem}.png").write_bytes(image)
+    image = _screenshot(editor, screenshots / f"{path.stem}.png")
 
     assert report["missing"] == [], report["missing"]
     assert report["problems"] == [] and report["links"] == len(workflow["links"]), report["problems"]
@@ -138,6 +171,109 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, path):
     assert exceptions == [], exceptions
     for node in workflow["nodes"]:
         assert report["widgets"][str(node["id"])] == node.get("widgets_values", []), node["type"]
-    api = json.loads(path.with_name(f"{path.stem}_api.json").read_text())
+    assert report["overlaps"] == []  # the rectangles the editor draws, title bars included
+    api = json.loads(api_twin(path).read_text())
     assert report["output"] == api  # the editor's own API export is the shipped API file
     assert image[:8] == b"\x89PNG\r\n\x1a\n" and len(image) > 20_000
+
+
+BROWSE = """
+(async () => {
+  await app.extensionManager.command.execute('Comfy.BrowseTemplates');
+  await new Promise((done) => setTimeout(done, 2500));
+  const entry = [...document.querySelectorAll('.p-dialog li, .p-dialog [role=option]')]
+    .find((e) => e.innerText.trim() === %s);
+  if (!entry) return null;
+  entry.click();
+  await new Promise((done) => setTimeout(done, 3000));
+  return [...document.querySelectorAll('[data-testid^="template-workflow-"]')].map((card) => ({
+    name: card.dataset.testid.slice('template-workflow-'.length), text: card.innerText,
+    thumbnails: [...card.querySelectorAll('img')].map((img) => img.naturalWidth)}));
+})()
+"""
+
+OPEN_CARD = """
+(async () => {
+  document.querySelector('[data-testid="template-workflow-%s"]').click();
+  await new Promise((done) => setTimeout(done, 3000));
+  return app.graph.serialize().nodes.map((n) => n.type).sort();
+})()
+"""
+
+
+def test_template_browser_shows_each_workflow_with_thumbnail_and_description_and_opens_it(
+        editor, comfy_server, screenshots):
+    served = _json(f"{comfy_server.url}/workflow_templates")
+    assert sorted(served[comfy_server.pack]) == [p.stem for p in UI_WORKFLOWS]  # the API twins are not cards
+    for path in UI_WORKFLOWS:
+        with urllib.request.urlopen(f"{comfy_server.url}/api/workflow_templates/{comfy_server.pack}/{path.stem}.jpg",
+                                    timeout=10) as response:
+            assert response.headers["Content-Type"] == "image/jpeg" and response.read()[:2] == b"\xff\xd8"
+    _close_dialogs(editor)
+    cards = editor.evaluate(BROWSE % json.dumps(comfy_server.pack))
+    _screenshot(editor, screenshots / "template_browser.png")
+    assert cards is not None, f"no '{comfy_server.pack}' category in the template browser"
+    assert sorted(card["name"] for card in cards) == [p.stem for p in UI_WORKFLOWS]
+    for card in cards:
+        assert card["name"].replace("_", " ") in card["text"]  # the description the browser derives
+        assert card["thumbnails"] and all(width > 0 for width in card["thumbnails"]), card["name"]
+    for path in UI_WORKFLOWS:
+        if editor.evaluate("!document.querySelector('[data-testid^=\"template-workflow-\"]')"):
+            editor.evaluate(BROWSE % json.dumps(comfy_server.pack))
+        opened = editor.evaluate(OPEN_CARD % path.stem)
+        assert opened == sorted(n["type"] for n in json.loads(path.read_text())["nodes"]), path.stem
+        _screenshot(editor, screenshots / f"template_{path.stem}.png")
+
+
+QUEUE = """
+(async () => {
+  await app.loadGraphData(%s, true, true, "artnvg-run");
+  await new Promise((done) => setTimeout(done, 500));
+  await app.queuePrompt(0, 1);
+  await new Promise((done) => setTimeout(done, 2000));
+  return [...document.querySelectorAll('.p-dialog')].map((d) => d.innerText);
+})()
+"""
+
+
+def _history_count(server) -> int:
+    return len(_json(f"{server.url}/history"))
+
+
+def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file_once(editor, comfy_server, screenshots):
+    full = next(p for p in UI_WORKFLOWS if "full_method" in p.stem)
+    workflow = json.loads(full.read_text())
+    loader = next(n for n in workflow["nodes"] if n["type"] == "ArtNVGLoadModels")
+    runs = _history_count(comfy_server)
+    _close_dialogs(editor)
+    dialogs = editor.evaluate(QUEUE % json.dumps(workflow))
+    _screenshot(editor, screenshots / "missing_models.png")
+    (text,) = [d for d in dialogs if "failed validation" in d]
+    assert "4 model files missing, so nothing was run" in text
+    for name in loader["widgets_values"][:4]:
+        assert text.count(f"'{name}'") == 1, name
+    for folder in ("checkpoints", "controlnet", "clip_vision", "csgo"):
+        assert f"'{folder}' model folder" in text
+    time.sleep(3)
+    assert _history_count(comfy_server) == runs  # nothing queued, not even the content renders
+    _close_dialogs(editor)
+
+
+def test_quick_start_runs_from_the_editor_on_a_fresh_install(editor, comfy_server, screenshots):
+    """The shipped NNFM workflow as it is (demo inputs the pack put into input/ when it loaded): it finishes,
+    and Save Gaussian Scene shows the file it wrote."""
+    assert "ArtNVG: put the demo inputs of the shipped workflows into" in comfy_server.log.read_text()
+    quick = next(p for p in UI_WORKFLOWS if "quick_start" in p.stem)
+    workflow = json.loads(quick.read_text())
+    save = next(n["id"] for n in workflow["nodes"] if n["type"] == "ArtNVGSaveGaussianScene")
+    runs = _history_count(comfy_server)
+    _close_dialogs(editor)
+    assert not [d for d in editor.evaluate(QUEUE % json.dumps(workflow)) if "failed" in d.lower()]
+    _wait(editor, f"fetch('/history').then((r) => r.json()).then((h) => Object.keys(h).length > {runs})", 900)
+    entry = list(_json(f"{comfy_server.url}/history").values())[-1]  # the newest run
+    assert entry["status"]["status_str"] == "success", entry["status"]
+    (written,) = entry["outputs"][str(save)]["text"]
+    shown = editor.evaluate(f"app.graph.getNodeById({save}).widgets.map((w) => w.value).filter((v) => "
+                            f"typeof v === 'string' && v.startsWith('wrote '))")
+    _screenshot(editor, screenshots / "quick_start_done.png")
+    assert shown == [written] and written.startswith("wrote output/artnvg/nnfm_") and "Gaussians)" in written

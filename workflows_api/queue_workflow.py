@@ -3,7 +3,7 @@
 
 Standard library only. Usage::
 
-    python workflows/queue_workflow.py workflows/artnvg_nnfm_only_api.json \\
+    python workflows_api/queue_workflow.py workflows_api/ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json \\
         --server http://127.0.0.1:8188 \\
         --set "Load Gaussian Scene.path=/data/bear/scene.ply" \\
         --set 4.iterations=200
@@ -178,6 +178,19 @@ def run_summary(entry: dict) -> dict:
     return {"status": state, "error": error, "outputs": outputs}
 
 
+def summary_text(summary: dict) -> str:
+    """A few lines for people: the status (and error), then one line per node and kind of output with the
+    number of files and the first one (a workflow's previews can hold dozens of frames)."""
+    lines = [f"{summary['status']}" + (f": {summary['error']}" if summary["error"] else "")]
+    groups: dict[tuple[str, str, str], list[str]] = {}
+    for output in summary["outputs"]:
+        groups.setdefault((output["node"], output["kind"], output["type"]), []).append(output["file"])
+    for (node, kind, place), files in groups.items():
+        more = f" (+{len(files) - 1} more)" if len(files) > 1 else ""
+        lines.append(f"  node {node} {kind}: {files[0]}{more} [{place}]")
+    return "\n".join(lines)
+
+
 def _rejection_text(details: dict) -> str:
     lines = []
     error = details.get("error")
@@ -221,9 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"{summary['status']}" + (f": {summary['error']}" if summary["error"] else ""))
-        for output in summary["outputs"]:
-            print(f"  node {output['node']} {output['kind']}: {output['file']} [{output['type']}]")
+        print(summary_text(summary))
     return 0 if summary["status"] == "success" else 1
 
 

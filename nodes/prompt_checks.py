@@ -1,0 +1,101 @@
+"""The loaders' file checks, run on the whole prompt before ComfyUI validates it: a graph whose files
+are missing runs not at all, and each loader's message comes once.
+
+ComfyUI validates each output node on its own and runs every output that passes, so a loader with a
+missing file used to stop only the outputs downstream of it while the rest ran and reported success.
+And it repeats a ``VALIDATE_INPUTS`` message once per input that function declares.
+
+So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
+class has ``check_files(**inputs) -> str | None`` (the loaders), it runs that check on the node's
+values; a message is kept under (prompt id, node id). When any loader fails, the prompt's execution
+targets become the outputs that depend on a failing loader, so validation fails as a whole: ComfyUI
+refuses the prompt (HTTP 400) and the editor outlines the loaders and lists their messages; nothing runs.
+The loaders' ``VALIDATE_INPUTS`` declare only the hidden input :data:`CHECK_INPUT` (the node id, so
+ComfyUI shows the message once) and return the kept message (:func:`check_result`). Their file lists
+are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
+itself: the check's message says more (where the file belongs, where to get it).
+Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections import OrderedDict
+from collections.abc import Mapping
+
+from .comfy_bridge import comfy_module
+
+CHECK_INPUT = "files"  # the loaders' hidden input: ComfyUI's UNIQUE_ID (the node id)
+HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}
+_KEPT_PROMPTS = 32
+_results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
+
+
+def _upstream(prompt: dict, node_id: str) -> set[str]:
+    """``node_id`` and every node it reads from, directly or not (links are ``[node id, slot]`` inputs)."""
+    seen, stack = set(), [node_id]
+    while stack:
+        current = stack.pop()
+        if current in seen or current not in prompt:
+            continue
+        seen.add(current)
+        stack.extend(str(value[0]) for value in prompt[current].get("inputs", {}).values()
+                     if isinstance(value, list) and len(value) == 2)
+    return seen
+
+
+def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
+    """Node id -> message of every node whose class's ``check_files`` finds a problem with its values."""
+    failures = {}
+    for node_id, node in prompt.items():
+        check = getattr(classes.get(node.get("class_type")), "check_files", None) if isinstance(node, dict) else None
+        if check is None:
+            continue
+        values = {name: value for name, value in node.get("inputs", {}).items() if not isinstance(value, list)}
+        message = check(**values)
+        if message:
+            failures[str(node_id)] = message
+    return failures
+
+
+def check_prompt(request: dict, classes: Mapping[str, type]) -> dict:
+    """The on-prompt handler (module docstring): ``request`` is the body POSTed to /prompt, ``classes``
+    ComfyUI's node classes by type name. Returns ``request``, given a prompt id, its targets narrowed
+    when a loader fails."""
+    prompt = request.get("prompt")
+    if not isinstance(prompt, dict):
+        return request
+    failures = failed_checks(prompt, classes)
+    if not failures:
+        return request
+    prompt_id = request.setdefault("prompt_id", str(uuid.uuid4()))
+    _results[str(prompt_id)] = failures
+    while len(_results) > _KEPT_PROMPTS:
+        _results.popitem(last=False)
+    outputs = [node_id for node_id, node in prompt.items()
+               if getattr(classes.get(node.get("class_type")), "OUTPUT_NODE", False) is True]
+    targets = request.get("partial_execution_targets")
+    chosen = outputs if targets is None else [node_id for node_id in outputs if node_id in targets]
+    blocked = [node_id for node_id in chosen if _upstream(prompt, node_id) & set(failures)]
+    if blocked:
+        request["partial_execution_targets"] = blocked
+    return request
+
+
+def check_result(node_id: str) -> bool | str:
+    """A loader's ``VALIDATE_INPUTS`` answer: the message :func:`check_prompt` kept for ``node_id`` of the
+    prompt ComfyUI is validating, else True."""
+    execution = comfy_module("comfy_execution.utils")
+    context = execution.get_executing_context() if hasattr(execution, "get_executing_context") else None
+    if context is None:
+        return True
+    return _results.get(str(context.prompt_id), {}).get(str(node_id), True)
+
+
+def register_prompt_check() -> None:
+    """Install :func:`check_prompt` into the running ComfyUI server; nothing without one."""
+    server, nodes = comfy_module("server"), comfy_module("nodes")
+    instance = getattr(getattr(server, "PromptServer", None), "instance", None)
+    if instance is None or not hasattr(nodes, "NODE_CLASS_MAPPINGS"):
+        return
+    instance.add_on_prompt_handler(lambda request: check_prompt(request, nodes.NODE_CLASS_MAPPINGS))

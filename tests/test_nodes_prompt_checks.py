@@ -1,0 +1,87 @@
+"""The whole-prompt file checks (nodes/prompt_checks.py): a failing loader blocks every output it feeds."""
+
+import sys
+import types
+
+import pytest
+
+from nodes import prompt_checks
+from nodes.prompt_checks import check_prompt, check_result, failed_checks
+
+
+class Loader:
+    @classmethod
+    def check_files(cls, name="", **_other_inputs):
+        return None if name == "there" else f"Loader: '{name}' is missing"
+
+
+class Step:
+    pass
+
+
+class Output:
+    OUTPUT_NODE = True
+
+
+CLASSES = {"Loader": Loader, "Step": Step, "Output": Output}
+
+
+def _prompt(first: str, second: str) -> dict:
+    """Loader 1 -> Step 2 -> Output 3; Loader 4 -> Output 5; Output 6 on its own."""
+    return {"1": {"class_type": "Loader", "inputs": {"name": first, "count": 2}},
+            "2": {"class_type": "Step", "inputs": {"x": ["1", 0]}},
+            "3": {"class_type": "Output", "inputs": {"images": ["2", 0]}},
+            "4": {"class_type": "Loader", "inputs": {"name": second}},
+            "5": {"class_type": "Output", "inputs": {"images": ["4", 0]}},
+            "6": {"class_type": "Output", "inputs": {}}}
+
+
+def test_a_good_prompt_passes_unchanged():
+    request = {"prompt": _prompt("there", "there"), "client_id": "c"}
+    assert check_prompt(dict(request), CLASSES) == request
+
+
+def test_only_the_outputs_fed_by_a_failing_loader_remain_so_validation_fails_as_a_whole():
+    request = check_prompt({"prompt": _prompt("gone", "there")}, CLASSES)
+    assert request["partial_execution_targets"] == ["3"]
+    assert failed_checks(request["prompt"], CLASSES) == {"1": "Loader: 'gone' is missing"}
+    both = check_prompt({"prompt": _prompt("gone", "lost")}, CLASSES)
+    assert both["partial_execution_targets"] == ["3", "5"] and both["prompt_id"] != request["prompt_id"]
+
+
+def test_chosen_targets_are_kept_when_none_of_them_is_blocked():
+    request = check_prompt({"prompt": _prompt("gone", "there"), "partial_execution_targets": ["5", "6"]}, CLASSES)
+    assert request["partial_execution_targets"] == ["5", "6"]
+    request = check_prompt({"prompt": _prompt("gone", "there"), "partial_execution_targets": ["3", "6"]}, CLASSES)
+    assert request["partial_execution_targets"] == ["3"]
+
+
+@pytest.fixture
+def executing(monkeypatch):
+    """A stand-in for ComfyUI's comfy_execution.utils whose executing context names ``context["prompt"]``."""
+    context = {"prompt": None}
+    module = types.ModuleType("comfy_execution.utils")
+    module.get_executing_context = lambda: (None if context["prompt"] is None
+                                            else types.SimpleNamespace(prompt_id=context["prompt"], node_id="?"))
+    monkeypatch.setitem(sys.modules, "comfy_execution", types.ModuleType("comfy_execution"))
+    monkeypatch.setitem(sys.modules, "comfy_execution.utils", module)
+    return context
+
+
+def test_validation_reads_the_message_of_its_own_prompt_and_node(executing):
+    first = check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": "p1"}, CLASSES)
+    check_prompt({"prompt": _prompt("there", "lost"), "prompt_id": "p2"}, CLASSES)
+    assert first["prompt_id"] == "p1"
+    assert check_result("1") is True  # outside validation
+    executing["prompt"] = "p1"
+    assert check_result("1") == "Loader: 'gone' is missing" and check_result("4") is True
+    executing["prompt"] = "p2"
+    assert check_result("1") is True and check_result("4") == "Loader: 'lost' is missing"
+
+
+def test_only_the_latest_prompts_are_remembered(executing):
+    for number in range(prompt_checks._KEPT_PROMPTS + 5):
+        check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": f"q{number}"}, CLASSES)
+    assert len(prompt_checks._results) == prompt_checks._KEPT_PROMPTS
+    executing["prompt"] = "q0"
+    assert check_result("1") is True
