@@ -9,7 +9,7 @@ backends (torch, triton and, where installed, gsplat) and gsplat's own fused ``r
 Accuracy: each backend against the float64 brute-force evaluator (tests/raster_reference.py)
 on a small random scene, max abs error and PSNR of the images.
 ``--stages N``: where the triton backend's time goes for N Gaussians at the largest size (the
-projection, colours, tile lists, compositing; each timed alone).
+fused projection + colours against the reference ones, tile lists, compositing; each timed alone).
 ``--first-use``: the first Triton render (forward+backward) in a fresh process with an empty
 Triton cache, then the second (CUDA).
 """
@@ -89,33 +89,40 @@ def accuracy_rows(device, count=2000, size=128):
 
 
 def stage_rows(device, count, size):
-    """Milliseconds of each stage of the triton backend, each timed alone, and the whole render."""
+    """Milliseconds of each stage of the triton backend, each timed alone, and the whole render; the
+    reference projection + colours (what the backend used before its fused kernels) for comparison."""
     from artnvg_core.raster.projection import project
     from artnvg_core.raster.sh import sh_to_color
     from artnvg_core.raster.triton_backend import rasterize_triton, tile_lists
+    from artnvg_core.raster.triton_projection import project_color_triton
 
     scene = random_scene(count, device=device)
     camera = orbit_cameras(1, size).to(device)
     params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
     w2c, k, center = camera.world_to_cam[0], camera.intrinsics[0], camera.centers[0]
+    fields = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
-    def projected(p=params):
-        return project(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], w2c, k, size, size)
+    def fused(p=params):
+        return project_color_triton(*(p[f] for f in fields), w2c, k, center, size, size, scene.sh_degree)
 
-    def colours(proj, p=params):
-        return sh_to_color(p["sh"][proj.index], p["means"][proj.index] - center, scene.sh_degree)
+    def reference(p=params):
+        proj = project(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], w2c, k, size, size)
+        return proj, sh_to_color(p["sh"][proj.index], p["means"][proj.index] - center, scene.sh_degree)
 
-    proj = projected()
+    def outputs_sum(result):
+        proj, colors = result
+        return proj.means2d.sum() + proj.conics.sum() + proj.opacities.sum() + colors.sum()
+
+    proj, feats = fused()
     detached = proj.__class__(**{name: v.detach() for name, v in vars(proj).items()})
-    feats = colours(proj).detach()
+    feats = feats.detach()
     ids, _ = tile_lists(detached, size, size)
     leaf = [x.clone().requires_grad_(True) for x in (detached.means2d, detached.conics, detached.opacities, feats)]
     leaf_proj = detached.__class__(**{**vars(detached), "means2d": leaf[0], "conics": leaf[1], "opacities": leaf[2]})
     grad_sum = lambda x: sum(t.sum() for t in x) if isinstance(x, tuple) else x.sum()  # noqa: E731
     stages = {
-        "projection": (lambda: projected(), lambda: (lambda p: p.means2d.sum() + p.conics.sum()
-                                                      + p.opacities.sum())(projected()).backward()),
-        "SH colours": (lambda: colours(detached), lambda: colours(detached).sum().backward()),
+        "reference projection + colours (before)": (reference, lambda: outputs_sum(reference()).backward()),
+        "fused projection + colours": (fused, lambda: outputs_sum(fused()).backward()),
         "tile lists (sort)": (lambda: tile_lists(detached, size, size), None),
         "compositing": (lambda: rasterize_triton(detached, feats, size, size),
                         lambda: grad_sum(rasterize_triton(leaf_proj, leaf[3], size, size)).backward()),

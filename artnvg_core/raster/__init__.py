@@ -2,9 +2,10 @@
 before the first render (announcing gsplat's first-use kernel build). :mod:`.views` renders every view
 of a camera set in chunks (``render_views``).
 
-Backends share the projection (:mod:`.projection`) and colours (:mod:`.sh`) and differ in the
-per-pixel compositing: ``torch`` (the reference, any device and dtype), ``triton`` (Triton kernels,
-float32 CUDA, the default there; :mod:`.triton_backend`) and ``gsplat`` (gsplat's CUDA kernels,
+``torch`` (the reference, any device and dtype) and ``gsplat`` share the projection
+(:mod:`.projection`) and colours (:mod:`.sh`) and differ in the per-pixel compositing; ``triton``
+(Triton kernels, float32 CUDA, the default there) computes both in one fused kernel
+(:mod:`.triton_projection`) and composites with :mod:`.triton_backend`; ``gsplat`` (gsplat's CUDA kernels,
 optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 
 from __future__ import annotations
@@ -118,9 +119,9 @@ def render(
     return_depth: also return expected camera-space depth.
     backend: "torch" (reference, CPU/CUDA), "triton" (float32 CUDA), "gsplat" (float32 CUDA,
         optional package) or "auto" (triton for float32 CUDA tensors when Triton imports, else
-        torch). All share the projection and the colours; they differ only in the per-pixel
-        compositing (the reference's PyTorch tiles, :mod:`.triton_backend`'s kernels or gsplat's,
-        see :mod:`.gsplat_backend`).
+        torch). All give the reference's projection and colours (triton from one fused kernel,
+        :mod:`.triton_projection`) and differ in the per-pixel compositing (the reference's PyTorch
+        tiles, :mod:`.triton_backend`'s kernels or gsplat's, see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
@@ -146,17 +147,22 @@ def render(
         composite = rasterize_gsplat
     elif name == "triton":
         from .triton_backend import rasterize_triton  # imports Triton: only when it renders
+        from .triton_projection import project_color_triton
 
         composite = rasterize_triton
     width, height = cameras.width, cameras.height
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
-        w2c, k = cameras.world_to_cam[c], cameras.intrinsics[c]
-        proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height,
-                       near_plane, scene.blur_px2, scene.antialiased)
-        center = cameras.centers[c]
-        colors = sh_to_color(scene.sh.index_select(0, proj.index), scene.means.index_select(0, proj.index) - center,
-                             degree)
+        w2c, k, center = cameras.world_to_cam[c], cameras.intrinsics[c], cameras.centers[c]
+        if name == "triton":  # one fused kernel; culled Gaussians stay, with no tiles
+            proj, colors = project_color_triton(scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
+                                                scene.sh, w2c, k, center, width, height, degree, near_plane,
+                                                scene.blur_px2, scene.antialiased)
+        else:
+            proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, w2c, k, width, height,
+                           near_plane, scene.blur_px2, scene.antialiased)
+            colors = sh_to_color(scene.sh.index_select(0, proj.index),
+                                 scene.means.index_select(0, proj.index) - center, degree)
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors
         # nothing projected: the reference's empty image (kept in the autograd graph), for either backend
         blended, trans = (composite if len(proj.index) else rasterize)(proj, features, width, height)

@@ -1,7 +1,7 @@
 """Triton backend: tile intersection and sort with PyTorch operations, front-to-back compositing
 forward and backward in Triton kernels (JIT-compiled on first use, cached by Triton; no native build).
 
-It takes the reference projection (:mod:`.projection`) and colours (:mod:`.sh`) and replaces the
+It takes the fused projection and colours (:mod:`.triton_projection`, or the reference's) and replaces the
 reference's per-pixel compositing (:func:`~.torch_backend.rasterize`) with the same semantics:
 alpha = min(0.999, o * exp(-sigma)), samples with sigma < 0 or alpha < 1/255 skipped, compositing
 in depth order (ties in projection order) stopping before the first Gaussian that would bring the
@@ -222,6 +222,7 @@ def _emit_kernel(x0_ptr, y0_ptr, span_x_ptr, counts_ptr, ends_ptr, gauss_ptr, ti
 def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
     """Depth-sorted Gaussian lists per tile, as the reference's ``_tile_lists`` orders them.
 
+    Gaussians with negative radii (culled by :mod:`.triton_projection`, which keeps all N) get no tiles.
     Returns (ids [I] int32 indices into the projection, grouped by tile, depth-sorted within one,
     ties in projection order; offsets [tiles + 1] int32, tile t's run is ids[offsets[t]:offsets[t+1]]).
     One host synchronisation (the number of intersections sizes the lists); a Triton kernel writes
@@ -238,7 +239,7 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
         y0 = torch.floor((center[:, 1] - radii[:, 1]) / tile).clamp(0, tiles_y).long()
         y1 = torch.ceil((center[:, 1] + radii[:, 1]) / tile).clamp(0, tiles_y).long()
         span_x = x1 - x0
-        counts = span_x * (y1 - y0)
+        counts = torch.where(radii[:, 0] < 0, 0, span_x * (y1 - y0))  # radii -1: culled, no tiles
         ends = torch.cumsum(counts, 0)
         total = int(ends[-1])
         tile_id = torch.empty(total, dtype=torch.int32, device=device)
