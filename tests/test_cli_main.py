@@ -95,6 +95,20 @@ def test_a_scene_refused_by_its_writer_is_named_by_the_users_path(tmp_path, caps
     assert list(out.parent.iterdir()) == []
 
 
+@pytest.mark.parametrize("option, expected", [([], "tf32"), (["--nnfm-search", "bf16"], "bf16")])
+def test_nnfm_search_reaches_the_finetune(tmp_path, monkeypatch, option, expected):
+    """--nnfm-search (default tf32, the choice BENCHMARKS.md prices) is the finetune's search arithmetic."""
+    import artnvg_core.stylize
+
+    seen = []
+    monkeypatch.setattr(artnvg_core.stylize, "stylize_nnfm",
+                        lambda scene, cameras, style, config, **kwargs: seen.append(config.nnfm_search) or scene)
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+                 str(tmp_path / "o.ply"), "--stylizer", "nnfm", "--scale", "0.05", "--device", "cpu", *option]) == 0
+    assert seen == [expected]
+
+
 def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
     import artnvg_core.stylize
 

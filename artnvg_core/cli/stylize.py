@@ -18,6 +18,7 @@ from ..diffusion.csgo import CONTENT_ROUTINGS
 from ..diffusion.model_files import ModelFiles
 from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
+from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
 from .common import (
     SCENE_FILES,
@@ -105,7 +106,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
           f"{iterations} iterations on {device}")
     config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
-                            views_per_step=preset.views_per_step)
+                            views_per_step=preset.views_per_step, nnfm_search=args.nnfm_search)
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -166,6 +167,9 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--color-transfer", action=argparse.BooleanOptionalAction, default=True,
                    help="nnfm: match the scene's colours to the style image's before and after finetuning, "
                    "as ARF does (default on)")
+    p.add_argument("--nnfm-search", choices=SEARCH_PRECISIONS, default="tf32",
+                   help="arithmetic of NNFM's nearest-neighbour search (default tf32; BENCHMARKS.md, "
+                   "NNFM search precision)")
     p.add_argument("--scale", type=positive_number, default=None,
                    help="render resolution factor (default 1; 0.25 for the demo)")
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
