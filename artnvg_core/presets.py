@@ -49,6 +49,7 @@ PRESETS = {
                       "a first look without diffusion: the NNFM stylizer, 100 iterations at the views' own size "
                       "(its cost: BENCHMARKS.md, First look)"),
 }
+DIFFUSION_PRESETS = tuple(name for name, preset in PRESETS.items() if preset.sampler is not None)
 
 
 def get_preset(name: str) -> Preset:

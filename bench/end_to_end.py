@@ -45,7 +45,7 @@ from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import read_ply
 from artnvg_core.grouping import group_views
 from artnvg_core.key_views import select_key_views
-from artnvg_core.presets import PRESETS
+from artnvg_core.presets import DIFFUSION_PRESETS, PRESETS
 from artnvg_core.raster import render
 from artnvg_core.raster.views import render_views
 from bench.common import timed_call, warp_rmse
@@ -99,8 +99,8 @@ def _value(text: str, current):
 def parse_row(text: str) -> Row:
     """A :class:`Row` from ``PRESET[+FIELD=VALUE...]`` (ValueError naming the bad part)."""
     preset_name, *changes = text.split("+")
-    if preset_name not in PRESETS:
-        raise ValueError(f"row {text!r}: preset must be one of {sorted(PRESETS)}, got {preset_name!r}")
+    if preset_name not in DIFFUSION_PRESETS:
+        raise ValueError(f"row {text!r}: preset must be one of {DIFFUSION_PRESETS}, got {preset_name!r}")
     preset = PRESETS[preset_name]
     values = {"key_views": preset.key_views, "iterations": preset.finetune_iterations}
     sampler = {}

@@ -42,7 +42,7 @@ from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402
 from artnvg_core.formats import load_scene  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
 from artnvg_core.preview import evenly_spaced  # noqa: E402
-from artnvg_core.presets import PRESETS  # noqa: E402
+from artnvg_core.presets import DIFFUSION_PRESETS, PRESETS  # noqa: E402
 from artnvg_core.raster.views import render_views  # noqa: E402
 from artnvg_core.stylize import sheet_path  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning  # noqa: E402
@@ -216,11 +216,11 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sections", nargs="+", choices=["groups", "batch"], default=["groups", "batch"])
-    parser.add_argument("--presets", nargs="+", choices=sorted(PRESETS), default=["fast", "paper"])
+    parser.add_argument("--presets", nargs="+", choices=DIFFUSION_PRESETS, default=["fast", "paper"])
     parser.add_argument("--views", type=int, help="groups: this many evenly spaced cameras of the bear (default all 96)")
     parser.add_argument("--size", type=int, help="groups: long side of the content views (default the cameras' 512)")
     parser.add_argument("--batch-scenes", nargs="+", default=["bear", "face", "bear", "face"])
-    parser.add_argument("--batch-preset", choices=sorted(PRESETS), default="fast")
+    parser.add_argument("--batch-preset", choices=DIFFUSION_PRESETS, default="fast")
     parser.add_argument("--gpus", type=int, help="GPUs of the multi-GPU runs (default: every visible one)")
     parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda")
     parser.add_argument("--tiny", action="store_true", help="tiny models, native view size (smoke test)")

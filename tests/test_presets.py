@@ -43,6 +43,12 @@ def test_unknown_preset_and_device_raise():
         parse_devices("cuda:0,gpu0")
 
 
+def test_the_diffusion_presets_are_those_with_sampler_settings():
+    from artnvg_core.presets import DIFFUSION_PRESETS
+
+    assert DIFFUSION_PRESETS == ("paper", "balanced", "fast", "low-memory")
+
+
 def test_preview_is_the_only_diffusion_free_preset_and_refuses_the_diffusion_stylizer(tmp_path, capsys):
     from artnvg_core.cli.main import main
 
