@@ -59,7 +59,8 @@ def _chunk_alpha(params_ptr, ids_ptr, j, valid, px, py, ALPHA_MIN: tl.constexpr,
 
 @triton.jit
 def _features(feat_ptr, gid, valid, F: tl.constexpr):
-    """The chunk's features, channels 0..3 ([chunk] each; channel 3 zero unless F == 4)."""
+    """Rows ``gid`` of a [rows, F] tensor (a chunk's features, or pixels' output gradients), channels
+    0..3 (one block each; channel 3 zero unless F == 4)."""
     base = feat_ptr + gid * F
     f0 = tl.load(base + 0, mask=valid, other=0.0)
     f1 = tl.load(base + 1, mask=valid, other=0.0)
@@ -147,14 +148,7 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
     final = tl.load(trans_ptr + pix, mask=inside, other=1.0)
     last = tl.load(last_ptr + pix, mask=inside, other=0)
     last = tl.where(inside, last, start)
-    base = grad_out_ptr + pix.to(tl.int64) * F
-    g0 = tl.load(base + 0, mask=inside, other=0.0)
-    g1 = tl.load(base + 1, mask=inside, other=0.0)
-    g2 = tl.load(base + 2, mask=inside, other=0.0)
-    if F == 4:
-        g3 = tl.load(base + 3, mask=inside, other=0.0)
-    else:
-        g3 = tl.zeros_like(g0)
+    g0, g1, g2, g3 = _features(grad_out_ptr, pix.to(tl.int64), inside, F)
     # d(loss)/d(final transmittance) times the final transmittance: what every alpha scales
     through = tl.load(grad_trans_ptr + pix, mask=inside, other=0.0) * final
     later = tl.zeros([TILE * TILE], tl.float32)  # sum over later Gaussians of weight * (grad . feature)
