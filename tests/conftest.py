@@ -23,6 +23,15 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(autouse=True)
+def fixed_cpu_threads(monkeypatch):
+    """The nodes choose torch's CPU threads from the machine's load unless OMP_NUM_THREADS is set
+    (nodes/cpu_threads.py); tests that compare a node's result with the core's bit for bit need the same
+    threads in both, whatever the load: the variable names the threads torch already uses."""
+    if not os.environ.get("OMP_NUM_THREADS"):
+        monkeypatch.setenv("OMP_NUM_THREADS", str(torch.get_num_threads()))
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``cuda`` are skipped where torch sees no CUDA GPU."""
     if torch.cuda.is_available():
