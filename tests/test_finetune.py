@@ -41,7 +41,7 @@ def nnfm_of(scene, cameras, style):
 def test_nnfm_stylization_reduces_style_loss_and_keeps_geometry(demo):
     scene, cameras, style = demo
     before = nnfm_of(scene, cameras, style)
-    result = finetune(scene, cameras, style, config=FinetuneConfig(iterations=40, content_weight=0.5))
+    result = finetune(scene, cameras, style, config=FinetuneConfig(iterations=25, content_weight=0.5))
     after = nnfm_of(result, cameras, style)
     assert after < before - 0.03, (before, after)
     for name in ("means", "quats", "log_scales"):
@@ -66,7 +66,7 @@ def test_l1_ssim_term_pulls_colours_back_to_targets(demo):
     noisy_sh = scene.sh.clone()
     noisy_sh[:, 0] += 0.4 * torch.randn(len(scene), 3, generator=torch.Generator().manual_seed(0))
     noisy = GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, noisy_sh)
-    config = FinetuneConfig(iterations=60, nnfm_weight=0.0, lr_sh_dc=0.01)
+    config = FinetuneConfig(iterations=25, nnfm_weight=0.0, lr_sh_dc=0.025)
     result = finetune(noisy, cameras, style, stylized=targets, config=config)
     with torch.no_grad():
         start, end = psnr(render(noisy, cameras).rgb, targets), psnr(render(result, cameras).rgb, targets)
