@@ -21,7 +21,7 @@ weights a row's deviation is numerical: how far the shortcut moves this computat
 trained model's stylization would look worse. The original scene's PSNR against the paper's final
 scene is printed as the scale of "not stylized at all".
 
-Results are kept in ``--parts`` (a folder on the device machine that survives between calls):
+Results are kept in ``--parts`` (a folder that survives between runs):
 ``PART/<row>/group_NNN.pt`` (stylized images and times per group), ``PART/paper/scene.pt`` (the
 reference's finetuned scene) and ``PART/rows/<row>.json``; a row split over calls (``--groups``)
 finetunes once every group is there. ``--report`` prints the table of every finished row. The final-scene

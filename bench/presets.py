@@ -28,7 +28,7 @@ Sections (no flag = --accuracy, --memory and --end-to-end fast):
     python bench/presets.py --scene .devdata/scenes/bear --accuracy --json out/presets.json
     python bench/presets.py --tiny --device cpu --size 64 --end-to-end paper fast paper+key_views=12 \
         --parts /tmp/parts --iterations 3 --scene ../shared/data/scenes/bear   # smoke test
-    # on the device machine, calls of at most 10 minutes sharing .parts (git-ignored, not carried):
+    # on a GPU, one preset split over runs of at most 10 minutes sharing .parts (git-ignored):
     python bench/presets.py --end-to-end paper --groups 0:3 --parts .parts      # ~6 min on an H100
     python bench/presets.py --end-to-end paper --groups 3: --parts .parts       # ~5.5 min, then the reference
     python bench/presets.py --end-to-end fast "paper+scheduler=dpmpp_2m+steps=20+cfg_until=0.8+key_views=28" \
