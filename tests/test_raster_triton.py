@@ -15,7 +15,8 @@ pytest.importorskip("triton")
 
 from artnvg_core.raster import choose_backend, prepare_backend, render  # noqa: E402
 from artnvg_core.raster.projection import project  # noqa: E402
-from artnvg_core.raster.torch_backend import rasterize  # noqa: E402
+from artnvg_core.raster.torch_backend import TILE, _tile_lists, rasterize  # noqa: E402
+from artnvg_core.raster.triton_backend import Pass, rasterize_triton, tile_lists  # noqa: E402
 from artnvg_core.scene import GaussianScene  # noqa: E402
 
 from raster_scenes import EYES, hard_cases, hard_scene, make_cameras, parity  # noqa: E402
@@ -53,8 +54,6 @@ def _composite(backend, proj, leaves, width=40, height=24, **options):
     proj = dataclasses.replace(proj, means2d=means2d, conics=conics, opacities=opacities,
                                radii=proj.radii.to(DEVICE), depths=proj.depths.to(DEVICE))
     if backend == "triton":
-        from artnvg_core.raster.triton_backend import rasterize_triton
-
         blended, trans = rasterize_triton(proj, features, width, height, **options)
     else:
         blended, trans = rasterize(proj, features, width, height)
@@ -65,19 +64,59 @@ def _composite(backend, proj, leaves, width=40, height=24, **options):
     return [blended.detach().double().cpu(), trans.detach().double().cpu()] + [x.grad.double().cpu() for x in leaves]
 
 
-@pytest.mark.parametrize(("tile", "chunk"), [(16, 32), (8, 16), (16, 4)])
-def test_compositing_and_every_gradient_match_the_float64_reference(tile, chunk):
+@pytest.mark.parametrize(("tile", "passes"), [(16, ((16, 32, 4), (16, 32, 4))), (8, ((8, 4, 2), (2, 16, 1))),
+                                              (16, ((4, 16, 2), (2, 4, 1)))])
+def test_compositing_and_every_gradient_match_the_float64_reference(tile, passes):
     """Blended colour and depth, transmittance and the gradients by means2d, conics, opacities and
-    features, against the reference compositor in float64 on the same projection, for tile and chunk
-    sizes that split the lists differently (a chunk of 4 crosses many chunk boundaries)."""
+    features, against the reference compositor in float64 on the same projection, for tile, rows and
+    chunk sizes that split the pixels and lists differently (a chunk of 4 crosses many chunk
+    boundaries; programs of 2 rows share a tile's list 8 ways)."""
     proj, f64, f32 = _composite_inputs()
     expected = _composite("torch", proj.__class__(**{k: (v.double() if v.is_floating_point() else v)
                                                      for k, v in vars(proj).items()}), f64)
-    got = _composite("triton", proj, f32, tile=tile, chunk=chunk)
+    got = _composite("triton", proj, f32, tile=tile, passes=tuple(Pass(*p) for p in passes))
     names = ["blended", "transmittance", "means2d grad", "conics grad", "opacities grad", "features grad"]
     for name, a, b in zip(names, got, expected):
         error = float((a - b).norm() / b.norm())
         assert torch.isfinite(a).all() and error <= 1e-5, (name, error)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_tile_lists_are_the_references_with_culled_rows_and_depth_ties(seed):
+    """Triton's tile lists (counted and written by kernels, sorted by 16-bit tile keys) equal the
+    reference's ``_tile_lists`` exactly: the same Gaussians per tile in the same depth order, ties in
+    projection order; rows culled with radii -1 (as the fused projection leaves them) get no tiles."""
+    width, height = 100, 70  # the last tiles cut by the image
+    scene = hard_scene(seed, n=60)
+    cams = make_cameras(EYES[:1], width, height)
+    proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, cams.world_to_cam[0],
+                   cams.intrinsics[0], width, height)
+    proj.depths[::3] = proj.depths[0]  # ties, broken by projection order
+    order, starts, counts = _tile_lists(proj, width, height)
+    culled = 5
+    padded = dataclasses.replace(
+        proj, means2d=torch.cat([proj.means2d, torch.rand(culled, 2) * 50]),
+        radii=torch.cat([proj.radii, torch.full((culled, 2), -1)]),
+        depths=torch.cat([torch.full((culled,), -1.0), proj.depths]).roll(-culled))
+    for rows in (proj, padded):
+        rows = dataclasses.replace(rows, means2d=rows.means2d.to(DEVICE), radii=rows.radii.to(DEVICE),
+                                   depths=rows.depths.to(DEVICE))
+        ids, offsets = tile_lists(rows, width, height, tile=TILE)
+        assert torch.equal(ids.long().cpu(), order)
+        assert torch.equal(offsets[:-1].long().cpu(), starts) and torch.equal(offsets.diff().long().cpu(), counts)
+    assert len(order) > 3 * len(proj.depths)  # footprints span several tiles
+
+
+def test_skipping_blocks_no_pixel_uses_changes_nothing():
+    """The kernels skip blocks of Gaussians that no open pixel uses: bit for bit the same images, and
+    the same gradients (up to the order of the backward's atomic additions on a GPU)."""
+    proj, _, f32 = _composite_inputs(seed=2, n=60)
+    passes = (Pass(4, 4, 1), Pass(4, 4, 1))
+    skipped, walked = (_composite("triton", proj, f32, passes=passes, skip=skip) for skip in (True, False))
+    for a, b in zip(skipped[:2], walked[:2]):
+        assert torch.equal(a, b)
+    for a, b in zip(skipped[2:], walked[2:]):
+        assert float((a - b).abs().max() / b.abs().max()) <= 1e-6
 
 
 def test_transmittance_stop_and_saturated_pixels():

@@ -1,0 +1,177 @@
+"""The Triton compositing kernels' settings: time and deviation of each, and where a render's time goes.
+
+    cd bench && python raster_kernels.py [--counts 100000,1000000] [--size 1024] [--profile]
+
+For each random scene (``common.random_scene``, one orbit camera, the fused projection done once):
+
+- tile lists: each step of ``triton_backend.tile_lists`` alone (depth order, counting, writing, the
+  stable sort by 16-bit and by 32-bit tile keys, the gather, the offsets);
+- the forward kernel for each ``triton_backend.Pass`` (pixel rows per program, Gaussians per block,
+  warps) with and without block skipping, and the backward kernel alone (the same forward's graph
+  replayed) for each; beside each, the largest deviation of its outputs (blended features,
+  transmittance, every gradient) from the shipped settings (``triton_backend.PASSES``), relative to
+  the largest magnitude; last, the five fastest settings of each kernel over all scenes.
+
+``--profile``: the CUDA kernels of one whole render forward+backward by total time (torch.profiler).
+Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+
+import torch
+
+from common import orbit_cameras, print_table, random_scene, timed
+
+from artnvg_core.raster import render
+from artnvg_core.raster.triton_backend import PASSES, Pass, _Composite, _count_kernel, _emit_kernel, tile_lists
+from artnvg_core.raster.triton_projection import project_color_triton
+from artnvg_core.scene import GaussianScene
+
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def projected(count: int, size: int):
+    """A random scene's fused projection (detached) and colours + depth features on one camera."""
+    scene = random_scene(count, device="cuda")
+    camera = orbit_cameras(1, size).to("cuda")
+    proj, colors = project_color_triton(*(getattr(scene, f) for f in FIELDS), camera.world_to_cam[0],
+                                        camera.intrinsics[0], camera.centers[0], size, size, scene.sh_degree)
+    proj = proj.__class__(**{k: v.detach() for k, v in vars(proj).items()})
+    return scene, camera, proj, torch.cat([colors.detach(), proj.depths[:, None]], 1).contiguous()
+
+
+def tile_list_rows(name, proj, size):
+    """Milliseconds of each step of tile_lists (as it runs them) and of the whole."""
+    import triton
+
+    tiles_x = -(-size // 16)
+    n = len(proj.depths)
+    by_depth = torch.argsort(proj.depths, stable=True)
+    counts = torch.zeros(n, dtype=torch.int32, device="cuda")
+    _count_kernel[(triton.cdiv(n, 256),)](proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x,
+                                          TILE=16, BLOCK=256)
+    ends = torch.cumsum(counts, 0)
+    total = int(ends[-1])
+    tile16 = torch.empty(total, dtype=torch.int16, device="cuda")
+    ids = torch.empty(total, dtype=torch.int32, device="cuda")
+
+    def emit():
+        _emit_kernel[(triton.cdiv(n, 32),)](proj.means2d, proj.radii, by_depth, ends, tile16, ids, n, tiles_x,
+                                            tiles_x, TILE=16, BLOCK_G=32, BLOCK_T=32, num_warps=4)
+
+    emit()
+    tile32 = tile16.int()
+    sorted16, order = torch.sort(tile16, stable=True)
+    steps = {
+        "depth order (argsort)": lambda: torch.argsort(proj.depths, stable=True),
+        "count + cumsum + size": lambda: (_count_kernel[(triton.cdiv(n, 256),)](
+            proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x, TILE=16, BLOCK=256),
+            int(torch.cumsum(counts, 0)[-1])),
+        "write pairs": emit,
+        "stable sort, 16-bit keys (shipped)": lambda: torch.sort(tile16, stable=True),
+        "stable sort, 32-bit keys": lambda: torch.sort(tile32, stable=True),
+        "gather ids": lambda: ids[order],
+        "offsets (searchsorted)": lambda: torch.searchsorted(
+            sorted16, torch.arange(tiles_x * tiles_x + 1, device="cuda", dtype=torch.int16), out_int32=True),
+        "whole tile_lists": lambda: tile_lists(proj, size, size),
+    }
+    rows = [[name, step, timed(fn, torch.device("cuda"), repeats=10, warmup=3) * 1e3] for step, fn in steps.items()]
+    rows.append([name, f"({total:,} intersections)", None])
+    return rows
+
+
+def composite(proj, feats, lists, size, passes, skip, grads):
+    """Outputs and the gradients by means2d, conics, opacities, features of a linear loss with
+    weights ``grads``; a closure replaying the backward alone."""
+    leaves = [x.clone().requires_grad_(True) for x in (proj.means2d, proj.conics, proj.opacities, feats)]
+    out, trans = _Composite.apply(*leaves, *lists, size, size, 16, passes, skip)
+    loss = (out * grads[0]).sum() + (trans * grads[1]).sum()
+    backward = lambda: torch.autograd.grad(loss, leaves, retain_graph=True)  # noqa: E731
+    return [out.detach(), trans.detach(), *backward()], backward
+
+
+def deviation(got, shipped) -> float:
+    return max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30)) for a, b in zip(got, shipped))
+
+
+SETTINGS = [Pass(rows, chunk, warps) for rows, chunk, warps in itertools.product((2, 4, 8, 16), (4, 8, 16, 32), (1, 2, 4, 8))
+            if 4 * 32 * warps <= 16 * rows * chunk <= 32 * 32 * warps]  # 4 to 32 pixel-Gaussian pairs per thread
+
+
+def kernel_rows(name, proj, feats, size):
+    lists = tile_lists(proj, size, size)
+    g = torch.Generator(device="cuda").manual_seed(0)
+    grads = (torch.randn(size, size, 4, device="cuda", generator=g), torch.randn(size, size, device="cuda", generator=g))
+    shipped, _ = composite(proj, feats, lists, size, PASSES, True, grads)
+    device = torch.device("cuda")
+    rows = []
+    for kernel, setting, skip in itertools.product(("forward", "backward"), SETTINGS, (True, False)):
+        if not skip and setting.rows < 16:
+            continue  # walking every block: measured for whole-tile programs only
+        passes = (setting, PASSES[1]) if kernel == "forward" else (PASSES[0], setting)
+        outputs, backward = composite(proj, feats, lists, size, passes, skip, grads)
+        if kernel == "forward":
+            run = lambda: _Composite.apply(proj.means2d, proj.conics, proj.opacities, feats, *lists,  # noqa: E731
+                                           size, size, 16, passes, skip)
+        ms = timed(run if kernel == "forward" else backward, device, repeats=10, warmup=3) * 1e3
+        rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped)])
+        print(rows[-1], flush=True)
+    return rows
+
+
+def profile_rows(name, scene, camera, top=12):
+    """The CUDA kernels of one render forward+backward, by total time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
+    run = lambda: render(GaussianScene(**params), camera, backend="triton").rgb.sum().backward()  # noqa: E731
+    for _ in range(3):
+        run()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(5):
+            run()
+        torch.cuda.synchronize()
+    events = sorted(prof.key_averages(), key=lambda e: -e.device_time_total)[:top]
+    return [[name, e.key[:70], e.count // 5, e.device_time_total / 5 / 1e3] for e in events]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--counts", default="100000,1000000")
+    parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--profile", action="store_true")
+    args = parser.parse_args()
+    command = "python " + " ".join(sys.argv)
+    lists, kernels, profiles = [], [], []
+    for count in map(int, args.counts.split(",")):
+        name = f"{count:,} @ {args.size}"
+        scene, camera, proj, feats = projected(count, args.size)
+        lists += tile_list_rows(name, proj, args.size)
+        kernels += kernel_rows(name, proj, feats, args.size)
+        if args.profile:
+            profiles += profile_rows(name, scene, camera)
+    gpu = torch.cuda.get_device_name()
+    if profiles:
+        print_table(f"Kernels of one render forward+backward ({gpu})", ["scene", "kernel", "calls", "ms"], profiles,
+                    command)
+    print_table(f"Tile lists, step by step ({gpu})", ["scene", "step", "ms"], lists, command)
+    print_table(f"Compositing kernels' settings ({gpu}; shipped: forward {tuple(PASSES[0])}, backward "
+                f"{tuple(PASSES[1])}, skipping)", ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
+                                                   "max deviation from shipped"], kernels, command)
+    for kernel in ("forward", "backward"):
+        best = {}
+        for row in kernels:
+            if row[1] == kernel:
+                best.setdefault(tuple(row[2:6]), []).append(row[6])
+        ranked = sorted(best.items(), key=lambda item: sum(item[1]))[:5]
+        print(f"\nfastest {kernel} (rows, chunk, warps, skip: ms per scene):",
+              "; ".join(f"{k}: {', '.join(f'{v:.3f}' for v in ms)}" for k, ms in ranked))
+
+
+if __name__ == "__main__":
+    main()
