@@ -10,8 +10,8 @@ Accuracy: each backend against the float64 brute-force evaluator (tests/raster_r
 on a small random scene, max abs error and PSNR of the images.
 ``--stages N``: where the triton backend's time goes for N Gaussians at the largest size (the
 fused projection + colours against the reference ones, tile lists, compositing; each timed alone).
-``--first-use``: the first Triton render (forward+backward) in a fresh process with an empty
-Triton cache, then the second (CUDA).
+``--first-use``: each step of the first Triton render (forward+backward: projection, tile lists,
+compositing, backward kernels) in a fresh process with an empty Triton cache, then of the second (CUDA).
 """
 
 from __future__ import annotations
@@ -143,23 +143,33 @@ FIRST_USE = """
 import time, torch, sys
 sys.path.insert(0, {bench!r})
 from common import orbit_cameras, random_scene
-from artnvg_core.raster import render
-from artnvg_core.scene import GaussianScene
+from artnvg_core.raster.triton_backend import rasterize_triton, tile_lists
+from artnvg_core.raster.triton_projection import project_color_triton
+torch.zeros(1, device="cuda")
 scene = random_scene(10000, device="cuda")
 camera = orbit_cameras(1, 256).to("cuda")
-times = []
 for _ in range(2):
-    params = {{k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}}
-    torch.cuda.synchronize(); start = time.perf_counter()
-    render(GaussianScene(**params), camera, backend="triton").rgb.sum().backward()
-    torch.cuda.synchronize(); times.append(time.perf_counter() - start)
-print(f"{{times[0]:.2f}} {{times[1]:.4f}}")
+    p = {{k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}}
+    seconds = []
+    def step(fn):
+        torch.cuda.synchronize(); start = time.perf_counter(); result = fn(); torch.cuda.synchronize()
+        seconds.append(time.perf_counter() - start)
+        return result
+    proj, colors = step(lambda: project_color_triton(p["means"], p["quats"], p["log_scales"], p["opacity_logits"],
+                        p["sh"], camera.world_to_cam[0], camera.intrinsics[0], camera.centers[0], 256, 256, 3))
+    step(lambda: tile_lists(proj, 256, 256))
+    out, trans = step(lambda: rasterize_triton(proj, colors, 256, 256))
+    step(lambda: (out.sum() + trans.sum()).backward())
+    print(" ".join(f"{{s:.4f}}" for s in seconds))
 """
+FIRST_USE_STEPS = ["projection forward", "tile lists", "compositing forward (+ tile lists)",
+                   "backward (compositing + projection)"]
 
 
-def first_use_row():
-    """Seconds of the first triton render (forward+backward) in a fresh process with an empty Triton
-    cache (the kernels' JIT compilation), and of the second."""
+def first_use_rows():
+    """Seconds of each step of the first triton render (forward+backward: the fused projection, the
+    tile lists, the compositing, the backward kernels) in a fresh process with an empty Triton cache
+    (the kernels' JIT compilation), and of the second render's."""
     import os
     import subprocess
     import tempfile
@@ -168,9 +178,11 @@ def first_use_row():
         env = dict(os.environ, TRITON_CACHE_DIR=cache)
         env.pop("TRITON_INTERPRET", None)
         code = FIRST_USE.format(bench=str(Path(__file__).resolve().parent))
-        first, second = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
-                                       text=True).stdout.split()[-2:]
-    return [["triton", "fresh process, empty Triton cache", float(first), float(second)]]
+        lines = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
+                               text=True).stdout.splitlines()[-2:]
+    first, second = ([float(x) for x in line.split()] for line in lines)
+    rows = [["triton", step, a, b] for step, a, b in zip(FIRST_USE_STEPS, first, second)]
+    return rows + [["triton", "whole render", sum(first), sum(second)]]
 
 
 def main() -> None:
@@ -185,7 +197,7 @@ def main() -> None:
     sizes = [int(s) for s in args.sizes.split(",")]
     counts = [int(c) for c in args.counts.split(",") if c]
     command = "python " + " ".join(sys.argv)
-    first = first_use_row() if args.first_use else []
+    first = first_use_rows() if args.first_use else []
     accuracy = accuracy_rows(device)
     stages = stage_rows(device, args.stages, max(sizes)) if args.stages else []
     speed = speed_rows(device, sizes, counts) if counts else []
@@ -199,8 +211,8 @@ def main() -> None:
         print_table("Triton backend: time per stage (each timed alone)",
                     ["stage", "Gaussians", "size", "forward ms", "fwd+bwd ms"], stages, command)
     if first:
-        print_table("First use (JIT compilation)", ["backend", "process", "first render s", "second render s"],
-                    first, command)
+        print_table("First use in a fresh process, empty Triton cache (JIT compilation)",
+                    ["backend", "step", "first render s", "second render s"], first, command)
 
 
 if __name__ == "__main__":

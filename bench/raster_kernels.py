@@ -10,7 +10,8 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   warps) with and without block skipping, and the backward kernel alone (the same forward's graph
   replayed) for each; beside each, the largest deviation of its outputs (blended features,
   transmittance, every gradient) from the shipped settings (``triton_backend.PASSES``), relative to
-  the largest magnitude; last, the five fastest settings of each kernel over all scenes.
+  the largest magnitude, and the largest relative L2 error of the same against the reference
+  compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
 ``--profile``: the CUDA kernels of one whole render forward+backward by total time (torch.profiler).
 Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
@@ -19,6 +20,7 @@ Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import sys
 
@@ -27,6 +29,7 @@ import torch
 from common import orbit_cameras, print_table, random_scene, timed
 
 from artnvg_core.raster import render
+from artnvg_core.raster.torch_backend import rasterize
 from artnvg_core.raster.triton_backend import PASSES, Pass, _Composite, _count_kernel, _emit_kernel, tile_lists
 from artnvg_core.raster.triton_projection import project_color_triton
 from artnvg_core.scene import GaussianScene
@@ -102,11 +105,33 @@ SETTINGS = [Pass(rows, chunk, warps) for rows, chunk, warps in itertools.product
             if 4 * 32 * warps <= 16 * rows * chunk <= 32 * 32 * warps]  # 4 to 32 pixel-Gaussian pairs per thread
 
 
+def float64_reference(proj, feats, size, grads):
+    """The reference compositor (torch backend) in float64 on the same projection: outputs and
+    gradients as :func:`composite` returns them (zero gradients for culled rows)."""
+    keep = proj.radii[:, 0] >= 0
+    leaves = [x[keep].double().requires_grad_(True) for x in (proj.means2d, proj.conics, proj.opacities, feats)]
+    kept = dataclasses.replace(proj, means2d=leaves[0], conics=leaves[1], opacities=leaves[2],
+                               depths=proj.depths[keep].double(), radii=proj.radii[keep],
+                               index=torch.arange(len(leaves[0]), device="cuda"))
+    out, trans = rasterize(kept, leaves[3], size, size)
+    loss = (out * grads[0].double()).sum() + (trans * grads[1].double()).sum()
+    result = [out.detach(), trans.detach()]
+    for grad, like in zip(torch.autograd.grad(loss, leaves), (proj.means2d, proj.conics, proj.opacities, feats)):
+        result.append(torch.zeros(like.shape, dtype=torch.float64, device="cuda").index_put_((keep,), grad))
+    return result
+
+
+def relative_l2(got, expected) -> float:
+    """The largest relative L2 error over the outputs and gradients."""
+    return max(float((a.double() - b).norm() / b.norm().clamp_min(1e-300)) for a, b in zip(got, expected))
+
+
 def kernel_rows(name, proj, feats, size):
     lists = tile_lists(proj, size, size)
     g = torch.Generator(device="cuda").manual_seed(0)
     grads = (torch.randn(size, size, 4, device="cuda", generator=g), torch.randn(size, size, device="cuda", generator=g))
     shipped, _ = composite(proj, feats, lists, size, PASSES, True, grads)
+    reference = float64_reference(proj, feats, size, grads)
     device = torch.device("cuda")
     rows = []
     for kernel, setting, skip in itertools.product(("forward", "backward"), SETTINGS, (True, False)):
@@ -118,7 +143,7 @@ def kernel_rows(name, proj, feats, size):
             run = lambda: _Composite.apply(proj.means2d, proj.conics, proj.opacities, feats, *lists,  # noqa: E731
                                            size, size, 16, passes, skip)
         ms = timed(run if kernel == "forward" else backward, device, repeats=10, warmup=3) * 1e3
-        rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped)])
+        rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)])
         print(rows[-1], flush=True)
     return rows
 
@@ -162,7 +187,8 @@ def main() -> None:
     print_table(f"Tile lists, step by step ({gpu})", ["scene", "step", "ms"], lists, command)
     print_table(f"Compositing kernels' settings ({gpu}; shipped: forward {tuple(PASSES[0])}, backward "
                 f"{tuple(PASSES[1])}, skipping)", ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
-                                                   "max deviation from shipped"], kernels, command)
+                                                   "max deviation from shipped", "rel. L2 error vs float64"],
+                kernels, command)
     for kernel in ("forward", "backward"):
         best = {}
         for row in kernels:
