@@ -1,7 +1,7 @@
 """Finetune benchmark: time per iteration of the Gaussian finetuning loop.
 
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
-        [--cases demo,bear,random] [--searches fp32,tf32,bf16]
+        [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--profile]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and
 1024x1024 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with each
@@ -14,6 +14,11 @@ demo style resized (area / bilinear) to half the render's long side, as ARF size
 iteration: the wall time of the iterations after 3 warm-up steps, the device waited for once at each
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
 while the GPU runs step k).
+
+``--profile`` (CUDA): instead, where an iteration of the first case goes, with and without stylized
+targets: the GPU kernels' time per iteration against the wall time, the 25 costliest kernels and the
+15 costliest host calls (torch.profiler over 20 iterations; its totals include the renders of every
+view before and after the steps).
 """
 
 from __future__ import annotations
@@ -54,6 +59,30 @@ def seconds_per_iteration(scene, cameras, style, config: FinetuneConfig, targets
     return (stamps[total] - stamps[3]) / config.iterations
 
 
+def profile_rows(scene, cameras, style, device, iterations=20) -> None:
+    """Print where a finetune iteration goes (see the module's ``--profile``)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    for targets in (False, True):
+        stylized = torch.rand(len(cameras), cameras.height, cameras.width, 3, device=device) if targets else None
+        config = FinetuneConfig(iterations=iterations)
+        wall = seconds_per_iteration(scene, cameras, style, config, targets, device)
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            finetune(scene, cameras, style, stylized=stylized, config=config)
+        events = prof.key_averages()
+        kernels = sorted((e for e in events if e.device_type.name == "CUDA"), key=lambda e: -e.device_time_total)
+        host = sorted((e for e in events if e.device_type.name == "CPU"), key=lambda e: -e.self_cpu_time_total)
+        gpu_ms = sum(e.device_time_total for e in kernels) / iterations / 1e3
+        print(f"\n## {'L1+SSIM+NNFM' if targets else 'NNFM+content'}: wall {wall * 1e3:.2f} ms/it; "
+              f"GPU kernels {gpu_ms:.2f} ms/it")
+        for e in kernels[:25]:
+            ms = e.device_time_total / iterations / 1e3
+            print(f"{ms:8.3f} ms/it {e.count / iterations:6.1f} calls/it  {e.key[:100]}")
+        print("-- host, self time")
+        for e in host[:15]:
+            print(f"{e.self_cpu_time_total / iterations / 1e3:8.3f} ms/it {e.count / iterations:6.1f} calls/it  {e.key[:100]}")
+
+
 def resized_style(style: torch.Tensor, side: int) -> torch.Tensor:
     """``style [H, W, 3]`` resized so that its long side is ``side`` (ARF: half the render's long side)."""
     factor = side / max(style.shape[:2])
@@ -76,6 +105,7 @@ def main() -> None:
     parser.add_argument("--shared", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     parser.add_argument("--cases", default="demo,bear,random")
     parser.add_argument("--searches", default=",".join(SEARCH_PRECISIONS))
+    parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
     args = parser.parse_args()
     device = torch.device(args.device)
     wanted, searches = args.cases.split(","), args.searches.split(",")
@@ -95,6 +125,10 @@ def main() -> None:
             print(f"no bear scene at {bear}: its cases are left out", flush=True)
         if "random" in wanted:
             cases += [("random (1M)", random_scene(1_000_000), orbit_cameras(16, 1024))]
+    if args.profile:
+        name, scene, cams = cases[0]
+        print(f"profile: {name}, {cams.width}x{cams.height}", flush=True)
+        return profile_rows(scene.to(device), cams, resized_style(style, max(cams.width, cams.height) // 2), device)
     rows = []
     for name, scene, cams in cases:
         sides = [512, None] if cams.width >= 1024 else [512]

@@ -1,5 +1,5 @@
-"""Triton backend: tile intersection and sort with PyTorch operations, front-to-back compositing
-forward and backward in Triton kernels (JIT-compiled on first use, cached by Triton; no native build).
+"""Triton backend: tile intersection lists and front-to-back compositing, forward and backward, in
+Triton kernels (JIT-compiled on first use, cached by Triton; no native build).
 
 It takes the fused projection and colours (:mod:`.triton_projection`, or the reference's) and replaces the
 reference's per-pixel compositing (:func:`~.torch_backend.rasterize`) with the same semantics:
@@ -7,13 +7,15 @@ alpha = min(0.999, o * exp(-sigma)), samples with sigma < 0 or alpha < 1/255 ski
 in depth order (ties in projection order) stopping before the first Gaussian that would bring the
 transmittance to <= 1e-4.
 
-Each Triton program owns one ``tile`` x ``tile`` pixel tile. The forward pass walks the tile's
-depth-sorted list one Gaussian at a time over the tile's pixels, keeping per pixel the final
-transmittance and the end of the list prefix that contributed. The backward pass replays the lists
-back to front from there (as gsplat does), ``chunk`` Gaussians at a time as a [pixels, chunk] block:
-the transmittance before each Gaussian is recovered by division from the final one (a reversed
-scan along the chunk), and the colour still to come is a suffix sum, so no difference of large sums
-loses precision. Per-Gaussian gradients are summed over the tile's pixels, then added with atomics.
+Tile lists: kernels count and write each Gaussian's (tile, Gaussian) pairs in depth order, and one
+stable radix sort by tile groups them. Compositing: each Triton program owns a few pixel rows of one
+``tile`` x ``tile`` tile (:class:`Pass`) and walks the tile's list ``chunk`` Gaussians at a time as
+a [pixels, chunk] block, passing over blocks none of its pixels uses. The forward pass keeps per pixel
+the final transmittance and the end of the list prefix that contributed; the backward pass replays
+the list back to front from there (as gsplat does): the transmittance before each Gaussian is
+recovered by division from the final one (a reversed scan along the chunk), and the colour still to
+come is a suffix sum, so no difference of large sums loses precision. Per-Gaussian gradients are
+summed over the program's pixels, then added with atomics (in no fixed order).
 
 The kernels run on CUDA tensors, or on the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set
 before this module is imported), which is how the tests check them where no GPU is.
@@ -42,7 +44,7 @@ class Pass(NamedTuple):
     warps: int
 
 
-PASSES = (Pass(2, 8, 1), Pass(4, 8, 1))  # forward, backward: the fastest on an H200 (bench/raster_kernels.py)
+PASSES = (Pass(2, 8, 1), Pass(4, 8, 1))  # forward, backward: among the fastest on an H100 and an H200 (BENCHMARKS.md)
 
 
 @triton.jit
@@ -99,10 +101,12 @@ def _pixels(width, height, tiles_x, TILE: tl.constexpr, ROWS: tl.constexpr):
 @triton.jit
 def _forward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, out_ptr, trans_ptr, last_ptr,
                     width, height, tiles_x, F: tl.constexpr, TILE: tl.constexpr, ROWS: tl.constexpr,
-                    CHUNK: tl.constexpr, ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr, SKIP: tl.constexpr):
+                    CHUNK: tl.constexpr, ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, T_MIN: tl.constexpr,
+                    SKIP: tl.constexpr):
     """The tile's list ``CHUNK`` Gaussians at a time as a [pixels, chunk] block (their parameters
-    loaded together), until every pixel is finished. Within a block the transmittance after each
-    Gaussian is a running product along the chunk; a Gaussian is used while that product stays
+    loaded together), until every pixel of the program is finished; with SKIP, blocks no open pixel
+    uses are passed over. Within a block the transmittance after each Gaussian is a running product
+    along the chunk; a Gaussian is used while that product stays
     above T_MIN (it only falls, so the used ones are the list prefix before the stop). Stores
     blended features, final transmittance and, per pixel, one past the list position of the last
     Gaussian that contributed (``start`` when none)."""
@@ -161,6 +165,8 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
                      grad_params_ptr, grad_feat_ptr, width, height, tiles_x,
                      F: tl.constexpr, TILE: tl.constexpr, ROWS: tl.constexpr, CHUNK: tl.constexpr,
                      ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, SKIP: tl.constexpr):
+    """Gradients of the forward's outputs back to params [M, 6] (means2d, conics, opacity) and
+    features [M, F], replaying each pixel's contributing prefix back to front (see the module)."""
     tile, pix, px, py, inside = _pixels(width, height, tiles_x, TILE, ROWS)
     start = tl.load(offsets_ptr + tile)
     cols = tl.arange(0, CHUNK)
