@@ -106,10 +106,10 @@ def _forward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, out_ptr, trans_p
     """The tile's list ``CHUNK`` Gaussians at a time as a [pixels, chunk] block (their parameters
     loaded together), until every pixel of the program is finished; with SKIP, blocks no open pixel
     uses are passed over. Within a block the transmittance after each Gaussian is a running product
-    along the chunk; a Gaussian is used while that product stays
-    above T_MIN (it only falls, so the used ones are the list prefix before the stop). Stores
-    blended features, final transmittance and, per pixel, one past the list position of the last
-    Gaussian that contributed (``start`` when none)."""
+    along the chunk; a Gaussian is used while that product stays above T_MIN (it only falls, so the
+    used ones are the list prefix before the stop). Stores blended features, final transmittance
+    and, per pixel, one past the list position of the last Gaussian that contributed (``start``
+    when none)."""
     tile, pix, px, py, inside = _pixels(width, height, tiles_x, TILE, ROWS)
     start = tl.load(offsets_ptr + tile)
     end = tl.load(offsets_ptr + tile + 1)
