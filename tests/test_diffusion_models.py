@@ -203,6 +203,37 @@ def test_image_encoder_folder_and_single_file(tmp_path):
     assert loaded.dtype == torch.bfloat16 and _same_weights(loaded, encoder.to(torch.bfloat16))
 
 
+def test_single_files_load_without_building_random_weights(tmp_path, monkeypatch):
+    """The single-file loaders build the model's layers with parameters on the meta device (their
+    random initialisation costs nothing: a full-size ControlNet or ViT-bigG is seconds of CPU time
+    and a float32 copy) and take the file's tensors; the encoder's computed position ids stay real,
+    so it encodes an image as the original does."""
+    initialised = []
+    for layer in (torch.nn.Linear, torch.nn.modules.conv._ConvNd):
+        reset = layer.reset_parameters
+
+        def spy(self, reset=reset):
+            initialised.append(self.weight.is_meta)
+            reset(self)
+
+        monkeypatch.setattr(layer, "reset_parameters", spy)
+    base = tiny_base()
+    derived = ControlNetModel.from_unet(base.unet)
+    encoder = tiny_image_encoder().eval()
+    save_file(derived.state_dict(), tmp_path / "tile.safetensors")
+    (tmp_path / "clip_vision").mkdir()
+    encoder.config.to_json_file(tmp_path / "clip_vision" / "config.json")
+    save_file(encoder.state_dict(), tmp_path / "clip_vision" / "model.safetensors")
+    initialised.clear()
+    controlnet = load_controlnet(tmp_path / "tile.safetensors", unet_config=dict(base.unet.config), dtype=torch.float32)
+    loaded = load_image_encoder(tmp_path / "clip_vision" / "model.safetensors", dtype=torch.float32)
+    assert initialised and all(initialised)
+    assert _same_weights(controlnet, derived) and _same_weights(loaded, encoder)
+    image = torch.rand(1, 3, encoder.config.image_size, encoder.config.image_size)
+    with torch.no_grad():
+        assert torch.equal(loaded(image).image_embeds, encoder(image).image_embeds)
+
+
 def test_vae_single_file_needs_its_config(tmp_path):
     vae = tiny_base().vae
     (tmp_path / "vae").mkdir()

@@ -98,10 +98,31 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
+@contextmanager
+def parameters_on_meta() -> Iterator[None]:
+    """Modules built inside this context get their parameters on the meta device: no memory and no
+    random initialisation, for weights a file is about to replace. Buffers stay real (a model's
+    computed buffers, e.g. CLIP's position ids, keep their values). Load with
+    :func:`load_state_dict_strict`, which assigns the file's tensors."""
+    register = torch.nn.Module.register_parameter
+
+    def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
+        if param is not None and not param.is_meta:
+            param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
+        register(module, name, param)
+
+    torch.nn.Module.register_parameter = on_meta
+    try:
+        yield
+    finally:
+        torch.nn.Module.register_parameter = register
+
+
 def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
-    """Load the weight file at ``path`` into ``model``; every key must match in name and shape
-    (else ValueError listing the missing, unexpected and mis-shaped keys). Entries for the model's
-    non-persistent buffers (e.g. CLIP ``position_ids`` in older files) are ignored: the model
+    """Load the weight file at ``path`` into ``model`` (built in :func:`parameters_on_meta` or not),
+    taking the file's tensors as they are (no copy, the file's dtype); every key must match in name
+    and shape (else ValueError listing the missing, unexpected and mis-shaped keys). Entries for the
+    model's non-persistent buffers (e.g. CLIP ``position_ids`` in older files) are ignored: the model
     computes them itself."""
     expected = model.state_dict()
     recomputed = {name for name, _ in model.named_buffers()} - set(expected)
@@ -109,7 +130,7 @@ def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
     mismatch = state_dict_mismatch(expected, state)
     if mismatch:
         raise ValueError(f"weights '{path}' do not fit {type(model).__name__}: {mismatch}")
-    model.load_state_dict(state)
+    model.load_state_dict(state, assign=True)
 
 
 def _config_beside(path: Path) -> dict | None:
@@ -192,7 +213,8 @@ def load_vae(
         config = _config_beside(path)
         if config is None:
             raise MissingModelError(f"VAE weights '{path}': no config.json beside the file")
-        vae = AutoencoderKL.from_config(config)
+        with parameters_on_meta():
+            vae = AutoencoderKL.from_config(config)
         load_state_dict_strict(vae, path)
     return vae.to(device=device, dtype=_vae_dtype(vae.config.force_upcast, dtype)).eval()
 
@@ -218,7 +240,8 @@ def load_controlnet(
             raise MissingModelError(
                 f"ControlNet weights '{path}': no config.json beside the file and no UNet config to derive one from"
             )
-        controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
+        with parameters_on_meta():
+            controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
         load_state_dict_strict(controlnet, path)
     return controlnet.to(device=device, dtype=dtype).eval()
 
@@ -238,7 +261,8 @@ def load_image_encoder(
     else:
         config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
         config = {k: v for k, v in config.items() if k not in ("architectures", "model_type", "torch_dtype", "dtype")}
-        encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**config))
+        with parameters_on_meta():
+            encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**config))
         load_state_dict_strict(encoder, path)
     return encoder.to(device=device, dtype=dtype).eval()
 
