@@ -234,6 +234,27 @@ def test_single_files_load_without_building_random_weights(tmp_path, monkeypatch
         assert torch.equal(loaded(image).image_embeds, encoder(image).image_embeds)
 
 
+def test_loading_in_another_dtype_logs_no_third_party_warning(tmp_path):
+    """A cast at load is silent (diffusers' own ``to`` warns on every dtype cast, with nothing to
+    keep in float32), and gives the asked dtype."""
+    import logging
+
+    base = tiny_base()
+    derived = ControlNetModel.from_unet(base.unet)
+    save_file(derived.state_dict(), tmp_path / "tile.safetensors")
+    records = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append
+    logging.getLogger("diffusers").addHandler(handler)
+    try:
+        controlnet = load_controlnet(tmp_path / "tile.safetensors", unet_config=dict(base.unet.config),
+                                     dtype=torch.bfloat16)
+    finally:
+        logging.getLogger("diffusers").removeHandler(handler)
+    assert controlnet.dtype == torch.bfloat16 and _same_weights(controlnet, derived.to(torch.bfloat16))
+    assert not records, [r.getMessage() for r in records]
+
+
 def test_vae_single_file_needs_its_config(tmp_path):
     vae = tiny_base().vae
     (tmp_path / "vae").mkdir()

@@ -133,6 +133,13 @@ def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
     model.load_state_dict(state, assign=True)
 
 
+def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dtype) -> torch.nn.Module:
+    """``model`` on ``device`` in ``dtype``. The cast goes through ``torch.nn.Module.to``: diffusers'
+    own ``to`` warns on every dtype cast ("modules ... that should be kept in float32: []"), even when
+    a model keeps nothing in float32, as none of these does."""
+    return torch.nn.Module.to(model.to(device), dtype=dtype).eval()
+
+
 def _config_beside(path: Path) -> dict | None:
     config = path.parent / "config.json"
     return json.loads(config.read_text()) if config.is_file() else None
@@ -185,10 +192,10 @@ def load_sdxl(
             pipe = StableDiffusionXLPipeline.from_single_file(
                 str(path), config=str(folder), torch_dtype=dtype, local_files_only=True, add_watermarker=False
             )
-    vae = pipe.vae.to(device=device, dtype=_vae_dtype(pipe.vae.config.force_upcast, dtype))
+    vae = _placed(pipe.vae, device, _vae_dtype(pipe.vae.config.force_upcast, dtype))
     return SDXLBase(
         unet=pipe.unet.to(device).eval(),
-        vae=vae.eval(),
+        vae=vae,
         text_encoder=pipe.text_encoder.to(device).eval(),
         text_encoder_2=pipe.text_encoder_2.to(device).eval(),
         tokenizer=pipe.tokenizer,
@@ -216,7 +223,7 @@ def load_vae(
         with parameters_on_meta():
             vae = AutoencoderKL.from_config(config)
         load_state_dict_strict(vae, path)
-    return vae.to(device=device, dtype=_vae_dtype(vae.config.force_upcast, dtype)).eval()
+    return _placed(vae, device, _vae_dtype(vae.config.force_upcast, dtype))
 
 
 def load_controlnet(
@@ -243,7 +250,7 @@ def load_controlnet(
         with parameters_on_meta():
             controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
         load_state_dict_strict(controlnet, path)
-    return controlnet.to(device=device, dtype=dtype).eval()
+    return _placed(controlnet, device, dtype)
 
 
 def load_image_encoder(
@@ -264,7 +271,7 @@ def load_image_encoder(
         with parameters_on_meta():
             encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**config))
         load_state_dict_strict(encoder, path)
-    return encoder.to(device=device, dtype=dtype).eval()
+    return _placed(encoder, device, dtype)
 
 
 def load_diffusion_models(
