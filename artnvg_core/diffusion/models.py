@@ -134,10 +134,10 @@ def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
 
 
 def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dtype) -> torch.nn.Module:
-    """``model`` on ``device`` in ``dtype``. The cast goes through ``torch.nn.Module.to``: diffusers'
-    own ``to`` warns on every dtype cast ("modules ... that should be kept in float32: []"), even when
-    a model keeps nothing in float32, as none of these does."""
-    return torch.nn.Module.to(model.to(device), dtype=dtype).eval()
+    """``model`` on ``device`` in ``dtype``, each tensor moved and cast at once, through
+    ``torch.nn.Module.to``: diffusers' own ``to`` warns on every dtype cast ("modules ... that should
+    be kept in float32: []"), even when a model keeps nothing in float32, as none of these does."""
+    return torch.nn.Module.to(model, device=device, dtype=dtype).eval()
 
 
 def _config_beside(path: Path) -> dict | None:
