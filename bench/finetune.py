@@ -80,7 +80,8 @@ def profile_rows(scene, cameras, style, device, iterations=20) -> None:
             print(f"{ms:8.3f} ms/it {e.count / iterations:6.1f} calls/it  {e.key[:100]}")
         print("-- host, self time")
         for e in host[:15]:
-            print(f"{e.self_cpu_time_total / iterations / 1e3:8.3f} ms/it {e.count / iterations:6.1f} calls/it  {e.key[:100]}")
+            ms = e.self_cpu_time_total / iterations / 1e3
+            print(f"{ms:8.3f} ms/it {e.count / iterations:6.1f} calls/it  {e.key[:100]}")
 
 
 def resized_style(style: torch.Tensor, side: int) -> torch.Tensor:

@@ -58,7 +58,8 @@ def write_random_files(folder: Path, unet_config: dict) -> dict[str, Path]:
             model = builders[name]()
             keys = _ldm_unet_keys(model) if name == "sdxl unet" else {}
             prefix = "model.diffusion_model." if name == "sdxl unet" else ""
-            save_file({prefix + keys.get(k, k): v.half().contiguous() for k, v in model.state_dict().items()}, str(path))
+            state = {prefix + keys.get(k, k): v.half().contiguous() for k, v in model.state_dict().items()}
+            save_file(state, str(path))
             print(f"wrote {path} ({path.stat().st_size / 2**30:.2f} GiB)", flush=True)
     return files
 
