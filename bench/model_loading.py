@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+from diffusers import ControlNetModel, UNet2DConditionModel
 
 from common import print_table, synchronize
 
@@ -37,12 +38,9 @@ DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 def write_random_files(folder: Path, unet_config: dict) -> dict[str, Path]:
-    """The two files (written once, fp16, random weights) by name."""
-    from diffusers import ControlNetModel
+    """The three files (written once, fp16, random weights) by name."""
     from safetensors.torch import save_file
     from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
-
-    from diffusers import UNet2DConditionModel
 
     files = {"controlnet": folder / "TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors",
              "image encoder": folder / "image_encoder" / "model.safetensors",
@@ -75,7 +73,6 @@ def main() -> None:
     with built_in_sdxl_config() as folder:
         unet_config = json.loads((Path(folder) / "unet" / "config.json").read_text())
     files = write_random_files(Path(args.dir), unet_config)
-    from diffusers import UNet2DConditionModel
 
     def unet(low_cpu_mem_usage: bool):
         with built_in_sdxl_config() as config:

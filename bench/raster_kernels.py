@@ -30,7 +30,15 @@ from common import orbit_cameras, print_table, random_scene, timed
 
 from artnvg_core.raster import render
 from artnvg_core.raster.torch_backend import rasterize
-from artnvg_core.raster.triton_backend import PASSES, Pass, _Composite, _count_kernel, _emit_kernel, tile_lists
+from artnvg_core.raster.triton_backend import (
+    PASSES,
+    TILE,
+    Pass,
+    _Composite,
+    _count_kernel,
+    _emit_kernel,
+    tile_lists,
+)
 from artnvg_core.raster.triton_projection import project_color_triton
 from artnvg_core.scene import GaussianScene
 
@@ -51,12 +59,12 @@ def tile_list_rows(name, proj, size):
     """Milliseconds of each step of tile_lists (as it runs them) and of the whole."""
     import triton
 
-    tiles_x = -(-size // 16)
+    tiles_x = -(-size // TILE)
     n = len(proj.depths)
     by_depth = torch.argsort(proj.depths, stable=True)
     counts = torch.zeros(n, dtype=torch.int32, device="cuda")
     _count_kernel[(triton.cdiv(n, 256),)](proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x,
-                                          TILE=16, BLOCK=256)
+                                          TILE=TILE, BLOCK=256)
     ends = torch.cumsum(counts, 0)
     total = int(ends[-1])
     tile16 = torch.empty(total, dtype=torch.int16, device="cuda")
@@ -64,7 +72,7 @@ def tile_list_rows(name, proj, size):
 
     def emit():
         _emit_kernel[(triton.cdiv(n, 32),)](proj.means2d, proj.radii, by_depth, ends, tile16, ids, n, tiles_x,
-                                            tiles_x, TILE=16, BLOCK_G=32, BLOCK_T=32, num_warps=4)
+                                            tiles_x, TILE=TILE, BLOCK_G=32, BLOCK_T=32, num_warps=4)
 
     emit()
     tile32 = tile16.int()
@@ -72,7 +80,7 @@ def tile_list_rows(name, proj, size):
     steps = {
         "depth order (argsort)": lambda: torch.argsort(proj.depths, stable=True),
         "count + cumsum + size": lambda: (_count_kernel[(triton.cdiv(n, 256),)](
-            proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x, TILE=16, BLOCK=256),
+            proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x, TILE=TILE, BLOCK=256),
             int(torch.cumsum(counts, 0)[-1])),
         "write pairs": emit,
         "stable sort, 16-bit keys (shipped)": lambda: torch.sort(tile16, stable=True),
@@ -91,7 +99,7 @@ def composite(proj, feats, lists, size, passes, skip, grads):
     """Outputs and the gradients by means2d, conics, opacities, features of a linear loss with
     weights ``grads``; a closure replaying the backward alone."""
     leaves = [x.clone().requires_grad_(True) for x in (proj.means2d, proj.conics, proj.opacities, feats)]
-    out, trans = _Composite.apply(*leaves, *lists, size, size, 16, passes, skip)
+    out, trans = _Composite.apply(*leaves, *lists, size, size, TILE, passes, skip)
     loss = (out * grads[0]).sum() + (trans * grads[1]).sum()
     backward = lambda: torch.autograd.grad(loss, leaves, retain_graph=True)  # noqa: E731
     return [out.detach(), trans.detach(), *backward()], backward
@@ -135,13 +143,13 @@ def kernel_rows(name, proj, feats, size):
     device = torch.device("cuda")
     rows = []
     for kernel, setting, skip in itertools.product(("forward", "backward"), SETTINGS, (True, False)):
-        if not skip and setting.rows < 16:
+        if not skip and setting.rows < TILE:
             continue  # walking every block: measured for whole-tile programs only
         passes = (setting, PASSES[1]) if kernel == "forward" else (PASSES[0], setting)
         outputs, backward = composite(proj, feats, lists, size, passes, skip, grads)
         if kernel == "forward":
             run = lambda: _Composite.apply(proj.means2d, proj.conics, proj.opacities, feats, *lists,  # noqa: E731
-                                           size, size, 16, passes, skip)
+                                           size, size, TILE, passes, skip)
         ms = timed(run if kernel == "forward" else backward, device, repeats=10, warmup=3) * 1e3
         rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)])
         print(rows[-1], flush=True)
