@@ -147,6 +147,38 @@ def test_sigterm_stops_a_batch_as_ctrl_c_does(tmp_path):
     assert "summary: 0 done, 1 cancelled" in result.stdout and "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("where", ["finetune", "loading"])
+def test_a_stop_whose_exception_is_lost_or_wrapped_still_cancels_the_job(tmp_path, monkeypatch, where):
+    """The worker's stop raises Cancelled in the job's thread; when that exception never arrives (a
+    finaliser running just then swallows it) the stylize's own stop check ends the job, and when a loader
+    wraps it in its own error the job is still cancelled, not failed. Either way nothing is written."""
+    import artnvg_core.stylize as core
+    from artnvg_core.cli import stylize as command
+    from artnvg_core.cli.batch import BatchWorker
+    from artnvg_core.cluster import Workers
+
+    worker = BatchWorker(Workers("cpu", 1))
+    if where == "finetune":
+        def finetune_as_the_stop_arrives(*args, **kwargs):
+            worker.stopped.add("run")  # the stop, its exception lost
+            return real_finetune(*args, **kwargs)
+
+        real_finetune = core.stylize_nnfm
+        monkeypatch.setattr(core, "stylize_nnfm", finetune_as_the_stop_arrives)
+    else:
+        def load_as_the_stop_arrives(path, *args, **kwargs):
+            worker.stopped.add("run")
+            raise ValueError(f"{path}: not a readable PLY file (Cancelled: stopped by request)")
+
+        monkeypatch.setattr(command, "load_scene_verbose", load_as_the_stop_arrives)
+    demo = DemoInputs()
+    argv = [str(demo.scene), f"--cameras={demo.cameras}", f"--style={demo.style}", "--stylizer=nnfm", "--iters=2",
+            "--scale=0.0625", "--out=out/a.ply"]
+    result = worker.run("run", argv, str(tmp_path))
+    assert (result["status"], result["message"]) == ("cancelled", "stopped by request"), result
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
 # --- on a local Ray cluster of two CPU workers ---------------------------------------------------
 
 

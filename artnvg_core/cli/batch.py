@@ -246,6 +246,7 @@ class BatchWorker:
             self.running = (run, threading.get_ident())
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
+            args.should_stop = lambda: run in self.stopped
             if self.workers.kind == "cuda":
                 torch.cuda.reset_peak_memory_stats()
             os.chdir(folder)
@@ -254,10 +255,13 @@ class BatchWorker:
             status, message = "done", ""
         except (Cancelled, KeyboardInterrupt):
             status, message = "cancelled", "stopped by request"
-        except (ValueError, OSError) as error:
-            status, message = "failed", str(error)
-        except Exception as error:  # any other failure of one job is that job's, reported with its type
-            status, message = "failed", f"{type(error).__name__}: {error}"
+        except Exception as error:
+            if run in self.stopped:  # the stop, wrapped by a loader that reports any error as its own
+                status, message = "cancelled", "stopped by request"
+            elif isinstance(error, (ValueError, OSError)):
+                status, message = "failed", str(error)
+            else:  # any other failure of one job is that job's, reported with its type
+                status, message = "failed", f"{type(error).__name__}: {error}"
         finally:
             with self.lock:
                 self.running = None
@@ -266,8 +270,9 @@ class BatchWorker:
         return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak)
 
     def stop(self, run: str) -> None:
-        """Raise :class:`Cancelled` in the job of ``run`` if it is running (at its next Python step); the
-        jobs of ``run`` that start later return at once, cancelled."""
+        """Stop the job of ``run`` if it is running: its stylize stops at its next stop check, and
+        :class:`Cancelled` is raised at its next Python step (steps with no check: loading); the jobs of
+        ``run`` that start later return at once, cancelled."""
         with self.lock:
             self.stopped.add(run)
             if self.running is not None and self.running[0] == run:

@@ -20,6 +20,7 @@ from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
+from ..progress import check_stop
 from .common import (
     SCENE_FILES,
     ProgressBar,
@@ -115,15 +116,17 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
-                                          compile_blocks=args.compile,
-                                          sampling_progress=ProgressBar("diffusion"), progress=ProgressBar("finetune"))
+                                          compile_blocks=args.compile, sampling_progress=ProgressBar("diffusion"),
+                                          progress=ProgressBar("finetune"), should_stop=args.should_stop)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
             stylizer, config = "nnfm", dataclasses.replace(config, iterations=iterations_for("nnfm"))
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
-        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"))
+        result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
+                              should_stop=args.should_stop)
+    check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
@@ -181,4 +184,4 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
     models.add_argument("--image-encoder", help="IP-Adapter SDXL image encoder folder (ViT-bigG/14)")
     models.add_argument("--csgo", help="csgo_4_32.bin or csgo.bin")
-    p.set_defaults(run=cmd_stylize)
+    p.set_defaults(run=cmd_stylize, should_stop=None)  # a caller (the batch worker) may set a StopFn
