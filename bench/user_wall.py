@@ -1,0 +1,159 @@
+"""What the user waits for: whole ``stylize`` processes on full-size model files, cold and warm.
+
+    cd bench && python user_wall.py --dir DIR --scene SCENE --cameras T.json --style S.jpg \
+        [--runs fast:file,fast:file,fast:folder,balanced:file] [--device cuda] [--json OUT.json]
+
+Writes the released model files with random weights into DIR where missing (``model_files.py``),
+then runs each ``PRESET:SDXL`` of ``--runs`` in order as a new process, as a user types it:
+``python -m artnvg_core stylize SCENE --cameras T --style S --preset PRESET --stylizer diffusion
+--sdxl ... --controlnet ... --image-encoder ... --csgo ... --device DEVICE --out ...`` (SDXL ``file``:
+the single ``sd_xl_base_1.0.safetensors``; ``folder``: the diffusers folder). ``--preset preview`` needs
+no model file. The first process finds every cache empty, as on a fresh install: Python's bytecode
+(``PYTHONPYCACHEPREFIX``), Triton's kernels, torch's compile cache and ArtNVG's, all in DIR/caches,
+emptied when the bench starts; the later ones find what the earlier ones left. The model files are
+read from the page cache after the first process (the bench asks the kernel to drop it first; whether
+it could is printed).
+
+Each process's wall time (launch to exit, seen from here) is split into parts by timers a small
+wrapper puts around the command's own calls before it runs the command (``artnvg_core`` is
+unchanged): start (Python and the command's imports), scene (loading the scene file), models
+(loading the model files), content (rendering the content views; a first run compiles the
+rasterizer's forward kernels there), sampling (conditioning and the diffusion stage), finetune
+(a first run compiles the backward kernels there), save (scene file and contact sheet) and the rest
+(argument checks, choosing views, exit). Prints a table; ``--json`` keeps it with each process's output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from common import print_table
+
+from model_files import write_model_files
+
+REPO = Path(__file__).resolve().parents[1]
+PARTS = ("start", "scene", "models", "content", "sampling", "finetune", "save")
+
+# Runs the command with timers around its calls; writes {part: seconds} to $USER_WALL_PARTS at exit.
+WRAPPER = """
+import atexit, json, os, sys, time
+launched = float(os.environ["USER_WALL_LAUNCH"])
+parts, active = {}, []
+from artnvg_core.cli import main as cli, stylize as command
+import artnvg_core.stylize as core
+
+def timed(module, name, part):
+    call = getattr(module, name)
+    def wrapper(*args, **kwargs):
+        start, counted = time.time(), "save" not in active  # the contact sheet's renders are saving
+        active.append(part)
+        try:
+            return call(*args, **kwargs)
+        finally:
+            active.pop()
+            if counted:
+                parts[part] = parts.get(part, 0.0) + time.time() - start
+    setattr(module, name, wrapper)
+
+timed(command, "load_scene_verbose", "scene")
+timed(core, "stylize_diffusion", "diffusion")
+timed(core, "load_models_for", "models")
+timed(core, "render", "content")
+timed(core, "finetune", "finetune")
+timed(core, "save_result", "save")
+parts["start"] = time.time() - launched
+atexit.register(lambda: json.dump(parts, open(os.environ["USER_WALL_PARTS"], "w")))
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def drop_page_cache() -> bool:
+    """Ask the kernel to drop its page cache (root on Linux); whether it could."""
+    try:
+        os.sync()
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+        return True
+    except OSError:
+        return False
+
+
+def run_process(argv: list[str], env: dict, parts_path: Path, log: Path) -> dict:
+    """One stylize process; its wall time, exit status and parts (sampling: what ``stylize_diffusion``
+    spent between the content views and the finetune)."""
+    launched = time.time()
+    env = {**env, "USER_WALL_LAUNCH": repr(launched), "USER_WALL_PARTS": str(parts_path)}
+    with open(log, "w") as stream:
+        code = subprocess.run([sys.executable, "-c", WRAPPER, "stylize", *argv], stdout=stream, stderr=subprocess.STDOUT,
+                              env=env).returncode
+    wall = time.time() - launched
+    parts = json.loads(parts_path.read_text()) if parts_path.exists() else {}
+    if "diffusion" in parts:
+        parts["sampling"] = parts.pop("diffusion") - sum(parts.get(p, 0.0) for p in ("models", "content", "finetune"))
+    return {"wall": wall, "exit": code, **parts}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--dir", required=True, type=Path,
+                        help="folder for the model files (kept) and the caches (emptied)")
+    parser.add_argument("--scene", required=True)
+    parser.add_argument("--cameras", required=True)
+    parser.add_argument("--style", required=True)
+    parser.add_argument("--runs", default="fast:file,fast:file,fast:folder,balanced:file",
+                        help="PRESET:SDXL (file or folder) per process, in order")
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--more", default="", help="more stylize options for every process, e.g. '--iters 20'")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    runs = [tuple(item.split(":")) if ":" in item else (item, "file") for item in args.runs.split(",")]
+
+    start = time.time()
+    if any(preset != "preview" for preset, _ in runs):
+        files = write_model_files(args.dir / "models", args.device)
+        print(f"model files ready in {time.time() - start:.0f} s", flush=True)
+    caches, work = args.dir / "caches", args.dir / "runs"
+    shutil.rmtree(caches, ignore_errors=True)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env.update(PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
+               PYTHONPYCACHEPREFIX=str(caches / "pycache"), TRITON_CACHE_DIR=str(caches / "triton"),
+               TORCHINDUCTOR_CACHE_DIR=str(caches / "inductor"), ARTNVG_CACHE_DIR=str(caches / "artnvg"))
+    dropped = drop_page_cache()
+    print(f"page cache dropped before the first process: {dropped}", flush=True)
+
+    rows, report = [], []
+    for number, (preset, layout) in enumerate(runs, 1):
+        argv = [args.scene, f"--cameras={args.cameras}", f"--style={args.style}", f"--preset={preset}",
+                f"--device={args.device}", f"--out={work / f'{number}_{preset}.ply'}", *args.more.split()]
+        if preset != "preview":
+            argv += ["--stylizer=diffusion", f"--sdxl={files['sdxl' if layout == 'file' else 'sdxl folder']}",
+                     f"--controlnet={files['controlnet']}", f"--image-encoder={files['image encoder']}",
+                     f"--csgo={files['csgo']}"]
+        log = work / f"{number}_{preset}.log"
+        result = run_process(argv, env, work / f"{number}.json", log)
+        known = sum(result.get(part, 0.0) for part in PARTS)
+        row = [number, preset, layout if preset != "preview" else "", "cold" if number == 1 else "warm",
+               result["wall"], *[result.get(part) for part in PARTS], result["wall"] - known, result["exit"]]
+        rows.append(row)
+        report.append({"preset": preset, "sdxl": layout, **result, "output": log.read_text()[-4000:]})
+        print(row, flush=True)
+        if result["exit"] != 0:
+            print(log.read_text()[-3000:], flush=True)
+        if args.json:
+            args.json.write_text(json.dumps({"page_cache_dropped": dropped, "runs": report}, indent=1))
+    print_table(f"Whole stylize processes on {args.device} (seconds)",
+                ["#", "preset", "SDXL", "caches", "wall", *PARTS, "rest", "exit"], rows,
+                "python " + shlex.join(sys.argv))
+
+
+if __name__ == "__main__":
+    main()
