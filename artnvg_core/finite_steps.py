@@ -18,7 +18,8 @@ at most about 30 x the learning rate, so no finite parameter becomes non-finite.
 
 Every decision is made on the parameters' device (``torch.where`` on masks, the step count a
 device tensor), so a step never waits for the GPU: the CPU queues the next step while the GPU
-runs this one. What was skipped or held back is recorded on the device and logged by
+runs this one. On CUDA the per-parameter arithmetic runs as two Triton kernels per parameter
+(:mod:`artnvg_core.finite_steps_triton`) instead of about twenty PyTorch ones. What was skipped or held back is recorded on the device and logged by
 :meth:`FiniteAdam.report` (one wait; the step and the Gaussians' first indices, the first time
 each Gaussian is held back) and summed up by :meth:`FiniteAdam.summary`.
 ``torch.optim`` is not used: its first use imports ``torch._dynamo`` (seconds of start-up).
@@ -29,6 +30,8 @@ from __future__ import annotations
 import logging
 
 import torch
+
+from .raster import triton_available
 
 _log = logging.getLogger(__name__)
 
@@ -44,10 +47,12 @@ def _listed(indices: torch.Tensor) -> str:
 class FiniteAdam:
     """Adam over ``params`` (name -> [N, ...] leaf tensor, one row per Gaussian; those without
     ``requires_grad`` or empty are left alone) with learning rates ``lrs`` (name -> rate), applying
-    only finite updates (module docstring). ``label`` starts every message (e.g. ``finetune``)."""
+    only finite updates (module docstring). ``label`` starts every message (e.g. ``finetune``).
+    ``fused``: the Triton step (default: on CUDA when Triton imports and every parameter is a contiguous
+    float32 tensor; True on the CPU needs ``TRITON_INTERPRET=1``)."""
 
     def __init__(self, params: dict[str, torch.Tensor], lrs: dict[str, float], label: str,
-                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15):
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15, fused: bool | None = None):
         self.params = {name: p for name, p in params.items() if p.requires_grad and p.numel() > 0}
         self.lrs = {name: float(lrs[name]) for name in self.params}
         self.betas, self.eps, self.label = betas, eps, label
@@ -65,6 +70,13 @@ class FiniteAdam:
         self.term_names: tuple[str, ...] = ()
         self._logged = torch.zeros(count, dtype=torch.bool)  # host: Gaussians already named in a message
         self._skip_logged = False
+        if fused is None:
+            fused = device.type == "cuda" and triton_available() and all(
+                p.dtype == torch.float32 and p.is_contiguous() for p in self.params.values())
+        self.fused = fused
+        if fused:
+            self._rates = torch.tensor(list(self.lrs.values()), dtype=self.taken.dtype, device=device)
+            self._held = torch.zeros(count, dtype=torch.uint8, device=device)
 
     @torch.no_grad()
     def step(self, step: int, loss: torch.Tensor, terms: dict[str, torch.Tensor],
@@ -75,24 +87,44 @@ class FiniteAdam:
         nonfinite = ~torch.isfinite(loss.detach())
         skipped = nonfinite if skip is None else nonfinite | skip
         self._record_skip(step, nonfinite, terms)
-        bad = torch.zeros_like(self._logged, device=self.first_held.device)
-        for p in self.params.values():
-            if p.grad is not None:
-                grad = p.grad.reshape(len(bad), -1)
-                bad |= ~(torch.isfinite(grad) & (grad.abs() < GRAD_LIMIT)).all(1)
-        bad &= ~skipped
+        grads = {name: p.grad for name, p in self.params.items() if p.grad is not None}
+        bad = self._held_back(grads) & ~skipped
         self.first_held.copy_(torch.where(bad & (self.first_held == 0), step, self.first_held))
         self.held_steps += bad.any()
         taken = self.taken + (~skipped).to(self.taken.dtype)
         beta1, beta2 = self.betas
         correction1 = 1 - beta1**taken  # in float64 (but on MPS), as torch.optim.Adam computes them in Python
         correction2_sqrt = (1 - beta2**taken).sqrt().float()
-        for name, p in self.params.items():
-            if p.grad is None:
-                continue
+        update = self._fused_updates if self.fused else self._torch_updates
+        update(grads, skipped, bad, correction1, correction2_sqrt)
+        for name in grads:
+            self.params[name].grad = None
+        self.taken.copy_(taken)
+
+    def _held_back(self, grads: dict[str, torch.Tensor]) -> torch.Tensor:
+        """[N] bool: the Gaussians with a non-finite (or >= GRAD_LIMIT) gradient in any parameter."""
+        if self.fused:
+            from .finite_steps_triton import mark_held_rows
+
+            self._held.zero_()
+            for grad in grads.values():
+                mark_held_rows(grad.contiguous(), self._held, GRAD_LIMIT)
+            return self._held.view(torch.bool)
+        bad = torch.zeros_like(self.first_held, dtype=torch.bool)
+        for grad in grads.values():
+            grad = grad.reshape(len(bad), -1)
+            bad |= ~(torch.isfinite(grad) & (grad.abs() < GRAD_LIMIT)).all(1)
+        return bad
+
+    def _torch_updates(self, grads: dict[str, torch.Tensor], skipped: torch.Tensor, bad: torch.Tensor,
+                       correction1: torch.Tensor, correction2_sqrt: torch.Tensor) -> None:
+        """Every parameter's step in PyTorch: ``skipped`` keeps everything, ``bad`` [N] rows keep their
+        values and get zeroed moments."""
+        beta1, beta2 = self.betas
+        for name, grad in grads.items():
+            p = self.params[name]
             rows = (len(bad),) + (1,) * (p.dim() - 1)
             keep, zero = skipped.expand(rows), bad.view(rows)
-            grad = p.grad
             exp_avg = self.exp_avg[name].lerp(grad, 1 - beta1)
             exp_avg_sq = self.exp_avg_sq[name] * beta2 + (1 - beta2) * grad * grad
             step_size = (self.lrs[name] / correction1).float()
@@ -100,8 +132,20 @@ class FiniteAdam:
             p.copy_(torch.where(keep | zero, p, p - update))
             self.exp_avg[name].copy_(torch.where(keep, self.exp_avg[name], exp_avg.masked_fill(zero, 0)))
             self.exp_avg_sq[name].copy_(torch.where(keep, self.exp_avg_sq[name], exp_avg_sq.masked_fill(zero, 0)))
-            p.grad = None
-        self.taken.copy_(taken)
+
+    def _fused_updates(self, grads: dict[str, torch.Tensor], skipped: torch.Tensor, bad: torch.Tensor,
+                       correction1: torch.Tensor, correction2_sqrt: torch.Tensor) -> None:
+        """The same by :func:`~artnvg_core.finite_steps_triton.adam_rows`, two launches per parameter
+        (the held rows read from ``self._held``, which :meth:`_held_back` filled: ``bad`` is those
+        rows less a skipped step's, which ``skipped`` keeps anyway)."""
+        from .finite_steps_triton import adam_rows
+
+        step_sizes = (self._rates / correction1).float()
+        for index, name in enumerate(self.params):
+            if name in grads:
+                adam_rows(self.params[name], grads[name].contiguous(), self.exp_avg[name], self.exp_avg_sq[name],
+                          self._held, skipped.view(torch.uint8), step_sizes[index], correction2_sqrt, self.betas,
+                          self.eps)
 
     def _record_skip(self, step: int, nonfinite: torch.Tensor, terms: dict[str, torch.Tensor]) -> None:
         if not terms:

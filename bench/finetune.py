@@ -1,7 +1,7 @@
 """Finetune benchmark: time per iteration of the Gaussian finetuning loop.
 
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
-        [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--profile]
+        [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--profile]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and
 1024x1024 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with each
@@ -9,7 +9,10 @@ available backend (the reference torch backend on the CPU; triton and gsplat on 
 with random ones (L1 + SSIM + NNFM, the ArtNVG finetune), the VGG terms at ARF's resolution
 (the default ``nnfm_max_side`` 512) and, at 1024, at full resolution; the first backend's rows with
 each ``--searches`` precision of the NNFM match search (the others with the default); and the NNFM
-term alone (VGG forward+backward + matching) per size and search precision. The style image is the
+term alone (VGG forward+backward + matching) per size and search precision. The first backend's rows
+at 512 with the default search also run with each ``--adams`` step of
+:class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its Triton kernels, the default on CUDA;
+``torch``: its PyTorch step). The style image is the
 demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
 iteration: the wall time of the iterations after 3 warm-up steps, the device waited for once at each
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
@@ -24,7 +27,9 @@ view before and after the steps).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
 import itertools
 import sys
 import time
@@ -34,9 +39,11 @@ import torch
 
 from common import orbit_cameras, print_table, random_scene, synchronize, timed
 
+import artnvg_core.finetune as finetune_module
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.finite_steps import FiniteAdam
 from artnvg_core.formats import read_ply
 from artnvg_core.losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, style_image_features
 from artnvg_core.raster import triton_available
@@ -57,6 +64,16 @@ def seconds_per_iteration(scene, cameras, style, config: FinetuneConfig, targets
     finetune(scene, cameras, style, stylized=stylized, config=dataclasses.replace(config, iterations=total),
              progress=stamp)
     return (stamps[total] - stamps[3]) / config.iterations
+
+
+@contextlib.contextmanager
+def adam_step(kind: str):
+    """The finetune's FiniteAdam with its ``fused`` (Triton) or ``torch`` step within the block."""
+    finetune_module.FiniteAdam = functools.partial(FiniteAdam, fused=kind == "fused")
+    try:
+        yield
+    finally:
+        finetune_module.FiniteAdam = FiniteAdam
 
 
 def profile_rows(scene, cameras, style, device, iterations=20) -> None:
@@ -106,10 +123,12 @@ def main() -> None:
     parser.add_argument("--shared", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
     parser.add_argument("--cases", default="demo,bear,random")
     parser.add_argument("--searches", default=",".join(SEARCH_PRECISIONS))
+    parser.add_argument("--adams", default="fused,torch", help="FiniteAdam steps to compare (CUDA)")
     parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
     args = parser.parse_args()
     device = torch.device(args.device)
     wanted, searches = args.cases.split(","), args.searches.split(",")
+    adams = args.adams.split(",") if device.type == "cuda" else ["torch"]
     default_search = FinetuneConfig().nnfm_search
     demo = DemoInputs()
     style = load_image(demo.style).to(device)
@@ -135,19 +154,22 @@ def main() -> None:
         sides = [512, None] if cams.width >= 1024 else [512]
         combos = itertools.product(backends, (False, True), sides)
         for backend, targets, side in [c for c in combos if c[0] == backends[0] or c[1:] == (False, 512)]:
-            for search in searches if backend == backends[0] and side == 512 else [default_search]:
+            first = backend == backends[0] and side == 512
+            for search, adam in [(search, adam) for search in (searches if first else [default_search])
+                                 for adam in (adams if first and search == default_search else adams[:1])]:
                 config = FinetuneConfig(iterations=args.iters, backend=backend, nnfm_max_side=side, nnfm_search=search)
                 arf_style = resized_style(style, max(cams.width, cams.height) // 2)
-                sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
+                with adam_step(adam):
+                    sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
                 rows.append([name, backend, f"{cams.width}x{cams.height}", "L1+SSIM+NNFM" if targets else "NNFM+content",
-                             side or "full", search, f"{sec * 1e3:.1f}", f"{sec * 1e3:.1f}"])
+                             side or "full", search, adam, f"{sec * 1e3:.1f}"])
                 print(rows[-1], flush=True)
     nnfm_rows = [[f"{size}x{size}", search, f"{nnfm_seconds(size, style, device, search) * 1e3:.2f}"]
                  for size in ((128, 512, 1024) if device.type == "cuda" else (128,)) for search in searches]
     command = "python " + " ".join(sys.argv)
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print_table(f"Finetune speed ({gpu})", ["scene", "backend", "size", "loss", "VGG terms' max side", "NNFM search",
-                                           "ms / iteration", "s per 1,000 it"], rows, command)
+                                           "Adam step", "ms / iteration"], rows, command)
     print_table(f"NNFM term alone ({gpu}: VGG19 relu3 forward+backward + matching, style of the same size)",
                 ["size", "search", "ms"], nnfm_rows, command)
 
