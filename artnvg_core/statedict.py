@@ -1,8 +1,10 @@
-"""Strict state-dict matching with readable errors, shared by every weight loader."""
+"""Strict state-dict matching with readable errors, and building modules without random weights
+for a state dict to fill: shared by every weight loader."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 
 import torch
 
@@ -27,3 +29,24 @@ def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str
     text = (f"{len(missing)} missing keys {listed_keys(missing)}, "
             f"{len(unexpected)} unexpected keys {listed_keys(unexpected)}")
     return text + (f", {len(wrong)} wrong shapes {wrong[:LISTED_KEYS]}" if wrong else "")
+
+
+@contextmanager
+def parameters_on_meta() -> Iterator[None]:
+    """Modules built inside this context get their parameters on the meta device: no memory and no
+    random initialisation, for weights a file is about to replace. Buffers stay real (a model's
+    computed buffers, e.g. CLIP's position ids, keep their values). Fill them with
+    ``load_state_dict(state, assign=True)`` (as :func:`artnvg_core.diffusion.models.load_state_dict_strict`
+    does), which takes the state's tensors."""
+    register = torch.nn.Module.register_parameter
+
+    def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
+        if param is not None and not param.is_meta:
+            param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
+        register(module, name, param)
+
+    torch.nn.Module.register_parameter = on_meta
+    try:
+        yield
+    finally:
+        torch.nn.Module.register_parameter = register

@@ -49,6 +49,25 @@ def models():
     return unet, tiny_controlnet(unet)
 
 
+def test_loading_initialises_no_weight_the_file_replaces(tmp_path, models, monkeypatch):
+    """The resamplers and the image-branch projections are built without random initialisation (for
+    the full-size models seconds of CPU time, all of it overwritten by the file)."""
+    unet, controlnet = models
+    path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(unet, controlnet))
+    initialised = []
+    for layer in (torch.nn.Linear, torch.nn.LayerNorm):
+        reset = layer.reset_parameters
+
+        def spy(self, reset=reset):
+            initialised.append(type(self).__name__ if self.weight is not None and not self.weight.is_meta else None)
+            reset(self)
+
+        monkeypatch.setattr(layer, "reset_parameters", spy)
+    projections = load_csgo(path, unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
+    assert initialised and not any(initialised), initialised
+    assert all(p.device.type == "cpu" for p in projections.parameters())
+
+
 @pytest.mark.parametrize("num_style, by_index", [(8, True), (16, False)])
 def test_released_layout_loads_every_key(tmp_path, models, num_style, by_index):
     unet, controlnet = models

@@ -235,10 +235,12 @@ class DecoupledCrossAttention(nn.Module):
     hidden_size: the layer's attention width (output of to_k_ip / to_v_ip).
     cross_attention_dim: the context width (input of to_k_ip / to_v_ip).
     image_tokens: "content", "style" or None (text only; no parameters).
+    device, dtype: of the parameters (as for ``nn.Linear``).
     Parameter names ``to_k_ip.weight`` / ``to_v_ip.weight`` match CSGO's released weights.
     """
 
-    def __init__(self, hidden_size: int, cross_attention_dim: int, image_tokens: str | None):
+    def __init__(self, hidden_size: int, cross_attention_dim: int, image_tokens: str | None, *,
+                 device: torch.device | str | None = None, dtype: torch.dtype | None = None):
         super().__init__()
         if image_tokens is not None and image_tokens not in IMAGE_TOKEN_KINDS:
             raise ValueError(
@@ -246,8 +248,8 @@ class DecoupledCrossAttention(nn.Module):
             )
         self.image_tokens = image_tokens
         if image_tokens is not None:
-            self.to_k_ip = nn.Linear(cross_attention_dim, hidden_size, bias=False)
-            self.to_v_ip = nn.Linear(cross_attention_dim, hidden_size, bias=False)
+            self.to_k_ip = nn.Linear(cross_attention_dim, hidden_size, bias=False, device=device, dtype=dtype)
+            self.to_v_ip = nn.Linear(cross_attention_dim, hidden_size, bias=False, device=device, dtype=dtype)
 
     def __call__(
         self,

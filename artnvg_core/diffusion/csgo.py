@@ -27,10 +27,12 @@ are i = 1, 3, ..., 47 (down, content) and 49, ..., 119 (up, style); the mid bloc
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.nn.utils import skip_init
 
 from .attention import DecoupledCrossAttention, NeighbourViewSelfAttention
 from .resampler import PerceiverResampler
@@ -55,12 +57,15 @@ def install_processors(
     *,
     image_branches: bool = True,
     query_chunk_size: int | None = None,
+    initialise: bool = True,
 ) -> None:
     """Install NV self-attention on every attn1 and decoupled cross-attention on every attn2.
 
     image_branches=False installs text-only cross-attention everywhere (no CSGO weights).
-    New projection weights take the device and dtype of the layer's ``to_k``.
+    New projection weights take the device and dtype of the layer's ``to_k``; ``initialise=False``
+    leaves them uninitialised (no random initialisation) for weights a file fills next.
     """
+    build = DecoupledCrossAttention if initialise else functools.partial(skip_init, DecoupledCrossAttention)
     processors = {}
     for name in model.attn_processors:
         layer = model.get_submodule(name.removesuffix(".processor"))
@@ -68,8 +73,9 @@ def install_processors(
             processors[name] = NeighbourViewSelfAttention(query_chunk_size)
         elif name.endswith("attn2.processor"):
             kind = route_for(name, routes) if image_branches else None
-            processor = DecoupledCrossAttention(layer.to_k.out_features, layer.to_k.in_features, kind)
-            processors[name] = processor.to(device=layer.to_k.weight.device, dtype=layer.to_k.weight.dtype)
+            weight = layer.to_k.weight
+            processors[name] = build(layer.to_k.out_features, layer.to_k.in_features, kind, device=weight.device,
+                                     dtype=weight.dtype)
         else:
             raise ValueError(f"attention processor '{name}': expected only attn1 / attn2 layers")
     model.set_attn_processor(processors)

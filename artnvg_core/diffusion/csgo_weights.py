@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..statedict import listed_keys, state_dict_mismatch
+from ..statedict import listed_keys, parameters_on_meta, state_dict_mismatch
 from .csgo import (
     CONTROLNET_ROUTES,
     UNET_ROUTES,
@@ -122,8 +122,12 @@ def _load_resampler(state: dict[str, torch.Tensor], group: str, path: Path, dim_
         config = resampler_config_from_state_dict(state, dim_head=dim_head)
     except ValueError as error:
         raise CSGOWeightsError(f"CSGO weights '{path}', group '{group}': {error}") from error
-    resampler = PerceiverResampler(config)
-    _fill(dict(resampler.state_dict(keep_vars=True)), state, group, path, strict=True)
+    with parameters_on_meta():
+        resampler = PerceiverResampler(config)
+    mismatch = state_dict_mismatch(resampler.state_dict(), state)
+    if mismatch:
+        raise CSGOWeightsError(f"CSGO weights '{path}', group '{group}': {mismatch}")
+    resampler.load_state_dict(state, assign=True)
     return resampler
 
 
@@ -164,8 +168,8 @@ def load_csgo(
                 f"!= the UNet's cross_attention_dim {cross_dim}"
             )
     unet_routes = _unet_routes(unet, groups["ip_adapter"], path)
-    install_processors(unet, unet_routes, query_chunk_size=query_chunk_size)
-    install_processors(controlnet, CONTROLNET_ROUTES, query_chunk_size=query_chunk_size)
+    install_processors(unet, unet_routes, query_chunk_size=query_chunk_size, initialise=False)
+    install_processors(controlnet, CONTROLNET_ROUTES, query_chunk_size=query_chunk_size, initialise=False)
     _fill(processor_key_layout(unet), groups["ip_adapter"], "ip_adapter", path)
     controlnet_keys = groups["controlnet_adapter_modules"]
     by_index = all(key.split(".", 1)[0].isdigit() for key in controlnet_keys)

@@ -34,7 +34,7 @@ from transformers import (
     CLIPVisionModelWithProjection,
 )
 
-from ..statedict import state_dict_mismatch
+from ..statedict import parameters_on_meta, state_dict_mismatch
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
@@ -96,26 +96,6 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
 
         return load_file(str(path))
     return torch.load(path, map_location="cpu", weights_only=True)
-
-
-@contextmanager
-def parameters_on_meta() -> Iterator[None]:
-    """Modules built inside this context get their parameters on the meta device: no memory and no
-    random initialisation, for weights a file is about to replace. Buffers stay real (a model's
-    computed buffers, e.g. CLIP's position ids, keep their values). Load with
-    :func:`load_state_dict_strict`, which assigns the file's tensors."""
-    register = torch.nn.Module.register_parameter
-
-    def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
-        if param is not None and not param.is_meta:
-            param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
-        register(module, name, param)
-
-    torch.nn.Module.register_parameter = on_meta
-    try:
-        yield
-    finally:
-        torch.nn.Module.register_parameter = register
 
 
 def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
