@@ -21,5 +21,5 @@ Entry points (import them from their modules; this package imports nothing heavy
 - :mod:`.speed`        -- exact speed-ups (``SpeedOptions``, ``COMPILED_BLOCKS``: compiled repeated blocks)
 - :mod:`.compile_cache` -- compile work kept across runs (PyTorch's compile cache artifacts)
 - :mod:`.executor`     -- ``GroupExecutor``: groups spread over several devices (Ray actors)
-- :mod:`.quiet_import` -- importing diffusers' SDXL pipeline without transformers' torchvision notice
+- :mod:`.quiet_notices` -- third-party log records that say nothing to our users, dropped exactly
 """

@@ -50,7 +50,7 @@ from .model_files import (
     locate,
     require_path,
 )
-from .quiet_import import torchvision_fallback_notice_silenced
+from .quiet_notices import sdxl_loading_notices_silenced, torchvision_fallback_notice_silenced
 from .sdxl_config import built_in_sdxl_config
 
 with torchvision_fallback_notice_silenced():  # its module imports transformers' image processors
@@ -160,15 +160,16 @@ def load_sdxl(
     if path.is_dir():
         vae_config = json.loads((path / "vae" / "config.json").read_text())
         dtypes = {"default": dtype, "vae": _vae_dtype(vae_config.get("force_upcast", True), dtype)}
-        pipe = StableDiffusionXLPipeline.from_pretrained(
-            path,
-            torch_dtype=dtypes,
-            local_files_only=True,
-            variant=_weights_variant(path / "unet"),
-            add_watermarker=False,
-        )
+        with sdxl_loading_notices_silenced():
+            pipe = StableDiffusionXLPipeline.from_pretrained(
+                path,
+                torch_dtype=dtypes,
+                local_files_only=True,
+                variant=_weights_variant(path / "unet"),
+                add_watermarker=False,
+            )
     else:
-        with _config_folder(config_dir) as folder:
+        with _config_folder(config_dir) as folder, sdxl_loading_notices_silenced():
             pipe = StableDiffusionXLPipeline.from_single_file(
                 str(path), config=str(folder), torch_dtype=dtype, local_files_only=True, add_watermarker=False
             )

@@ -1,0 +1,56 @@
+"""Third-party log records that say nothing to ArtNVG's users, dropped exactly, only while a block runs.
+
+* transformers' torchvision notice: without torchvision, transformers (5.x) answers a request for
+  ``CLIPImageProcessor`` or ``SiglipImageProcessor`` with their PIL versions and logs, once per class,
+  "`CLIPImageProcessor` requires torchvision (not installed); falling back to `CLIPImageProcessorPil`
+  ...". diffusers' SDXL pipeline module (and its IP-Adapter loader) ask for both when imported. ArtNVG
+  never uses them (its image preprocessing is in torch: :mod:`.images`):
+  :func:`torchvision_fallback_notice_silenced` around that import.
+* Loading SDXL (:func:`sdxl_loading_notices_silenced`): a diffusers model's ``to(dtype)`` logs "There
+  are modules in UNet2DConditionModel that should be kept in float32: []. Casting directly with `to()`
+  ..." even when that list is empty, as it is for every SDXL model, and ``from_single_file`` casts that
+  way: records whose list is empty are dropped (a non-empty list is still logged). diffusers 0.42
+  warns (FutureWarning) that ``torch_dtype`` will be renamed ``dtype`` in 1.0; the versions we support
+  (0.39 on) know only ``torch_dtype``: that warning is ignored.
+
+Each drops its records from the one logger (or warning) that emits them; everything else is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+NOTICE_LOGGER = "transformers.utils.import_utils"
+NOTICE_TEXT = "requires torchvision (not installed); falling back to"
+FLOAT32_LOGGER = "diffusers.models.modeling_utils"
+FLOAT32_TEXT = "that should be kept in float32: []."
+TORCH_DTYPE_WARNING = "`torch_dtype` is deprecated"
+
+
+@contextmanager
+def _dropped(logger_name: str, text: str) -> Iterator[None]:
+    """Within the block, records of ``logger_name`` whose message contains ``text`` are not logged."""
+    logger, record_filter = logging.getLogger(logger_name), logging.Filter()
+    record_filter.filter = lambda record: text not in record.getMessage()
+    logger.addFilter(record_filter)
+    try:
+        yield
+    finally:
+        logger.removeFilter(record_filter)
+
+
+def torchvision_fallback_notice_silenced():
+    """Within the block, transformers' image-processor torchvision fallback notice is not logged."""
+    return _dropped(NOTICE_LOGGER, NOTICE_TEXT)
+
+
+@contextmanager
+def sdxl_loading_notices_silenced() -> Iterator[None]:
+    """Within the block, diffusers' "should be kept in float32: []" notice (an empty list) is not logged
+    and its ``torch_dtype`` FutureWarning not shown."""
+    with _dropped(FLOAT32_LOGGER, FLOAT32_TEXT), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=TORCH_DTYPE_WARNING, category=FutureWarning)
+        yield
