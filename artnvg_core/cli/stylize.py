@@ -111,6 +111,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
+        print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         try:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
