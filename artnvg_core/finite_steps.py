@@ -19,9 +19,10 @@ at most about 30 x the learning rate, so no finite parameter becomes non-finite.
 Every decision is made on the parameters' device (``torch.where`` on masks, the step count a
 device tensor), so a step never waits for the GPU: the CPU queues the next step while the GPU
 runs this one. On CUDA the per-parameter arithmetic runs as two Triton kernels per parameter
-(:mod:`artnvg_core.finite_steps_triton`) instead of about twenty PyTorch ones. What was skipped or held back is recorded on the device and logged by
-:meth:`FiniteAdam.report` (one wait; the step and the Gaussians' first indices, the first time
-each Gaussian is held back) and summed up by :meth:`FiniteAdam.summary`.
+(:mod:`artnvg_core.finite_steps_triton`) instead of about twenty PyTorch ones. What was skipped or
+held back is recorded on the device and logged by :meth:`FiniteAdam.report` (one wait; the step
+and the Gaussians' first indices, the first time each Gaussian is held back) and summed up by
+:meth:`FiniteAdam.summary`.
 ``torch.optim`` is not used: its first use imports ``torch._dynamo`` (seconds of start-up).
 """
 

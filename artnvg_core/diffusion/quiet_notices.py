@@ -33,8 +33,11 @@ TORCH_DTYPE_WARNING = "`torch_dtype` is deprecated"
 @contextmanager
 def _dropped(logger_name: str, text: str) -> Iterator[None]:
     """Within the block, records of ``logger_name`` whose message contains ``text`` are not logged."""
-    logger, record_filter = logging.getLogger(logger_name), logging.Filter()
-    record_filter.filter = lambda record: text not in record.getMessage()
+    logger = logging.getLogger(logger_name)
+
+    def record_filter(record: logging.LogRecord) -> bool:
+        return text not in record.getMessage()
+
     logger.addFilter(record_filter)
     try:
         yield
