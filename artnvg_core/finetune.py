@@ -39,7 +39,7 @@ from .fileio import resize_image
 from .finite_steps import FiniteAdam
 from .losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
-from .raster import render
+from .raster import choose_backend, render
 from .scene import GaussianScene
 
 OPTIMIZE_CHOICES = ("appearance", "all")
@@ -190,7 +190,10 @@ def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: C
         "log_scales": config.lr_scales,
         "quats": config.lr_quats,
     }
-    return FiniteAdam(params, rates, "finetune", eps=1e-15)
+    # the Triton step where the views render with Triton: a finetune told to render with another backend
+    # (e.g. on a machine where Triton cannot compile) keeps Adam's PyTorch step too
+    triton = choose_backend(config.backend, scene.device) == "triton"
+    return FiniteAdam(params, rates, "finetune", eps=1e-15, fused=None if triton else False)
 
 
 def _nchw(images: torch.Tensor) -> torch.Tensor:

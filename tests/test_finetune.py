@@ -329,3 +329,24 @@ def test_renders_before_and_after_the_steps_report_each_view(demo):
                  (view, views, info["stage"])))
     assert seen == [(1, 3, "setup"), (2, 3, "setup"), (3, 3, "setup"), (1, 3, "final"), (2, 3, "final"),
                     (3, 3, "final")]
+
+
+@pytest.mark.parametrize("renderer, fused", [("triton", None), ("torch", False), ("gsplat", False)])
+def test_adams_triton_step_only_where_the_views_render_with_triton(demo, monkeypatch, renderer, fused):
+    """A finetune told to render with another backend (a machine where Triton cannot compile) keeps
+    Adam's PyTorch step: the Triton one is left to FiniteAdam's own choice only with Triton renders."""
+    import artnvg_core.finetune as module
+
+    scene, cameras, style = demo
+    made = []
+
+    class Recorded(module.FiniteAdam):
+        def __init__(self, *args, **kwargs):
+            made.append(kwargs.get("fused"))
+            super().__init__(*args, **{**kwargs, "fused": False})
+
+    monkeypatch.setattr(module, "FiniteAdam", Recorded)
+    monkeypatch.setattr(module, "choose_backend", lambda backend, device: renderer)
+    finetune(scene, cameras.subset([0]), style, config=FinetuneConfig(iterations=0, color_transfer=False,
+                                                                     content_weight=0))
+    assert made == [fused]
