@@ -122,8 +122,9 @@ def write_model_files(folder: Path, device: str | torch.device = "cpu") -> dict[
     if not (paths["sdxl"].exists() and paths["sdxl folder"].exists()):
         unet = _write_sdxl(paths["sdxl"], paths["sdxl folder"], device)
     if not (paths["controlnet"].exists() and paths["csgo"].exists()):
-        with torch.device("meta"):  # the CSGO writer needs only the layers' names and shapes
-            unet = unet or UNet2DConditionModel(**SDXL_UNET_CONFIG)
+        if unet is None:
+            with torch.device("meta"):  # the CSGO writer needs only the layers' names and shapes
+                unet = UNet2DConditionModel(**SDXL_UNET_CONFIG)
         controlnet = _built(lambda: ControlNetModel(**controlnet_config_from_unet(SDXL_UNET_CONFIG)), device)
         if not paths["controlnet"].exists():
             save_file({k: v.contiguous() for k, v in controlnet.state_dict().items()}, str(paths["controlnet"]))
