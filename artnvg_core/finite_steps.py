@@ -88,7 +88,7 @@ class FiniteAdam:
         nonfinite = ~torch.isfinite(loss.detach())
         skipped = nonfinite if skip is None else nonfinite | skip
         self._record_skip(step, nonfinite, terms)
-        grads = {name: p.grad for name, p in self.params.items() if p.grad is not None}
+        grads = {name: p.grad.contiguous() for name, p in self.params.items() if p.grad is not None}
         bad = self._held_back(grads) & ~skipped
         self.first_held.copy_(torch.where(bad & (self.first_held == 0), step, self.first_held))
         self.held_steps += bad.any()
@@ -109,7 +109,7 @@ class FiniteAdam:
 
             self._held.zero_()
             for grad in grads.values():
-                mark_held_rows(grad.contiguous(), self._held, GRAD_LIMIT)
+                mark_held_rows(grad, self._held, GRAD_LIMIT)
             return self._held.view(torch.bool)
         bad = torch.zeros_like(self.first_held, dtype=torch.bool)
         for grad in grads.values():
@@ -144,7 +144,7 @@ class FiniteAdam:
         step_sizes = (self._rates / correction1).float()
         for index, name in enumerate(self.params):
             if name in grads:
-                adam_rows(self.params[name], grads[name].contiguous(), self.exp_avg[name], self.exp_avg_sq[name],
+                adam_rows(self.params[name], grads[name], self.exp_avg[name], self.exp_avg_sq[name],
                           self._held, skipped.view(torch.uint8), step_sizes[index], correction2_sqrt, self.betas,
                           self.eps)
 

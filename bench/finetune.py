@@ -3,17 +3,17 @@
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
         [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--profile]
 
-Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and
-1024x1024 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with each
-available backend (the reference torch backend on the CPU; triton and gsplat on CUDA), without stylized views (NNFM + content term, the NNFM-only stylizer) and
-with random ones (L1 + SSIM + NNFM, the ArtNVG finetune), the VGG terms at ARF's resolution
-(the default ``nnfm_max_side`` 512) and, at 1024, at full resolution; the first backend's rows with
-each ``--searches`` precision of the NNFM match search (the others with the default); and the NNFM
-term alone (VGG forward+backward + matching) per size and search precision. The first backend's rows
-at 512 with the default search also run with each ``--adams`` step of
-:class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its Triton kernels, the default on CUDA;
-``torch``: its PyTorch step). The style image is the
-demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
+Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and 1024x1024
+(cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with
+each available backend (the reference torch backend on the CPU; triton and gsplat on CUDA), without
+stylized views (NNFM + content term, the NNFM-only stylizer) and with random ones (L1 + SSIM + NNFM,
+the ArtNVG finetune), the VGG terms at ARF's resolution (the default ``nnfm_max_side`` 512) and, at
+1024, at full resolution; the first backend's rows with each ``--searches`` precision of the NNFM
+match search (the others with the default); and the NNFM term alone (VGG forward+backward +
+matching) per size and search precision. The first backend's rows at 512 with the default search
+also run with each ``--adams`` step of :class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its
+Triton kernels, the default where the finetune renders with Triton; ``torch``: its PyTorch step).
+The style image is the demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
 iteration: the wall time of the iterations after 3 warm-up steps, the device waited for once at each
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
 while the GPU runs step k).
@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import functools
 import itertools
 import sys
 import time
@@ -69,7 +68,8 @@ def seconds_per_iteration(scene, cameras, style, config: FinetuneConfig, targets
 @contextlib.contextmanager
 def adam_step(kind: str):
     """The finetune's FiniteAdam with its ``fused`` (Triton) or ``torch`` step within the block."""
-    finetune_module.FiniteAdam = functools.partial(FiniteAdam, fused=kind == "fused")
+    fused = kind == "fused"
+    finetune_module.FiniteAdam = lambda *args, **kwargs: FiniteAdam(*args, **{**kwargs, "fused": fused})
     try:
         yield
     finally:
@@ -161,8 +161,9 @@ def main() -> None:
                 arf_style = resized_style(style, max(cams.width, cams.height) // 2)
                 with adam_step(adam):
                     sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
-                rows.append([name, backend, f"{cams.width}x{cams.height}", "L1+SSIM+NNFM" if targets else "NNFM+content",
-                             side or "full", search, adam, f"{sec * 1e3:.1f}"])
+                loss = "L1+SSIM+NNFM" if targets else "NNFM+content"
+                rows.append([name, backend, f"{cams.width}x{cams.height}", loss, side or "full", search, adam,
+                             f"{sec * 1e3:.1f}"])
                 print(rows[-1], flush=True)
     nnfm_rows = [[f"{size}x{size}", search, f"{nnfm_seconds(size, style, device, search) * 1e3:.2f}"]
                  for size in ((128, 512, 1024) if device.type == "cuda" else (128,)) for search in searches]

@@ -32,6 +32,7 @@ from artnvg_core.diffusion.architectures import (
     SDXL_VAE_CONFIG,
     VIT_BIGG_IMAGE_ENCODER_CONFIG,
     controlnet_config_from_unet,
+    transformers_config_kwargs,
 )
 from artnvg_core.diffusion.resampler import PerceiverResampler, ResamplerConfig
 from artnvg_core.diffusion.sdxl_config import built_in_sdxl_config
@@ -46,11 +47,6 @@ NAMES = {
     "image encoder": "image_encoder",
     "csgo": "csgo_4_32.bin",
 }
-
-
-def _transformers_config(config_class, values: dict):
-    return config_class(**{k: v for k, v in values.items() if k not in ("architectures", "model_type", "torch_dtype",
-                                                                         "dtype")})
 
 
 def _built(build, device: torch.device) -> torch.nn.Module:
@@ -69,12 +65,12 @@ def _sdxl_base(device: torch.device):
 
     with built_in_sdxl_config() as config:
         tokenizers = [CLIPTokenizer.from_pretrained(config / name) for name in ("tokenizer", "tokenizer_2")]
+    clip_l, bigg = (CLIPTextConfig(**transformers_config_kwargs(c)) for c in (CLIP_L_TEXT_CONFIG, BIGG_TEXT_CONFIG))
     return SDXLBase(
         unet=_built(lambda: UNet2DConditionModel(**SDXL_UNET_CONFIG), device),
         vae=_built(lambda: AutoencoderKL(**SDXL_VAE_CONFIG), device),
-        text_encoder=_built(lambda: CLIPTextModel(_transformers_config(CLIPTextConfig, CLIP_L_TEXT_CONFIG)), device),
-        text_encoder_2=_built(lambda: CLIPTextModelWithProjection(
-            _transformers_config(CLIPTextConfig, BIGG_TEXT_CONFIG)), device),
+        text_encoder=_built(lambda: CLIPTextModel(clip_l), device),
+        text_encoder_2=_built(lambda: CLIPTextModelWithProjection(bigg), device),
         tokenizer=tokenizers[0],
         tokenizer_2=tokenizers[1],
         scheduler_config=SDXL_SCHEDULER_CONFIG,
@@ -131,6 +127,6 @@ def write_model_files(folder: Path, device: str | torch.device = "cpu") -> dict[
         if not paths["csgo"].exists():
             torch.save(_csgo_state(unet, controlnet), paths["csgo"])
     if not paths["image encoder"].exists():
-        config = _transformers_config(CLIPVisionConfig, VIT_BIGG_IMAGE_ENCODER_CONFIG)
+        config = CLIPVisionConfig(**transformers_config_kwargs(VIT_BIGG_IMAGE_ENCODER_CONFIG))
         _built(lambda: CLIPVisionModelWithProjection(config), device).save_pretrained(paths["image encoder"])
     return paths

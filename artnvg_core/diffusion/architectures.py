@@ -136,3 +136,9 @@ def controlnet_config_from_unet(unet_config: Mapping) -> dict:
     config = {key: unet_config[key] for key in _CONTROLNET_FIELDS_FROM_UNET if key in unet_config}
     config.update(conditioning_embedding_out_channels=(16, 32, 96, 256), conditioning_channels=3)
     return config
+
+
+def transformers_config_kwargs(config: Mapping) -> dict:
+    """A transformers ``config.json``'s entries as its config class takes them: without the file's
+    ``architectures``, ``model_type`` and dtype entries."""
+    return {k: v for k, v in config.items() if k not in ("architectures", "model_type", "torch_dtype", "dtype")}

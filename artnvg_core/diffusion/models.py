@@ -35,7 +35,7 @@ from transformers import (
 )
 
 from ..statedict import parameters_on_meta, state_dict_mismatch
-from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet
+from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
 from .model_files import (
@@ -248,9 +248,8 @@ def load_image_encoder(
         encoder = CLIPVisionModelWithProjection.from_pretrained(path, local_files_only=True)
     else:
         config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
-        config = {k: v for k, v in config.items() if k not in ("architectures", "model_type", "torch_dtype", "dtype")}
         with parameters_on_meta():
-            encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**config))
+            encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**transformers_config_kwargs(config)))
         load_state_dict_strict(encoder, path)
     return _placed(encoder, device, dtype)
 
