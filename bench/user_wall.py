@@ -17,10 +17,13 @@ it could is printed).
 Each process's wall time (launch to exit, seen from here) is split into parts by timers a small
 wrapper puts around the command's own calls before it runs the command (``artnvg_core`` is
 unchanged): start (Python and the command's imports), scene (loading the scene file), models
-(loading the model files), content (rendering the content views; a first run compiles the
-rasterizer's forward kernels there), sampling (conditioning and the diffusion stage), finetune
-(a first run compiles the backward kernels there), save (scene file and contact sheet) and the rest
-(argument checks, choosing views, exit). Prints a table; ``--json`` keeps it with each process's output.
+imports (the diffusion stage's modules: diffusers, transformers), models (loading the model files),
+content (rendering the content views; a first run compiles the rasterizer's forward kernels there),
+sampling (the diffusion stage), finetune (a first run compiles the backward kernels there), save (scene
+file and contact sheet) and the rest (argument checks, choosing views, exit). A second table splits
+sampling, the GPU waited for at each end of a part: conditioning (text and style encoders), each group's
+sampling (its decoding included) and the decoding of all groups. Prints both tables; ``--json`` keeps
+them with each process's output.
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ from common import print_table
 from model_files import write_model_files
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("start", "scene", "models", "content", "sampling", "finetune", "save")
+PARTS = ("start", "scene", "imports", "models", "content", "sampling", "finetune", "save")
+SAMPLING = ("conditioning", "group", "decoding")  # parts of sampling, the GPU waited for at both ends
 
 # Runs the command with timers around its calls; writes {part: seconds} to $USER_WALL_PARTS at exit.
 WRAPPER = """
@@ -50,20 +54,48 @@ parts, active = {}, []
 from artnvg_core.cli import main as cli, stylize as command
 import artnvg_core.stylize as core
 
-def timed(module, name, part):
+def synchronize():
+    import torch
+    if torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+def timed(module, name, part, split=False):
+    # module.name timed into parts[part]; split: a part of sampling, the GPU waited for at both ends,
+    # each call's time also in parts["PART each"]
     call = getattr(module, name)
     def wrapper(*args, **kwargs):
+        if split:
+            synchronize()
         start, counted = time.time(), "save" not in active  # the contact sheet's renders are saving
         active.append(part)
         try:
             return call(*args, **kwargs)
         finally:
             active.pop()
+            if split:
+                synchronize()
             if counted:
                 parts[part] = parts.get(part, 0.0) + time.time() - start
+                if split:
+                    parts.setdefault(part + " each", []).append(time.time() - start)
     setattr(module, name, wrapper)
 
 timed(command, "load_scene_verbose", "scene")
+def split_sampling(stylize):
+    # stylize, its diffusion modules imported first (timed) and sampling's parts timed
+    def wrapper(*args, **kwargs):
+        start = time.time()
+        import artnvg_core.diffusion.conditioning as conditioning
+        import artnvg_core.diffusion.sampler as sampler
+        import artnvg_core.diffusion.stylize as groups
+        parts["imports"] = time.time() - start
+        timed(conditioning, "prepare_conditioning", "conditioning", split=True)
+        timed(groups, "stylize_owned_views", "group", split=True)
+        timed(sampler, "_decode", "decoding", split=True)
+        return stylize(*args, **kwargs)
+    return wrapper
+
+core.stylize_diffusion = split_sampling(core.stylize_diffusion)
 timed(core, "stylize_diffusion", "diffusion")
 timed(core, "load_models_for", "models")
 timed(core, "render", "content")
@@ -96,7 +128,8 @@ def run_process(argv: list[str], env: dict, parts_path: Path, log: Path) -> dict
     wall = time.time() - launched
     parts = json.loads(parts_path.read_text()) if parts_path.exists() else {}
     if "diffusion" in parts:
-        parts["sampling"] = parts.pop("diffusion") - sum(parts.get(p, 0.0) for p in ("models", "content", "finetune"))
+        parts["sampling"] = parts.pop("diffusion") - sum(parts.get(p, 0.0) for p in ("imports", "models", "content",
+                                                                                       "finetune"))
     return {"wall": wall, "exit": code, **parts}
 
 
@@ -130,7 +163,7 @@ def main() -> None:
     dropped = drop_page_cache()
     print(f"page cache dropped before the first process: {dropped}", flush=True)
 
-    rows, report = [], []
+    rows, split, report = [], [], []
     for number, (preset, layout) in enumerate(runs, 1):
         argv = [args.scene, f"--cameras={args.cameras}", f"--style={args.style}", f"--preset={preset}",
                 f"--device={args.device}", f"--out={work / f'{number}_{preset}.ply'}", *args.more.split()]
@@ -144,6 +177,9 @@ def main() -> None:
         row = [number, preset, layout if preset != "preview" else "", "cold" if number == 1 else "warm",
                result["wall"], *[result.get(part) for part in PARTS], result["wall"] - known, result["exit"]]
         rows.append(row)
+        if "group each" in result:
+            split.append([number, preset, row[3], result["conditioning"], *[f"{t:.1f}" for t in result["group each"]],
+                          result["decoding"]])
         report.append({"preset": preset, "sdxl": layout, **result, "output": log.read_text()[-4000:]})
         print(row, flush=True)
         if result["exit"] != 0:
@@ -153,6 +189,11 @@ def main() -> None:
     print_table(f"Whole stylize processes on {args.device} (seconds)",
                 ["#", "preset", "SDXL", "caches", "wall", *PARTS, "rest", "exit"], rows,
                 "python " + shlex.join(sys.argv))
+    if split:
+        groups = max(len(row) for row in split) - 5
+        print_table("Sampling split (seconds)", ["#", "preset", "caches", "conditioning",
+                                                  *[f"group {g + 1}" for g in range(groups)], "decoding"],
+                    [row[:-1] + [""] * (groups + 5 - len(row)) + row[-1:] for row in split], "(same run)")
 
 
 if __name__ == "__main__":
