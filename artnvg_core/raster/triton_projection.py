@@ -215,10 +215,38 @@ def _basis_grad(k: tl.constexpr, x, y, z):
 
 
 @triton.jit
+def _basis_rows(x, y, z, cols, DEGREE: tl.constexpr):
+    """The SH basis as rows [BLOCK, KP]: column 0 is SH_C0, column k the basis value k (0 past
+    ``DEGREE``), so a Gaussian's colour is its row times its coefficients summed."""
+    b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15 = _basis(x, y, z, DEGREE)
+    k = cols[None, :]
+    rows = tl.where(k == 0, _C0, 0.0) + tl.zeros_like(x)[:, None]
+    if DEGREE > 0:
+        rows = tl.where(k == 1, b1[:, None], tl.where(k == 2, b2[:, None], tl.where(k == 3, b3[:, None], rows)))
+    if DEGREE > 1:
+        rows = tl.where(k == 4, b4[:, None], tl.where(k == 5, b5[:, None], tl.where(k == 6, b6[:, None], rows)))
+        rows = tl.where(k == 7, b7[:, None], tl.where(k == 8, b8[:, None], rows))
+    if DEGREE > 2:
+        rows = tl.where(k == 9, b9[:, None], tl.where(k == 10, b10[:, None], tl.where(k == 11, b11[:, None], rows)))
+        rows = tl.where(k == 12, b12[:, None], tl.where(k == 13, b13[:, None], rows))
+        rows = tl.where(k == 14, b14[:, None], tl.where(k == 15, b15[:, None], rows))
+    return rows
+
+
+@triton.jit
+def _coefficients(sh_ptr, i, cols, live, ch: tl.constexpr, K: tl.constexpr, DEGREE: tl.constexpr):
+    """Channel ``ch``'s SH coefficients of Gaussians ``i`` as rows [BLOCK, KP] (0 past ``DEGREE``): one
+    load, whatever the degree (a kernel of few memory operations compiles in a fraction of the time)."""
+    used = live[:, None] & (cols[None, :] < (DEGREE + 1) * (DEGREE + 1))
+    return tl.load(sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, mask=used, other=0.0)
+
+
+@triton.jit
 def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_ptr,
                     means2d_ptr, conics_ptr, depths_ptr, opac_ptr, colors_ptr, radii_ptr,
                     n, width, height, near, blur,
-                    K: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr, BLOCK: tl.constexpr):
+                    K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr,
+                    BLOCK: tl.constexpr):
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = i < n
     i = i.to(tl.int64)
@@ -254,12 +282,10 @@ def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_pt
     tl.store(opac_ptr + i, opacity, mask=live)
     # colours: SH(dir) + 0.5, clamped to [0, COLOR_MAX]
     dx, dy, dz, _, _ = _direction(means_ptr, cam_ptr, i, live)
-    basis = _basis(dx, dy, dz, DEGREE)
+    cols = tl.arange(0, KP)
+    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
     for ch in tl.static_range(3):
-        sh = sh_ptr + i * (K * 3) + ch
-        result = tl.load(sh, mask=live, other=0.0) * _C0
-        for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-            result = result + basis[k - 1] * tl.load(sh + k * 3, mask=live, other=0.0)
+        result = tl.sum(basis * _coefficients(sh_ptr, i, cols, live, ch, K, DEGREE), axis=1)
         tl.store(colors_ptr + i * 3 + ch, tl.minimum(tl.maximum(result + 0.5, 0.0), _COLOR_MAX), mask=live)
 
 
@@ -268,7 +294,8 @@ def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_p
                      g_means2d_ptr, g_conics_ptr, g_depths_ptr, g_opac_ptr, g_colors_ptr,
                      g_means_ptr, g_quats_ptr, g_scales_ptr, g_logits_ptr, g_sh_ptr,
                      n, width, height, near, blur,
-                     K: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr, BLOCK: tl.constexpr):
+                     K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr,
+                     BLOCK: tl.constexpr):
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = i < n
     i = i.to(tl.int64)
@@ -374,29 +401,26 @@ def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_p
     gz += tl.where(free_x, 0.0, g_tx * tx / z) + tl.where(free_y, 0.0, g_ty * ty / z)
     # colours
     dx, dy, dz, dlen, dfree = _direction(means_ptr, cam_ptr, i, live)
-    basis = _basis(dx, dy, dz, DEGREE)
+    cols = tl.arange(0, KP)
+    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
+    weights = tl.zeros_like(basis)  # d loss / d basis value, summed over the channels
+    for ch in tl.static_range(3):
+        coefficients = _coefficients(sh_ptr, i, cols, keep, ch, K, DEGREE)
+        color = tl.sum(basis * coefficients, axis=1) + 0.5
+        g_res = tl.load(g_colors_ptr + i * 3 + ch, mask=keep, other=0.0)
+        g_res = tl.where((color >= 0) & (color <= _COLOR_MAX), g_res, 0.0)
+        tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, g_res[:, None] * basis,
+                 mask=live[:, None] & (cols[None, :] < K))
+        weights += g_res[:, None] * coefficients
     gdx = tl.zeros_like(gx)
     gdy = tl.zeros_like(gx)
     gdz = tl.zeros_like(gx)
-    for ch in tl.static_range(3):
-        sh = sh_ptr + i * (K * 3) + ch
-        result = tl.load(sh, mask=keep, other=0.0) * _C0
-        for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-            result = result + basis[k - 1] * tl.load(sh + k * 3, mask=keep, other=0.0)
-        color = result + 0.5
-        g_res = tl.load(g_colors_ptr + i * 3 + ch, mask=keep, other=0.0)
-        g_res = tl.where((color >= 0) & (color <= _COLOR_MAX), g_res, 0.0)
-        g_sh = g_sh_ptr + i * (K * 3) + ch
-        tl.store(g_sh, g_res * _C0, mask=live)
-        for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-            tl.store(g_sh + k * 3, basis[k - 1] * g_res, mask=live)
-            weight = g_res * tl.load(sh + k * 3, mask=keep, other=0.0)
-            ddx, ddy, ddz = _basis_grad(k, dx, dy, dz)
-            gdx += weight * ddx
-            gdy += weight * ddy
-            gdz += weight * ddz
-        for k in tl.static_range((DEGREE + 1) * (DEGREE + 1), K):
-            tl.store(g_sh + k * 3, tl.zeros_like(g_res), mask=live)
+    for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
+        weight = tl.sum(tl.where(cols[None, :] == k, weights, 0.0), axis=1)
+        ddx, ddy, ddz = _basis_grad(k, dx, dy, dz)
+        gdx += weight * ddx
+        gdy += weight * ddy
+        gdz += weight * ddz
     # the unit direction d / max(|d|, eps), d = mean - camera centre
     radial_d = tl.where(dfree, dx * gdx + dy * gdy + dz * gdz, 0.0)
     g_mx = (gdx - dx * radial_d) / dlen
@@ -429,8 +453,8 @@ class _ProjectColor(torch.autograd.Function):
         depths, opacities, colors = means.new_empty(n), means.new_empty(n), means.new_empty(n, 3)
         radii = torch.empty(n, 2, dtype=torch.long, device=means.device)
         _forward_kernel[(triton.cdiv(n, BLOCK),)](*inputs, means2d, conics, depths, opacities, colors, radii,
-                                                  n, width, height, near, blur, K=k, DEGREE=degree,
-                                                  AA=antialiased, BLOCK=BLOCK, num_warps=4)
+                                                  n, width, height, near, blur, K=k, KP=triton.next_power_of_2(k),
+                                                  DEGREE=degree, AA=antialiased, BLOCK=BLOCK, num_warps=4)
         ctx.save_for_backward(*inputs, radii)
         ctx.settings = settings
         ctx.mark_non_differentiable(radii)
@@ -447,8 +471,8 @@ class _ProjectColor(torch.autograd.Function):
         grads_out = [torch.empty_like(t) for t in (means, quats, log_scales, logits, sh)]
         _backward_kernel[(triton.cdiv(n, BLOCK),)](means, quats, log_scales, logits, sh, camera, radii,
                                                    *grads_in, *grads_out, n, width, height, near, blur,
-                                                   K=sh.shape[1], DEGREE=degree, AA=antialiased,
-                                                   BLOCK=BLOCK, num_warps=4)
+                                                   K=sh.shape[1], KP=triton.next_power_of_2(sh.shape[1]),
+                                                   DEGREE=degree, AA=antialiased, BLOCK=BLOCK, num_warps=4)
         return (*grads_out, None, None)
 
 
