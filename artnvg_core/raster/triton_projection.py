@@ -1,7 +1,10 @@
 """Fused per-Gaussian projection and SH colours for the Triton backend: one kernel computes, for all N
 Gaussians at once, what :func:`.projection.project` and :func:`.sh.sh_to_color` compute (the
-reference, kept for the torch and gsplat backends), and a second kernel gives the gradients, the
-vector-Jacobian products derived by hand (the module's comments give each step).
+reference, kept for the torch and gsplat backends), and two more give the gradients (the colours',
+then the geometry's), the vector-Jacobian products derived by hand (the module's comments give each
+step). The SH coefficients move as one [Gaussians, coefficients] block per channel: Triton's
+compile time grows with a kernel's memory operations faster than linearly (its coalescing pass), so
+few operations and two small backward kernels compile in a third of the time one large one took.
 
 Same semantics as the reference: camera-space mean, culling (near plane, opacity >= 1/255, on
 screen), means2d, conics, depth, opacity (antialiased compensation when asked), radii and colours
@@ -290,12 +293,54 @@ def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_pt
 
 
 @triton.jit
-def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_ptr, radii_ptr,
-                     g_means2d_ptr, g_conics_ptr, g_depths_ptr, g_opac_ptr, g_colors_ptr,
-                     g_means_ptr, g_quats_ptr, g_scales_ptr, g_logits_ptr, g_sh_ptr,
-                     n, width, height, near, blur,
-                     K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr,
-                     BLOCK: tl.constexpr):
+def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, g_means_ptr, g_sh_ptr, n,
+                           K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
+    """Gradients of the colours: all of the SH coefficients' (g_sh) and the means' through the viewing
+    direction (g_means, which :func:`_backward_kernel` then completes); a kernel of its own, as two small
+    kernels compile in far less time than their sum (Triton's coalescing pass grows faster than the
+    kernel)."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = i < n
+    i = i.to(tl.int64)
+    keep = live & (tl.load(radii_ptr + i * 2, mask=live, other=-1) >= 0)
+    dx, dy, dz, dlen, dfree = _direction(means_ptr, cam_ptr, i, live)
+    cols = tl.arange(0, KP)
+    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
+    weights = tl.zeros_like(basis)  # d loss / d basis value, summed over the channels
+    for ch in tl.static_range(3):
+        coefficients = _coefficients(sh_ptr, i, cols, keep, ch, K, DEGREE)
+        color = tl.sum(basis * coefficients, axis=1) + 0.5
+        g_res = tl.load(g_colors_ptr + i * 3 + ch, mask=keep, other=0.0)
+        g_res = tl.where((color >= 0) & (color <= _COLOR_MAX), g_res, 0.0)
+        tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, g_res[:, None] * basis,
+                 mask=live[:, None] & (cols[None, :] < K))
+        weights += g_res[:, None] * coefficients
+    ddx = tl.zeros_like(basis)  # d basis / d direction, as rows
+    ddy = tl.zeros_like(basis)
+    ddz = tl.zeros_like(basis)
+    for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
+        kx, ky, kz = _basis_grad(k, dx, dy, dz)
+        column = cols[None, :] == k
+        ddx = tl.where(column, kx[:, None], ddx)
+        ddy = tl.where(column, ky[:, None], ddy)
+        ddz = tl.where(column, kz[:, None], ddz)
+    gdx = tl.sum(weights * ddx, axis=1)
+    gdy = tl.sum(weights * ddy, axis=1)
+    gdz = tl.sum(weights * ddz, axis=1)
+    # the unit direction d / max(|d|, eps), d = mean - camera centre
+    radial_d = tl.where(dfree, dx * gdx + dy * gdy + dz * gdz, 0.0)
+    tl.store(g_means_ptr + i * 3 + 0, (gdx - dx * radial_d) / dlen, mask=live)
+    tl.store(g_means_ptr + i * 3 + 1, (gdy - dy * radial_d) / dlen, mask=live)
+    tl.store(g_means_ptr + i * 3 + 2, (gdz - dz * radial_d) / dlen, mask=live)
+
+
+@triton.jit
+def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, cam_ptr, radii_ptr,
+                     g_means2d_ptr, g_conics_ptr, g_depths_ptr, g_opac_ptr,
+                     g_means_ptr, g_quats_ptr, g_scales_ptr, g_logits_ptr,
+                     n, width, height, near, blur, AA: tl.constexpr, BLOCK: tl.constexpr):
+    """Gradients of the geometry's outputs (means2d, conics, depths, opacities) back to means, quats, log
+    scales and opacity logits; g_means holds the colours' part on entry."""
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = i < n
     i = i.to(tl.int64)
@@ -399,34 +444,10 @@ def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_p
     gx += tl.where(free_x, g_tx, 0.0)
     gy += tl.where(free_y, g_ty, 0.0)
     gz += tl.where(free_x, 0.0, g_tx * tx / z) + tl.where(free_y, 0.0, g_ty * ty / z)
-    # colours
-    dx, dy, dz, dlen, dfree = _direction(means_ptr, cam_ptr, i, live)
-    cols = tl.arange(0, KP)
-    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
-    weights = tl.zeros_like(basis)  # d loss / d basis value, summed over the channels
-    for ch in tl.static_range(3):
-        coefficients = _coefficients(sh_ptr, i, cols, keep, ch, K, DEGREE)
-        color = tl.sum(basis * coefficients, axis=1) + 0.5
-        g_res = tl.load(g_colors_ptr + i * 3 + ch, mask=keep, other=0.0)
-        g_res = tl.where((color >= 0) & (color <= _COLOR_MAX), g_res, 0.0)
-        tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, g_res[:, None] * basis,
-                 mask=live[:, None] & (cols[None, :] < K))
-        weights += g_res[:, None] * coefficients
-    gdx = tl.zeros_like(gx)
-    gdy = tl.zeros_like(gx)
-    gdz = tl.zeros_like(gx)
-    for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-        weight = tl.sum(tl.where(cols[None, :] == k, weights, 0.0), axis=1)
-        ddx, ddy, ddz = _basis_grad(k, dx, dy, dz)
-        gdx += weight * ddx
-        gdy += weight * ddy
-        gdz += weight * ddz
-    # the unit direction d / max(|d|, eps), d = mean - camera centre
-    radial_d = tl.where(dfree, dx * gdx + dy * gdy + dz * gdz, 0.0)
-    g_mx = (gdx - dx * radial_d) / dlen
-    g_my = (gdy - dy * radial_d) / dlen
-    g_mz = (gdz - dz * radial_d) / dlen
-    # mean_c = W m + t
+    # mean_c = W m + t, beside the colours' part (from _color_backward_kernel)
+    g_mx = tl.load(g_means_ptr + i * 3 + 0, mask=keep, other=0.0)
+    g_my = tl.load(g_means_ptr + i * 3 + 1, mask=keep, other=0.0)
+    g_mz = tl.load(g_means_ptr + i * 3 + 2, mask=keep, other=0.0)
     g_mx += w00.to(tl.float32) * gx + w10.to(tl.float32) * gy + w20.to(tl.float32) * gz
     g_my += w01.to(tl.float32) * gx + w11.to(tl.float32) * gy + w21.to(tl.float32) * gz
     g_mz += w02.to(tl.float32) * gx + w12.to(tl.float32) * gy + w22.to(tl.float32) * gz
@@ -468,18 +489,20 @@ class _ProjectColor(torch.autograd.Function):
         grads_in = [torch.zeros(shape, dtype=means.dtype, device=means.device) if g is None else g.contiguous()
                     for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)),
                                      (g_opacities, (n,)), (g_colors, (n, 3)))]
-        grads_out = [torch.empty_like(t) for t in (means, quats, log_scales, logits, sh)]
-        _backward_kernel[(triton.cdiv(n, BLOCK),)](means, quats, log_scales, logits, sh, camera, radii,
-                                                   *grads_in, *grads_out, n, width, height, near, blur,
-                                                   K=sh.shape[1], KP=triton.next_power_of_2(sh.shape[1]),
-                                                   DEGREE=degree, AA=antialiased, BLOCK=BLOCK, num_warps=4)
-        return (*grads_out, None, None)
+        g_means, g_quats, g_scales, g_logits, g_sh = (torch.empty_like(t) for t in (means, quats, log_scales, logits, sh))
+        grid = (triton.cdiv(n, BLOCK),)
+        _color_backward_kernel[grid](means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
+                                     KP=triton.next_power_of_2(sh.shape[1]), DEGREE=degree, BLOCK=BLOCK, num_warps=4)
+        _backward_kernel[grid](means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats,
+                               g_scales, g_logits, n, width, height, near, blur, AA=antialiased, BLOCK=BLOCK,
+                               num_warps=4)
+        return g_means, g_quats, g_scales, g_logits, g_sh, None, None
 
 
 def project_color_triton(means, quats, log_scales, opacity_logits, sh, world_to_cam, intrinsics, center,
                          width: int, height: int, degree: int, near_plane: float = 0.01,
                          blur_px2: float = 0.3, antialiased: bool = False) -> tuple[Projection, torch.Tensor]:
-    """:func:`.projection.project` and :func:`.sh.sh_to_color` of all N Gaussians in one Triton kernel
+    """:func:`.projection.project` and :func:`.sh.sh_to_color` of all N Gaussians in Triton kernels
     (float32 CUDA tensors, or the CPU under ``TRITON_INTERPRET=1``), differentiable in means [N, 3],
     quats [N, 4], log_scales [N, 3], opacity_logits [N] and sh [N, K, 3] (K >= (degree + 1)^2).
     ``center``: the camera centre [3] (colours are seen along mean - center).
