@@ -39,7 +39,7 @@ from .fileio import resize_image
 from .finite_steps import FiniteAdam
 from .losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
-from .raster import choose_backend, render
+from .raster import check_render_inputs, choose_backend, render
 from .scene import GaussianScene
 
 OPTIMIZE_CHOICES = ("appearance", "all")
@@ -325,10 +325,12 @@ def finetune(
     schedule_on_device = schedule.to(device)
     blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
+    check_render_inputs(scene, cameras)  # once: the steps' renders skip the checks, which wait for the GPU
     for step in range(1, config.iterations + 1):
         check_stop(should_stop)
         views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
-        out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend)
+        out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend,
+                     checked=True)
         sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
         blind.index_add_(0, views_on_device, (~sees).int())
         image = out.rgb.clamp(0, 1)

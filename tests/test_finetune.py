@@ -350,3 +350,33 @@ def test_adams_triton_step_only_where_the_views_render_with_triton(demo, monkeyp
     finetune(scene, cameras.subset([0]), style, config=FinetuneConfig(iterations=0, color_transfer=False,
                                                                      content_weight=0))
     assert made == [fused]
+
+
+def test_the_steps_check_their_inputs_once_and_a_bad_scene_fails_before_any_step(demo, monkeypatch):
+    """The checks of a render wait for the GPU (each reads a result back), so the finetune makes them once
+    before its steps and renders each step unchecked: 5 steps, one check. A non-finite scene is still
+    refused by name before the first step."""
+    import artnvg_core.finetune as module
+    import artnvg_core.raster as raster
+
+    scene, cameras, style = demo
+    checks = []
+    original = raster.check_render_inputs
+
+    def counted(*args, **kwargs):
+        checks.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(raster, "check_render_inputs", counted)
+    monkeypatch.setattr(module, "check_render_inputs", counted)
+    with torch.no_grad():
+        targets = render(scene, cameras).rgb
+    config = FinetuneConfig(iterations=5, color_transfer=False, content_weight=0, nnfm_weight=0)
+    checks.clear()
+    finetune(scene, cameras, style, stylized=targets, config=config)
+    assert len(checks) == 1
+    broken = dataclasses.replace(scene, means=scene.means.clone().index_fill_(0, torch.tensor([3]), float("nan")))
+    steps = []
+    with pytest.raises(ValueError, match="scene.means has non-finite"):
+        finetune(broken, cameras, style, stylized=targets, config=config, progress=lambda *a: steps.append(a))
+    assert steps == []

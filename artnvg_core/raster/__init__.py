@@ -81,7 +81,12 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     return name
 
 
-def _check_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int, background) -> None:
+def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int | None = None,
+                        background: torch.Tensor | None = None) -> None:
+    """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the scene's
+    tensors finite and on its device, finite camera poses and intrinsics with positive focal lengths,
+    the background's shape. The checks wait for the device (each reads a result back)."""
+    sh_degree = scene.sh_degree if sh_degree is None else sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
     for name, value in scene.tensors().items():
@@ -107,6 +112,7 @@ def render(
     return_depth: bool = False,
     backend: str = "auto",
     near_plane: float = 0.01,
+    checked: bool = False,
 ) -> RenderOutput:
     """Render ``scene`` from every camera of ``cameras``.
 
@@ -123,6 +129,9 @@ def render(
         :mod:`.triton_projection`) and differ in the per-pixel compositing (the reference's PyTorch
         tiles, :mod:`.triton_backend`'s kernels or gsplat's, see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
+    checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
+        the checks, which wait for the device, are skipped: a loop that renders step after step (the
+        finetune, whose optimiser keeps every parameter finite) then queues its work without waiting.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
     low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is
@@ -136,7 +145,8 @@ def render(
     zero gradients. Returns a :class:`RenderOutput`.
     """
     degree = scene.sh_degree if sh_degree is None else sh_degree
-    _check_inputs(scene, cameras, degree, background)
+    if not checked:
+        check_render_inputs(scene, cameras, degree, background)
     cameras = cameras.to(scene.device)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
