@@ -196,6 +196,16 @@ def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: C
     return FiniteAdam(params, rates, "finetune", eps=1e-15, fused=None if triton else False)
 
 
+def _list_capacity(config: FinetuneConfig, device: torch.device):
+    """Room for the Triton renders' tile lists shared by the steps, so that a step does not wait for its
+    render's intersection count (:class:`~.raster.triton_backend.ListCapacity`); None for other backends."""
+    if choose_backend(config.backend, device) != "triton":
+        return None
+    from .raster.triton_backend import ListCapacity  # imports Triton: only when the steps render with it
+
+    return ListCapacity()
+
+
 def _nchw(images: torch.Tensor) -> torch.Tensor:
     """[B, H, W, 3] -> [B, 3, H, W]."""
     return images.permute(0, 3, 1, 2)
@@ -326,13 +336,17 @@ def finetune(
     blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
     check_render_inputs(scene, cameras)  # once: the steps' renders skip the checks, which wait for the GPU
-    for step in range(1, config.iterations + 1):
+    capacity = _list_capacity(config, device)
+    step = 1
+    while step <= config.iterations:
         check_stop(should_stop)
         views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
         out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend,
-                     checked=True)
+                     checked=True, list_capacity=capacity)
         sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
-        blind.index_add_(0, views_on_device, (~sees).int())
+        skip = ~sees.any()
+        overflow = None if capacity is None else capacity.take_overflow()
+        skip = skip if overflow is None else skip | overflow
         image = out.rgb.clamp(0, 1)
         terms: dict[str, torch.Tensor] = {}
         if stylized is not None:
@@ -353,7 +367,10 @@ def finetune(
             terms["tv"] = config.tv_weight * _total_variation(image)
         loss = sum(terms.values()) if terms else image.sum() * 0
         loss.backward()
-        adam.step(step, loss, terms, skip=~sees.any())
+        adam.step(step, loss, terms, skip=skip)
+        if capacity is not None and capacity.overflowed():
+            continue  # a render outgrew its tile lists: the step was skipped on the device; again, with room
+        blind.index_add_(0, views_on_device, (~sees).int())
         info: dict = {"view": views[0]} if len(views) == 1 else {"views": tuple(views)}
         if step == 1 or step % REPORT_EVERY == 0 or step == config.iterations:
             adam.report()
@@ -361,6 +378,7 @@ def finetune(
             info.update(loss=loss.item(), **{k: v.item() for k, v in terms.items()})
         if progress is not None:
             progress(step, config.iterations, info)
+        step += 1
     adam.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again

@@ -380,3 +380,39 @@ def test_the_steps_check_their_inputs_once_and_a_bad_scene_fails_before_any_step
     with pytest.raises(ValueError, match="scene.means has non-finite"):
         finetune(broken, cameras, style, stylized=targets, config=config, progress=lambda *a: steps.append(a))
     assert steps == []
+
+
+def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(monkeypatch):
+    """The Triton steps render into tile lists sized from earlier counts, not waiting for their own; a
+    step whose lists overflow is skipped on the device and taken again with room. With no margin at
+    all (every larger view overflows), the finetune equals one whose every render waits for its count,
+    bit for bit, and steps were taken again."""
+    pytest.importorskip("triton")
+    import artnvg_core.finetune as module
+    from artnvg_core.raster.triton_backend import ListCapacity
+    from raster_scenes import EYES, hard_scene, make_cameras
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    scene = hard_scene(1, n=60, degree=1).to(device)
+    cameras = make_cameras(EYES, width=24, height=16, focal=12.0).to(device)  # 2 tiles a view
+    targets = torch.rand(len(cameras), cameras.height, cameras.width, 3, generator=torch.Generator().manual_seed(3))
+    config = FinetuneConfig(iterations=3, seed=2, backend="triton", color_transfer=False, content_weight=0,
+                            nnfm_weight=0)  # views 0, 0, 2: the third sees more Gaussians
+    style = torch.rand(16, 16, 3, device=device)
+    again = []
+    overflowed = ListCapacity.overflowed
+
+    def recorded(self):
+        result = overflowed(self)
+        again.extend([self.room] if result else [])
+        return result
+
+    monkeypatch.setattr(ListCapacity, "MARGIN", 1.0)
+    monkeypatch.setattr(ListCapacity, "SLACK", 0)
+    monkeypatch.setattr(ListCapacity, "overflowed", recorded)
+    unwaited = finetune(scene, cameras, style, stylized=targets.to(device), config=config)
+    monkeypatch.setattr(module, "_list_capacity", lambda config, device: None)
+    waited = finetune(scene, cameras, style, stylized=targets.to(device), config=config)
+    assert again, "no step outgrew its lists: the test shows nothing"
+    for name, value in waited.tensors().items():
+        assert torch.equal(unwaited.tensors()[name], value), name

@@ -4,6 +4,7 @@ set here before the kernels are first imported); tests marked ``cuda`` run them 
 (docs/cuda_run.md records the last run)."""
 
 import dataclasses
+import math
 import os
 
 import pytest
@@ -16,7 +17,7 @@ pytest.importorskip("triton")
 from artnvg_core.raster import choose_backend, prepare_backend, render  # noqa: E402
 from artnvg_core.raster.projection import project  # noqa: E402
 from artnvg_core.raster.torch_backend import TILE, _tile_lists, rasterize  # noqa: E402
-from artnvg_core.raster.triton_backend import Pass, rasterize_triton, tile_lists  # noqa: E402
+from artnvg_core.raster.triton_backend import ListCapacity, Pass, rasterize_triton, tile_lists  # noqa: E402
 from artnvg_core.scene import GaussianScene  # noqa: E402
 
 from raster_scenes import EYES, hard_cases, hard_scene, make_cameras, parity  # noqa: E402
@@ -105,6 +106,42 @@ def test_tile_lists_are_the_references_with_culled_rows_and_depth_ties(seed):
         assert torch.equal(ids.long().cpu(), order)
         assert torch.equal(offsets[:-1].long().cpu(), starts) and torch.equal(offsets.diff().long().cpu(), counts)
     assert len(order) > 3 * len(proj.depths)  # footprints span several tiles
+
+
+def test_lists_given_a_capacity_equal_the_exact_ones_or_say_they_overflowed():
+    """With a :class:`ListCapacity` the first render waits for its count and sizes the room; later ones
+    get the room without waiting: lists within it equal the exact lists (padding never reaches a tile's
+    run); one that outgrows it is flagged on the device and by the host check, which grows the room
+    to fit, and the render then equals the exact one again."""
+    width, height = 100, 70
+    scene = hard_scene(0, n=60)
+    cams = make_cameras(EYES[:1], width, height)
+
+    def lists_of(scale):
+        proj = project(scene.means, scene.quats, scene.log_scales + math.log(scale), scene.opacity_logits,
+                       cams.world_to_cam[0], cams.intrinsics[0], width, height)
+        return dataclasses.replace(proj, means2d=proj.means2d.to(DEVICE), radii=proj.radii.to(DEVICE),
+                                   depths=proj.depths.to(DEVICE))
+
+    def runs(ids, offsets):
+        return [ids[offsets[t]:offsets[t + 1]].tolist() for t in range(len(offsets) - 1)]
+
+    small, large = lists_of(1.0), lists_of(3.0)  # larger footprints: more intersections
+    exact_small, exact_large = (runs(*tile_lists(p, width, height)) for p in (small, large))
+    total_small = sum(map(len, exact_small))
+    capacity = ListCapacity()
+    capacity.SLACK = 0  # room: 1.25 times the count, which the large footprints outgrow
+    assert sum(map(len, exact_large)) > 1.25 * total_small
+    assert runs(*tile_lists(small, width, height, capacity=capacity)) == exact_small
+    assert capacity.room == int(1.25 * total_small) and capacity.take_overflow() is None  # sized, nothing recorded
+    ids, offsets = tile_lists(small, width, height, capacity=capacity)
+    assert len(ids) == capacity.room and runs(ids, offsets) == exact_small
+    assert not bool(capacity.take_overflow()) and not capacity.overflowed()
+    truncated = runs(*tile_lists(large, width, height, capacity=capacity))
+    assert truncated != exact_large and bool(capacity.take_overflow())
+    assert capacity.overflowed() and capacity.room >= sum(map(len, exact_large))
+    assert runs(*tile_lists(large, width, height, capacity=capacity)) == exact_large
+    assert not bool(capacity.take_overflow()) and not capacity.overflowed()
 
 
 def test_skipping_blocks_no_pixel_uses_changes_nothing():

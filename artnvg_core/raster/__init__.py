@@ -10,6 +10,7 @@ optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 from dataclasses import dataclass
@@ -113,6 +114,7 @@ def render(
     backend: str = "auto",
     near_plane: float = 0.01,
     checked: bool = False,
+    list_capacity=None,
 ) -> RenderOutput:
     """Render ``scene`` from every camera of ``cameras``.
 
@@ -132,6 +134,9 @@ def render(
     checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
         the checks, which wait for the device, are skipped: a loop that renders step after step (the
         finetune, whose optimiser keeps every parameter finite) then queues its work without waiting.
+    list_capacity: the Triton backend's :class:`.triton_backend.ListCapacity` shared by renders made one
+        after another, so that they do not wait for their tile intersection counts (ignored by the other
+        backends); the caller checks it after each render for one that overflowed and must be redone.
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
     low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is
@@ -159,7 +164,7 @@ def render(
         from .triton_backend import rasterize_triton  # imports Triton: only when it renders
         from .triton_projection import project_color_triton
 
-        composite = rasterize_triton
+        composite = functools.partial(rasterize_triton, capacity=list_capacity)
     width, height = cameras.width, cameras.height
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):

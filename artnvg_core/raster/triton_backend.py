@@ -252,10 +252,11 @@ def _count_kernel(means2d_ptr, radii_ptr, order_ptr, counts_ptr, n, tiles_x, til
 
 
 @triton.jit
-def _emit_kernel(means2d_ptr, radii_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n, tiles_x, tiles_y,
+def _emit_kernel(means2d_ptr, radii_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n, tiles_x, tiles_y, room,
                  TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
     """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs to
-    ends[i] - count..ends[i]; one program writes those of BLOCK_G Gaussians, BLOCK_T tiles at a time."""
+    ends[i] - count..ends[i], those below ``room`` (the lists' length); one program writes those of
+    BLOCK_G Gaussians, BLOCK_T tiles at a time."""
     i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
     inside = i < n
     gauss, x0, y0, span_x, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
@@ -265,20 +266,74 @@ def _emit_kernel(means2d_ptr, radii_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, 
         local = k + tl.arange(0, BLOCK_T)[None, :]
         tile = (y0[:, None] + local // span_x[:, None]) * tiles_x + x0[:, None] + local % span_x[:, None]
         where = start[:, None] + local
-        mask = local < count[:, None]
+        mask = (local < count[:, None]) & (where < room)
         tl.store(tile_ptr + where, tile.to(tile_ptr.dtype.element_ty), mask=mask)
         tl.store(id_ptr + where, gauss[:, None].to(tl.int32) + tl.zeros_like(local), mask=mask)
 
 
-def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
+class ListCapacity:
+    """Room for the tile lists of renders made one after another (a finetune's steps), so that none of them
+    waits for its intersection count: the first render counts and waits, as one without a capacity does,
+    and sets the room to 1.25 times its count; each later render is given that room and records its count
+    where the host can read it once the count is done (a copy queued right after it), and whether it
+    overflowed as a device flag. A render that overflowed was truncated; :meth:`overflowed` (the host
+    check, which waits for the recorded counts only) then says so and grows the room, and the caller
+    repeats that render's step, which it skipped on the device (:meth:`take_overflow`)."""
+
+    MARGIN, SLACK = 1.25, 1024  # room: the count times MARGIN, and at least SLACK more
+
+    def __init__(self):
+        self.room: int | None = None
+        self._counts: list[tuple[torch.Tensor, torch.cuda.Event | None]] = []
+        self._overflow: torch.Tensor | None = None
+
+    def size_for(self, total: int) -> None:
+        """Room for ``total`` intersections and a margin."""
+        self.room = max(int(total * self.MARGIN), total + self.SLACK)
+
+    def record(self, total: torch.Tensor) -> None:
+        """A render's count (a device tensor [1]) given :attr:`room` entries."""
+        flag = total[0] > self.room
+        self._overflow = flag if self._overflow is None else self._overflow | flag
+        if total.is_cuda:
+            host = torch.empty(1, dtype=total.dtype, pin_memory=True)
+            host.copy_(total, non_blocking=True)
+            event = torch.cuda.Event()
+            event.record()
+            self._counts.append((host, event))
+        else:
+            self._counts.append((total, None))
+
+    def take_overflow(self) -> torch.Tensor | None:
+        """Whether any render since the last call overflowed (a device bool scalar; None: no render)."""
+        flag, self._overflow = self._overflow, None
+        return flag
+
+    def overflowed(self) -> bool:
+        """Whether a render recorded since the last call had more intersections than its room (the room
+        then grows to fit it); waits for those renders' counts, not for anything queued after them."""
+        largest = 0
+        for host, event in self._counts:
+            if event is not None:
+                event.synchronize()
+            largest = max(largest, int(host[0]))
+        self._counts.clear()
+        if self.room is not None and largest > self.room:
+            self.size_for(largest)
+            return True
+        return False
+
+
+def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capacity: ListCapacity | None = None):
     """Depth-sorted Gaussian lists per tile, as the reference's ``_tile_lists`` orders them.
 
     Gaussians with negative radii (culled by :mod:`.triton_projection`, which keeps all N) get no tiles.
     Returns (ids [I] int32 indices into the projection, grouped by tile, depth-sorted within one,
     ties in projection order; offsets [tiles + 1] int32, tile t's run is ids[offsets[t]:offsets[t+1]]).
-    One host synchronisation (the number of intersections sizes the lists); Triton kernels count and
-    write the (tile, Gaussian) pairs in depth order, one stable radix sort by tile groups them (16-bit
-    keys while the tiles fit: half the passes of 32-bit ones).
+    Triton kernels count and write the (tile, Gaussian) pairs in depth order, one stable radix sort by
+    tile groups them (16-bit keys while the tiles fit: half the passes of 32-bit ones). The lists'
+    length I is the count, which the host waits for, or, with a sized ``capacity``, its room (no wait;
+    entries past the count hold the key ``tiles``, so they sort last and no tile's run includes them).
     """
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     tiles = tiles_x * tiles_y
@@ -293,12 +348,18 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE):
             _count_kernel[(triton.cdiv(n, 256),)](means2d, radii, by_depth, counts, n, tiles_x, tiles_y,
                                                   TILE=tile, BLOCK=256)
         ends = torch.cumsum(counts, 0)
-        total = int(ends[-1])
-        tile_id = torch.empty(total, dtype=key, device=device)
-        ids = torch.empty(total, dtype=torch.int32, device=device)
-        if total:
+        if capacity is None or capacity.room is None:
+            room = int(ends[-1])
+            if capacity is not None:
+                capacity.size_for(room)
+        else:
+            room = capacity.room
+            capacity.record(ends[-1:])
+        tile_id = torch.full((room,), tiles, dtype=key, device=device)
+        ids = torch.zeros(room, dtype=torch.int32, device=device)
+        if room and n:
             _emit_kernel[(triton.cdiv(n, 32),)](means2d, radii, by_depth, ends, tile_id, ids, n, tiles_x, tiles_y,
-                                                TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
+                                                room, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
         tile_id, order = torch.sort(tile_id, stable=True)
         ids = ids[order]
         offsets = torch.searchsorted(tile_id, torch.arange(tiles + 1, device=device, dtype=key), out_int32=True)
@@ -343,15 +404,16 @@ class _Composite(torch.autograd.Function):
 
 
 def rasterize_triton(proj: Projection, features: torch.Tensor, width: int, height: int, *, tile: int = TILE,
-                     passes: tuple[Pass, Pass] = PASSES, skip: bool = True):
+                     passes: tuple[Pass, Pass] = PASSES, skip: bool = True, capacity: ListCapacity | None = None):
     """Composite one camera's projected Gaussians with the Triton kernels; the reference
     :func:`~.torch_backend.rasterize`'s contract (features [M, F] float32 with F 3 or 4, on CUDA or
     interpreted on the CPU). ``tile``: pixels per tile side (8 or 16); ``passes``: the forward and the
     backward kernel's :class:`Pass` (rows at most ``tile``); ``skip``: pass over blocks of Gaussians no
-    pixel uses. Returns blended features [H, W, F] (no background) and transmittance [H, W].
+    pixel uses; ``capacity``: the tile lists' room (:class:`ListCapacity`; None: sized by waiting for the
+    count). Returns blended features [H, W, F] (no background) and transmittance [H, W].
     """
     if features.shape[1] not in (3, 4):
         raise ValueError(f"rasterize_triton: features must have 3 or 4 channels, got {features.shape[1]}")
-    ids, offsets = tile_lists(proj, width, height, tile)
+    ids, offsets = tile_lists(proj, width, height, tile, capacity)
     return _Composite.apply(proj.means2d, proj.conics, proj.opacities, features, ids, offsets,
                             width, height, tile, passes, skip)
