@@ -274,11 +274,12 @@ def _emit_kernel(means2d_ptr, radii_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, 
 class ListCapacity:
     """Room for the tile lists of renders made one after another (a finetune's steps), so that none of them
     waits for its intersection count: the first render counts and waits, as one without a capacity does,
-    and sets the room to 1.25 times its count; each later render is given that room and records its count
-    where the host can read it once the count is done (a copy queued right after it), and whether it
-    overflowed as a device flag. A render that overflowed was truncated; :meth:`overflowed` (the host
-    check, which waits for the recorded counts only) then says so and grows the room, and the caller
-    repeats that render's step, which it skipped on the device (:meth:`take_overflow`)."""
+    and sets the room to MARGIN times its count (SLACK more at least); each later render is given that
+    room and records its count where the host can read it once the count is done (a copy queued right
+    after it), and whether it overflowed as a device flag. A render that overflowed was truncated;
+    :meth:`overflowed` (the host check, which waits for the recorded counts only) then says so and grows
+    the room, and the caller repeats that render's step, which it skipped on the device
+    (:meth:`take_overflow`)."""
 
     MARGIN, SLACK = 1.25, 1024  # room: the count times MARGIN, and at least SLACK more
 
