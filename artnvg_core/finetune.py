@@ -30,6 +30,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -41,6 +42,9 @@ from .losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, shrink_to_max_side, s
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import check_render_inputs, choose_backend, render
 from .scene import GaussianScene
+
+if TYPE_CHECKING:
+    from .raster.triton_backend import ListCapacity
 
 OPTIMIZE_CHOICES = ("appearance", "all")
 APPEARANCE = ("sh", "opacity_logits")
@@ -196,7 +200,7 @@ def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: C
     return FiniteAdam(params, rates, "finetune", eps=1e-15, fused=None if triton else False)
 
 
-def _list_capacity(config: FinetuneConfig, device: torch.device):
+def _list_capacity(config: FinetuneConfig, device: torch.device) -> ListCapacity | None:
     """Room for the Triton renders' tile lists shared by the steps, so that a step does not wait for its
     render's intersection count (:class:`~.raster.triton_backend.ListCapacity`); None for other backends."""
     if choose_backend(config.backend, device) != "triton":

@@ -14,7 +14,7 @@ import functools
 import importlib.util
 import os
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 
@@ -24,6 +24,9 @@ from .gsplat_backend import gsplat_available, load_kernels, rasterize_gsplat
 from .projection import project
 from .sh import sh_to_color
 from .torch_backend import rasterize
+
+if TYPE_CHECKING:
+    from .triton_backend import ListCapacity
 
 BACKENDS = ("auto", "torch", "triton", "gsplat")
 
@@ -114,7 +117,7 @@ def render(
     backend: str = "auto",
     near_plane: float = 0.01,
     checked: bool = False,
-    list_capacity=None,
+    list_capacity: ListCapacity | None = None,
 ) -> RenderOutput:
     """Render ``scene`` from every camera of ``cameras``.
 
