@@ -22,7 +22,7 @@ from .diffusion.model_files import ModelFiles
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
-from .progress import ProgressFn, StopFn
+from .progress import Cancelled, ProgressFn, StopFn
 from .raster import render
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
@@ -113,7 +113,7 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
 
 def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
                     *, dtype: torch.dtype | None = None, sdxl_config_dir: str | Path | None = None,
-                    on_cpu: bool = False):
+                    on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
     """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
     workers and ComfyUI's Load ArtNVG Models.
 
@@ -124,8 +124,10 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     ValueError) and loads an earlier run's compile artifacts (:mod:`artnvg_core.diffusion.compile_cache`).
     Loaded once per process: the same files (path, size and modification time), device and options return
     the same models (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
-    :class:`DiffusionModelsUnavailable` saying why. A module-level function, so a ``functools.partial``
-    of it can be sent to worker processes."""
+    :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each model)
+    raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
+    (:func:`~artnvg_core.diffusion.models.load_diffusion_models`). A module-level function, so a
+    ``functools.partial`` of it can be sent to worker processes."""
     from .diffusion.model_cache import file_key, load_once
 
     if compile_blocks and low_memory:
@@ -135,11 +137,12 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     key = ("diffusion models", tuple(file_key(path) for _, path in files.items()), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
     return load_once(key, functools.partial(_load_models, files, low_memory, device, compile_blocks, dtype,
-                                            sdxl_config_dir, on_cpu))
+                                            sdxl_config_dir, on_cpu, progress, should_stop))
 
 
 def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, compile_blocks: bool,
-                 dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool):
+                 dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
+                 progress: ProgressFn | None, should_stop: StopFn | None):
     """:func:`load_models_for` without the once-per-process cache."""
     from .diffusion.compile_cache import load_compile_cache
     from .diffusion.memory import enable_low_memory
@@ -148,7 +151,10 @@ def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, comp
 
     try:
         models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype,
-                                       device="cpu" if low_memory or on_cpu else device)
+                                       device="cpu" if low_memory or on_cpu else device, progress=progress,
+                                       should_stop=should_stop)
+    except Cancelled:
+        raise
     except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
         raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
     if low_memory and not on_cpu:
@@ -174,6 +180,7 @@ def stylize_diffusion(
     ray_address: str | None = None,
     group_size: int = 15,
     compile_blocks: bool = False,
+    loading_progress: ProgressFn | None = None,
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
@@ -209,6 +216,8 @@ def stylize_diffusion(
         compile_blocks (`bool`, defaults to False): compile the repeated blocks (:func:`load_models_for`;
             full memory only); on one device the compile artifacts are saved after the diffusion stage
             for the next run (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`).
+        loading_progress (`ProgressFn` or None, defaults to None): called after each model file is loaded,
+            in bytes (one device; the workers of several load their own).
         sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
@@ -240,7 +249,8 @@ def stylize_diffusion(
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks)
     device = explicit[0] if explicit else scene.device
-    models = None if spread else load(device)  # first: a model that cannot be loaded fails before any work
+    # first: a model that cannot be loaded fails before any work
+    models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)
     with torch.no_grad():
         content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
     groups = group_views(cameras, group_size)

@@ -221,6 +221,7 @@ class LoadArtNVGModels(ArtNVGNode):
     def VALIDATE_INPUTS(cls, files=None):
         return check_result(files)
 
+    @cancellable
     def load(self, sdxl_checkpoint, controlnet, image_encoder, csgo_weights, dtype, device, keep_loaded,
              sdxl_checkpoint_path="", controlnet_path="", image_encoder_path="", csgo_weights_path="",
              sdxl_config_dir="", memory="full", compile=False, files=None):
@@ -234,7 +235,8 @@ class LoadArtNVGModels(ArtNVGNode):
         with node_input(self.DISPLAY_NAME):  # the core's refusal of compile with low memory names the input
             models = load_models_for(files, low_memory, target, compile, dtype=DTYPES[dtype],
                                      sdxl_config_dir=sdxl_config_dir.strip() or None,
-                                     on_cpu=not keep_loaded or low_memory)
+                                     on_cpu=not keep_loaded or low_memory, progress=progress_bar(),
+                                     should_stop=interrupt_requested)
         return (LoadedModels(models, target, keep_loaded, low_memory, compiled=compile),)
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
 from artnvg_core.diffusion.model_files import ModelFiles
+from artnvg_core.progress import Cancelled
 from artnvg_core.stylize import load_models_for
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
@@ -80,3 +81,14 @@ def test_load_models_for_reuses_the_loaded_models_until_a_file_changes(tmp_path)
     csgo = paths.csgo
     os.utime(csgo, ns=(csgo.stat().st_atime_ns, csgo.stat().st_mtime_ns + 10**9))
     assert load_models_for(paths, True, "cpu") is not low
+
+
+def test_a_stop_while_loading_is_a_cancel_not_a_missing_model(tmp_path):
+    """A stop during loading stays :class:`Cancelled` (the command line would otherwise fall back to the
+    NNFM stylizer as if a model were missing), and nothing is kept for the next call."""
+    paths = ModelFiles(**write_model_files(tmp_path))
+    with pytest.raises(Cancelled):
+        load_models_for(paths, False, "cpu", should_stop=lambda: True)
+    steps = []
+    load_models_for(paths, False, "cpu", progress=lambda done, total, info: steps.append(info.get("loading")))
+    assert steps == ["SDXL", "ControlNet", "image encoder", "CSGO", None]

@@ -5,6 +5,7 @@ import torch
 from diffusers import ControlNetModel
 from safetensors.torch import save_file
 
+import artnvg_core.diffusion.models as models_module
 from artnvg_core.diffusion.model_files import (
     CSGO_WEIGHTS,
     IMAGE_ENCODER,
@@ -20,6 +21,7 @@ from artnvg_core.diffusion.models import (
     load_sdxl,
     load_vae,
 )
+from artnvg_core.progress import Cancelled
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import (
     csgo_state,
@@ -29,6 +31,7 @@ from diffusion_tiny import (
     tiny_image_encoder,
     tiny_scheduler,
     write_csgo_file,
+    write_model_files,
     write_single_file_checkpoint,
 )
 
@@ -287,3 +290,31 @@ def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
             dtype=torch.float32,
             hf_cache_dir=tmp_path / "no_cache",
         )
+
+
+def test_loading_reports_the_bytes_of_each_model_and_stops_between_models(tmp_path, monkeypatch):
+    """progress follows the files' bytes (each folder's files summed), announcing each model as it starts
+    and ending at the total; a stop asked while one model loads is honoured before the next, which is not
+    loaded."""
+    paths = ModelFiles(**write_model_files(tmp_path))
+
+    def size(path):
+        return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+
+    sizes = [size(paths.sdxl), size(paths.controlnet), size(paths.image_encoder), size(paths.csgo)]
+    seen = []
+    load_diffusion_models(paths, dtype=torch.float32, progress=lambda done, total, info: seen.append(
+        (done, total, info.get("loading"))))
+    before = [sum(sizes[:k]) for k in range(5)]
+    names = ("SDXL", "ControlNet", "image encoder", "CSGO", None)
+    assert seen == [(done, sum(sizes), name) for done, name in zip(before, names)]
+    seen.clear()
+
+    def never(*args, **kwargs):
+        raise AssertionError("a model was loaded after the stop")
+
+    monkeypatch.setattr(models_module, "load_image_encoder", never)
+    with pytest.raises(Cancelled):
+        load_diffusion_models(paths, dtype=torch.float32, should_stop=lambda: len(seen) == 2,
+                              progress=lambda done, total, info: seen.append(info["loading"]))
+    assert seen == ["SDXL", "ControlNet"]

@@ -89,17 +89,20 @@ def parse_devices(text: str | None) -> list[torch.device] | None:
 
 
 class ProgressBar:
-    """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it."""
+    """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it.
+    ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G)."""
 
-    def __init__(self, description: str):
+    def __init__(self, description: str, unit: str = "it"):
         self.description = description
+        self.unit = unit
         self.bar = None
 
     def __call__(self, step: int, total: int, info: dict) -> None:
         from tqdm import tqdm
 
         if self.bar is None:
-            self.bar = tqdm(total=total, desc=self.description, unit="it", dynamic_ncols=True)
+            self.bar = tqdm(total=total, desc=self.description, unit=self.unit, unit_scale=self.unit == "B",
+                            dynamic_ncols=True)
         self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
         self.bar.update(step - self.bar.n)
         if step >= total:

@@ -117,7 +117,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
-                                          compile_blocks=args.compile, sampling_progress=ProgressBar("diffusion"),
+                                          compile_blocks=args.compile, loading_progress=ProgressBar("models", "B"),
+                                          sampling_progress=ProgressBar("diffusion"),
                                           progress=ProgressBar("finetune"), should_stop=args.should_stop)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":

@@ -34,6 +34,7 @@ from transformers import (
     CLIPVisionModelWithProjection,
 )
 
+from ..progress import ProgressFn, StopFn, check_stop
 from ..statedict import parameters_on_meta, state_dict_mismatch
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
@@ -254,6 +255,12 @@ def load_image_encoder(
     return _placed(encoder, device, dtype)
 
 
+def _bytes(path: Path) -> int:
+    """Size of a file, or of every file under a folder (a diffusers folder, a Hugging Face snapshot)."""
+    path = Path(path)
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+
+
 def load_diffusion_models(
     files: ModelFiles,
     *,
@@ -263,18 +270,41 @@ def load_diffusion_models(
     device: str | torch.device = "cpu",
     query_chunk_size: int | None = None,
     hf_cache_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    should_stop: StopFn | None = None,
 ) -> DiffusionModels:
     """Load every model of ``files`` (a None field = the Hugging Face cache; ``vae`` None = SDXL's own
     VAE) and attach CSGO.
 
     All files are checked (:func:`check_model_files`) before any is loaded, so a missing one fails fast.
     query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
+    progress(bytes loaded, bytes of all the files, {"loading": name}) is called as each model starts
+    loading, and once more, without "loading", when all are; should_stop() is checked before each model
+    and raises :class:`~artnvg_core.progress.Cancelled`.
     """
     found = check_model_files(files, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
-    base = load_sdxl(found.sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device, hf_cache_dir=hf_cache_dir)
+    sizes = {"SDXL": _bytes(found.sdxl), **({"VAE": _bytes(vae)} if vae is not None else {}),
+             "ControlNet": _bytes(found.controlnet), "image encoder": _bytes(found.image_encoder),
+             "CSGO": _bytes(found.csgo)}
+    done, total = 0, sum(sizes.values())
+
+    def loading(name: str, load):
+        nonlocal done
+        check_stop(should_stop)
+        if progress is not None:
+            progress(done, total, {"loading": name})
+        model = load()
+        done += sizes[name]
+        return model
+
+    base = loading("SDXL", lambda: load_sdxl(found.sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device,
+                                             hf_cache_dir=hf_cache_dir))
     if vae is not None:
-        base.vae = load_vae(vae, dtype=dtype, device=device)
-    control = load_controlnet(found.controlnet, unet_config=dict(base.unet.config), dtype=dtype, device=device)
-    encoder = load_image_encoder(found.image_encoder, dtype=dtype, device=device)
-    projections = load_csgo(found.csgo, base.unet, control, query_chunk_size=query_chunk_size)
+        base.vae = loading("VAE", lambda: load_vae(vae, dtype=dtype, device=device))
+    control = loading("ControlNet", lambda: load_controlnet(found.controlnet, unet_config=dict(base.unet.config),
+                                                            dtype=dtype, device=device))
+    encoder = loading("image encoder", lambda: load_image_encoder(found.image_encoder, dtype=dtype, device=device))
+    projections = loading("CSGO", lambda: load_csgo(found.csgo, base.unet, control, query_chunk_size=query_chunk_size))
+    if progress is not None:
+        progress(total, total, {})
     return DiffusionModels(base=base, controlnet=control, image_encoder=encoder, csgo=projections)
