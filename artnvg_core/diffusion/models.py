@@ -39,6 +39,7 @@ from ..statedict import parameters_on_meta, state_dict_mismatch
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
+from .model_cache import file_key
 from .model_files import (
     IMAGE_ENCODER,
     SDXL_BASE,
@@ -257,8 +258,7 @@ def load_image_encoder(
 
 def _bytes(path: Path) -> int:
     """Size of a file, or of every file under a folder (a diffusers folder, a Hugging Face snapshot)."""
-    path = Path(path)
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+    return sum(size for _, size, _ in file_key(path)[1])
 
 
 def load_diffusion_models(
