@@ -33,6 +33,9 @@ from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
 
 TILE = 16  # pixels per tile side
+# The tile test's margins (:func:`_tiles_seen`), relative to the quadratic form's diagonal terms: the
+# compositing's float32 sigma falls short of the exact one by under 1e-6 of them, the test's own by less.
+_TILE_SLACK, _ROUNDING, _ALPHA_MIN = tl.constexpr(1e-5), tl.constexpr(1e-6), tl.constexpr(ALPHA_MIN)
 
 
 class Pass(NamedTuple):
@@ -223,9 +226,9 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
 
 @triton.jit
 def _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE: tl.constexpr):
-    """Tiles of the footprints of depth-ranked Gaussians ``i``: Gaussian ids, the rectangle's first
-    tile (x0, y0), its width in tiles and its tile count (0 when culled: radii -1). Bounds in float64,
-    exact for centres far off the image."""
+    """The footprint boxes of depth-ranked Gaussians ``i``: Gaussian ids, the box's first tile (x0, y0),
+    its width in tiles and its tile count (0 when culled: radii -1). Bounds in float64, exact for
+    centres far off the image."""
     gauss = tl.load(order_ptr + i, mask=inside, other=0)
     cx = tl.load(means2d_ptr + gauss * 2 + 0, mask=inside, other=0.0).to(tl.float64)
     cy = tl.load(means2d_ptr + gauss * 2 + 1, mask=inside, other=0.0).to(tl.float64)
@@ -242,33 +245,82 @@ def _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, T
 
 
 @triton.jit
-def _count_kernel(means2d_ptr, radii_ptr, order_ptr, counts_ptr, n, tiles_x, tiles_y,
-                  TILE: tl.constexpr, BLOCK: tl.constexpr):
-    """counts[i]: tiles of the i-th Gaussian in depth order."""
-    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    inside = i < n
-    _, _, _, _, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
-    tl.store(counts_ptr + i, count, mask=inside)
+def _edge_min(a, b, c, edge, lo, hi):
+    """min over u in [lo, hi] of 0.5 a edge^2 + b edge u + 0.5 c u^2 (c > 0) and 0.5 (a edge^2 + c u^2) at
+    that u: one side of a tile against a Gaussian's quadratic form (the other axis fixed at ``edge``)."""
+    u = tl.minimum(tl.maximum(-b * edge / c, lo), hi)
+    scale = 0.5 * (a * edge * edge + c * u * u)
+    return scale + b * edge * u, scale
 
 
 @triton.jit
-def _emit_kernel(means2d_ptr, radii_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n, tiles_x, tiles_y, room,
-                 TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
-    """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs to
-    ends[i] - count..ends[i], those below ``room`` (the lists' length); one program writes those of
-    BLOCK_G Gaussians, BLOCK_T tiles at a time."""
+def _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x,
+                TILE: tl.constexpr):
+    """Which of the boxes' tiles ``local`` [Gaussians, tiles] (row-major in the box) some pixel centre
+    of sees the Gaussian at alpha >= 1/255, and those tiles' ids. Exact and conservative: the quadratic
+    form sigma is shrunk by TILE_SLACK times its diagonal terms, more than the compositing's float32
+    sigma can fall short of the exact one, and a tile is passed over only when the smallest shrunk
+    sigma over its pixel centres (the centre's cell, else the least over its four sides), less this
+    test's own rounding, is above log(255 o). Any non-finite value keeps the tile."""
+    a = tl.load(conics_ptr + gauss * 3 + 0)[:, None] * (1.0 - _TILE_SLACK)
+    b = tl.load(conics_ptr + gauss * 3 + 1)[:, None]
+    c = tl.load(conics_ptr + gauss * 3 + 2)[:, None] * (1.0 - _TILE_SLACK)
+    level = tl.log(tl.load(opac_ptr + gauss) * (1.0 / _ALPHA_MIN))[:, None] + 1e-4
+    cx = tl.load(means2d_ptr + gauss * 2 + 0)[:, None]
+    cy = tl.load(means2d_ptr + gauss * 2 + 1)[:, None]
+    span = tl.maximum(span_x, 1)[:, None]
+    tx = x0[:, None] + local % span
+    ty = y0[:, None] + local // span
+    x_lo = (tx * TILE).to(tl.float32) + 0.5 - cx  # first and last pixel centres, as the compositing's dx
+    x_hi = (tx * TILE + (TILE - 1)).to(tl.float32) + 0.5 - cx
+    y_lo = (ty * TILE).to(tl.float32) + 0.5 - cy
+    y_hi = (ty * TILE + (TILE - 1)).to(tl.float32) + 0.5 - cy
+    q0, s0 = _edge_min(a, b, c, x_lo, y_lo, y_hi)
+    q1, s1 = _edge_min(a, b, c, x_hi, y_lo, y_hi)
+    q2, s2 = _edge_min(c, b, a, y_lo, x_lo, x_hi)
+    q3, s3 = _edge_min(c, b, a, y_hi, x_lo, x_hi)
+    far = ((q0 - _ROUNDING * s0 > level) & (q1 - _ROUNDING * s1 > level)
+           & (q2 - _ROUNDING * s2 > level) & (q3 - _ROUNDING * s3 > level))
+    centre_in = (x_lo <= 0) & (x_hi >= 0) & (y_lo <= 0) & (y_hi >= 0)
+    seen = (local < count[:, None]) & ~(far & ~centre_in & (a > 0) & (c > 0))
+    return seen, ty * tiles_x + tx
+
+
+@triton.jit
+def _count_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, counts_ptr, n, tiles_x, tiles_y,
+                  TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
+    """counts[i]: tiles that see the i-th Gaussian in depth order (:func:`_tiles_seen`)."""
     i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
     inside = i < n
     gauss, x0, y0, span_x, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
-    span_x = tl.maximum(span_x, 1)
-    start = tl.load(ends_ptr + i, mask=inside, other=0) - count
+    seen_count = tl.zeros([BLOCK_G], tl.int32)
     for k in range(0, tl.max(count, axis=0), BLOCK_T):
         local = k + tl.arange(0, BLOCK_T)[None, :]
-        tile = (y0[:, None] + local // span_x[:, None]) * tiles_x + x0[:, None] + local % span_x[:, None]
-        where = start[:, None] + local
-        mask = (local < count[:, None]) & (where < room)
+        seen, _ = _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x, TILE)
+        seen_count += tl.sum(seen.to(tl.int32), axis=1)
+    tl.store(counts_ptr + i, seen_count, mask=inside)
+
+
+@triton.jit
+def _emit_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n,
+                 tiles_x, tiles_y, room, TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
+    """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs, one per tile that sees
+    it in its box's row-major order, to ends[i - 1]..ends[i] (ends: the counts' inclusive sums), those
+    below ``room`` (the lists' length); one program writes those of BLOCK_G Gaussians, BLOCK_T box
+    tiles at a time."""
+    i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
+    inside = i < n
+    gauss, x0, y0, span_x, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
+    where_next = tl.load(ends_ptr + i - 1, mask=inside & (i > 0), other=0)  # the pairs of earlier Gaussians
+    for k in range(0, tl.max(count, axis=0), BLOCK_T):
+        local = k + tl.arange(0, BLOCK_T)[None, :]
+        seen, tile = _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x, TILE)
+        hits = seen.to(tl.int32)
+        where = where_next[:, None] + tl.cumsum(hits, axis=1) - hits
+        mask = seen & (where < room)
         tl.store(tile_ptr + where, tile.to(tile_ptr.dtype.element_ty), mask=mask)
         tl.store(id_ptr + where, gauss[:, None].to(tl.int32) + tl.zeros_like(local), mask=mask)
+        where_next += tl.sum(hits, axis=1)
 
 
 class ListCapacity:
@@ -344,10 +396,11 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capa
     with torch.no_grad():
         by_depth = torch.argsort(proj.depths, stable=True)
         means2d, radii = proj.means2d.detach().contiguous(), proj.radii.contiguous()
+        conics, opacities = proj.conics.detach().contiguous(), proj.opacities.detach().contiguous()
         counts = torch.zeros(max(n, 1), dtype=torch.int32, device=device)
         if n:
-            _count_kernel[(triton.cdiv(n, 256),)](means2d, radii, by_depth, counts, n, tiles_x, tiles_y,
-                                                  TILE=tile, BLOCK=256)
+            _count_kernel[(triton.cdiv(n, 32),)](means2d, radii, conics, opacities, by_depth, counts, n, tiles_x,
+                                                 tiles_y, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
         ends = torch.cumsum(counts, 0)
         if capacity is None or capacity.room is None:
             room = int(ends[-1])
@@ -359,8 +412,8 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capa
         tile_id = torch.full((room,), tiles, dtype=key, device=device)
         ids = torch.zeros(room, dtype=torch.int32, device=device)
         if room and n:
-            _emit_kernel[(triton.cdiv(n, 32),)](means2d, radii, by_depth, ends, tile_id, ids, n, tiles_x, tiles_y,
-                                                room, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
+            _emit_kernel[(triton.cdiv(n, 32),)](means2d, radii, conics, opacities, by_depth, ends, tile_id, ids, n,
+                                                tiles_x, tiles_y, room, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
         tile_id, order = torch.sort(tile_id, stable=True)
         ids = ids[order]
         offsets = torch.searchsorted(tile_id, torch.arange(tiles + 1, device=device, dtype=key), out_int32=True)
