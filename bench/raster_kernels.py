@@ -1,11 +1,12 @@
 """The Triton compositing kernels' settings: time and deviation of each, and where a render's time goes.
 
-    cd bench && python raster_kernels.py [--counts 100000,1000000] [--size 1024] [--profile]
+    cd bench && python raster_kernels.py [--counts 100000,1000000] [--size 1024] [--profile] [--lists-only]
 
 For each random scene (``common.random_scene``, one orbit camera, the fused projection done once):
 
 - tile lists: each step of ``triton_backend.tile_lists`` alone (depth order, counting, writing, the
-  stable sort by 16-bit and by 32-bit tile keys, the gather, the offsets);
+  stable sort by 16-bit and by 32-bit tile keys, the gather, the offsets), the intersections and the
+  footprint boxes' tiles (what the lists were before tiles out of a Gaussian's reach were left out);
 - the forward kernel for each ``triton_backend.Pass`` (pixel rows per program, Gaussians per block,
   warps) with and without block skipping, and the backward kernel alone (the same forward's graph
   replayed) for each; beside each, the largest deviation of its outputs (blended features,
@@ -13,7 +14,7 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   the largest magnitude, and the largest relative L2 error of the same against the reference
   compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
-``--profile``: the CUDA kernels of one whole render forward+backward by total time (torch.profiler).
+``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render forward+backward by total time (torch.profiler).
 Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
 """
 
@@ -35,8 +36,8 @@ from artnvg_core.raster.triton_backend import (
     TILE,
     Pass,
     _Composite,
-    _count_kernel,
-    _emit_kernel,
+    _count_tiles,
+    _write_pairs,
     tile_lists,
 )
 from artnvg_core.raster.triton_projection import project_color_triton
@@ -57,32 +58,17 @@ def projected(count: int, size: int):
 
 def tile_list_rows(name, proj, size):
     """Milliseconds of each step of tile_lists (as it runs them) and of the whole."""
-    import triton
-
     tiles_x = -(-size // TILE)
-    n = len(proj.depths)
     by_depth = torch.argsort(proj.depths, stable=True)
-    counts = torch.zeros(n, dtype=torch.int32, device="cuda")
-    _count_kernel[(triton.cdiv(n, 256),)](proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x,
-                                          TILE=TILE, BLOCK=256)
-    ends = torch.cumsum(counts, 0)
+    ends = torch.cumsum(_count_tiles(proj, by_depth, tiles_x, tiles_x, TILE), 0)
     total = int(ends[-1])
-    tile16 = torch.empty(total, dtype=torch.int16, device="cuda")
-    ids = torch.empty(total, dtype=torch.int32, device="cuda")
-
-    def emit():
-        _emit_kernel[(triton.cdiv(n, 32),)](proj.means2d, proj.radii, by_depth, ends, tile16, ids, n, tiles_x,
-                                            tiles_x, TILE=TILE, BLOCK_G=32, BLOCK_T=32, num_warps=4)
-
-    emit()
+    tile16, ids = _write_pairs(proj, by_depth, ends, total, tiles_x, tiles_x, TILE, torch.int16)
     tile32 = tile16.int()
     sorted16, order = torch.sort(tile16, stable=True)
     steps = {
         "depth order (argsort)": lambda: torch.argsort(proj.depths, stable=True),
-        "count + cumsum + size": lambda: (_count_kernel[(triton.cdiv(n, 256),)](
-            proj.means2d, proj.radii, by_depth, counts, n, tiles_x, tiles_x, TILE=TILE, BLOCK=256),
-            int(torch.cumsum(counts, 0)[-1])),
-        "write pairs": emit,
+        "count + cumsum + size": lambda: int(torch.cumsum(_count_tiles(proj, by_depth, tiles_x, tiles_x, TILE), 0)[-1]),
+        "write pairs": lambda: _write_pairs(proj, by_depth, ends, total, tiles_x, tiles_x, TILE, torch.int16),
         "stable sort, 16-bit keys (shipped)": lambda: torch.sort(tile16, stable=True),
         "stable sort, 32-bit keys": lambda: torch.sort(tile32, stable=True),
         "gather ids": lambda: ids[order],
@@ -91,8 +77,18 @@ def tile_list_rows(name, proj, size):
         "whole tile_lists": lambda: tile_lists(proj, size, size),
     }
     rows = [[name, step, timed(fn, torch.device("cuda"), repeats=10, warmup=3) * 1e3] for step, fn in steps.items()]
-    rows.append([name, f"({total:,} intersections)", None])
+    box = int(((proj.radii[:, 0] >= 0) * _box_tiles(proj, size)).sum())
+    rows.append([name, f"({total:,} intersections; footprint boxes: {box:,})", None])
     return rows
+
+
+def _box_tiles(proj, size):
+    """Tiles of each footprint's box (the reference's lists)."""
+    radii = proj.radii.double()
+    tiles = -(-size // TILE)
+    lo = torch.floor((proj.means2d.double() - radii) / TILE).clamp(0, tiles)
+    hi = torch.ceil((proj.means2d.double() + radii) / TILE).clamp(0, tiles)
+    return (hi - lo).prod(-1).long()
 
 
 def composite(proj, feats, lists, size, passes, skip, grads):
@@ -178,6 +174,7 @@ def main() -> None:
     parser.add_argument("--counts", default="100000,1000000")
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--lists-only", action="store_true")
     args = parser.parse_args()
     command = "python " + " ".join(sys.argv)
     lists, kernels, profiles = [], [], []
@@ -185,7 +182,7 @@ def main() -> None:
         name = f"{count:,} @ {args.size}"
         scene, camera, proj, feats = projected(count, args.size)
         lists += tile_list_rows(name, proj, args.size)
-        kernels += kernel_rows(name, proj, feats, args.size)
+        kernels += [] if args.lists_only else kernel_rows(name, proj, feats, args.size)
         if args.profile:
             profiles += profile_rows(name, scene, camera)
     gpu = torch.cuda.get_device_name()
@@ -193,6 +190,8 @@ def main() -> None:
         print_table(f"Kernels of one render forward+backward ({gpu})", ["scene", "kernel", "calls", "ms"], profiles,
                     command)
     print_table(f"Tile lists, step by step ({gpu})", ["scene", "step", "ms"], lists, command)
+    if args.lists_only:
+        return
     print_table(f"Compositing kernels' settings ({gpu}; shipped: forward {tuple(PASSES[0])}, backward "
                 f"{tuple(PASSES[1])}, skipping)", ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
                                                    "max deviation from shipped", "rel. L2 error vs float64"],

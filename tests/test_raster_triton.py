@@ -82,6 +82,12 @@ def test_compositing_and_every_gradient_match_the_float64_reference(tile, passes
         assert torch.isfinite(a).all() and error <= 1e-5, (name, error)
 
 
+def _on_device(proj):
+    """``proj`` with the fields tile_lists reads on the tests' device."""
+    return dataclasses.replace(proj, **{k: getattr(proj, k).to(DEVICE)
+                                        for k in ("means2d", "conics", "opacities", "radii", "depths")})
+
+
 def _peak_alpha(proj, gauss, tile_x, tile_y, tile, width, height):
     """The largest o * exp(-sigma) (sigma >= 0) of Gaussian ``gauss`` over the pixel centres of one tile
     inside the image, in float64 from the float32 projection (brute force)."""
@@ -121,9 +127,7 @@ def test_tile_lists_keep_every_tile_a_gaussian_reaches_in_the_references_order(s
         radii=torch.cat([proj.radii, torch.full((culled, 2), -1)]),
         depths=torch.cat([torch.full((culled,), -1.0), proj.depths]).roll(-culled))
     for rows in (proj, padded):
-        rows = dataclasses.replace(rows, **{k: getattr(rows, k).to(DEVICE)
-                                            for k in ("means2d", "conics", "opacities", "radii", "depths")})
-        ids, offsets = tile_lists(rows, width, height, tile=TILE)
+        ids, offsets = tile_lists(_on_device(rows), width, height, tile=TILE)
         ids, offsets = ids.long().cpu().tolist(), offsets.long().cpu().tolist()
         for t, (run, peak) in enumerate(zip(boxes, peaks)):
             kept = ids[offsets[t]:offsets[t + 1]]
@@ -147,8 +151,7 @@ def test_lists_given_a_capacity_equal_the_exact_ones_or_say_they_overflowed():
     def lists_of(scale):
         proj = project(scene.means, scene.quats, scene.log_scales + math.log(scale), scene.opacity_logits,
                        cams.world_to_cam[0], cams.intrinsics[0], width, height)
-        return dataclasses.replace(proj, means2d=proj.means2d.to(DEVICE), radii=proj.radii.to(DEVICE),
-                                   depths=proj.depths.to(DEVICE))
+        return _on_device(proj)
 
     def runs(ids, offsets):
         return [ids[offsets[t]:offsets[t + 1]].tolist() for t in range(len(offsets) - 1)]

@@ -33,9 +33,12 @@ from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
 
 TILE = 16  # pixels per tile side
-# The tile test's margins (:func:`_tiles_seen`), relative to the quadratic form's diagonal terms: the
-# compositing's float32 sigma falls short of the exact one by under 1e-6 of them, the test's own by less.
-_TILE_SLACK, _ROUNDING, _ALPHA_MIN = tl.constexpr(1e-5), tl.constexpr(1e-6), tl.constexpr(ALPHA_MIN)
+# The tile test's margins (:func:`_gaussian_level`, :func:`_row_tiles`): the compositing's float32 sigma
+# falls short of the exact one by under 1e-6 of the quadratic form's diagonal terms (slack 1e-5 of
+# them); its float32 pixel offsets are within 1e-7 of their size of the exact ones (margin 1e-6 and
+# 1e-3 px, where float64 rounding needs 1e-12).
+_TILE_SLACK, _REL_MARGIN, _PX_MARGIN = tl.constexpr(1e-5), tl.constexpr(1e-6), tl.constexpr(1e-3)
+_ALPHA_MIN = tl.constexpr(ALPHA_MIN)
 
 
 class Pass(NamedTuple):
@@ -245,82 +248,98 @@ def _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, T
 
 
 @triton.jit
-def _edge_min(a, b, c, edge, lo, hi):
-    """min over u in [lo, hi] of 0.5 a edge^2 + b edge u + 0.5 c u^2 (c > 0) and 0.5 (a edge^2 + c u^2) at
-    that u: one side of a tile against a Gaussian's quadratic form (the other axis fixed at ``edge``)."""
-    u = tl.minimum(tl.maximum(-b * edge / c, lo), hi)
-    scale = 0.5 * (a * edge * edge + c * u * u)
-    return scale + b * edge * u, scale
+def _gaussian_level(conics_ptr, opac_ptr, means2d_ptr, gauss):
+    """Float64 footprint data of Gaussians ``gauss``: the conic (a, b, c) shrunk on its diagonal by
+    _TILE_SLACK (more than the compositing's float32 sigma can fall short of the exact one, relative to
+    the diagonal terms), its determinant, the sigma level log(255 o) (+1e-4: the compositing's exp and
+    products) below which alpha reaches 1/255, and the centre (x, y)."""
+    a = tl.load(conics_ptr + gauss * 3 + 0).to(tl.float64) * (1.0 - _TILE_SLACK)
+    b = tl.load(conics_ptr + gauss * 3 + 1).to(tl.float64)
+    c = tl.load(conics_ptr + gauss * 3 + 2).to(tl.float64) * (1.0 - _TILE_SLACK)
+    level = tl.log(tl.load(opac_ptr + gauss).to(tl.float64) * (1.0 / _ALPHA_MIN)) + 1e-4
+    cx = tl.load(means2d_ptr + gauss * 2 + 0).to(tl.float64)
+    cy = tl.load(means2d_ptr + gauss * 2 + 1).to(tl.float64)
+    return a, b, c, a * c - b * b, level, cx, cy
 
 
 @triton.jit
-def _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x,
-                TILE: tl.constexpr):
-    """Which of the boxes' tiles ``local`` [Gaussians, tiles] (row-major in the box) some pixel centre
-    of sees the Gaussian at alpha >= 1/255, and those tiles' ids. Exact and conservative: the quadratic
-    form sigma is shrunk by TILE_SLACK times its diagonal terms, more than the compositing's float32
-    sigma can fall short of the exact one, and a tile is passed over only when the smallest shrunk
-    sigma over its pixel centres (the centre's cell, else the least over its four sides), less this
-    test's own rounding, is above log(255 o). Any non-finite value keeps the tile."""
-    a = tl.load(conics_ptr + gauss * 3 + 0)[:, None] * (1.0 - _TILE_SLACK)
-    b = tl.load(conics_ptr + gauss * 3 + 1)[:, None]
-    c = tl.load(conics_ptr + gauss * 3 + 2)[:, None] * (1.0 - _TILE_SLACK)
-    level = tl.log(tl.load(opac_ptr + gauss) * (1.0 / _ALPHA_MIN))[:, None] + 1e-4
-    cx = tl.load(means2d_ptr + gauss * 2 + 0)[:, None]
-    cy = tl.load(means2d_ptr + gauss * 2 + 1)[:, None]
-    span = tl.maximum(span_x, 1)[:, None]
-    tx = x0[:, None] + local % span
-    ty = y0[:, None] + local // span
-    x_lo = (tx * TILE).to(tl.float32) + 0.5 - cx  # first and last pixel centres, as the compositing's dx
-    x_hi = (tx * TILE + (TILE - 1)).to(tl.float32) + 0.5 - cx
-    y_lo = (ty * TILE).to(tl.float32) + 0.5 - cy
-    y_hi = (ty * TILE + (TILE - 1)).to(tl.float32) + 0.5 - cy
-    q0, s0 = _edge_min(a, b, c, x_lo, y_lo, y_hi)
-    q1, s1 = _edge_min(a, b, c, x_hi, y_lo, y_hi)
-    q2, s2 = _edge_min(c, b, a, y_lo, x_lo, x_hi)
-    q3, s3 = _edge_min(c, b, a, y_hi, x_lo, x_hi)
-    far = ((q0 - _ROUNDING * s0 > level) & (q1 - _ROUNDING * s1 > level)
-           & (q2 - _ROUNDING * s2 > level) & (q3 - _ROUNDING * s3 > level))
-    centre_in = (x_lo <= 0) & (x_hi >= 0) & (y_lo <= 0) & (y_hi >= 0)
-    seen = (local < count[:, None]) & ~(far & ~centre_in & (a > 0) & (c > 0))
-    return seen, ty * tiles_x + tx
+def _row_tiles(a, b, c, det, level, cx, cy, row, x0, span_x, TILE: tl.constexpr):
+    """The first and last tile columns (within the box's columns x0..x0 + span_x - 1; last < first: none)
+    of tile row ``row`` whose pixel centres reach the Gaussian's {sigma <= level} (see
+    :func:`_gaussian_level`). Where that set is an ellipse, its part within the row's band of pixel
+    centres is convex, so a tile's centres reach it exactly where their x range meets the part's x
+    range: the ellipse's x at the band's y nearest the ellipse's right- and leftmost points, widened by
+    _PX_MARGIN px and _REL_MARGIN of the terms (float64 rounding, the compositing's float32 offsets).
+    Elsewhere (a shrunk form that is not positive definite, non-finite values) the whole box row."""
+    y_lo = (row * TILE).to(tl.float64) + 0.5 - cy
+    y_hi = y_lo + (TILE - 1)
+    widen_y = _PX_MARGIN + _REL_MARGIN * tl.maximum(tl.abs(y_lo), tl.abs(y_hi))
+    reach = tl.sqrt(tl.maximum(2.0 * a * level, 0.0))  # a * the ellipse's x half width at dy = 0
+    half_h = reach / tl.sqrt(det)  # the ellipse's y half height
+    lo = tl.maximum(y_lo - widen_y, -half_h)
+    hi = tl.minimum(y_hi + widen_y, half_h)
+    peak = -b * half_h / tl.sqrt(a * c)  # dy of the rightmost point (the leftmost at -peak)
+    dy_r = tl.minimum(tl.maximum(peak, lo), hi)
+    dy_l = tl.minimum(tl.maximum(-peak, lo), hi)
+    right = (-b * dy_r + tl.sqrt(tl.maximum(reach * reach - det * dy_r * dy_r, 0.0))) / a
+    left = (-b * dy_l - tl.sqrt(tl.maximum(reach * reach - det * dy_l * dy_l, 0.0))) / a
+    widen_x = _PX_MARGIN + _REL_MARGIN * ((tl.abs(b) * tl.maximum(tl.abs(lo), tl.abs(hi)) + reach) / a
+                                          + tl.abs(cx))
+    first_x = tl.math.ceil((cx + left - widen_x - (TILE - 0.5)) / TILE)
+    last_x = tl.math.floor((cx + right + widen_x - 0.5) / TILE)
+    box_last = x0 + span_x - 1
+    ellipse = (a > 0) & (c > 0) & (det > 0) & (level == level) & (tl.abs(cx) < 1e18) & (tl.abs(cy) < 1e18)
+    empty = ellipse & ((level < 0) | (lo > hi))
+    first = tl.where(ellipse, tl.minimum(tl.maximum(first_x, x0.to(tl.float64)), box_last + 1.0), x0)
+    last = tl.where(ellipse, tl.minimum(tl.maximum(last_x, x0 - 1.0), box_last.to(tl.float64)), box_last)
+    last = tl.where(empty, x0 - 1, last)
+    return first.to(tl.int32), last.to(tl.int32)
 
 
 @triton.jit
 def _count_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, counts_ptr, n, tiles_x, tiles_y,
-                  TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
-    """counts[i]: tiles that see the i-th Gaussian in depth order (:func:`_tiles_seen`)."""
+                  TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_R: tl.constexpr):
+    """counts[i]: the tiles whose pixel centres the i-th Gaussian in depth order reaches at alpha >=
+    1/255 (:func:`_row_tiles`, box row by box row, BLOCK_R rows at a time)."""
     i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
     inside = i < n
     gauss, x0, y0, span_x, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
-    seen_count = tl.zeros([BLOCK_G], tl.int32)
-    for k in range(0, tl.max(count, axis=0), BLOCK_T):
-        local = k + tl.arange(0, BLOCK_T)[None, :]
-        seen, _ = _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x, TILE)
-        seen_count += tl.sum(seen.to(tl.int32), axis=1)
-    tl.store(counts_ptr + i, seen_count, mask=inside)
+    span_y = tl.where(count > 0, count // tl.maximum(span_x, 1), 0)
+    a, b, c, det, level, cx, cy = _gaussian_level(conics_ptr, opac_ptr, means2d_ptr, gauss)
+    total = tl.zeros([BLOCK_G], tl.int32)
+    for k in range(0, tl.max(span_y, axis=0), BLOCK_R):
+        rows = k + tl.arange(0, BLOCK_R)[None, :]
+        first, last = _row_tiles(a[:, None], b[:, None], c[:, None], det[:, None], level[:, None], cx[:, None],
+                                 cy[:, None], y0[:, None] + rows, x0[:, None], span_x[:, None], TILE)
+        total += tl.sum(tl.where(rows < span_y[:, None], tl.maximum(last - first + 1, 0), 0), axis=1)
+    tl.store(counts_ptr + i, total, mask=inside)
 
 
 @triton.jit
 def _emit_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n,
                  tiles_x, tiles_y, room, TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
-    """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs, one per tile that sees
-    it in its box's row-major order, to ends[i - 1]..ends[i] (ends: the counts' inclusive sums), those
-    below ``room`` (the lists' length); one program writes those of BLOCK_G Gaussians, BLOCK_T box
-    tiles at a time."""
+    """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs, row by row of its box
+    (the tiles :func:`_count_kernel` counted), to ends[i - 1]..ends[i] (ends: the counts' inclusive
+    sums), those below ``room`` (the lists' length); one program writes those of BLOCK_G Gaussians,
+    BLOCK_T tiles of a row at a time."""
     i = tl.program_id(0) * BLOCK_G + tl.arange(0, BLOCK_G)
     inside = i < n
     gauss, x0, y0, span_x, count = _tile_rect(means2d_ptr, radii_ptr, order_ptr, i, inside, tiles_x, tiles_y, TILE)
-    where_next = tl.load(ends_ptr + i - 1, mask=inside & (i > 0), other=0)  # the pairs of earlier Gaussians
-    for k in range(0, tl.max(count, axis=0), BLOCK_T):
-        local = k + tl.arange(0, BLOCK_T)[None, :]
-        seen, tile = _tiles_seen(conics_ptr, opac_ptr, means2d_ptr, gauss, x0, y0, span_x, count, local, tiles_x, TILE)
-        hits = seen.to(tl.int32)
-        where = where_next[:, None] + tl.cumsum(hits, axis=1) - hits
-        mask = seen & (where < room)
-        tl.store(tile_ptr + where, tile.to(tile_ptr.dtype.element_ty), mask=mask)
-        tl.store(id_ptr + where, gauss[:, None].to(tl.int32) + tl.zeros_like(local), mask=mask)
-        where_next += tl.sum(hits, axis=1)
+    span_y = tl.where(count > 0, count // tl.maximum(span_x, 1), 0)
+    a, b, c, det, level, cx, cy = _gaussian_level(conics_ptr, opac_ptr, means2d_ptr, gauss)
+    where = tl.load(ends_ptr + i - 1, mask=inside & (i > 0), other=0)  # the pairs of earlier Gaussians
+    cols = tl.arange(0, BLOCK_T)[None, :]
+    for r in range(0, tl.max(span_y, axis=0)):
+        first, last = _row_tiles(a, b, c, det, level, cx, cy, y0 + r, x0, span_x, TILE)
+        width = tl.where(r < span_y, tl.maximum(last - first + 1, 0), 0)
+        for k in range(0, tl.max(width, axis=0), BLOCK_T):
+            local = k + cols
+            at = where[:, None] + local
+            mask = (local < width[:, None]) & (at < room)
+            tile = (y0 + r)[:, None] * tiles_x + first[:, None] + local
+            tl.store(tile_ptr + at, tile.to(tile_ptr.dtype.element_ty), mask=mask)
+            tl.store(id_ptr + at, gauss[:, None].to(tl.int32) + tl.zeros_like(local), mask=mask)
+        where += width
 
 
 class ListCapacity:
@@ -377,8 +396,39 @@ class ListCapacity:
         return False
 
 
+def _footprint_inputs(proj: Projection) -> tuple[torch.Tensor, ...]:
+    """What the tile kernels read of a projection: means2d, radii, conics, opacities (detached, contiguous)."""
+    return (proj.means2d.detach().contiguous(), proj.radii.contiguous(), proj.conics.detach().contiguous(),
+            proj.opacities.detach().contiguous())
+
+
+def _count_tiles(proj: Projection, by_depth: torch.Tensor, tiles_x: int, tiles_y: int, tile: int) -> torch.Tensor:
+    """counts [max(N, 1)] int32: the tiles each Gaussian in depth order ``by_depth`` reaches."""
+    n = len(by_depth)
+    counts = torch.zeros(max(n, 1), dtype=torch.int32, device=by_depth.device)
+    if n:
+        _count_kernel[(triton.cdiv(n, 64),)](*_footprint_inputs(proj), by_depth, counts, n, tiles_x, tiles_y,
+                                             TILE=tile, BLOCK_G=64, BLOCK_R=4, num_warps=4)
+    return counts
+
+
+def _write_pairs(proj: Projection, by_depth: torch.Tensor, ends: torch.Tensor, room: int, tiles_x: int, tiles_y: int,
+                 tile: int, key: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (tile id [room] ``key``, Gaussian id [room] int32) pairs in depth order, the Gaussians'
+    counts' inclusive sums ``ends`` locating each one's; entries past the last hold the tile id
+    ``tiles_x * tiles_y`` and Gaussian 0."""
+    tile_id = torch.full((room,), tiles_x * tiles_y, dtype=key, device=by_depth.device)
+    ids = torch.zeros(room, dtype=torch.int32, device=by_depth.device)
+    n = len(by_depth)
+    if room and n:
+        _emit_kernel[(triton.cdiv(n, 32),)](*_footprint_inputs(proj), by_depth, ends, tile_id, ids, n, tiles_x,
+                                            tiles_y, room, TILE=tile, BLOCK_G=32, BLOCK_T=8, num_warps=1)
+    return tile_id, ids
+
+
 def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capacity: ListCapacity | None = None):
-    """Depth-sorted Gaussian lists per tile, as the reference's ``_tile_lists`` orders them.
+    """Depth-sorted Gaussian lists per tile: the reference's ``_tile_lists`` (footprint boxes) less the
+    tiles whose pixel centres a Gaussian cannot reach at alpha >= 1/255 (:func:`_row_tiles`).
 
     Gaussians with negative radii (culled by :mod:`.triton_projection`, which keeps all N) get no tiles.
     Returns (ids [I] int32 indices into the projection, grouped by tile, depth-sorted within one,
@@ -390,18 +440,10 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capa
     """
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     tiles = tiles_x * tiles_y
-    device = proj.means2d.device
-    n = len(proj.depths)
     key = torch.int16 if tiles < 2**15 else torch.int32  # tile ids and the bound ``tiles`` fit
     with torch.no_grad():
         by_depth = torch.argsort(proj.depths, stable=True)
-        means2d, radii = proj.means2d.detach().contiguous(), proj.radii.contiguous()
-        conics, opacities = proj.conics.detach().contiguous(), proj.opacities.detach().contiguous()
-        counts = torch.zeros(max(n, 1), dtype=torch.int32, device=device)
-        if n:
-            _count_kernel[(triton.cdiv(n, 32),)](means2d, radii, conics, opacities, by_depth, counts, n, tiles_x,
-                                                 tiles_y, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
-        ends = torch.cumsum(counts, 0)
+        ends = torch.cumsum(_count_tiles(proj, by_depth, tiles_x, tiles_y, tile), 0)
         if capacity is None or capacity.room is None:
             room = int(ends[-1])
             if capacity is not None:
@@ -409,14 +451,10 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capa
         else:
             room = capacity.room
             capacity.record(ends[-1:])
-        tile_id = torch.full((room,), tiles, dtype=key, device=device)
-        ids = torch.zeros(room, dtype=torch.int32, device=device)
-        if room and n:
-            _emit_kernel[(triton.cdiv(n, 32),)](means2d, radii, conics, opacities, by_depth, ends, tile_id, ids, n,
-                                                tiles_x, tiles_y, room, TILE=tile, BLOCK_G=32, BLOCK_T=32, num_warps=4)
+        tile_id, ids = _write_pairs(proj, by_depth, ends, room, tiles_x, tiles_y, tile, key)
         tile_id, order = torch.sort(tile_id, stable=True)
         ids = ids[order]
-        offsets = torch.searchsorted(tile_id, torch.arange(tiles + 1, device=device, dtype=key), out_int32=True)
+        offsets = torch.searchsorted(tile_id, torch.arange(tiles + 1, device=ids.device, dtype=key), out_int32=True)
     return ids, offsets
 
 
