@@ -16,7 +16,10 @@ relative gradient error against the reference rasterizer in float64, for
 - ``torch`` (the reference rasterizer in float32, the float32 floor).
 
 With ``--speed``: forward and forward+backward milliseconds per 512x512 and 1024x1024 frame of
-random scenes for ``triton``, ``gsplat``, ``gsplat fused`` and ``torch``. ``--out`` gets the rows as JSON.
+random scenes for ``triton`` (``render()``, which checks its inputs and waits for the intersection
+count), ``triton, as the finetune renders`` (inputs checked once, tile lists sized from earlier
+counts: no wait; ``common.finetune_render``), ``gsplat``, ``gsplat fused`` and ``torch``. ``--out``
+gets the rows as JSON.
 Needs CUDA and gsplat.
 """
 
@@ -31,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import orbit_cameras, print_table, random_scene, timed
+from common import finetune_render, orbit_cameras, print_table, random_scene, timed
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from artnvg_core.cameras import normalize_quats  # noqa: E402
@@ -112,6 +115,7 @@ def speed_rows(counts: list[int], sizes=(512, 1024)) -> list[list]:
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
             runs = {"triton": lambda s: render(s, camera, backend="triton").rgb,
+                    "triton, as the finetune renders": finetune_render(camera),
                     "gsplat": lambda s: render(s, camera, backend="gsplat").rgb,
                     "gsplat fused": lambda s: fused_render(s, camera)[0],
                     "torch": lambda s: render(s, camera, backend="torch").rgb}

@@ -5,7 +5,8 @@
 
 Speed: forward and forward+backward time per frame (median of 5 after 2 warm-ups,
 synchronised on CUDA) and peak CUDA memory, on random scenes viewed from an orbit, for the
-backends (torch, triton and, where installed, gsplat) and gsplat's own fused ``rasterization()``.
+backends (torch, triton and, where installed, gsplat), triton as the finetune renders (inputs checked
+once, no wait: ``common.finetune_render``) and gsplat's own fused ``rasterization()``.
 Accuracy: each backend against the float64 brute-force evaluator (tests/raster_reference.py)
 on a small random scene, max abs error and PSNR of the images.
 ``--stages N``: where the triton backend's time goes for N Gaussians at the largest size (the
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import orbit_cameras, peak_memory, print_table, random_scene, timed
+from common import finetune_render, orbit_cameras, peak_memory, print_table, random_scene, timed
 from gsplat_parity import fused_render
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -49,6 +50,8 @@ def speed_rows(device, sizes, counts):
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
             paths = {name: (lambda s, name=name: render(s, camera, backend=name).rgb) for name in backends_for(device)}
+            if "triton" in paths:
+                paths["triton, as the finetune renders"] = finetune_render(camera)
             if device.type == "cuda" and gsplat_available():
                 paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
             for backend, run in paths.items():

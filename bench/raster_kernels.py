@@ -14,8 +14,8 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   the largest magnitude, and the largest relative L2 error of the same against the reference
   compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
-``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render forward+backward by total time (torch.profiler).
-Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
+``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render
+forward+backward by total time (torch.profiler). Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
 """
 
 from __future__ import annotations

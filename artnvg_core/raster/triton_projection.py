@@ -2,8 +2,9 @@
 Gaussians at once, what :func:`.projection.project` and :func:`.sh.sh_to_color` compute (the
 reference, kept for the torch and gsplat backends), and two more give the gradients (the colours',
 then the geometry's), the vector-Jacobian products derived by hand (the module's comments give each
-step). The SH coefficients move as one [Gaussians, coefficients] block per channel: Triton's
-compile time grows with a kernel's memory operations faster than linearly (its coalescing pass), so
+step). A Gaussian's SH coefficients (and their gradients) move as one contiguous row of all channels,
+the channels told apart by column: one load and one store, coalesced, where a block per channel read
+and wrote every third float; and Triton's compile time grows with a kernel's memory operations faster than linearly (its coalescing pass), so
 few operations and two small backward kernels compile in a third of the time one large one took.
 
 Same semantics as the reference: camera-space mean, culling (near plane, opacity >= 1/255, on
@@ -218,11 +219,11 @@ def _basis_grad(k: tl.constexpr, x, y, z):
 
 
 @triton.jit
-def _basis_rows(x, y, z, cols, DEGREE: tl.constexpr):
-    """The SH basis as rows [BLOCK, KP]: column 0 is SH_C0, column k the basis value k (0 past
-    ``DEGREE``), so a Gaussian's colour is its row times its coefficients summed."""
+def _basis_rows(x, y, z, k, DEGREE: tl.constexpr):
+    """The SH basis as rows [BLOCK, W]: a column of basis index ``k`` [W] holds SH_C0 (k = 0) or basis
+    value k (0 past ``DEGREE`` and past 15)."""
     b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15 = _basis(x, y, z, DEGREE)
-    k = cols[None, :]
+    k = k[None, :]
     rows = tl.where(k == 0, _C0, 0.0) + tl.zeros_like(x)[:, None]
     if DEGREE > 0:
         rows = tl.where(k == 1, b1[:, None], tl.where(k == 2, b2[:, None], tl.where(k == 3, b3[:, None], rows)))
@@ -237,18 +238,35 @@ def _basis_rows(x, y, z, cols, DEGREE: tl.constexpr):
 
 
 @triton.jit
-def _coefficients(sh_ptr, i, cols, live, ch: tl.constexpr, K: tl.constexpr, DEGREE: tl.constexpr):
-    """Channel ``ch``'s SH coefficients of Gaussians ``i`` as rows [BLOCK, KP] (0 past ``DEGREE``): one
-    load, whatever the degree (a kernel of few memory operations compiles in a fraction of the time)."""
-    used = live[:, None] & (cols[None, :] < (DEGREE + 1) * (DEGREE + 1))
-    return tl.load(sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, mask=used, other=0.0)
+def _sh_rows(sh_ptr, i, live, K: tl.constexpr, W: tl.constexpr, DEGREE: tl.constexpr):
+    """The SH coefficients of Gaussians ``i`` as rows [BLOCK, W] in memory order (column c: coefficient
+    c // 3 of channel c % 3; 0 past ``DEGREE``), the basis index and channel of each column [W]: one
+    contiguous load per Gaussian, whatever the degree (a kernel of few memory operations also
+    compiles in a fraction of the time)."""
+    cols = tl.arange(0, W)
+    used = live[:, None] & (cols[None, :] < 3 * (DEGREE + 1) * (DEGREE + 1))
+    return tl.load(sh_ptr + i[:, None] * (K * 3) + cols[None, :], mask=used, other=0.0), cols // 3, cols % 3
+
+
+@triton.jit
+def _channel_sums(rows, channel):
+    """Each channel's sum over its columns of ``rows`` [BLOCK, W] (column channels ``channel`` [W])."""
+    return (tl.sum(tl.where(channel[None, :] == 0, rows, 0.0), axis=1),
+            tl.sum(tl.where(channel[None, :] == 1, rows, 0.0), axis=1),
+            tl.sum(tl.where(channel[None, :] == 2, rows, 0.0), axis=1))
+
+
+@triton.jit
+def _unclamped_grad(g_ptr, color, keep):
+    """A colour's gradient where the forward's clamp to [0, COLOR_MAX] let the colour through, else 0."""
+    return tl.where((color >= 0) & (color <= _COLOR_MAX), tl.load(g_ptr, mask=keep, other=0.0), 0.0)
 
 
 @triton.jit
 def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_ptr,
                     means2d_ptr, conics_ptr, depths_ptr, opac_ptr, colors_ptr, radii_ptr,
                     n, width, height, near, blur,
-                    K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr,
+                    K: tl.constexpr, W: tl.constexpr, DEGREE: tl.constexpr, AA: tl.constexpr,
                     BLOCK: tl.constexpr):
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = i < n
@@ -285,16 +303,16 @@ def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_pt
     tl.store(opac_ptr + i, opacity, mask=live)
     # colours: SH(dir) + 0.5, clamped to [0, COLOR_MAX]
     dx, dy, dz, _, _ = _direction(means_ptr, cam_ptr, i, live)
-    cols = tl.arange(0, KP)
-    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
-    for ch in tl.static_range(3):
-        result = tl.sum(basis * _coefficients(sh_ptr, i, cols, live, ch, K, DEGREE), axis=1)
-        tl.store(colors_ptr + i * 3 + ch, tl.minimum(tl.maximum(result + 0.5, 0.0), _COLOR_MAX), mask=live)
+    coefficients, k, channel = _sh_rows(sh_ptr, i, live, K, W, DEGREE)
+    r, g, b = _channel_sums(_basis_rows(dx, dy, dz, k, DEGREE) * coefficients, channel)
+    tl.store(colors_ptr + i * 3 + 0, tl.minimum(tl.maximum(r + 0.5, 0.0), _COLOR_MAX), mask=live)
+    tl.store(colors_ptr + i * 3 + 1, tl.minimum(tl.maximum(g + 0.5, 0.0), _COLOR_MAX), mask=live)
+    tl.store(colors_ptr + i * 3 + 2, tl.minimum(tl.maximum(b + 0.5, 0.0), _COLOR_MAX), mask=live)
 
 
 @triton.jit
 def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, g_means_ptr, g_sh_ptr, n,
-                           K: tl.constexpr, KP: tl.constexpr, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
+                           K: tl.constexpr, W: tl.constexpr, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
     """Gradients of the colours: all of the SH coefficients' (g_sh) and the means' through the viewing
     direction (g_means, which :func:`_backward_kernel` then completes); a kernel of its own, as two small
     kernels compile in far less time than their sum (Triton's coalescing pass grows faster than the
@@ -304,23 +322,23 @@ def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, 
     i = i.to(tl.int64)
     keep = live & (tl.load(radii_ptr + i * 2, mask=live, other=-1) >= 0)
     dx, dy, dz, dlen, dfree = _direction(means_ptr, cam_ptr, i, live)
-    cols = tl.arange(0, KP)
-    basis = _basis_rows(dx, dy, dz, cols, DEGREE)
-    weights = tl.zeros_like(basis)  # d loss / d basis value, summed over the channels
-    for ch in tl.static_range(3):
-        coefficients = _coefficients(sh_ptr, i, cols, keep, ch, K, DEGREE)
-        color = tl.sum(basis * coefficients, axis=1) + 0.5
-        g_res = tl.load(g_colors_ptr + i * 3 + ch, mask=keep, other=0.0)
-        g_res = tl.where((color >= 0) & (color <= _COLOR_MAX), g_res, 0.0)
-        tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :] * 3 + ch, g_res[:, None] * basis,
-                 mask=live[:, None] & (cols[None, :] < K))
-        weights += g_res[:, None] * coefficients
+    coefficients, k, channel = _sh_rows(sh_ptr, i, keep, K, W, DEGREE)
+    basis = _basis_rows(dx, dy, dz, k, DEGREE)
+    r, g, b = _channel_sums(basis * coefficients, channel)
+    g_r = _unclamped_grad(g_colors_ptr + i * 3 + 0, r + 0.5, keep)
+    g_g = _unclamped_grad(g_colors_ptr + i * 3 + 1, g + 0.5, keep)
+    g_b = _unclamped_grad(g_colors_ptr + i * 3 + 2, b + 0.5, keep)
+    g_color = tl.where(channel[None, :] == 0, g_r[:, None], tl.where(channel[None, :] == 1, g_g[:, None], g_b[:, None]))
+    cols = tl.arange(0, W)
+    tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :], g_color * basis,
+             mask=live[:, None] & (cols[None, :] < K * 3))
+    weights = g_color * coefficients  # d loss / d basis value, per column
     ddx = tl.zeros_like(basis)  # d basis / d direction, as rows
     ddy = tl.zeros_like(basis)
     ddz = tl.zeros_like(basis)
-    for k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-        kx, ky, kz = _basis_grad(k, dx, dy, dz)
-        column = cols[None, :] == k
+    for basis_k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
+        kx, ky, kz = _basis_grad(basis_k, dx, dy, dz)
+        column = k[None, :] == basis_k
         ddx = tl.where(column, kx[:, None], ddx)
         ddy = tl.where(column, ky[:, None], ddy)
         ddz = tl.where(column, kz[:, None], ddz)
@@ -474,7 +492,7 @@ class _ProjectColor(torch.autograd.Function):
         depths, opacities, colors = means.new_empty(n), means.new_empty(n), means.new_empty(n, 3)
         radii = torch.empty(n, 2, dtype=torch.long, device=means.device)
         _forward_kernel[(triton.cdiv(n, BLOCK),)](*inputs, means2d, conics, depths, opacities, colors, radii,
-                                                  n, width, height, near, blur, K=k, KP=triton.next_power_of_2(k),
+                                                  n, width, height, near, blur, K=k, W=triton.next_power_of_2(3 * k),
                                                   DEGREE=degree, AA=antialiased, BLOCK=BLOCK, num_warps=4)
         ctx.save_for_backward(*inputs, radii)
         ctx.settings = settings
@@ -492,7 +510,7 @@ class _ProjectColor(torch.autograd.Function):
         g_means, g_quats, g_scales, g_logits, g_sh = (torch.empty_like(t) for t in (means, quats, log_scales, logits, sh))
         grid = (triton.cdiv(n, BLOCK),)
         _color_backward_kernel[grid](means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
-                                     KP=triton.next_power_of_2(sh.shape[1]), DEGREE=degree, BLOCK=BLOCK, num_warps=4)
+                                     W=triton.next_power_of_2(3 * sh.shape[1]), DEGREE=degree, BLOCK=BLOCK, num_warps=4)
         _backward_kernel[grid](means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats,
                                g_scales, g_logits, n, width, height, near, blur, AA=antialiased, BLOCK=BLOCK,
                                num_warps=4)
