@@ -30,6 +30,7 @@ from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
 from .sh import COLOR_MAX, SH_C1, SH_C2, SH_C3
 
 BLOCK = 128  # Gaussians per program
+COLOR_BLOCK = 32  # per program of the colours' backward, whose seven [Gaussians, 3 K] blocks would spill at 128
 # the kernels' constants (Triton reads globals only as constexpr)
 TINY64 = tl.constexpr(2.2250738585072014e-308)  # float64's smallest normal: the determinant's floor, as the reference's
 _ALPHA_MIN, _MAX_EXTENT, _MAX_RADIUS = tl.constexpr(ALPHA_MIN), tl.constexpr(MAX_EXTENT), tl.constexpr(MAX_RADIUS_PX)
@@ -508,10 +509,10 @@ class _ProjectColor(torch.autograd.Function):
                     for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)),
                                      (g_opacities, (n,)), (g_colors, (n, 3)))]
         g_means, g_quats, g_scales, g_logits, g_sh = (torch.empty_like(t) for t in (means, quats, log_scales, logits, sh))
-        grid = (triton.cdiv(n, BLOCK),)
-        _color_backward_kernel[grid](means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
-                                     W=triton.next_power_of_2(3 * sh.shape[1]), DEGREE=degree, BLOCK=BLOCK, num_warps=4)
-        _backward_kernel[grid](means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats,
+        _color_backward_kernel[(triton.cdiv(n, COLOR_BLOCK),)](
+            means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
+            W=triton.next_power_of_2(3 * sh.shape[1]), DEGREE=degree, BLOCK=COLOR_BLOCK, num_warps=4)
+        _backward_kernel[(triton.cdiv(n, BLOCK),)](means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats,
                                g_scales, g_logits, n, width, height, near, blur, AA=antialiased, BLOCK=BLOCK,
                                num_warps=4)
         return g_means, g_quats, g_scales, g_logits, g_sh, None, None
