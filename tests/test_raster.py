@@ -8,7 +8,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from artnvg_core.cameras import CameraSet
-from artnvg_core.raster import render
+from artnvg_core.raster import check_render_inputs, render
 from artnvg_core.scene import GaussianScene
 
 from raster_reference import brute_force_render
@@ -188,11 +188,11 @@ def test_backward_through_a_render_that_shows_nothing_gives_zero_gradients(cull)
         (lambda t: t.__setitem__(("means", 0, 0), float("nan")), "means"),
         (lambda t: t.__setitem__(("log_scales", 1, 2), float("inf")), "log_scales"),
         (lambda t: t.__setitem__(("sh", 0, 0, 0), float("nan")), "sh"),
+        (lambda t: t.__setitem__(("opacity_logits", 4), float("-inf")), "opacity_logits"),
     ],
 )
 def test_invalid_inputs_rejected(mutate, field):
     params = {k: v.clone() for k, v in hard_scene(0, n=5).tensors().items()}
-    key_tensor = {}
 
     class Setter:
         def __setitem__(self, key, value):
@@ -200,9 +200,27 @@ def test_invalid_inputs_rejected(mutate, field):
             params[name][tuple(idx)] = value
 
     mutate(Setter())
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=f"scene.{field} has non-finite"):
         render(GaussianScene(**params), make_cameras(EYES[:1]), backend="torch")
-    del key_tensor
+
+
+def test_input_checks_read_the_device_once(monkeypatch):
+    """render's value checks (every scene tensor finite, the cameras finite, positive focal lengths) are
+    reduced where the tensors live and read back together: one wait for the device, not one a check."""
+    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1])
+    reads = []
+    for method in ("tolist", "item", "__bool__"):
+        original = getattr(torch.Tensor, method)
+        def counted(self, *args, _original=original, _name=method):
+            reads.append(_name)
+            return _original(self, *args)
+
+        monkeypatch.setattr(torch.Tensor, method, counted)
+    check_render_inputs(scene, cams)
+    assert reads == ["tolist"]
+    broken = CameraSet(cams.world_to_cam * float("nan"), cams.intrinsics, 40, 32, ["x"])
+    with pytest.raises(ValueError, match="non-finite poses"):
+        check_render_inputs(scene, broken)
 
 
 def test_bad_arguments_rejected():

@@ -89,22 +89,30 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
                         background: torch.Tensor | None = None) -> None:
     """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the scene's
     tensors finite and on its device, finite camera poses and intrinsics with positive focal lengths,
-    the background's shape. The checks wait for the device (each reads a result back)."""
+    the background's shape. The value checks are reduced on the device and read back together: one
+    wait for the device (one per device where the cameras live elsewhere)."""
     sh_degree = scene.sh_degree if sh_degree is None else sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
+    if background is not None and tuple(background.shape) not in ((3,), (len(cameras), 3)):
+        raise ValueError(f"render: background must have shape (3,) or ({len(cameras)}, 3), got {tuple(background.shape)}")
+    checks = []  # (message if false, device bool scalar), in the order they are reported
     for name, value in scene.tensors().items():
         if value.device != scene.device:
             raise ValueError(f"render: scene.{name} is on {value.device}, expected {scene.device}")
-        if not torch.isfinite(value).all():
-            raise ValueError(f"render: scene.{name} has non-finite values")
-    if not (torch.isfinite(cameras.world_to_cam).all() and torch.isfinite(cameras.intrinsics).all()):
-        raise ValueError("render: cameras have non-finite poses or intrinsics")
-    focal = cameras.intrinsics[:, [0, 1], [0, 1]]
-    if (focal <= 0).any():
-        raise ValueError("render: cameras.intrinsics must have positive focal lengths fx, fy")
-    if background is not None and tuple(background.shape) not in ((3,), (len(cameras), 3)):
-        raise ValueError(f"render: background must have shape (3,) or ({len(cameras)}, 3), got {tuple(background.shape)}")
+        checks.append((f"render: scene.{name} has non-finite values", torch.isfinite(value).all()))
+    checks.append(("render: cameras have non-finite poses or intrinsics",
+                   torch.isfinite(cameras.world_to_cam).all() & torch.isfinite(cameras.intrinsics).all()))
+    checks.append(("render: cameras.intrinsics must have positive focal lengths fx, fy",
+                   (cameras.intrinsics[:, [0, 1], [0, 1]] > 0).all()))
+    passed = [True] * len(checks)
+    for device in {flag.device for _, flag in checks}:
+        where = [i for i, (_, flag) in enumerate(checks) if flag.device == device]
+        for i, ok in zip(where, torch.stack([checks[i][1] for i in where]).tolist()):
+            passed[i] = ok
+    for (message, _), ok in zip(checks, passed):
+        if not ok:
+            raise ValueError(message)
 
 
 def render(
