@@ -3,7 +3,7 @@
     python bench/raster.py [--device cpu|cuda] [--sizes 512,1024] [--counts 100000,1000000]
                            [--stages 1000000] [--first-use]
 
-Speed: forward and forward+backward time per frame (median of 5 after 2 warm-ups,
+Speed: forward and forward+backward time per frame (median of 5 after 1 warm-up,
 synchronised on CUDA) and peak CUDA memory, on random scenes viewed from an orbit, for the
 backends (torch, triton and, where installed, gsplat), triton as the finetune renders (inputs checked
 once, no wait: ``common.finetune_render``) and gsplat's own fused ``rasterization()``.

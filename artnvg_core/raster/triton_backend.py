@@ -7,8 +7,10 @@ alpha = min(0.999, o * exp(-sigma)), samples with sigma < 0 or alpha < 1/255 ski
 in depth order (ties in projection order) stopping before the first Gaussian that would bring the
 transmittance to <= 1e-4.
 
-Tile lists: kernels count and write each Gaussian's (tile, Gaussian) pairs in depth order, and one
-stable radix sort by tile groups them. Compositing: each Triton program owns a few pixel rows of one
+Tile lists: kernels count and write each Gaussian's (tile, Gaussian) pairs in depth order, one per
+tile of its footprint box whose pixel centres it reaches at alpha >= 1/255 (found tile row by tile
+row, conservatively: the samples left out are ones the compositing skips), and one stable radix sort
+by tile groups them. Compositing: each Triton program owns a few pixel rows of one
 ``tile`` x ``tile`` tile (:class:`Pass`) and walks the tile's list ``chunk`` Gaussians at a time as
 a [pixels, chunk] block, passing over blocks none of its pixels uses. The forward pass keeps per pixel
 the final transmittance and the end of the list prefix that contributed; the backward pass replays

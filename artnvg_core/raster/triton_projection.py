@@ -4,8 +4,9 @@ reference, kept for the torch and gsplat backends), and two more give the gradie
 then the geometry's), the vector-Jacobian products derived by hand (the module's comments give each
 step). A Gaussian's SH coefficients (and their gradients) move as one contiguous row of all channels,
 the channels told apart by column: one load and one store, coalesced, where a block per channel read
-and wrote every third float; and Triton's compile time grows with a kernel's memory operations faster than linearly (its coalescing pass), so
-few operations and two small backward kernels compile in a third of the time one large one took.
+and wrote every third float. Triton's compile time grows with a kernel's memory operations faster
+than linearly (its coalescing pass), so few operations and two small backward kernels compile in a
+third of the time one large one took.
 
 Same semantics as the reference: camera-space mean, culling (near plane, opacity >= 1/255, on
 screen), means2d, conics, depth, opacity (antialiased compensation when asked), radii and colours
@@ -30,7 +31,7 @@ from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
 from .sh import COLOR_MAX, SH_C1, SH_C2, SH_C3
 
 BLOCK = 128  # Gaussians per program
-COLOR_BLOCK = 32  # per program of the colours' backward, whose seven [Gaussians, 3 K] blocks would spill at 128
+COLOR_BLOCK = 32  # per program of the colours' backward (its seven [Gaussians, 3 K] blocks spill at 128)
 # the kernels' constants (Triton reads globals only as constexpr)
 TINY64 = tl.constexpr(2.2250738585072014e-308)  # float64's smallest normal: the determinant's floor, as the reference's
 _ALPHA_MIN, _MAX_EXTENT, _MAX_RADIUS = tl.constexpr(ALPHA_MIN), tl.constexpr(MAX_EXTENT), tl.constexpr(MAX_RADIUS_PX)
@@ -512,9 +513,9 @@ class _ProjectColor(torch.autograd.Function):
         _color_backward_kernel[(triton.cdiv(n, COLOR_BLOCK),)](
             means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
             W=triton.next_power_of_2(3 * sh.shape[1]), DEGREE=degree, BLOCK=COLOR_BLOCK, num_warps=4)
-        _backward_kernel[(triton.cdiv(n, BLOCK),)](means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats,
-                               g_scales, g_logits, n, width, height, near, blur, AA=antialiased, BLOCK=BLOCK,
-                               num_warps=4)
+        _backward_kernel[(triton.cdiv(n, BLOCK),)](
+            means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats, g_scales, g_logits, n,
+            width, height, near, blur, AA=antialiased, BLOCK=BLOCK, num_warps=4)
         return g_means, g_quats, g_scales, g_logits, g_sh, None, None
 
 
