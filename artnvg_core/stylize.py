@@ -216,8 +216,8 @@ def stylize_diffusion(
         compile_blocks (`bool`, defaults to False): compile the repeated blocks (:func:`load_models_for`;
             full memory only); on one device the compile artifacts are saved after the diffusion stage
             for the next run (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`).
-        loading_progress (`ProgressFn` or None, defaults to None): called after each model file is loaded,
-            in bytes (one device; the workers of several load their own).
+        loading_progress (`ProgressFn` or None, defaults to None): called in bytes as each model file starts
+            loading and once when all are (one device; the workers of several load their own).
         sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises

@@ -27,6 +27,7 @@ from common import print_table, synchronize
 from model_files import write_model_files
 
 from artnvg_core.diffusion.architectures import SDXL_UNET_CONFIG
+from artnvg_core.diffusion.model_cache import file_key
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.diffusion.models import load_controlnet, load_diffusion_models, load_image_encoder
 from artnvg_core.diffusion.sdxl_config import built_in_sdxl_config
@@ -61,7 +62,7 @@ def main() -> None:
     rows = []
     for name, load in loaders.items():
         paths = [path for _, path in four.items()] if name == "all four" else [files[name.split(",")[0]]]
-        size = sum(f.stat().st_size for path in paths for f in [path, *path.rglob("*")] if f.is_file())
+        size = sum(size for path in paths for _, size, _ in file_key(path)[1])
         for run in range(1, args.repeats + 1):
             synchronize(device)
             start = time.perf_counter()
