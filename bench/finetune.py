@@ -2,6 +2,7 @@
 
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
         [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--profile]
+    cd bench && python finetune.py --vgg-variants [--device cpu|cuda]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and 1024x1024
 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with
@@ -18,6 +19,11 @@ iteration: the wall time of the iterations after 3 warm-up steps, the device wai
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
 while the GPU runs step k).
 
+``--vgg-variants``: instead, the NNFM term alone (VGG19 relu3 forward+backward + matching, the
+default search) with the convolutions' arithmetic and layout varied (:data:`VGG_VARIANTS`), each
+timed and compared with the float32 run (no TF32 anywhere, float32 search) on the same image and
+style: relative error of the loss and relative L2 error of the image's gradient.
+
 ``--profile`` (CUDA): instead, where an iteration of the first case goes, with and without stylized
 targets: the GPU kernels' time per iteration against the wall time, the 25 costliest kernels and the
 15 costliest host calls (torch.profiler over 20 iterations; its totals include the renders of every
@@ -28,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import itertools
 import sys
@@ -116,6 +123,61 @@ def nnfm_seconds(size: int, style, device, search: str) -> float:
     return timed(lambda: loss(vgg(image, layers)).backward(), device)
 
 
+VGG_VARIANTS = {  # name: (convolutions in TF32, cuDNN autotuning, channels-last, bf16 autocast)
+    "fp32 (reference)": (False, False, False, False),
+    "tf32 (default)": (True, False, False, False),
+    "tf32, cudnn.benchmark": (True, True, False, False),
+    "tf32, channels-last": (True, False, True, False),
+    "bf16 autocast": (True, False, False, True),
+    "bf16 autocast, channels-last": (True, False, True, True),
+}
+
+
+@contextlib.contextmanager
+def convolutions(device: torch.device, tf32: bool, benchmark: bool, bf16: bool):
+    """cuDNN's TF32 and autotuning switches (restored after the block) and bf16 autocast within the block."""
+    before = torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark
+    torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark = tf32, benchmark
+    try:
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+            yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark = before
+
+
+def vgg_variant(image, style, device, tf32: bool, benchmark: bool, channels_last: bool, bf16: bool):
+    """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting."""
+    layers = ("relu3_1", "relu3_2", "relu3_3")
+    layout = torch.channels_last if channels_last else torch.contiguous_format
+    vgg = copy.deepcopy(load_vgg("vgg19", device=device)).to(memory_format=layout)  # the shared one untouched
+    x = image.contiguous(memory_format=layout).detach().requires_grad_(True)
+    with convolutions(device, tf32, benchmark, bf16):
+        style_feats = style_image_features(vgg, style.contiguous(memory_format=layout), layers, None)
+    loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="tf32" if tf32 else "fp32")
+
+    def step():
+        with convolutions(device, tf32, benchmark, bf16):
+            value = loss(vgg(x, layers))
+        value.backward()
+        return value
+
+    value = step().detach().float()
+    grad, x.grad = x.grad.detach().float(), None
+    return value, grad, timed(step, device)
+
+
+def vgg_variant_rows(size: int, style, device) -> list[list]:
+    """[variant, ms, loss relative error, gradient relative L2 error] of the NNFM term alone at ``size``
+    (see the module's ``--vgg-variants``)."""
+    image = torch.rand(1, 3, size, size, device=device, generator=torch.Generator(device).manual_seed(0))
+    style = resized_style(style, size).permute(2, 0, 1)[None].to(device)
+    results = {name: vgg_variant(image, style, device, *setting) for name, setting in VGG_VARIANTS.items()}
+    reference_value, reference_grad, _ = results["fp32 (reference)"]
+    return [[name, f"{seconds * 1e3:.2f}", f"{float((value - reference_value).abs() / reference_value.abs()):.1e}",
+             f"{float((grad - reference_grad).norm() / reference_grad.norm()):.1e}"]
+            for name, (value, grad, seconds) in results.items()]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -125,6 +187,7 @@ def main() -> None:
     parser.add_argument("--searches", default=",".join(SEARCH_PRECISIONS))
     parser.add_argument("--adams", default="fused,torch", help="FiniteAdam steps to compare (CUDA)")
     parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
+    parser.add_argument("--vgg-variants", action="store_true", help="the NNFM term alone, convolution variants")
     args = parser.parse_args()
     device = torch.device(args.device)
     wanted, searches = args.cases.split(","), args.searches.split(",")
@@ -132,6 +195,14 @@ def main() -> None:
     default_search = FinetuneConfig().nnfm_search
     demo = DemoInputs()
     style = load_image(demo.style).to(device)
+    command = "python " + " ".join(sys.argv)
+    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    if args.vgg_variants:
+        for size in (512, 1024) if device.type == "cuda" else (128,):
+            print_table(f"NNFM term alone at {size}x{size} ({gpu}): the convolutions' arithmetic and layout",
+                        ["convolutions", "ms", "loss rel. error", "gradient rel. L2 error"],
+                        vgg_variant_rows(size, style, device), command)
+        return
     backends = ["torch"]
     if device.type == "cuda":  # the reference backend's speed: BENCHMARKS.md, Rasterizer
         backends = [name for name, there in (("triton", triton_available()), ("gsplat", gsplat_available())) if there]
@@ -167,8 +238,6 @@ def main() -> None:
                 print(rows[-1], flush=True)
     nnfm_rows = [[f"{size}x{size}", search, f"{nnfm_seconds(size, style, device, search) * 1e3:.2f}"]
                  for size in ((128, 512, 1024) if device.type == "cuda" else (128,)) for search in searches]
-    command = "python " + " ".join(sys.argv)
-    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print_table(f"Finetune speed ({gpu})", ["scene", "backend", "size", "loss", "VGG terms' max side", "NNFM search",
                                            "Adam step", "ms / iteration"], rows, command)
     print_table(f"NNFM term alone ({gpu}: VGG19 relu3 forward+backward + matching, style of the same size)",
