@@ -11,7 +11,8 @@ stylized views (NNFM + content term, the NNFM-only stylizer) and with random one
 the ArtNVG finetune), the VGG terms at ARF's resolution (the default ``nnfm_max_side`` 512) and, at
 1024, at full resolution; the first backend's rows with each ``--searches`` precision of the NNFM
 match search (the others with the default); and the NNFM term alone (VGG forward+backward +
-matching) per size and search precision. The first backend's rows at 512 with the default search
+matching; the input a permuted [1, H, W, 3] image, as the finetune's renders come: channels-last
+activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W] one) per size and search precision. The first backend's rows at 512 with the default search
 also run with each ``--adams`` step of :class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its
 Triton kernels, the default where the finetune renders with Triton; ``torch``: its PyTorch step).
 The style image is the demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
@@ -19,10 +20,10 @@ iteration: the wall time of the iterations after 3 warm-up steps, the device wai
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
 while the GPU runs step k).
 
-``--vgg-variants``: instead, the NNFM term alone (VGG19 relu3 forward+backward + matching, the
-default search) with the convolutions' arithmetic and layout varied (:data:`VGG_VARIANTS`), each
-timed and compared with the float32 run (no TF32 anywhere, float32 search) on the same image and
-style: relative error of the loss and relative L2 error of the image's gradient.
+``--vgg-variants``: instead, the NNFM term alone (VGG19 relu3 forward+backward + matching) with the
+convolutions' arithmetic and memory layout varied (:data:`VGG_VARIANTS`), each timed and compared
+with the float32 run (no TF32 anywhere, float32 search) on the same image and style: relative error of
+the loss and relative L2 error of the image's gradient.
 
 ``--profile`` (CUDA): instead, where an iteration of the first case goes, with and without stylized
 targets: the GPU kernels' time per iteration against the wall time, the 25 costliest kernels and the
@@ -119,17 +120,20 @@ def nnfm_seconds(size: int, style, device, search: str) -> float:
     layers = ("relu3_1", "relu3_2", "relu3_3")
     style = resized_style(style, size).permute(2, 0, 1)[None].to(device)
     loss = NNFMLoss(style_image_features(vgg, style, layers, None), layer_groups=(layers,), precision=search)
-    image = torch.rand(1, 3, size, size, device=device, requires_grad=True)
+    image = torch.rand(1, size, size, 3, device=device).permute(0, 3, 1, 2).detach().requires_grad_(True)  # a render's layout
     return timed(lambda: loss(vgg(image, layers)).backward(), device)
 
 
-VGG_VARIANTS = {  # name: (convolutions in TF32, cuDNN autotuning, channels-last, bf16 autocast)
-    "fp32 (reference)": (False, False, False, False),
-    "tf32 (default)": (True, False, False, False),
-    "tf32, cudnn.benchmark": (True, True, False, False),
-    "tf32, channels-last": (True, False, True, False),
-    "bf16 autocast": (True, False, False, True),
-    "bf16 autocast, channels-last": (True, False, True, True),
+VGG_VARIANTS = {  # name: (convolutions in TF32, cuDNN autotuning, layout, bf16 autocast); layouts: "renders":
+    # the input as the finetune gives it (a permuted [B, H, W, 3] render: channels-last activations, NCHW weights),
+    # "nchw": a contiguous [B, 3, H, W] input, "channels-last": the weights converted to channels-last too
+    "fp32 (reference)": (False, False, "renders", False),
+    "tf32 (the finetune's)": (True, False, "renders", False),
+    "tf32, cudnn.benchmark": (True, True, "renders", False),
+    "tf32, NCHW input": (True, False, "nchw", False),
+    "tf32, channels-last weights": (True, False, "channels-last", False),
+    "bf16 autocast": (True, False, "renders", True),
+    "bf16 autocast, channels-last weights": (True, False, "channels-last", True),
 }
 
 
@@ -145,14 +149,18 @@ def convolutions(device: torch.device, tf32: bool, benchmark: bool, bf16: bool):
         torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark = before
 
 
-def vgg_variant(image, style, device, tf32: bool, benchmark: bool, channels_last: bool, bf16: bool):
-    """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting."""
+def vgg_variant(image, style, device, tf32: bool, benchmark: bool, layout: str, bf16: bool):
+    """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting;
+    ``image`` and ``style`` [1, H, W, 3]."""
     layers = ("relu3_1", "relu3_2", "relu3_3")
-    layout = torch.channels_last if channels_last else torch.contiguous_format
-    vgg = copy.deepcopy(load_vgg("vgg19", device=device)).to(memory_format=layout)  # the shared one untouched
-    x = image.contiguous(memory_format=layout).detach().requires_grad_(True)
+    vgg = load_vgg("vgg19", device=device)
+    if layout == "channels-last":
+        vgg = copy.deepcopy(vgg).to(memory_format=torch.channels_last)  # the shared one untouched
+    x = image.permute(0, 3, 1, 2).detach()  # as finetune's _vgg_input gives it
+    x = (x.contiguous() if layout == "nchw" else x).requires_grad_(True)
+    style = style.permute(0, 3, 1, 2)
     with convolutions(device, tf32, benchmark, bf16):
-        style_feats = style_image_features(vgg, style.contiguous(memory_format=layout), layers, None)
+        style_feats = style_image_features(vgg, style, layers, None)
     loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="tf32" if tf32 else "fp32")
 
     def step():
@@ -169,8 +177,8 @@ def vgg_variant(image, style, device, tf32: bool, benchmark: bool, channels_last
 def vgg_variant_rows(size: int, style, device) -> list[list]:
     """[variant, ms, loss relative error, gradient relative L2 error] of the NNFM term alone at ``size``
     (see the module's ``--vgg-variants``)."""
-    image = torch.rand(1, 3, size, size, device=device, generator=torch.Generator(device).manual_seed(0))
-    style = resized_style(style, size).permute(2, 0, 1)[None].to(device)
+    image = torch.rand(1, size, size, 3, device=device, generator=torch.Generator(device).manual_seed(0))
+    style = resized_style(style, size)[None].to(device)
     results = {name: vgg_variant(image, style, device, *setting) for name, setting in VGG_VARIANTS.items()}
     reference_value, reference_grad, _ = results["fp32 (reference)"]
     return [[name, f"{seconds * 1e3:.2f}", f"{float((value - reference_value).abs() / reference_value.abs()):.1e}",
