@@ -11,10 +11,11 @@ stylized views (NNFM + content term, the NNFM-only stylizer) and with random one
 the ArtNVG finetune), the VGG terms at ARF's resolution (the default ``nnfm_max_side`` 512) and, at
 1024, at full resolution; the first backend's rows with each ``--searches`` precision of the NNFM
 match search (the others with the default); and the NNFM term alone (VGG forward+backward +
-matching; the input a permuted [1, H, W, 3] image, as the finetune's renders come: channels-last
-activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W] one) per size and search precision. The first backend's rows at 512 with the default search
-also run with each ``--adams`` step of :class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its
-Triton kernels, the default where the finetune renders with Triton; ``torch``: its PyTorch step).
+matching) per size and search precision, its input a permuted [1, H, W, 3] image as the finetune's
+renders come (channels-last activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W]
+one). The first backend's rows at 512 with the default search also run with each ``--adams`` step
+of :class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its Triton kernels, the default where
+the finetune renders with Triton; ``torch``: its PyTorch step).
 The style image is the demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
 iteration: the wall time of the iterations after 3 warm-up steps, the device waited for once at each
 end, divided by their number (the loop itself never waits for the device: the CPU queues step k+1
@@ -120,7 +121,8 @@ def nnfm_seconds(size: int, style, device, search: str) -> float:
     layers = ("relu3_1", "relu3_2", "relu3_3")
     style = resized_style(style, size).permute(2, 0, 1)[None].to(device)
     loss = NNFMLoss(style_image_features(vgg, style, layers, None), layer_groups=(layers,), precision=search)
-    image = torch.rand(1, size, size, 3, device=device).permute(0, 3, 1, 2).detach().requires_grad_(True)  # a render's layout
+    image = torch.rand(1, size, size, 3, device=device).permute(0, 3, 1, 2).detach()  # a render's layout
+    image.requires_grad_(True)
     return timed(lambda: loss(vgg(image, layers)).backward(), device)
 
 

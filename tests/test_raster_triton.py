@@ -163,7 +163,8 @@ def test_lists_given_a_capacity_equal_the_exact_ones_or_say_they_overflowed():
     capacity.SLACK = 0  # room: MARGIN times the count, which the large footprints outgrow
     assert sum(map(len, exact_large)) > ListCapacity.MARGIN * total_small
     assert runs(*tile_lists(small, width, height, capacity=capacity)) == exact_small
-    assert capacity.room == int(ListCapacity.MARGIN * total_small) and capacity.take_overflow() is None  # sized, nothing recorded
+    assert capacity.room == int(ListCapacity.MARGIN * total_small)  # sized from the count
+    assert capacity.take_overflow() is None  # nothing recorded yet
     ids, offsets = tile_lists(small, width, height, capacity=capacity)
     assert len(ids) == capacity.room and runs(ids, offsets) == exact_small
     assert not bool(capacity.take_overflow()) and not capacity.overflowed()

@@ -354,8 +354,7 @@ class ListCapacity:
     the room, and the caller repeats that render's step, which it skipped on the device
     (:meth:`take_overflow`)."""
 
-    MARGIN, SLACK = 1.1, 1024  # room: the count times MARGIN, and at least SLACK more (a render that outgrows it
-    # costs one step taken again; more room costs memory: at 1.25 the 100k-Gaussian 1024 px lists outweighed gsplat's)
+    MARGIN, SLACK = 1.1, 1024  # room: the count times MARGIN, at least SLACK more (less room: more steps taken again)
 
     def __init__(self):
         self.room: int | None = None
