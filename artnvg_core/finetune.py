@@ -38,7 +38,18 @@ from .cameras import CameraSet, scene_frame
 from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
 from .finite_steps import FiniteAdam
-from .losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, shrink_to_max_side, ssim, style_image_features
+from .losses import (
+    SEARCH_PRECISIONS,
+    VGG_PRECISIONS,
+    NNFMLoss,
+    VGGFeatures,
+    convolution_precision,
+    features_autocast,
+    load_vgg,
+    shrink_to_max_side,
+    ssim,
+    style_image_features,
+)
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import check_render_inputs, choose_backend, render
 from .scene import GaussianScene
@@ -80,6 +91,12 @@ class FinetuneConfig:
         nnfm_search (`str`, defaults to ``"tf32"``): arithmetic of NNFM's nearest-neighbour search, one of
             :data:`artnvg_core.losses.SEARCH_PRECISIONS` (the loss itself is float32 either way; its price:
             BENCHMARKS.md, NNFM search precision).
+        vgg_precision (`str`, defaults to ``"tf32"``): arithmetic of the VGG terms' convolutions, forward and
+            backward, one of :data:`artnvg_core.losses.VGG_PRECISIONS`: ``"fp32"``, ``"tf32"`` (PyTorch's
+            default for cuDNN on a CUDA GPU; float32 elsewhere) or ``"bf16"`` (autocast: features and their
+            gradients in bfloat16; the NNFM and content terms themselves in float32). The finetune's other
+            convolution, SSIM's window, follows the TF32 switch as well (its price: BENCHMARKS.md, NNFM search
+            precision).
         views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
             possible), their terms averaged into one loss.
         color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and
@@ -113,6 +130,7 @@ class FinetuneConfig:
     vgg_weights: str | None = None
     nnfm_max_side: int | None = 512
     nnfm_search: str = "tf32"
+    vgg_precision: str = "tf32"
     views_per_step: int = 1
     color_transfer: bool = True
     lr_sh_dc: float | None = None
@@ -134,6 +152,9 @@ class FinetuneConfig:
             raise ValueError(f"FinetuneConfig.views_per_step: expected an integer >= 1, got {self.views_per_step!r}")
         if self.nnfm_search not in SEARCH_PRECISIONS:
             raise ValueError(f"FinetuneConfig.nnfm_search: expected one of {SEARCH_PRECISIONS}, got {self.nnfm_search!r}")
+        if self.vgg_precision not in VGG_PRECISIONS:
+            raise ValueError(
+                f"FinetuneConfig.vgg_precision: expected one of {VGG_PRECISIONS}, got {self.vgg_precision!r}")
         for f in fields(self):
             value = getattr(self, f.name)
             if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
@@ -220,6 +241,12 @@ def _vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
     return shrink_to_max_side(_nchw(images), config.nnfm_max_side)
 
 
+def _features(vgg: VGGFeatures, images: torch.Tensor, config: FinetuneConfig) -> dict[str, torch.Tensor]:
+    """``config.nnfm_layers``' features of ``images [B, 3, h, w]`` in ``config.vgg_precision`` (bfloat16 for bf16)."""
+    with features_autocast(config.vgg_precision, images.device):
+        return vgg(images, config.nnfm_layers)
+
+
 def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneConfig) -> torch.Tensor:
     """[H, W, 3] style image -> [1, 3, h, w] with its long side that of the renders the VGG sees
     (area-averaged when shrinking, as ARF's ``INTER_AREA``; bilinear when enlarging)."""
@@ -299,6 +326,14 @@ def finetune(
     Deterministic for ``config.seed`` on CPU.
     """
     config = config or FinetuneConfig()
+    with convolution_precision(config.vgg_precision, scene.device):
+        return _finetune(scene, cameras, style_image, stylized, config, progress, should_stop, render_progress)
+
+
+def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tensor, stylized: torch.Tensor | None,
+              config: FinetuneConfig, progress: ProgressFn | None, should_stop: StopFn | None,
+              render_progress: ProgressFn | None) -> GaussianScene:
+    """:func:`finetune` with its config given, inside its convolutions' precision."""
     if style_image.ndim == 4 and style_image.shape[0] == 1:
         style_image = style_image[0]
     if style_image.ndim != 3 or style_image.shape[-1] != 3:
@@ -358,14 +393,14 @@ def finetune(
             terms["l1"] = config.l1_weight * (image - target).abs().mean()
             terms["ssim"] = config.ssim_weight * (1 - ssim(_nchw(image), _nchw(target)))
         needs_content = originals is not None
-        feats = vgg(_vgg_input(image, config), layers) if config.nnfm_weight > 0 or needs_content else None
+        feats = _features(vgg, _vgg_input(image, config), config) if config.nnfm_weight > 0 or needs_content else None
         if config.nnfm_weight > 0:
             terms["nnfm"] = config.nnfm_weight * nnfm(feats)
         if needs_content:
             with torch.no_grad():
-                reference = vgg(originals[views_on_device], layers)
+                reference = {k: v.float() for k, v in _features(vgg, originals[views_on_device], config).items()}
             terms["content"] = config.content_weight * sum(
-                ((feats[k] - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
+                ((feats[k].float() - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
             ) / len(layers)
         if stylized is None and config.tv_weight > 0:
             terms["tv"] = config.tv_weight * _total_variation(image)

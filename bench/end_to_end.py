@@ -1,8 +1,8 @@
 """End to end on a real scene, every preset and shortcut priced on the FINAL finetuned scene.
 
 A *row* is a preset, optionally changed: ``PRESET[+FIELD=VALUE...]`` where FIELD is a field of
-``SamplerSettings`` (``steps``, ``scheduler``, ``cfg_until``, ``resolution``, ...), ``key_views`` or
-``iterations`` (finetune), e.g. ``paper+key_views=28`` or ``paper+scheduler=dpmpp_2m+steps=20``.
+``SamplerSettings`` (``steps``, ``scheduler``, ``cfg_until``, ``resolution``, ...), ``key_views``,
+``iterations`` or ``vgg_precision`` (finetune), e.g. ``paper+key_views=28`` or ``paper+scheduler=dpmpp_2m+steps=20``.
 Each row renders the content views (the default rasterizer: gsplat on CUDA, its one-off kernel
 build timed apart), stylizes its views group by group, finetunes the scene on them and renders
 the result at every view. The ``paper`` row is the reference; every other row is compared with it:
@@ -51,7 +51,7 @@ from artnvg_core.raster.views import render_views
 from bench.common import timed_call, warp_rmse
 
 REFERENCE = "paper"
-ROW_FIELDS = {f.name for f in dataclasses.fields(SamplerSettings)} | {"key_views", "iterations"}
+ROW_FIELDS = {f.name for f in dataclasses.fields(SamplerSettings)} | {"key_views", "iterations", "vgg_precision"}
 # --sweep: what the issue asks priced, most informative first (H100 estimates for the
 # bear's 84 training views in 6 groups of 14, eager; the paper reference itself ~9.5 min over two calls)
 SWEEP = (
@@ -77,6 +77,7 @@ class Row:
     key_views: int
     iterations: int
     low_memory: bool
+    vgg_precision: str = FinetuneConfig().vgg_precision
 
 
 def _value(text: str, current):
@@ -102,7 +103,8 @@ def parse_row(text: str) -> Row:
     if preset_name not in DIFFUSION_PRESETS:
         raise ValueError(f"row {text!r}: preset must be one of {DIFFUSION_PRESETS}, got {preset_name!r}")
     preset = PRESETS[preset_name]
-    values = {"key_views": preset.key_views, "iterations": preset.finetune_iterations}
+    values = {"key_views": preset.key_views, "iterations": preset.finetune_iterations,
+              "vgg_precision": FinetuneConfig().vgg_precision}
     sampler = {}
     for change in changes:
         field, sep, value = change.partition("=")
@@ -113,7 +115,7 @@ def parse_row(text: str) -> Row:
         else:
             sampler[field] = _value(value, getattr(preset.sampler, field))
     return Row(text, preset_name, dataclasses.replace(preset.sampler, **sampler), values["key_views"],
-               values["iterations"], preset.low_memory)
+               values["iterations"], preset.low_memory, values["vgg_precision"])
 
 
 def at_size(settings: SamplerSettings, size: int) -> SamplerSettings:
@@ -209,7 +211,7 @@ def run_row(models, conditioning, row: Row, data: Scene, args, device: torch.dev
     parts = [torch.load(path) for path in saved]
     stylized = {v: image for part in parts for v, image in zip(part["views"], part["images"])}
     targets = torch.stack([stylized[v] for v in used])
-    config = FinetuneConfig(iterations=row.iterations)
+    config = FinetuneConfig(iterations=row.iterations, vgg_precision=row.vgg_precision)
     result, finetune_s = timed_call(device, lambda: finetune(data.scene, cameras, data.style.to(device),
                                                         stylized=targets.to(device), config=config))
     final = render_views(result, data.cameras, cpu=True).rgb

@@ -1,7 +1,8 @@
 """Finetune benchmark: time per iteration of the Gaussian finetuning loop.
 
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
-        [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--profile]
+        [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--vggs fp32,tf32,bf16]
+        [--profile]
     cd bench && python finetune.py --vgg-variants [--device cpu|cuda]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and 1024x1024
@@ -10,7 +11,8 @@ each available backend (the reference torch backend on the CPU; triton and gspla
 stylized views (NNFM + content term, the NNFM-only stylizer) and with random ones (L1 + SSIM + NNFM,
 the ArtNVG finetune), the VGG terms at ARF's resolution (the default ``nnfm_max_side`` 512) and, at
 1024, at full resolution; the first backend's rows with each ``--searches`` precision of the NNFM
-match search (the others with the default); and the NNFM term alone (VGG forward+backward +
+match search, each ``--vggs`` precision of the VGG terms' convolutions (``FinetuneConfig.vgg_precision``)
+(the others with the defaults); and the NNFM term alone (VGG forward+backward +
 matching) per size and search precision, its input a permuted [1, H, W, 3] image as the finetune's
 renders come (channels-last activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W]
 one). The first backend's rows at 512 with the default search also run with each ``--adams`` step
@@ -53,7 +55,15 @@ from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.finite_steps import FiniteAdam
 from artnvg_core.formats import read_ply
-from artnvg_core.losses import SEARCH_PRECISIONS, NNFMLoss, load_vgg, style_image_features
+from artnvg_core.losses import (
+    SEARCH_PRECISIONS,
+    VGG_PRECISIONS,
+    NNFMLoss,
+    convolution_precision,
+    features_autocast,
+    load_vgg,
+    style_image_features,
+)
 from artnvg_core.raster import triton_available
 from artnvg_core.raster.gsplat_backend import gsplat_available
 from artnvg_core.stylize import DemoInputs
@@ -126,49 +136,48 @@ def nnfm_seconds(size: int, style, device, search: str) -> float:
     return timed(lambda: loss(vgg(image, layers)).backward(), device)
 
 
-VGG_VARIANTS = {  # name: (convolutions in TF32, cuDNN autotuning, layout, bf16 autocast); layouts: "renders":
-    # the input as the finetune gives it (a permuted [B, H, W, 3] render: channels-last activations, NCHW weights),
-    # "nchw": a contiguous [B, 3, H, W] input, "channels-last": the weights converted to channels-last too
-    "fp32 (reference)": (False, False, "renders", False),
-    "tf32 (the finetune's)": (True, False, "renders", False),
-    "tf32, cudnn.benchmark": (True, True, "renders", False),
-    "tf32, NCHW input": (True, False, "nchw", False),
-    "tf32, channels-last weights": (True, False, "channels-last", False),
-    "bf16 autocast": (True, False, "renders", True),
-    "bf16 autocast, channels-last weights": (True, False, "channels-last", True),
+VGG_VARIANTS = {  # name: (FinetuneConfig.vgg_precision, cuDNN autotuning, layout); layouts: "renders": the input as
+    # the finetune gives it (a permuted [B, H, W, 3] render: channels-last activations, NCHW weights), "nchw": a
+    # contiguous [B, 3, H, W] input, "channels-last": the weights converted to channels-last too
+    "fp32 (reference)": ("fp32", False, "renders"),
+    "tf32 (the finetune's)": ("tf32", False, "renders"),
+    "tf32, cudnn.benchmark": ("tf32", True, "renders"),
+    "tf32, NCHW input": ("tf32", False, "nchw"),
+    "tf32, channels-last weights": ("tf32", False, "channels-last"),
+    "bf16 autocast": ("bf16", False, "renders"),
+    "bf16 autocast, channels-last weights": ("bf16", False, "channels-last"),
 }
 
 
 @contextlib.contextmanager
-def convolutions(device: torch.device, tf32: bool, benchmark: bool, bf16: bool):
-    """cuDNN's TF32 and autotuning switches (restored after the block) and bf16 autocast within the block."""
-    before = torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark
-    torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark = tf32, benchmark
+def autotuning(enabled: bool):
+    """cuDNN's autotuner on or off within the block (restored after)."""
+    before, torch.backends.cudnn.benchmark = torch.backends.cudnn.benchmark, enabled
     try:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            yield
+        yield
     finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cudnn.benchmark = before
+        torch.backends.cudnn.benchmark = before
 
 
-def vgg_variant(image, style, device, tf32: bool, benchmark: bool, layout: str, bf16: bool):
-    """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting;
-    ``image`` and ``style`` [1, H, W, 3]."""
+def vgg_variant(image, style, device, precision: str, benchmark: bool, layout: str):
+    """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting,
+    forward and backward in ``precision`` as the finetune runs them; ``image`` and ``style`` [1, H, W, 3]."""
     layers = ("relu3_1", "relu3_2", "relu3_3")
     vgg = load_vgg("vgg19", device=device)
     if layout == "channels-last":
         vgg = copy.deepcopy(vgg).to(memory_format=torch.channels_last)  # the shared one untouched
     x = image.permute(0, 3, 1, 2).detach()  # as finetune's _vgg_input gives it
     x = (x.contiguous() if layout == "nchw" else x).requires_grad_(True)
-    style = style.permute(0, 3, 1, 2)
-    with convolutions(device, tf32, benchmark, bf16):
-        style_feats = style_image_features(vgg, style, layers, None)
-    loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="tf32" if tf32 else "fp32")
+    with convolution_precision(precision, device), features_autocast(precision, device):
+        style_feats = style_image_features(vgg, style.permute(0, 3, 1, 2), layers, None)
+    loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="fp32" if precision == "fp32" else "tf32")
 
     def step():
-        with convolutions(device, tf32, benchmark, bf16):
-            value = loss(vgg(x, layers))
-        value.backward()
+        with convolution_precision(precision, device), autotuning(benchmark):
+            with features_autocast(precision, device):
+                feats = vgg(x, layers)
+            value = loss(feats)
+            value.backward()
         return value
 
     value = step().detach().float()
@@ -196,13 +205,14 @@ def main() -> None:
     parser.add_argument("--cases", default="demo,bear,random")
     parser.add_argument("--searches", default=",".join(SEARCH_PRECISIONS))
     parser.add_argument("--adams", default="fused,torch", help="FiniteAdam steps to compare (CUDA)")
+    parser.add_argument("--vggs", default=",".join(VGG_PRECISIONS), help="the VGG terms' convolution precisions")
     parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
     parser.add_argument("--vgg-variants", action="store_true", help="the NNFM term alone, convolution variants")
     args = parser.parse_args()
     device = torch.device(args.device)
-    wanted, searches = args.cases.split(","), args.searches.split(",")
+    wanted, searches, vggs = args.cases.split(","), args.searches.split(","), args.vggs.split(",")
     adams = args.adams.split(",") if device.type == "cuda" else ["torch"]
-    default_search = FinetuneConfig().nnfm_search
+    default = FinetuneConfig()
     demo = DemoInputs()
     style = load_image(demo.style).to(device)
     command = "python " + " ".join(sys.argv)
@@ -235,21 +245,26 @@ def main() -> None:
         sides = [512, None] if cams.width >= 1024 else [512]
         combos = itertools.product(backends, (False, True), sides)
         for backend, targets, side in [c for c in combos if c[0] == backends[0] or c[1:] == (False, 512)]:
-            first = backend == backends[0] and side == 512
-            for search, adam in [(search, adam) for search in (searches if first else [default_search])
-                                 for adam in (adams if first and search == default_search else adams[:1])]:
-                config = FinetuneConfig(iterations=args.iters, backend=backend, nnfm_max_side=side, nnfm_search=search)
+            variants = [(default.nnfm_search, adams[0], default.vgg_precision)]  # (search, Adam step, VGG)
+            if backend == backends[0] and side == 512:  # each choice varied alone, the others at their defaults
+                variants += [(search, adams[0], default.vgg_precision) for search in searches
+                             if search != default.nnfm_search]
+                variants += [(default.nnfm_search, adam, default.vgg_precision) for adam in adams[1:]]
+                variants += [(default.nnfm_search, adams[0], vgg) for vgg in vggs if vgg != default.vgg_precision]
+            for search, adam, vgg in variants:
+                config = FinetuneConfig(iterations=args.iters, backend=backend, nnfm_max_side=side, nnfm_search=search,
+                                        vgg_precision=vgg)
                 arf_style = resized_style(style, max(cams.width, cams.height) // 2)
                 with adam_step(adam):
                     sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
                 loss = "L1+SSIM+NNFM" if targets else "NNFM+content"
-                rows.append([name, backend, f"{cams.width}x{cams.height}", loss, side or "full", search, adam,
+                rows.append([name, backend, f"{cams.width}x{cams.height}", loss, side or "full", search, vgg, adam,
                              f"{sec * 1e3:.1f}"])
                 print(rows[-1], flush=True)
     nnfm_rows = [[f"{size}x{size}", search, f"{nnfm_seconds(size, style, device, search) * 1e3:.2f}"]
                  for size in ((128, 512, 1024) if device.type == "cuda" else (128,)) for search in searches]
     print_table(f"Finetune speed ({gpu})", ["scene", "backend", "size", "loss", "VGG terms' max side", "NNFM search",
-                                           "Adam step", "ms / iteration"], rows, command)
+                                           "VGG convolutions", "Adam step", "ms / iteration"], rows, command)
     print_table(f"NNFM term alone ({gpu}: VGG19 relu3 forward+backward + matching, style of the same size)",
                 ["size", "search", "ms"], nnfm_rows, command)
 

@@ -1,7 +1,7 @@
 """A first look: what the diffusion-free preview costs and how far it lands from the full NNFM result.
 
     cd bench && python first_look.py [--shared ../../shared/data] [--scene bear] [--style starry]
-        [--rows 100x1x1,200x0.5x2,...] [--precisions fp32,fp32,tf32,bf16] [--hold-every 8] [--out DIR]
+        [--rows 100x1x1,200x0.5x2,...] [--precisions fp32,fp32,tf32,bf16,tf32:bf16] [--hold-every 8] [--out DIR]
 
 The scene's capture views, every ``--hold-every``-th held back (never trained on), the rest trained on
 with :func:`artnvg_core.stylize.stylize_nnfm` (ARF's colour transfer, NNFM + content). The reference is
@@ -9,8 +9,10 @@ today's full result: 1,000 iterations, one view a step, the views at their own s
 
 Two tables:
 
-* **NNFM search precision** (1,000 iterations, full size, one view a step, each ``--precisions``; one named
-  twice runs twice, the run-to-run floor, since the rasterizer's backward sums in no fixed order): time of
+* **NNFM search precision** (1,000 iterations, full size, one view a step, each ``--precisions`` entry
+  ``SEARCH[:VGG]``, the match search's precision and the VGG convolutions' (``FinetuneConfig.vgg_precision``;
+  default: its default); one named twice runs twice, the run-to-run floor, since the rasterizer's backward
+  sums in no fixed order): time of
   the whole stylize call, ms per iteration, the final scene against the fp32 one (PSNR of the held-back
   renders), and on the fp32 final scene's held-back renders the share of matches the search picks as fp32
   does and the largest loss in cosine of a different pick (against the float64 best).
@@ -93,7 +95,7 @@ def main() -> None:
     parser.add_argument("--scene", default="bear")
     parser.add_argument("--style", default="starry")
     parser.add_argument("--rows", default=DEFAULT_ROWS)
-    parser.add_argument("--precisions", default="fp32,fp32,tf32,bf16")
+    parser.add_argument("--precisions", default="fp32,fp32,tf32,bf16,tf32:bf16", help="SEARCH[:VGG], ...")
     parser.add_argument("--hold-every", type=int, default=8)
     parser.add_argument("--reference-iters", type=int, default=1000, help="iterations of the precision runs")
     parser.add_argument("--size", type=float, default=1.0, help="factor on every view's size (a quick smoke run)")
@@ -114,37 +116,39 @@ def main() -> None:
     if out:
         out.mkdir(parents=True, exist_ok=True)
 
-    def run(iterations: int, scale: float, per_step: int, search: str):
-        config = FinetuneConfig(iterations=iterations, views_per_step=per_step, nnfm_search=search)
+    def run(iterations: int, scale: float, per_step: int, search: str, vgg: str = FinetuneConfig().vgg_precision):
+        config = FinetuneConfig(iterations=iterations, views_per_step=per_step, nnfm_search=search, vgg_precision=vgg)
         result, seconds = timed_call(device, lambda: stylize_nnfm(scene, train.scaled(scale), style.to(device), config))
         images = render_views(result, test).rgb
         synchronize(device)
         if out:
-            torch.save(images.cpu(), out / f"{iterations}x{scale}x{per_step}_{search}.pt")
+            torch.save(images.cpu(), out / f"{iterations}x{scale}x{per_step}_{search}_{vgg}.pt")
         return images, seconds
 
     stylize_nnfm(scene, train.scaled(0.25), style.to(device), FinetuneConfig(iterations=5))  # warm-up: VGG, kernels
     finals, seconds = {}, {}
-    for search in args.precisions.split(","):  # a precision named twice runs twice: the run-to-run floor
-        label = search if search not in finals else f"{search} (again)"
-        finals[label], seconds[label] = run(args.reference_iters, 1.0, 1, search)
+    for entry in args.precisions.split(","):  # an entry named twice runs twice: the run-to-run floor
+        search, _, vgg = entry.partition(":")
+        label = entry if entry not in finals else f"{entry} (again)"
+        finals[label], seconds[label] = run(args.reference_iters, 1.0, 1, search, vgg or FinetuneConfig().vgg_precision)
         print(label, f"{seconds[label]:.2f} s", flush=True)
     reference = finals["fp32"]
     table = []
     for label, images in finals.items():
-        share, worst = match_agreement(reference, feats, label.split()[0])
+        share, worst = match_agreement(reference, feats, label.split(":")[0].split()[0])
         table.append([label, f"{seconds[label]:.2f}", f"{psnr(images, reference):.1f}", f"{100 * share:.2f}",
                       f"{worst:.2e}"])
     command = "python " + " ".join(sys.argv)
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    print_table(f"NNFM search precision ({args.scene}, {len(train)} training views at {cameras.width}x{cameras.height}, "
-                f"{args.reference_iters} iterations; {gpu})", ["search", "stylize s", "final scene PSNR vs fp32 (dB)",
-                                              "matches as float64 (%)", "largest cosine lost"], table, command)
+    print_table(f"NNFM search precision ({args.scene}, {len(train)} training views at "
+                f"{cameras.width}x{cameras.height}, {args.reference_iters} iterations; {gpu})",
+                ["search[:VGG]", "stylize s", "final scene PSNR vs fp32 (dB)", "matches as float64 (%)",
+                 "largest cosine lost"], table, command)
 
     curve = [[f"reference {args.reference_iters}x1x1 fp32", f"{seconds['fp32']:.2f}", "inf"]
              + [f"{v:.4f}" for v in color_distances(reference, style).values()]
              + [f"{texture_distance(reference, feats):.4f}"]]
-    for text in args.rows.split(","):
+    for text in filter(None, args.rows.split(",")):
         iterations, scale, per_step = text.split("x")
         images, seconds = run(int(iterations), float(scale), int(per_step), FinetuneConfig().nnfm_search)
         curve.append([text, f"{seconds:.2f}", f"{psnr(images, reference):.1f}"]

