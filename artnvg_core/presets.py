@@ -35,10 +35,10 @@ PRESETS = {
                     "the paper: 50 DDIM steps, NV attention in every layer, 1024 px; exact"),
     # chosen from the measured curve of final-scene deviation against time (BENCHMARKS.md, "Presets on the
     # final scene")
-    "balanced": Preset(SamplerSettings(steps=18, cfg_until=0.5), 1000, False,
-                       "18 DDIM steps, guidance in the first half only (its cost: BENCHMARKS.md, Presets)"),
-    "fast": Preset(SamplerSettings(steps=6, cfg_until=0.5, resolution=768, nv_levels="lowest"), 300, False,
-                   "a first look: 42 key views, 6 DDIM steps at 768 px, guidance in the first half, NV attention "
+    "balanced": Preset(SamplerSettings(steps=16, cfg_until=0.5), 1000, False,
+                       "16 DDIM steps, guidance in the first half only (its cost: BENCHMARKS.md, Presets)"),
+    "fast": Preset(SamplerSettings(steps=5, cfg_until=0.5, resolution=768, nv_levels="lowest"), 300, False,
+                   "a first look: 42 key views, 5 DDIM steps at 768 px, guidance in the first 3, NV attention "
                    "in the lowest level, 300 finetune iterations (its cost: BENCHMARKS.md, Presets)",
                    key_views=42),
     "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
