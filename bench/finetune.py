@@ -168,7 +168,7 @@ def vgg_variant(image, style, device, precision: str, benchmark: bool, layout: s
         vgg = copy.deepcopy(vgg).to(memory_format=torch.channels_last)  # the shared one untouched
     x = image.permute(0, 3, 1, 2).detach()  # as finetune's _vgg_input gives it
     x = (x.contiguous() if layout == "nchw" else x).requires_grad_(True)
-    with convolution_precision(precision, device), features_autocast(precision, device):
+    with convolution_precision(precision, device):  # the style's features in float32 (TF32), as the finetune's
         style_feats = style_image_features(vgg, style.permute(0, 3, 1, 2), layers, None)
     loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="fp32" if precision == "fp32" else "tf32")
 

@@ -266,7 +266,7 @@ def load_vgg(
     return _cached_vgg(arch, resolved, str(torch.device(device)))
 
 
-def check_vgg_precision(precision: str) -> str:
+def _check_precision(precision: str) -> str:
     if precision not in VGG_PRECISIONS:
         raise ValueError(f"VGG precision: expected one of {VGG_PRECISIONS}, got {precision!r}")
     return precision
@@ -277,7 +277,7 @@ def convolution_precision(precision: str, device: torch.device) -> Iterator[None
     """cuDNN's float32 convolutions (forward and backward, every one run inside the block) in TF32 for ``"tf32"``
     and ``"bf16"`` (the float32 ones that autocast leaves), IEEE float32 for ``"fp32"``, on a CUDA device; the
     switch is restored after (elsewhere nothing changes: float32 is float32)."""
-    tf32 = check_vgg_precision(precision) != "fp32"
+    tf32 = _check_precision(precision) != "fp32"
     if device.type != "cuda":
         yield
         return
@@ -297,4 +297,4 @@ def convolution_precision(precision: str, device: torch.device) -> Iterator[None
 def features_autocast(precision: str, device: torch.device):
     """Autocast to bfloat16 for ``"bf16"`` (features and their gradients in bfloat16), a no-op otherwise; around
     :class:`VGGFeatures`' forward only (the backward follows the forward's dtypes)."""
-    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=check_vgg_precision(precision) == "bf16")
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=_check_precision(precision) == "bf16")
