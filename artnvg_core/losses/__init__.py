@@ -3,6 +3,7 @@
 - :mod:`.vgg`  -- ``VGGFeatures`` / ``load_vgg``: frozen VGG16/19 conv features, RGB [0, 1] NCHW input
 - :mod:`.nnfm` -- ``NNFMLoss``: ARF's nearest-neighbour feature matching loss, memory-bounded
 - :mod:`.ssim` -- ``ssim``: the 3DGS SSIM (11x11 Gaussian window, sigma 1.5)
+- :mod:`.tf32` -- PyTorch's TF32 switches for products and convolutions, set for a block
 """
 
 from .nnfm import (

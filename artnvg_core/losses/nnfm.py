@@ -24,13 +24,14 @@ identical; where it does not, the match it picks has a true cosine within the ro
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-from typing import Iterator, Mapping, Sequence
+from contextlib import nullcontext
+from typing import Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .tf32 import matmul_tf32
 from .vgg import VGGFeatures
 
 ARF_LAYER_GROUPS = (("relu3_1", "relu3_2", "relu3_3"),)
@@ -69,28 +70,9 @@ def search_operand(unit: torch.Tensor, precision: str) -> torch.Tensor:
     return unit.bfloat16() if _check_precision(precision) == "bf16" else unit
 
 
-@contextmanager
-def _matmul_precision(precision: str, device: torch.device) -> Iterator[None]:
+def _matmul_precision(precision: str, device: torch.device):
     """float32 CUDA products in TF32 inside, for ``"tf32"`` on a CUDA device; the setting is restored after."""
-    if precision != "tf32" or device.type != "cuda":
-        yield
-        return
-    matmul = torch.backends.cuda.matmul
-    setting, value = ("fp32_precision", "tf32") if _has_setting(matmul, "fp32_precision") else ("allow_tf32", True)
-    before = getattr(matmul, setting)  # fp32_precision from PyTorch 2.9 on; allow_tf32 before it
-    setattr(matmul, setting, value)
-    try:
-        yield
-    finally:
-        setattr(matmul, setting, before)
-
-
-def _has_setting(backend, name: str) -> bool:
-    try:
-        getattr(backend, name)
-    except AttributeError:
-        return False
-    return True
+    return matmul_tf32(True) if precision == "tf32" and device.type == "cuda" else nullcontext()
 
 
 @torch.no_grad()

