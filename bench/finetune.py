@@ -127,13 +127,10 @@ def resized_style(style: torch.Tensor, side: int) -> torch.Tensor:
 
 
 def nnfm_seconds(size: int, style, device, search: str) -> float:
-    vgg = load_vgg("vgg19", device=device)
-    layers = ("relu3_1", "relu3_2", "relu3_3")
-    style = resized_style(style, size).permute(2, 0, 1)[None].to(device)
-    loss = NNFMLoss(style_image_features(vgg, style, layers, None), layer_groups=(layers,), precision=search)
-    image = torch.rand(1, size, size, 3, device=device).permute(0, 3, 1, 2).detach()  # a render's layout
-    image.requires_grad_(True)
-    return timed(lambda: loss(vgg(image, layers)).backward(), device)
+    """Median seconds of the NNFM term alone at ``size`` (a random image in a render's layout, the finetune's
+    default convolutions) with the match search in ``search``."""
+    image = torch.rand(1, size, size, 3, device=device)
+    return vgg_variant(image, resized_style(style, size)[None].to(device), device, "tf32", False, "renders", search)[2]
 
 
 VGG_VARIANTS = {  # name: (FinetuneConfig.vgg_precision, cuDNN autotuning, layout); layouts: "renders": the input as
@@ -159,9 +156,10 @@ def autotuning(enabled: bool):
         torch.backends.cudnn.benchmark = before
 
 
-def vgg_variant(image, style, device, precision: str, benchmark: bool, layout: str):
+def vgg_variant(image, style, device, precision: str, benchmark: bool, layout: str, search: str | None = None):
     """(loss value, image gradient, median seconds) of the NNFM term alone with one :data:`VGG_VARIANTS` setting,
-    forward and backward in ``precision`` as the finetune runs them; ``image`` and ``style`` [1, H, W, 3]."""
+    forward and backward in ``precision`` as the finetune runs them; ``image`` and ``style`` [1, H, W, 3];
+    ``search``: the match search's precision (None: fp32 with fp32 convolutions, else tf32)."""
     layers = ("relu3_1", "relu3_2", "relu3_3")
     vgg = load_vgg("vgg19", device=device)
     if layout == "channels-last":
@@ -170,7 +168,8 @@ def vgg_variant(image, style, device, precision: str, benchmark: bool, layout: s
     x = (x.contiguous() if layout == "nchw" else x).requires_grad_(True)
     with convolution_precision(precision, device):  # the style's features in float32 (TF32), as the finetune's
         style_feats = style_image_features(vgg, style.permute(0, 3, 1, 2), layers, None)
-    loss = NNFMLoss(style_feats, layer_groups=(layers,), precision="fp32" if precision == "fp32" else "tf32")
+    search = search or ("fp32" if precision == "fp32" else "tf32")
+    loss = NNFMLoss(style_feats, layer_groups=(layers,), precision=search)
 
     def step():
         with convolution_precision(precision, device), autotuning(benchmark):
