@@ -2,7 +2,7 @@
 
     cd bench && python finetune.py [--device cpu|cuda] [--iters N] [--shared ../../shared/data]
         [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--vggs fp32,tf32,bf16]
-        [--profile]
+        [--graphs on,off] [--profile]
     cd bench && python finetune.py --vgg-variants [--device cpu|cuda]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and 1024x1024
@@ -11,7 +11,8 @@ each available backend (the reference torch backend on the CPU; triton and gspla
 stylized views (NNFM + content term, the NNFM-only stylizer) and with random ones (L1 + SSIM + NNFM,
 the ArtNVG finetune), the VGG terms at ARF's resolution (the default ``nnfm_max_side`` 512) and, at
 1024, at full resolution; the first backend's rows with each ``--searches`` precision of the NNFM
-match search, each ``--vggs`` precision of the VGG terms' convolutions (``FinetuneConfig.vgg_precision``)
+match search, each ``--vggs`` precision of the VGG terms' convolutions (``FinetuneConfig.vgg_precision``),
+with the step's loss replayed as CUDA graphs or run eagerly (``--graphs``, ``FinetuneConfig.cuda_graph``)
 (the others with the defaults); and the NNFM term alone (VGG forward+backward +
 matching) per size and search precision, its input a permuted [1, H, W, 3] image as the finetune's
 renders come (channels-last activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W]
@@ -205,11 +206,13 @@ def main() -> None:
     parser.add_argument("--searches", default=",".join(SEARCH_PRECISIONS))
     parser.add_argument("--adams", default="fused,torch", help="FiniteAdam steps to compare (CUDA)")
     parser.add_argument("--vggs", default=",".join(VGG_PRECISIONS), help="the VGG terms' convolution precisions")
+    parser.add_argument("--graphs", default="on,off", help="the step's loss as CUDA graphs (on) or eager (off)")
     parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
     parser.add_argument("--vgg-variants", action="store_true", help="the NNFM term alone, convolution variants")
     args = parser.parse_args()
     device = torch.device(args.device)
     wanted, searches, vggs = args.cases.split(","), args.searches.split(","), args.vggs.split(",")
+    graphs = [choice == "on" for choice in args.graphs.split(",")] if device.type == "cuda" else [False]
     adams = args.adams.split(",") if device.type == "cuda" else ["torch"]
     default = FinetuneConfig()
     demo = DemoInputs()
@@ -244,26 +247,28 @@ def main() -> None:
         sides = [512, None] if cams.width >= 1024 else [512]
         combos = itertools.product(backends, (False, True), sides)
         for backend, targets, side in [c for c in combos if c[0] == backends[0] or c[1:] == (False, 512)]:
-            variants = [(default.nnfm_search, adams[0], default.vgg_precision)]  # (search, Adam step, VGG)
-            if backend == backends[0] and side == 512:  # each choice varied alone, the others at their defaults
-                variants += [(search, adams[0], default.vgg_precision) for search in searches
-                             if search != default.nnfm_search]
-                variants += [(default.nnfm_search, adam, default.vgg_precision) for adam in adams[1:]]
-                variants += [(default.nnfm_search, adams[0], vgg) for vgg in vggs if vgg != default.vgg_precision]
-            for search, adam, vgg in variants:
+            first = (default.nnfm_search, adams[0], default.vgg_precision, graphs[0])  # (search, Adam, VGG, graph)
+            variants = [first]
+            if backend == backends[0] and side == 512:  # each choice varied alone, the others as in the first
+                variants += [(search, *first[1:]) for search in searches if search != first[0]]
+                variants += [(first[0], adam, *first[2:]) for adam in adams[1:]]
+                variants += [(*first[:2], vgg, first[3]) for vgg in vggs if vgg != first[2]]
+                variants += [(*first[:3], graph) for graph in graphs[1:]]
+            for search, adam, vgg, graph in variants:
                 config = FinetuneConfig(iterations=args.iters, backend=backend, nnfm_max_side=side, nnfm_search=search,
-                                        vgg_precision=vgg)
+                                        vgg_precision=vgg, cuda_graph=graph)
                 arf_style = resized_style(style, max(cams.width, cams.height) // 2)
                 with adam_step(adam):
                     sec = seconds_per_iteration(scene.to(device), cams, arf_style, config, targets, device)
                 loss = "L1+SSIM+NNFM" if targets else "NNFM+content"
                 rows.append([name, backend, f"{cams.width}x{cams.height}", loss, side or "full", search, vgg, adam,
-                             f"{sec * 1e3:.1f}"])
+                             "on" if graph else "off", f"{sec * 1e3:.1f}"])
                 print(rows[-1], flush=True)
     nnfm_rows = [[f"{size}x{size}", search, f"{nnfm_seconds(size, style, device, search) * 1e3:.2f}"]
                  for size in ((128, 512, 1024) if device.type == "cuda" else (128,)) for search in searches]
     print_table(f"Finetune speed ({gpu})", ["scene", "backend", "size", "loss", "VGG terms' max side", "NNFM search",
-                                           "VGG convolutions", "Adam step", "ms / iteration"], rows, command)
+                                           "VGG convolutions", "Adam step", "CUDA graph", "ms / iteration"], rows,
+                command)
     print_table(f"NNFM term alone ({gpu}: VGG19 relu3 forward+backward + matching, style of the same size)",
                 ["size", "search", "ms"], nnfm_rows, command)
 
