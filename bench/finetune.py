@@ -4,6 +4,7 @@
         [--cases demo,bear,random] [--searches fp32,tf32,bf16] [--adams fused,torch] [--vggs fp32,tf32,bf16]
         [--graphs on,off] [--profile]
     cd bench && python finetune.py --vgg-variants [--device cpu|cuda]
+    cd bench && python finetune.py --parts [--device cpu|cuda]
 
 Cases: the bundled demo scene (128x128); on CUDA also the bear scene at 512x512 and 1024x1024
 (cameras scaled x2; when ``--shared`` holds it) and a random 1M-Gaussian scene at 1024x1024, with
@@ -28,6 +29,14 @@ while the GPU runs step k).
 convolutions' arithmetic and memory layout varied (:data:`VGG_VARIANTS`), each timed and compared
 with the float32 run (no TF32 anywhere, float32 search) on the same image and style: relative error of
 the loss and relative L2 error of the image's gradient.
+
+``--parts``: instead, two parts of a step alone, each fast path beside its reference on the same inputs:
+SSIM (forward+backward of a [1, 3, H, W] render in the finetune's layout against a target) by
+:func:`~artnvg_core.losses.ssim.separable_ssim` (PyTorch; cuDNN's grouped convolutions on CUDA) and by
+the fused Triton kernels (CUDA; the default there), with the fused one's deviation (value, gradient's relative
+L2); and NNFM's match search (:func:`~artnvg_core.losses.nearest_style_indices`, TF32, the VGG19 relu3
+features of the demo style and a noisy copy at the size) with several ``max_chunk_elements``, the matches
+compared with one chunk's.
 
 ``--profile`` (CUDA): instead, where an iteration of the first case goes, with and without stylized
 targets: the GPU kernels' time per iteration against the wall time, the 25 costliest kernels and the
@@ -63,8 +72,11 @@ from artnvg_core.losses import (
     convolution_precision,
     features_autocast,
     load_vgg,
+    nearest_style_indices,
+    normalize_features,
     style_image_features,
 )
+from artnvg_core.losses.ssim import C1, C2, separable_ssim, window_on
 from artnvg_core.raster import triton_available
 from artnvg_core.raster.gsplat_backend import gsplat_available
 from artnvg_core.stylize import DemoInputs
@@ -102,11 +114,18 @@ def profile_rows(scene, cameras, style, device, iterations=20) -> None:
 
     for targets in (False, True):
         stylized = torch.rand(len(cameras), cameras.height, cameras.width, 3, device=device) if targets else None
-        config = FinetuneConfig(iterations=iterations)
-        wall = seconds_per_iteration(scene, cameras, style, config, targets, device)
-        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-            finetune(scene, cameras, style, stylized=stylized, config=config)
-        events = prof.key_averages()
+        config = FinetuneConfig(iterations=iterations + 3)
+        wall = seconds_per_iteration(scene, cameras, style, dataclasses.replace(config, iterations=iterations),
+                                     targets, device)
+        profiler = profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA])
+
+        def steps_only(step, *_):  # the profile holds the last ``iterations`` steps, nothing before or after
+            if step in (3, config.iterations):
+                synchronize(device)
+                profiler.start() if step == 3 else profiler.stop()
+
+        finetune(scene, cameras, style, stylized=stylized, config=config, progress=steps_only)
+        events = profiler.key_averages()
         kernels = sorted((e for e in events if e.device_type.name == "CUDA"), key=lambda e: -e.device_time_total)
         host = sorted((e for e in events if e.device_type.name == "CPU"), key=lambda e: -e.self_cpu_time_total)
         gpu_ms = sum(e.device_time_total for e in kernels) / iterations / 1e3
@@ -197,6 +216,60 @@ def vgg_variant_rows(size: int, style, device) -> list[list]:
             for name, (value, grad, seconds) in results.items()]
 
 
+def ssim_part_rows(size: int, device) -> list[list]:
+    """[path, ms, value deviation, gradient relative L2 deviation] of SSIM forward+backward at ``size``
+    (``--parts``)."""
+    generator = torch.Generator(device).manual_seed(0)
+    render = torch.rand(1, size, size, 3, device=device, generator=generator)
+    target = (render + 0.1 * torch.randn(render.shape, device=device, generator=generator)).clamp(0, 1)
+    window = window_on(11, 1.5, device)
+    paths = {"separable (PyTorch)": lambda a, b: separable_ssim(a, b, window)}
+    if device.type == "cuda":
+        from artnvg_core.losses.ssim_triton import fused_ssim
+
+        paths["fused (Triton)"] = lambda a, b: fused_ssim(a, b, window, C1, C2)
+    results = {}
+    for name, fn in paths.items():
+        leaf = render.clone().requires_grad_(True)
+
+        def step():
+            leaf.grad = None
+            value = fn(leaf.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2))
+            value.backward()
+            return value
+
+        value = step().detach()
+        results[name] = (value, leaf.grad.clone(), timed(step, device, repeats=20))
+    reference_value, reference_grad, _ = results["separable (PyTorch)"]
+    return [[name, f"{seconds * 1e3:.3f}", f"{float((value - reference_value).abs()):.1e}",
+             f"{float((grad - reference_grad).norm() / reference_grad.norm()):.1e}"]
+            for name, (value, grad, seconds) in results.items()]
+
+
+def search_part_rows(size: int, style, device) -> list[list]:
+    """[max_chunk_elements, ms, matches equal to one chunk's] of NNFM's TF32 match search at ``size`` (``--parts``)."""
+    layers = ("relu3_1", "relu3_2", "relu3_3")
+    vgg = load_vgg("vgg19", device=device)
+    image = resized_style(style, size).permute(2, 0, 1)[None].to(device)
+    noisy = (image + 0.1 * torch.randn(image.shape, device=device, generator=torch.Generator(device).manual_seed(0)))
+
+    def units(x):
+        with torch.no_grad():
+            feats = torch.cat(list(vgg(x.clamp(0, 1), layers).values()), 1)
+        return normalize_features(feats.permute(0, 2, 3, 1).reshape(-1, feats.shape[1]))
+
+    render_unit, style_unit = units(noisy), units(image)
+    one_chunk = render_unit.shape[0] * style_unit.shape[0]
+    reference = nearest_style_indices(render_unit, style_unit, one_chunk, "tf32")
+    rows = []
+    for chunk in (one_chunk, 2**26, 2**24, 2**23, 2**22, 2**21):
+        matches = nearest_style_indices(render_unit, style_unit, chunk, "tf32")
+        seconds = timed(lambda: nearest_style_indices(render_unit, style_unit, chunk, "tf32"), device, repeats=20)
+        rows.append([f"{chunk:,}" + (" (one chunk)" if chunk == one_chunk else ""), f"{seconds * 1e3:.3f}",
+                     f"{float((matches == reference).float().mean()):.4f}"])
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -207,6 +280,7 @@ def main() -> None:
     parser.add_argument("--adams", default="fused,torch", help="FiniteAdam steps to compare (CUDA)")
     parser.add_argument("--vggs", default=",".join(VGG_PRECISIONS), help="the VGG terms' convolution precisions")
     parser.add_argument("--graphs", default="on,off", help="the step's loss as CUDA graphs (on) or eager (off)")
+    parser.add_argument("--parts", action="store_true", help="SSIM and the NNFM search alone, fast beside reference")
     parser.add_argument("--profile", action="store_true", help="where an iteration goes (CUDA), no timing table")
     parser.add_argument("--vgg-variants", action="store_true", help="the NNFM term alone, convolution variants")
     args = parser.parse_args()
@@ -224,6 +298,15 @@ def main() -> None:
             print_table(f"NNFM term alone at {size}x{size} ({gpu}): the convolutions' arithmetic and layout",
                         ["convolutions", "ms", "loss rel. error", "gradient rel. L2 error"],
                         vgg_variant_rows(size, style, device), command)
+        return
+    if args.parts:
+        for size in (512, 1024) if device.type == "cuda" else (128,):
+            print_table(f"SSIM alone at {size}x{size} ({gpu}): forward+backward, deviation from the separable one",
+                        ["SSIM", "ms", "value deviation", "gradient rel. L2 deviation"],
+                        ssim_part_rows(size, device), command)
+            print_table(f"NNFM match search alone at {size}x{size} ({gpu}), TF32",
+                        ["max_chunk_elements", "ms", "same matches as one chunk"],
+                        search_part_rows(size, style, device), command)
         return
     backends = ["torch"]
     if device.type == "cuda":  # the reference backend's speed: BENCHMARKS.md, Rasterizer

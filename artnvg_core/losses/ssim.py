@@ -2,8 +2,10 @@
 
 Per channel, local statistics under an 11x11 Gaussian window (sigma 1.5) with zero padding
 (output the same size as the input), C1 = 0.01^2, C2 = 0.03^2 (data range 1), averaged over
-the SSIM map. The 2D window is separable, so it is applied as two 1D passes (same result).
-Computed in float32 whatever the input dtype or autocast state.
+the SSIM map. Computed in float32 whatever the input dtype or autocast state: on CUDA (with Triton) by
+two fused kernels, one forward and one backward (:mod:`.ssim_triton`), elsewhere by PyTorch operations
+(:func:`separable_ssim`: the 2D window is separable, so it is applied as two 1D passes). The two agree
+to float32 rounding.
 
 The map is written in the equivalent form (l, cs as in the textbook formula)
 
@@ -22,6 +24,8 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
+from ..raster import triton_available
+
 C1 = 0.01**2
 C2 = 0.03**2
 
@@ -34,7 +38,7 @@ def gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
 
 
 @lru_cache(maxsize=16)
-def _window_on(size: int, sigma: float, device: torch.device) -> torch.Tensor:
+def window_on(size: int, sigma: float, device: torch.device) -> torch.Tensor:
     """:func:`gaussian_window_1d` on ``device``, copied there once (a copy to a GPU waits for its queued work)."""
     with torch.inference_mode(False):
         return gaussian_window_1d(size, sigma).to(device)
@@ -62,9 +66,19 @@ def ssim(
         )
     if window_size < 1 or window_size % 2 == 0:
         raise ValueError(f"ssim: window_size must be a positive odd number, got {window_size}")
+    window = window_on(window_size, float(sigma), a.device)
+    if a.device.type == "cuda" and triton_available():
+        from .ssim_triton import fused_ssim  # imports Triton: only where it runs
+
+        return fused_ssim(a, b, window, C1, C2, per_image)
+    return separable_ssim(a, b, window, per_image)
+
+
+def separable_ssim(a: torch.Tensor, b: torch.Tensor, window: torch.Tensor, per_image: bool = False) -> torch.Tensor:
+    """:func:`ssim` of checked ``a, b [B, C, H, W]`` by PyTorch operations: the six maps blurred by two
+    separable passes of the 1D ``window [size]`` (on their device), then the map (module docstring)."""
     with torch.autocast(a.device.type, enabled=False):
         a, b = a.float(), b.float()
-        window = _window_on(window_size, float(sigma), a.device)
         channels = a.shape[1]
         diff = a - b
         stats = _blur(torch.cat([a, b, a * a, b * b, diff, diff * diff], dim=1), window)
