@@ -430,3 +430,21 @@ def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(
     assert again, "no step outgrew its lists: the test shows nothing"
     for name, value in waited.tensors().items():
         assert torch.equal(unwaited.tensors()[name], value), name
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("with_stylized", [True, False])
+def test_steps_between_reports_never_wait_for_the_gpu(demo, with_stylized):
+    """No operation of steps 2-6 (render, graphed loss, Adam) synchronises with the GPU (torch's sync debug mode
+    raises on any), so the host queues the next step while the GPU runs this one."""
+    scene, cameras, style = demo
+    stylized = torch.rand(len(cameras), cameras.height, cameras.width, 3) if with_stylized else None
+
+    def strict(step, total, info):
+        torch.cuda.set_sync_debug_mode("error" if 1 <= step < 6 else "default")
+
+    try:
+        finetune(scene.to("cuda"), cameras, style, stylized=stylized, config=FinetuneConfig(iterations=8),
+                 progress=strict)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")

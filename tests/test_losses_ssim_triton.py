@@ -1,5 +1,6 @@
-"""The fused SSIM kernels (Triton's interpreter on the CPU) against the float64 brute force and the PyTorch
-SSIM: values, both inputs' gradients, strided and half inputs, exact zero gradient at identity."""
+"""The fused SSIM kernels (on a CUDA GPU, else in Triton's interpreter on the CPU) against the float64 brute
+force and the PyTorch SSIM: values, both inputs' gradients, strided and half inputs, exact zero gradient at
+identity."""
 
 import pytest
 import torch
@@ -9,8 +10,13 @@ from artnvg_core.losses.ssim import C1, C2, ssim, window_on
 from artnvg_core.losses.ssim_triton import TILE_W, fused_ssim
 
 
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def fused(a, b, size=11, sigma=1.5, per_image=False):
-    return fused_ssim(a, b, window_on(size, sigma, a.device), C1, C2, per_image)
+    """The fused SSIM of ``a, b`` computed on DEVICE, its value and gradients back on the CPU."""
+    value = fused_ssim(a.to(DEVICE), b.to(DEVICE), window_on(size, sigma, DEVICE), C1, C2, per_image)
+    return value.cpu()
 
 
 def pair(shape, seed=0):

@@ -529,8 +529,10 @@ def project_color_triton(means, quats, log_scales, opacity_logits, sh, world_to_
 
     Returns (Projection of all N, index = arange(N), radii [N, 2] -1 where culled; colours [N, 3]).
     """
-    camera = torch.cat([world_to_cam[:3, :3].reshape(9), world_to_cam[:3, 3],
-                        intrinsics[[0, 1, 0, 1], [0, 1, 2, 2]], center]).to(torch.float32).detach()
+    # fx, fy, cx, cy by slices: an index list would be copied to the device, which waits for its queued work
+    focal, principal = intrinsics[:2, :2].diagonal(), intrinsics[:2, 2]
+    camera = torch.cat([world_to_cam[:3, :3].reshape(9), world_to_cam[:3, 3], focal, principal,
+                        center]).to(torch.float32).detach()
     means2d, conics, depths, opacities, colors, radii = _ProjectColor.apply(
         means, quats, log_scales, opacity_logits, sh, camera,
         (width, height, float(near_plane), float(blur_px2), degree, bool(antialiased)))
