@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
+import torch.nn.functional as F
 
 from .finetune_config import FinetuneConfig
 from .losses import NNFMLoss, VGGFeatures, features_autocast, shrink_to_max_side, ssim
@@ -42,6 +43,42 @@ def total_variation(images: torch.Tensor) -> torch.Tensor:
     return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
 
 
+def _cache_budget(device: torch.device) -> int:
+    """Bytes :class:`ContentReference` may keep: a quarter of a CUDA device's free memory, 1 GiB elsewhere."""
+    return torch.cuda.mem_get_info(device)[0] // 4 if device.type == "cuda" else 2**30
+
+
+class ContentReference:
+    """The original views' VGG features for the content term, by view.
+
+    features(images [B, 3, h, w]) -> {layer: [B, C, h', w']}: the VGG of the step's renders; originals
+    [V, 3, h, w]: every view as the VGG sees it. The features of all V views are computed once (a view at a
+    time, as a step of one view computes its render's, so that an unchanged render matches exactly) and kept
+    when they fit in :func:`_cache_budget` (``cached``), else those of the step's views are computed every
+    step: the same values either way.
+    ``reference(views [B]) -> ({layer: [B, C, h', w'] float32}, {layer: [] their mean square})``.
+    """
+
+    def __init__(self, features: Callable[[torch.Tensor], dict[str, torch.Tensor]], originals: torch.Tensor):
+        self.features, self.originals = features, originals
+        with torch.no_grad():
+            first = features(originals[:1])
+            per_view = sum(v.numel() * v.element_size() for v in first.values())
+            self.cached = per_view * len(originals) <= _cache_budget(originals.device)
+            if self.cached:
+                views = [first] + [features(originals[i:i + 1]) for i in range(1, len(originals))]
+                self.store = {k: torch.cat([view[k] for view in views]) for k in first}
+                self.power = {k: v.float().square().flatten(1).mean(1) for k, v in self.store.items()}
+
+    def __call__(self, views: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        if self.cached:
+            return ({k: v[views].float() for k, v in self.store.items()},
+                    {k: v[views].mean() for k, v in self.power.items()})
+        with torch.no_grad():
+            reference = {k: v.float() for k, v in self.features(self.originals[views]).items()}
+        return reference, {k: v.square().mean() for k, v in reference.items()}
+
+
 class StepLoss:
     """The weighted loss terms of a step's renders (module docstring).
 
@@ -56,6 +93,7 @@ class StepLoss:
     def __init__(self, config: FinetuneConfig, vgg: VGGFeatures, nnfm: NNFMLoss, stylized: torch.Tensor | None,
                  originals: torch.Tensor | None):
         self.config, self.vgg, self.nnfm, self.stylized, self.originals = config, vgg, nnfm, stylized, originals
+        self.content_reference = None if originals is None else ContentReference(self._features, originals)
         names = ("l1", "ssim") if stylized is not None else ()
         names += ("nnfm",) if config.nnfm_weight > 0 else ()
         names += ("content",) if originals is not None else ()
@@ -69,11 +107,9 @@ class StepLoss:
 
     def _content(self, feats: dict[str, torch.Tensor], views: torch.Tensor) -> torch.Tensor:
         """ARF's content term: the features' MSE from the original views', relative to their mean square."""
-        with torch.no_grad():
-            reference = {k: v.float() for k, v in self._features(self.originals[views]).items()}
+        reference, power = self.content_reference(views)
         layers = self.config.nnfm_layers
-        return sum(((feats[k].float() - reference[k]) ** 2).mean() / (reference[k] ** 2).mean().clamp_min(1e-12)
-                   for k in layers) / len(layers)
+        return sum(F.mse_loss(feats[k].float(), reference[k]) / power[k].clamp_min(1e-12) for k in layers) / len(layers)
 
     def __call__(self, image: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``image [B, H, W, 3]`` in [0, 1] of the views ``views [B]`` -> (loss [], terms [len(names)])."""

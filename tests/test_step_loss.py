@@ -8,6 +8,7 @@ import torch
 
 from artnvg_core.finetune_config import FinetuneConfig
 from artnvg_core.losses import NNFMLoss, load_vgg, ssim
+from artnvg_core import step_loss as step_loss_module
 from artnvg_core.step_loss import StepLoss, graphed, vgg_input
 
 LAYERS = ("relu3_1", "relu3_2", "relu3_3")
@@ -50,9 +51,9 @@ def reference_terms(config, style, stylized, originals, image, views):
         terms["ssim"] = config.ssim_weight * (1 - ssim(image.permute(0, 3, 1, 2), target.float().permute(0, 3, 1, 2)))
     terms["nnfm"] = config.nnfm_weight * reference_nnfm(feats, style_feats)
     if stylized is None:
-        terms["content"] = config.content_weight * sum(
-            (feats[k].double() - original_feats[k].double()).square().mean() / original_feats[k].double().square().mean()
-            for k in LAYERS) / len(LAYERS)
+        relative = [(feats[k].double() - original.double()).square().mean() / original.double().square().mean()
+                    for k, original in original_feats.items()]
+        terms["content"] = config.content_weight * sum(relative) / len(LAYERS)
         image64 = image.double()
         terms["tv"] = config.tv_weight * (image64.diff(dim=1).abs().mean() + image64.diff(dim=2).abs().mean())
     return terms
@@ -77,6 +78,20 @@ def test_terms_and_gradient_match_references(with_stylized):
     reference_image = image.detach().clone().requires_grad_(True)
     sum(reference_terms(config, style, stylized, originals, reference_image, views).values()).backward()
     torch.testing.assert_close(image.grad, reference_image.grad.float(), rtol=1e-3, atol=1e-7)
+
+
+@pytest.mark.parametrize("budget", [0, 2**30])
+def test_content_reference_kept_when_it_fits_and_the_same_either_way(monkeypatch, budget):
+    """The original views' features kept or computed each step: the content term equals the brute force's for
+    views 3 and 1 both ways."""
+    monkeypatch.setattr(step_loss_module, "_cache_budget", lambda device: budget)
+    style, _, originals, image, views = inputs()
+    config = FinetuneConfig(nnfm_search="fp32", tv_weight=0, content_weight=0.4)
+    loss_fn = step_loss(config, style, None, originals)
+    assert loss_fn.content_reference.cached == (budget > 0)
+    _, terms = loss_fn(image, views)
+    expected = reference_terms(config, style, None, originals, image, views)["content"]
+    torch.testing.assert_close(terms[loss_fn.names.index("content")].double(), expected.detach(), rtol=2e-5, atol=0)
 
 
 def test_weights_leave_out_their_terms():
