@@ -12,9 +12,10 @@ adjoint) and applies the chain rule per pixel:
 
 (and for ``b`` with mu_b, E[b^2] and -2 (a - b)). For identical images every term is exactly zero, as in
 the PyTorch form. Arithmetic in float32; the 2D window's sums run in another order than the separable
-passes, so the two agree to float32 rounding. The inputs may have any strides (the finetune's are
-permuted [B, H, W, 3] renders). They run on CUDA tensors, or on the CPU in Triton's interpreter
-(``TRITON_INTERPRET=1`` set before this module is imported).
+passes, so the two agree to float32 rounding. The inputs are read as contiguous [B, C, H, W] (a permuted
+[B, H, W, 3] render is copied first: at 1024x1024 the copy and a contiguous read take 0.8 ms forward and
+backward, strided reads 2.1 ms; BENCHMARKS.md, Finetune). They run on CUDA tensors, or on the CPU in
+Triton's interpreter (``TRITON_INTERPRET=1`` set before this module is imported).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ TILE_H, TILE_W = 16, 32  # pixels of a program
 
 
 @triton.jit
-def _statistics(a_ptr, b_ptr, window_ptr, ys, xs, H, W, a_sh, a_sw, b_sh, b_sw, SIZE: tl.constexpr):
+def _statistics(a_ptr, b_ptr, window_ptr, ys, xs, H, W, SIZE: tl.constexpr):
     """The five windowed sums around pixels (ys, xs) of one channel: mu_a, mu_b, E[a^2], E[b^2], E[d^2]."""
     mu_a = tl.zeros(ys.shape, tl.float32) + tl.zeros(xs.shape, tl.float32)
     mu_b, e_aa, e_bb, e_dd = mu_a, mu_a, mu_a, mu_a
@@ -38,8 +39,8 @@ def _statistics(a_ptr, b_ptr, window_ptr, ys, xs, H, W, a_sh, a_sw, b_sh, b_sw, 
             x = xs + (j - SIZE // 2)
             there = (y >= 0) & (y < H) & (x >= 0) & (x < W)
             w = wy * tl.load(window_ptr + j)
-            av = tl.load(a_ptr + y * a_sh + x * a_sw, mask=there, other=0.0).to(tl.float32)
-            bv = tl.load(b_ptr + y * b_sh + x * b_sw, mask=there, other=0.0).to(tl.float32)
+            av = tl.load(a_ptr + y * W + x, mask=there, other=0.0).to(tl.float32)
+            bv = tl.load(b_ptr + y * W + x, mask=there, other=0.0).to(tl.float32)
             dv = av - bv
             mu_a += w * av
             mu_b += w * bv
@@ -50,20 +51,17 @@ def _statistics(a_ptr, b_ptr, window_ptr, ys, xs, H, W, a_sh, a_sw, b_sh, b_sw, 
 
 
 @triton.jit
-def _forward_kernel(a_ptr, b_ptr, window_ptr, sums_ptr, maps_ptr, C, H, W, tiles_w,
-                    a_sb, a_sc, a_sh, a_sw, b_sb, b_sc, b_sh, b_sw, c1, c2,
+def _forward_kernel(a_ptr, b_ptr, window_ptr, sums_ptr, maps_ptr, H, W, tiles_w, c1, c2,
                     SIZE: tl.constexpr, TH: tl.constexpr, TW: tl.constexpr, MAPS: tl.constexpr):
     """Per (tile, image x channel) program: the tile's sum of the SSIM map into ``sums [B*C, tiles]`` and, with
     ``MAPS``, the map's partial derivatives into ``maps [4, B*C, H, W]``: by mu_a, by mu_b, by E[a^2]
     (= by E[b^2]) and by E[d^2]."""
     tile, plane = tl.program_id(0), tl.program_id(1).to(tl.int64)
-    image, channel = plane // C, plane % C
     ys = (tile // tiles_w) * TH + tl.arange(0, TH)[:, None]
     xs = (tile % tiles_w) * TW + tl.arange(0, TW)[None, :]
     inside = (ys < H) & (xs < W)
-    mu_a, mu_b, e_aa, e_bb, e_dd = _statistics(a_ptr + image * a_sb + channel * a_sc,
-                                               b_ptr + image * b_sb + channel * b_sc, window_ptr,
-                                               ys, xs, H, W, a_sh, a_sw, b_sh, b_sw, SIZE)
+    mu_a, mu_b, e_aa, e_bb, e_dd = _statistics(a_ptr + plane * H * W, b_ptr + plane * H * W, window_ptr, ys, xs,
+                                               H, W, SIZE)
     diff = mu_a - mu_b
     p = mu_a * mu_a + mu_b * mu_b + c1
     lum = 1.0 - diff * diff / p
@@ -99,32 +97,30 @@ def _blurred(maps_ptr, window_ptr, ys, xs, H, W, SIZE: tl.constexpr):
 
 @triton.jit
 def _backward_kernel(a_ptr, b_ptr, window_ptr, maps_ptr, scale_ptr, grad_a_ptr, grad_b_ptr, C, H, W, tiles_w,
-                     a_sb, a_sc, a_sh, a_sw, b_sb, b_sc, b_sh, b_sw, ga_sb, ga_sc, ga_sh, ga_sw,
-                     gb_sb, gb_sc, gb_sh, gb_sw,
                      SIZE: tl.constexpr, TH: tl.constexpr, TW: tl.constexpr, GRAD_A: tl.constexpr,
                      GRAD_B: tl.constexpr):
     """d(loss)/da with ``GRAD_A`` and d(loss)/db with ``GRAD_B`` of a tile of one channel: the blurred partial
     derivatives combined per pixel, times ``scale [B]`` (d(loss)/d(image's SSIM) over its values per channel)."""
     tile, plane = tl.program_id(0), tl.program_id(1).to(tl.int64)
-    image, channel = plane // C, plane % C
     ys = (tile // tiles_w) * TH + tl.arange(0, TH)[:, None]
     xs = (tile % tiles_w) * TW + tl.arange(0, TW)[None, :]
     inside = (ys < H) & (xs < W)
     plane_stride = tl.num_programs(1).to(tl.int64) * H * W
+    pixels = plane * H * W + ys * W + xs
     at = maps_ptr + plane * H * W
-    scale = tl.load(scale_ptr + image)
-    av = tl.load(a_ptr + image * a_sb + channel * a_sc + ys * a_sh + xs * a_sw, mask=inside, other=0.0).to(tl.float32)
-    bv = tl.load(b_ptr + image * b_sb + channel * b_sc + ys * b_sh + xs * b_sw, mask=inside, other=0.0).to(tl.float32)
+    scale = tl.load(scale_ptr + plane // C)
+    av = tl.load(a_ptr + pixels, mask=inside, other=0.0).to(tl.float32)
+    bv = tl.load(b_ptr + pixels, mask=inside, other=0.0).to(tl.float32)
     by_q = _blurred(at + 2 * plane_stride, window_ptr, ys, xs, H, W, SIZE)
     by_v = _blurred(at + 3 * plane_stride, window_ptr, ys, xs, H, W, SIZE)
     diff = av - bv
     if GRAD_A:
         grad_a = scale * (_blurred(at, window_ptr, ys, xs, H, W, SIZE) + 2.0 * av * by_q + 2.0 * diff * by_v)
-        tl.store(grad_a_ptr + image * ga_sb + channel * ga_sc + ys * ga_sh + xs * ga_sw, grad_a, mask=inside)
+        tl.store(grad_a_ptr + pixels, grad_a, mask=inside)
     if GRAD_B:
         grad_b = scale * (_blurred(at + plane_stride, window_ptr, ys, xs, H, W, SIZE) + 2.0 * bv * by_q
                           - 2.0 * diff * by_v)
-        tl.store(grad_b_ptr + image * gb_sb + channel * gb_sc + ys * gb_sh + xs * gb_sw, grad_b, mask=inside)
+        tl.store(grad_b_ptr + pixels, grad_b, mask=inside)
 
 
 def _grid(a: torch.Tensor) -> tuple[int, int, int]:
@@ -141,8 +137,7 @@ class _FusedSSIM(torch.autograd.Function):
         tiles, tiles_w, planes = _grid(a)
         sums = torch.empty(planes, tiles, device=a.device, dtype=torch.float32)
         partials = torch.empty((4, planes, height, width) if maps else (0,), device=a.device, dtype=torch.float32)
-        _forward_kernel[(tiles, planes)](a, b, window, sums, partials, channels, height, width, tiles_w,
-                                         *a.stride(), *b.stride(), c1, c2,
+        _forward_kernel[(tiles, planes)](a, b, window, sums, partials, height, width, tiles_w, c1, c2,
                                          SIZE=window.numel(), TH=TILE_H, TW=TILE_W, MAPS=maps)
         ctx.save_for_backward(a, b, window, partials)
         ctx.per_image = per_image
@@ -160,7 +155,6 @@ class _FusedSSIM(torch.autograd.Function):
         out_a = torch.empty_like(a, dtype=torch.float32) if need_a else a  # unneeded: a pointer never written
         out_b = torch.empty_like(b, dtype=torch.float32) if need_b else b
         _backward_kernel[(tiles, planes)](a, b, window, partials, scale, out_a, out_b, channels, height, width, tiles_w,
-                                          *a.stride(), *b.stride(), *out_a.stride(), *out_b.stride(),
                                           SIZE=window.numel(), TH=TILE_H, TW=TILE_W, GRAD_A=need_a, GRAD_B=need_b)
         grads = (out_a.to(a.dtype) if need_a else None, out_b.to(b.dtype) if need_b else None)
         return (*grads, None, None, None, None, None)
@@ -168,8 +162,8 @@ class _FusedSSIM(torch.autograd.Function):
 
 def fused_ssim(a: torch.Tensor, b: torch.Tensor, window: torch.Tensor, c1: float, c2: float,
                per_image: bool = False) -> torch.Tensor:
-    """SSIM of ``a, b [B, C, H, W]`` (checked by the caller) under the normalised odd ``window [size]`` (float32,
-    on their device) with constants ``c1, c2``: a float32 scalar, or ``[B]`` if ``per_image``; differentiable
-    in both inputs."""
+    """SSIM of ``a, b [B, C, H, W]`` (checked by the caller; copied to contiguous ones where they are not) under
+    the normalised odd ``window [size]`` (float32, on their device) with constants ``c1, c2``: a float32
+    scalar, or ``[B]`` if ``per_image``; differentiable in both inputs."""
     maps = torch.is_grad_enabled() and (a.requires_grad or b.requires_grad)  # the backward's partial derivatives
-    return _FusedSSIM.apply(a, b, window, c1, c2, per_image, maps)
+    return _FusedSSIM.apply(a.contiguous(), b.contiguous(), window, c1, c2, per_image, maps)
