@@ -41,7 +41,7 @@ from .losses import NNFMLoss, convolution_precision, load_vgg, style_image_featu
 from .progress import ProgressFn, StopFn, check_stop
 from .raster import check_render_inputs, choose_backend, render
 from .scene import GaussianScene
-from .step_loss import StepLoss, graphed, nchw, vgg_input
+from .step_loss import StepLoss, can_graph, graphed, nchw, vgg_input
 
 if TYPE_CHECKING:
     from .raster.triton_backend import ListCapacity
@@ -233,7 +233,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         del content
     step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
     names = step_loss.names
-    if config.cuda_graph and device.type == "cuda":
+    if config.cuda_graph and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     params = _parameters(scene, config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None)

@@ -46,7 +46,8 @@ class FinetuneConfig:
         cuda_graph (`bool`, defaults to True): on a CUDA device, record the loss of a step's renders (the VGG
             terms, SSIM, L1, TV; forward and backward) once as CUDA graphs and replay them every step
             (:mod:`artnvg_core.step_loss`; the same result, without queueing its ~250 kernels one by one);
-            False: run it eagerly. Elsewhere it is always eager.
+            False: run it eagerly. Always eager elsewhere and under the ``cudaMallocAsync`` allocator
+            (ComfyUI's default; :func:`artnvg_core.step_loss.can_graph`).
         views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
             possible), their terms averaged into one loss.
         color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and

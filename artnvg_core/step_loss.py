@@ -8,10 +8,10 @@ total-variation terms without stylized views).
 
 Its inputs keep their shapes through a finetune (one camera size, one number of views per step) and it
 never waits for the device, so :func:`graphed` records its forward and backward once as two CUDA graphs
-(``torch.cuda.make_graphed_callables``) and replays them every step: one launch each instead of the
-about 250 kernels of the VGG, the match search, SSIM and the rest, which the host would otherwise queue
-one by one (the loop is bound by that at 512 px). A replay computes what the eager call computes, with
-the same kernels (tests/test_step_loss.py compares them on CUDA).
+(``torch.cuda.make_graphed_callables``; where :func:`can_graph` says it may) and replays them every step:
+one launch each instead of the about 250 kernels of the VGG, the match search, SSIM and the rest, which the
+host would otherwise queue one by one (the loop is bound by that at 512 px). A replay computes what the
+eager call computes, with the same kernels (tests/test_step_loss.py compares them on CUDA).
 """
 
 from __future__ import annotations
@@ -130,6 +130,14 @@ class StepLoss:
             return image.sum() * 0, image.new_zeros(0)
         values = torch.stack(terms)
         return values.sum(), values.detach()
+
+
+def can_graph(device: torch.device) -> bool:
+    """Whether :func:`graphed` may record on ``device``: a CUDA device under PyTorch's own caching allocator.
+    Under ``cudaMallocAsync`` (``PYTORCH_CUDA_ALLOC_CONF=backend:cudaMallocAsync``, which ComfyUI sets unless
+    started with ``--disable-cuda-malloc``) memory allocated during a capture is not addressable yet, so Triton
+    refuses to launch on it, and a failed capture leaves allocations that crash the process when freed."""
+    return device.type == "cuda" and torch.cuda.get_allocator_backend() == "native"
 
 
 def graphed(step_loss: StepLoss, image_shape: tuple[int, ...], device: torch.device) -> StepLossFn:

@@ -152,3 +152,33 @@ def test_graphed_finetune_equals_the_eager_one():
     scale = updates[1].norm()
     graph_vs_eager, eager_vs_eager = (updates[0] - updates[1]).norm() / scale, (updates[2] - updates[1]).norm() / scale
     assert scale > 0 and graph_vs_eager <= max(3 * eager_vs_eager, 1e-4), (graph_vs_eager, eager_vs_eager)
+
+
+@pytest.mark.cuda
+def test_no_graph_under_the_cuda_malloc_async_allocator():
+    """ComfyUI runs PyTorch with cudaMallocAsync: there a finetune with stylized views (SSIM's Triton kernels)
+    runs eagerly and finishes, where a capture failed and later crashed the process."""
+    import os
+    import subprocess
+    import sys
+
+    script = """
+import torch
+from artnvg_core.cameras import load_cameras
+from artnvg_core.fileio import load_image
+from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.formats import read_ply
+from artnvg_core.step_loss import can_graph
+from artnvg_core.stylize import DemoInputs
+assert torch.cuda.get_allocator_backend() == "cudaMallocAsync" and not can_graph(torch.device("cuda"))
+demo = DemoInputs()
+cameras = load_cameras(demo.cameras).subset([0, 6]).scaled(0.25)
+stylized = torch.rand(2, cameras.height, cameras.width, 3)
+for _ in range(2):
+    finetune(read_ply(demo.scene).to("cuda"), cameras, load_image(demo.style), stylized=stylized,
+             config=FinetuneConfig(iterations=4))
+print("finished")
+"""
+    env = {**os.environ, "PYTORCH_CUDA_ALLOC_CONF": "backend:cudaMallocAsync"}
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "finished" in done.stdout, done.stderr[-3000:]
