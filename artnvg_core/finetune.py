@@ -231,9 +231,10 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         if config.content_weight > 0:
             originals = vgg_input(content, config)
         del content
-    step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
+    graph = config.cuda_graph and can_graph(device)
+    step_loss = StepLoss(config, vgg, nnfm, stylized, originals, keep_content=not graph)
     names = step_loss.names
-    if config.cuda_graph and can_graph(device):
+    if graph:
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     params = _parameters(scene, config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None)
