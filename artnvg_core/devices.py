@@ -1,10 +1,12 @@
-"""The torch device to run on: CUDA when present, then Apple's MPS, then the CPU.
+"""The torch device to run on: CUDA when present, then Apple's MPS, then the CPU; whether Triton is there.
 
 MPS (Apple silicon and AMD GPUs on macOS) has no float64: the core runs float64 maths (camera
 poses, activated-form conversions, metric sums) on the CPU and keeps device work in float32.
 """
 
 from __future__ import annotations
+
+import importlib.util
 
 import torch
 
@@ -14,6 +16,11 @@ DEVICE_CHOICES = ("auto", "cpu", "cuda", "mps")
 def mps_available() -> bool:
     """Whether Apple's Metal (MPS) backend can run here."""
     return torch.backends.mps.is_available()
+
+
+def triton_available() -> bool:
+    """True when the ``triton`` package can be imported (torch's CUDA builds bring it)."""
+    return importlib.util.find_spec("triton") is not None
 
 
 def best_device() -> torch.device:

@@ -24,7 +24,7 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
-from ..raster import triton_available
+from ..devices import triton_available
 
 C1 = 0.01**2
 C2 = 0.03**2

@@ -11,7 +11,6 @@ optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 from __future__ import annotations
 
 import functools
-import importlib.util
 import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -19,6 +18,7 @@ from typing import TYPE_CHECKING, Callable
 import torch
 
 from ..cameras import CameraSet
+from ..devices import triton_available
 from ..scene import GaussianScene
 from .gsplat_backend import gsplat_available, load_kernels, rasterize_gsplat
 from .projection import project
@@ -40,11 +40,6 @@ class RenderOutput:
     rgb: torch.Tensor
     alpha: torch.Tensor
     depth: torch.Tensor | None
-
-
-def triton_available() -> bool:
-    """True when the ``triton`` package can be imported (torch's CUDA builds bring it)."""
-    return importlib.util.find_spec("triton") is not None
 
 
 def _triton_runs(device: torch.device, dtype: torch.dtype) -> bool:
