@@ -99,7 +99,7 @@ class StepLoss:
 
     def __init__(self, config: FinetuneConfig, vgg: VGGFeatures, nnfm: NNFMLoss, stylized: torch.Tensor | None,
                  originals: torch.Tensor | None, keep_content: bool = True):
-        self.config, self.vgg, self.nnfm, self.stylized, self.originals = config, vgg, nnfm, stylized, originals
+        self.config, self.vgg, self.nnfm, self.stylized = config, vgg, nnfm, stylized
         self.content_reference = None if originals is None else ContentReference(self._features, originals,
                                                                                  keep_content)
         names = ("l1", "ssim") if stylized is not None else ()
@@ -126,11 +126,11 @@ class StepLoss:
             target = self.stylized[views]
             terms.append(config.l1_weight * (image - target).abs().mean())
             terms.append(config.ssim_weight * (1 - ssim(nchw(image), nchw(target))))
-        needs_features = config.nnfm_weight > 0 or self.originals is not None
+        needs_features = config.nnfm_weight > 0 or self.content_reference is not None
         feats = self._features(vgg_input(image, config)) if needs_features else None
         if config.nnfm_weight > 0:
             terms.append(config.nnfm_weight * self.nnfm(feats))
-        if self.originals is not None:
+        if self.content_reference is not None:
             terms.append(config.content_weight * self._content(feats, views))
         if "tv" in self.names:
             terms.append(config.tv_weight * total_variation(image))
