@@ -28,19 +28,25 @@ TILE_H, TILE_W = 16, 32  # pixels of a program
 
 
 @triton.jit
+def _tap(window_ptr, ys, xs, i, j, H, W, SIZE: tl.constexpr):
+    """Window tap (i, j) around pixels (ys, xs) of a contiguous [H, W] plane: its weight, the offsets of the
+    pixels it reads, and where they are inside (zero padding elsewhere)."""
+    y = ys + (i - SIZE // 2)
+    x = xs + (j - SIZE // 2)
+    weight = tl.load(window_ptr + i) * tl.load(window_ptr + j)
+    return weight, y * W + x, (y >= 0) & (y < H) & (x >= 0) & (x < W)
+
+
+@triton.jit
 def _statistics(a_ptr, b_ptr, window_ptr, ys, xs, H, W, SIZE: tl.constexpr):
     """The five windowed sums around pixels (ys, xs) of one channel: mu_a, mu_b, E[a^2], E[b^2], E[d^2]."""
     mu_a = tl.zeros(ys.shape, tl.float32) + tl.zeros(xs.shape, tl.float32)
     mu_b, e_aa, e_bb, e_dd = mu_a, mu_a, mu_a, mu_a
     for i in range(SIZE):
-        y = ys + (i - SIZE // 2)
-        wy = tl.load(window_ptr + i)
         for j in tl.static_range(SIZE):
-            x = xs + (j - SIZE // 2)
-            there = (y >= 0) & (y < H) & (x >= 0) & (x < W)
-            w = wy * tl.load(window_ptr + j)
-            av = tl.load(a_ptr + y * W + x, mask=there, other=0.0).to(tl.float32)
-            bv = tl.load(b_ptr + y * W + x, mask=there, other=0.0).to(tl.float32)
+            w, at, there = _tap(window_ptr, ys, xs, i, j, H, W, SIZE)
+            av = tl.load(a_ptr + at, mask=there, other=0.0).to(tl.float32)
+            bv = tl.load(b_ptr + at, mask=there, other=0.0).to(tl.float32)
             dv = av - bv
             mu_a += w * av
             mu_b += w * bv
@@ -86,12 +92,9 @@ def _blurred(maps_ptr, window_ptr, ys, xs, H, W, SIZE: tl.constexpr):
     """The windowed sum of one contiguous [H, W] map around pixels (ys, xs), zero outside."""
     total = tl.zeros(ys.shape, tl.float32) + tl.zeros(xs.shape, tl.float32)
     for i in range(SIZE):
-        y = ys + (i - SIZE // 2)
-        wy = tl.load(window_ptr + i)
         for j in tl.static_range(SIZE):
-            x = xs + (j - SIZE // 2)
-            there = (y >= 0) & (y < H) & (x >= 0) & (x < W)
-            total += wy * tl.load(window_ptr + j) * tl.load(maps_ptr + y * W + x, mask=there, other=0.0)
+            w, at, there = _tap(window_ptr, ys, xs, i, j, H, W, SIZE)
+            total += w * tl.load(maps_ptr + at, mask=there, other=0.0)
     return total
 
 
