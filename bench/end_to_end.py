@@ -77,7 +77,7 @@ class Row:
     key_views: int
     iterations: int
     low_memory: bool
-    vgg_precision: str = FinetuneConfig().vgg_precision
+    vgg_precision: str
 
 
 def _value(text: str, current):

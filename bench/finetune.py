@@ -228,8 +228,6 @@ def ssim_part_rows(size: int, device) -> list[list]:
         from artnvg_core.losses.ssim_triton import fused_ssim
 
         paths["fused (Triton)"] = lambda a, b: fused_ssim(a, b, window, C1, C2)
-        paths["fused (Triton), contiguous copies"] = lambda a, b: fused_ssim(a.contiguous(), b.contiguous(), window,
-                                                                            C1, C2)
     results = {}
     for name, fn in paths.items():
         leaf = render.clone().requires_grad_(True)
