@@ -232,7 +232,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
             originals = vgg_input(content, config)
         del content
     graph = config.cuda_graph and can_graph(device)
-    step_loss = StepLoss(config, vgg, nnfm, stylized, originals, keep_content=not graph)
+    step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
     names = step_loss.names
     if graph:
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)

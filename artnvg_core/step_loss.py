@@ -52,21 +52,15 @@ class ContentReference:
     """The original views' VGG features for the content term, by view.
 
     features(images [B, 3, h, w]) -> {layer: [B, C, h', w']}: the VGG of the step's renders; originals
-    [V, 3, h, w]: every view as the VGG sees it. With ``keep``, the features of all V views are computed once
-    (a view at a time, as a step of one view computes its render's, so that an unchanged render matches
-    exactly) and kept when they fit in :func:`_cache_budget` (``cached``); else those of the step's views are
-    computed every step: the same values either way. The finetune keeps them only where it runs eagerly: a
-    CUDA graph that read kept features gave non-finite gradients once ``torch._dynamo`` had been imported
-    (diffusers imports it; cause not found), where one that computes them per step matches the eager run
-    (tests/test_step_loss.py).
+    [V, 3, h, w]: every view as the VGG sees it. The features of all V views are computed once (a view at a
+    time, as a step of one view computes its render's, so that an unchanged render matches exactly) and kept
+    when they fit in :func:`_cache_budget` (``cached``); else those of the step's views are computed every
+    step: the same values either way.
     ``reference(views [B]) -> ({layer: [B, C, h', w'] float32}, {layer: [] their mean square})``.
     """
 
-    def __init__(self, features: Callable[[torch.Tensor], dict[str, torch.Tensor]], originals: torch.Tensor,
-                 keep: bool = True):
-        self.features, self.originals, self.cached = features, originals, False
-        if not keep:
-            return
+    def __init__(self, features: Callable[[torch.Tensor], dict[str, torch.Tensor]], originals: torch.Tensor):
+        self.features, self.originals = features, originals
         with torch.no_grad():
             first = features(originals[:1])
             per_view = sum(v.numel() * v.element_size() for v in first.values())
@@ -93,15 +87,13 @@ class StepLoss:
     stylized: [C, H, W, 3] stylized views in camera order (L1, SSIM), or None.
     originals: [C, 3, h, w] original views as the VGG sees them (:func:`vgg_input`) for the content term,
         or None.
-    keep_content: keep their features (:class:`ContentReference`); False for a step loss to be :func:`graphed`.
     ``names``: the terms computed, in the order of the returned ``terms``.
     """
 
     def __init__(self, config: FinetuneConfig, vgg: VGGFeatures, nnfm: NNFMLoss, stylized: torch.Tensor | None,
-                 originals: torch.Tensor | None, keep_content: bool = True):
+                 originals: torch.Tensor | None):
         self.config, self.vgg, self.nnfm, self.stylized = config, vgg, nnfm, stylized
-        self.content_reference = None if originals is None else ContentReference(self._features, originals,
-                                                                                 keep_content)
+        self.content_reference = None if originals is None else ContentReference(self._features, originals)
         names = ("l1", "ssim") if stylized is not None else ()
         names += ("nnfm",) if config.nnfm_weight > 0 else ()
         names += ("content",) if originals is not None else ()
@@ -148,10 +140,21 @@ def can_graph(device: torch.device) -> bool:
     return device.type == "cuda" and torch.cuda.get_allocator_backend() == "native"
 
 
+class _Graphed:
+    """A :class:`StepLoss`'s CUDA graphs, holding the step loss itself: the graphs read its tensors (the kept
+    content features, the stylized views) by address, so they must live as long as the graphs do."""
+
+    def __init__(self, step_loss: StepLoss, replay: StepLossFn):
+        self.step_loss, self.replay = step_loss, replay
+
+    def __call__(self, image: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.replay(image, views)
+
+
 def graphed(step_loss: StepLoss, image_shape: tuple[int, ...], device: torch.device) -> StepLossFn:
     """``step_loss`` for renders of ``image_shape`` ([B, H, W, 3]), recorded as CUDA graphs on ``device``
     (forward and backward; after three eager warm-up calls on view 0). The returned tensors are the graphs'
     own buffers, overwritten by the next call: read them (or queue their use) before it."""
     image = torch.zeros(image_shape, device=device, requires_grad=True)
     views = torch.zeros(image_shape[0], dtype=torch.long, device=device)
-    return torch.cuda.make_graphed_callables(step_loss, (image, views))
+    return _Graphed(step_loss, torch.cuda.make_graphed_callables(step_loss, (image, views)))
