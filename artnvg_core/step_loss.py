@@ -153,8 +153,9 @@ class _Graphed:
 
 def graphed(step_loss: StepLoss, image_shape: tuple[int, ...], device: torch.device) -> StepLossFn:
     """``step_loss`` for renders of ``image_shape`` ([B, H, W, 3]), recorded as CUDA graphs on ``device``
-    (forward and backward; after three eager warm-up calls on view 0). The returned tensors are the graphs'
-    own buffers, overwritten by the next call: read them (or queue their use) before it."""
+    (forward and backward; after three eager warm-up calls on view 0). The returned tensors, and the gradient
+    the backward gives the image, are the graphs' own buffers, overwritten by the next call: read them (or
+    queue their use) before it."""
     image = torch.zeros(image_shape, device=device, requires_grad=True)
     views = torch.zeros(image_shape[0], dtype=torch.long, device=device)
     return _Graphed(step_loss, torch.cuda.make_graphed_callables(step_loss, (image, views)))

@@ -115,7 +115,7 @@ def eager_and_replay_results(eager, replay, device):
             leaf = image.clone().requires_grad_(True)
             loss, terms = fn(leaf, views)
             loss.backward()
-            out.append((loss.detach().clone(), terms.clone(), leaf.grad))
+            out.append((loss.detach().clone(), terms.clone(), leaf.grad.clone()))  # the graph's, until its next call
     return results
 
 
