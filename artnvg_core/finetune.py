@@ -231,10 +231,9 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         if config.content_weight > 0:
             originals = vgg_input(content, config)
         del content
-    graph = config.cuda_graph and can_graph(device)
     step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
     names = step_loss.names
-    if graph:
+    if config.cuda_graph and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     params = _parameters(scene, config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None)
