@@ -13,17 +13,9 @@ from contextlib import contextmanager
 import torch
 
 
-def _has_setting(backend, name: str) -> bool:
-    try:
-        getattr(backend, name)
-    except AttributeError:
-        return False
-    return True
-
-
 @contextmanager
 def _switch(new_owner, legacy_owner, tf32: bool) -> Iterator[None]:
-    if new_owner is not None and _has_setting(new_owner, "fp32_precision"):
+    if new_owner is not None and hasattr(new_owner, "fp32_precision"):
         owner, name, value = new_owner, "fp32_precision", "tf32" if tf32 else "ieee"
     else:
         owner, name, value = legacy_owner, "allow_tf32", tf32
