@@ -10,6 +10,7 @@ tests/integration/ compares that description with a real server's /object_info.
 import http.server
 import importlib.util
 import json
+import re
 import threading
 from pathlib import Path
 from typing import ClassVar
@@ -300,6 +301,29 @@ def test_overrides_by_id_or_title(queue):
             queue.apply_override(workflow, bad)
 
 
+def test_unknown_inputs_are_refused_with_the_inputs_the_node_has(queue):
+    workflow = queue.load_api_workflow(NNFM_API)
+    with pytest.raises(queue.WorkflowError) as refused:
+        queue.apply_override(workflow, "4.iterations=200")  # node 4 is Render Views, which has no iterations
+    assert str(refused.value) == ("--set: node 4 (Render Views) has no input 'iterations'; its inputs that take a "
+                                  "value: scale, stride, views, key_views")
+    with pytest.raises(queue.WorkflowError, match="node 6 \\(Finetune Gaussians\\) has no input 'iteratons'; .*iterations"):
+        queue.apply_override(workflow, "Finetune Gaussians.iteratons=5")
+    with pytest.raises(queue.WorkflowError) as unknown:
+        queue.apply_override(workflow, "Finetune.iterations=5")
+    assert "1 (Load Gaussian Scene), 2 (Load Cameras), 3 (Style image), 4 (Render Views)" in str(unknown.value)
+    assert "iterations" in workflow["6"]["inputs"] and "iteratons" not in workflow["6"]["inputs"]
+
+
+def test_a_name_of_two_nodes_is_refused_as_ambiguous(queue):
+    workflow = queue.load_api_workflow(NNFM_API)
+    workflow["9"]["_meta"]["title"] = "Content views"  # two nodes titled alike
+    workflow["8"]["_meta"]["title"] = "4"  # node 8's title is node 4's id
+    for key, named in (("Content views", "5 (Content views), 9 (Content views)"), ("4", "4 (Render Views), 8 (4)")):
+        with pytest.raises(queue.WorkflowError, match=f"node '{key}' is ambiguous: it names {re.escape(named)}"):
+            queue.apply_override(workflow, f"{key}.scale=1")
+
+
 def test_ui_format_is_refused_with_advice(queue):
     with pytest.raises(queue.WorkflowError, match="UI-format workflow; queue the API-format file"):
         queue.load_api_workflow(UI_FILES[0])
@@ -336,6 +360,7 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
     """Answers /prompt and /history like ComfyUI; ``reject`` makes /prompt fail validation."""
 
     reject = False
+    partial = False  # /prompt queues the workflow but reports node_errors, as ComfyUI does when some outputs validate
     posted: ClassVar[list] = []
 
     def _answer(self, code: int, payload: dict) -> None:
@@ -347,8 +372,15 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
         self.wfile.write(body)
 
     def do_POST(self):
-        self.posted.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
-        if self.reject:
+        self.posted.append((self.path, json.loads(self.rfile.read(int(self.headers["Content-Length"])))))
+        if self.path != "/prompt":
+            self._answer(200, {})
+        elif self.partial:
+            self._answer(200, {"prompt_id": "abc", "number": 0, "node_errors": {"6": {
+                "class_type": "ArtNVGFinetuneGaussians", "dependent_outputs": ["7"], "errors": [
+                    {"type": "value_smaller_than_min", "message": "Value smaller than min",
+                     "details": "iterations -1 < 1", "extra_info": {"input_name": "iterations"}}]}}})
+        elif self.reject:
             self._answer(400, {"error": {"message": "Prompt outputs failed validation", "details": ""},
                                "node_errors": {"1": {"class_type": "ArtNVGLoadGaussianScene", "errors": [
                                    {"message": "Custom validation failed for node",
@@ -373,14 +405,14 @@ def fake_server():
     _FakeServer.posted.clear()
     yield f"http://127.0.0.1:{server.server_address[1]}"
     server.shutdown()
-    _FakeServer.reject = False
+    _FakeServer.reject = _FakeServer.partial = False
 
 
 def test_main_queues_waits_and_reports(queue, fake_server, capsys):
     status = queue.main([str(NNFM_API), "--server", fake_server,
                          "--set", "6.iterations=3", "--json"])
     assert status == 0
-    assert _FakeServer.posted[0]["prompt"]["6"]["inputs"]["iterations"] == 3
+    assert _FakeServer.posted[0][1]["prompt"]["6"]["inputs"]["iterations"] == 3
     report = json.loads(capsys.readouterr().out)
     assert report["status"] == "success" and report["outputs"][0]["file"] == "artnvg/nnfm_00001.ply"
 
@@ -394,3 +426,12 @@ def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, cap
     closed.server_close()
     assert queue.main([str(NNFM_API), "--server", address]) == 3
     assert "cannot reach the server" in capsys.readouterr().err
+
+
+def test_node_errors_in_an_accepted_prompt_are_a_failure_and_the_prompt_is_withdrawn(queue, fake_server, capsys):
+    _FakeServer.partial = True
+    assert queue.main([str(NNFM_API), "--server", fake_server, "--set", "Finetune Gaussians.iterations=-1"]) == 2
+    assert ("node 6 (Finetune Gaussians), input 'iterations': Value smaller than min: iterations -1 < 1"
+            in capsys.readouterr().err)
+    assert [path for path, _ in _FakeServer.posted] == ["/prompt", "/queue", "/interrupt"]
+    assert _FakeServer.posted[1][1] == {"delete": ["abc"]} and _FakeServer.posted[2][1] == {"prompt_id": "abc"}
