@@ -349,6 +349,7 @@ def test_spz_axes_option_reads_and_writes_spz_in_the_plys_axes(tmp_path, capsys)
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
 
 
+@pytest.mark.slow
 def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     """A whole ``stylize --preset preview`` run in a fresh process (the demo at 1/8 size, 2 steps) never
     imports diffusers, transformers or peft: seconds of start-up the preview does not need. (torch._dynamo

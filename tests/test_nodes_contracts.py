@@ -52,7 +52,7 @@ PUBLIC_OUTPUTS = {
     "ArtNVGNVAttentionPatch": ("ARTNVG_MODELS",),
     "ArtNVGSampleGroup": ("IMAGE",),
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
-    "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_SPLAT_ANY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
+    "ArtNVGSaveGaussianScene": ("STRING", "LOAD3D_CAMERA"),  # + "FILE_3D_SPLAT_ANY" on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),
 }

@@ -29,6 +29,7 @@ TITLE_HEIGHT = 30  # the editor draws a node's title bar above its pos
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
 FILE_LISTS = {"scene_file", "camera_source", "image", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
 SEED_CONTROL = ("fixed", "increment", "decrement", "randomize")
+ANY = "*"  # the input type that takes any link
 
 # Stock ComfyUI nodes the workflows use: INPUT_TYPES (file lists as []), RETURN_TYPES, display name.
 STOCK_NODES = {
@@ -36,8 +37,12 @@ STOCK_NODES = {
     "PreviewImage": ({"required": {"images": ("IMAGE",)}}, (), "Preview Image"),
     "SaveImage": ({"required": {"images": ("IMAGE",), "filename_prefix": ("STRING", {"default": "ComfyUI"})}}, (),
                   "Save Image"),
+    "PreviewAny": ({"required": {"source": (ANY, {})}}, (), "Preview Any"),
+    "Preview3D": ({"required": {"model_file": ("STRING", {"default": "", "multiline": False})},
+                   "optional": {"camera_info": ("LOAD3D_CAMERA", {})}}, (), "Preview 3D"),
 }
 UPLOAD_WIDGET_VALUE = "image"  # LoadImage's upload button, stored after the file name
+EDITOR_WIDGETS = {"Preview3D": [""]}  # values of widgets the editor adds after the node's own (its 3D view)
 
 
 def load_queue_script():
@@ -93,7 +98,9 @@ def widget_values_by_name(class_type: str, values: list) -> dict:
     file list is followed by its upload button's value.
     """
     inputs, _ = node_spec(class_type)
-    named, remaining = {}, list(values)
+    added = EDITOR_WIDGETS.get(class_type, [])
+    assert values[len(values) - len(added):] == added, f"{class_type}: the editor's own widget values"
+    named, remaining = {}, list(values[:len(values) - len(added)])
     for name, spec in inputs.items():
         if not is_widget(spec):
             continue
@@ -202,8 +209,8 @@ def test_ui_workflow_links_and_widgets(path):
         assert origin_outputs[origin_slot] == kind, (path.name, link_id)
         assert link_id in nodes[origin]["outputs"][origin_slot]["links"]
         socket = nodes[target]["inputs"][target_slot]
-        assert socket["link"] == link_id and socket["type"] == kind
-        assert node_spec(nodes[target]["type"])[0][socket["name"]][0] == kind, (path.name, link_id)
+        assert socket["link"] == link_id and socket["type"] in (kind, ANY)
+        assert node_spec(nodes[target]["type"])[0][socket["name"]][0] in (kind, ANY), (path.name, link_id)
     for node in ui["nodes"]:
         if node["type"] in FRONTEND_ONLY:
             continue
@@ -223,11 +230,11 @@ def test_api_workflow_links_and_widgets(path):
         inputs, _ = node_spec(node["class_type"])
         assert set(node["inputs"]) <= set(inputs), node_id
         for name, value in node["inputs"].items():
-            if is_widget(inputs[name]):
+            if is_widget(inputs[name]) and not isinstance(value, list):  # a widget may take a link instead
                 assert widget_problem(name, inputs[name], value) is None, (path.name, node_id)
             else:
                 origin, slot = value
-                assert node_spec(api[origin]["class_type"])[1][slot] == inputs[name][0], (path.name, node_id, name)
+                assert inputs[name][0] in (node_spec(api[origin]["class_type"])[1][slot], ANY), (path.name, node_id, name)
         assert required_inputs(node["class_type"]) <= set(node["inputs"]), (path.name, node_id)
 
 
