@@ -58,9 +58,11 @@ def test_without_core_types_the_nodes_say_what_is_missing(tmp_path, monkeypatch)
     with pytest.raises(NodeInputError, match="Gaussian Scene to Splat: Needs ComfyUI's core Gaussian splat type"):
         nodes.splat_nodes.SceneToSplat().convert(random_scene(n=3))
     save = nodes.scene_nodes.SaveGaussianScene
-    assert save.RETURN_TYPES == () and "Preview Gaussian Splat; this ComfyUI lacks them" in save.DESCRIPTION
+    assert save.RETURN_TYPES == ("STRING", "LOAD3D_CAMERA")
+    assert "Preview Gaussian Splat; this ComfyUI lacks them, so it has no model_3d output" in save.DESCRIPTION
     monkeypatch.chdir(tmp_path)
-    assert set(save().save(random_scene(n=3), "artnvg/plain")) == {"ui"}
+    model_file, camera = save().save(random_scene(n=3), "artnvg/plain")["result"]
+    assert model_file == "artnvg/plain_00001.ply" and camera["cameraType"] == "perspective"
 
 
 def test_scene_to_splat_and_back_is_bit_exact(core):
