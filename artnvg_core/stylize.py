@@ -272,7 +272,7 @@ def stylize_diffusion(
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "rub") -> Path:
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto") -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
     contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
     Returns the sheet's path."""
