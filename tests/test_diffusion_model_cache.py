@@ -10,7 +10,7 @@ import pytest
 from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.progress import Cancelled
-from artnvg_core.stylize import load_models_for
+from artnvg_core.diffusion.loader import load_models_for
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
