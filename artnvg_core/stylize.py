@@ -19,6 +19,7 @@ import torch
 
 from .cameras import CameraSet
 from .diffusion.loader import load_models_for
+from .diffusion.lora import LoRA
 from .diffusion.model_files import ModelFiles, missing_model
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
@@ -104,6 +105,7 @@ def stylize_diffusion(
     config: FinetuneConfig,
     files: ModelFiles,
     *,
+    loras: Sequence[LoRA] = (),
     preset: str = "paper",
     content_routing: str = "released",
     sampler_changes: Mapping[str, object] | None = None,
@@ -129,6 +131,8 @@ def stylize_diffusion(
             ``config.seed`` also seeds the sampling (group ``g`` uses ``seed + g``) and ``config.backend``
             renders the content views.
         files (`ModelFiles`): the four model files (a None field: the Hugging Face cache).
+        loras (sequence of `LoRA`, defaults to none): fused into SDXL's weights at load time
+            (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
         preset (`str`, defaults to ``"paper"``): a name of :data:`artnvg_core.presets.PRESETS`; gives the
             sampler settings, the memory mode and the default ``key_views``.
         content_routing (`str`, defaults to ``"released"``): replaces the preset's (``"released"`` or
@@ -179,7 +183,8 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks)
+    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks,
+                             loras=tuple(loras))
     device = explicit[0] if explicit else scene.device
     # first: a model that cannot be loaded fails before any work
     models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)

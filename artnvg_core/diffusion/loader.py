@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 from ..progress import Cancelled, ProgressFn, StopFn
+from .lora import LoRA, LoRAError
 from .model_cache import file_key, load_once
 from .model_files import ModelFiles
 
@@ -19,11 +20,13 @@ class DiffusionModelsUnavailable(ValueError):
 
 
 def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
-                    *, dtype: torch.dtype | None = None, sdxl_config_dir: str | Path | None = None,
-                    on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
+                    *, loras: tuple[LoRA, ...] = (), dtype: torch.dtype | None = None,
+                    sdxl_config_dir: str | Path | None = None, on_cpu: bool = False, progress: ProgressFn | None = None,
+                    should_stop: StopFn | None = None):
     """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
     workers and ComfyUI's Load ArtNVG Models.
 
+    loras: fused into SDXL (:func:`.lora.fuse_loras`).
     dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
     loaded on the CPU and placed by :func:`.memory.enable_low_memory`; with
     ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
@@ -39,14 +42,15 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
     dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
-    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()), file_key(sdxl_config_dir),
+    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
+           tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
-    return load_once(key, functools.partial(_load_models, files, low_memory, device, compile_blocks, dtype,
-                                            sdxl_config_dir, on_cpu, progress, should_stop))
+    return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
+                                            dtype, sdxl_config_dir, on_cpu, progress, should_stop))
 
 
-def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, compile_blocks: bool,
-                 dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
+def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,
+                 compile_blocks: bool, dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
                  progress: ProgressFn | None, should_stop: StopFn | None):
     """:func:`load_models_for` without the once-per-process cache."""
     from .compile_cache import load_compile_cache
@@ -55,10 +59,10 @@ def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, comp
     from .speed import COMPILED_BLOCKS, apply_speedups
 
     try:
-        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype,
+        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype, loras=loras,
                                        device="cpu" if low_memory or on_cpu else device, progress=progress,
                                        should_stop=should_stop)
-    except Cancelled:
+    except (Cancelled, LoRAError):  # a stop, or the user's LoRA is wrong: no fallback to another stylizer
         raise
     except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
         raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
