@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from artnvg_core.blend import blend, check_corresponding
-from artnvg_core.color_transfer import match_colors, recolor_scene
+from artnvg_core.finetune.color_transfer import match_colors, recolor_scene
 from artnvg_core.metrics.color import mean_cov_distance
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
