@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from .cameras import CameraSet
+from .diffusion.lora import LoRA, LoRAError
 from .diffusion.model_files import ModelFiles
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
@@ -112,11 +113,12 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
 
 
 def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
-                    *, dtype: torch.dtype | None = None, sdxl_config_dir: str | Path | None = None,
-                    on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
+                    *, loras: tuple[LoRA, ...] = (), dtype: torch.dtype | None = None,
+                    sdxl_config_dir: str | Path | None = None, on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
     """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
     workers and ComfyUI's Load ArtNVG Models.
 
+    loras: fused into SDXL (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
     dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
     loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
     ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
@@ -134,14 +136,15 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = torch.device(device)
     dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
-    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()), file_key(sdxl_config_dir),
+    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
+           tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
-    return load_once(key, functools.partial(_load_models, files, low_memory, device, compile_blocks, dtype,
-                                            sdxl_config_dir, on_cpu, progress, should_stop))
+    return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
+                                            dtype, sdxl_config_dir, on_cpu, progress, should_stop))
 
 
-def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, compile_blocks: bool,
-                 dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
+def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,
+                 compile_blocks: bool, dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
                  progress: ProgressFn | None, should_stop: StopFn | None):
     """:func:`load_models_for` without the once-per-process cache."""
     from .diffusion.compile_cache import load_compile_cache
@@ -150,10 +153,12 @@ def _load_models(files: ModelFiles, low_memory: bool, device: torch.device, comp
     from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
 
     try:
-        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype,
+        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype, loras=loras,
                                        device="cpu" if low_memory or on_cpu else device, progress=progress,
                                        should_stop=should_stop)
     except Cancelled:
+        raise
+    except LoRAError:  # the user's LoRA is wrong: no fallback to another stylizer
         raise
     except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
         raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
@@ -172,6 +177,7 @@ def stylize_diffusion(
     config: FinetuneConfig,
     files: ModelFiles,
     *,
+    loras: Sequence[LoRA] = (),
     preset: str = "paper",
     content_routing: str = "released",
     sampler_changes: Mapping[str, object] | None = None,
@@ -197,6 +203,8 @@ def stylize_diffusion(
             ``config.seed`` also seeds the sampling (group ``g`` uses ``seed + g``) and ``config.backend``
             renders the content views.
         files (`ModelFiles`): the four model files (a None field: the Hugging Face cache).
+        loras (sequence of `LoRA`, defaults to none): fused into SDXL's weights at load time
+            (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
         preset (`str`, defaults to ``"paper"``): a name of :data:`artnvg_core.presets.PRESETS`; gives the
             sampler settings, the memory mode and the default ``key_views``.
         content_routing (`str`, defaults to ``"released"``): replaces the preset's (``"released"`` or
@@ -247,7 +255,8 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks)
+    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks,
+                             loras=tuple(loras))
     device = explicit[0] if explicit else scene.device
     # first: a model that cannot be loaded fails before any work
     models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)

@@ -10,6 +10,8 @@ Entry points (import them from their modules; this package imports nothing heavy
 - :mod:`.csgo_weights` -- ``load_csgo``: CSGO's weights in every layout the released loader reads
 - :mod:`.csgo`         -- token routing, processor installation, ``CSGOProjections``
 - :mod:`.attention`    -- ``NeighbourViewSelfAttention``, ``DecoupledCrossAttention``, ``AttentionControl``
+- :mod:`.attention_math` -- ``neighbour_view_attention``, ``decoupled_attention``: the maths on q/k/v
+  (the diffusers processors and the node pack's ComfyUI patches both call it)
 - :mod:`.resampler`    -- ``PerceiverResampler``
 - :mod:`.images`       -- IMAGE checks, SDXL sizes, resizing, CLIP preprocessing
 - :mod:`.model_files`  -- ``ModelFiles`` (the four files), locating them (explicit path or Hugging Face
