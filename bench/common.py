@@ -40,16 +40,14 @@ def warp_rmse(images: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, ca
     return warp_consistency(images, depth.to(images.device), alpha.to(images.device), cameras, step=step).rmse
 
 
-def finetune_render(camera: CameraSet):
-    """A render closure (scene -> rgb) on the Triton backend as the finetune's steps call it: the inputs
-    checked once before the loop, not at every render (``checked=True``; the benchmarks' random
-    scenes are valid), and the tile lists given room from earlier counts instead of waiting for their
-    own (``list_capacity``): nothing waits for the GPU."""
-    from artnvg_core.raster import render
-    from artnvg_core.raster.triton_backend import ListCapacity
+def finetune_render(scene: GaussianScene, camera: CameraSet):
+    """A render closure (a scene of ``scene``'s size -> rgb) on the Triton backend as the finetune's steps
+    call it (:class:`~artnvg_core.raster.step_renderer.StepRenderer`): the inputs checked once, here, and the
+    tile lists given room from earlier counts instead of waiting for their own: nothing waits for the GPU."""
+    from artnvg_core.raster.step_renderer import StepRenderer
 
-    capacity = ListCapacity()
-    return lambda scene: render(scene, camera, backend="triton", checked=True, list_capacity=capacity).rgb
+    renderer = StepRenderer(scene, camera, "triton")
+    return lambda scene: renderer.render(scene, [0])[0].rgb
 
 
 def timed(fn, device: torch.device, repeats: int = 5, warmup: int = 2) -> float:

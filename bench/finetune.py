@@ -18,7 +18,7 @@ with the step's loss replayed as CUDA graphs or run eagerly (``--graphs``, ``Fin
 matching) per size and search precision, its input a permuted [1, H, W, 3] image as the finetune's
 renders come (channels-last activations; until ``--vgg-variants`` came, a contiguous [1, 3, H, W]
 one). The first backend's rows at 512 with the default search also run with each ``--adams`` step
-of :class:`~artnvg_core.finite_steps.FiniteAdam` (``fused``: its Triton kernels, the default where
+of :class:`~artnvg_core.finetune.finite_steps.FiniteAdam` (``fused``: its Triton kernels, the default where
 the finetune renders with Triton; ``torch``: its PyTorch step).
 The style image is the demo style resized (area / bilinear) to half the render's long side, as ARF sizes it. Time per
 iteration: the wall time of the iterations after 3 warm-up steps, the device waited for once at each
@@ -59,11 +59,11 @@ import torch
 
 from common import orbit_cameras, print_table, random_scene, synchronize, timed
 
-import artnvg_core.finetune as finetune_module
+import artnvg_core.finetune.loop as finetune_module
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
-from artnvg_core.finite_steps import FiniteAdam
+from artnvg_core.finetune.finite_steps import FiniteAdam
 from artnvg_core.formats import read_ply
 from artnvg_core.losses import (
     SEARCH_PRECISIONS,

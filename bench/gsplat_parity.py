@@ -115,7 +115,7 @@ def speed_rows(counts: list[int], sizes=(512, 1024)) -> list[list]:
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
             runs = {"triton": lambda s: render(s, camera, backend="triton").rgb,
-                    "triton, as the finetune renders": finetune_render(camera),
+                    "triton, as the finetune renders": finetune_render(scene, camera),
                     "gsplat": lambda s: render(s, camera, backend="gsplat").rgb,
                     "gsplat fused": lambda s: fused_render(s, camera)[0],
                     "torch": lambda s: render(s, camera, backend="torch").rgb}

@@ -51,7 +51,7 @@ def speed_rows(device, sizes, counts):
             camera = orbit_cameras(1, size).to(device)
             paths = {name: (lambda s, name=name: render(s, camera, backend=name).rgb) for name in backends_for(device)}
             if "triton" in paths:
-                paths["triton, as the finetune renders"] = finetune_render(camera)
+                paths["triton, as the finetune renders"] = finetune_render(scene, camera)
             if device.type == "cuda" and gsplat_available():
                 paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
             for backend, run in paths.items():

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from artnvg_core.finetune import FinetuneConfig, finetune
-from artnvg_core.finetune_config import OPTIMIZE_CHOICES
+from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
 from artnvg_core.presets import PRESETS
 

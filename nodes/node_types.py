@@ -11,3 +11,4 @@ GROUPS = "ARTNVG_GROUPS"    # artnvg_core.grouping.ViewGroups
 MODELS = "ARTNVG_MODELS"    # the loaded diffusion models (artnvg_core.diffusion)
 EMBEDS = "ARTNVG_EMBEDS"    # CSGO content and style tokens (artnvg_core.diffusion)
 IMAGE = "IMAGE"
+SELECTION = "ARTNVG_SELECTION"  # [N] bool tensor over a scene's Gaussians (artnvg_core.selection), on the CPU

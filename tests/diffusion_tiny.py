@@ -354,3 +354,40 @@ def write_single_file_checkpoint(path: Path, base) -> Path:
     state.update({f"conditioner.embedders.1.model.{k}": v for k, v in _open_clip_state(base.text_encoder_2).items()})
     save_file({k: v.contiguous() for k, v in state.items()}, str(path))
     return path
+
+
+def kohya_lora_state(base, rank: int = 2, alpha: float = 1.0, seed: int = 10) -> dict[str, torch.Tensor]:
+    """A random LoRA for ``base`` (an SDXLBase) in kohya's SDXL layout: ``lora_unet_{original key}`` for the
+    UNet's self-attention queries and feed-forward outputs, ``lora_te1_`` / ``lora_te2_`` for both text
+    encoders' attention projections (all four, as kohya trains them: diffusers reads a text encoder's part
+    only when it holds ``out_proj``), each with ``lora_down`` [rank, in], ``lora_up`` [out, rank] and ``alpha``."""
+    generator = torch.Generator().manual_seed(seed)
+    modules = {"lora_unet_" + new.removesuffix(".weight").replace(".", "_"): base.unet.get_submodule(old[:-7])
+               for old, new in _ldm_unet_keys(base.unet).items() if old.endswith(("attn1.to_q.weight", "ff.net.2.weight"))}
+    for prefix, encoder in (("lora_te1_", base.text_encoder), ("lora_te2_", base.text_encoder_2)):
+        for name, module in encoder.named_modules():
+            if name.endswith(("self_attn.q_proj", "self_attn.k_proj", "self_attn.v_proj", "self_attn.out_proj")):
+                modules[prefix + name.replace(".", "_")] = module
+    state = {}
+    for name, module in modules.items():
+        state[f"{name}.lora_down.weight"] = torch.randn(rank, module.in_features, generator=generator)
+        state[f"{name}.lora_up.weight"] = torch.randn(module.out_features, rank, generator=generator)
+        state[f"{name}.alpha"] = torch.tensor(alpha)
+    return state
+
+
+def kohya_lora_deltas(base, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """What :func:`kohya_lora_state`'s LoRA adds at strength 1, by state-dict key of ``base``'s models
+    (``unet.``, ``text_encoder.``, ``text_encoder_2.`` + the diffusers key): (alpha / rank) * up @ down."""
+    names = {"lora_unet_" + new.removesuffix(".weight").replace(".", "_"): "unet." + old
+             for old, new in _ldm_unet_keys(base.unet).items()}
+    for prefix, part in (("lora_te1_", "text_encoder"), ("lora_te2_", "text_encoder_2")):
+        names.update({prefix + key.removesuffix(".weight").replace(".", "_"): f"{part}.{key}"
+                      for key in getattr(base, part).state_dict()})
+    deltas = {}
+    for key in state:
+        if key.endswith(".alpha"):
+            name = key.removesuffix(".alpha")
+            down, up = state[f"{name}.lora_down.weight"].double(), state[f"{name}.lora_up.weight"].double()
+            deltas[names[name]] = state[key].double() / down.shape[0] * up @ down
+    return deltas

@@ -35,6 +35,14 @@ def test_job_options_become_stylize_arguments_from_json_or_csv(tmp_path):
     assert from_json.argv == ("a.ply", "--style=s.jpg", "--out=out/a.ply", "--iters=3", "--seed=7", "--compile",
                               "--no-color-transfer", "--orbit-size=48x32", "--up=-y")
     assert from_json.number == 1 and from_json.folder == tmp_path.resolve()
+    # a repeatable option: one value, or in JSON a list of them
+    entries = [{"scene": "in.ply", "style": "s.jpg", "out": "a.ply", "lora": "x.safetensors:0.5"},
+               {"scene": "in.ply", "style": "s.jpg", "out": "b.ply", "lora": ["x.safetensors", "y.safetensors:-1"]},
+               {"scene": "in.ply", "style": "s.jpg", "out": "c.ply", "lora": ["x.safetensors", 2, [3]]}]
+    one, two, bad = load_jobs(_write_jobs(tmp_path / "loras.json", entries), stylize_options())
+    assert one.argv[-1:] == ("--lora=x.safetensors:0.5",)
+    assert two.argv[-2:] == ("--lora=x.safetensors", "--lora=y.safetensors:-1")
+    assert "'lora' takes a list of values, got" in bad.error
     assert from_json.out == (tmp_path / "out" / "a.ply").resolve()  # relative to the JOBS file's folder
 
 

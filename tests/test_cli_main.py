@@ -190,6 +190,27 @@ def test_stylize_never_writes_over_its_inputs(tmp_path, capsys):
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
+def test_a_bad_lora_is_refused_naming_it_before_any_work(tmp_path, capsys):
+    """A strength that is not a number (by the parser), a missing file, and a LoRA given to a stylizer
+    without SDXL: each an error naming the option or file, before the scene is loaded."""
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    common = ["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+              str(tmp_path / "out.ply"), "--device", "cpu"]
+    with pytest.raises(SystemExit) as exit_:
+        main([*common, "--lora", "style.safetensors:strong"])
+    assert exit_.value.code == 2
+    assert ("error: argument --lora: 'style.safetensors:strong': strength 'strong' is not a number"
+            in capsys.readouterr().err)
+    missing = tmp_path / "missing.safetensors"
+    for extra, message in [(["--lora", f"{missing}:0.5"], f"error: LoRA '{missing}': no such file"),
+                           (["--lora", str(missing), "--stylizer", "nnfm"],
+                            "error: --lora: a LoRA changes SDXL, which only the diffusion stylizer runs")]:
+        assert main([*common, *extra]) == 2
+        captured = capsys.readouterr()
+        assert message in captured.err and "loading" not in captured.out, captured
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
 def test_render_never_writes_over_the_captures_photos(tmp_path, capsys):
     import json
 

@@ -10,7 +10,7 @@ import pytest
 from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.progress import Cancelled
-from artnvg_core.stylize import load_models_for
+from artnvg_core.diffusion.loader import load_models_for
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
@@ -81,6 +81,33 @@ def test_load_models_for_reuses_the_loaded_models_until_a_file_changes(tmp_path)
     csgo = paths.csgo
     os.utime(csgo, ns=(csgo.stat().st_atime_ns, csgo.stat().st_mtime_ns + 10**9))
     assert load_models_for(paths, True, "cpu") is not low
+
+
+def test_load_models_for_fuses_the_loras_and_keys_them_by_file_and_strength(tmp_path):
+    """The LoRAs reach the loaded UNet; another strength loads afresh; a bad LoRA is the user's error (a
+    LoRAError), not a missing model the command line would fall back from."""
+    import torch
+    from safetensors.torch import save_file
+
+    from artnvg_core.diffusion.lora import LoRA, LoRAError
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable
+    from diffusion_tiny import kohya_lora_deltas, kohya_lora_state, tiny_base
+
+    paths = ModelFiles(**write_model_files(tmp_path))
+    state = kohya_lora_state(tiny_base())
+    save_file(state, str(tmp_path / "lora.safetensors"))
+    key, delta = next((k, d) for k, d in kohya_lora_deltas(tiny_base(), state).items() if k.startswith("unet."))
+    weight = lambda models: models.base.unet.state_dict()[key.removeprefix("unet.")].double()  # noqa: E731
+    plain = weight(load_models_for(paths, False, "cpu"))
+    half = load_models_for(paths, False, "cpu", loras=(LoRA(tmp_path / "lora.safetensors", 0.5),))
+    assert load_models_for(paths, False, "cpu", loras=(LoRA(tmp_path / "lora.safetensors", 0.5),)) is half
+    torch.testing.assert_close(weight(half), plain + 0.5 * delta, rtol=0, atol=1e-5)
+    full = load_models_for(paths, False, "cpu", loras=(LoRA(tmp_path / "lora.safetensors"),))
+    torch.testing.assert_close(weight(full), plain + delta, rtol=0, atol=1e-5)
+    save_file({"lora_transformer_x.lora_down.weight": torch.zeros(2, 4)}, str(tmp_path / "flux.safetensors"))
+    with pytest.raises(LoRAError, match="flux.safetensors") as raised:
+        load_models_for(paths, False, "cpu", loras=(LoRA(tmp_path / "flux.safetensors"),))
+    assert not isinstance(raised.value, DiffusionModelsUnavailable)
 
 
 def test_a_stop_while_loading_is_a_cancel_not_a_missing_model(tmp_path):

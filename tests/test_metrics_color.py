@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 import torch
 
-from artnvg_core.color_transfer import color_statistics
+from artnvg_core.finetune.color_transfer import color_statistics
 from artnvg_core.metrics.color import color_distances, histogram_distance, mean_cov_distance
 
 

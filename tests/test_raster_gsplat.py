@@ -87,7 +87,7 @@ def test_a_finetune_with_an_extreme_gaussian_loses_nothing(backend, caplog):
     config = FinetuneConfig(iterations=5, nnfm_max_side=64, backend=backend, optimize="all")
     with caplog.at_level(logging.WARNING):
         result = finetune(scene, cameras, load_image(demo.style), config=config)
-    assert not [r for r in caplog.records if r.name == "artnvg_core.finite_steps"], caplog.text
+    assert not [r for r in caplog.records if r.name == "artnvg_core.finetune.finite_steps"], caplog.text
     assert all(torch.isfinite(v).all() for v in result.tensors().values())
     assert not torch.equal(result.sh, scene.sh)
 

@@ -2,8 +2,9 @@
 
 JOBS is a JSON list of objects, or a CSV file with a header row; each job (object or row) gives
 ``stylize``'s options by name: ``scene``, ``cameras``, ``style``, ``out`` (required), ``stylizer``,
-``preset``, ``iters``, ``seed``, ``color_transfer``, ... (``_`` or ``-`` alike; a flag takes true/false;
-an empty value or null leaves the option out). Jobs are parsed by ``stylize``'s own parser, so every
+``preset``, ``iters``, ``seed``, ``color_transfer``, ``lora``, ... (``_`` or ``-`` alike; a flag takes
+true/false; a repeatable option such as ``lora`` takes one value or, in JSON, a list; an empty value or
+null leaves the option out). Jobs are parsed by ``stylize``'s own parser, so every
 stylize option works here and none can drift. Relative paths start at the JOBS file's folder. Where
 jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 
@@ -137,6 +138,11 @@ def job_arguments(entry, options: dict[str, argparse.Action], label: str) -> lis
                 argv.append(f"--{name}")
             elif f"--no-{name}" in options:
                 argv.append(f"--no-{name}")
+        elif isinstance(value, list) and isinstance(action, argparse._AppendAction):  # --lora: one value each
+            for item in value:
+                if isinstance(item, (bool, list, dict)) or _empty(item):
+                    raise ValueError(f"{label}: '{key}' takes a list of values, got {json.dumps(value)}")
+                argv.append(f"--{name}={item}")
         elif isinstance(value, (bool, list, dict)):
             raise ValueError(f"{label}: '{key}' takes one value, got {json.dumps(value)}")
         else:
@@ -215,7 +221,7 @@ def output_complete(out: Path) -> bool:
 
 class BatchWorker:
     """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
-    between jobs (:func:`artnvg_core.stylize.load_models_for` keeps the latest set). Two threads: one runs
+    between jobs (:func:`artnvg_core.diffusion.loader.load_models_for` keeps the latest set). Two threads: one runs
     the job, the other answers ``ping`` (its process id) and ``stop``."""
 
     def __init__(self, workers: Workers):

@@ -15,6 +15,7 @@ import torch
 
 from ..devices import DEVICE_CHOICES
 from ..diffusion.csgo import CONTENT_ROUTINGS
+from ..diffusion.lora import LoRAError, check_lora, parse_lora
 from ..diffusion.model_files import ModelFiles
 from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
@@ -67,6 +68,11 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
     check_style_image(args.style)
+    if args.lora and (diffusion_free or args.stylizer == "nnfm"):
+        raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
+                         f"{args.preset} with --stylizer {args.stylizer})")
+    for lora in args.lora:
+        check_lora(lora)
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
@@ -84,8 +90,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
 
+    from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
-    from ..stylize import DiffusionModelsUnavailable, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
+    from ..stylize import choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
 
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     if diffusion_free:
@@ -115,7 +122,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     if stylizer == "diffusion":
         print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         try:
-            result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, preset=args.preset,
+            result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, loras=args.lora,
+                                          preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
@@ -133,6 +141,14 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+def lora_option(text: str):
+    """argparse type of ``--lora``: FILE or FILE:STRENGTH (:func:`~artnvg_core.diffusion.lora.parse_lora`)."""
+    try:
+        return parse_lora(text)
+    except LoRAError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--lora ")) from None
 
 
 def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
@@ -156,6 +172,9 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cfg-until", type=unit_interval, default=None,
                    help="classifier-free guidance for this fraction of the steps only, then the conditional half "
                         "alone (half the batch); 1 = every step (default: the preset's, 1)")
+    p.add_argument("--lora", type=lora_option, action="append", default=[], metavar="FILE[:STRENGTH]",
+                   help="diffusion: a LoRA for SDXL (.safetensors, kohya or diffusers keys) fused into its weights at "
+                   "STRENGTH (default 1); repeat for several, their changes add up")
     p.add_argument("--key-views", type=integer_at_least(0), default=None, metavar="K",
                    help="diffusion: stylize only K views chosen to cover the scene (farthest camera poses) and "
                         "finetune on them alone; 0 = every view (default: the preset's, every view)")

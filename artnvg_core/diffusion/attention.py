@@ -1,6 +1,7 @@
 """ArtNVG's attention processors for diffusers' ``Attention`` layers.
 
-Two processors, installed by module name (see :mod:`artnvg_core.diffusion.csgo`):
+Two processors, installed by module name (see :mod:`artnvg_core.diffusion.csgo`); their maths
+is :mod:`.attention_math`'s, which ComfyUI's patches of the node pack share:
 
 * :class:`NeighbourViewSelfAttention` for every self-attention (``attn1``). The batch
   is read as consecutive groups of ``views_per_group`` samples (the sampler lays a
@@ -35,11 +36,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import math
-
 import torch
-import torch.nn.functional as F
 from torch import nn
+
+from .attention_math import Neighbours, check_neighbours, decoupled_attention, neighbour_view_attention
 
 IMAGE_TOKEN_KINDS = ("content", "style")
 
@@ -65,7 +65,7 @@ class AttentionControl:
     content_scale: float = 1.0
     style_scale: float = 0.6
     nv_max_tokens: int | None = None
-    neighbours: tuple[tuple[int, ...], ...] | None = None
+    neighbours: Neighbours | None = None
     kv_downsample: int = 1
     latent_size: tuple[int, int] | None = None
 
@@ -79,7 +79,7 @@ class AttentionControl:
         if self.kv_downsample > 1 and self.latent_size is None:
             raise ValueError("AttentionControl.latent_size is required when kv_downsample > 1")
         if self.neighbours is not None:
-            _check_neighbours(self.neighbours, self.views_per_group)
+            check_neighbours(self.neighbours, self.views_per_group, "AttentionControl.neighbours")
         if self.num_content_tokens < 0 or self.num_style_tokens < 0:
             raise ValueError(
                 "AttentionControl.num_content_tokens / num_style_tokens must be >= 0, got "
@@ -87,66 +87,9 @@ class AttentionControl:
             )
 
 
-def _check_neighbours(neighbours: tuple[tuple[int, ...], ...], views: int) -> None:
-    counts = {len(row) for row in neighbours}
-    if len(neighbours) != views or len(counts) != 1:
-        raise ValueError(
-            f"AttentionControl.neighbours must hold one row per view ({views}) of equal length, "
-            f"got {len(neighbours)} rows of lengths {sorted(counts)}"
-        )
-    for view, row in enumerate(neighbours):
-        if len(set(row)) != len(row) or view in row or any(not 0 <= j < views for j in row):
-            raise ValueError(
-                f"AttentionControl.neighbours[{view}] must hold distinct views in 0..{views - 1} other than "
-                f"{view}, got {row}"
-            )
-
-
 def attention_kwargs(control: AttentionControl) -> dict:
     """The ``cross_attention_kwargs`` that hand ``control`` to every ArtNVG processor."""
     return {"control": control}
-
-
-def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
-    """[B, L, heads*D] -> [B, heads, L, D]."""
-    return x.unflatten(-1, (heads, -1)).transpose(1, 2)
-
-
-def _merge_heads(x: torch.Tensor) -> torch.Tensor:
-    """[B, heads, L, D] -> [B, L, heads*D]."""
-    return x.transpose(1, 2).flatten(2)
-
-
-def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float, query_chunk: int | None) -> torch.Tensor:
-    """SDPA over [B, heads, L, D] tensors, optionally in chunks of ``query_chunk`` queries."""
-    if query_chunk is None or q.shape[2] <= query_chunk:
-        return F.scaled_dot_product_attention(q, k, v, scale=scale)
-    return torch.cat(
-        [F.scaled_dot_product_attention(part, k, v, scale=scale) for part in q.split(query_chunk, dim=2)], dim=2
-    )
-
-
-def _token_grid(latent_size: tuple[int, int], length: int) -> tuple[int, int]:
-    """(h, w) of a layer's token grid: the latent grid downsampled by a power of two, ``h * w = length``."""
-    height, width = latent_size
-    factor = 2 ** round(math.log2(math.sqrt(height * width / length)))
-    grid = (math.ceil(height / factor), math.ceil(width / factor))
-    if grid[0] * grid[1] != length:
-        raise ValueError(f"AttentionControl.latent_size {latent_size} does not fit a layer of {length} tokens")
-    return grid
-
-
-def _neighbour_tokens(x: torch.Tensor, control: AttentionControl, views: int) -> torch.Tensor:
-    """Keys or values [G*N, L, C] -> [G*N, L + m*Lp, C]: each view's own tokens, then the (pooled)
-    tokens of its m chosen neighbours (``control.neighbours``, default all other views)."""
-    others = x
-    if control.kv_downsample > 1:
-        grid = x.unflatten(1, _token_grid(control.latent_size, x.shape[1])).permute(0, 3, 1, 2)
-        others = F.avg_pool2d(grid, control.kv_downsample, ceil_mode=True).flatten(2).transpose(1, 2)
-    rows = control.neighbours or tuple(tuple(j for j in range(views) if j != i) for i in range(views))
-    index = torch.tensor(rows, device=x.device)
-    others = others.unflatten(0, (-1, views))[:, index]  # [G, N, m, Lp, C]
-    return torch.cat([x, others.flatten(2, 3).flatten(0, 1)], dim=1)
 
 
 def _begin(attn, hidden_states: torch.Tensor, temb: torch.Tensor | None, attention_mask) -> tuple:
@@ -175,10 +118,11 @@ def _end(attn, out: torch.Tensor, residual: torch.Tensor, spatial_shape) -> torc
 
 
 def _qk_norm(attn, q: torch.Tensor, k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The layer's per-head query/key norms (if any) on [B, L, heads*D] tensors."""
     if attn.norm_q is not None:
-        q = attn.norm_q(q)
+        q = attn.norm_q(q.unflatten(-1, (attn.heads, -1))).flatten(2)
     if attn.norm_k is not None:
-        k = attn.norm_k(k)
+        k = attn.norm_k(k.unflatten(-1, (attn.heads, -1))).flatten(2)
     return q, k
 
 
@@ -218,15 +162,11 @@ class NeighbourViewSelfAttention:
             q, k, v = attn.to_qkv(x).chunk(3, dim=-1)
         else:
             q, k, v = attn.to_q(x), attn.to_k(x), attn.to_v(x)
-        if views > 1 and (control.neighbours is not None or control.kv_downsample > 1):
-            k, v = (_neighbour_tokens(t, control, views) for t in (k, v))
-        else:  # exact: each group's views as one sequence
-            q, k, v = (t.reshape(batch // views, views * length, -1) for t in (q, k, v))
-        q, k, v = (_split_heads(t, attn.heads) for t in (q, k, v))
         q, k = _qk_norm(attn, q, k)
-        out = _attend(q, k, v, attn.scale, self.query_chunk_size)
-        out = _merge_heads(out).reshape(batch, length, -1).to(q.dtype)
-        return _end(attn, out, residual, spatial_shape)
+        out = neighbour_view_attention(q, k, v, attn.heads, views, neighbours=control.neighbours,
+                                       kv_downsample=control.kv_downsample, latent_size=control.latent_size,
+                                       scale=attn.scale, query_chunk=self.query_chunk_size)
+        return _end(attn, out.to(q.dtype), residual, spatial_shape)
 
 
 class DecoupledCrossAttention(nn.Module):
@@ -274,17 +214,14 @@ class DecoupledCrossAttention(nn.Module):
         x, residual, spatial_shape = _begin(attn, hidden_states, temb, attention_mask)
         if attn.norm_cross:
             text = attn.norm_encoder_hidden_states(text)
-        q = _split_heads(attn.to_q(x), attn.heads)
+        q = attn.to_q(x)
         k, v = attn.to_kv(text).chunk(2, dim=-1) if attn.fused_projections else (attn.to_k(text), attn.to_v(text))
-        q, k = _qk_norm(attn, q, _split_heads(k, attn.heads))
-        out = F.scaled_dot_product_attention(q, k, _split_heads(v, attn.heads), scale=attn.scale)
+        q, k = _qk_norm(attn, q, k)
         tokens, scale = {
             "content": (content, control.content_scale),
             "style": (style, control.style_scale),
             None: (None, 0.0),
         }[self.image_tokens]
-        if scale != 0 and tokens.shape[1] > 0:
-            k_ip = _split_heads(self.to_k_ip(tokens), attn.heads)
-            v_ip = _split_heads(self.to_v_ip(tokens), attn.heads)
-            out = out + scale * F.scaled_dot_product_attention(q, k_ip, v_ip, scale=attn.scale)
-        return _end(attn, _merge_heads(out).to(q.dtype), residual, spatial_shape)
+        branches = [] if tokens is None else [(self.to_k_ip(tokens), self.to_v_ip(tokens), scale)]
+        out = decoupled_attention(q, k, v, attn.heads, branches, scale=attn.scale)
+        return _end(attn, out.to(q.dtype), residual, spatial_shape)

@@ -39,6 +39,7 @@ from ..statedict import parameters_on_meta, state_dict_mismatch
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
+from .lora import LoRA, check_lora, fuse_loras
 from .model_cache import file_key
 from .model_files import (
     IMAGE_ENCODER,
@@ -151,8 +152,10 @@ def load_sdxl(
     dtype: torch.dtype = torch.float16,
     device: str | torch.device = "cpu",
     hf_cache_dir: str | Path | None = None,
+    loras: tuple[LoRA, ...] = (),
 ) -> SDXLBase:
-    """SDXL base from a diffusers folder or a single-file checkpoint (see the module docstring).
+    """SDXL base from a diffusers folder or a single-file checkpoint (see the module docstring), with
+    ``loras`` fused into its UNet and text encoders on ``device`` (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
 
     path None looks in the Hugging Face cache. For a single file, ``config_dir`` (default: the
     configs and tokenizers shipped with the package) provides configs and tokenizers.
@@ -175,12 +178,15 @@ def load_sdxl(
             pipe = StableDiffusionXLPipeline.from_single_file(
                 str(path), config=str(folder), torch_dtype=dtype, local_files_only=True, add_watermarker=False
             )
-    vae = _placed(pipe.vae, device, _vae_dtype(pipe.vae.config.force_upcast, dtype))
+    _placed(pipe.vae, device, _vae_dtype(pipe.vae.config.force_upcast, dtype))
+    for part in (pipe.unet, pipe.text_encoder, pipe.text_encoder_2):
+        part.to(device).eval()
+    fuse_loras(pipe, loras)
     return SDXLBase(
-        unet=pipe.unet.to(device).eval(),
-        vae=vae,
-        text_encoder=pipe.text_encoder.to(device).eval(),
-        text_encoder_2=pipe.text_encoder_2.to(device).eval(),
+        unet=pipe.unet,
+        vae=pipe.vae,
+        text_encoder=pipe.text_encoder,
+        text_encoder_2=pipe.text_encoder_2,
         tokenizer=pipe.tokenizer,
         tokenizer_2=pipe.tokenizer_2,
         scheduler_config=dict(pipe.scheduler.config),
@@ -270,19 +276,23 @@ def load_diffusion_models(
     device: str | torch.device = "cpu",
     query_chunk_size: int | None = None,
     hf_cache_dir: str | Path | None = None,
+    loras: tuple[LoRA, ...] = (),
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
 ) -> DiffusionModels:
     """Load every model of ``files`` (a None field = the Hugging Face cache; ``vae`` None = SDXL's own
-    VAE) and attach CSGO.
+    VAE), fuse ``loras`` into SDXL (:func:`load_sdxl`) and attach CSGO.
 
-    All files are checked (:func:`check_model_files`) before any is loaded, so a missing one fails fast.
+    All files are checked (:func:`check_model_files`, :func:`~artnvg_core.diffusion.lora.check_lora`) before
+    any is loaded, so a missing one fails fast.
     query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
     progress(bytes loaded, bytes of all the files, {"loading": name}) is called as each model starts
     loading, and once more, without "loading", when all are; should_stop() is checked before each model
     and raises :class:`~artnvg_core.progress.Cancelled`.
     """
     found = check_model_files(files, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
+    for lora in loras:
+        check_lora(lora)
     sizes = {"SDXL": _bytes(found.sdxl), **({"VAE": _bytes(vae)} if vae is not None else {}),
              "ControlNet": _bytes(found.controlnet), "image encoder": _bytes(found.image_encoder),
              "CSGO": _bytes(found.csgo)}
@@ -298,7 +308,7 @@ def load_diffusion_models(
         return model
 
     base = loading("SDXL", lambda: load_sdxl(found.sdxl, config_dir=sdxl_config_dir, dtype=dtype, device=device,
-                                             hf_cache_dir=hf_cache_dir))
+                                             hf_cache_dir=hf_cache_dir, loras=loras))
     if vae is not None:
         base.vae = loading("VAE", lambda: load_vae(vae, dtype=dtype, device=device))
     control = loading("ControlNet", lambda: load_controlnet(found.controlnet, unet_config=dict(base.unet.config),

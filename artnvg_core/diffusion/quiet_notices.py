@@ -12,6 +12,11 @@
   way: records whose list is empty are dropped (a non-empty list is still logged). diffusers 0.42
   warns (FutureWarning) that ``torch_dtype`` will be renamed ``dtype`` in 1.0; the versions we support
   (0.39 on) know only ``torch_dtype``: that warning is ignored.
+* Fusing LoRAs (:func:`lora_loading_notices_silenced`): diffusers logs "No LoRA keys associated to
+  CLIPTextModel ..." for each model a LoRA leaves alone (most LoRAs change the UNet only), and an error
+  record for a LoRA it cannot load, which :func:`~artnvg_core.diffusion.lora.fuse_loras` raises itself,
+  naming the file: both are dropped, as is PEFT's warning that a model holds several adapters (it does,
+  by request, until they are fused).
 
 Each drops its records from the one logger (or warning) that emits them; everything else is logged.
 """
@@ -28,15 +33,18 @@ NOTICE_TEXT = "requires torchvision (not installed); falling back to"
 FLOAT32_LOGGER = "diffusers.models.modeling_utils"
 FLOAT32_TEXT = "that should be kept in float32: []."
 TORCH_DTYPE_WARNING = "`torch_dtype` is deprecated"
+LORA_LOGGERS = ("diffusers.loaders.lora_base", "diffusers.loaders.peft")
+LORA_TEXTS = ("No LoRA keys associated to", "was unsuccessful with the following error")
+SEVERAL_ADAPTERS_WARNING = "Already found a `peft_config` attribute in the model"
 
 
 @contextmanager
-def _dropped(logger_name: str, text: str) -> Iterator[None]:
-    """Within the block, records of ``logger_name`` whose message contains ``text`` are not logged."""
+def _dropped(logger_name: str, *texts: str) -> Iterator[None]:
+    """Within the block, records of ``logger_name`` whose message contains one of ``texts`` are not logged."""
     logger = logging.getLogger(logger_name)
 
     def record_filter(record: logging.LogRecord) -> bool:
-        return text not in record.getMessage()
+        return not any(text in record.getMessage() for text in texts)
 
     logger.addFilter(record_filter)
     try:
@@ -56,4 +64,13 @@ def sdxl_loading_notices_silenced() -> Iterator[None]:
     and its ``torch_dtype`` FutureWarning not shown."""
     with _dropped(FLOAT32_LOGGER, FLOAT32_TEXT), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=TORCH_DTYPE_WARNING, category=FutureWarning)
+        yield
+
+
+@contextmanager
+def lora_loading_notices_silenced() -> Iterator[None]:
+    """Within the block, diffusers' "No LoRA keys associated to ..." notices and its error record for a LoRA
+    it cannot load are not logged, and PEFT's several-adapters warning is not shown."""
+    with _dropped(LORA_LOGGERS[0], *LORA_TEXTS), _dropped(LORA_LOGGERS[1], *LORA_TEXTS), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=SEVERAL_ADAPTERS_WARNING, category=UserWarning)
         yield

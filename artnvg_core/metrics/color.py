@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from ..color_transfer import color_statistics
+from ..finetune.color_transfer import color_statistics
 
 
 def _sqrtm(matrix: torch.Tensor) -> torch.Tensor:

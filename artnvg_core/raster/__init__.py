@@ -1,6 +1,7 @@
 """Differentiable Gaussian rasterization: :func:`render`, and :func:`prepare_backend` to load a backend
 before the first render (announcing gsplat's first-use kernel build). :mod:`.views` renders every view
-of a camera set in chunks (``render_views``).
+of a camera set in chunks (``render_views``); :mod:`.step_renderer` renders a loop's steps without waiting
+for the device (``StepRenderer``, the finetune's).
 
 ``torch`` (the reference, any device and dtype) and ``gsplat`` share the projection
 (:mod:`.projection`) and colours (:mod:`.sh`) and differ in the per-pixel compositing; ``triton``
@@ -138,11 +139,11 @@ def render(
         tiles, :mod:`.triton_backend`'s kernels or gsplat's, see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
     checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
-        the checks, which wait for the device, are skipped: a loop that renders step after step (the
-        finetune, whose optimiser keeps every parameter finite) then queues its work without waiting.
+        the checks, which wait for the device, are skipped (:class:`.step_renderer.StepRenderer` does so).
     list_capacity: the Triton backend's :class:`.triton_backend.ListCapacity` shared by renders made one
         after another, so that they do not wait for their tile intersection counts (ignored by the other
-        backends); the caller checks it after each render for one that overflowed and must be redone.
+        backends); the caller checks it after each render for one that overflowed and must be redone
+        (:class:`.step_renderer.StepRenderer` does so).
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
     low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is

@@ -284,7 +284,7 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
     """Gaussians 3 and 7 get NaN colour gradients at every step (as a rasterizer's NaN gradient of an
     extreme Gaussian would), and step 2's render is NaN: the run goes on, says which step and which
     Gaussians, those two keep their values, the others change, everything stays finite."""
-    import artnvg_core.finetune
+    import artnvg_core.raster.step_renderer as step_renderer
 
     scene, cameras, style = demo
     calls = []
@@ -298,7 +298,7 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
                 out.rgb = out.rgb * float("nan")
         return out
 
-    monkeypatch.setattr(artnvg_core.finetune, "render", poisoned)
+    monkeypatch.setattr(step_renderer, "render", poisoned)
     config = FinetuneConfig(iterations=4, nnfm_max_side=32, color_transfer=False, optimize="all")
     with caplog.at_level("WARNING"):
         result = finetune(scene, cameras, style, config=config)
@@ -349,7 +349,8 @@ def test_renders_before_and_after_the_steps_report_each_view(demo):
 def test_adams_triton_step_only_where_the_views_render_with_triton(demo, monkeypatch, renderer, fused):
     """A finetune told to render with another backend (a machine where Triton cannot compile) keeps
     Adam's PyTorch step: the Triton one is left to FiniteAdam's own choice only with Triton renders."""
-    import artnvg_core.finetune as module
+    import artnvg_core.finetune.loop as module
+    import artnvg_core.raster.step_renderer as step_renderer
 
     scene, cameras, style = demo
     made = []
@@ -360,7 +361,7 @@ def test_adams_triton_step_only_where_the_views_render_with_triton(demo, monkeyp
             super().__init__(*args, **{**kwargs, "fused": False})
 
     monkeypatch.setattr(module, "FiniteAdam", Recorded)
-    monkeypatch.setattr(module, "choose_backend", lambda backend, device: renderer)
+    monkeypatch.setattr(step_renderer, "choose_backend", lambda backend, device, dtype: renderer)
     finetune(scene, cameras.subset([0]), style, config=FinetuneConfig(iterations=0, color_transfer=False,
                                                                      content_weight=0))
     assert made == [fused]
@@ -370,8 +371,8 @@ def test_the_steps_check_their_inputs_once_and_a_bad_scene_fails_before_any_step
     """The checks of a render wait for the GPU (each reads a result back), so the finetune makes them once
     before its steps and renders each step unchecked: 5 steps, one check. A non-finite scene is still
     refused by name before the first step."""
-    import artnvg_core.finetune as module
     import artnvg_core.raster as raster
+    import artnvg_core.raster.step_renderer as step_renderer
 
     scene, cameras, style = demo
     checks = []
@@ -382,7 +383,7 @@ def test_the_steps_check_their_inputs_once_and_a_bad_scene_fails_before_any_step
         return original(*args, **kwargs)
 
     monkeypatch.setattr(raster, "check_render_inputs", counted)
-    monkeypatch.setattr(module, "check_render_inputs", counted)
+    monkeypatch.setattr(step_renderer, "check_render_inputs", counted)
     with torch.no_grad():
         targets = render(scene, cameras).rgb
     config = FinetuneConfig(iterations=5, color_transfer=False, content_weight=0, nnfm_weight=0)
@@ -402,7 +403,7 @@ def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(
     all (every larger view overflows), the finetune equals one whose every render waits for its count,
     bit for bit, and steps were taken again."""
     pytest.importorskip("triton")
-    import artnvg_core.finetune as module
+    from artnvg_core.raster.step_renderer import StepRenderer
     from artnvg_core.raster.triton_backend import ListCapacity
     from raster_scenes import EYES, hard_scene, make_cameras
 
@@ -425,7 +426,7 @@ def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(
     monkeypatch.setattr(ListCapacity, "SLACK", 0)
     monkeypatch.setattr(ListCapacity, "overflowed", recorded)
     unwaited = finetune(scene, cameras, style, stylized=targets.to(device), config=config)
-    monkeypatch.setattr(module, "_list_capacity", lambda config, device: None)
+    monkeypatch.setattr(StepRenderer, "_list_capacity", lambda self: None)
     waited = finetune(scene, cameras, style, stylized=targets.to(device), config=config)
     assert again, "no step outgrew its lists: the test shows nothing"
     for name, value in waited.tensors().items():

@@ -8,7 +8,7 @@ import scipy.linalg
 import torch
 
 from artnvg_core.cameras import CameraSet, look_at
-from artnvg_core.color_transfer import ColorTransform, color_statistics, match_colors, recolor_scene
+from artnvg_core.finetune.color_transfer import ColorTransform, color_statistics, match_colors, recolor_scene
 from artnvg_core.raster import render
 from artnvg_core.scene import SH_C0, GaussianScene
 

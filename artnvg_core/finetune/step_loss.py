@@ -2,7 +2,7 @@
 
 :class:`StepLoss` holds what the terms compare against (stylized views, the VGG features of the style,
 the original views) and computes, for the step's clamped renders ``image [B, H, W, 3]`` of the views
-``views [B]`` (int64 indices on the device), the weighted terms of :mod:`artnvg_core.finetune`'s
+``views [B]`` (int64 indices on the device), the weighted terms of :mod:`artnvg_core.finetune.loop`'s
 docstring (L1 and SSIM toward the stylized views, NNFM toward the style, the content and
 total-variation terms without stylized views).
 
@@ -11,7 +11,7 @@ never waits for the device, so :func:`graphed` records its forward and backward 
 (``torch.cuda.make_graphed_callables``; where :func:`can_graph` says it may) and replays them every step:
 one launch each instead of the about 250 kernels of the VGG, the match search, SSIM and the rest, which the
 host would otherwise queue one by one (the loop is bound by that at 512 px). A replay computes what the
-eager call computes, with the same kernels (tests/test_step_loss.py compares them on CUDA).
+eager call computes, with the same kernels (tests/test_finetune_step_loss.py compares them on CUDA).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from .finetune_config import FinetuneConfig
-from .losses import NNFMLoss, VGGFeatures, features_autocast, shrink_to_max_side, ssim
+from ..losses import NNFMLoss, VGGFeatures, features_autocast, shrink_to_max_side, ssim
+from .config import FinetuneConfig
 
 # (loss [], terms [T]) of a step's renders; the terms are detached, named by StepLoss.names
 StepLossFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-from .losses import SEARCH_PRECISIONS, VGG_PRECISIONS
+from ..losses import SEARCH_PRECISIONS, VGG_PRECISIONS
 
 OPTIMIZE_CHOICES = ("appearance", "all")
 
@@ -45,9 +45,9 @@ class FinetuneConfig:
             NNFM search precision). SSIM is float32 either way.
         cuda_graph (`bool`, defaults to True): on a CUDA device, record the loss of a step's renders (the VGG
             terms, SSIM, L1, TV; forward and backward) once as CUDA graphs and replay them every step
-            (:mod:`artnvg_core.step_loss`; the same result, without queueing its ~250 kernels one by one);
+            (:mod:`artnvg_core.finetune.step_loss`; the same result, without queueing its ~250 kernels one by one);
             False: run it eagerly. Always eager elsewhere and under the ``cudaMallocAsync`` allocator
-            (ComfyUI's default; :func:`artnvg_core.step_loss.can_graph`).
+            (ComfyUI's default; :func:`artnvg_core.finetune.step_loss.can_graph`).
         views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
             possible), their terms averaged into one loss.
         color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and

@@ -6,7 +6,7 @@ tests/conftest.py sets TRITON_INTERPRET=1 there)."""
 import pytest
 import torch
 
-from artnvg_core.finite_steps import GRAD_LIMIT, FiniteAdam
+from artnvg_core.finetune.finite_steps import GRAD_LIMIT, FiniteAdam
 
 LRS = {"sh": 0.1, "opacity": 0.03}
 DEVICES = {False: "cpu", True: "cuda" if torch.cuda.is_available() else "cpu"}
@@ -70,7 +70,7 @@ def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poiso
             if step == 3:
                 grads["opacity"][4] = 0.5
         _set(guarded, grads)
-        with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
+        with caplog.at_level("WARNING", logger="artnvg_core.finetune.finite_steps"):
             adam.step(step, torch.tensor(1.0, device=device), {})
         held = [2, 4] if step == 2 else [2] if step == 3 else []
         for name, grad in grads.items():  # the reference: Adam with those Gaussians' gradients and moments zeroed
@@ -89,7 +89,7 @@ def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poiso
         assert torch.equal(guarded[name][2], after_first[name][2]), name  # held back at steps 2 and 3
     torch.testing.assert_close(guarded["opacity"][4], plain["opacity"][4], rtol=2e-6, atol=1e-7)
     assert not torch.equal(guarded["opacity"][4], after_first["opacity"][4])  # stepped again at step 3
-    with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
+    with caplog.at_level("WARNING", logger="artnvg_core.finetune.finite_steps"):
         adam.report()
         adam.report()  # nothing new
     assert [r.message for r in caplog.records] == [
@@ -117,7 +117,7 @@ def test_a_non_finite_loss_or_a_skipped_step_changes_nothing(fused, caplog):
         assert torch.equal(params[name], before[name])
         assert torch.equal(adam.exp_avg[name], moments[name][0]) and torch.equal(adam.exp_avg_sq[name], moments[name][1])
     assert float(adam.taken) == 1
-    with caplog.at_level("WARNING", logger="artnvg_core.finite_steps"):
+    with caplog.at_level("WARNING", logger="artnvg_core.finetune.finite_steps"):
         adam.summary()
     assert [r.message for r in caplog.records] == [
         "test: step 2: the loss is not finite (l1 nan, tv 0.5); the step is skipped",

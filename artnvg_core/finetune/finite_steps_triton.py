@@ -1,4 +1,4 @@
-""":class:`~artnvg_core.finite_steps.FiniteAdam`'s step in two Triton kernels per parameter.
+""":class:`~artnvg_core.finetune.finite_steps.FiniteAdam`'s step in two Triton kernels per parameter.
 
 FiniteAdam's PyTorch step queues about twenty small kernels per parameter; a GPU finetune step is
 bound by launching kernels (BENCHMARKS.md, "Finetune"), so on CUDA the step launches two per parameter:

@@ -18,7 +18,7 @@ the render: its long side equal to the long side of the render the VGG sees (ARF
 long side set to the render's, then both halved). L1/SSIM stay at full resolution.
 
 With no stylized views this is ARF's diffusion-free stylizer, by default with ARF's colour
-transfer (:mod:`artnvg_core.color_transfer`): the scene's colours are first matched to the
+transfer (:mod:`artnvg_core.finetune.color_transfer`): the scene's colours are first matched to the
 style image's mean and covariance, exactly in the SH, the content term compares against the
 recoloured views (clamped to [0, 1]), and the match is estimated and applied again to the
 result. The original Gaussians are the starting point (not a fresh fit); no densification.
@@ -28,23 +28,19 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import TYPE_CHECKING
-
 import torch
 
-from .cameras import CameraSet, scene_frame
+from ..cameras import CameraSet, scene_frame
+from ..fileio import resize_image
+from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
+from ..progress import ProgressFn, StopFn, check_stop
+from ..raster.step_renderer import StepRenderer
+from ..raster.views import render_views
+from ..scene import GaussianScene
 from .color_transfer import match_colors, recolor_scene
-from .fileio import resize_image
-from .finetune_config import FinetuneConfig
+from .config import FinetuneConfig
 from .finite_steps import FiniteAdam
-from .losses import NNFMLoss, convolution_precision, load_vgg, style_image_features
-from .progress import ProgressFn, StopFn, check_stop
-from .raster import check_render_inputs, choose_backend, render
-from .scene import GaussianScene
 from .step_loss import StepLoss, can_graph, graphed, nchw, vgg_input
-
-if TYPE_CHECKING:
-    from .raster.triton_backend import ListCapacity
 
 APPEARANCE = ("sh", "opacity_logits")
 REPORT_EVERY = 50  # steps between the loss values handed to ``progress`` (reading them waits for the device)
@@ -89,8 +85,10 @@ def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
 
 
 def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig,
-               has_targets: bool) -> FiniteAdam:
-    """Adam with per-parameter learning rates (see :class:`FinetuneConfig`), finite steps only."""
+               has_targets: bool, triton: bool) -> FiniteAdam:
+    """Adam with per-parameter learning rates (see :class:`FinetuneConfig`), finite steps only; its Triton
+    step where the views render with Triton (``triton``): a finetune told to render with another backend
+    (e.g. on a machine where Triton cannot compile) keeps Adam's PyTorch step too."""
     extent = camera_extent(cameras, scene) if config.optimize == "all" else 1.0
     default_dc, default_rest = (0.0025, 0.0025 / 20) if has_targets else (0.03, 0.003)
     rates = {
@@ -101,20 +99,7 @@ def _optimizer(params: dict[str, torch.Tensor], scene: GaussianScene, cameras: C
         "log_scales": config.lr_scales,
         "quats": config.lr_quats,
     }
-    # the Triton step where the views render with Triton: a finetune told to render with another backend
-    # (e.g. on a machine where Triton cannot compile) keeps Adam's PyTorch step too
-    triton = choose_backend(config.backend, scene.device) == "triton"
     return FiniteAdam(params, rates, "finetune", eps=1e-15, fused=None if triton else False)
-
-
-def _list_capacity(config: FinetuneConfig, device: torch.device) -> ListCapacity | None:
-    """Room for the Triton renders' tile lists shared by the steps, so that a step does not wait for its
-    render's intersection count (:class:`~.raster.triton_backend.ListCapacity`); None for other backends."""
-    if choose_backend(config.backend, device) != "triton":
-        return None
-    from .raster.triton_backend import ListCapacity  # imports Triton: only when the steps render with it
-
-    return ListCapacity()
 
 
 def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneConfig) -> torch.Tensor:
@@ -123,13 +108,7 @@ def _vgg_style(style_image: torch.Tensor, cameras: CameraSet, config: FinetuneCo
     side = max(cameras.width, cameras.height)
     if config.nnfm_max_side is not None:
         side = min(side, config.nnfm_max_side)
-    style = nchw(style_image[None])
-    height, width = style.shape[-2:]
-    factor = side / max(height, width)
-    size = (max(1, round(height * factor)), max(1, round(width * factor)))
-    if factor < 1:
-        return torch.nn.functional.interpolate(style, size=size, mode="area")
-    return torch.nn.functional.interpolate(style, size=size, mode="bilinear", align_corners=False)
+    return resize_long_side(nchw(style_image[None]), side)
 
 
 def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet) -> None:
@@ -147,14 +126,9 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
 def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
                   report: ProgressFn | None, should_stop: StopFn | None) -> torch.Tensor:
     """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], one view at a time, reporting each."""
-    views = []
-    for index in range(len(cameras)):
-        check_stop(should_stop)
-        with torch.no_grad():
-            views.append(render(scene, cameras.subset([index]), backend=config.backend).rgb.clamp(0, 1))
-        if report is not None:
-            report(index + 1, len(cameras), {"stage": stage})
-    return torch.cat(views)
+    progress = None if report is None else lambda done, total, info: report(done, total, {"stage": stage})
+    return render_views(scene, cameras, chunk=1, backend=config.backend, progress=progress,
+                        should_stop=should_stop).rgb
 
 
 def finetune(
@@ -183,7 +157,7 @@ def finetune(
     render_progress(view, views, info): called after each view of the renders of every camera
         before the steps (``info["stage"] == "setup"``: colour transfer, content term) and after
         them (``"final"``: colour transfer), which ``should_stop`` can also end.
-    No step writes a non-finite value (:mod:`artnvg_core.finite_steps`): a step with a
+    No step writes a non-finite value (:mod:`artnvg_core.finetune.finite_steps`): a step with a
     non-finite loss is skipped, Gaussians with non-finite gradients keep their last finite
     values, and both are logged with the step and the Gaussians' indices; so is a view that sees no
     Gaussian (a step none of whose views sees one is skipped). None of these checks waits for the
@@ -235,32 +209,28 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     names = step_loss.names
     if config.cuda_graph and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
+    renderer = StepRenderer(scene, cameras, config.backend)  # checks the inputs: a bad scene fails before any step
     params = _parameters(scene, config)
-    adam = _optimizer(params, scene, cameras, config, stylized is not None)
+    adam = _optimizer(params, scene, cameras, config, stylized is not None, renderer.backend == "triton")
     generator = torch.Generator().manual_seed(config.seed)
     # every step's views drawn up front and copied to the device once: a copy per step would wait for it
     schedule = torch.randint(len(cameras), (config.iterations, config.views_per_step), generator=generator)
     schedule_on_device = schedule.to(device)
     blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
-    check_render_inputs(scene, cameras)  # once: the steps' renders skip the checks, which wait for the GPU
-    capacity = _list_capacity(config, device)
     step = 1
     while step <= config.iterations:
         check_stop(should_stop)
         views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
-        out = render(_scene_of(params, scene), cameras.subset(views, views_on_device), backend=config.backend,
-                     checked=True, list_capacity=capacity)
+        out, incomplete = renderer.render(_scene_of(params, scene), views, views_on_device)
         sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
-        skip = ~sees.any()
-        overflow = None if capacity is None else capacity.take_overflow()
-        skip = skip if overflow is None else skip | overflow
+        skip = ~sees.any() if incomplete is None else ~sees.any() | incomplete
         loss, values = step_loss(out.rgb.clamp(0, 1), views_on_device)
         terms = dict(zip(names, values.unbind()))
         loss.backward()
         adam.step(step, loss, terms, skip=skip)
-        if capacity is not None and capacity.overflowed():
-            continue  # a render outgrew its tile lists: the step was skipped on the device; again, with room
+        if renderer.redo():
+            continue  # the render was incomplete: the step was skipped on the device; again
         blind.index_add_(0, views_on_device, (~sees).int())
         info: dict = {"view": views[0]} if len(views) == 1 else {"views": tuple(views)}
         if step == 1 or step % REPORT_EVERY == 0 or step == config.iterations:

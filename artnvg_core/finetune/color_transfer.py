@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .scene import SH_C0, GaussianScene
+from ..scene import SH_C0, GaussianScene
 
 EIGENVALUE_RANGE = (1e-8, 1e8)  # ARF's clamp on both covariances' eigenvalues
 

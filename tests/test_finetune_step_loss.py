@@ -6,10 +6,10 @@ import dataclasses
 import pytest
 import torch
 
-from artnvg_core.finetune_config import FinetuneConfig
+from artnvg_core.finetune.config import FinetuneConfig
 from artnvg_core.losses import NNFMLoss, load_vgg, ssim
-from artnvg_core import step_loss as step_loss_module
-from artnvg_core.step_loss import StepLoss, graphed, vgg_input
+from artnvg_core.finetune import step_loss as step_loss_module
+from artnvg_core.finetune.step_loss import StepLoss, graphed, vgg_input
 
 LAYERS = ("relu3_1", "relu3_2", "relu3_3")
 VIEWS, SIZE = 5, 24
@@ -199,7 +199,7 @@ from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import read_ply
-from artnvg_core.step_loss import can_graph
+from artnvg_core.finetune.step_loss import can_graph
 from artnvg_core.stylize import DemoInputs
 assert torch.cuda.get_allocator_backend() == "cudaMallocAsync" and not can_graph(torch.device("cuda"))
 demo = DemoInputs()

@@ -19,7 +19,7 @@ at most about 30 x the learning rate, so no finite parameter becomes non-finite.
 Every decision is made on the parameters' device (``torch.where`` on masks, the step count a
 device tensor), so a step never waits for the GPU: the CPU queues the next step while the GPU
 runs this one. On CUDA the per-parameter arithmetic runs as two Triton kernels per parameter
-(:mod:`artnvg_core.finite_steps_triton`) instead of about twenty PyTorch ones. What was skipped or
+(:mod:`artnvg_core.finetune.finite_steps_triton`) instead of about twenty PyTorch ones. What was skipped or
 held back is recorded on the device and logged by :meth:`FiniteAdam.report` (one wait; the step
 and the Gaussians' first indices, the first time each Gaussian is held back) and summed up by
 :meth:`FiniteAdam.summary`.
@@ -32,7 +32,7 @@ import logging
 
 import torch
 
-from .raster import triton_available
+from ..devices import triton_available
 
 _log = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ class FiniteAdam:
 
     def _fused_updates(self, grads: dict[str, torch.Tensor], skipped: torch.Tensor, bad: torch.Tensor,
                        correction1: torch.Tensor, correction2_sqrt: torch.Tensor) -> None:
-        """The same by :func:`~artnvg_core.finite_steps_triton.adam_rows`, two launches per parameter
+        """The same by :func:`~artnvg_core.finetune.finite_steps_triton.adam_rows`, two launches per parameter
         (the held rows read from ``self._held``, which :meth:`_held_back` filled: ``bad`` is those
         rows less a skipped step's, which ``skipped`` keeps anyway)."""
         from .finite_steps_triton import adam_rows
