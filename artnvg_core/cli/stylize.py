@@ -78,15 +78,15 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
 
-    given = load_cameras(args.cameras) if args.cameras else None
+    capture_cameras = load_cameras(args.cameras) if args.cameras else None
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
-                               cameras=given)
+                               cameras=capture_cameras)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
         check_geometry_writable(scene, out)
     except ValueError as error:
         raise ValueError(f"--out: {error}; the stylized scene keeps these positions and scales, so "
                          f"{out.suffix} cannot hold it: choose .ply") from None
-    cameras = given if given is not None else orbit_from_args(args, scene)
+    cameras = capture_cameras if capture_cameras is not None else orbit_from_args(args, scene)
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
 
