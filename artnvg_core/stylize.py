@@ -10,8 +10,11 @@ Two stylizers:
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
@@ -134,13 +137,20 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
 
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
-    device = torch.device(device)
+    device = _indexed(device)
     dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
     key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
            tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
     return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
                                             dtype, sdxl_config_dir, on_cpu, progress, should_stop))
+
+
+def _indexed(device: str | torch.device) -> torch.device:
+    """``device`` as a tensor on it names it: ``cuda`` is the current CUDA device, ``cuda:0`` say."""
+    device = torch.device(device)
+    return torch.device("cuda", torch.cuda.current_device()) if device.type == "cuda" and device.index is None \
+        else device
 
 
 def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,
@@ -168,6 +178,31 @@ def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, d
         apply_speedups(models, COMPILED_BLOCKS)
         load_compile_cache(device)
     return models
+
+
+def _models_loader(files: ModelFiles, preset: str, compile_blocks: bool, loras: Sequence[LoRA]):
+    """:func:`load_models_for` of ``preset``'s memory mode and these options; call it with the device."""
+    from .presets import get_preset
+
+    return functools.partial(load_models_for, files, get_preset(preset).low_memory, compile_blocks=compile_blocks,
+                             loras=tuple(loras))
+
+
+def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: str = "paper",
+                    compile_blocks: bool = False, loras: Sequence[LoRA] = (), progress: ProgressFn | None = None
+                    ) -> None:
+    """Start loading, in a background thread, the models that :func:`stylize_diffusion` with these arguments
+    on one ``device`` loads, so that reading the files overlaps what comes before it (loading the scene).
+    stylize_diffusion's own load then waits for this one and gets its models (:func:`load_models_for`
+    loads once per process). A failure here is dropped: stylize_diffusion's load meets it again and
+    reports it."""
+    load, device = _models_loader(files, preset, compile_blocks, loras), _indexed(device)  # this thread's device
+
+    def quietly() -> None:
+        with contextlib.suppress(Exception):
+            load(device, progress=progress)
+
+    threading.Thread(target=quietly, name="prefetch models", daemon=True).start()
 
 
 def stylize_diffusion(
@@ -255,13 +290,14 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks,
-                             loras=tuple(loras))
+    load = _models_loader(files, preset, compile_blocks, loras)
     device = explicit[0] if explicit else scene.device
-    # first: a model that cannot be loaded fails before any work
-    models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)
-    with torch.no_grad():
-        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+    with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
+        loading = None if spread else background.submit(load, device, progress=loading_progress,
+                                                        should_stop=should_stop)
+        with torch.no_grad():
+            content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+        models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:
