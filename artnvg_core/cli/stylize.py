@@ -77,8 +77,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
-    from ..stylize import DiffusionModelsUnavailable, choose_stylizer, prefetch_models, save_result, stylize_diffusion, \
-        stylize_nnfm
+    from ..stylize import choose_stylizer, prefetch_models, save_result, stylize_diffusion, stylize_nnfm
 
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     if diffusion_free:
@@ -100,6 +99,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
 
+    from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
 
     def iterations_for(stylizer: str) -> int:
