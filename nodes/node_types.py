@@ -8,6 +8,5 @@ CATEGORY = "ArtNVG"
 SCENE = "ARTNVG_SCENE"      # artnvg_core.scene.GaussianScene (on the CPU)
 CAMERAS = "ARTNVG_CAMERAS"  # artnvg_core.cameras.CameraSet (on the CPU)
 GROUPS = "ARTNVG_GROUPS"    # artnvg_core.grouping.ViewGroups
-MODELS = "ARTNVG_MODELS"    # the loaded diffusion models (artnvg_core.diffusion)
-EMBEDS = "ARTNVG_EMBEDS"    # CSGO content and style tokens (artnvg_core.diffusion)
+CSGO = "ARTNVG_CSGO"        # artnvg_core.diffusion.csgo_weights.CSGOFile
 IMAGE = "IMAGE"
