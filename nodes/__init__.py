@@ -7,6 +7,7 @@ outputs. Add new inputs only at the end of a node's ``optional`` inputs.
 
 from __future__ import annotations
 
+from .blend_nodes import BlendStylization
 from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from .comfy_bridge import comfy_module, input_directory, register_model_folder
 from .demo_inputs import install_demo_inputs
@@ -16,6 +17,7 @@ from .model_patch_nodes import CSGO_EXTENSIONS, CSGO_FOLDER, ApplyCSGO, LoadCSGO
 from .prompt_checks import register_prompt_check
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
+from .selection_nodes import SelectGaussians
 from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
@@ -35,6 +37,8 @@ NODE_CLASS_MAPPINGS = {
     "ArtNVGNVAttentionPatch": NVAttentionPatch,
     "ArtNVGSampleGroup": SampleGroup,
     "ArtNVGFinetuneGaussians": FinetuneGaussians,
+    "ArtNVGSelectGaussians": SelectGaussians,
+    "ArtNVGBlendStylization": BlendStylization,
     "ArtNVGSaveGaussianScene": SaveGaussianScene,
     "ArtNVGSceneToSplat": SceneToSplat,
     "ArtNVGSplatToScene": SplatToScene,

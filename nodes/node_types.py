@@ -10,3 +10,4 @@ CAMERAS = "ARTNVG_CAMERAS"  # artnvg_core.cameras.CameraSet (on the CPU)
 GROUPS = "ARTNVG_GROUPS"    # artnvg_core.grouping.ViewGroups
 CSGO = "ARTNVG_CSGO"        # artnvg_core.diffusion.csgo_weights.CSGOFile
 IMAGE = "IMAGE"
+SELECTION = "ARTNVG_SELECTION"  # [N] bool tensor over a scene's Gaussians (artnvg_core.selection), on the CPU

@@ -15,7 +15,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
-CORE_TYPES = {"IMAGE", "SPLAT", "GAUSSIAN", "MODEL", "CONTROL_NET", "CLIP_VISION", "CONDITIONING", "VAE"}  # ComfyUI's
+CORE_TYPES = {"IMAGE", "MASK", "SPLAT", "GAUSSIAN", "MODEL", "CONTROL_NET", "CLIP_VISION", "CONDITIONING",
+              "VAE"}  # ComfyUI's own link types the nodes take
 
 PUBLIC_INPUTS = {
     "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid", "spz_axes"],
@@ -35,6 +36,8 @@ PUBLIC_INPUTS = {
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search"],
+    "ArtNVGSelectGaussians": ["scene", "mode", "bounds", "cameras", "mask", "views"],
+    "ArtNVGBlendStylization": ["original", "stylized", "strength", "selection", "cameras", "view", "preview_strengths"],
     "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],
     "ArtNVGSceneToSplat": ["scene"],
     "ArtNVGSplatToScene": ["splat"],
@@ -51,6 +54,8 @@ PUBLIC_OUTPUTS = {
     "ArtNVGNVAttentionPatch": ("MODEL",),
     "ArtNVGSampleGroup": ("IMAGE",),
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
+    "ArtNVGSelectGaussians": ("ARTNVG_SELECTION",),
+    "ArtNVGBlendStylization": ("ARTNVG_SCENE", "IMAGE"),
     "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_SPLAT_ANY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),

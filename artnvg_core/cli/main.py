@@ -1,6 +1,6 @@
-"""Command line: ``python -m artnvg_core {render,stylize,evaluate,batch} ...`` (``--help`` on each).
+"""Command line: ``python -m artnvg_core {render,stylize,blend,evaluate,batch} ...`` (``--help`` on each).
 
-This module holds ``render``, the parser of every command and :func:`main`; ``stylize``,
+This module holds ``render``, the parser of every command and :func:`main`; ``stylize``, ``blend``,
 ``evaluate`` and ``batch`` have a module each in this package."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import torch
 from ..cameras.selection import parse_views
 from ..devices import DEVICE_CHOICES
 from .batch import add_batch_command
+from .blend import add_blend_command
 from .common import (
     SCENE_FILES,
     add_camera_arguments,
@@ -84,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
     add_stylize_arguments(p)
+
+    add_blend_command(commands)
 
     p = commands.add_parser("evaluate", help="metrics, comparison strip and preview of a stylized scene or 2D views")
     add_evaluate_arguments(p)
