@@ -54,7 +54,8 @@ CASES = {
 
 def _models(tmp_path: Path) -> DiffusionModels:
     """Tiny SDXL-architecture models that ComfyUI's modules can also hold (widths multiples of 32, SDXL's
-    256-wide size embedding, the standard ControlNet hint encoder), with CSGO loaded."""
+    256-wide size embedding, the standard ControlNet hint encoder), with CSGO loaded (its file with the
+    optional UNet conv_in); the files hold the weights before CSGO's."""
     torch.manual_seed(0)
     unet = UNet2DConditionModel(**dict(
         SDXL_UNET_CONFIG, sample_size=8, block_out_channels=(32, 64, 64), transformer_layers_per_block=(1, 1, 2),
@@ -66,7 +67,9 @@ def _models(tmp_path: Path) -> DiffusionModels:
     scheduler = dict(SDXL_SCHEDULER_CONFIG, timestep_spacing="trailing", set_alpha_to_one=True)
     base = SDXLBase(unet, vae, text_encoder, text_encoder_2, tiny_tokenizer(), tiny_tokenizer(pad_token="!"), scheduler)
     controlnet = tiny_controlnet(unet, hint_channels=(16, 32, 96, 256))
-    path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(unet, controlnet))
+    generator = torch.Generator().manual_seed(5)
+    conv_in = {name: 0.2 * torch.randn(value.shape, generator=generator) for name, value in unet.conv_in.state_dict().items()}
+    path = write_csgo_file(tmp_path / "csgo.bin", {**csgo_state(unet, controlnet), "conv_in_unet_sd": conv_in})
     weights = {"unet": unet.state_dict(), "controlnet": controlnet.state_dict(), "vae": vae.state_dict()}
     encoder = tiny_image_encoder()
     weights["image_encoder"] = encoder.state_dict()
