@@ -19,7 +19,7 @@ CORE_TYPES = {"IMAGE", "MASK", "SPLAT", "GAUSSIAN", "MODEL", "CONTROL_NET", "CLI
               "VAE"}  # ComfyUI's own link types the nodes take
 
 PUBLIC_INPUTS = {
-    "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid", "spz_axes"],
+    "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid", "spz_axes", "cameras"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
     "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
     "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views", "key_views"],
