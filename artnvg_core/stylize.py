@@ -18,12 +18,13 @@ from pathlib import Path
 import torch
 
 from .cameras import CameraSet
-from .diffusion.lora import LoRA, LoRAError
-from .diffusion.model_files import ModelFiles
+from .diffusion.loader import load_models_for
+from .diffusion.lora import LoRA
+from .diffusion.model_files import ModelFiles, missing_model
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
-from .progress import Cancelled, ProgressFn, StopFn
+from .progress import ProgressFn, StopFn
 from .raster import render
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
@@ -78,21 +79,6 @@ def stylize_nnfm(
     return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
 
 
-class DiffusionModelsUnavailable(ValueError):
-    """The diffusion models could not be loaded (the message says why)."""
-
-
-def find_diffusion_models(files: ModelFiles) -> str | None:
-    """None when every file the diffusion models' load reads is there, else the first missing one's message."""
-    from .diffusion.model_files import MissingModelError, check_model_files
-
-    try:
-        check_model_files(files)
-    except MissingModelError as error:
-        return str(error)
-    return None
-
-
 def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
     """Resolve ``auto`` / ``nnfm`` / ``diffusion`` to the stylizer that runs, with the reason.
 
@@ -102,7 +88,7 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
         raise ValueError(f"stylizer: expected one of {STYLIZERS}, got {requested!r}")
     if requested == "nnfm":
         return "nnfm", "requested"
-    missing = find_diffusion_models(files)
+    missing = missing_model(files)
     if requested == "diffusion":
         if missing:
             raise ValueError(f"--stylizer diffusion: {missing}")
@@ -110,64 +96,6 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
     if missing:
         return "nnfm", f"auto: diffusion models not found ({missing})"
     return "diffusion", "auto: all diffusion model files found"
-
-
-def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
-                    *, loras: tuple[LoRA, ...] = (), dtype: torch.dtype | None = None,
-                    sdxl_config_dir: str | Path | None = None, on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
-    """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
-    workers and ComfyUI's Load ArtNVG Models.
-
-    loras: fused into SDXL (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
-    dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
-    loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
-    ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
-    :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only: with ``low_memory`` a
-    ValueError) and loads an earlier run's compile artifacts (:mod:`artnvg_core.diffusion.compile_cache`).
-    Loaded once per process: the same files (path, size and modification time), device and options return
-    the same models (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
-    :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each model)
-    raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
-    (:func:`~artnvg_core.diffusion.models.load_diffusion_models`). A module-level function, so a
-    ``functools.partial`` of it can be sent to worker processes."""
-    from .diffusion.model_cache import file_key, load_once
-
-    if compile_blocks and low_memory:
-        raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
-    device = torch.device(device)
-    dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
-    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
-           tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
-           str(dtype), str(device), low_memory, compile_blocks, on_cpu)
-    return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
-                                            dtype, sdxl_config_dir, on_cpu, progress, should_stop))
-
-
-def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,
-                 compile_blocks: bool, dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
-                 progress: ProgressFn | None, should_stop: StopFn | None):
-    """:func:`load_models_for` without the once-per-process cache."""
-    from .diffusion.compile_cache import load_compile_cache
-    from .diffusion.memory import enable_low_memory
-    from .diffusion.models import load_diffusion_models
-    from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
-
-    try:
-        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype, loras=loras,
-                                       device="cpu" if low_memory or on_cpu else device, progress=progress,
-                                       should_stop=should_stop)
-    except Cancelled:
-        raise
-    except LoRAError:  # the user's LoRA is wrong: no fallback to another stylizer
-        raise
-    except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
-        raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
-    if low_memory and not on_cpu:
-        enable_low_memory(models, device)
-    if compile_blocks:
-        apply_speedups(models, COMPILED_BLOCKS)
-        load_compile_cache(device)
-    return models
 
 
 def stylize_diffusion(

@@ -171,7 +171,7 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
     files = write_random_model_files(args.models, args.tiny, args.seed)
     if args.tiny:
         from artnvg_core.diffusion.model_files import ModelFiles
-        from artnvg_core.stylize import load_models_for
+        from artnvg_core.diffusion.loader import load_models_for
 
         load_models_for(ModelFiles(**files), False, torch.device("cpu"))
         stylizer = {"stylizer": "nnfm", "scale": 0.125, "iters": 2}

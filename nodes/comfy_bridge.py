@@ -54,6 +54,18 @@ def output_directory() -> Path:
     return Path(folder_paths.get_output_directory()) if folder_paths else Path.cwd() / "output"
 
 
+def readable_folders() -> list[Path]:
+    """The folders a node may read from: ComfyUI's input and output folders and every model folder
+    (``models/`` and each registered folder, extra_model_paths.yaml's included); without ComfyUI, ``./input``
+    and ``./output``."""
+    folders = [input_directory(), output_directory()]
+    folder_paths = comfy_module("folder_paths")
+    if folder_paths is not None:
+        folders.append(Path(folder_paths.models_dir))
+        folders.extend(Path(folder) for paths, _ in folder_paths.folder_names_and_paths.values() for folder in paths)
+    return folders
+
+
 def register_model_folder(name: str, extensions: set[str]) -> None:
     """Make ``models/<name>`` a ComfyUI model folder listing files with ``extensions``.
 

@@ -18,7 +18,7 @@ from artnvg_core.diffusion.compile_cache import save_compile_cache
 from artnvg_core.diffusion.conditioning import prepare_conditioning
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS
 from artnvg_core.diffusion.memory import enable_low_memory
-from artnvg_core.diffusion.model_files import MODEL_SOURCES, ModelFiles, ModelSource, check_model_files, locate
+from artnvg_core.diffusion.model_files import MODEL_SOURCES, ModelFiles, ModelSource, locate, missing_model
 from artnvg_core.diffusion.models import DiffusionModels
 from artnvg_core.diffusion.settings import NV_LEVELS, SCHEDULER_NAMES, SIZE_RULES, SamplerSettings
 from artnvg_core.diffusion.stylize import (
@@ -26,7 +26,7 @@ from artnvg_core.diffusion.stylize import (
     DEFAULT_PROMPT,
     stylize_groups,
 )
-from artnvg_core.stylize import load_models_for
+from artnvg_core.diffusion.loader import load_models_for
 
 from .comfy_bridge import (
     cancellable,
@@ -116,11 +116,8 @@ def missing_models(node: str, inputs: dict[str, str], config_dir: str | None) ->
             found[model.field] = _model_path(node, model, inputs[model.name], inputs.get(model.path_input, ""))
         except NodeInputError as error:
             problems.append(str(error).removeprefix(f"{node}: "))
-    if not problems:
-        try:
-            check_model_files(ModelFiles(**found), sdxl_config_dir=config_dir)
-        except ValueError as error:
-            problems.append(str(error))
+    if not problems and (missing := missing_model(ModelFiles(**found), sdxl_config_dir=config_dir)):
+        problems.append(missing)
     if not problems:
         return None
     count = f"{len(problems)} model file{'s' if len(problems) > 1 else ''}"

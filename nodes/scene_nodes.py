@@ -61,7 +61,7 @@ class LoadGaussianScene(ArtNVGNode):
         return SCENE_FILE.signature(scene_file, path)
 
     def load(self, scene_file, path="", drop_invalid=False, spz_axes="rub", files=None):
-        file, input_name = SCENE_FILE.resolve(scene_file, path)
+        file, input_name = SCENE_FILE.readable(self.DISPLAY_NAME, scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes),)
 

@@ -72,7 +72,8 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
 
     from artnvg_core.cli import main as cli
     from artnvg_core import stylize
-    from artnvg_core.stylize import DiffusionModelsUnavailable, choose_stylizer, load_models_for
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable, load_models_for
+    from artnvg_core.stylize import choose_stylizer
 
     files = write_model_files(tmp_path)
     shutil.rmtree(files["sdxl"] / "unet")

@@ -88,8 +88,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
 
+    from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
-    from ..stylize import DiffusionModelsUnavailable, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
+    from ..stylize import choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
 
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     if diffusion_free:

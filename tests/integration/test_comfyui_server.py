@@ -187,8 +187,28 @@ def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
     assert not list(folder.glob("interrupted*")) and not list(folder.glob(".*.tmp"))
 
 
+def _refusal(server, *overrides: str) -> str:
+    """The one error ComfyUI answers the NNFM workflow with ``overrides`` with (HTTP 400), for Load Gaussian Scene."""
+    with pytest.raises(queue.RejectedError) as rejected:
+        queue.queue_prompt(server.url, _workflow(server, *overrides))
+    (error,) = rejected.value.details["node_errors"]["1"]["errors"]
+    return error["details"]
+
+
+def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_exist(comfy_server, tmp_path):
+    outside = tmp_path / "small.ply"
+    outside.write_bytes((comfy_server.input_dir / comfy_server.test_folder / "scene.ply").read_bytes())
+    existing = _refusal(comfy_server, f"Load Gaussian Scene.path={outside}")
+    missing = _refusal(comfy_server, f"Load Gaussian Scene.path={tmp_path / 'missing.ply'}")
+    assert "is outside ComfyUI's input, output and model folders" in existing and "ARTNVG_READ_ANY_PATH" in existing
+    assert missing == existing.replace(str(outside), str(tmp_path / "missing.ply"))
+    climbing = "../" * len(comfy_server.input_dir.resolve().parts) + str(outside).lstrip("/")
+    listed = _refusal(comfy_server, f"Load Gaussian Scene.scene_file={climbing}")
+    assert listed == existing.replace(f"'path': {str(outside)!r}", f"'scene_file': {climbing!r}")
+
+
 @pytest.mark.parametrize("input_name, value", [
-    ("path", "/nonexistent/artnvg/missing_scene.ply"),
+    ("path", "{folder}/missing_scene.ply"),
     ("scene_file", "{folder}/missing.ply"),
 ])
 def test_missing_scene_file_fails_validation_naming_the_file(comfy_server, input_name, value):
