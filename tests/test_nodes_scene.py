@@ -218,3 +218,25 @@ def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_d
         assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):
         call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")
+
+
+def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_runs(comfy_dirs):
+    fits = "artnvg/" + "s" * 200  # 200 + "_00001.ply" and the temporary's 29 bytes: 239 of 255
+    assert SaveGaussianScene.check_files(filename_prefix=fits) is None
+    message = SaveGaussianScene.check_files(filename_prefix="artnvg/" + "s" * 225, format="ply")
+    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the file name: the file name ssss")
+    assert "is 235 bytes long; it may have at most 226 here" in message
+    assert SaveGaussianScene.check_files(filename_prefix="../escape").startswith(
+        "Save Gaussian Scene: input 'filename_prefix': '../escape' must name a file inside the output folder")
+    assert not (comfy_dirs / "output" / "artnvg").exists()  # nothing made by a check
+
+
+def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):
+    import artnvg_core.raster.views as views
+
+    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
+    with pytest.raises(NodeInputError, match=r"Render Camera Path: input 'scale': 60 views at scale 4\.0: 60 views of "
+                       r"2048x2048 pixels, all their images held at once, need 2\.9 GiB, more than half the 1\.0 GiB"):
+        call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
+             key_views="", frames_per_segment=30, loop=False)
