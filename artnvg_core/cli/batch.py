@@ -220,7 +220,7 @@ def output_complete(out: Path) -> bool:
 
 class BatchWorker:
     """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
-    between jobs (:func:`artnvg_core.stylize.load_models_for` keeps the latest set). Two threads: one runs
+    between jobs (:func:`artnvg_core.diffusion.loader.load_models_for` keeps the latest set). Two threads: one runs
     the job, the other answers ``ping`` (its process id) and ``stop``."""
 
     def __init__(self, workers: Workers):

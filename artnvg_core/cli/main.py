@@ -60,7 +60,8 @@ def cmd_render(args: argparse.Namespace) -> None:
     if cameras is None:  # the views made from the scene: their size checked before it loads
         width, height = (max(1, round(side * args.scale)) for side in orbit_size(args))
         check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
-    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
+                               cameras=cameras)
     if cameras is None:
         cameras = chosen(orbit_from_args(args, scene))
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
