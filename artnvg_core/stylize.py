@@ -25,7 +25,7 @@ from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
-from .raster import render
+from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
@@ -59,9 +59,8 @@ def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: Cam
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    with torch.no_grad():
-        before = render(original, subset, backend=backend).rgb
-        after = render(stylized, subset, backend=backend).rgb
+    before = render_views(original, subset, backend=backend).rgb
+    after = render_views(stylized, subset, backend=backend).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -188,8 +187,7 @@ def stylize_diffusion(
     device = explicit[0] if explicit else scene.device
     # first: a model that cannot be loaded fails before any work
     models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)
-    with torch.no_grad():
-        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+    content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:
