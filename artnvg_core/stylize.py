@@ -10,15 +10,18 @@ Two stylizers:
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import torch
 
 from .cameras import CameraSet
-from .diffusion.loader import load_models_for
+from .diffusion.loader import indexed_device, load_models_for
 from .diffusion.lora import LoRA
 from .diffusion.model_files import ModelFiles, missing_model
 from .fileio import save_png, written_together
@@ -95,6 +98,31 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
     if missing:
         return "nnfm", f"auto: diffusion models not found ({missing})"
     return "diffusion", "auto: all diffusion model files found"
+
+
+def _models_loader(files: ModelFiles, preset: str, compile_blocks: bool, loras: Sequence[LoRA]):
+    """:func:`load_models_for` of ``preset``'s memory mode and these options; call it with the device."""
+    from .presets import get_preset
+
+    return functools.partial(load_models_for, files, get_preset(preset).low_memory, compile_blocks=compile_blocks,
+                             loras=tuple(loras))
+
+
+def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: str = "paper",
+                    compile_blocks: bool = False, loras: Sequence[LoRA] = (), progress: ProgressFn | None = None
+                    ) -> None:
+    """Start loading, in a background thread, the models that :func:`stylize_diffusion` with these arguments
+    on one ``device`` loads, so that reading the files overlaps what comes before it (loading the scene).
+    stylize_diffusion's own load then waits for this one and gets its models (:func:`load_models_for`
+    loads once per process). A failure here is dropped: stylize_diffusion's load meets it again and
+    reports it."""
+    load, device = _models_loader(files, preset, compile_blocks, loras), indexed_device(device)  # this thread's
+
+    def quietly() -> None:
+        with contextlib.suppress(Exception):
+            load(device, progress=progress)
+
+    threading.Thread(target=quietly, name="prefetch models", daemon=True).start()
 
 
 def stylize_diffusion(
@@ -182,12 +210,13 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks,
-                             loras=tuple(loras))
+    load = _models_loader(files, preset, compile_blocks, loras)
     device = explicit[0] if explicit else scene.device
-    # first: a model that cannot be loaded fails before any work
-    models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)
-    content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
+    with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
+        loading = None if spread else background.submit(load, device, progress=loading_progress,
+                                                        should_stop=should_stop)
+        content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
+        models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:

@@ -11,15 +11,9 @@ from .blend_nodes import BlendStylization
 from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from .comfy_bridge import comfy_module, input_directory, register_model_folder
 from .demo_inputs import install_demo_inputs
-from .diffusion_nodes import (
-    CSGO_EXTENSIONS,
-    CSGO_FOLDER,
-    CSGOEncode,
-    LoadArtNVGModels,
-    NVAttentionPatch,
-    SampleGroup,
-)
+from .diffusion_nodes import SampleGroup
 from .finetune_nodes import FinetuneGaussians
+from .model_patch_nodes import CSGO_EXTENSIONS, CSGO_FOLDER, ApplyCSGO, LoadCSGO, NVAttentionPatch
 from .prompt_checks import register_prompt_check
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
@@ -38,8 +32,8 @@ NODE_CLASS_MAPPINGS = {
     "ArtNVGRenderViews": RenderViews,
     "ArtNVGRenderCameraPath": RenderCameraPath,
     "ArtNVGGroupNeighbouringViews": GroupNeighbouringViews,
-    "ArtNVGLoadModels": LoadArtNVGModels,
-    "ArtNVGCSGOEncode": CSGOEncode,
+    "ArtNVGLoadCSGO": LoadCSGO,
+    "ArtNVGApplyCSGO": ApplyCSGO,
     "ArtNVGNVAttentionPatch": NVAttentionPatch,
     "ArtNVGSampleGroup": SampleGroup,
     "ArtNVGFinetuneGaussians": FinetuneGaussians,

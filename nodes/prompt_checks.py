@@ -15,6 +15,10 @@ ComfyUI shows the message once) and return the kept message (:func:`check_result
 are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
 itself: the check's message says more (where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
+
+The model loaders (ComfyUI's own and Load CSGO, :data:`MODEL_LOADERS`) list their folder's files, and
+ComfyUI's own check names a file that is not there ("Value not in list"); the handler counts such a node
+as failing too, so that a graph missing a model file runs not at all either.
 """
 
 from __future__ import annotations
@@ -23,10 +27,17 @@ import uuid
 from collections import OrderedDict
 from collections.abc import Mapping
 
-from .comfy_bridge import comfy_module
+from .comfy_bridge import comfy_module, model_file_path
 
 CHECK_INPUT = "files"  # the loaders' hidden input: ComfyUI's UNIQUE_ID (the node id)
 HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}
+MODEL_LOADERS = {  # node type -> (its file input, its model folder)
+    "CheckpointLoaderSimple": ("ckpt_name", "checkpoints"),
+    "LoraLoader": ("lora_name", "loras"),
+    "ControlNetLoader": ("control_net_name", "controlnet"),
+    "CLIPVisionLoader": ("clip_name", "clip_vision"),
+    "ArtNVGLoadCSGO": ("csgo_name", "csgo"),
+}
 _KEPT_PROMPTS = 32
 _results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
 
@@ -45,13 +56,21 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
 
 
 def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
-    """Node id -> message of every node whose class's ``check_files`` finds a problem with its values."""
+    """Node id -> message of every node whose class's ``check_files`` finds a problem with its values, and of
+    every model loader whose file is not in its folder."""
     failures = {}
     for node_id, node in prompt.items():
-        check = getattr(classes.get(node.get("class_type")), "check_files", None) if isinstance(node, dict) else None
-        if check is None:
+        if not isinstance(node, dict):
             continue
         values = {name: value for name, value in node.get("inputs", {}).items() if not isinstance(value, list)}
+        if node.get("class_type") in MODEL_LOADERS:
+            name, folder = MODEL_LOADERS[node["class_type"]]
+            if model_file_path(folder, str(values.get(name, ""))) is None:
+                failures[str(node_id)] = f"'{values.get(name)}' is not in the '{folder}' model folder"
+            continue
+        check = getattr(classes.get(node.get("class_type")), "check_files", None)
+        if check is None:
+            continue
         message = check(**values)
         if message:
             failures[str(node_id)] = message

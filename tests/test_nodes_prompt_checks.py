@@ -85,3 +85,16 @@ def test_only_the_latest_prompts_are_remembered(executing):
     assert len(prompt_checks._results) == prompt_checks._KEPT_PROMPTS
     executing["prompt"] = "q0"
     assert check_result("1") is True
+
+
+def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):
+    """ComfyUI's own loaders (and Load CSGO) are checked by folder: ComfyUI names the file itself."""
+    monkeypatch.setattr(prompt_checks, "model_file_path",
+                        lambda folder, name: f"/models/{folder}/{name}" if name == "sdxl.safetensors" else None)
+    prompt = {"1": {"class_type": "CheckpointLoaderSimple", "inputs": {"ckpt_name": "sdxl.safetensors"}},
+              "2": {"class_type": "ArtNVGLoadCSGO", "inputs": {"csgo_name": "csgo_4_32.bin"}},
+              "3": {"class_type": "Output", "inputs": {"model": ["1", 0], "csgo": ["2", 0]}},
+              "4": {"class_type": "Output", "inputs": {}}}
+    assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
+    request = check_prompt({"prompt": prompt}, CLASSES)
+    assert request["partial_execution_targets"] == ["3"]

@@ -77,6 +77,17 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
+    from ..stylize import choose_stylizer, prefetch_models, save_result, stylize_diffusion, stylize_nnfm
+
+    files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
+    if diffusion_free:
+        stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
+    else:
+        stylizer, reason = choose_stylizer(args.stylizer, files)
+    if stylizer == "diffusion" and not args.devices and not args.ray_address:  # read while the scene loads
+        print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
+        prefetch_models(files, device, preset=args.preset, compile_blocks=args.compile, loras=args.lora,
+                        progress=ProgressBar("models", "B"))
 
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
@@ -90,13 +101,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
 
     from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
-    from ..stylize import choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
-
-    files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
-    if diffusion_free:
-        stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
-    else:
-        stylizer, reason = choose_stylizer(args.stylizer, files)
 
     def iterations_for(stylizer: str) -> int:
         if args.iters is not None:
@@ -118,14 +122,13 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
-        print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         try:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, loras=args.lora,
                                           preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
-                                          compile_blocks=args.compile, loading_progress=ProgressBar("models", "B"),
+                                          compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"),
                                           progress=ProgressBar("finetune"), should_stop=args.should_stop)
         except DiffusionModelsUnavailable as error:

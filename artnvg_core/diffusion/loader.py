@@ -40,13 +40,21 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     ``functools.partial`` of it can be sent to worker processes."""
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
-    device = torch.device(device)
+    device = indexed_device(device)
     dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
     key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
            tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
     return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
                                             dtype, sdxl_config_dir, on_cpu, progress, should_stop))
+
+
+def indexed_device(device: str | torch.device) -> torch.device:
+    """``device`` as a tensor on it names it (the key of the loaded models): ``cuda`` is the current CUDA
+    device, ``cuda:0`` say."""
+    device = torch.device(device)
+    return torch.device("cuda", torch.cuda.current_device()) if device.type == "cuda" and device.index is None \
+        else device
 
 
 def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,

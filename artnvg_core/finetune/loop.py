@@ -40,7 +40,7 @@ from ..scene import GaussianScene
 from .color_transfer import match_colors, recolor_scene
 from .config import FinetuneConfig
 from .finite_steps import FiniteAdam
-from .step_loss import StepLoss, can_graph, graphed, nchw, vgg_input
+from .step_loss import GRAPH_MIN_ITERATIONS, StepLoss, can_graph, graphed, nchw, vgg_input
 
 APPEARANCE = ("sh", "opacity_logits")
 REPORT_EVERY = 50  # steps between the loss values handed to ``progress`` (reading them waits for the device)
@@ -207,7 +207,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         del content
     step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
     names = step_loss.names
-    if config.cuda_graph and can_graph(device):
+    worth_graphing = config.iterations >= GRAPH_MIN_ITERATIONS if config.cuda_graph is None else config.cuda_graph
+    if worth_graphing and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     renderer = StepRenderer(scene, cameras, config.backend)  # checks the inputs: a bad scene fails before any step
     params = _parameters(scene, config)

@@ -27,6 +27,13 @@ from .config import FinetuneConfig
 # (loss [], terms [T]) of a step's renders; the terms are detached, named by StepLoss.names
 StepLossFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
+# Fewest iterations for which recording the graphs pays (FinetuneConfig.cuda_graph None). On an H100 the
+# recording costs about 0.43 s (its warm-up calls and capture, with sympy's import that torch.autograd.grad
+# brings into a capture) and saves about 1.3 ms a step (BENCHMARKS.md, First look: 0.3 s lost over the
+# preview's 100 steps, 0.9 s won over 1,000): even from 325 steps; sympy's bytecode compiled afresh adds 2 s
+# (1,800 steps). 500: the preview (100) and `fast` (300) run eagerly, `balanced` and `paper` (1,000) replay.
+GRAPH_MIN_ITERATIONS = 500
+
 
 def nchw(images: torch.Tensor) -> torch.Tensor:
     """[B, H, W, 3] -> [B, 3, H, W] (a view)."""
