@@ -75,10 +75,13 @@ def stylize_nnfm(
     *,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> GaussianScene:
     """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views (ARF's colour transfer,
-    then NNFM + content; ``config.color_transfer`` switches the colour transfer)."""
-    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
+    then NNFM + content; ``config.color_transfer`` switches the colour transfer); with a ``selection``
+    ([N] bool), of those Gaussians alone (:mod:`artnvg_core.finetune.loop`)."""
+    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop,
+                    selection=selection)
 
 
 def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
@@ -145,6 +148,7 @@ def stylize_diffusion(
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
@@ -185,6 +189,9 @@ def stylize_diffusion(
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
             :class:`~artnvg_core.progress.Cancelled` before anything is returned.
+        selection (`torch.Tensor` or None, defaults to None): [N] bool: finetune only these Gaussians, the
+            loss weighted to the pixels they cover (:mod:`artnvg_core.finetune.loop`); the views are
+            stylized whole.
 
     Returns:
         The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
@@ -231,12 +238,13 @@ def stylize_diffusion(
         del models
         if compile_blocks:
             save_compile_cache(device)
-    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
+    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress,
+                      should_stop=should_stop, selection=selection)
     return result, views
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "rub") -> Path:
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto") -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
     contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
     Returns the sheet's path."""

@@ -127,6 +127,15 @@ def _branch_weights(node: str, csgo: CSGOFile, group: dict, layers: list, routes
     return {layer: tuple(group[key] for key in keys) for layer, keys in chosen.items()}
 
 
+def _conv_in(node: str, csgo: CSGOFile, unet: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The file's ``conv_in_unet_sd`` group, checked against the UNet's first convolution."""
+    mismatch = state_dict_mismatch(unet.input_blocks[0][0].state_dict(), csgo.conv_in)
+    if mismatch:
+        raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}', group 'conv_in_unet_sd', does not fit this "
+                             f"MODEL's conv_in: {mismatch}")
+    return csgo.conv_in
+
+
 def _attn2_layers(module: torch.nn.Module) -> list:
     """(TransformerLayer, its attn2 module) of every transformer block of ``module`` (ComfyUI's own module where
     a loaded ControlNet holds a :class:`~.comfy_patches.ControlNetAttention` in its place)."""
@@ -176,7 +185,8 @@ class ApplyCSGO(ArtNVGNode):
         if control_model is None or not hasattr(control_model, "input_hint_block"):
             raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
                                  "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
-        unet_layers = _attn2_layers(diffusion_unet(node, model))
+        unet = diffusion_unet(node, model)
+        unet_layers = _attn2_layers(unet)
         routes = UNET_ROUTES if content_routing == "paper" else {**UNET_ROUTES, "input": None}
         if content_routing == "paper" and f"{released_key_prefix(0)}.to_k_ip.weight" not in csgo.unet_branches:
             raise NodeInputError(f"{node}: input 'content_routing': '{csgo.path.name}' holds no content entries for "
@@ -199,6 +209,9 @@ class ApplyCSGO(ArtNVGNode):
             patch = ImageTokenPatch(to_k_ip, to_v_ip, routes[layer.block], state)
             patched.set_model_attn2_replace(patch, layer.block, layer.number, layer.transformer)
         patched.model_options["transformer_options"][CSGO_STATE] = state
+        if csgo.conv_in is not None:  # the file's UNet conv_in replaces the checkpoint's, as CSGO's loader does
+            patched.add_patches({f"diffusion_model.input_blocks.0.0.{key}": ("set", (weight,))
+                                 for key, weight in _conv_in(node, csgo, unet).items()})
         control_patches = {f"{layer.path}.attn2": ImageTokenPatch(*weights, "style", state)
                            for layer, weights in control_weights.items()}
         return patched, patch_controlnet(control_net, control_patches)

@@ -11,7 +11,7 @@ from .comfy_bridge import output_directory, progress_text
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
-from .node_types import SCENE
+from .node_types import CAMERAS, SCENE
 from .prompt_checks import HIDDEN, check_result
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_type
 
@@ -39,9 +39,12 @@ class LoadGaussianScene(ArtNVGNode):
         "path": SCENE_FILE.path_input,
         "drop_invalid": ("BOOLEAN", {"default": False, "tooltip": (
             "Drop Gaussians with non-finite values or zero quaternions instead of failing.")}),
-        "spz_axes": (list(SPZ_AXES), {"default": "rub", "tooltip": (
-            "Axes of a .spz file that does not name its own. rub: the SPZ format's rule (Niantic's tools). "
-            "ply: the PLY's axes, as PlayCanvas splat-transform and SuperSplat write .spz (upside down with rub).")}),
+        "spz_axes": (list(SPZ_AXES), {"default": "auto", "tooltip": (
+            "Axes of a .spz file that names none of its own. auto: those that put the scene in front of the "
+            "connected cameras, else ply. ply: the PLY's (y down), as splat-transform, SuperSplat, spz-js and "
+            "Niantic's ply-to-spz write them. rub: the SPZ description's (y up).")}),
+        "cameras": (CAMERAS, {"tooltip": (
+            "Optional: the capture's cameras; with spz_axes auto they decide the axes of a .spz that names none.")}),
     }
 
     HIDDEN = HIDDEN
@@ -57,13 +60,13 @@ class LoadGaussianScene(ArtNVGNode):
         return check_result(files)
 
     @classmethod
-    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="rub", files=None):
+    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, files=None):
         return SCENE_FILE.signature(scene_file, path)
 
-    def load(self, scene_file, path="", drop_invalid=False, spz_axes="rub", files=None):
+    def load(self, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, files=None):
         file, input_name = SCENE_FILE.readable(self.DISPLAY_NAME, scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
-            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes),)
+            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras),)
 
 
 def _next_free_path(filename_prefix: str, suffix: str) -> Path:

@@ -330,21 +330,22 @@ def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_
     assert result.stdout.split("\n")[0] == "2 []" and "cannot write scene file type '.txt'" in result.stderr
 
 
-def test_spz_axes_option_reads_and_writes_spz_in_the_plys_axes(tmp_path, capsys):
-    """render --spz-axes ply renders a .spz written in the PLY's axes (as splat-transform writes) as the
-    scene itself; stylize --spz-axes ply writes its .spz so."""
+def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_plys_axes(tmp_path, capsys):
+    """render of a .spz holding RUB with no record renders as the scene itself by default (its --cameras
+    decide), upside down with --spz-axes ply; stylize writes its .spz in the PLY's axes by default."""
     from artnvg_core.formats import save_scene
 
     demo, scene = DemoInputs(), _small_scene(tmp_path)
-    save_scene(load_scene(scene), tmp_path / "ply_axes.spz", spz_axes="ply")
+    save_scene(load_scene(scene), tmp_path / "rub.spz", spz_axes="rub")
     renders = {}
-    for name, extra in [("spz", ["--spz-axes", "ply"]), ("ply", [])]:
-        source = tmp_path / ("ply_axes.spz" if name == "spz" else "scene.ply")
-        assert main(["render", str(source), "--cameras", str(demo.cameras), "--out", str(tmp_path / name),
+    for name, source, extra in [("auto", "rub.spz", []), ("ply_axes", "rub.spz", ["--spz-axes", "ply"]),
+                                ("ply", "scene.ply", [])]:
+        assert main(["render", str(tmp_path / source), "--cameras", str(demo.cameras), "--out", str(tmp_path / name),
                      "--views", "0", "--scale", "0.1", "--device", "cpu", *extra]) == 0
         renders[name] = load_image(next((tmp_path / name).glob("*.png")))
-    assert (renders["spz"] - renders["ply"]).abs().mean() < 0.01
-    assert _stylize(scene, demo.style, tmp_path / "out.spz", "--spz-axes", "ply") == 0
+    assert (renders["auto"] - renders["ply"]).abs().mean() < 0.01
+    assert (renders["ply_axes"] - renders["ply"]).abs().mean() > 0.05
+    assert _stylize(scene, demo.style, tmp_path / "out.spz") == 0
     kept = load_scene(tmp_path / "out.spz", spz_axes="ply").means
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
 

@@ -13,7 +13,7 @@ from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.grouping import group_views
 from artnvg_core.key_views import select_key_views
 from artnvg_core.raster import render
-from artnvg_core.formats import load_scene, read_ply
+from artnvg_core.formats import load_scene, read_ply, save_scene
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError
@@ -206,6 +206,21 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
     for prefix in ("../escape", ""):
         with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'filename_prefix'"):
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
+
+
+def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear):
+    """A .spz in RUB with no record: read upright with the capture's cameras connected (spz_axes auto), in
+    the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way."""
+    save_scene(small_bear, comfy_dirs / "input" / "rub.spz", spz_axes="rub")
+    (with_cameras,) = call(LoadGaussianScene, scene_file="rub.spz", cameras=bear["cameras"])
+    (alone,) = call(LoadGaussianScene, scene_file="rub.spz")
+    assert (with_cameras.means - small_bear.means).abs().max() < 1e-3
+    assert torch.equal(alone.means, with_cameras.means * torch.tensor([1.0, -1, -1]))
+    saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="ours", format="spz")
+    name = saved["ui"]["scenes"][0]["filename"]
+    for cameras in (None, bear["cameras"]):
+        (ours,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / name), cameras=cameras)
+        assert (ours.means - small_bear.means).abs().max() < 1e-3
 
 
 def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_dirs, small_bear):

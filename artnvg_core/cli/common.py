@@ -118,8 +118,9 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
-                       spz_axes: str = "rub") -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on),
+                       spz_axes: str = "auto", cameras: CameraSet | None = None) -> GaussianScene:
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``
+    passed on),
     printing the file size first and the count and time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
@@ -130,7 +131,7 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
     start = time.perf_counter()
     try:
-        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes).to(device)
+        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise
@@ -185,10 +186,11 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
                         "warning) instead of refusing the file")
-    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="rub",
-                        help=f"axes of a .spz scene{written} that does not name its own: rub (default), the SPZ "
-                        "format's rule, as Niantic's tools write; ply: the PLY's axes, as PlayCanvas splat-transform "
-                        "and SuperSplat write .spz (such files load upside down with rub)")
+    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="auto",
+                        help=f"axes of a .spz scene{written} that names none of its own: ply, the PLY's (x right, "
+                        "y down, z forward), as splat-transform, SuperSplat, spz-js and Niantic's ply-to-spz write "
+                        "them; rub (x right, y up, z back), the SPZ description's; auto (default): read in the one "
+                        "that puts the scene in front of --cameras when given, else ply; written in ply")
 
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:

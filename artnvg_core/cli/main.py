@@ -45,7 +45,8 @@ def cmd_render(args: argparse.Namespace) -> None:
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
-    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
+                               cameras=cameras)
     if cameras is None:
         cameras = chosen(orbit_from_args(args, scene))
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
