@@ -28,7 +28,7 @@ from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
-from .raster import render
+from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
@@ -62,9 +62,8 @@ def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: Cam
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    with torch.no_grad():
-        before = render(original, subset, backend=backend).rgb
-        after = render(stylized, subset, backend=backend).rgb
+    before = render_views(original, subset, backend=backend).rgb
+    after = render_views(stylized, subset, backend=backend).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -76,10 +75,13 @@ def stylize_nnfm(
     *,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> GaussianScene:
     """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views (ARF's colour transfer,
-    then NNFM + content; ``config.color_transfer`` switches the colour transfer)."""
-    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
+    then NNFM + content; ``config.color_transfer`` switches the colour transfer); with a ``selection``
+    ([N] bool), of those Gaussians alone (:mod:`artnvg_core.finetune.loop`)."""
+    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop,
+                    selection=selection)
 
 
 def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
@@ -146,6 +148,7 @@ def stylize_diffusion(
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
@@ -186,6 +189,9 @@ def stylize_diffusion(
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
             :class:`~artnvg_core.progress.Cancelled` before anything is returned.
+        selection (`torch.Tensor` or None, defaults to None): [N] bool: finetune only these Gaussians, the
+            loss weighted to the pixels they cover (:mod:`artnvg_core.finetune.loop`); the views are
+            stylized whole.
 
     Returns:
         The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
@@ -216,8 +222,7 @@ def stylize_diffusion(
     with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
         loading = None if spread else background.submit(load, device, progress=loading_progress,
                                                         should_stop=should_stop)
-        with torch.no_grad():
-            content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+        content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
         models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
@@ -233,7 +238,8 @@ def stylize_diffusion(
         del models
         if compile_blocks:
             save_compile_cache(device)
-    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
+    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress,
+                      should_stop=should_stop, selection=selection)
     return result, views
 
 

@@ -8,13 +8,14 @@ and names the input and what it expected before any sampling starts. The patches
 from __future__ import annotations
 
 import functools
+import logging
 
 import torch
 
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS, CSGOProjections, released_key_prefix
 from artnvg_core.diffusion.csgo_weights import CSGOFile, read_csgo
 from artnvg_core.diffusion.settings import NV_LEVELS, SamplerSettings
-from artnvg_core.statedict import state_dict_mismatch
+from artnvg_core.statedict import listed_keys, state_dict_mismatch
 
 from .comfy_bridge import comfy_module, model_file_path, model_files, model_folder_paths
 from .comfy_patches import (
@@ -36,6 +37,7 @@ IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter/blob/main/sdxl_model
                      "(CLIP-ViT-bigG-14-laion2B-39B-b160k)")
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
+_log = logging.getLogger("artnvg")
 
 
 def diffusion_unet(node: str, model) -> torch.nn.Module:
@@ -124,7 +126,20 @@ def _branch_weights(node: str, csgo: CSGOFile, group: dict, layers: list, routes
     mismatch = state_dict_mismatch(expected, {k: v for k, v in group.items() if k in expected})
     if mismatch:
         raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}' does not fit {what}: {mismatch}")
+    others = [key for key in group if key not in expected and ".to_k_ip." not in key and ".to_v_ip." not in key]
+    if by_path and others:  # CSGO's loader would load them into the ControlNet; the ComfyUI path does not
+        _log.warning("%s: '%s' holds %d other ControlNet weights keyed by module path, not applied here %s", node,
+                     csgo.path.name, len(others), listed_keys(others))
     return {layer: tuple(group[key] for key in keys) for layer, keys in chosen.items()}
+
+
+def _conv_in(node: str, csgo: CSGOFile, unet: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The file's ``conv_in_unet_sd`` group, checked against the UNet's first convolution."""
+    mismatch = state_dict_mismatch(unet.input_blocks[0][0].state_dict(), csgo.conv_in)
+    if mismatch:
+        raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}', group 'conv_in_unet_sd', does not fit this "
+                             f"MODEL's conv_in: {mismatch}")
+    return csgo.conv_in
 
 
 def _attn2_layers(module: torch.nn.Module) -> list:
@@ -176,7 +191,8 @@ class ApplyCSGO(ArtNVGNode):
         if control_model is None or not hasattr(control_model, "input_hint_block"):
             raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
                                  "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
-        unet_layers = _attn2_layers(diffusion_unet(node, model))
+        unet = diffusion_unet(node, model)
+        unet_layers = _attn2_layers(unet)
         routes = UNET_ROUTES if content_routing == "paper" else {**UNET_ROUTES, "input": None}
         if content_routing == "paper" and f"{released_key_prefix(0)}.to_k_ip.weight" not in csgo.unet_branches:
             raise NodeInputError(f"{node}: input 'content_routing': '{csgo.path.name}' holds no content entries for "
@@ -199,6 +215,9 @@ class ApplyCSGO(ArtNVGNode):
             patch = ImageTokenPatch(to_k_ip, to_v_ip, routes[layer.block], state)
             patched.set_model_attn2_replace(patch, layer.block, layer.number, layer.transformer)
         patched.model_options["transformer_options"][CSGO_STATE] = state
+        if csgo.conv_in is not None:  # the file's UNet conv_in replaces the checkpoint's, as CSGO's loader does
+            patched.add_patches({f"diffusion_model.input_blocks.0.0.{key}": ("set", (weight,))
+                                 for key, weight in _conv_in(node, csgo, unet).items()})
         control_patches = {f"{layer.path}.attn2": ImageTokenPatch(*weights, "style", state)
                            for layer, weights in control_weights.items()}
         return patched, patch_controlnet(control_net, control_patches)

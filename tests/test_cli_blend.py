@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from artnvg_core.cameras import load_cameras
 from artnvg_core.cli.main import main
 from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.scene import SH_C0, GaussianScene
@@ -67,24 +66,6 @@ def test_the_blend_is_written_in_every_format_with_the_sh_it_holds(tmp_path, suf
     assert len(set(nearest.tolist())) == len(reference)
     colour = lambda sh: (sh[:, 0] * SH_C0 + 0.5).clamp(0, 1)  # noqa: E731
     np.testing.assert_allclose(colour(result.sh).numpy(), colour(reference.sh[nearest]).numpy(), rtol=0, atol=tolerance)
-
-
-def test_region_masks_select_what_the_painted_pixels_see(tmp_path, capsys):
-    from artnvg_core.fileio import save_png
-
-    _pair(tmp_path)
-    cameras = load_cameras(DemoInputs().cameras)
-    mask = torch.zeros(64, 64, 3)
-    mask[:, :32] = 1  # the left half of view 0 painted, at 1/8 of its size
-    save_png(mask, tmp_path / "mask.png")
-    out = tmp_path / "blend.ply"
-    assert main(["blend", str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "1",
-                 "--cameras", str(DemoInputs().cameras), "--region-mask", f"{cameras.names[0]}:{tmp_path / 'mask.png'}",
-                 "--out", str(out)]) == 0
-    assert "Gaussians selected" in capsys.readouterr().out
-    original, result = load_scene(tmp_path / "original.ply"), load_scene(out)
-    changed = (result.sh != original.sh).flatten(1).any(1)
-    assert 0 < changed.sum() < len(original)
 
 
 @pytest.mark.parametrize("extra, message", [

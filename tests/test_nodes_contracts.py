@@ -35,7 +35,7 @@ PUBLIC_INPUTS = {
                           "control_scale", "resolution", "size_rule"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
-                                "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search"],
+                                "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search", "selection"],
     "ArtNVGSelectGaussians": ["scene", "mode", "bounds", "cameras", "mask", "views"],
     "ArtNVGBlendStylization": ["original", "stylized", "strength", "selection", "cameras", "view", "preview_strengths"],
     "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],

@@ -21,9 +21,9 @@ def add_region_arguments(parser: argparse.ArgumentParser, what: str) -> None:
     group.add_argument("--region", help=f"{REGION_SYNTAX}: {what} only the Gaussians whose centre lies inside, in "
                        "the scene's units and axes")
     group.add_argument("--region-mask", action="append", default=[], metavar="VIEW:MASK.png",
-                       help=f"{what} only the Gaussians that a mask's white pixels see; VIEW: the --cameras view "
-                       "(index in file order or image name) the mask was painted on, e.g. on a `render` output "
-                       "(resized to the view); repeat for several views")
+                       help=f"{what} only the Gaussians that a mask's white pixels see; VIEW: the view (index in "
+                       "file order, or image name) the mask was painted on, e.g. on a `render` output of the same "
+                       "cameras (resized to the view); repeat for several views")
 
 
 def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
@@ -39,15 +39,16 @@ def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
                      f"name of the cameras (e.g. {cameras.names[0]!r})")
 
 
-def check_region_arguments(args: argparse.Namespace) -> None:
-    """Checks that need no file: the region's syntax, one kind of region, masks only with ``--cameras``."""
+def check_region_arguments(args: argparse.Namespace, cameras_required: bool = True) -> None:
+    """Checks that need no file: the region's syntax, one kind of region, masks only with ``--cameras`` where
+    ``cameras_required`` (stylize's views orbiting the scene can carry masks too)."""
     from ..selection import parse_region
 
     if args.region and args.region_mask:
         raise ValueError("give --region or --region-mask, not both")
     if args.region:
         parse_region(args.region)
-    if args.region_mask and not args.cameras:
+    if args.region_mask and cameras_required and not args.cameras:
         raise ValueError("--region-mask needs --cameras: the views its masks were painted on")
 
 

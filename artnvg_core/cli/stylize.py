@@ -37,6 +37,7 @@ from .common import (
     prepare_rasterizer,
     unit_interval,
 )
+from .region import add_region_arguments, check_region_arguments, selection_from_args
 
 SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
 
@@ -68,6 +69,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
     check_style_image(args.style)
+    check_region_arguments(args, cameras_required=False)
     if args.lora and (diffusion_free or args.stylizer == "nnfm"):
         raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
                          f"{args.preset} with --stylizer {args.stylizer})")
@@ -100,6 +102,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     cameras = capture_cameras if capture_cameras is not None else orbit_from_args(args, scene)
     cameras = cameras.scaled(scale)
     style = load_image(args.style)
+    selection = selection_from_args(args, scene, cameras)
 
     from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
@@ -132,7 +135,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
                                           compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"),
-                                          progress=ProgressBar("finetune"), should_stop=args.should_stop)
+                                          progress=ProgressBar("finetune"), should_stop=args.should_stop,
+                                          selection=selection)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
@@ -140,7 +144,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
-                              should_stop=args.should_stop)
+                              should_stop=args.should_stop, selection=selection)
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
@@ -204,6 +208,7 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
+    add_region_arguments(p, "stylize")
     add_scene_file_options(p, " (and of --out)")
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")

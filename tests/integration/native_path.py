@@ -7,7 +7,9 @@ prompt embeddings, camera centres) and ``cases.json``. ComfyUI's checkpoint dete
 models only, so the script builds ComfyUI's own model objects (``comfy.supported_models.SDXL``, the
 ControlNet loader, ``comfy.sd.VAE``, ``comfy.clip_vision.ClipVisionModel``) from those weights with
 ComfyUI's own key converters, then runs the pack's nodes on them: NV-Attention Patch Model, Apply CSGO
-and Sample Group, which samples through ``comfy.sample``. Writes ``native.safetensors`` (one IMAGE per case).
+and Sample Group, which samples through ``comfy.sample``. Writes ``native.safetensors`` (one IMAGE per case)
+and ``checks.json``: the errors Apply CSGO gives for inputs of the wrong kind, and what ComfyUI's
+progress bar saw and raised when a Sample Group run is cancelled.
 """
 
 from __future__ import annotations
@@ -85,14 +87,15 @@ def _vae(folder: Path, configs: dict):
                         config={"params": {"ddconfig": ddconfig, "embed_dim": config["latent_channels"]}})
 
 
-def _clip_vision(folder: Path, configs: dict):
+def _clip_vision(folder: Path, configs: dict, load: bool = True):
     import comfy.clip_vision
 
-    config_file = folder / "clip_vision_config.json"
+    config_file = folder / f"clip_vision_{configs['image_encoder']['hidden_size']}.json"
     config_file.write_text(json.dumps(configs["image_encoder"]))
     clip_vision = comfy.clip_vision.ClipVisionModel(str(config_file))
-    missing, unexpected = clip_vision.load_sd(load_file(folder / "image_encoder.safetensors"))
-    assert not missing and not unexpected, (missing, unexpected)
+    if load:
+        missing, unexpected = clip_vision.load_sd(load_file(folder / "image_encoder.safetensors"))
+        assert not missing and not unexpected, (missing, unexpected)
     return clip_vision
 
 
@@ -105,6 +108,56 @@ def _pack():
     spec.loader.exec_module(module)
     return importlib.import_module("artnvg_pack.nodes.model_patch_nodes"), importlib.import_module(
         "artnvg_pack.nodes.diffusion_nodes")
+
+
+def _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, style, folder: Path, configs: dict) -> dict:
+    """Apply CSGO's message for each kind of wrong input: a non-SDXL model (SD 1.5's class over a UNet of
+    the same tiny size), something else as the ControlNet, a CLIP Vision model of another width, a CSGO
+    file whose weights do not fit the MODEL."""
+    import dataclasses
+
+    import comfy.model_patcher
+    import comfy.supported_models
+
+    sd15_config = dict(_comfy_unet_config(configs["unet"]), adm_in_channels=None, num_classes=None)
+    sd15 = comfy.supported_models.SD15(sd15_config)
+    sd15.unet_config.update(sd15_config)
+    sd15.set_inference_dtype(torch.float32, None)
+    other_model = comfy.model_patcher.ModelPatcher(sd15.get_model({}, ""), load_device="cpu", offload_device="cpu")
+    wide = dict(configs["image_encoder"], hidden_size=24, intermediate_size=48)
+    other_clip = _clip_vision(folder, {"image_encoder": wide}, load=False)
+    mismatched = dataclasses.replace(csgo, unet_branches={k: v[:, :-1] for k, v in csgo.unet_branches.items()})
+    wrong = {"model": (other_model, control_net, csgo, clip_vision), "control_net": (model, vae, csgo, clip_vision),
+             "clip_vision": (model, control_net, csgo, other_clip), "csgo": (model, control_net, mismatched, clip_vision)}
+    messages = {}
+    for name, (model_, control_, csgo_, clip_) in wrong.items():
+        try:
+            patch_nodes.ApplyCSGO().apply(model_, control_, csgo_, clip_, style, 0.6, 1.0, "released")
+            messages[name] = None
+        except ValueError as error:
+            messages[name] = str(error)
+    return messages
+
+
+def _cancelled(sample) -> dict:
+    """Sample Group under ComfyUI's progress hook: the steps it reports, then the exception a pressed Cancel
+    (ComfyUI's interrupt flag) raises at the next step."""
+    import comfy.model_management
+    import comfy.utils
+
+    reported = []
+    comfy.utils.set_progress_bar_global_hook(lambda value, total, preview, **_: reported.append([value, total]))
+    sample()
+    comfy.model_management.interrupt_current_processing(True)
+    try:
+        sample()
+        raised = None
+    except Exception as error:  # ComfyUI's InterruptProcessingException
+        raised = type(error).__name__
+    finally:
+        comfy.model_management.interrupt_current_processing(False)
+        comfy.utils.set_progress_bar_global_hook(None)
+    return {"progress": reported, "cancel": raised}
 
 
 def main(checkout: Path, folder: Path) -> None:
@@ -121,7 +174,8 @@ def main(checkout: Path, folder: Path) -> None:
     inputs = load_file(folder / "inputs.safetensors")
     model, unet_config = _model(folder, configs)
     control_net, vae, clip_vision = _controlnet(folder, unet_config), _vae(folder, configs), _clip_vision(folder, configs)
-    csgo = read_csgo(folder / "csgo.bin", dim_head=configs["resampler_head_width"])
+    head_width = configs["resampler_head_width"]
+    csgo = read_csgo(folder / "csgo.bin", dim_head=head_width)
     views = inputs["content_views"]
     groups = ViewGroups((ViewGroup(tuple(range(len(views)))),), len(views),
                         centers=tuple(map(tuple, inputs["centers"].tolist())))
@@ -131,13 +185,20 @@ def main(checkout: Path, folder: Path) -> None:
     with torch.inference_mode():
         for name, case in cases.items():
             patched, control = patch_nodes.ApplyCSGO().apply(
-                model, control_net, csgo, clip_vision, inputs["style_image"], case["style_scale"],
+                model, control_net, read_csgo(folder / case.get("csgo_file", "csgo.bin"), dim_head=head_width),
+                clip_vision, inputs["style_image"], case["style_scale"],
                 case["content_scale"], case["content_routing"])
             (patched,) = patch_nodes.NVAttentionPatch().patch(patched, case["neighbour_views"])
             (outputs[name],) = diffusion_nodes.SampleGroup().sample(
                 patched, positive, negative, vae, control, views, groups, -1, case["seed"], case["steps"], case["cfg"],
                 "ddim", "simple", 1.0, case["control_scale"], case["resolution"], "long_side")
+        checks = {"errors": _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"],
+                                    folder, configs),
+                  **_cancelled(lambda: diffusion_nodes.SampleGroup().sample(
+                      model, positive, negative, vae, control_net, views, groups, 0, 0, 2, 1.0, "euler", "simple", 1.0,
+                      1.0, 64, "long_side"))}
     save_file({name: image.contiguous() for name, image in outputs.items()}, str(folder / "native.safetensors"))
+    (folder / "checks.json").write_text(json.dumps(checks))
 
 
 if __name__ == "__main__":

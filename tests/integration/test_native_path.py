@@ -13,6 +13,7 @@ the same prompt embeddings. Content views are 224 px (the tiny image encoder's s
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -48,12 +49,16 @@ CASES = {
     "per_view_released": dict(COMMON, neighbour_views=False, content_routing="released"),
     "nv_paper": dict(COMMON, neighbour_views=True, content_routing="paper"),
     "per_view_paper": dict(COMMON, neighbour_views=False, content_routing="paper"),
+    # the same weights, the ControlNet's keyed by module path (the other layout CSGO's loader reads)
+    "nv_released_module_path_keys": dict(COMMON, neighbour_views=True, content_routing="released",
+                                         csgo_file="csgo_by_path.bin"),
 }
 
 
 def _models(tmp_path: Path) -> DiffusionModels:
     """Tiny SDXL-architecture models that ComfyUI's modules can also hold (widths multiples of 32, SDXL's
-    256-wide size embedding, the standard ControlNet hint encoder), with CSGO loaded."""
+    256-wide size embedding, the standard ControlNet hint encoder), with CSGO loaded (its file with the
+    optional UNet conv_in); the files hold the weights before CSGO's."""
     torch.manual_seed(0)
     unet = UNet2DConditionModel(**dict(
         SDXL_UNET_CONFIG, sample_size=8, block_out_channels=(32, 64, 64), transformer_layers_per_block=(1, 1, 2),
@@ -65,7 +70,11 @@ def _models(tmp_path: Path) -> DiffusionModels:
     scheduler = dict(SDXL_SCHEDULER_CONFIG, timestep_spacing="trailing", set_alpha_to_one=True)
     base = SDXLBase(unet, vae, text_encoder, text_encoder_2, tiny_tokenizer(), tiny_tokenizer(pad_token="!"), scheduler)
     controlnet = tiny_controlnet(unet, hint_channels=(16, 32, 96, 256))
-    path = write_csgo_file(tmp_path / "csgo.bin", csgo_state(unet, controlnet))
+    generator = torch.Generator().manual_seed(5)
+    conv_in = {name: 0.2 * torch.randn(value.shape, generator=generator) for name, value in unet.conv_in.state_dict().items()}
+    path = write_csgo_file(tmp_path / "csgo.bin", {**csgo_state(unet, controlnet), "conv_in_unet_sd": conv_in})
+    write_csgo_file(tmp_path / "csgo_by_path.bin",
+                    {**csgo_state(unet, controlnet, controlnet_by_index=False), "conv_in_unet_sd": conv_in})
     weights = {"unet": unet.state_dict(), "controlnet": controlnet.state_dict(), "vae": vae.state_dict()}
     encoder = tiny_image_encoder()
     weights["image_encoder"] = encoder.state_dict()
@@ -109,12 +118,12 @@ def outputs(tmp_path_factory, comfy_checkout):
     reference = {name: _reference(models, inputs, case) for name, case in CASES.items()}
     run = subprocess.run([python, str(SCRIPT), str(checkout), str(folder)], capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, f"native_path.py failed:\n{run.stdout[-3000:]}\n{run.stderr[-6000:]}"
-    return reference, load_file(folder / "native.safetensors")
+    return reference, load_file(folder / "native.safetensors"), json.loads((folder / "checks.json").read_text())
 
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_native_path_equals_the_diffusers_path(outputs, case):
-    reference, native = outputs
+    reference, native, _ = outputs
     assert native[case].shape == reference[case].shape
     torch.testing.assert_close(native[case], reference[case], rtol=0, atol=TOLERANCE)
 
@@ -122,7 +131,23 @@ def test_native_path_equals_the_diffusers_path(outputs, case):
 def test_each_patch_changes_the_result_well_beyond_the_tolerance(outputs):
     """The comparison can see the patches: NV on/off and the content routing each move the images by far
     more than the tolerance, so a native path that lost one could not pass."""
-    _, native = outputs
+    _, native, _ = outputs
     for first, second in (("nv_released", "per_view_released"), ("nv_paper", "nv_released"),
                           ("per_view_paper", "per_view_released")):
         assert (native[first] - native[second]).abs().max() > 50 * TOLERANCE, (first, second)
+
+
+def test_inputs_of_the_wrong_kind_are_named_before_sampling(outputs):
+    errors = outputs[2]["errors"]
+    assert errors["model"].startswith("Apply CSGO: input 'model': a BaseModel checkpoint; CSGO needs SDXL")
+    assert errors["control_net"].startswith("Apply CSGO: input 'control_net': a VAE; expected an SDXL ControlNet")
+    assert errors["clip_vision"].startswith("Apply CSGO: input 'clip_vision': its features are 24 wide, CSGO's "
+                                            "resamplers read 16: use ViT-bigG/14")
+    assert errors["csgo"].startswith("Apply CSGO: input 'csgo': 'csgo.bin' does not fit this MODEL's cross-attention")
+    assert re.search(r"wrong shapes \['\d+\.to_k_ip\.weight \[64, 15\] != \[64, 16\]'", errors["csgo"])
+
+
+def test_sample_group_moves_comfyuis_progress_bar_and_stops_on_cancel(outputs):
+    checks = outputs[2]
+    assert checks["progress"][-1] == [2, 2] and [value for value, _ in checks["progress"]] == [1, 2]
+    assert checks["cancel"] == "InterruptProcessingException"
