@@ -79,6 +79,7 @@ def sweep_temporaries(folder: Path) -> None:
 
 
 def _process_runs(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (one that cannot be asked about counts as running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -90,11 +91,11 @@ def _process_runs(pid: int) -> bool:
 
 def _name_limit(folder: Path) -> int:
     """Bytes a file name may have in ``folder`` (the nearest existing folder's file system; 255 when unknown)."""
-    while folder != folder.parent:
+    for candidate in (folder, *folder.parents):
         try:
-            return os.pathconf(folder, "PC_NAME_MAX")
+            return os.pathconf(candidate, "PC_NAME_MAX")
         except (OSError, ValueError):  # not there yet (or its own name too long): ask its parent
-            folder = folder.parent
+            continue
     return 255
 
 
