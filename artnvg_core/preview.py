@@ -49,6 +49,17 @@ def comparison_strip(original: torch.Tensor, stylized: torch.Tensor, style: torc
     return canvas
 
 
+def side_by_side(images: torch.Tensor) -> torch.Tensor:
+    """``images [K, H, W, 3]`` in one row, left to right, :data:`GAP` white pixels apart: [H, K (W + GAP) - GAP, 3]."""
+    if images.ndim != 4 or images.shape[0] < 1:
+        raise ValueError(f"side_by_side: expected images [K, H, W, 3] with K >= 1, got {tuple(images.shape)}")
+    count, height, width = images.shape[:3]
+    canvas = torch.ones(height, count * (width + GAP) - GAP, 3)
+    for k in range(count):
+        canvas[:, k * (width + GAP):k * (width + GAP) + width] = images[k].float().cpu().clamp(0, 1)
+    return canvas
+
+
 def save_strip(original: torch.Tensor, stylized: torch.Tensor, style: torch.Tensor, path: str | os.PathLike) -> None:
     """Write :func:`comparison_strip` as a PNG."""
     save_png(comparison_strip(original, stylized, style), path)

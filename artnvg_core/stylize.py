@@ -10,21 +10,25 @@ Two stylizers:
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import torch
 
 from .cameras import CameraSet
-from .diffusion.lora import LoRA, LoRAError
-from .diffusion.model_files import ModelFiles
+from .diffusion.loader import indexed_device, load_models_for
+from .diffusion.lora import LoRA
+from .diffusion.model_files import ModelFiles, missing_model
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
-from .progress import Cancelled, ProgressFn, StopFn
-from .raster import render
+from .progress import ProgressFn, StopFn
+from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
@@ -58,9 +62,8 @@ def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: Cam
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    with torch.no_grad():
-        before = render(original, subset, backend=backend).rgb
-        after = render(stylized, subset, backend=backend).rgb
+    before = render_views(original, subset, backend=backend).rgb
+    after = render_views(stylized, subset, backend=backend).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -72,25 +75,13 @@ def stylize_nnfm(
     *,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> GaussianScene:
     """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views (ARF's colour transfer,
-    then NNFM + content; ``config.color_transfer`` switches the colour transfer)."""
-    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop)
-
-
-class DiffusionModelsUnavailable(ValueError):
-    """The diffusion models could not be loaded (the message says why)."""
-
-
-def find_diffusion_models(files: ModelFiles) -> str | None:
-    """None when every file the diffusion models' load reads is there, else the first missing one's message."""
-    from .diffusion.model_files import MissingModelError, check_model_files
-
-    try:
-        check_model_files(files)
-    except MissingModelError as error:
-        return str(error)
-    return None
+    then NNFM + content; ``config.color_transfer`` switches the colour transfer); with a ``selection``
+    ([N] bool), of those Gaussians alone (:mod:`artnvg_core.finetune.loop`)."""
+    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop,
+                    selection=selection)
 
 
 def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
@@ -102,7 +93,7 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
         raise ValueError(f"stylizer: expected one of {STYLIZERS}, got {requested!r}")
     if requested == "nnfm":
         return "nnfm", "requested"
-    missing = find_diffusion_models(files)
+    missing = missing_model(files)
     if requested == "diffusion":
         if missing:
             raise ValueError(f"--stylizer diffusion: {missing}")
@@ -112,62 +103,29 @@ def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:
     return "diffusion", "auto: all diffusion model files found"
 
 
-def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.device, compile_blocks: bool = False,
-                    *, loras: tuple[LoRA, ...] = (), dtype: torch.dtype | None = None,
-                    sdxl_config_dir: str | Path | None = None, on_cpu: bool = False, progress: ProgressFn | None = None, should_stop: StopFn | None = None):
-    """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
-    workers and ComfyUI's Load ArtNVG Models.
+def _models_loader(files: ModelFiles, preset: str, compile_blocks: bool, loras: Sequence[LoRA]):
+    """:func:`load_models_for` of ``preset``'s memory mode and these options; call it with the device."""
+    from .presets import get_preset
 
-    loras: fused into SDXL (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
-    dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
-    loaded on the CPU and placed by :func:`artnvg_core.diffusion.memory.enable_low_memory`; with
-    ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
-    :data:`artnvg_core.diffusion.speed.COMPILED_BLOCKS` (full memory only: with ``low_memory`` a
-    ValueError) and loads an earlier run's compile artifacts (:mod:`artnvg_core.diffusion.compile_cache`).
-    Loaded once per process: the same files (path, size and modification time), device and options return
-    the same models (:mod:`artnvg_core.diffusion.model_cache`). Any failure to load raises
-    :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each model)
-    raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
-    (:func:`~artnvg_core.diffusion.models.load_diffusion_models`). A module-level function, so a
-    ``functools.partial`` of it can be sent to worker processes."""
-    from .diffusion.model_cache import file_key, load_once
-
-    if compile_blocks and low_memory:
-        raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
-    device = torch.device(device)
-    dtype = dtype or (torch.float16 if device.type == "cuda" else torch.float32)
-    key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
-           tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
-           str(dtype), str(device), low_memory, compile_blocks, on_cpu)
-    return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
-                                            dtype, sdxl_config_dir, on_cpu, progress, should_stop))
+    return functools.partial(load_models_for, files, get_preset(preset).low_memory, compile_blocks=compile_blocks,
+                             loras=tuple(loras))
 
 
-def _load_models(files: ModelFiles, loras: tuple[LoRA, ...], low_memory: bool, device: torch.device,
-                 compile_blocks: bool, dtype: torch.dtype, sdxl_config_dir: str | Path | None, on_cpu: bool,
-                 progress: ProgressFn | None, should_stop: StopFn | None):
-    """:func:`load_models_for` without the once-per-process cache."""
-    from .diffusion.compile_cache import load_compile_cache
-    from .diffusion.memory import enable_low_memory
-    from .diffusion.models import load_diffusion_models
-    from .diffusion.speed import COMPILED_BLOCKS, apply_speedups
+def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: str = "paper",
+                    compile_blocks: bool = False, loras: Sequence[LoRA] = (), progress: ProgressFn | None = None
+                    ) -> None:
+    """Start loading, in a background thread, the models that :func:`stylize_diffusion` with these arguments
+    on one ``device`` loads, so that reading the files overlaps what comes before it (loading the scene).
+    stylize_diffusion's own load then waits for this one and gets its models (:func:`load_models_for`
+    loads once per process). A failure here is dropped: stylize_diffusion's load meets it again and
+    reports it."""
+    load, device = _models_loader(files, preset, compile_blocks, loras), indexed_device(device)  # this thread's
 
-    try:
-        models = load_diffusion_models(files, sdxl_config_dir=sdxl_config_dir, dtype=dtype, loras=loras,
-                                       device="cpu" if low_memory or on_cpu else device, progress=progress,
-                                       should_stop=should_stop)
-    except Cancelled:
-        raise
-    except LoRAError:  # the user's LoRA is wrong: no fallback to another stylizer
-        raise
-    except Exception as error:  # a loader can fail in many ways (missing or corrupt file, format, memory)
-        raise DiffusionModelsUnavailable(f"diffusion models could not be loaded: {error}") from error
-    if low_memory and not on_cpu:
-        enable_low_memory(models, device)
-    if compile_blocks:
-        apply_speedups(models, COMPILED_BLOCKS)
-        load_compile_cache(device)
-    return models
+    def quietly() -> None:
+        with contextlib.suppress(Exception):
+            load(device, progress=progress)
+
+    threading.Thread(target=quietly, name="prefetch models", daemon=True).start()
 
 
 def stylize_diffusion(
@@ -190,6 +148,7 @@ def stylize_diffusion(
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
@@ -230,6 +189,9 @@ def stylize_diffusion(
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
             :class:`~artnvg_core.progress.Cancelled` before anything is returned.
+        selection (`torch.Tensor` or None, defaults to None): [N] bool: finetune only these Gaussians, the
+            loss weighted to the pixels they cover (:mod:`artnvg_core.finetune.loop`); the views are
+            stylized whole.
 
     Returns:
         The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
@@ -255,13 +217,13 @@ def stylize_diffusion(
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
-    load = functools.partial(load_models_for, files, chosen.low_memory, compile_blocks=compile_blocks,
-                             loras=tuple(loras))
+    load = _models_loader(files, preset, compile_blocks, loras)
     device = explicit[0] if explicit else scene.device
-    # first: a model that cannot be loaded fails before any work
-    models = None if spread else load(device, progress=loading_progress, should_stop=should_stop)
-    with torch.no_grad():
-        content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+    with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
+        loading = None if spread else background.submit(load, device, progress=loading_progress,
+                                                        should_stop=should_stop)
+        content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
+        models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:
@@ -276,12 +238,13 @@ def stylize_diffusion(
         del models
         if compile_blocks:
             save_compile_cache(device)
-    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress, should_stop=should_stop)
+    result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress,
+                      should_stop=should_stop, selection=selection)
     return result, views
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "rub") -> Path:
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto") -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
     contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
     Returns the sheet's path."""

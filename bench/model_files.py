@@ -130,3 +130,30 @@ def write_model_files(folder: Path, device: str | torch.device = "cpu") -> dict[
         config = CLIPVisionConfig(**transformers_config_kwargs(VIT_BIGG_IMAGE_ENCODER_CONFIG))
         _built(lambda: CLIPVisionModelWithProjection(config), device).save_pretrained(paths["image encoder"])
     return paths
+
+
+LORA_TARGETS = ("to_q", "to_k", "to_v", "to_out.0", "ff.net.0.proj", "ff.net.2", "proj_in", "proj_out")
+
+
+def write_random_lora(path: Path, rank: int = 64, seed: int = 0) -> Path:
+    """A random LoRA for SDXL's UNet of a few-step LoRA's shape (LCM-LoRA SDXL, SDXL-Lightning: rank 64 on
+    every attention projection, feed-forward and transformer in/out projection of the UNet), in
+    diffusers' layout (``unet.<module>.lora_A/lora_B.weight``), float16; written where missing. Its
+    values mean nothing: for timing only."""
+    from diffusers import UNet2DConditionModel
+    from safetensors.torch import save_file
+
+    if path.exists():
+        return path
+    with torch.device("meta"):
+        unet = UNet2DConditionModel(**SDXL_UNET_CONFIG)
+    generator = torch.Generator().manual_seed(seed)
+    state = {}
+    for name, module in unet.named_modules():
+        if isinstance(module, torch.nn.Linear) and name.endswith(LORA_TARGETS) and ".attentions." in name:
+            down = torch.randn(rank, module.in_features, generator=generator) / module.in_features ** 0.5
+            state[f"unet.{name}.lora_A.weight"] = down.half()
+            state[f"unet.{name}.lora_B.weight"] = (1e-3 * torch.randn(module.out_features, rank, generator=generator)).half()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_file(state, str(path))
+    return path

@@ -2,11 +2,11 @@
 
 * ``groups``: the bear's content views, rendered once, grouped as ``stylize`` groups them
   (``--views`` evenly spaced cameras, groups of 15), stylized at each ``--presets`` preset's sampler
-  settings by a :class:`GroupExecutor` of 1 worker, then of ``--gpus`` workers (default: every
+  settings by a :class:`GroupExecutor` of 1 worker, then of 2, 4 and ``--gpus`` workers (default: every
   visible GPU), each with random full-size models built from one seed. Wall time from every
   worker ready (models built) to the assembled result; the largest difference from the 1-GPU output.
 * ``batch``: ``--batch-scenes`` stylized whole (render, diffusion at ``--batch-preset``, finetune,
-  contact sheet, save) as ``batch`` jobs on 1 worker, then on ``--gpus`` workers, from random
+  contact sheet, save) as ``batch`` jobs on 1 worker, then on 2, 4 and ``--gpus`` workers, from random
   full-size model files written once to ``--models``. Wall time from start to the last job,
   including each worker's one model load; whether every output file equals the 1-GPU run's.
 
@@ -76,6 +76,11 @@ def busy_row(label: str, workers: int, wall: float, reference_wall: float, stats
     return f"| {label} | {workers} | {wall:.1f} | {reference_wall / wall:.2f}x | {busy} | {peak} | {equal} |"
 
 
+def worker_counts(available: int) -> list[int]:
+    """1 GPU, then 2, 4, ... and every one available."""
+    return sorted({count for count in (1, 2, 4, available) if count <= available})
+
+
 def groups_section(args, devices: list[str], rows: list[str]) -> None:
     images, groups = content_views(args.shared / "scenes" / "bear", args.views, args.size)
     print(f"bear: {len(images)} views at {images.shape[2]}x{images.shape[1]}, {len(groups)} groups of "
@@ -95,7 +100,7 @@ def groups_section(args, devices: list[str], rows: list[str]) -> None:
             if args.tiny:
                 settings = dataclasses.replace(settings, resolution=None)
             reference, reference_wall = None, None
-            for count in sorted({1, available.count}):
+            for count in worker_counts(available.count):
                 with GroupExecutor(load, Workers(available.kind, count)) as executor:
                     executor.describe()  # every worker has built its models
                     start = time.perf_counter()
@@ -171,7 +176,7 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
     files = write_random_model_files(args.models, args.tiny, args.seed)
     if args.tiny:
         from artnvg_core.diffusion.model_files import ModelFiles
-        from artnvg_core.stylize import load_models_for
+        from artnvg_core.diffusion.loader import load_models_for
 
         load_models_for(ModelFiles(**files), False, torch.device("cpu"))
         stylizer = {"stylizer": "nnfm", "scale": 0.125, "iters": 2}
@@ -187,7 +192,7 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
                         "style": str(style), "seed": args.seed + number, "out": f"OUT/{number}-{name}.ply", **stylizer})
     with ray_session(devices) as available:
         outputs, reference_wall = {}, None
-        for count in sorted({1, available.count}):
+        for count in worker_counts(available.count):
             jobs_path = work / f"jobs-{count}.json"
             jobs_path.write_text(json.dumps(entries).replace("OUT/", f"out-{count}/"))
             jobs = load_jobs(jobs_path, stylize_options())

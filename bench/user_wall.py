@@ -1,7 +1,8 @@
 """What the user waits for: whole ``stylize`` processes on full-size model files, cold and warm.
 
     cd bench && python user_wall.py --dir DIR --scene SCENE --cameras T.json --style S.jpg \
-        [--runs fast:file,fast:file,fast:folder,balanced:file] [--device cuda] [--json OUT.json]
+        [--runs fast:file,fast:file,fast:folder,balanced:file] [--device cuda] [--json OUT.json] \
+        [--keep-caches] [--lora --more "--steps 4 --cfg-until 0"]
 
 Writes the released model files with random weights into DIR where missing (``model_files.py``),
 then runs each ``PRESET:SDXL`` of ``--runs`` in order as a new process, as a user types it:
@@ -10,16 +11,20 @@ then runs each ``PRESET:SDXL`` of ``--runs`` in order as a new process, as a use
 the single ``sd_xl_base_1.0.safetensors``; ``folder``: the diffusers folder). ``--preset preview`` needs
 no model file. The first process finds every cache empty, as on a fresh install: Python's bytecode
 (``PYTHONPYCACHEPREFIX``), Triton's kernels, torch's compile cache and ArtNVG's, all in DIR/caches,
-emptied when the bench starts; the later ones find what the earlier ones left. The model files are
+emptied when the bench starts (``--keep-caches``: kept from an earlier invocation, the page cache too,
+so every process is warm); the later ones find what the earlier ones left. ``--lora`` gives every
+diffusion process a random LoRA of a few-step LoRA's shape (time only). The model files are
 read from the page cache after the first process (the bench asks the kernel to drop it first; whether
 it could is printed).
 
 Each process's wall time (launch to exit, seen from here) is split into parts by timers a small
 wrapper puts around the command's own calls before it runs the command (``artnvg_core`` is
-unchanged): start (Python and the command's imports), scene (loading the scene file), models
-imports (the diffusion stage's modules: diffusers, transformers), models (loading the model files),
-content (rendering the content views; a first run compiles the rasterizer's forward kernels there),
-sampling (the diffusion stage), finetune (a first run compiles the backward kernels there), save (scene
+unchanged): start (Python and the command's imports), scene (loading the scene file), imports (the
+diffusion stage's modules: diffusers, transformers; waited for where a background load imports them),
+models (loading the model files, in a background thread beside the scene and the content views: not
+part of the sum), content (rendering the content views; a first run compiles the rasterizer's forward
+kernels there), wait (the rest of the diffusion stage: waiting for the models, grouping), sampling
+(conditioning and the groups), finetune (a first run compiles the backward kernels there), save (scene
 file and contact sheet) and the rest (argument checks, choosing views, exit). A second table splits
 sampling, the GPU waited for at each end of a part: conditioning (text and style encoders), each group's
 sampling (its decoding included) and the decoding of all groups. Prints both tables; ``--json`` keeps
@@ -40,10 +45,11 @@ from pathlib import Path
 
 from common import print_table
 
-from model_files import write_model_files
+from model_files import write_model_files, write_random_lora
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("start", "scene", "imports", "models", "content", "sampling", "finetune", "save")
+PARTS = ("start", "scene", "imports", "models", "content", "wait", "sampling", "finetune", "save")
+OVERLAPPING = ("models",)  # read in the background beside the scene and the content views: not in the sum
 SAMPLING = ("conditioning", "group", "decoding")  # parts of sampling, the GPU waited for at both ends
 
 # Runs the command with timers around its calls; writes {part: seconds} to $USER_WALL_PARTS at exit.
@@ -74,8 +80,9 @@ def timed(module, name, part, split=False):
             active.pop()
             if split:
                 synchronize()
-            if counted:
-                parts[part] = parts.get(part, 0.0) + time.time() - start
+            if counted:  # the models: the longest load (a prefetch's; the run's own then waits for it)
+                elapsed = time.time() - start
+                parts[part] = max(parts.get(part, 0.0), elapsed) if part == "models" else parts.get(part, 0.0) + elapsed
                 if split:
                     parts.setdefault(part + " each", []).append(time.time() - start)
     setattr(module, name, wrapper)
@@ -98,7 +105,7 @@ def split_sampling(stylize):
 core.stylize_diffusion = split_sampling(core.stylize_diffusion)
 timed(core, "stylize_diffusion", "diffusion")
 timed(core, "load_models_for", "models")
-timed(core, "render", "content")
+timed(core, "render_views", "content")
 timed(core, "finetune", "finetune")
 timed(core, "save_result", "save")
 parts["start"] = time.time() - launched
@@ -128,8 +135,9 @@ def run_process(argv: list[str], env: dict, parts_path: Path, log: Path) -> dict
     wall = time.time() - launched
     parts = json.loads(parts_path.read_text()) if parts_path.exists() else {}
     if "diffusion" in parts:
-        parts["sampling"] = parts.pop("diffusion") - sum(parts.get(p, 0.0) for p in ("imports", "models", "content",
-                                                                                       "finetune"))
+        parts["sampling"] = parts.get("conditioning", 0.0) + sum(parts.get("group each", []))
+        parts["wait"] = parts.pop("diffusion") - sum(parts.get(p, 0.0) for p in ("imports", "content", "sampling",
+                                                                                   "finetune"))
     return {"wall": wall, "exit": code, **parts}
 
 
@@ -144,6 +152,11 @@ def main() -> None:
                         help="PRESET:SDXL (file or folder) per process, in order")
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--more", default="", help="more stylize options for every process, e.g. '--iters 20'")
+    parser.add_argument("--keep-caches", action="store_true",
+                        help="keep DIR's caches and the page cache from an earlier invocation: every process warm")
+    parser.add_argument("--lora", action="store_true",
+                        help="write a random few-step-sized LoRA (model_files.write_random_lora) and pass it to "
+                        "every diffusion process; add its steps and guidance with --more (time only)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     runs = [tuple(item.split(":")) if ":" in item else (item, "file") for item in args.runs.split(",")]
@@ -152,15 +165,18 @@ def main() -> None:
     if any(preset != "preview" for preset, _ in runs):
         files = write_model_files(args.dir / "models", args.device)
         print(f"model files ready in {time.time() - start:.0f} s", flush=True)
+    if args.lora:
+        args.more += f" --lora={write_random_lora(args.dir / 'models' / 'random_lora_rank64.safetensors')}"
     caches, work = args.dir / "caches", args.dir / "runs"
-    shutil.rmtree(caches, ignore_errors=True)
+    if not args.keep_caches:
+        shutil.rmtree(caches, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     env.update(PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
                PYTHONPYCACHEPREFIX=str(caches / "pycache"), TRITON_CACHE_DIR=str(caches / "triton"),
                TORCHINDUCTOR_CACHE_DIR=str(caches / "inductor"), ARTNVG_CACHE_DIR=str(caches / "artnvg"))
-    dropped = drop_page_cache()
+    dropped = not args.keep_caches and drop_page_cache()
     print(f"page cache dropped before the first process: {dropped}", flush=True)
 
     rows, split, report = [], [], []
@@ -173,8 +189,9 @@ def main() -> None:
                      f"--csgo={files['csgo']}"]
         log = work / f"{number}_{preset}.log"
         result = run_process(argv, env, work / f"{number}.json", log)
-        known = sum(result.get(part, 0.0) for part in PARTS)
-        row = [number, preset, layout if preset != "preview" else "", "cold" if number == 1 else "warm",
+        known = sum(result.get(part, 0.0) for part in PARTS if part not in OVERLAPPING)
+        row = [number, preset, layout if preset != "preview" else "",
+               "cold" if number == 1 and not args.keep_caches else "warm",
                result["wall"], *[result.get(part) for part in PARTS], result["wall"] - known, result["exit"]]
         rows.append(row)
         if "group each" in result:

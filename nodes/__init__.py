@@ -7,21 +7,17 @@ outputs. Add new inputs only at the end of a node's ``optional`` inputs.
 
 from __future__ import annotations
 
+from .blend_nodes import BlendStylization
 from .camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from .comfy_bridge import comfy_module, input_directory, register_model_folder
 from .demo_inputs import install_demo_inputs
-from .diffusion_nodes import (
-    CSGO_EXTENSIONS,
-    CSGO_FOLDER,
-    CSGOEncode,
-    LoadArtNVGModels,
-    NVAttentionPatch,
-    SampleGroup,
-)
+from .diffusion_nodes import SampleGroup
 from .finetune_nodes import FinetuneGaussians
+from .model_patch_nodes import CSGO_EXTENSIONS, CSGO_FOLDER, ApplyCSGO, LoadCSGO, NVAttentionPatch
 from .prompt_checks import register_prompt_check
 from .render_nodes import RenderCameraPath, RenderViews
 from .scene_nodes import LoadGaussianScene, SaveGaussianScene
+from .selection_nodes import SelectGaussians
 from .splat_nodes import SceneToSplat, SplatToScene
 
 register_model_folder(CSGO_FOLDER, CSGO_EXTENSIONS)
@@ -36,11 +32,13 @@ NODE_CLASS_MAPPINGS = {
     "ArtNVGRenderViews": RenderViews,
     "ArtNVGRenderCameraPath": RenderCameraPath,
     "ArtNVGGroupNeighbouringViews": GroupNeighbouringViews,
-    "ArtNVGLoadModels": LoadArtNVGModels,
-    "ArtNVGCSGOEncode": CSGOEncode,
+    "ArtNVGLoadCSGO": LoadCSGO,
+    "ArtNVGApplyCSGO": ApplyCSGO,
     "ArtNVGNVAttentionPatch": NVAttentionPatch,
     "ArtNVGSampleGroup": SampleGroup,
     "ArtNVGFinetuneGaussians": FinetuneGaussians,
+    "ArtNVGSelectGaussians": SelectGaussians,
+    "ArtNVGBlendStylization": BlendStylization,
     "ArtNVGSaveGaussianScene": SaveGaussianScene,
     "ArtNVGSceneToSplat": SceneToSplat,
     "ArtNVGSplatToScene": SplatToScene,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from artnvg_core.cameras import load_cameras
+from artnvg_core.cameras import camera_files, load_cameras
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
@@ -27,6 +27,7 @@ CAMERA_SOURCE = InputFile(
         "input folder."),
     exists=Path.exists,
     watched=lambda source: source / "transforms.json" if source.is_dir() else source,
+    read=camera_files,
 )
 
 
@@ -57,7 +58,7 @@ class LoadCameras(ArtNVGNode):
         return CAMERA_SOURCE.signature(camera_source, path)
 
     def load(self, camera_source, path="", files=None):
-        source, input_name = CAMERA_SOURCE.resolve(camera_source, path)
+        source, input_name = CAMERA_SOURCE.readable(self.DISPLAY_NAME, camera_source, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_cameras(source),)
 

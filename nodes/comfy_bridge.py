@@ -13,7 +13,6 @@ no progress is shown, nothing is interrupted and the device is CUDA, else Apple'
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import importlib
 import logging
@@ -27,6 +26,7 @@ import torch
 from artnvg_core.devices import best_device
 from artnvg_core.progress import Cancelled, ProgressFn
 from artnvg_core.raster import prepare_backend
+from artnvg_core.tensor_tree import map_tensors
 
 _log = logging.getLogger("artnvg")
 
@@ -52,6 +52,18 @@ def output_directory() -> Path:
     """ComfyUI's output folder (``./output`` without ComfyUI)."""
     folder_paths = comfy_module("folder_paths")
     return Path(folder_paths.get_output_directory()) if folder_paths else Path.cwd() / "output"
+
+
+def readable_folders() -> list[Path]:
+    """The folders a node may read from: ComfyUI's input and output folders and every model folder
+    (``models/`` and each registered folder, extra_model_paths.yaml's included); without ComfyUI, ``./input``
+    and ``./output``."""
+    folders = [input_directory(), output_directory()]
+    folder_paths = comfy_module("folder_paths")
+    if folder_paths is not None:
+        folders.append(Path(folder_paths.models_dir))
+        folders.extend(Path(folder) for paths, _ in folder_paths.folder_names_and_paths.values() for folder in paths)
+    return folders
 
 
 def register_model_folder(name: str, extensions: set[str]) -> None:
@@ -143,9 +155,7 @@ def trainable_copy(value):
     Call inside :func:`autograd_enabled`: tensors made under inference mode (every node
     output in ComfyUI) cannot be saved for backward, their clones made outside it can.
     """
-    clones = {f.name: getattr(value, f.name).clone() for f in dataclasses.fields(value)
-              if isinstance(getattr(value, f.name), torch.Tensor)}
-    return dataclasses.replace(value, **clones)
+    return map_tensors(torch.Tensor.clone, value)
 
 
 # --------------------------------------------------------------------------- progress and interrupt

@@ -19,7 +19,7 @@ from .comfy_bridge import (
 from .cpu_threads import cpu_threads
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import node_input
-from .node_types import CAMERAS, IMAGE, SCENE
+from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
 
 _DEFAULTS = FinetuneConfig()
 _PREVIEW = PRESETS["preview"]
@@ -92,13 +92,16 @@ class FinetuneGaussians(ArtNVGNode):
         "nnfm_search": (SEARCH_PRECISIONS, {"default": _DEFAULTS.nnfm_search, "tooltip": (
             "Arithmetic of NNFM's nearest-neighbour search (the loss stays float32): bf16 is the fastest, "
             "fp32 the exact one (BENCHMARKS.md, NNFM search precision).")}),
+        "selection": (SELECTION, {"tooltip": (
+            "From Select Gaussians: finetune only these Gaussians, the loss weighted to the pixels they cover; "
+            "the others stay exactly as they are.")}),
     }
 
     @cancellable
     def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
                  content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side,
                  color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
-                 nnfm_search=_DEFAULTS.nnfm_search):
+                 nnfm_search=_DEFAULTS.nnfm_search, selection=None):
         with node_input(self.DISPLAY_NAME), autograd_enabled():
             if preset == "preview":
                 chosen = PRESETS["preview"]
@@ -118,5 +121,6 @@ class FinetuneGaussians(ArtNVGNode):
                     trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
                     stylized=None if stylized_views is None else stylized_views.clone(), config=config,
                     progress=report, render_progress=report, should_stop=interrupt_requested,
+                    selection=None if selection is None else selection.clone().to(device),
                 )
         return (result.to("cpu"),)

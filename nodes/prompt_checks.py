@@ -6,15 +6,22 @@ missing file used to stop only the outputs downstream of it while the rest ran a
 And it repeats a ``VALIDATE_INPUTS`` message once per input that function declares.
 
 So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
-class has ``check_files(**inputs) -> str | None`` (the loaders), it runs that check on the node's
-values; a message is kept under (prompt id, node id). When any loader fails, the prompt's execution
-targets become the outputs that depend on a failing loader, so validation fails as a whole: ComfyUI
-refuses the prompt (HTTP 400) and the editor outlines the loaders and lists their messages; nothing runs.
+class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values within their
+declared ranges and choices) or ``check_files(**inputs) -> str | None`` (the loaders), it runs those
+checks on the node's values; a message is kept under (prompt id, node id). When any node fails, the
+prompt's execution targets become the outputs that depend on a failing node, so validation fails as a
+whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and lists their
+messages (for a value out of range, ComfyUI's own); nothing runs. (Without this, a Finetune Gaussians
+with iterations -1 failed validation while every output not fed by it ran.)
 The loaders' ``VALIDATE_INPUTS`` declare only the hidden input :data:`CHECK_INPUT` (the node id, so
 ComfyUI shows the message once) and return the kept message (:func:`check_result`). Their file lists
 are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
 itself: the check's message says more (where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
+
+The model loaders (ComfyUI's own and Load CSGO, :data:`MODEL_LOADERS`) list their folder's files, and
+ComfyUI's own check names a file that is not there ("Value not in list"); the handler counts such a node
+as failing too, so that a graph missing a model file runs not at all either.
 """
 
 from __future__ import annotations
@@ -23,10 +30,17 @@ import uuid
 from collections import OrderedDict
 from collections.abc import Mapping
 
-from .comfy_bridge import comfy_module
+from .comfy_bridge import comfy_module, model_file_path
 
 CHECK_INPUT = "files"  # the loaders' hidden input: ComfyUI's UNIQUE_ID (the node id)
 HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}
+MODEL_LOADERS = {  # node type -> (its file input, its model folder)
+    "CheckpointLoaderSimple": ("ckpt_name", "checkpoints"),
+    "LoraLoader": ("lora_name", "loras"),
+    "ControlNetLoader": ("control_net_name", "controlnet"),
+    "CLIPVisionLoader": ("clip_name", "clip_vision"),
+    "ArtNVGLoadCSGO": ("csgo_name", "csgo"),
+}
 _KEPT_PROMPTS = 32
 _results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
 
@@ -45,16 +59,24 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
 
 
 def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
-    """Node id -> message of every node whose class's ``check_files`` finds a problem with its values."""
+    """Node id -> message of every node whose class's ``check_values`` or ``check_files`` finds a problem with
+    its values, and of every model loader whose file is not in its folder."""
     failures = {}
     for node_id, node in prompt.items():
-        check = getattr(classes.get(node.get("class_type")), "check_files", None) if isinstance(node, dict) else None
-        if check is None:
+        if not isinstance(node, dict):
             continue
         values = {name: value for name, value in node.get("inputs", {}).items() if not isinstance(value, list)}
-        message = check(**values)
-        if message:
-            failures[str(node_id)] = message
+        if node.get("class_type") in MODEL_LOADERS:
+            name, folder = MODEL_LOADERS[node["class_type"]]
+            if model_file_path(folder, str(values.get(name, ""))) is None:
+                failures[str(node_id)] = f"'{values.get(name)}' is not in the '{folder}' model folder"
+            continue
+        cls = classes.get(node.get("class_type"))
+        for check in (getattr(cls, "check_values", None), getattr(cls, "check_files", None)):
+            message = check(**values) if check is not None else None
+            if message:
+                failures[str(node_id)] = message
+                break
     return failures
 
 

@@ -23,6 +23,17 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture
+def npm_tools() -> None:
+    """Skips the test unless the npm tools of tests/npm_tools.py are installed (installing them first
+    where npm and its registry can)."""
+    from tests.npm_tools import unavailable
+
+    reason = unavailable()
+    if reason is not None:
+        pytest.skip(reason)
+
+
 @pytest.fixture(autouse=True)
 def fixed_cpu_threads(monkeypatch):
     """The nodes choose torch's CPU threads from the machine's load unless OMP_NUM_THREADS is set

@@ -74,9 +74,11 @@ def tiny_unet(seed: int = 0) -> UNet2DConditionModel:
     )).eval()
 
 
-def tiny_controlnet(unet: UNet2DConditionModel, seed: int = 1) -> ControlNetModel:
-    """A ControlNet of the UNet's architecture; its zero-initialised convolutions are made random."""
-    controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 8, 8, 16))
+def tiny_controlnet(unet: UNet2DConditionModel, seed: int = 1,
+                    hint_channels: tuple[int, ...] = (4, 8, 8, 16)) -> ControlNetModel:
+    """A ControlNet of the UNet's architecture (its hint encoder's widths ``hint_channels``); its
+    zero-initialised convolutions are made random."""
+    controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=hint_channels)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for param in controlnet.parameters():

@@ -23,6 +23,24 @@ def test_scaled_and_subset():
     assert torch.equal(picked.world_to_cam, w2c[[3, 0, 2]])
 
 
+def test_in_view_is_in_front_and_inside_the_image():
+    """Points placed by pixel and depth through each camera's own inverse: inside iff depth > 0 and the pixel
+    lies in [0, width) x [0, height)."""
+    quats, trans = random_capture(3, seed=5)
+    w2c = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    w2c[:, :3, :3] = torch.stack([rotation_of(q) for q in quats])
+    w2c[:, :3, 3] = trans
+    k = torch.tensor([[100.0, 0, 64.0], [0, 90.0, 48.0], [0, 0, 1]]).repeat(3, 1, 1)
+    cameras = CameraSet(w2c.float(), k, 128, 96, ["a", "b", "c"])
+    pixels = torch.tensor([[1.0, 1], [127.9, 95.9], [-0.1, 50], [64, 96.1], [128.1, 10], [60, 40], [60, 40]])
+    depths = torch.tensor([2.0, 3, 2, 2, 2, 5, -5])
+    expected = torch.tensor([True, True, False, False, False, True, False])
+    for c in range(3):
+        in_camera = torch.cat([(pixels - k[c, :2, 2]) / k[c, [0, 1], [0, 1]] * depths[:, None], depths[:, None]], 1)
+        world = (in_camera.double() - w2c[c, :3, 3]) @ w2c[c, :3, :3]
+        assert torch.equal(cameras.in_view(world)[c], expected), c
+
+
 @pytest.mark.parametrize("size", [1e20, 10**6, 16385])
 def test_absurd_image_sizes_refused_early(tmp_path, size):
     quats, trans = random_capture(2, seed=6)

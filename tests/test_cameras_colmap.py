@@ -78,11 +78,11 @@ def test_colmap_errors_name_file_and_field(tmp_path):
         load_colmap(folder)
 
     folder = write_colmap(tmp_path / "sizes", {1: pinhole, 2: ("PINHOLE", 32, 48, [50.0] * 4)}, images, False)
-    with pytest.raises(ValueError, match=r"images\.txt: image 'view_01\.png': camera 2 is 32x48 .* 64x48"):
+    with pytest.raises(ValueError, match=r"images\.txt: image record 1: camera 2 is 32x48 .* 64x48"):
         load_colmap(folder)
 
     folder = write_colmap(tmp_path / "missing", {1: pinhole}, images, True)
-    with pytest.raises(ValueError, match=r"images\.bin: image 'view_01\.png': camera id 2 is not in .*cameras\.bin"):
+    with pytest.raises(ValueError, match=r"images\.bin: image record 1: camera id 2 is not in .*cameras\.bin"):
         load_colmap(folder)
 
     data = (folder / "images.bin").read_bytes()
@@ -145,5 +145,31 @@ def test_colmap_images_txt_is_read_by_structure(tmp_path):
         assert_same_cameras(load_colmap(folder), full, atol=0)
         assert load_colmap(folder).names == full.names
     (folder / "images.txt").write_text("\n".join(image_lines[:3] + ["1.5 2.5"] + image_lines[3:]) + "\n")
-    with pytest.raises(ValueError, match=r"images\.txt: line 4: expected the 2D points .* of image 'view_04\.png'"):
+    with pytest.raises(ValueError, match=r"images\.txt: line 4: expected the 2D points .* of the image line before, got a line of 2 fields"):
         load_colmap(folder)
+
+
+@pytest.mark.parametrize("file", ["cameras.bin", "images.bin"])
+def test_colmap_binary_counts_must_cover_every_record(tmp_path, file):
+    quats, trans = random_capture(3, seed=2)
+    folder = write_colmap(tmp_path / "model", {1: ("PINHOLE", 64, 48, [50.0] * 4), 2: ("PINHOLE", 64, 48, [50.0] * 4)},
+                          colmap_images(quats, trans), True)
+    data = bytearray((folder / file).read_bytes())
+    data[:8] = (int.from_bytes(data[:8], "little") - 1).to_bytes(8, "little")  # one record fewer than written
+    (folder / file).write_bytes(bytes(data))
+    what = file.split(".")[0]
+    with pytest.raises(ValueError, match=rf"{file}: the header says \d {what}, but \d+ bytes follow the last of them"):
+        load_colmap(folder)
+
+
+def test_colmap_text_errors_never_quote_the_file(tmp_path):
+    quats, trans = random_capture(2, seed=3)
+    folder = write_colmap(tmp_path / "model", {1: ("PINHOLE", 64, 48, [50.0] * 4)}, colmap_images(quats, trans), False)
+    secret = "root:x:0:0:root:/root:/bin/bash"
+    for file, line in (("cameras.txt", secret), ("cameras.txt", f"1 {secret} 64 48"), ("images.txt", secret)):
+        original = (folder / file).read_text()
+        (folder / file).write_text(original + line + "\n")
+        with pytest.raises(ValueError, match=rf"{file}: line \d+: ") as refused:
+            load_colmap(folder)
+        assert "root" not in str(refused.value).replace(str(tmp_path), "")
+        (folder / file).write_text(original)

@@ -114,9 +114,9 @@ def test_dataparser_transform_maps_points_consistently(tmp_path, applied_transfo
             r"frame 0: 'transform_matrix'.*bottom row",
         ),
         (lambda d: d["frames"][0].update(file_path=None), r"frame 0: 'file_path'"),
-        (lambda d: d.update(fl_y="55"), r"frame 0: 'fl_y': expected a finite number"),
+        (lambda d: d.update(fl_y="55"), r"frame 0: 'fl_y': expected a number, got a string"),
         (lambda d: d.update(camera_model="OPENCV_FISHEYE"), r"'camera_model'.*OPENCV_FISHEYE"),
-        (lambda d: d.update(frames=[]), r"non-empty list under 'frames'"),
+        (lambda d: d.update(frames=[]), r"'frames': expected a non-empty list, got a list of 0 items"),
     ],
 )
 def test_nerfstudio_errors_name_file_frame_and_key(tmp_path, edit, message):
@@ -154,5 +154,51 @@ def test_missing_or_unreadable_files_are_value_errors_naming_them(tmp_path):
     with pytest.raises(ValueError, match=r"folder: cannot read the file"):
         load_nerfstudio((tmp_path / "folder").mkdir() or tmp_path / "folder")
     path.write_bytes(path.read_bytes().replace(b"view_00", b"vi\xe9w_00"))  # Latin-1, not UTF-8
-    with pytest.raises(ValueError, match=r"transforms\.json: not UTF-8 text .*b'\\xe9'"):
+    with pytest.raises(ValueError, match=r"transforms\.json: not UTF-8 text \(at byte offset \d+\)"):
         load_nerfstudio(path)
+
+
+def test_hostile_json_is_refused_by_name_before_or_while_reading(tmp_path, monkeypatch):
+    from artnvg_core.cameras import common
+
+    path = tmp_path / "transforms.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)  # nesting no parser recursion can follow
+    with pytest.raises(ValueError, match=r"transforms\.json: not a camera file: its JSON nests too deeply"):
+        load_nerfstudio(path)
+    quats, trans = random_capture(2)
+    write_transforms(path, quats, trans)
+    monkeypatch.setattr(common, "MAX_CAMERA_TEXT_BYTES", path.stat().st_size - 1)
+    with pytest.raises(ValueError, match=r"transforms\.json: [\d,]+ bytes, more than the [\d,]+ a camera file may "
+                       r"have .*; not read"):
+        load_nerfstudio(path)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda text: text.replace('"fl_x": 50.0', '"fl_x": 1' + "0" * 400), r"frame 0: 'fl_x': expected a finite number "
+     r"within float range, got inf"),
+    (lambda text: text.replace('"cy": 25.0', '"cy": -1e400'), r"frame 0: 'cy': expected a finite number within "
+     r"float range, got -inf"),
+    (lambda text: text.replace('"fl_x": 50.0', '"fl_x": 1e300'), r"frame 0: 'fl_x': expected a finite number "
+     r"within \+-1e\+09, got 1e\+300"),
+])
+def test_numbers_beyond_range_are_refused_naming_file_frame_and_field(tmp_path, edit, message):
+    path = write_transforms(tmp_path / "transforms.json", *random_capture(2))
+    path.write_text(edit(path.read_text()))
+    with pytest.raises(ValueError, match=r"transforms\.json: " + message):
+        load_nerfstudio(path)
+
+
+def test_camera_positions_beyond_range_are_refused_at_load_naming_the_frame(tmp_path):
+    quats, trans = random_capture(3)
+    path = write_transforms(tmp_path / "transforms.json", quats, trans)
+    data = json.loads(path.read_text())
+    data["frames"][2]["transform_matrix"][1][3] = 1e300
+    write_json(path, data)
+    with pytest.raises(ValueError, match=r"transforms\.json: frame 2: 'transform_matrix': the camera position's y: "
+                       r"expected a finite number within \+-1e\+09, got 1e\+300"):
+        load_nerfstudio(path)
+    data["frames"][2]["transform_matrix"][1][3] = 2.0
+    write_json(path, data)
+    with pytest.raises(ValueError, match=r"frame 0: pose: values beyond float32's range"):
+        load_nerfstudio(path, dataparser_transforms=write_json(
+            tmp_path / "dataparser_transforms.json", {"transform": torch.eye(4)[:3].tolist(), "scale": 1e300}))

@@ -14,7 +14,7 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     demo = DemoInputs()
     scene = tmp_path / "scene.ply"
     write_ply(load_scene(demo.scene).select(slice(0, None, 40)), scene)  # 1,000 Gaussians: quick renders
-    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path),
+    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path / "out"),
                  "--views", "0,5,9", "--scale", "0.1", "--device", "cpu"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert re.fullmatch(rf"loading {re.escape(str(scene))} \(0\.1 MiB\)", lines[0])
@@ -22,7 +22,7 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     assert lines[2].startswith("rendering 3 views at ")
     views = [line for line in lines if line.startswith("[")]
     assert [line.split("]")[0] + "]" for line in views] == ["[1/3]", "[2/3]", "[3/3]"]
-    assert len(list(tmp_path.glob("*.png"))) == 3
+    assert len(list((tmp_path / "out").glob("*.png"))) == 3
 
 
 def _small_scene(tmp_path):
@@ -224,7 +224,7 @@ def test_render_never_writes_over_the_captures_photos(tmp_path, capsys):
     (tmp_path / "transforms.json").write_text(json.dumps(transforms))
     scene = _small_scene(tmp_path)
     assert main(["render", str(scene), "--cameras", str(tmp_path / "transforms.json"), "--out",
-                 str(tmp_path / "images"), "--views", "0,1", "--device", "cpu"]) == 2
+                 str(tmp_path / "images"), "--views", "0,1", "--device", "cpu", "--overwrite"]) == 2
     captured = capsys.readouterr()
     assert re.search(r"error: --out: .*frame_\d+\.png is the same file as the capture's image .*frame_\d+\.png",
                      captured.err) and "loading" not in captured.out
@@ -330,21 +330,22 @@ def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_
     assert result.stdout.split("\n")[0] == "2 []" and "cannot write scene file type '.txt'" in result.stderr
 
 
-def test_spz_axes_option_reads_and_writes_spz_in_the_plys_axes(tmp_path, capsys):
-    """render --spz-axes ply renders a .spz written in the PLY's axes (as splat-transform writes) as the
-    scene itself; stylize --spz-axes ply writes its .spz so."""
+def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_plys_axes(tmp_path, capsys):
+    """render of a .spz holding RUB with no record renders as the scene itself by default (its --cameras
+    decide), upside down with --spz-axes ply; stylize writes its .spz in the PLY's axes by default."""
     from artnvg_core.formats import save_scene
 
     demo, scene = DemoInputs(), _small_scene(tmp_path)
-    save_scene(load_scene(scene), tmp_path / "ply_axes.spz", spz_axes="ply")
+    save_scene(load_scene(scene), tmp_path / "rub.spz", spz_axes="rub")
     renders = {}
-    for name, extra in [("spz", ["--spz-axes", "ply"]), ("ply", [])]:
-        source = tmp_path / ("ply_axes.spz" if name == "spz" else "scene.ply")
-        assert main(["render", str(source), "--cameras", str(demo.cameras), "--out", str(tmp_path / name),
+    for name, source, extra in [("auto", "rub.spz", []), ("ply_axes", "rub.spz", ["--spz-axes", "ply"]),
+                                ("ply", "scene.ply", [])]:
+        assert main(["render", str(tmp_path / source), "--cameras", str(demo.cameras), "--out", str(tmp_path / name),
                      "--views", "0", "--scale", "0.1", "--device", "cpu", *extra]) == 0
         renders[name] = load_image(next((tmp_path / name).glob("*.png")))
-    assert (renders["spz"] - renders["ply"]).abs().mean() < 0.01
-    assert _stylize(scene, demo.style, tmp_path / "out.spz", "--spz-axes", "ply") == 0
+    assert (renders["auto"] - renders["ply"]).abs().mean() < 0.01
+    assert (renders["ply_axes"] - renders["ply"]).abs().mean() > 0.05
+    assert _stylize(scene, demo.style, tmp_path / "out.spz") == 0
     kept = load_scene(tmp_path / "out.spz", spz_axes="ply").means
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
 
@@ -369,3 +370,52 @@ def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     lines = done.stdout.splitlines()
     assert any(line.startswith("stylizer: nnfm (preset preview: ") for line in lines), done.stdout
     assert lines[-1] == "[]" and out.is_file()
+
+
+def test_render_into_a_folder_that_is_not_empty_needs_overwrite(tmp_path, capsys):
+    scene, out = _small_scene(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / "kept.png").write_bytes(b"an earlier render")
+    command = ["render", str(scene), "--cameras", str(DemoInputs().cameras), "--out", str(out), "--views", "0",
+               "--scale", "0.1", "--device", "cpu"]
+    assert main(command) == 2
+    captured = capsys.readouterr()
+    assert f"error: --out: {out} is not empty; give an empty or new folder, or --overwrite" in captured.err
+    assert "loading" not in captured.out and sorted(p.name for p in out.iterdir()) == ["kept.png"]
+    assert main([*command, "--overwrite"]) == 0
+    assert (out / "kept.png").read_bytes() == b"an earlier render" and len(list(out.glob("*.png"))) == 2
+
+
+def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, capsys, monkeypatch):
+    import json
+
+    import artnvg_core.raster.views as views
+
+    transforms = json.loads(DemoInputs().cameras.read_text())
+    transforms["frames"][0]["file_path"] = "images/" + "v" * 250 + ".jpg"
+    (tmp_path / "transforms.json").write_text(json.dumps(transforms))
+    scene = _small_scene(tmp_path)
+    assert main(["render", str(scene), "--cameras", str(tmp_path / "transforms.json"), "--out", str(tmp_path / "out"),
+                 "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert "error: --out (the PNG of view 0): the file name vvvv" in captured.err and "loading" not in captured.out
+    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    assert main(["render", str(scene), "--orbit-size", "8192", "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert ("error: --orbit-size and --scale: 60 views of 8192x8192 pixels, 1 of their images held at once, need "
+            "2.8 GiB, more than half the 1.0 GiB of memory available now") in captured.err
+    assert "loading" not in captured.out and not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_while_saving_stops_without_a_traceback(tmp_path, capsys, monkeypatch):
+    import artnvg_core.fileio as fileio
+
+    def interrupted(image, path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fileio, "save_png", interrupted)
+    assert main(["render", str(_small_scene(tmp_path)), "--cameras", str(DemoInputs().cameras), "--out",
+                 str(tmp_path / "out"), "--views", "0", "--scale", "0.1", "--device", "cpu"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err == "interrupted: stopped; no file was left half-written\n"
+    assert list((tmp_path / "out").iterdir()) == []

@@ -81,7 +81,7 @@ def test_models_that_cannot_load_raise_the_workers_error(ray_local, tmp_path):
     """First in this module: the session's two CPUs are free until the module's executor takes them."""
     from artnvg_core.diffusion.executor import GroupExecutor
     from artnvg_core.diffusion.model_files import ModelFiles
-    from artnvg_core.stylize import DiffusionModelsUnavailable, load_models_for
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable, load_models_for
 
     missing = ModelFiles(sdxl=tmp_path / "no-sdxl", controlnet=tmp_path, image_encoder=tmp_path, csgo=tmp_path)
     with GroupExecutor(functools.partial(load_models_for, missing, False), Workers("cpu", 1)) as executor:

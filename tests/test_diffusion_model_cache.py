@@ -10,7 +10,7 @@ import pytest
 from artnvg_core.diffusion.model_cache import file_key, forget_models, load_once
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.progress import Cancelled
-from artnvg_core.stylize import load_models_for
+from artnvg_core.diffusion.loader import load_models_for
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 
@@ -90,7 +90,7 @@ def test_load_models_for_fuses_the_loras_and_keys_them_by_file_and_strength(tmp_
     from safetensors.torch import save_file
 
     from artnvg_core.diffusion.lora import LoRA, LoRAError
-    from artnvg_core.stylize import DiffusionModelsUnavailable
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable
     from diffusion_tiny import kohya_lora_deltas, kohya_lora_state, tiny_base
 
     paths = ModelFiles(**write_model_files(tmp_path))

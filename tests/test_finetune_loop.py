@@ -81,6 +81,24 @@ def test_deterministic_for_a_seed_on_cpu(demo):
     assert torch.equal(a.sh, b.sh) and torch.equal(a.opacity_logits, b.opacity_logits)
 
 
+@pytest.mark.parametrize(("cuda_graph", "iterations", "recorded"), [
+    (None, 2, False), (None, 3, True), (True, 2, True), (False, 3, False)])
+def test_the_step_loss_is_recorded_only_where_the_run_wins_it_back(demo, monkeypatch, cuda_graph, iterations,
+                                                                    recorded):
+    """cuda_graph None records the step loss's graphs from GRAPH_MIN_ITERATIONS iterations on (here 3; the
+    recording stood in for, as the CPU records none); True and False decide whatever the length."""
+    from artnvg_core.finetune import loop
+
+    scene, cameras, style = demo
+    calls = []
+    monkeypatch.setattr(loop, "GRAPH_MIN_ITERATIONS", 3)
+    monkeypatch.setattr(loop, "can_graph", lambda device: True)
+    monkeypatch.setattr(loop, "graphed", lambda step_loss, shape, device: calls.append(shape) or step_loss)
+    finetune(scene, cameras, style, config=FinetuneConfig(iterations=iterations, cuda_graph=cuda_graph,
+                                                          color_transfer=False))
+    assert calls == ([(1, cameras.height, cameras.width, 3)] if recorded else [])
+
+
 def test_progress_reports_every_step_and_from_scratch_starts_grey(demo):
     scene, cameras, style = demo
     seen = []

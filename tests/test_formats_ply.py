@@ -433,3 +433,68 @@ def test_bear_scene_loads_and_round_trips_exactly(shared_data, tmp_path):
 
     write_ply(scene, tmp_path / "bear.ply")
     assert_same_bits(read_ply(tmp_path / "bear.ply"), scene)
+
+
+# --------------------------------------------------------------------------- bounded by the file's size
+
+
+def _peak_bytes(read) -> int:
+    """Peak bytes traced (Python and numpy allocations) while ``read()`` runs, whatever it raises."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        read()
+    except ValueError:
+        pass
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_huge_declared_element_is_refused_without_building_its_rows(tmp_path, fmt):
+    path = tmp_path / "declared.ply"
+    write_reference_ply(path, random_scene(3, 0), fmt, normals=False)
+    header, _, body = path.read_bytes().partition(b"end_header\n")
+    path.write_bytes(header + b"element face 3000000\nproperty list uchar int vertex_indices\nend_header\n" + body)
+    assert _peak_bytes(lambda: read_ply(path)) < 1 << 22  # plyfile built the 3M rows: 24 MB of pointers alone
+    with pytest.raises(ValueError, match=r"declared\.ply: (element 'face': 3,000,000 rows need at least 3,000,000 "
+                       r"bytes, but the file has \d+ left|the header's element counts \(vertex 3, face 3000000\))"):
+        read_ply(path)
+
+
+def test_a_header_beyond_its_bound_is_refused(tmp_path):
+    path = tmp_path / "long_header.ply"
+    write_reference_ply(path, random_scene(3, 0), normals=False)
+    comments = b"comment " + b"x" * 70 + b"\n"
+    path.write_bytes(path.read_bytes().replace(b"ply\n", b"ply\n" + comments * (2**21 // len(comments)), 1))
+    with pytest.raises(ValueError, match=r"long_header\.ply: not a readable PLY file \(no end_header line within the "
+                       r"first [\d,]+ bytes: the header is truncated or far longer than a scene's"):
+        read_ply(path)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_list_elements_are_skipped_by_their_byte_count_before_and_after_the_vertices(tmp_path, fmt):
+    scene = random_scene(5, 1)
+    path = tmp_path / "mesh.ply"
+    write_reference_ply(path, scene, fmt)
+    table = PlyData.read(str(path), mmap=False)["vertex"].data
+    uneven = np.empty(4, dtype=[("material", "u1"), ("corners", "O"), ("weight", "f8")])
+    uneven["material"], uneven["weight"] = [1, 2, 3, 4], [0.5, 1.5, 2.5, 3.5]
+    uneven["corners"] = [np.arange(n, dtype=np.int16) for n in (3, 0, 5, 4)]  # lengths differ: one pass over them
+    even = np.empty(3, dtype=[("vertex_indices", "O")])
+    even["vertex_indices"] = [np.array([0, 1, 2], np.uint32)] * 3  # same lengths: one strided look
+    elements = [PlyElement.describe(uneven, "polygon"), PlyElement.describe(table, "vertex"),
+                PlyElement.describe(even, "face")]
+    PlyData(elements, text=fmt == "ascii", byte_order=BYTE_ORDER[fmt]).write(str(path))
+    assert_same_bits(read_ply(path), scene)
+    data = path.read_bytes()
+    path.write_bytes(data + (b"1 0 0.5\n" if fmt == "ascii" else b"\0"))
+    with pytest.raises(ValueError, match=r"mesh\.ply: the header's element counts \(polygon 4, vertex 5, face 3\) "
+                       r"disagree with the data size: the file holds (1 bytes more|13 data lines for 12 records)"):
+        read_ply(path)
+    path.write_bytes(data.replace(b"element polygon 4", b"element polygon 5"))
+    with pytest.raises(ValueError, match=r"mesh\.ply: "):
+        read_ply(path)

@@ -1,4 +1,5 @@
-"""Niantic SPZ: versions 1-4, RUB axes, round trip within the stated quantisation, corrupt files."""
+"""Niantic SPZ: versions 1-4, the axes of files with and without a record, round trip within the stated
+quantisation, corrupt files."""
 
 import dataclasses
 import gzip
@@ -15,10 +16,12 @@ import pytest
 import torch
 import zstandard
 
+from artnvg_core.formats import spz
 from artnvg_core.formats.spz import read_spz, write_spz
 from artnvg_core.raster.sh import sh_to_color
 from tests.test_formats_splat import assert_only_value_errors, plain_scene, quat_error
 
+FLIP = torch.tensor([1.0, -1, -1])  # RDF <-> RUB
 ARRAYS = ("positions", "alphas", "colors", "scales", "rotations", "sh")
 
 
@@ -66,27 +69,33 @@ def test_round_trip_stays_within_the_stated_quantisation(tmp_path):
     assert len(path.read_bytes()) < 0.25 * 3000 * 62 * 4  # far smaller than the float32 PLY
 
 
-def test_file_holds_rub_axes_and_colours_are_the_same_from_flipped_directions(tmp_path):
+def stored_means(path) -> np.ndarray:
+    """[N, 3] positions as a version 3 file we wrote holds them (12 fractional bits)."""
+    fixed = np.frombuffer(payload_arrays(path)[1]["positions"], np.uint8).reshape(-1, 3, 3).astype(np.int64)
+    fixed = fixed[..., 0] | fixed[..., 1] << 8 | fixed[..., 2] << 16
+    return np.where(fixed >= 1 << 23, fixed - (1 << 24), fixed) / 4096
+
+
+def test_file_holds_the_plys_axes_or_rub_on_request_and_colours_are_the_same_from_flipped_directions(tmp_path):
     scene = plain_scene(200, 3)
-    path = tmp_path / "axes.spz"
-    write_spz(scene, path)
-    header, arrays = payload_arrays(path)
-    assert header[:2] == (0x5053474E, 3)
-    fixed = np.frombuffer(arrays["positions"], np.uint8).reshape(-1, 3, 3).astype(np.int64)
-    stored = fixed[..., 0] | fixed[..., 1] << 8 | fixed[..., 2] << 16
-    stored = np.where(stored >= 1 << 23, stored - (1 << 24), stored) / 4096
-    np.testing.assert_allclose(stored, scene.means.numpy() * [1, -1, -1], atol=2.0**-12)
-    # SH that SPZ stores exactly (multiples of 1/8 in [-0.875, 0.875]): the stored coefficients seen along
-    # the RUB direction give the PLY's colour along the RDF direction, and the file reads back exactly
+    write_spz(scene, tmp_path / "ply.spz")
+    write_spz(scene, tmp_path / "rub.spz", axes="rub")
+    assert payload_arrays(tmp_path / "ply.spz")[0][:2] == (0x5053474E, 3)
+    np.testing.assert_allclose(stored_means(tmp_path / "ply.spz"), scene.means.numpy(), atol=2.0**-12)
+    np.testing.assert_allclose(stored_means(tmp_path / "rub.spz"), scene.means.numpy() * [1, -1, -1], atol=2.0**-12)
+    # SH that SPZ stores exactly (multiples of 1/8 in [-0.875, 0.875]): the coefficients a RUB file holds, seen
+    # along the RUB direction, give the PLY's colour along the RDF direction; a PLY-axes file holds them as they
+    # are; both read back exactly
     scene.sh[:, 1:] = torch.randint(-7, 8, scene.sh[:, 1:].shape, generator=torch.Generator().manual_seed(0)) / 8
-    write_spz(scene, path)
-    _, arrays = payload_arrays(path)
-    stored = (torch.tensor(np.frombuffer(arrays["sh"], np.uint8).reshape(200, 15, 3), dtype=torch.float32) - 128) / 128
-    stored = torch.cat([scene.sh[:, :1], stored], 1)
+    held = {}
+    for axes in ("rub", "ply"):
+        write_spz(scene, tmp_path / f"{axes}.spz", axes=axes)
+        sh = np.frombuffer(payload_arrays(tmp_path / f"{axes}.spz")[1]["sh"], np.uint8).reshape(200, 15, 3)
+        held[axes] = torch.cat([scene.sh[:, :1], (torch.from_numpy(sh.astype(np.float32)) - 128) / 128], 1)
+        assert torch.equal(read_spz(tmp_path / f"{axes}.spz", axes=axes).sh[:, 1:], scene.sh[:, 1:])
     directions = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=1)
-    rub = directions * torch.tensor([1.0, -1, -1])
-    torch.testing.assert_close(sh_to_color(stored, rub, 3), sh_to_color(scene.sh, directions, 3))
-    assert torch.equal(read_spz(path).sh[:, 1:], scene.sh[:, 1:])
+    torch.testing.assert_close(sh_to_color(held["rub"], directions * FLIP, 3), sh_to_color(scene.sh, directions, 3))
+    assert torch.equal(held["ply"], scene.sh)
 
 
 def test_version_4_zstd_container_reads_as_version_3(tmp_path):
@@ -98,11 +107,14 @@ def test_version_4_zstd_container_reads_as_version_3(tmp_path):
     v4 = read_spz(tmp_path / "v4.spz")
     for name, value in v3.tensors().items():
         assert torch.equal(getattr(v4, name), value), name
-    # an extension record naming RDF axes: the file is read without the RUB flip
-    record = struct.pack("<III", 0xADBE0003, 4, 6)
-    (tmp_path / "rdf.spz").write_bytes(version_4(header, arrays, struct.pack("<II", 0xADBE0002, 0) + record))
-    rdf = read_spz(tmp_path / "rdf.spz")
-    torch.testing.assert_close(rdf.means, v3.means * torch.tensor([1.0, -1, -1]))
+    # an extension record naming RUB axes (after another record): read with the RUB flip whatever axes says
+    record = struct.pack("<III", 0xADBE0003, 4, 4)
+    (tmp_path / "rub.spz").write_bytes(version_4(header, arrays, struct.pack("<II", 0xADBE0002, 0) + record))
+    for axes in spz.AXES:
+        torch.testing.assert_close(read_spz(tmp_path / "rub.spz", axes=axes).means, v3.means * FLIP)
+    # one naming RDF: read as it is, even when asked for RUB
+    (tmp_path / "rdf.spz").write_bytes(version_4(header, arrays, struct.pack("<III", 0xADBE0003, 4, 6)))
+    assert torch.equal(read_spz(tmp_path / "rdf.spz", axes="rub").means, v3.means)
 
 
 def test_versions_1_and_2_and_the_antialiased_flag(tmp_path):
@@ -114,7 +126,8 @@ def test_versions_1_and_2_and_the_antialiased_flag(tmp_path):
     path.write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 1, n, 0, 0, 1, 0) + body))
     scene = read_spz(path)
     assert scene.antialiased
-    torch.testing.assert_close(scene.means, torch.tensor([[1.0, 2, -0.5]] * n))  # RUB -> RDF
+    torch.testing.assert_close(scene.means, torch.tensor([[1.0, -2, 0.5]] * n))  # the PLY's axes: as stored
+    torch.testing.assert_close(read_spz(path, axes="rub").means, torch.tensor([[1.0, 2, -0.5]] * n))  # RUB -> RDF
     torch.testing.assert_close(scene.log_scales, torch.full((n, 3), 0.0))
     assert quat_error(scene.quats, torch.tensor([[0.0, 0, 0, 1]] * n)) < 0.01
     assert torch.sigmoid(scene.opacity_logits).min() > 0.998
@@ -327,14 +340,52 @@ def test_versions_2_to_4_load_at_every_sh_degree(tmp_path, degree):
     v3 = read_spz(tmp_path / "v3.spz")
     assert v3.sh_degree == degree
     (tmp_path / "v4.spz").write_bytes(version_4(header, arrays))
-    xyzw = v3.quats[:, [1, 2, 3, 0]].double() * torch.tensor([1.0, -1, -1, 1])  # back to the file's RUB axes
+    xyzw = v3.quats[:, [1, 2, 3, 0]].double()  # the file's axes are the PLY's
     xyzw = xyzw * torch.where(xyzw[:, 3:] < 0, -1.0, 1.0) / xyzw.norm(dim=1, keepdim=True)
     v2_arrays = dict(arrays, rotations=np.clip(np.floor((xyzw[:, :3].numpy() + 1) * 127.5 + 0.5), 0, 255).astype(np.uint8).tobytes())
     (tmp_path / "v2.spz").write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 2, *header[2:]) +
                                                     b"".join(v2_arrays.values())))
+    write_spz(v3, tmp_path / "ours_v2.spz", version=2)  # our version 2 writer stores the same bytes
+    assert gzip.decompress((tmp_path / "ours_v2.spz").read_bytes()) == gzip.decompress(
+        (tmp_path / "v2.spz").read_bytes())
     for version in ("v4", "v2"):
         back = read_spz(tmp_path / f"{version}.spz")
         for name, value in v3.tensors().items():
             if name != "quats":
                 assert torch.equal(getattr(back, name), value), (version, name)
         assert quat_error(back.quats, v3.quats) <= (0 if version == "v4" else 0.1)  # v2: w from 8-bit x y z
+
+
+def test_a_legacy_files_record_after_its_arrays_names_its_axes(tmp_path):
+    """Niantic's writer puts extension records after a version 1-3 file's arrays (flag 0x2)."""
+    write_spz(plain_scene(50, 1), tmp_path / "plain.spz")
+    data = bytearray(gzip.decompress((tmp_path / "plain.spz").read_bytes()))
+    data[14] |= 0x2
+    plain = read_spz(tmp_path / "plain.spz")
+    for system, flip in [(4, FLIP), (6, torch.ones(3))]:  # RUB, RDF
+        record = struct.pack("<II", 0xADBE0002, 0) + struct.pack("<III", 0xADBE0003, 4, system)
+        (tmp_path / "named.spz").write_bytes(gzip.compress(bytes(data) + record))
+        assert torch.equal(read_spz(tmp_path / "named.spz", axes="rub" if system == 6 else "ply").means,
+                           plain.means * flip), system
+
+
+@pytest.mark.parametrize("axes", ["ply", "rub"])
+def test_auto_reads_a_real_capture_without_a_record_in_front_of_its_cameras(tmp_path, shared_data, axes, caplog):
+    """Bear written in either axes with no record reads back as the PLY with its cameras; without them it is
+    read in the PLY's axes, which one logged line says (and how to change it)."""
+    from artnvg_core.cameras import load_cameras
+    from artnvg_core.formats import load_scene
+
+    capture = shared_data / "scenes" / "bear"
+    scene = load_scene(capture / "scene.ply")
+    write_spz(scene, tmp_path / "bear.spz", axes=axes)
+    step = 2.0 ** -spz._fractional_bits(tmp_path, scene.means.double().numpy())
+    back = load_scene(tmp_path / "bear.spz", cameras=load_cameras(capture / "transforms.json"))
+    assert (back.means - scene.means).abs().max() <= step / 2 + 1e-3 * step
+    with caplog.at_level("WARNING", logger="artnvg_core.formats.spz"):
+        alone = load_scene(tmp_path / "bear.spz")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'bear.spz'} names no axes: read in the PLY's axes (x right, y down, z forward), as "
+        "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes "
+        "'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)"]
+    assert torch.equal(alone.means, back.means if axes == "ply" else back.means * FLIP)

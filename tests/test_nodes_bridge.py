@@ -16,7 +16,7 @@ from artnvg_core.cameras import CameraSet
 from artnvg_core.progress import Cancelled
 from artnvg_core.scene import GaussianScene
 from nodes import comfy_bridge
-from nodes.diffusion_nodes import HF_CACHE, LoadArtNVGModels
+from nodes.model_patch_nodes import CSGO_FOLDER, LoadCSGO
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.render_nodes import RenderViews
 from nodes.scene_nodes import LoadGaussianScene
@@ -158,7 +158,10 @@ def test_folders_and_model_lists_come_from_comfyui(comfy):
     assert comfy_bridge.model_files("checkpoints") == ["sdxl.safetensors"]
     assert comfy_bridge.model_file_path("checkpoints", "sdxl.safetensors") == root / "models/checkpoints/sdxl.safetensors"
     assert comfy_bridge.model_file_path("checkpoints", "other.safetensors") is None
-    assert LoadArtNVGModels.INPUT_TYPES()["required"]["sdxl_checkpoint"][1]["options"] == [HF_CACHE, "sdxl.safetensors"]
+    comfy_bridge.register_model_folder(CSGO_FOLDER, {".bin"})
+    assert (root / "models" / CSGO_FOLDER).is_dir()  # registering creates it
+    (root / "models" / CSGO_FOLDER / "csgo_4_32.bin").write_bytes(b"")
+    assert LoadCSGO.INPUT_TYPES()["required"]["csgo_name"][0] == ["csgo_4_32.bin"]
 
 
 def test_register_model_folder_keeps_user_paths(comfy):

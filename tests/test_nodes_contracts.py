@@ -15,27 +15,29 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
-CORE_TYPES = {"IMAGE", "SPLAT", "GAUSSIAN"}  # ComfyUI's own link types the nodes take
+CORE_TYPES = {"IMAGE", "MASK", "SPLAT", "GAUSSIAN", "MODEL", "CONTROL_NET", "CLIP_VISION", "CONDITIONING",
+              "VAE"}  # ComfyUI's own link types the nodes take
 
 PUBLIC_INPUTS = {
-    "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid", "spz_axes"],
+    "ArtNVGLoadGaussianScene": ["scene_file", "path", "drop_invalid", "spz_axes", "cameras"],
     "ArtNVGLoadCameras": ["camera_source", "path"],
     "ArtNVGCamerasAroundScene": ["scene", "count", "fov_deg", "width", "height", "up", "elevations", "distance_factor"],
     "ArtNVGRenderViews": ["scene", "cameras", "scale", "stride", "views", "key_views"],
     "ArtNVGRenderCameraPath": ["scene", "cameras", "path", "scale", "num_frames", "key_views", "frames_per_segment",
                                "loop"],
     "ArtNVGGroupNeighbouringViews": ["cameras", "group_size", "context"],
-    "ArtNVGLoadModels": ["sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights", "dtype", "device",
-                         "keep_loaded", "sdxl_checkpoint_path", "controlnet_path", "image_encoder_path",
-                         "csgo_weights_path", "sdxl_config_dir", "memory", "compile"],
-    "ArtNVGCSGOEncode": ["models", "style_image", "prompt", "negative_prompt"],
-    "ArtNVGNVAttentionPatch": ["models", "enabled", "levels", "nearest_views", "kv_downsample"],
-    "ArtNVGSampleGroup": ["models", "embeds", "content_views", "groups", "group_index", "seed", "steps",
-                          "guidance_scale", "content_scale", "style_scale", "control_scale", "resolution", "scheduler",
-                          "size_rule", "content_routing", "cfg_until"],
+    "ArtNVGLoadCSGO": ["csgo_name"],
+    "ArtNVGApplyCSGO": ["model", "control_net", "csgo", "clip_vision", "style_image", "style_scale", "content_scale",
+                        "content_routing"],
+    "ArtNVGNVAttentionPatch": ["model", "enabled", "levels", "nearest_views", "kv_downsample"],
+    "ArtNVGSampleGroup": ["model", "positive", "negative", "vae", "control_net", "content_views", "groups",
+                          "group_index", "seed", "steps", "cfg", "sampler_name", "scheduler", "denoise",
+                          "control_scale", "resolution", "size_rule"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
-                                "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search"],
+                                "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search", "selection"],
+    "ArtNVGSelectGaussians": ["scene", "mode", "bounds", "cameras", "mask", "views"],
+    "ArtNVGBlendStylization": ["original", "stylized", "strength", "selection", "cameras", "view", "preview_strengths"],
     "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],
     "ArtNVGSceneToSplat": ["scene"],
     "ArtNVGSplatToScene": ["splat"],
@@ -47,11 +49,13 @@ PUBLIC_OUTPUTS = {
     "ArtNVGRenderViews": ("IMAGE", "ARTNVG_CAMERAS"),
     "ArtNVGRenderCameraPath": ("IMAGE", "ARTNVG_CAMERAS"),
     "ArtNVGGroupNeighbouringViews": ("ARTNVG_GROUPS",),
-    "ArtNVGLoadModels": ("ARTNVG_MODELS",),
-    "ArtNVGCSGOEncode": ("ARTNVG_EMBEDS",),
-    "ArtNVGNVAttentionPatch": ("ARTNVG_MODELS",),
+    "ArtNVGLoadCSGO": ("ARTNVG_CSGO",),
+    "ArtNVGApplyCSGO": ("MODEL", "CONTROL_NET"),
+    "ArtNVGNVAttentionPatch": ("MODEL",),
     "ArtNVGSampleGroup": ("IMAGE",),
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
+    "ArtNVGSelectGaussians": ("ARTNVG_SELECTION",),
+    "ArtNVGBlendStylization": ("ARTNVG_SCENE", "IMAGE"),
     "ArtNVGSaveGaussianScene": ("STRING", "LOAD3D_CAMERA"),  # + "FILE_3D_SPLAT_ANY" on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),
@@ -162,7 +166,7 @@ def test_every_node_contract_is_valid_and_consistent(pack):
     assert {kind for kind in consumed if kind.startswith("ARTNVG_")} <= produced
 
 
-FILE_CHOICES = {"scene_file", "camera_source", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
+FILE_CHOICES = {"scene_file", "camera_source"}
 
 
 def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_them(pack):

@@ -9,8 +9,10 @@ from pathlib import Path
 import pytest
 
 from nodes.camera_nodes import CAMERA_SOURCE
-from nodes.input_files import InputFile, list_input_files
+from nodes.input_files import ANY_PATH_SETTING, InputFile, list_input_files
 from nodes.node_base import ArtNVGNode
+from nodes.node_errors import NodeInputError
+from nodes.scene_nodes import SCENE_FILE
 
 
 @pytest.fixture
@@ -35,10 +37,62 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     missing = input_folder / "gone.ply"
     message = scene_file.check("Load", "gone.ply", "")
     assert message.startswith(f"Load: input 'scene_file': scene file not found: {missing}. ")
-    assert f"input folder ({input_folder.resolve()})" in message and "full path into 'path'" in message
-    assert scene_file.check("Load", "a.ply", "/no/b.ply").startswith("Load: input 'path': scene file not found: /no/b.ply. ")
+    assert f"input folder ({input_folder.resolve()})" in message and "its path into 'path'" in message
+    assert scene_file.check("Load", "a.ply", "sub/b.ply").startswith(
+        f"Load: input 'path': scene file not found: {input_folder / 'sub' / 'b.ply'}. ")
     (input_folder / "folder.ply").mkdir()
     assert "not found" in scene_file.check("Load", "folder.ply", "")  # a folder is no scene file
+
+
+@pytest.fixture
+def elsewhere(input_folder):
+    """A folder beside ComfyUI's input and output folders, holding a scene file and a capture."""
+    folder = input_folder.parent / "elsewhere"
+    (folder / "capture").mkdir(parents=True)
+    (folder / "secret.ply").write_bytes(b"ply\n")
+    (folder / "capture" / "transforms.json").write_text("{}")
+    return folder
+
+
+def _refusal(source: InputFile, listed: str, path: str = "") -> str:
+    message = source.check("Load", listed, path)
+    assert isinstance(message, str)
+    with pytest.raises(NodeInputError) as refused:
+        source.readable("Load", listed, path)
+    assert str(refused.value) == message and source.signature(listed, path) == ""
+    return message
+
+
+def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_exist(input_folder, elsewhere):
+    existing, missing = str(elsewhere / "secret.ply"), str(elsewhere / "missing.ply")
+    told = _refusal(SCENE_FILE, "", existing)
+    assert told.startswith(f"Load: input 'path': {existing!r} is outside ComfyUI's input, output and model folders")
+    assert ANY_PATH_SETTING in told
+    assert _refusal(SCENE_FILE, "", missing) == told.replace(existing, missing)
+    for listed in ("../elsewhere/secret.ply", "../elsewhere/missing.ply", "sub/../../elsewhere/secret.ply"):
+        assert _refusal(SCENE_FILE, listed) == told.replace(f"'path': {existing!r}", f"'scene_file': {listed!r}")
+    (input_folder / "link.ply").symlink_to(elsewhere / "secret.ply")  # a link out of the input folder
+    assert "is outside ComfyUI's input" in _refusal(SCENE_FILE, "link.ply")
+    assert "is outside ComfyUI's input" in _refusal(SCENE_FILE, "", "~/secret.ply")
+    (input_folder / "capture").symlink_to(elsewhere / "capture", target_is_directory=True)
+    assert "is outside ComfyUI's input" in _refusal(CAMERA_SOURCE, "capture")
+
+
+def test_files_inside_comfyuis_folders_are_read_and_the_setting_opens_every_path(input_folder, elsewhere, monkeypatch):
+    output = input_folder.parent / "output"
+    output.mkdir()
+    (output / "saved.ply").write_bytes(b"ply\n")
+    (input_folder / "saved.ply").symlink_to(output / "saved.ply")  # a link between ComfyUI's own folders
+    assert SCENE_FILE.readable("Load", "saved.ply", "") == (input_folder / "saved.ply", "scene_file")
+    assert SCENE_FILE.check("Load", "", "../output/saved.ply") is True
+    capture = input_folder / "capture"
+    capture.mkdir()
+    (capture / "transforms.json").symlink_to(elsewhere / "capture" / "transforms.json")  # a file of the folder leads out
+    assert "is outside ComfyUI's input" in _refusal(CAMERA_SOURCE, "capture")
+    monkeypatch.setenv(ANY_PATH_SETTING, "1")
+    assert SCENE_FILE.check("Load", "", str(elsewhere / "secret.ply")) is True
+    assert CAMERA_SOURCE.check("Load", "capture", "") is True
+    assert SCENE_FILE.check("Load", "", str(elsewhere / "missing.ply")).startswith("Load: input 'path': scene file not found")
 
 
 def test_a_capture_folder_is_watched_through_its_transforms_json(input_folder):

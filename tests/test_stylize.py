@@ -57,6 +57,36 @@ def test_low_memory_preset_and_compile_are_wired_through(tmp_path, monkeypatch):
         stylize_diffusion(scene, cameras, style, config, paths, preset="low-memory", compile_blocks=True)
 
 
+def test_the_models_load_while_the_content_views_render_and_a_prefetch_is_used(tmp_path, monkeypatch):
+    """The model files are read in the background while the content views render (a load that waits for
+    the render would otherwise never end); a prefetch's models are the ones the run uses (loaded once)."""
+    import threading
+
+    from artnvg_core import stylize
+    from artnvg_core.diffusion import loader
+    from artnvg_core.diffusion.model_cache import forget_models
+
+    scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
+    rendering, loads = threading.Event(), []
+    load, render_views = loader._load_models, stylize.render_views
+
+    def load_once_rendering(*args):
+        assert rendering.wait(timeout=120), "the models were loaded before the content views rendered"
+        loads.append(args[0])
+        return load(*args)
+
+    monkeypatch.setattr(loader, "_load_models", load_once_rendering)
+    monkeypatch.setattr(stylize, "render_views", lambda *args, **kwargs: rendering.set() or render_views(*args, **kwargs))
+    for prefetch in (False, True):
+        forget_models()
+        rendering.clear()
+        loads.clear()
+        if prefetch:
+            stylize.prefetch_models(paths, "cpu")
+        stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
+        assert loads == [paths], prefetch
+
+
 def test_two_devices_spread_the_groups_over_ray_workers_with_the_same_result(tmp_path, monkeypatch, ray_local):
     scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
     result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
@@ -72,7 +102,8 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
 
     from artnvg_core.cli import main as cli
     from artnvg_core import stylize
-    from artnvg_core.stylize import DiffusionModelsUnavailable, choose_stylizer, load_models_for
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable, load_models_for
+    from artnvg_core.stylize import choose_stylizer
 
     files = write_model_files(tmp_path)
     shutil.rmtree(files["sdxl"] / "unet")

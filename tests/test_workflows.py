@@ -27,7 +27,9 @@ API_WORKFLOWS = REPO / "workflows_api"
 FRONTEND_ONLY = {"Note", "MarkdownNote"}  # editor-side nodes: not in the API prompt
 TITLE_HEIGHT = 30  # the editor draws a node's title bar above its pos
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
-FILE_LISTS = {"scene_file", "camera_source", "image", "sdxl_checkpoint", "controlnet", "image_encoder", "csgo_weights"}
+FILE_LISTS = {"scene_file", "camera_source", "image", "ckpt_name", "lora_name", "control_net_name", "clip_name",
+              "csgo_name"}
+BYPASSED = 4  # a UI node's mode when bypassed: the queued prompt leaves it out and passes its inputs through
 SEED_CONTROL = ("fixed", "increment", "decrement", "randomize")
 ANY = "*"  # the input type that takes any link
 
@@ -37,6 +39,15 @@ STOCK_NODES = {
     "PreviewImage": ({"required": {"images": ("IMAGE",)}}, (), "Preview Image"),
     "SaveImage": ({"required": {"images": ("IMAGE",), "filename_prefix": ("STRING", {"default": "ComfyUI"})}}, (),
                   "Save Image"),
+    "CheckpointLoaderSimple": ({"required": {"ckpt_name": ([],)}}, ("MODEL", "CLIP", "VAE"), "Load Checkpoint"),
+    "LoraLoader": ({"required": {"model": ("MODEL",), "clip": ("CLIP",), "lora_name": ([],),
+                                 "strength_model": ("FLOAT", {"default": 1.0, "min": -100.0, "max": 100.0}),
+                                 "strength_clip": ("FLOAT", {"default": 1.0, "min": -100.0, "max": 100.0})}},
+                   ("MODEL", "CLIP"), "Load LoRA"),
+    "ControlNetLoader": ({"required": {"control_net_name": ([],)}}, ("CONTROL_NET",), "Load ControlNet Model"),
+    "CLIPVisionLoader": ({"required": {"clip_name": ([],)}}, ("CLIP_VISION",), "Load CLIP Vision"),
+    "CLIPTextEncode": ({"required": {"text": ("STRING", {"multiline": True}), "clip": ("CLIP",)}}, ("CONDITIONING",),
+                       "CLIP Text Encode (Prompt)"),
     "PreviewAny": ({"required": {"source": (ANY, {})}}, (), "Preview Any"),
     "Preview3D": ({"required": {"model_file": ("STRING", {"default": "", "multiline": False})},
                    "optional": {"camera_info": ("LOAD3D_CAMERA", {})}}, (), "Preview 3D"),
@@ -117,15 +128,23 @@ def widget_values_by_name(class_type: str, values: list) -> dict:
 def ui_to_api(ui: dict) -> dict:
     """The API-format prompt the graph editor queues for a UI-format workflow."""
     links = {link[0]: link for link in ui["links"]}
+    nodes = {node["id"]: node for node in ui["nodes"]}
+
+    def source(link_id: int) -> list:
+        """[origin id, slot] of a link, through bypassed nodes (to their input of the link's type)."""
+        _, origin, origin_slot, _, _, kind = links[link_id]
+        if nodes[origin].get("mode") == BYPASSED:
+            return source(next(s["link"] for s in nodes[origin]["inputs"] if s["type"] == kind))
+        return [str(origin), origin_slot]
+
     api = {}
     for node in ui["nodes"]:
-        if node["type"] in FRONTEND_ONLY:
+        if node["type"] in FRONTEND_ONLY or node.get("mode") == BYPASSED:
             continue
         inputs = dict(widget_values_by_name(node["type"], node.get("widgets_values", [])))
         for socket in node.get("inputs", []):
             if socket.get("link") is not None:
-                _, origin, origin_slot, *_ = links[socket["link"]]
-                inputs[socket["name"]] = [str(origin), origin_slot]
+                inputs[socket["name"]] = source(socket["link"])
         title = node.get("title") or node_description(node["type"])[2]
         api[str(node["id"])] = {"inputs": inputs, "class_type": node["type"], "_meta": {"title": title}}
     return api
@@ -194,8 +213,8 @@ def test_no_nodes_overlap_at_the_sizes_the_editor_needs(path):
 # heights the 0.3.64 editor gives each node (its computeSize); Finetune and Save with room for the text they show
 MIN_HEIGHTS = {"ArtNVGLoadGaussianScene": 106, "ArtNVGLoadCameras": 82, "LoadImage": 326, "ArtNVGRenderViews": 150,
                "ArtNVGFinetuneGaussians": 420, "ArtNVGSaveGaussianScene": 150, "ArtNVGRenderCameraPath": 198,
-               "ArtNVGCamerasAroundScene": 202, "ArtNVGLoadModels": 370, "ArtNVGGroupNeighbouringViews": 82,
-               "ArtNVGNVAttentionPatch": 130, "ArtNVGCSGOEncode": 162, "ArtNVGSampleGroup": 406}
+               "ArtNVGCamerasAroundScene": 202, "ArtNVGGroupNeighbouringViews": 82, "ArtNVGNVAttentionPatch": 130,
+               "ArtNVGSampleGroup": 406}
 
 
 @pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.name)
@@ -261,14 +280,14 @@ def test_nnfm_only_workflow_needs_no_diffusion_weights():
     api = json.loads((NNFM_API).read_text())
     used = {node["class_type"] for node in api.values()}
     assert {"ArtNVGFinetuneGaussians", "ArtNVGSaveGaussianScene"} <= used
-    assert not used & {"ArtNVGLoadModels", "ArtNVGCSGOEncode", "ArtNVGNVAttentionPatch", "ArtNVGSampleGroup"}
+    assert not used & {"ArtNVGLoadCSGO", "ArtNVGApplyCSGO", "ArtNVGNVAttentionPatch", "ArtNVGSampleGroup"}
 
 
 def test_camera_free_workflow_needs_only_a_scene_file_and_a_style_image():
     api = json.loads((CAMERA_FREE_API).read_text())
     used = {node["class_type"] for node in api.values()}
     assert "ArtNVGLoadCameras" not in used and {"ArtNVGCamerasAroundScene", "ArtNVGFinetuneGaussians"} <= used
-    assert not used & {"ArtNVGLoadModels", "ArtNVGSampleGroup"}  # the NNFM stylizer
+    assert not used & {"ArtNVGLoadCSGO", "ArtNVGSampleGroup"}  # the NNFM stylizer
     rig = next(node_id for node_id, node in api.items() if node["class_type"] == "ArtNVGCamerasAroundScene")
     views = next(node for node in api.values() if node["class_type"] == "ArtNVGRenderViews")
     assert views["inputs"]["cameras"] == [rig, 0]
@@ -280,8 +299,24 @@ def test_full_workflow_feeds_stylized_views_to_the_finetune():
     source, _ = finetune["inputs"]["stylized_views"]
     assert api[source]["class_type"] == "ArtNVGSampleGroup"
     sampler = api[source]["inputs"]
-    assert api[sampler["models"][0]]["class_type"] == "ArtNVGNVAttentionPatch"
+    patched = api[sampler["model"][0]]
+    assert patched["class_type"] == "ArtNVGNVAttentionPatch"
+    csgo = api[patched["inputs"]["model"][0]]
+    assert csgo["class_type"] == "ArtNVGApplyCSGO" and sampler["control_net"] == [patched["inputs"]["model"][0], 1]
+    assert api[csgo["inputs"]["model"][0]]["class_type"] == "CheckpointLoaderSimple"  # the LoRA loader is bypassed
     assert sampler["content_views"][0] == finetune["inputs"]["cameras"][0]  # same Render Views node
+
+
+def test_full_workflow_declares_its_four_model_files_for_the_missing_models_dialog():
+    """The top-level ``models`` list (name, url, directory) names exactly the files the loaders pick."""
+    ui = json.loads(next(WORKFLOWS.glob("ArtNVG_3_*.json")).read_text())
+    picked = {node["widgets_values"][0]: node["type"] for node in ui["nodes"]
+              if node["type"] in ("CheckpointLoaderSimple", "ControlNetLoader", "CLIPVisionLoader", "ArtNVGLoadCSGO")}
+    folders = {"CheckpointLoaderSimple": "checkpoints", "ControlNetLoader": "controlnet",
+               "CLIPVisionLoader": "clip_vision", "ArtNVGLoadCSGO": "csgo"}
+    assert {m["name"]: m["directory"] for m in ui["models"]} == {name: folders[kind] for name, kind in picked.items()}
+    assert all(m["url"].startswith("https://huggingface.co/") and m["url"].endswith(m["url"].rsplit("/", 1)[-1])
+               for m in ui["models"])
 
 
 # --------------------------------------------------------------------------- queue script

@@ -30,29 +30,35 @@ from .nerfstudio import load_nerfstudio
 from .paths import interpolate_path, orbit_path
 
 __all__ = [
-    "MAX_IMAGE_SIDE", "UP_AXES", "CameraSet", "SceneFrame", "interpolate_path", "load_cameras", "load_colmap",
+    "MAX_IMAGE_SIDE", "UP_AXES", "CameraSet", "camera_files", "SceneFrame", "interpolate_path", "load_cameras", "load_colmap",
     "load_nerfstudio", "look_at", "normalize_quats", "orbit_path", "parse_up", "quat_to_rotmat",
     "rotmat_to_quat", "scene_frame",
 ]
 
 
-def load_cameras(path) -> CameraSet:
-    """Cameras from a nerfstudio or COLMAP capture, chosen by layout.
-
-    A ``.json`` file or a folder containing ``transforms.json`` loads with
-    :func:`load_nerfstudio` (preferred when a folder holds both); a COLMAP
-    model folder, or a folder with one in ``sparse/0`` or ``sparse``, with
-    :func:`load_colmap`.
-    """
+def camera_files(path) -> list[Path]:
+    """The files :func:`load_cameras` reads for ``path``: a ``.json`` file itself, a folder's
+    ``transforms.json`` (preferred when a folder holds both), or the ``cameras`` and ``images`` files of
+    the COLMAP model in the folder, its ``sparse/0`` or ``sparse``. A ValueError naming ``path`` otherwise."""
     path = Path(path)
     if path.is_file() and path.suffix.lower() == ".json":
-        return load_nerfstudio(path)
+        return [path]
     if path.is_dir() and (path / "transforms.json").is_file():
-        return load_nerfstudio(path / "transforms.json")
-    if path.is_dir() and find_colmap_model(path) is not None:
-        return load_colmap(path)
+        return [path / "transforms.json"]
+    model = find_colmap_model(path) if path.is_dir() else None
+    if model is not None:
+        folder, ext = model
+        return [folder / f"cameras{ext}", folder / f"images{ext}"]
     raise ValueError(
         f"{path}: not a supported camera source; expected a nerfstudio .json file (e.g. transforms.json), "
         "a folder containing transforms.json, or a COLMAP model folder (cameras.bin + images.bin or "
         "cameras.txt + images.txt, directly or in sparse/0)"
     )
+
+
+def load_cameras(path) -> CameraSet:
+    """Cameras from a nerfstudio or COLMAP capture, chosen by layout (:func:`camera_files`):
+    :func:`load_nerfstudio` of a ``.json`` file or a folder's ``transforms.json``, else
+    :func:`load_colmap` of the COLMAP model folder."""
+    files = camera_files(path)
+    return load_nerfstudio(files[0]) if files[0].suffix.lower() == ".json" else load_colmap(files[0].parent)

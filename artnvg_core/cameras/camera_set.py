@@ -52,6 +52,16 @@ class CameraSet:
         """Camera centres in world coordinates, [C, 3]."""
         return camera_centers(self.world_to_cam)
 
+    def in_view(self, points: torch.Tensor) -> torch.Tensor:
+        """[C, N] bool: whether each world point of ``points`` [N, 3] lies in front of each camera and
+        projects inside its image (float64 maths, on the cameras' device)."""
+        rot, shift = self.world_to_cam[:, :3, :3].double(), self.world_to_cam[:, None, :3, 3].double()
+        cam = torch.einsum("cij,nj->cni", rot, points.to(rot.device, torch.float64)) + shift
+        k = self.intrinsics.double()[:, None]
+        u = k[..., 0, 0] * cam[..., 0] / cam[..., 2] + k[..., 0, 2]
+        v = k[..., 1, 1] * cam[..., 1] / cam[..., 2] + k[..., 1, 2]
+        return (cam[..., 2] > 0) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+
     def subset(self, indices, on_device: torch.Tensor | None = None) -> "CameraSet":
         """The views at ``indices`` (a sequence of ints), in that order. ``on_device``: the same indices as
         a long tensor on the cameras' device, which selects without copying indices to it (such a copy

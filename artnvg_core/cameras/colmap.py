@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import mmap
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,7 +11,14 @@ from pathlib import Path
 import torch
 
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
-from .common import PERSPECTIVE_MODELS, loaded_camera_set, pinhole_matrix, read_text, view_names
+from .common import (
+    PERSPECTIVE_MODELS,
+    check_camera_value,
+    check_text_size,
+    loaded_camera_set,
+    pinhole_matrix,
+    view_names,
+)
 from .geometry import quat_to_rotmat
 
 # COLMAP camera model id -> (name, number of parameters), as in COLMAP's models.h.
@@ -33,6 +41,10 @@ _COLMAP_PARAM_COUNTS = dict(_COLMAP_MODELS.values())
 _SINGLE_FOCAL_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 
 
+_MAX_NAME_BYTES = 4096  # an image name (a relative path) in images.bin
+_MAX_LINE_CHARS = 64 * 2**20  # a line of cameras.txt / images.txt (a 2D-points line of a million points fits)
+
+
 @dataclass
 class _ColmapCamera:
     model: str
@@ -47,6 +59,7 @@ class _ColmapImage:
     translation: tuple[float, float, float]  # world-to-camera translation
     camera_id: int
     name: str
+    record: int = 0  # its position in the file (errors name it, not its name)
 
 
 def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
@@ -59,15 +72,24 @@ def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
 
 
 class _BinaryReader:
-    """Little-endian reads from a file's bytes; truncation raises ValueError naming the file."""
+    """Little-endian reads from a file mapped into memory (skipped bytes are never read: an images.bin of
+    many 2D points costs what its image records do); truncation raises ValueError naming the file."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
-            self.data = path.read_bytes()
+            with open(path, "rb") as stream:
+                size = path.stat().st_size
+                self.data = mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
         except OSError as error:
             raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
         self.offset = 0
+
+    def end(self, count: int, what: str) -> None:
+        """ValueError unless every byte was read: the header's count of ``what`` covers every record."""
+        if self.offset != len(self.data):
+            raise ValueError(f"{self.path}: the header says {count:,} {what}, but {len(self.data) - self.offset:,} "
+                             "bytes follow the last of them (the count is wrong or the file is corrupt)")
 
     def unpack(self, fmt: str, what: str) -> tuple:
         size = struct.calcsize("<" + fmt)
@@ -83,15 +105,17 @@ class _BinaryReader:
         self.offset += size
 
     def c_string(self, what: str) -> str:
-        end = self.data.find(b"\0", self.offset)
-        if end < 0:
+        end = self.data.find(b"\0", self.offset, self.offset + _MAX_NAME_BYTES + 1)
+        if end < 0 and self.offset + _MAX_NAME_BYTES >= len(self.data):
             raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
+        if end < 0:
+            raise ValueError(f"{self.path}: {what} at byte {self.offset}: longer than {_MAX_NAME_BYTES} bytes (corrupt?)")
         raw = self.data[self.offset : end]
         self.offset = end + 1
         try:
             return raw.decode("utf-8")
         except UnicodeDecodeError:
-            raise ValueError(f"{self.path}: {what} is not UTF-8: {raw[:80]!r}") from None
+            raise ValueError(f"{self.path}: {what} (at byte {self.offset}) is not UTF-8") from None
 
 
 def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
@@ -105,6 +129,7 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
         model, num_params = _COLMAP_MODELS[model_id]
         params = reader.unpack(f"{num_params}d", f"the parameters of camera {camera_id}")
         cameras[camera_id] = _ColmapCamera(model, width, height, params)
+    reader.end(count, "cameras")
     return cameras
 
 
@@ -117,18 +142,34 @@ def _read_images_bin(path: Path) -> list[_ColmapImage]:
         name = reader.c_string(f"the name of image {image_id}")
         (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
         reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
-        images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name))
+        images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index))
+    reader.end(count, "images")
     return images
 
 
 def _text_records(path: Path) -> list[tuple[int, str]]:
-    """(line number, line) of a COLMAP text file, comments dropped, blank lines kept."""
-    lines = read_text(path).splitlines()
-    return [(number, line.strip()) for number, line in enumerate(lines, 1) if not line.startswith("#")]
+    """(line number, line) of a COLMAP text file, comments dropped, blank lines kept; a file over
+    :data:`~.common.MAX_CAMERA_TEXT_BYTES`, a line over :data:`_MAX_LINE_CHARS` or text that is not UTF-8
+    is a ValueError naming the file (and the line)."""
+    check_text_size(path)
+    records = []
+    try:
+        with open(path, encoding="utf-8", newline=None) as text:
+            for number, line in enumerate(iter(lambda: text.readline(_MAX_LINE_CHARS + 1), ""), 1):
+                if len(line) > _MAX_LINE_CHARS:
+                    raise ValueError(f"{path}: line {number}: longer than {_MAX_LINE_CHARS:,} characters")
+                if not line.startswith("#"):
+                    records.append((number, line.strip()))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not UTF-8 text; save it as UTF-8") from None
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
+    return records
 
 
 def _text_line_error(path: Path, number: int, expected: str, line: str) -> ValueError:
-    return ValueError(f"{path}: line {number}: expected {expected}, got {line[:120]!r}")
+    """The error of a line that is not what ``expected`` says (it tells how many fields it has, never what they say)."""
+    return ValueError(f"{path}: line {number}: expected {expected}, got a line of {len(line.split())} fields")
 
 
 def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
@@ -140,7 +181,8 @@ def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
         fields = line.split()
         if len(fields) < 4 or fields[1] not in _COLMAP_PARAM_COUNTS:
             if len(fields) >= 4:
-                raise ValueError(f"{path}: line {number}: unknown camera model {fields[1]!r}")
+                raise ValueError(f"{path}: line {number}: unknown camera model (expected one of "
+                                 f"{', '.join(_COLMAP_PARAM_COUNTS)})")
             raise _text_line_error(path, number, expected, line)
         model = fields[1]
         if len(fields) != 4 + _COLMAP_PARAM_COUNTS[model]:
@@ -198,12 +240,13 @@ def _read_images_txt(path: Path) -> list[_ColmapImage]:
         image = _image_line(line)
         if image is None:
             raise _text_line_error(path, number, expected, line)
+        image.record = len(images)
         images.append(image)
         if index < len(records) and (not records[index][1] or _is_points_line(records[index][1])):
             index += 1  # its 2D points
         elif index < len(records) and _image_line(records[index][1]) is None:
             number, line = records[index]
-            raise _text_line_error(path, number, f"the 2D points (X Y POINT3D_ID ...) of image {image.name!r}", line)
+            raise _text_line_error(path, number, "the 2D points (X Y POINT3D_ID ...) of the image line before", line)
     return images
 
 
@@ -219,6 +262,8 @@ def _colmap_intrinsics(camera: _ColmapCamera, where: str) -> list[list[float]]:
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
         raise ValueError(f"{where}: focal lengths must be finite and positive and the principal point finite, "
                          f"got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    for name, value in zip(("fx", "fy", "cx", "cy"), (fx, fy, cx, cy)):
+        check_camera_value(value, f"{where}: {name}")
     return pinhole_matrix(fx, fy, cx, cy)
 
 
@@ -264,7 +309,7 @@ def load_colmap(path) -> CameraSet:
     poses, intrinsics = [], []
     size = None
     for image in images:
-        where = f"{images_file}: image {image.name!r}"
+        where = f"{images_file}: image record {image.record}"
         camera = cameras.get(image.camera_id)
         if camera is None:
             raise ValueError(f"{where}: camera id {image.camera_id} is not in {cameras_file}")
@@ -281,7 +326,8 @@ def load_colmap(path) -> CameraSet:
             raise ValueError(f"{where}: quaternion QW QX QY QZ must be finite and non-zero, got {image.quat}")
         pose = torch.eye(4, dtype=torch.float64)
         pose[:3, :3] = quat_to_rotmat(quat)
-        pose[:3, 3] = torch.tensor(image.translation, dtype=torch.float64)
+        pose[:3, 3] = torch.tensor([check_camera_value(t, f"{where}: T{axis}")
+                                    for t, axis in zip(image.translation, "XYZ")], dtype=torch.float64)
         poses.append(pose)
     return loaded_camera_set(
         torch.stack(poses),
@@ -290,5 +336,6 @@ def load_colmap(path) -> CameraSet:
         size[1],
         view_names([image.name for image in images], images_file),
         [_image_file(model_dir, image.name) for image in images],
+        lambda index: f"{images_file}: image record {images[index].record}",
     )
 

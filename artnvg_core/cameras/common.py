@@ -1,41 +1,71 @@
-"""What the capture loaders (nerfstudio, COLMAP) share: text reading, view names, pinhole matrices."""
+"""What the capture loaders (nerfstudio, COLMAP) share: text reading, bounds on values, view names,
+pinhole matrices, the finished camera set."""
 
 from __future__ import annotations
 
+import os
+from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
 from .camera_set import CameraSet
 
+# Bytes a camera text file (transforms.json, COLMAP cameras.txt / images.txt) may have, checked before it
+# is read: a transforms.json of a million frames takes about 120 MB.
+MAX_CAMERA_TEXT_BYTES = 512 * 2**20
+# Magnitude an intrinsic (focal length, principal point; pixels) or a camera position may have: beyond
+# it no view renders (its squares overflow float32 in the projection), whatever the scene's units.
+MAX_CAMERA_VALUE = 1e9
+
 # Camera models (nerfstudio's ``camera_model`` / COLMAP's) that are pinhole
 # cameras once their distortion is ignored.
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
+def check_text_size(path: Path) -> None:
+    """ValueError naming ``path`` when it is larger than :data:`MAX_CAMERA_TEXT_BYTES`, before it is read."""
+    try:
+        size = path.stat().st_size
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
+    if size > MAX_CAMERA_TEXT_BYTES:
+        raise ValueError(f"{path}: {size:,} bytes, more than the {MAX_CAMERA_TEXT_BYTES:,} a camera file may have "
+                         "(a million views take about 120 MB); not read")
+
+
 def read_text(path: Path) -> str:
-    """A UTF-8 text file's contents; a missing, unreadable or non-UTF-8 file is a ValueError naming it."""
+    """A UTF-8 text file's contents; a missing, unreadable, non-UTF-8 or oversized
+    (:func:`check_text_size`) file is a ValueError naming it."""
+    check_text_size(path)
     try:
         return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as error:
-        raise ValueError(f"{path}: not UTF-8 text (byte {error.object[error.start:error.start + 1]!r} at offset "
-                         f"{error.start}); save it as UTF-8") from None
+        raise ValueError(f"{path}: not UTF-8 text (at byte offset {error.start}); save it as UTF-8") from None
     except OSError as error:
         raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
+
+
+def _stem(file: str) -> str:
+    """``Path(file).stem`` without making a Path for common names (a million of them load in seconds)."""
+    return Path(file).stem if file.endswith(("/", ".")) else os.path.splitext(os.path.basename(file))[0]
 
 
 def view_names(files: list[str], source: Path) -> list[str]:
     """Unique view names for image files (relative paths): each file's stem, or, where stems
     repeat (``a/0001.jpg``, ``b/0001.jpg``), the path without its suffix joined by ``_``
     (``a_0001``, ``b_0001``). Names that still repeat are a ValueError naming them."""
-    stems = [Path(f).stem for f in files]
-    repeated = {s for s in stems if stems.count(s) > 1}
+    stems = [_stem(f) for f in files]
+    stem_counts = Counter(stems)
     names = ["_".join(p for p in Path(f.replace("\\", "/")).with_suffix("").parts if p not in (".", "..", "/"))
-             if s in repeated else s for f, s in zip(files, stems)]
-    clashes = sorted({f for f, n in zip(files, names) if names.count(n) > 1})
+             if stem_counts[s] > 1 else s for f, s in zip(files, stems)]
+    name_counts = Counter(names)
+    clashes = sorted({f"{i}" for i, n in enumerate(names) if name_counts[n] > 1}, key=int)
     if clashes:
-        raise ValueError(f"{source}: image files {clashes[:6]} give views one name; views are named after "
-                         "their image files (renders are saved as NAME.png), so each must be distinct")
+        raise ValueError(f"{source}: views {', '.join(clashes[:6])} (in load order) have image files that give "
+                         "them one name; views are named after their image files (renders are saved as NAME.png), "
+                         "so each must be distinct")
     return names
 
 
@@ -44,11 +74,27 @@ def pinhole_matrix(fx: float, fy: float, cx: float, cy: float) -> list[list[floa
     return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
 
 
-def loaded_camera_set(world_to_cam: torch.Tensor, intrinsics, width: int, height: int, names, image_paths) -> CameraSet:
-    """A loader's float32 CPU CameraSet from float64 poses and intrinsics."""
+def check_camera_value(value: float, where: str) -> float:
+    """``value`` when finite and within :data:`MAX_CAMERA_VALUE`; else a ValueError naming ``where``."""
+    if not abs(value) <= MAX_CAMERA_VALUE:
+        raise ValueError(f"{where}: expected a finite number within +-{MAX_CAMERA_VALUE:g}, got {value:g}")
+    return value
+
+
+def loaded_camera_set(world_to_cam: torch.Tensor, intrinsics, width: int, height: int, names, image_paths,
+                      view: Callable[[int], str]) -> CameraSet:
+    """A loader's float32 CPU CameraSet from float64 poses and intrinsics. ``view(index)`` says where a view
+    comes from (e.g. "transforms.json: frame 3"); a view whose values are not finite in float32 is a
+    ValueError naming it and the field."""
+    world_to_cam = world_to_cam.to(torch.float32)
+    intrinsics = torch.as_tensor(intrinsics, dtype=torch.float64).reshape(-1, 3, 3).to(torch.float32)
+    for field, values in (("pose", world_to_cam), ("intrinsics", intrinsics)):
+        bad = (~torch.isfinite(values.flatten(1))).any(1).nonzero()
+        if len(bad):
+            raise ValueError(f"{view(int(bad[0, 0]))}: {field}: values beyond float32's range (not finite once converted)")
     return CameraSet(
-        world_to_cam=world_to_cam.to(torch.float32),
-        intrinsics=torch.as_tensor(intrinsics, dtype=torch.float64).reshape(-1, 3, 3).to(torch.float32),
+        world_to_cam=world_to_cam,
+        intrinsics=intrinsics,
         width=width,
         height=height,
         names=list(names),

@@ -74,14 +74,18 @@ def slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return mixed / mixed.norm(dim=-1, keepdim=True)
 
 
-def check_rotation(rot: torch.Tensor, where: str) -> None:
-    """ValueError unless ``rot`` [3, 3] is orthonormal with determinant +1 (to 1e-3)."""
-    error = (rot.T @ rot - torch.eye(3, dtype=rot.dtype)).abs().max().item()
-    det = torch.linalg.det(rot).item()
-    if not (error < 1e-3 and det > 0):
+def check_rotation(rot: torch.Tensor, where) -> None:
+    """ValueError unless ``rot`` [3, 3] (or each of [C, 3, 3]) is orthonormal with determinant +1 (to 1e-3).
+    ``where`` names the matrix; for a batch, a function of the index naming the first bad one."""
+    batch = rot.reshape(-1, 3, 3)
+    errors = (batch.transpose(1, 2) @ batch - torch.eye(3, dtype=rot.dtype)).abs().amax((1, 2))
+    dets = torch.linalg.det(batch)
+    bad = (~((errors < 1e-3) & (dets > 0))).nonzero()
+    if len(bad):
+        index = int(bad[0, 0])
         raise ValueError(
-            f"{where}: the top-left 3x3 block must be a rotation (orthonormal, determinant +1); "
-            f"got max|R^T R - I| = {error:.3g}, det = {det:.3g}"
+            f"{where(index) if callable(where) else where}: the top-left 3x3 block must be a rotation (orthonormal, "
+            f"determinant +1); got max|R^T R - I| = {errors[index]:.3g}, det = {dets[index]:.3g}"
         )
 
 

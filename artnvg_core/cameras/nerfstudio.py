@@ -10,7 +10,15 @@ from pathlib import Path
 import torch
 
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
-from .common import PERSPECTIVE_MODELS, loaded_camera_set, pinhole_matrix, read_text, view_names
+from .common import (
+    PERSPECTIVE_MODELS,
+    MAX_CAMERA_VALUE,
+    check_camera_value,
+    loaded_camera_set,
+    pinhole_matrix,
+    read_text,
+    view_names,
+)
 from .geometry import check_rotation, rigid_inverse
 
 # Flips the y and z camera axes: OpenGL (x right, y up, z back) <-> OpenCV (x right, y down, z forward).
@@ -21,19 +29,34 @@ _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 
 
 def _read_json_object(path: Path) -> dict:
+    """The JSON object in ``path``. Every number is read as a float: one beyond float range (1e400, 10**400)
+    becomes infinite and is refused by the field that holds it. Nesting deeper than Python's parser goes
+    (a transforms.json nests five levels) is a ValueError."""
+    text = read_text(path)
     try:
-        data = json.loads(read_text(path))
+        data = json.loads(text, parse_int=float)
     except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON ({error})") from None
+        raise ValueError(f"{path}: not valid JSON (line {error.lineno}, column {error.colno}: {error.msg})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a camera file: its JSON nests too deeply to read") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
     return data
 
 
 def _number(value, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{where}: expected a finite number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: expected a number, got {_kind(value)}")
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: expected a finite number within float range, got {value}")
     return float(value)
+
+
+def _kind(value) -> str:
+    """What ``value`` (from JSON) is, without quoting it: "a string", "a list of 3 items"..."""
+    if isinstance(value, list):
+        return f"a list of {len(value)} items"
+    return {str: "a string", dict: "an object", bool: "true or false", type(None): "null"}.get(type(value), "a number")
 
 
 def _image_size(value, where: str) -> int:
@@ -43,19 +66,52 @@ def _image_size(value, where: str) -> int:
     return int(size)
 
 
+_KNOWN_MODELS = ("OPENCV_FISHEYE", "EQUIRECTANGULAR", "FISHEYE624", "FULL_OPENCV", "FOV", "THIN_PRISM_FISHEYE")
+_BOTTOM_ROW = [0.0, 0.0, 0.0, 1.0]
+
+
+def _matrix_rows(value, where: str) -> list[list]:
+    """The four rows of a JSON 3x4 or 4x4 nested list (a 3x4 one gets the row 0 0 0 1); only the shape is
+    checked here, in plain Python, so that a million frames are read in seconds (:func:`_matrices` and
+    :func:`_check_affine` check the values)."""
+    rows = value if isinstance(value, list) and len(value) in (3, 4) else None
+    if rows is None or not all(isinstance(row, list) and len(row) == 4 for row in rows):
+        raise ValueError(f"{where}: expected a 3x4 or 4x4 matrix of numbers, got {_kind(value)}")
+    return rows if len(rows) == 4 else [*rows, _BOTTOM_ROW]
+
+
+def _matrices(rows: list[list[list]], where) -> torch.Tensor:
+    """[C, 4, 4] float64 of the :func:`_matrix_rows` of C matrices; ValueError naming ``where(index)`` of the
+    first that holds something other than numbers."""
+    try:
+        return torch.tensor(rows, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        for index, matrix in enumerate(rows):
+            if any(isinstance(number, (str, list, dict)) or number is None for row in matrix for number in row):
+                raise ValueError(f"{where(index)}: expected a 3x4 or 4x4 matrix of numbers, got "
+                                 "something else among them") from None
+        raise
+
+
+def _check_affine(matrices: torch.Tensor, where) -> None:
+    """ValueError naming ``where(index)`` of the first of ``matrices`` [C, 4, 4] with a value beyond float
+    range or a bottom row other than 0 0 0 1."""
+    finite = torch.isfinite(matrices).flatten(1).all(1)
+    bottom = (matrices[:, 3] - torch.tensor(_BOTTOM_ROW, dtype=matrices.dtype)).abs().amax(1) <= 1e-6
+    bad = (~(finite & bottom)).nonzero()
+    if len(bad):
+        index = int(bad[0, 0])
+        if not finite[index]:
+            raise ValueError(f"{where(index)}: expected finite numbers within float range, got "
+                             f"{matrices[index][~torch.isfinite(matrices[index])][0]}")
+        raise ValueError(f"{where(index)}: the bottom row must be [0, 0, 0, 1], got {matrices[index, 3].tolist()}")
+
+
 def _affine_matrix(value, where: str) -> torch.Tensor:
     """A 4x4 float64 affine matrix from a JSON 3x4 or 4x4 nested list (bottom row 0 0 0 1)."""
-    try:
-        matrix = torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        matrix = None
-    if matrix is None or tuple(matrix.shape) not in ((3, 4), (4, 4)) or not torch.isfinite(matrix).all():
-        raise ValueError(f"{where}: expected a 3x4 or 4x4 matrix of finite numbers, got {str(value)[:120]}")
-    if matrix.shape[0] == 4:
-        if not torch.allclose(matrix[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6):
-            raise ValueError(f"{where}: the bottom row must be [0, 0, 0, 1], got {matrix[3].tolist()}")
-        return matrix
-    return torch.cat([matrix, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)])
+    matrix = _matrices([_matrix_rows(value, where)], lambda _: where)
+    _check_affine(matrix, lambda _: where)
+    return matrix[0]
 
 
 def _frame_value(frame: dict, meta: dict, where: str, key: str, default=None):
@@ -70,9 +126,8 @@ def _frame_value(frame: dict, meta: dict, where: str, key: str, default=None):
 
 def _check_camera_model(model, where: str) -> None:
     if model not in PERSPECTIVE_MODELS:
-        raise ValueError(
-            f"{where}: camera model {model!r} is not supported; expected one of {', '.join(PERSPECTIVE_MODELS)}"
-        )
+        named = f" {model}" if model in _KNOWN_MODELS else ""  # a file's own text is never quoted
+        raise ValueError(f"{where}: camera model{named} not supported; expected one of {', '.join(PERSPECTIVE_MODELS)}")
 
 
 def _dataparser_rigid_transform(path: Path, meta: dict, transforms_path: Path) -> tuple[torch.Tensor, float]:
@@ -130,7 +185,7 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     meta = _read_json_object(path)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise ValueError(f"{path}: expected a non-empty list under 'frames', got {str(frames)[:80]}")
+        raise ValueError(f"{path}: 'frames': expected a non-empty list, got {_kind(frames) if frames is not None else 'nothing'}")
     if "camera_model" in meta:
         _check_camera_model(meta["camera_model"], f"{path}: 'camera_model'")
 
@@ -153,28 +208,38 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
                 f"{where}: image size {width}x{height} differs from the first frame's {size[0]}x{size[1]}; "
                 "all frames must share one size"
             )
-        fx, fy = (_number(value(key), f"{where}: '{key}'") for key in ("fl_x", "fl_y"))
+        fx, fy = (check_camera_value(_number(value(key), f"{where}: '{key}'"), f"{where}: '{key}'")
+                  for key in ("fl_x", "fl_y"))
         if fx <= 0 or fy <= 0:
             raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
-        cx = _number(value("cx", width / 2), f"{where}: 'cx'")
-        cy = _number(value("cy", height / 2), f"{where}: 'cy'")
+        cx, cy = (check_camera_value(_number(value(key, default), f"{where}: '{key}'"), f"{where}: '{key}'")
+                  for key, default in (("cx", width / 2), ("cy", height / 2)))
         intrinsics.append(pinhole_matrix(fx, fy, cx, cy))
 
         file_path = value("file_path")
         if not isinstance(file_path, str) or not file_path:
-            raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {file_path!r}")
+            raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {_kind(file_path)}")
         names.append(file_path)
         image_paths.append(path.parent / file_path)
 
-        pose = _affine_matrix(value("transform_matrix"), f"{where}: 'transform_matrix'")
-        check_rotation(pose[:3, :3], f"{where}: 'transform_matrix'")
-        poses.append(pose)
+        poses.append(_matrix_rows(value("transform_matrix"), f"{where}: 'transform_matrix'"))
 
-    cam_to_world = torch.stack(poses) @ _FLIP_YZ
+    def matrix_of(index: int) -> str:
+        return f"{path}: frame {index}: 'transform_matrix'"
+
+    cam_to_world = _matrices(poses, matrix_of)
+    _check_affine(cam_to_world, matrix_of)
+    check_rotation(cam_to_world[:, :3, :3], matrix_of)
+    far = (cam_to_world[:, :3, 3].abs() > MAX_CAMERA_VALUE).nonzero()
+    if len(far):
+        index, axis = far[0].tolist()
+        check_camera_value(cam_to_world[index, axis, 3].item(), f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
+    cam_to_world = cam_to_world @ _FLIP_YZ
     if dataparser_transforms is not None:
         transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
         cam_to_world = transform @ cam_to_world
         cam_to_world[:, :3, 3] *= scale
     world_to_cam = rigid_inverse(cam_to_world)
-    return loaded_camera_set(world_to_cam, intrinsics, size[0], size[1], view_names(names, path), image_paths)
+    return loaded_camera_set(world_to_cam, intrinsics, size[0], size[1], view_names(names, path), image_paths,
+                             lambda index: f"{path}: frame {index}")
 

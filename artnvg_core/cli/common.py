@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+import signal
+import threading
 import time
 from typing import TYPE_CHECKING
 
@@ -88,6 +91,28 @@ def parse_devices(text: str | None) -> list[torch.device] | None:
     return devices
 
 
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """For the block, SIGTERM (``kill``, a scheduler's stop) raises KeyboardInterrupt in the main thread, so
+    a command stops as on Ctrl-C: its temporaries removed, nothing half-written (and a batch's running jobs
+    cancelled, Ray shut down). Yields a list that holds the signal once one came. Outside the main thread,
+    or without SIGTERM, nothing changes."""
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    if not hasattr(signal, "SIGTERM") or threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it.
     ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G)."""
@@ -118,8 +143,9 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
-                       spz_axes: str = "rub") -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes`` passed on),
+                       spz_axes: str = "auto", cameras: CameraSet | None = None) -> GaussianScene:
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``
+    passed on),
     printing the file size first and the count and time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
@@ -130,7 +156,7 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
     start = time.perf_counter()
     try:
-        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes).to(device)
+        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise
@@ -185,10 +211,11 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
                         "warning) instead of refusing the file")
-    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="rub",
-                        help=f"axes of a .spz scene{written} that does not name its own: rub (default), the SPZ "
-                        "format's rule, as Niantic's tools write; ply: the PLY's axes, as PlayCanvas splat-transform "
-                        "and SuperSplat write .spz (such files load upside down with rub)")
+    parser.add_argument("--spz-axes", choices=SPZ_AXES, default="auto",
+                        help=f"axes of a .spz scene{written} that names none of its own: ply, the PLY's (x right, "
+                        "y down, z forward), as splat-transform, SuperSplat, spz-js and Niantic's ply-to-spz write "
+                        "them; rub (x right, y up, z back), the SPZ description's; auto (default): read in the one "
+                        "that puts the scene in front of --cameras when given, else ply; written in ply")
 
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
@@ -208,14 +235,19 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
                        "full: all round always")
 
 
+def orbit_size(args: argparse.Namespace) -> tuple[int, int]:
+    """(width, height) in pixels from ``--orbit-size`` (WIDTHxHEIGHT or N); ValueError naming the option."""
+    parts = args.orbit_size.lower().split("x")
+    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
+        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
+    return int(parts[0]), int(parts[-1])
+
+
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
     """:func:`~artnvg_core.orbit.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
     from ..orbit import orbit_cameras
 
-    parts = args.orbit_size.lower().split("x")
-    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
-        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
-    width, height = int(parts[0]), int(parts[-1])
+    width, height = orbit_size(args)
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
                             around=args.orbit_around)
     print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",

@@ -252,7 +252,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
     all_cameras = load_cameras(args.cameras) if args.cameras else None
     style = load_image(args.style)
-    original_scene = load_scene_verbose(args.original, device)
+    original_scene = load_scene_verbose(args.original, device, cameras=all_cameras)
     all_cameras = orbit_from_args(args, original_scene) if all_cameras is None else all_cameras
     indices = parse_views(args.views, len(all_cameras), "--views")
     cameras = all_cameras.subset(indices).scaled(args.scale)
@@ -265,7 +265,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
 
     original = render_views(original_scene, cameras, depth=True, progress=ProgressBar("render original views"))
     if path is not None:
-        stylized_scene = load_scene_verbose(args.stylized, device)
+        stylized_scene = load_scene_verbose(args.stylized, device, cameras=all_cameras)
         stylized = render_views(stylized_scene, cameras, progress=ProgressBar("render stylized views")).rgb
         frames = (render_views(original_scene, path, progress=ProgressBar("render original path")).rgb,
                   render_views(stylized_scene, path, progress=ProgressBar("render stylized path")).rgb)

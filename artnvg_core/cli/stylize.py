@@ -37,6 +37,7 @@ from .common import (
     prepare_rasterizer,
     unit_interval,
 )
+from .region import add_region_arguments, check_region_arguments, selection_from_args
 
 SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
 
@@ -68,6 +69,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
     check_style_image(args.style)
+    check_region_arguments(args, cameras_required=False)
     if args.lora and (diffusion_free or args.stylizer == "nnfm"):
         raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
                          f"{args.preset} with --stylizer {args.stylizer})")
@@ -77,25 +79,33 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
     torch.manual_seed(args.seed)
-
-    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
-    try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
-        check_geometry_writable(scene, out)
-    except ValueError as error:
-        raise ValueError(f"--out: {error}; the stylized scene keeps these positions and scales, so "
-                         f"{out.suffix} cannot hold it: choose .ply") from None
-    cameras = load_cameras(args.cameras) if args.cameras else orbit_from_args(args, scene)
-    cameras = cameras.scaled(scale)
-    style = load_image(args.style)
-
-    from ..finetune import FinetuneConfig
-    from ..stylize import DiffusionModelsUnavailable, choose_stylizer, save_result, stylize_diffusion, stylize_nnfm
+    from ..stylize import choose_stylizer, prefetch_models, save_result, stylize_diffusion, stylize_nnfm
 
     files = ModelFiles(args.sdxl, args.controlnet, args.image_encoder, args.csgo)
     if diffusion_free:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
+    if stylizer == "diffusion" and not args.devices and not args.ray_address:  # read while the scene loads
+        print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
+        prefetch_models(files, device, preset=args.preset, compile_blocks=args.compile, loras=args.lora,
+                        progress=ProgressBar("models", "B"))
+
+    capture_cameras = load_cameras(args.cameras) if args.cameras else None
+    scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
+                               cameras=capture_cameras)
+    try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
+        check_geometry_writable(scene, out)
+    except ValueError as error:
+        raise ValueError(f"--out: {error}; the stylized scene keeps these positions and scales, so "
+                         f"{out.suffix} cannot hold it: choose .ply") from None
+    cameras = capture_cameras if capture_cameras is not None else orbit_from_args(args, scene)
+    cameras = cameras.scaled(scale)
+    style = load_image(args.style)
+    selection = selection_from_args(args, scene, cameras)
+
+    from ..diffusion.loader import DiffusionModelsUnavailable
+    from ..finetune import FinetuneConfig
 
     def iterations_for(stylizer: str) -> int:
         if args.iters is not None:
@@ -117,16 +127,16 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
-        print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         try:
             result, _ = stylize_diffusion(scene, cameras, style.to(device), config, files, loras=args.lora,
                                           preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
-                                          compile_blocks=args.compile, loading_progress=ProgressBar("models", "B"),
+                                          compile_blocks=args.compile,
                                           sampling_progress=ProgressBar("diffusion"),
-                                          progress=ProgressBar("finetune"), should_stop=args.should_stop)
+                                          progress=ProgressBar("finetune"), should_stop=args.should_stop,
+                                          selection=selection)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
@@ -134,7 +144,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
-                              should_stop=args.should_stop)
+                              should_stop=args.should_stop, selection=selection)
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
@@ -198,6 +208,7 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")
     p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
+    add_region_arguments(p, "stylize")
     add_scene_file_options(p, " (and of --out)")
     models = p.add_argument_group("diffusion models (default: the Hugging Face cache; never downloaded)")
     models.add_argument("--sdxl", help="SDXL 1.0 base: diffusers folder or single-file checkpoint")

@@ -2,6 +2,7 @@
 
 Entry points (import them from their modules; this package imports nothing heavy itself):
 
+- :mod:`.loader`       -- ``load_models_for``: the one loader for a device (once per process, placed, compiled)
 - :mod:`.models`       -- ``load_diffusion_models`` (and per-model loaders) -> ``DiffusionModels``
 - :mod:`.stylize`      -- ``stylize_views``: a whole scene, group by group
 - :mod:`.sampler`      -- ``stylize_group``: one neighbouring-view group
@@ -15,7 +16,7 @@ Entry points (import them from their modules; this package imports nothing heavy
 - :mod:`.resampler`    -- ``PerceiverResampler``
 - :mod:`.images`       -- IMAGE checks, SDXL sizes, resizing, CLIP preprocessing
 - :mod:`.model_files`  -- ``ModelFiles`` (the four files), locating them (explicit path or Hugging Face
-  cache), ``MissingModelError``
+  cache), ``missing_model``, ``MissingModelError``
 - :mod:`.model_cache`  -- ``load_once``: the loaded models kept for the next load with the same key
 - :mod:`.architectures` -- SDXL / ControlNet / ViT-bigG configs (no weights)
 - :mod:`.sdxl_config`  -- SDXL 1.0 base's diffusers configs and CLIP tokenizer files, shipped (``clip_bpe/``)

@@ -43,6 +43,12 @@ CONTROLNET_ROUTES = {"down_blocks": "style", "mid_block": None}
 CONTENT_ROUTINGS = ("released", "paper")
 
 
+def released_key_prefix(position: int) -> str:
+    """The released layout's index prefix of the ``attn2`` of the ``position``-th transformer block (0-based,
+    counted down -> up -> mid blocks): every block has an attn1 and an attn2 processor, so ``2 * position + 1``."""
+    return str(2 * position + 1)
+
+
 def route_for(processor_name: str, routes: dict[str, str | None]) -> str | None:
     """Image tokens ("content" / "style" / None) read by the cross-attention ``processor_name``."""
     top = processor_name.split(".", 1)[0]

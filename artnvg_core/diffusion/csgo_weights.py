@@ -27,6 +27,7 @@ that lists the keys and names the file. The layout found is logged once per load
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -142,6 +143,34 @@ def _unet_routes(unet: nn.Module, ip_adapter: dict[str, torch.Tensor], path: Pat
     return UNET_ROUTES if len(present) == len(content) else UNET_STYLE_ROUTES
 
 
+@dataclass
+class CSGOFile:
+    """A CSGO file read and checked as far as it can be without the models it patches: the two resamplers
+    built, the image-branch groups kept as the file's tensors (see the module docstring)."""
+
+    path: Path
+    content: PerceiverResampler
+    style: PerceiverResampler
+    unet_branches: dict[str, torch.Tensor]  # the ``ip_adapter`` group
+    controlnet_branches: dict[str, torch.Tensor]  # the ``controlnet_adapter_modules`` group
+    conv_in: dict[str, torch.Tensor] | None = None  # the optional ``conv_in_unet_sd`` group
+
+
+def read_csgo(path: str | Path, dim_head: int = 64) -> CSGOFile:
+    """The CSGO file at ``path`` with its resamplers built (head width ``dim_head``: 64 in CSGO, not stored).
+    Raises :class:`CSGOWeightsError` naming the file and group on a missing group or a bad resampler."""
+    path = Path(path)
+    groups = read_csgo_file(path)
+    return CSGOFile(
+        path=path,
+        content=_load_resampler(groups["content_image_proj"], "content_image_proj", path, dim_head),
+        style=_load_resampler(groups["style_image_proj"], "style_image_proj", path, dim_head),
+        unet_branches=groups["ip_adapter"],
+        controlnet_branches=groups["controlnet_adapter_modules"],
+        conv_in=groups.get("conv_in_unet_sd"),
+    )
+
+
 def load_csgo(
     path: str | Path,
     unet: nn.Module,
@@ -156,10 +185,8 @@ def load_csgo(
     dim_head: the resamplers' head width (64 in CSGO; not stored in the file).
     Raises :class:`CSGOWeightsError` on a missing or mis-shaped key (see the module docstring).
     """
-    path = Path(path)
-    groups = read_csgo_file(path)
-    content = _load_resampler(groups["content_image_proj"], "content_image_proj", path, dim_head)
-    style = _load_resampler(groups["style_image_proj"], "style_image_proj", path, dim_head)
+    csgo = read_csgo(path, dim_head)
+    path, content, style = csgo.path, csgo.content, csgo.style
     cross_dim = unet.config.cross_attention_dim
     for name, resampler in (("content_image_proj", content), ("style_image_proj", style)):
         if resampler.config.output_dim != cross_dim:
@@ -167,17 +194,17 @@ def load_csgo(
                 f"CSGO weights '{path}', group '{name}': output width {resampler.config.output_dim} "
                 f"!= the UNet's cross_attention_dim {cross_dim}"
             )
-    unet_routes = _unet_routes(unet, groups["ip_adapter"], path)
+    unet_routes = _unet_routes(unet, csgo.unet_branches, path)
     install_processors(unet, unet_routes, query_chunk_size=query_chunk_size, initialise=False)
     install_processors(controlnet, CONTROLNET_ROUTES, query_chunk_size=query_chunk_size, initialise=False)
-    _fill(processor_key_layout(unet), groups["ip_adapter"], "ip_adapter", path)
-    controlnet_keys = groups["controlnet_adapter_modules"]
+    _fill(processor_key_layout(unet), csgo.unet_branches, "ip_adapter", path)
+    controlnet_keys = csgo.controlnet_branches
     by_index = all(key.split(".", 1)[0].isdigit() for key in controlnet_keys)
     others = {} if by_index else dict(controlnet.state_dict(keep_vars=True))
     ignored = _fill(processor_key_layout(controlnet, by_index), controlnet_keys, "controlnet_adapter_modules", path,
                     optional=others)
-    if "conv_in_unet_sd" in groups:
-        _fill(dict(unet.conv_in.state_dict(keep_vars=True)), groups["conv_in_unet_sd"], "conv_in_unet_sd", path,
+    if csgo.conv_in is not None:
+        _fill(dict(unet.conv_in.state_dict(keep_vars=True)), csgo.conv_in, "conv_in_unet_sd", path,
               strict=True)
     replaced = len(controlnet_keys) - len(ignored) - len(processor_key_layout(controlnet, by_index))
     _log.info(
@@ -186,7 +213,7 @@ def load_csgo(
         "loaded (content routing 'paper' available)" if unet_routes is UNET_ROUTES else "absent (as saved by the "
         "released code; content routing 'released' only)", "processor index" if by_index else "module path",
         f", {replaced} other ControlNet weights replaced" if replaced else "",
-        ", UNet conv_in replaced" if "conv_in_unet_sd" in groups else "",
+        ", UNet conv_in replaced" if csgo.conv_in is not None else "",
     )
     weight = unet.conv_in.weight
     projections = CSGOProjections(content, style, unet_content=unet_routes is UNET_ROUTES)

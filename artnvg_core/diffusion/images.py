@@ -64,6 +64,17 @@ def sdxl_size(height: int, width: int, resolution: int = 1024, multiple: int = 6
     )
 
 
+def sampling_size(height: int, width: int, resolution: int | None, size_rule: str, multiple: int) -> tuple[int, int]:
+    """(height, width) at which a ``height`` x ``width`` view is sampled: ``resolution`` None keeps its size
+    rounded to multiples of 64; else ``size_rule`` "area" gives :func:`sdxl_size`, "long_side" :func:`csgo_size`
+    with sides that are multiples of ``multiple`` (the VAE's and UNet's downsampling together)."""
+    if resolution is None:
+        return max(64, round(height / 64) * 64), max(64, round(width / 64) * 64)
+    if size_rule == "area":
+        return sdxl_size(height, width, resolution)
+    return csgo_size(height, width, resolution, multiple)
+
+
 def resize_images(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """[B, H, W, 3] -> [B, height, width, 3], bicubic (unchanged when the size already matches)."""
     return resize_image(images, height, width, mode="bicubic")

@@ -154,3 +154,13 @@ def check_model_files(
         if path.is_dir():
             require_path(path / "config.json", what)
     return found
+
+
+def missing_model(files: ModelFiles, *, sdxl_config_dir: str | Path | None = None) -> str | None:
+    """None when every file the diffusion models' load reads is there (:func:`check_model_files`), else the
+    first missing one's message."""
+    try:
+        check_model_files(files, sdxl_config_dir=sdxl_config_dir)
+    except MissingModelError as error:
+        return str(error)
+    return None

@@ -93,23 +93,24 @@ def _vae_dtype(force_upcast: bool, dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype == torch.float16 and force_upcast else dtype
 
 
-def _read_weights(path: Path) -> dict[str, torch.Tensor]:
+def _read_weights(path: Path, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
+    """The tensors of a ``.safetensors`` file or a ``torch.save`` file, read onto ``device``."""
     if path.suffix == ".safetensors":
         from safetensors.torch import load_file
 
-        return load_file(str(path))
-    return torch.load(path, map_location="cpu", weights_only=True)
+        return load_file(str(path), device=str(torch.device(device)))
+    return torch.load(path, map_location=device, weights_only=True)
 
 
-def load_state_dict_strict(model: torch.nn.Module, path: Path) -> None:
+def load_state_dict_strict(model: torch.nn.Module, path: Path, device: str | torch.device = "cpu") -> None:
     """Load the weight file at ``path`` into ``model`` (built in :func:`parameters_on_meta` or not),
-    taking the file's tensors as they are (no copy, the file's dtype); every key must match in name
-    and shape (else ValueError listing the missing, unexpected and mis-shaped keys). Entries for the
-    model's non-persistent buffers (e.g. CLIP ``position_ids`` in older files) are ignored: the model
-    computes them itself."""
+    taking the file's tensors as they are, read straight onto ``device`` (no other copy, the file's
+    dtype); every key must match in name and shape (else ValueError listing the missing, unexpected and
+    mis-shaped keys). Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
+    files) are ignored: the model computes them itself."""
     expected = model.state_dict()
     recomputed = {name for name, _ in model.named_buffers()} - set(expected)
-    state = {k: v for k, v in _read_weights(path).items() if k not in recomputed}
+    state = {k: v for k, v in _read_weights(path, device).items() if k not in recomputed}
     mismatch = state_dict_mismatch(expected, state)
     if mismatch:
         raise ValueError(f"weights '{path}' do not fit {type(model).__name__}: {mismatch}")
@@ -211,7 +212,7 @@ def load_vae(
             raise MissingModelError(f"VAE weights '{path}': no config.json beside the file")
         with parameters_on_meta():
             vae = AutoencoderKL.from_config(config)
-        load_state_dict_strict(vae, path)
+        load_state_dict_strict(vae, path, device)
     return _placed(vae, device, _vae_dtype(vae.config.force_upcast, dtype))
 
 
@@ -238,7 +239,7 @@ def load_controlnet(
             )
         with parameters_on_meta():
             controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
-        load_state_dict_strict(controlnet, path)
+        load_state_dict_strict(controlnet, path, device)
     return _placed(controlnet, device, dtype)
 
 
@@ -258,7 +259,7 @@ def load_image_encoder(
         config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
         with parameters_on_meta():
             encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**transformers_config_kwargs(config)))
-        load_state_dict_strict(encoder, path)
+        load_state_dict_strict(encoder, path, device)
     return _placed(encoder, device, dtype)
 
 

@@ -45,7 +45,7 @@ from ..grouping import nearest_views
 from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
 from .conditioning import StyleConditioning, content_tokens
-from .images import check_images, csgo_size, resize_images, sdxl_size
+from .images import check_images, resize_images, sampling_size
 from .memory import visiting
 from .models import DiffusionModels
 from .settings import SamplerSettings
@@ -81,13 +81,9 @@ def _time_ids(models: DiffusionModels, height: int, width: int, pooled_dim: int)
 
 def working_size(models: DiffusionModels, settings: SamplerSettings, height: int, width: int) -> tuple[int, int]:
     """(height, width) at which a ``height`` x ``width`` view is sampled (see ``SamplerSettings.size_rule``)."""
-    if settings.resolution is None:
-        return max(64, round(height / 64) * 64), max(64, round(width / 64) * 64)
-    if settings.size_rule == "area":
-        return sdxl_size(height, width, settings.resolution)
     vae_scale = 2 ** (len(models.base.vae.config.block_out_channels) - 1)
     unet_scale = 2 ** (len(models.base.unet.config.block_out_channels) - 1)
-    return csgo_size(height, width, settings.resolution, vae_scale * unet_scale)
+    return sampling_size(height, width, settings.resolution, settings.size_rule, vae_scale * unet_scale)
 
 
 def resample_noise(noise: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

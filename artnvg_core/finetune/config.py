@@ -43,11 +43,13 @@ class FinetuneConfig:
             default for cuDNN on a CUDA GPU; float32 elsewhere) or ``"bf16"`` (autocast: features and their
             gradients in bfloat16; the NNFM and content terms themselves in float32; its price: BENCHMARKS.md,
             NNFM search precision). SSIM is float32 either way.
-        cuda_graph (`bool`, defaults to True): on a CUDA device, record the loss of a step's renders (the VGG
-            terms, SSIM, L1, TV; forward and backward) once as CUDA graphs and replay them every step
+        cuda_graph (`bool` or None, defaults to None): on a CUDA device, record the loss of a step's renders
+            (the VGG terms, SSIM, L1, TV; forward and backward) once as CUDA graphs and replay them every step
             (:mod:`artnvg_core.finetune.step_loss`; the same result, without queueing its ~250 kernels one by one);
-            False: run it eagerly. Always eager elsewhere and under the ``cudaMallocAsync`` allocator
-            (ComfyUI's default; :func:`artnvg_core.finetune.step_loss.can_graph`).
+            False: run it eagerly; None: record when the run is long enough to win the recording back
+            (:data:`artnvg_core.finetune.step_loss.GRAPH_MIN_ITERATIONS` iterations or more). Always eager
+            elsewhere and under the ``cudaMallocAsync`` allocator (ComfyUI's default;
+            :func:`artnvg_core.finetune.step_loss.can_graph`).
         views_per_step (`int`, defaults to 1): views rendered per step, >= 1 (drawn at random, repeats
             possible), their terms averaged into one loss.
         color_transfer (`bool`, defaults to True): without stylized views, ARF's colour transfer before and
@@ -82,7 +84,7 @@ class FinetuneConfig:
     nnfm_max_side: int | None = 512
     nnfm_search: str = "tf32"
     vgg_precision: str = "tf32"
-    cuda_graph: bool = True
+    cuda_graph: bool | None = None
     views_per_step: int = 1
     color_transfer: bool = True
     lr_sh_dc: float | None = None

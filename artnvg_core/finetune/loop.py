@@ -22,6 +22,12 @@ transfer (:mod:`artnvg_core.finetune.color_transfer`): the scene's colours are f
 style image's mean and covariance, exactly in the SH, the content term compares against the
 recoloured views (clamped to [0, 1]), and the match is estimated and applied again to the
 result. The original Gaussians are the starting point (not a fresh fit); no densification.
+
+With a ``selection`` (a region, :mod:`artnvg_core.selection`) only the selected Gaussians are trained (the
+others render with them, unchanged, and come back bit for bit), every term is weighted by the pixels they
+cover (their share of each pixel's colour in the original's renders, :func:`~artnvg_core.selection.coverage`),
+the views where they cover less than one pixel are left out, and the colour transfer is estimated on the
+pixels they cover at least half of and applied to them alone.
 """
 
 from __future__ import annotations
@@ -37,10 +43,11 @@ from ..progress import ProgressFn, StopFn, check_stop
 from ..raster.step_renderer import StepRenderer
 from ..raster.views import render_views
 from ..scene import GaussianScene
-from .color_transfer import match_colors, recolor_scene
+from ..selection import coverage
+from .color_transfer import ColorTransform, match_colors, recolor_scene
 from .config import FinetuneConfig
 from .finite_steps import FiniteAdam
-from .step_loss import StepLoss, can_graph, graphed, nchw, vgg_input
+from .step_loss import GRAPH_MIN_ITERATIONS, StepLoss, can_graph, graphed, nchw, vgg_input
 
 APPEARANCE = ("sh", "opacity_logits")
 REPORT_EVERY = 50  # steps between the loss values handed to ``progress`` (reading them waits for the device)
@@ -66,10 +73,58 @@ def _parameters(scene: GaussianScene, config: FinetuneConfig) -> dict[str, torch
     return params
 
 
-def _scene_of(params: dict[str, torch.Tensor], like: GaussianScene) -> GaussianScene:
-    """The scene of ``params`` with the render settings (blur, antialiasing) of ``like``."""
+def _scene_of(params: dict[str, torch.Tensor], like: GaussianScene, frozen: GaussianScene | None = None) -> GaussianScene:
+    """The scene of ``params`` with the render settings (blur, antialiasing) of ``like``, followed by the
+    ``frozen`` Gaussians when given."""
     rest = {k: v for k, v in params.items() if not k.startswith("sh_")}
-    return dataclasses.replace(like, **rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
+    scene = dataclasses.replace(like, **rest, sh=torch.cat([params["sh_dc"], params["sh_rest"]], 1))
+    if frozen is None:
+        return scene
+    return dataclasses.replace(scene, **{k: torch.cat([v, getattr(frozen, k)]) for k, v in scene.tensors().items()})
+
+
+def _placed(every: torch.Tensor, selected: torch.Tensor, selection: torch.Tensor) -> torch.Tensor:
+    """A copy of ``every [N, ...]`` with the rows of ``selection [N]`` replaced by ``selected``."""
+    placed = every.clone()
+    placed[selection] = selected
+    return placed
+
+
+def _recolor(scene: GaussianScene, transform: ColorTransform, selection: torch.Tensor | None) -> GaussianScene:
+    """``scene`` recoloured by ``transform`` (:func:`recolor_scene`), the selected Gaussians only when given."""
+    recolored = recolor_scene(scene, transform)
+    if selection is None:
+        return recolored
+    return dataclasses.replace(scene, sh=torch.where(selection[:, None, None], recolored.sh, scene.sh))
+
+
+def _region_pixels(images: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """The pixels [P, 3] of ``images [C, H, W, 3]`` whose region ``weights [C, H, W]`` are at least 0.5 (all
+    without weights); ValueError when there are none."""
+    if weights is None:
+        return images
+    pixels = images[weights >= 0.5]
+    if len(pixels) == 0:
+        raise ValueError("finetune: the selection covers no pixel of the views by half or more; choose a larger "
+                         "region or switch off the colour transfer")
+    return pixels
+
+
+def _region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, stylized: torch.Tensor | None,
+                  backend: str) -> tuple[CameraSet, torch.Tensor | None, torch.Tensor]:
+    """The views where ``selection`` covers at least a pixel's worth, their stylized views (when given) and
+    their coverage [C', H, W]; ValueError for a selection of the wrong size or one no view sees."""
+    if selection.dtype != torch.bool or tuple(selection.shape) != (len(scene),):
+        raise ValueError(f"finetune: selection must be a boolean mask of the scene's {len(scene):,} Gaussians, got "
+                         f"{selection.dtype} {tuple(selection.shape)}")
+    weights = coverage(scene, selection, cameras, backend)
+    seen = (weights.flatten(1).sum(1) >= 1).nonzero()[:, 0].tolist()
+    if not seen:
+        raise ValueError(f"finetune: the {int(selection.sum()):,} selected Gaussians cover no pixel of any of the "
+                         f"{len(cameras)} views")
+    if len(seen) < len(cameras):
+        _log.info("finetune: %d of %d views see the selection; the others are left out", len(seen), len(cameras))
+    return cameras.subset(seen), None if stylized is None else stylized[seen], weights[seen]
 
 
 def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
@@ -141,6 +196,7 @@ def finetune(
     progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
     render_progress: ProgressFn | None = None,
+    selection: torch.Tensor | None = None,
 ) -> GaussianScene:
     """Finetune ``scene`` so its renders from ``cameras`` take on the style.
 
@@ -157,6 +213,8 @@ def finetune(
     render_progress(view, views, info): called after each view of the renders of every camera
         before the steps (``info["stage"] == "setup"``: colour transfer, content term) and after
         them (``"final"``: colour transfer), which ``should_stop`` can also end.
+    selection: optional [N] bool on the scene's device: finetune these Gaussians only, for the pixels they
+        cover (module docstring).
     No step writes a non-finite value (:mod:`artnvg_core.finetune.finite_steps`): a step with a
     non-finite loss is skipped, Gaussians with non-finite gradients keep their last finite
     values, and both are logged with the step and the Gaussians' indices; so is a view that sees no
@@ -166,12 +224,13 @@ def finetune(
     """
     config = config or FinetuneConfig()
     with convolution_precision(config.vgg_precision, scene.device):
-        return _finetune(scene, cameras, style_image, stylized, config, progress, should_stop, render_progress)
+        return _finetune(scene, cameras, style_image, stylized, config, progress, should_stop, render_progress,
+                         selection)
 
 
 def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tensor, stylized: torch.Tensor | None,
               config: FinetuneConfig, progress: ProgressFn | None, should_stop: StopFn | None,
-              render_progress: ProgressFn | None) -> GaussianScene:
+              render_progress: ProgressFn | None, selection: torch.Tensor | None) -> GaussianScene:
     """:func:`finetune` with its config given, inside its convolutions' precision."""
     if style_image.ndim == 4 and style_image.shape[0] == 1:
         style_image = style_image[0]
@@ -187,6 +246,10 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
                 f"finetune: stylized must be [{len(cameras)}, H, W, 3] (one view per camera), got {tuple(stylized.shape)}"
             )
         stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
+    weights = None
+    if selection is not None:
+        selection = selection.to(device)
+        cameras, stylized, weights = _region_views(scene, selection, cameras, stylized, config.backend)
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers
@@ -199,18 +262,20 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     if color_transfer or (stylized is None and config.content_weight > 0):
         content = _render_views(scene, cameras, config, "setup", render_progress, should_stop)
         if color_transfer:
-            transform = match_colors(content, style_image)
-            scene = recolor_scene(scene, transform)
+            transform = match_colors(_region_pixels(content, weights), style_image)
+            scene = _recolor(scene, transform, selection)
             content = transform.apply(content).clamp(0, 1)  # ARF's recoloured training views
         if config.content_weight > 0:
             originals = vgg_input(content, config)
         del content
-    step_loss = StepLoss(config, vgg, nnfm, stylized, originals)
+    step_loss = StepLoss(config, vgg, nnfm, stylized, originals, weights)
     names = step_loss.names
-    if config.cuda_graph and can_graph(device):
+    worth_graphing = config.iterations >= GRAPH_MIN_ITERATIONS if config.cuda_graph is None else config.cuda_graph
+    if worth_graphing and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
     renderer = StepRenderer(scene, cameras, config.backend)  # checks the inputs: a bad scene fails before any step
-    params = _parameters(scene, config)
+    frozen = None if selection is None else scene.select(~selection)
+    params = _parameters(scene if selection is None else scene.select(selection), config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None, renderer.backend == "triton")
     generator = torch.Generator().manual_seed(config.seed)
     # every step's views drawn up front and copied to the device once: a copy per step would wait for it
@@ -222,7 +287,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     while step <= config.iterations:
         check_stop(should_stop)
         views, views_on_device = schedule[step - 1].tolist(), schedule_on_device[step - 1]
-        out, incomplete = renderer.render(_scene_of(params, scene), views, views_on_device)
+        out, incomplete = renderer.render(_scene_of(params, scene, frozen), views, views_on_device)
         sees = out.alpha.flatten(1).amax(1) > 0  # [B]: a view no Gaussian reaches teaches nothing
         skip = ~sees.any() if incomplete is None else ~sees.any() | incomplete
         loss, values = step_loss(out.rgb.clamp(0, 1), views_on_device)
@@ -242,7 +307,10 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         step += 1
     adam.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
+    if selection is not None:  # the trained Gaussians back in their places among the others
+        result = dataclasses.replace(scene, **{k: _placed(getattr(scene, k), v, selection)
+                                               for k, v in result.tensors().items()})
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
         renders = _render_views(result, cameras, config, "final", render_progress, should_stop)
-        result = recolor_scene(result, match_colors(renders, style_image))
+        result = _recolor(result, match_colors(_region_pixels(renders, weights), style_image), selection)
     return result

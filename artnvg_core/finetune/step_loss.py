@@ -4,7 +4,10 @@
 the original views) and computes, for the step's clamped renders ``image [B, H, W, 3]`` of the views
 ``views [B]`` (int64 indices on the device), the weighted terms of :mod:`artnvg_core.finetune.loop`'s
 docstring (L1 and SSIM toward the stylized views, NNFM toward the style, the content and
-total-variation terms without stylized views).
+total-variation terms without stylized views). With per-pixel ``weights`` (a region's coverage,
+:func:`artnvg_core.selection.coverage`) every term is the weighted mean over the pixels (over the VGG
+terms' positions, the weights area-averaged to them); SSIM is that of the render composited over the
+stylized view by the weights, its dissimilarity divided by the weights' mean.
 
 Its inputs keep their shapes through a finetune (one camera size, one number of views per step) and it
 never waits for the device, so :func:`graphed` records its forward and backward once as two CUDA graphs
@@ -27,10 +30,22 @@ from .config import FinetuneConfig
 # (loss [], terms [T]) of a step's renders; the terms are detached, named by StepLoss.names
 StepLossFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
+# Fewest iterations for which recording the graphs pays (FinetuneConfig.cuda_graph None). On an H100 the
+# recording costs about 0.43 s (its warm-up calls and capture, with sympy's import that torch.autograd.grad
+# brings into a capture) and saves about 1.3 ms a step (BENCHMARKS.md, First look: 0.3 s lost over the
+# preview's 100 steps, 0.9 s won over 1,000): even from 325 steps; sympy's bytecode compiled afresh adds 2 s
+# (1,800 steps). 500: the preview (100) and `fast` (300) run eagerly, `balanced` and `paper` (1,000) replay.
+GRAPH_MIN_ITERATIONS = 500
+
 
 def nchw(images: torch.Tensor) -> torch.Tensor:
     """[B, H, W, 3] -> [B, 3, H, W] (a view)."""
     return images.permute(0, 3, 1, 2)
+
+
+def nchw_to_nhwc(maps: torch.Tensor) -> torch.Tensor:
+    """[B, C, H, W] -> [B, H, W, C] (a view)."""
+    return maps.permute(0, 2, 3, 1)
 
 
 def vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
@@ -38,9 +53,24 @@ def vgg_input(images: torch.Tensor, config: FinetuneConfig) -> torch.Tensor:
     return shrink_to_max_side(nchw(images), config.nnfm_max_side)
 
 
-def total_variation(images: torch.Tensor) -> torch.Tensor:
-    """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images."""
-    return (images[:, 1:] - images[:, :-1]).abs().mean() + (images[:, :, 1:] - images[:, :, :-1]).abs().mean()
+def weighted_mean(values: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """The mean of ``values [B, H, W, C]``, each pixel weighed by ``weights [B, H, W]`` (None: plain mean)."""
+    if weights is None:
+        return values.mean()
+    return (values * weights[..., None]).sum() / (weights.sum() * values.shape[-1]).clamp_min(1e-12)
+
+
+def total_variation(images: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute difference of neighbouring pixels of [B, H, W, 3] images (each pair weighed by its second
+    pixel's ``weights [B, H, W]`` when given)."""
+    down, right = (None, None) if weights is None else (weights[:, 1:], weights[:, :, 1:])
+    return (weighted_mean((images[:, 1:] - images[:, :-1]).abs(), down)
+            + weighted_mean((images[:, :, 1:] - images[:, :, :-1]).abs(), right))
+
+
+def _at(weights: torch.Tensor | None, size: torch.Size) -> torch.Tensor | None:
+    """``weights [B, H, W]`` area-averaged to ``size`` (h, w): [B, h, w] (None stays None)."""
+    return None if weights is None else F.interpolate(weights[:, None], size=tuple(size), mode="area")[:, 0]
 
 
 def _cache_budget(device: torch.device) -> int:
@@ -87,12 +117,13 @@ class StepLoss:
     stylized: [C, H, W, 3] stylized views in camera order (L1, SSIM), or None.
     originals: [C, 3, h, w] original views as the VGG sees them (:func:`vgg_input`) for the content term,
         or None.
+    weights: [C, H, W] per-pixel weights >= 0 in camera order (module docstring), or None.
     ``names``: the terms computed, in the order of the returned ``terms``.
     """
 
     def __init__(self, config: FinetuneConfig, vgg: VGGFeatures, nnfm: NNFMLoss, stylized: torch.Tensor | None,
-                 originals: torch.Tensor | None):
-        self.config, self.vgg, self.nnfm, self.stylized = config, vgg, nnfm, stylized
+                 originals: torch.Tensor | None, weights: torch.Tensor | None = None):
+        self.config, self.vgg, self.nnfm, self.stylized, self.weights = config, vgg, nnfm, stylized, weights
         self.content_reference = None if originals is None else ContentReference(self._features, originals)
         names = ("l1", "ssim") if stylized is not None else ()
         names += ("nnfm",) if config.nnfm_weight > 0 else ()
@@ -105,27 +136,35 @@ class StepLoss:
         with features_autocast(self.config.vgg_precision, images.device):
             return self.vgg(images, self.config.nnfm_layers)
 
-    def _content(self, feats: dict[str, torch.Tensor], views: torch.Tensor) -> torch.Tensor:
+    def _content(self, feats: dict[str, torch.Tensor], views: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
         """ARF's content term: the features' MSE from the original views', relative to their mean square."""
         reference, power = self.content_reference(views)
         layers = self.config.nnfm_layers
-        return sum(F.mse_loss(feats[k].float(), reference[k]) / power[k].clamp_min(1e-12) for k in layers) / len(layers)
+        errors = (weighted_mean(nchw_to_nhwc(feats[k].float() - reference[k]).square(), _at(weights, feats[k].shape[-2:]))
+                  / power[k].clamp_min(1e-12) for k in layers)
+        return sum(errors) / len(layers)
 
     def __call__(self, image: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``image [B, H, W, 3]`` in [0, 1] of the views ``views [B]`` -> (loss [], terms [len(names)])."""
         config, terms = self.config, []
+        weights = None if self.weights is None else self.weights[views]
         if self.stylized is not None:
             target = self.stylized[views]
-            terms.append(config.l1_weight * (image - target).abs().mean())
-            terms.append(config.ssim_weight * (1 - ssim(nchw(image), nchw(target))))
+            terms.append(config.l1_weight * weighted_mean((image - target).abs(), weights))
+            if weights is None:
+                terms.append(config.ssim_weight * (1 - ssim(nchw(image), nchw(target))))
+            else:
+                composite = torch.lerp(target, image, weights[..., None])
+                dissimilarity = (1 - ssim(nchw(composite), nchw(target))) / weights.mean().clamp_min(1e-12)
+                terms.append(config.ssim_weight * dissimilarity)
         needs_features = config.nnfm_weight > 0 or self.content_reference is not None
         feats = self._features(vgg_input(image, config)) if needs_features else None
         if config.nnfm_weight > 0:
-            terms.append(config.nnfm_weight * self.nnfm(feats))
+            terms.append(config.nnfm_weight * self.nnfm(feats, weights))
         if self.content_reference is not None:
-            terms.append(config.content_weight * self._content(feats, views))
+            terms.append(config.content_weight * self._content(feats, views, weights))
         if "tv" in self.names:
-            terms.append(config.tv_weight * total_variation(image))
+            terms.append(config.tv_weight * total_variation(image, weights))
         if not terms:
             return image.sum() * 0, image.new_zeros(0)
         values = torch.stack(terms)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..cameras.camera_set import CameraSet
 from ..fileio import require_regular_file
 from ..scene import GaussianScene
 from . import ksplat, splat, spz
@@ -31,19 +32,24 @@ READERS = {".ply": read_ply, ".splat": read_splat, ".spz": read_spz, ".ksplat": 
 WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat, ".ksplat": write_ksplat}
 GEOMETRY_CHECKS = {".spz": spz.check_geometry, ".splat": splat.check_geometry, ".ksplat": ksplat.check_geometry}
 SCENE_SUFFIXES = tuple(READERS)
-SPZ_AXES = tuple(spz.AXES)
+SPZ_AXES = spz.AXES
 SAVE_SUFFIXES = tuple(WRITERS)
 _DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
 
 
-def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "rub") -> GaussianScene:
-    """Read a Gaussian scene, the reader chosen by the file's extension (any case). ``spz_axes``: the axes
-    of a ``.spz`` that does not name its own, "rub" (the format's rule) or "ply" (as PlayCanvas
-    splat-transform writes them; :mod:`.spz`)."""
-    path = Path(path)
-    reader = READERS.get(path.suffix.lower())
+def _check_spz_axes(spz_axes: str) -> None:
     if spz_axes not in SPZ_AXES:
         raise ValueError(f"spz_axes: expected one of {', '.join(SPZ_AXES)}, got {spz_axes!r}")
+
+
+def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
+               cameras: CameraSet | None = None) -> GaussianScene:
+    """Read a Gaussian scene, the reader chosen by the file's extension (any case). ``spz_axes``: the axes
+    of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that puts the scene in
+    front of ``cameras`` when given, else the PLY's axes, as most writers store them; :mod:`.spz`)."""
+    path = Path(path)
+    reader = READERS.get(path.suffix.lower())
+    _check_spz_axes(spz_axes)
     if reader is None:
         raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
     try:
@@ -51,7 +57,7 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     except ValueError as error:
         raise ValueError(f"{error}; expected {_DESCRIBED}") from None
     if reader is read_spz:
-        return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes)
+        return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras)
     return reader(path, drop_invalid=drop_invalid)
 
 
@@ -76,12 +82,11 @@ def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> No
         check(scene_to_write(scene, path), path)
 
 
-def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "rub") -> None:
+def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto") -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
-    a ``.spz`` in ``spz_axes`` (as :func:`load_scene`)."""
+    a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them."""
     path = writable_scene_path(path)
-    if spz_axes not in SPZ_AXES:
-        raise ValueError(f"spz_axes: expected one of {', '.join(SPZ_AXES)}, got {spz_axes!r}")
+    _check_spz_axes(spz_axes)
     if path.suffix.lower() == ".spz":
         write_spz(scene, path, axes=spz_axes)
     else:

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData
-
 from ..scene import SH_C0, GaussianScene, validate_scene
 from .common import opacity_logits_from_bytes
+from .ply_data import PlyData
 
 CHUNK_SIZE = 256
+ELEMENTS = ("chunk", "vertex", "sh")  # the elements a compressed PLY's reader reads
 _CHUNK_BOUNDS = [f"{end}_{axis}" for end in ("min", "max") for axis in "xyz"]
 _CHUNK_SCALES = [f"{end}_scale_{axis}" for end in ("min", "max") for axis in "xyz"]
 _CHUNK_COLOURS = [f"{end}_{channel}" for end in ("min", "max") for channel in "rgb"]
@@ -35,17 +35,19 @@ _PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 def is_compressed_ply(ply: PlyData) -> bool:
     """True when ``ply`` has a ``chunk`` element and a ``vertex`` element with ``packed_position``."""
     names = [element.name for element in ply.elements]
-    return "chunk" in names and "vertex" in names and "packed_position" in (ply["vertex"].data.dtype.names or ())
+    return "chunk" in names and "vertex" in names and "packed_position" in ply["vertex"].property_names
 
 
 def _columns(path: Path, ply: PlyData, element: str, names: list[str]) -> np.ndarray:
     """The named properties of ``element`` as one array [count, len(names)] (float64 or int64)."""
     data = ply[element].data
+    if data is None:  # an element with list properties is never read
+        raise ValueError(f"{path}: element '{element}' has list properties; expected numbers")
     missing = [name for name in names if name not in (data.dtype.names or ())]
     if missing:
         raise ValueError(f"{path}: element '{element}' lacks properties {', '.join(missing)}")
     kinds = {data.dtype[name].kind for name in names}
-    if "O" in kinds or (kinds - {"f"} and kinds - {"u", "i"}):
+    if kinds - {"f"} and kinds - {"u", "i"}:
         raise ValueError(f"{path}: element '{element}': properties {', '.join(names)} have the wrong types")
     return np.stack([data[name] for name in names], 1).astype(np.int64 if kinds <= {"u", "i"} else np.float64)
 
@@ -97,12 +99,12 @@ def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = 
     position, rotation, scale, colour = packed.T
     rgba = np.stack([colour >> shift & 255 for shift in (24, 16, 8, 0)], 1)
     rgb = rgba[:, :3] / 255
-    if "min_r" in (ply["chunk"].data.dtype.names or ()):
+    if "min_r" in ply["chunk"].property_names:
         colours = _columns(path, ply, "chunk", _CHUNK_COLOURS)[chunk_of]
         rgb = _lerp(colours[:, :3], colours[:, 3:], rgb)
     sh = [(rgb - 0.5)[:, None, :] / SH_C0]
     if "sh" in ply:
-        names = list(ply["sh"].data.dtype.names or ())
+        names = ply["sh"].property_names
         if len(names) not in (9, 24, 45) or ply["sh"].count != n:
             raise ValueError(f"{path}: element 'sh': {len(names)} properties for {ply['sh'].count} rows, "
                              f"expected 9, 24 or 45 f_rest_* for {n} rows")

@@ -27,12 +27,12 @@ from typing import BinaryIO
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyListProperty
 
 from ..fileio import write_atomically
 from ..scene import GaussianScene, logit, validate_scene
 from . import compressed_ply
 from .common import require_file, scene_to_write
+from .ply_data import PlyData, read_ply_data
 
 _PLY_ELEMENT = "vertex"
 _SH_DEGREE_FOR_REST_COUNT = {3 * ((d + 1) ** 2 - 1): d for d in range(4)}  # 0, 9, 24, 45
@@ -54,60 +54,25 @@ def _ply_layout(num_rest: int) -> dict[str, list[str]]:
     }
 
 
-def _check_no_trailing_data(path: Path, ply: PlyData, bytes_left: int | None) -> None:
-    """The element counts of the header must account for the whole file (no records left unread).
-
-    ``bytes_left``: bytes after the last binary record (None for ASCII, whose data lines are counted).
-    """
-    declared = sum(element.count for element in ply.elements)
-    if ply.text:
-        with open(path, "rb") as text:
-            for line in text:
-                if line.strip() == b"end_header":
-                    break
-            rows = sum(1 for line in text if line.strip())
-        extra = f"{rows} data lines for {declared} records" if rows != declared else ""
-    else:
-        extra = f"{bytes_left} bytes more than those records need" if bytes_left else ""
-    if extra:
-        counts = ", ".join(f"{element.name} {element.count}" for element in ply.elements)
-        raise ValueError(
-            f"{path}: the header's element counts ({counts}) disagree with the data size: the file holds "
-            f"{extra}; the file is corrupt or its counts were edited"
-        )
-
-
-def read_ply_data(path: Path) -> PlyData:
-    """The parsed PLY (every element read), with its header counts checked against the data size."""
-    try:
-        with open(path, "rb") as stream, np.errstate(all="ignore"):  # out-of-range text -> inf, rejected later
-            ply = PlyData.read(stream)
-            bytes_left = None if ply.text else os.fstat(stream.fileno()).st_size - stream.tell()
-    except Exception as error:  # plyfile and numpy raise many types on corrupt bytes
-        raise ValueError(f"{path}: not a readable PLY file ({type(error).__name__}: {error})") from error
-    _check_no_trailing_data(path, ply, bytes_left)
-    return ply
-
-
-def _vertices(path: Path, ply: PlyData) -> tuple[np.ndarray, set[str]]:
-    """The 'vertex' element's structured array and the names of its list properties."""
+def _vertices(path: Path, ply: PlyData) -> np.ndarray:
+    """The 'vertex' element's structured array; a ValueError when it is missing or has list properties."""
     if _PLY_ELEMENT not in ply:
         names = [element.name for element in ply.elements]
         raise ValueError(f"{path}: no '{_PLY_ELEMENT}' element (found {names}); expected an INRIA 3DGS PLY")
     element = ply[_PLY_ELEMENT]
-    return element.data, {p.name for p in element.properties if isinstance(p, PlyListProperty)}
+    lists = [p.name for p in element.properties if p.is_list]
+    if lists:
+        raise ValueError(f"{path}: property {lists[0]} is a list; expected a scalar number")
+    return element.data
 
 
-def _ply_columns(path: Path, data: np.ndarray, list_names: set[str], names: list[str]) -> torch.Tensor:
+def _ply_columns(path: Path, data: np.ndarray, names: list[str]) -> torch.Tensor:
     """The named scalar properties as one float32 tensor [N, len(names)]."""
     available = set(data.dtype.names or ())
     missing = [name for name in names if name not in available]
     if missing:
         noun = "property" if len(missing) == 1 else "properties"
         raise ValueError(f"{path}: element '{_PLY_ELEMENT}' lacks {noun} {', '.join(missing)}")
-    lists = [name for name in names if name in list_names]
-    if lists:
-        raise ValueError(f"{path}: property {lists[0]} is a list; expected a scalar number")
     table = np.empty((len(data), len(names)), dtype=np.float32)
     with np.errstate(over="ignore", invalid="ignore"):  # float64 overflow -> inf, rejected by validation
         for column, name in enumerate(names):
@@ -157,14 +122,14 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
     """
     path = Path(path)
     require_file(path)
-    ply = read_ply_data(path)
+    ply = read_ply_data(path, (_PLY_ELEMENT, *compressed_ply.ELEMENTS))
     if compressed_ply.is_compressed_ply(ply):
         return compressed_ply.scene_from_compressed_ply(path, ply, drop_invalid=drop_invalid)
-    data, list_names = _vertices(path, ply)
+    data = _vertices(path, ply)
     num_rest = _sh_rest_count(path, data.dtype.names or ())
     layout = _ply_layout(num_rest)
     del layout["normals"]
-    columns = {key: _ply_columns(path, data, list_names, names) for key, names in layout.items()}
+    columns = {key: _ply_columns(path, data, names) for key, names in layout.items()}
     n, coeffs_per_channel = len(data), num_rest // 3
     sh_rest = columns["sh_rest"].reshape(n, 3, coeffs_per_channel).transpose(1, 2)
     scene = GaussianScene(
@@ -175,7 +140,7 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
         sh=torch.cat([columns["sh_dc"][:, None, :], sh_rest], dim=1).contiguous(),
     )
     if _FILTER_3D in (data.dtype.names or ()):
-        scene = _fold_filter_3d(path, scene, _ply_columns(path, data, list_names, [_FILTER_3D])[:, 0])
+        scene = _fold_filter_3d(path, scene, _ply_columns(path, data, [_FILTER_3D])[:, 0])
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
 
 

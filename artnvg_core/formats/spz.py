@@ -1,4 +1,4 @@
-"""Niantic SPZ (``.spz``): read versions 1 to 4, write version 3.
+"""Niantic SPZ (``.spz``): read versions 1 to 4, write version 3 (or 2).
 
 Containers, as nianticlabs/spz's reference reads them: versions 1-3 are one
 gzip stream holding a 16-byte header (magic "NGSP", version, count, SH
@@ -16,31 +16,32 @@ the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning). Str
 inflated only up to the size the header implies, which may be at most 64 times the file's
 size (:mod:`.bounded`).
 
-Coordinate rule: SPZ stores RUB axes (x right, y up, z back), the format's
-documented default and what Niantic's writer produces from a PLY's RDF axes
-(x right, y down, z forward). A file carrying the ``SPZ_ADOBE_coordinate_system``
-extension record (version 4 header zone) is read in the axes it names (any
-of the 8 axis-flip systems; the 90-degree-rotated ones are refused). Loading
-converts to RDF, saving converts RDF to RUB: flip y and z of positions, the
-x/y... components of quaternions as (x, -y, -z), and each SH coefficient by
-the parity of its basis function under that flip. Writers that store PLY
-axes without saying so load upside down under that rule: PlayCanvas
-splat-transform (3.7, the converter behind SuperSplat) writes version 4 files
-in PLY axes with no extension record. ``axes="ply"`` reads (and writes) files
-without a record in the PLY's axes instead, as those tools do; a record in
-the file always wins. No other field of the format tells the two apart.
+Axes: the format names none of its own except through the ``SPZ_ADOBE_coordinate_system``
+extension record (in version 4's header zone, or after the arrays of a version 1-3 file flagged
+0x2); a file carrying one is read in the axes it names (any of the 8 axis-flip systems; the
+90-degree-rotated ones are refused). Files without one hold whatever their writer was given:
+Niantic's library converts only when its caller names the source axes (``PackOptions.from``,
+default UNSPECIFIED), so its own ply-to-spz path, spz-js and PlayCanvas splat-transform 3 store
+the PLY's axes (x right, y down, z forward) unchanged, while the format's description and
+splat-transform 2.1-2.7 store RUB (x right, y up, z back); docs/scenes_and_formats.md gives the
+evidence. Such a file is read with ``axes``: "ply" or "rub" as named, or "auto": with cameras,
+the reading that puts more of the scene inside their views; without, the PLY's axes (the
+majority writers'), said in one logged line. RUB is converted to the PLY's axes by flipping y and
+z of positions, the x y z components of quaternions as (x, -y, -z), and each SH coefficient by the
+parity of its basis function under that flip. Written in the PLY's axes with no record, as those
+writers write (``axes="rub"``: in RUB).
 
-Written as version 3 (gzip; every SPZ reader reads it, the stdlib writes it),
-with the reference's default quantisation: 12 fractional bits (fewer when the
-largest |coordinate| needs it, the bound doubling with each bit given up;
-|coordinate| >= 2^23 is refused), SH degree-1 coefficients in 5 bits and higher
-degrees in 4. Round trip ply -> spz -> ply, per field: means within
-0.5 / 2^bits (2^-13 at 12 bits); log-scales within 1/32 inside [-10, 5.9]
-(clamped outside); f_dc within 0.5 / (0.15 * 255) = 0.0131 inside
-[-3.33, 3.33] (clamped outside); opacity sigmoid(logit) within 0.5 / 255;
-unit quaternion components within 0.002 (up to the sign of q); SH degree-1
-coefficients within 4.5 / 128 and higher degrees within 8.5 / 128 inside
-[-1, 0.99] (clamped outside).
+Written as version 3 (gzip, which the stdlib writes; read by Niantic's library since
+2.0 and by splat-transform) or, with ``version=2``, version 2 (rotations in 3 bytes; for
+spz-js 1.2, which reads versions 1 and 2 only), with the reference's default quantisation:
+12 fractional bits (fewer when the largest |coordinate| needs it, the bound doubling with
+each bit given up; |coordinate| >= 2^23 is refused), SH degree-1 coefficients in 5 bits and
+higher degrees in 4. Round trip ply -> spz -> ply, per field: means within 0.5 / 2^bits
+(2^-13 at 12 bits); log-scales within 1/32 inside [-10, 5.9] (clamped outside); f_dc within
+0.5 / (0.15 * 255) = 0.0131 inside [-3.33, 3.33] (clamped outside); opacity sigmoid(logit)
+within 0.5 / 255; unit quaternion components within 0.002 (up to the sign of q; version 2:
+x y z within 0.5 / 127.5 with w >= 0, w derived from them); SH degree-1 coefficients within
+4.5 / 128 and higher degrees within 8.5 / 128 inside [-1, 0.99] (clamped outside).
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..cameras.camera_set import CameraSet
 from ..cameras.geometry import normalize_quats
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
@@ -67,7 +69,7 @@ _log = logging.getLogger(__name__)
 
 MAGIC = 0x5053474E  # "NGSP" little-endian
 LATEST_VERSION = 4
-WRITTEN_VERSION = 3
+WRITTEN_VERSIONS = (2, 3)
 COLOR_SCALE = 0.15
 FLAG_ANTIALIASED = 0x1
 FLAG_EXTENSIONS = 0x2
@@ -75,8 +77,12 @@ _LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fractio
 _HEADER = struct.Struct("<IIIBBBBI12x")  # ... numStreams tocByteOffset reserved[12]
 _COORDINATE_EXTENSION = 0xADBE0003
 RUB, RDF = 4, 6  # the reference's CoordinateSystem values; 1..8 differ by axis flips only
-AXES = {"rub": RUB, "ply": RDF}  # the axes of files without a record: the format's rule, or the PLY's
+AXES = ("auto", "ply", "rub")  # how a file without a coordinate-system record is read (module docstring)
+_NAMED = {"ply": RDF, "rub": RUB}
+_MAX_TRAILER = 65536  # bytes of extension records read after a version 1-3 file's arrays
+_FACING_SAMPLE = 65536, 64  # at most this many Gaussians and views decide "auto" with cameras
 _SQRT1_2 = math.sqrt(0.5)
+_NO_FLIP, _RUB_FLIP = torch.tensor([1.0, 1, 1]), torch.tensor([1.0, -1, -1])  # RDF <-> RUB
 _MAX_DEGREE = 4
 
 
@@ -144,16 +150,17 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | 
             sizes = _array_sizes(count, degree, version)
             field = f"numPoints: {count} Gaussians of SH degree {degree}"
             require_inflatable(sum(sizes.values()), path, field)
-            # extension records may follow the arrays (flag 0x2); they are not read
             data = inflate_exactly(stream, sum(sizes.values()), path, field,
                                    trailing_allowed=bool(flags & FLAG_EXTENSIONS))
+            trailer = read_at_most(stream, _MAX_TRAILER) if flags & FLAG_EXTENSIONS else None  # extension records
+            system = None if trailer is None else _stored_system(path, bytes(trailer))
     except (OSError, EOFError, zlib.error) as error:
         raise ValueError(f"{path}: gzip stream: not readable ({error}); the file is truncated or corrupt") from error
     arrays, offset = {}, 0
     for name, size in sizes.items():
         arrays[name], offset = data[offset : offset + size], offset + size
     header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
-    return header, arrays, None
+    return header, arrays, system
 
 
 def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
@@ -224,19 +231,43 @@ def _rotations_xyzw(header: dict, raw: bytes) -> np.ndarray:
     return q
 
 
-def _system(axes: str) -> int:
-    """The coordinate system of files without an extension record: ``axes`` "rub" (the format's rule) or
-    "ply" (the PLY's axes, as PlayCanvas splat-transform writes them)."""
+def _check_axes(axes: str) -> None:
     if axes not in AXES:
         raise ValueError(f"spz axes: expected one of {', '.join(AXES)}, got {axes!r}")
-    return AXES[axes]
 
 
-def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "rub") -> GaussianScene:
-    """Read an SPZ file of version 1 to 4 (layout and coordinate rule in the module docstring); a file
-    without a coordinate-system record is taken to hold ``axes`` ("rub", the format's rule, or "ply")."""
+def _facing_system(stored: np.ndarray, cameras: CameraSet) -> int:
+    """RDF or RUB: the reading of ``stored`` positions [N, 3] that puts more of them inside the views of
+    ``cameras`` (a stride sample of :data:`_FACING_SAMPLE` Gaussians and views; a tie reads RDF)."""
+    gaussians, views = _FACING_SAMPLE
+    points = torch.from_numpy(stored[:: -(-len(stored) // gaussians)])
+    sample = cameras.subset(range(0, len(cameras), -(-len(cameras) // views)))
+    as_ply, as_rub = (int(sample.in_view(points * flip).sum()) for flip in (_NO_FLIP, _RUB_FLIP))
+    return RDF if as_ply >= as_rub else RUB
+
+
+def _unrecorded_system(path: Path, axes: str, stored: np.ndarray, cameras: CameraSet | None) -> int:
+    """The axes of a file without a coordinate-system record (module docstring)."""
+    if axes != "auto":
+        return _NAMED[axes]
+    if cameras is not None and len(cameras):
+        system = _facing_system(stored, cameras)
+        _log.info("%s names no axes: read in %s, which puts more of it in front of the cameras", path,
+                  "RUB" if system == RUB else "the PLY's axes")
+        return system
+    _log.warning("%s names no axes: read in the PLY's axes (x right, y down, z forward), as splat-transform, "
+                 "spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes 'rub' "
+                 "(--spz-axes rub, the Load Gaussian Scene node's spz_axes)", path)
+    return RDF
+
+
+def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "auto",
+             cameras: CameraSet | None = None) -> GaussianScene:
+    """Read an SPZ file of version 1 to 4 (layout and axes in the module docstring); a file without a
+    coordinate-system record is read in ``axes``: "ply", "rub" or "auto" (by ``cameras`` when given,
+    else the PLY's axes)."""
     path = Path(path)
-    default = _system(axes)
+    _check_axes(axes)
     require_file(path)
     raw = path.read_bytes()
     if raw[:4] == struct.pack("<I", MAGIC):
@@ -245,8 +276,11 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
         header, arrays, system = _read_legacy(path, raw)
     else:
         raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
+    stored = _positions(path, header, arrays["positions"])
+    if system is None:
+        system = _unrecorded_system(path, axes, stored, cameras)
     count, degree = header["count"], header["degree"]
-    flips = _axis_flips(default if system is None else system, path)
+    flips = _axis_flips(system, path)
     x, y, z = flips
     q = _rotations_xyzw(header, arrays["rotations"])
     q[:, :3] *= (y * z, x * z, x * y)
@@ -259,7 +293,7 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
     sh_rest = sh_rest * _sh_flip_signs(x, y, z)[: sh_rest.shape[1], None]
     dc = (np.frombuffer(arrays["colors"], np.uint8).reshape(count, 1, 3) / 255 - 0.5) / COLOR_SCALE
     scene = GaussianScene(
-        means=torch.from_numpy(_positions(path, header, arrays["positions"]) * flips).float(),
+        means=torch.from_numpy(stored * flips).float(),
         quats=torch.from_numpy(q[:, [3, 0, 1, 2]]).float(),
         log_scales=torch.from_numpy(np.frombuffer(arrays["scales"], np.uint8).reshape(count, 3) / 16 - 10).float(),
         opacity_logits=torch.from_numpy(opacity_logits_from_bytes(np.frombuffer(arrays["alphas"], np.uint8))).float(),
@@ -307,16 +341,26 @@ def _smallest_three(q: np.ndarray) -> np.ndarray:
     return comp.astype("<u4")
 
 
-def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "rub") -> None:
-    """Write ``scene`` as an SPZ version 3 file atomically, in RUB axes (module docstring), or with
-    ``axes="ply"`` in the PLY's axes, as PlayCanvas splat-transform writes and reads them.
+def _first_three(q: np.ndarray) -> np.ndarray:
+    """[N, 3] uint8 version-2 codes of unit quaternions [N, 4] (x y z w): x y z of the sign with w >= 0."""
+    q = q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return to_bytes(q[:, :3] * 127.5 + 127.5)
+
+
+def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "auto", version: int = 3) -> None:
+    """Write ``scene`` as an SPZ file of ``version`` 3 (or 2) atomically, in the PLY's axes with no
+    coordinate-system record, as splat-transform, spz-js and Niantic's ply-to-spz write (``axes`` "auto" or
+    "ply"), or in RUB (``axes="rub"``); module docstring.
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, a coordinate of magnitude 2^23 or more.
     """
     path = Path(path)
+    _check_axes(axes)
+    if version not in WRITTEN_VERSIONS:
+        raise ValueError(f"spz version: expected one of {', '.join(map(str, WRITTEN_VERSIONS))}, got {version!r}")
     cpu = scene_to_write(scene, path)
-    x, y, z = _axis_flips(_system(axes), path)
+    x, y, z = _axis_flips(RUB if axes == "rub" else RDF, path)
     means = cpu.means.double().numpy() * (x, y, z)
     bits = _fractional_bits(path, means)
     fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
@@ -327,12 +371,12 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "rub
     sh_bytes = np.concatenate([_quantized_sh(sh_rest[:, :3], 5), _quantized_sh(sh_rest[:, 3:], 4)], 1)
     flags = FLAG_ANTIALIASED if cpu.antialiased else 0
     arrays = [
-        _LEGACY_HEADER.pack(MAGIC, WRITTEN_VERSION, count, degree, bits, flags, 0),
+        _LEGACY_HEADER.pack(MAGIC, version, count, degree, bits, flags, 0),
         positions,
         opacity_bytes(cpu.opacity_logits),
         to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
         to_bytes((cpu.log_scales.double().numpy() + 10) * 16),
-        _smallest_three(q),
+        _smallest_three(q) if version == 3 else _first_three(q),
         sh_bytes,
     ]
     payload = b"".join(a if isinstance(a, bytes) else np.ascontiguousarray(a).tobytes() for a in arrays)

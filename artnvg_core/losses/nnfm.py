@@ -1,7 +1,8 @@
 """Nearest-neighbour feature matching (NNFM) style loss, as in ARF (Zhang et al., 2022).
 
 For every rendered feature vector, find the style feature vector with the highest cosine
-similarity; the loss is the mean over rendered positions of ``1 - max cos``.
+similarity; the loss is the mean over rendered positions of ``1 - max cos`` (or its weighted mean,
+with per-pixel weights area-averaged to each group's positions: a region's loss).
 
 As in ARF, the features of the layers of one *group* (ARF's default: VGG block 3,
 ``relu3_1, relu3_2, relu3_3``) are concatenated along channels before matching, so one match
@@ -114,7 +115,8 @@ class NNFMLoss(nn.Module):
     :func:`style_image_features`); held as unit vectors without gradient (non-persistent
     buffers, moved by ``.to``). ``layer_groups``: layers matched jointly (concatenated).
     ``precision``: the match search's arithmetic, one of :data:`SEARCH_PRECISIONS` (module docstring).
-    ``forward(render_feats {layer: [B, C, h, w]}) -> scalar`` (float32).
+    ``forward(render_feats {layer: [B, C, h, w]}, weights=None) -> scalar`` (float32); ``weights [B, H, W]`` >= 0
+    (e.g. at the rendered image's size) weigh the positions, area-averaged to each group's ``h x w``.
     """
 
     def __init__(
@@ -138,7 +140,7 @@ class NNFMLoss(nn.Module):
             self.register_buffer(f"style_unit_{g}", style, persistent=False)
             self.register_buffer(f"style_search_{g}", search_operand(style, precision), persistent=False)
 
-    def forward(self, render_feats: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    def forward(self, render_feats: Mapping[str, torch.Tensor], weights: torch.Tensor | None = None) -> torch.Tensor:
         total = 0.0
         for g, group in enumerate(self.layer_groups):
             style = getattr(self, f"style_unit_{g}")
@@ -151,7 +153,13 @@ class NNFMLoss(nn.Module):
                 render_unit = normalize_features(render)
                 searched = getattr(self, f"style_search_{g}")
                 matches = nearest_style_indices(render_unit.detach(), searched, self.max_chunk_elements, self.precision)
-                total = total + (1.0 - (render_unit * style[matches]).sum(-1)).mean()
+                distance = 1.0 - (render_unit * style[matches]).sum(-1)
+                if weights is None:
+                    total = total + distance.mean()
+                else:
+                    size = render_feats[group[0]].shape[-2:]
+                    w = F.interpolate(weights[:, None].float(), size=size, mode="area").flatten()
+                    total = total + (w * distance).sum() / w.sum().clamp_min(1e-12)
         return total
 
 

@@ -121,6 +121,17 @@ def _start(python: str, comfy: Path, port: int, log: Path) -> subprocess.Popen:
 
 
 @pytest.fixture(scope="session")
+def comfy_checkout() -> tuple[Path, str]:
+    """(ComfyUI checkout, its Python) for tests that run ComfyUI's modules in a process of their own."""
+    root = os.environ.get(ROOT_ENV)
+    if not root:
+        pytest.skip(f"set {ROOT_ENV} to a ComfyUI checkout (docs/comfyui.md: Integration tests)")
+    root = Path(root).resolve()
+    comfy = _comfy_checkout(root)
+    return comfy, _python(root, comfy)
+
+
+@pytest.fixture(scope="session")
 def comfy_server() -> ComfyServer:
     root = os.environ.get(ROOT_ENV)
     if not root:

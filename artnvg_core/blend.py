@@ -1,0 +1,107 @@
+"""The strength dial: a stylized scene mixed with its original, Gaussian by Gaussian, without a re-run.
+
+``blend(original, stylized, s)`` gives Gaussian i the parameters ``lerp(original_i, stylized_i, w_i)`` with
+``w_i = s`` (or 0 outside a ``selection``): every SH coefficient (all bands), the opacity logit, and the
+geometry (means, log-scales, quaternions) where the finetune moved it; a field the two scenes share bit
+for bit is kept as it is. ``torch.lerp`` is exact at its ends, so ``s = 0`` gives the original's tensors
+and ``s = 1`` the stylized one's, bit for bit (quaternions: the stylized ``q`` or ``-q``, one rotation,
+whichever lies on the original's side, so that a mix never turns through the long way). Colours, being
+linear in the SH, move in a straight line from the original's to the stylized one's; opacities move
+monotonically between the two.
+
+Only scenes that come from one another through a finetune correspond (:func:`check_corresponding`):
+the same count, SH degree and render settings, and Gaussian i in about the same place in both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import torch
+
+from .cameras import CameraSet
+from .raster import render
+from .scene import GaussianScene
+
+# A finetune moves means by a small fraction of the scene's size; reordered or unrelated Gaussians
+# typically lie a sizeable part of it apart.
+MAX_MEDIAN_SHIFT = 0.05  # largest median mean displacement, as a fraction of the scene's size
+
+
+def scene_size(means: torch.Tensor) -> float:
+    """A robust size of a point cloud [N, 3]: the median distance of the points from their median."""
+    return float((means - means.median(0).values).norm(dim=1).median())
+
+
+def check_corresponding(original: GaussianScene, stylized: GaussianScene,
+                        names: tuple[str, str] = ("original", "stylized")) -> None:
+    """ValueError, naming the two scenes by ``names``, unless ``stylized`` can be a finetune of ``original``:
+    the same number of Gaussians, SH degree and render settings (blur, antialiasing), and Gaussian i of
+    one within :data:`MAX_MEDIAN_SHIFT` of the scene's size of Gaussian i of the other, in the median."""
+    first, second = names
+    refusal = f"cannot blend {first} and {second}: "
+    if len(original) != len(stylized):
+        raise ValueError(refusal + f"{first} has {len(original):,} Gaussians, {second} {len(stylized):,}; a blend "
+                         "mixes Gaussian i of one with Gaussian i of the other, so they must come from one finetune")
+    if original.sh_degree != stylized.sh_degree:
+        raise ValueError(refusal + f"SH degree {original.sh_degree} in {first}, {stylized.sh_degree} in {second} "
+                         "(was one saved in a format that drops SH bands? use .ply or .spz)")
+    settings = (original.blur_px2, original.antialiased), (stylized.blur_px2, stylized.antialiased)
+    if settings[0] != settings[1]:
+        raise ValueError(refusal + f"render settings (blur_px2, antialiased) {settings[0]} in {first}, "
+                         f"{settings[1]} in {second}")
+    if torch.equal(original.means, stylized.means):
+        return
+    shift = float((original.means - stylized.means.to(original.means)).norm(dim=1).median())
+    size = scene_size(original.means)
+    if shift > MAX_MEDIAN_SHIFT * size:
+        raise ValueError(refusal + f"Gaussian i lies {shift:.4g} apart in the two scenes in the median, "
+                         f"{shift / size:.0%} of the scene's size {size:.4g}: they are not one scene before and "
+                         "after a finetune (a different scene, or its Gaussians reordered, e.g. by a .splat or "
+                         ".ksplat save)")
+
+
+def _weights(strength: float, selection: torch.Tensor | None, count: int, device: torch.device):
+    """The mix weight: ``strength``, or per Gaussian [N] ``strength`` inside ``selection`` and 0 outside."""
+    if not (isinstance(strength, (int, float)) and 0 <= strength <= 1):
+        raise ValueError(f"blend: strength must be a number from 0 to 1, got {strength!r}")
+    if selection is None:
+        return float(strength)
+    if selection.dtype != torch.bool or tuple(selection.shape) != (count,):
+        raise ValueError(f"blend: selection must be a boolean mask of the scene's {count:,} Gaussians, got "
+                         f"{selection.dtype} {tuple(selection.shape)}")
+    return selection.to(device, torch.float32) * strength
+
+
+def blend(original: GaussianScene, stylized: GaussianScene, strength: float,
+          selection: torch.Tensor | None = None, names: tuple[str, str] = ("original", "stylized")) -> GaussianScene:
+    """``original`` and ``stylized`` (a finetune of it) mixed at ``strength`` in [0, 1] (module docstring).
+
+    selection: optional boolean [N]: only these Gaussians are mixed, the others keep the original's values.
+    names: how errors call the two scenes (e.g. their files). Returns a new scene on ``original``'s device
+    with its render settings; the inputs are not modified.
+    """
+    check_corresponding(original, stylized, names)
+    weight = _weights(strength, selection, len(original), original.device)
+    mixed = {}
+    for name, before in original.tensors().items():
+        after = getattr(stylized, name).to(before)
+        if torch.equal(before, after):
+            mixed[name] = before
+            continue
+        if name == "quats":  # q and -q are one rotation: mix toward the one on the original's side
+            after = torch.where((before * after).sum(1, keepdim=True) < 0, -after, after)
+        w = weight if isinstance(weight, float) else weight.reshape(-1, *[1] * (before.ndim - 1))
+        mixed[name] = torch.lerp(before, after, w)
+    return dataclasses.replace(original, **mixed)
+
+
+def render_strengths(original: GaussianScene, stylized: GaussianScene, camera: CameraSet, strengths: Sequence[float],
+                     selection: torch.Tensor | None = None, backend: str = "auto") -> torch.Tensor:
+    """[K, H, W, 3] in [0, 1]: the first view of ``camera`` rendered from the blend at each of the K ``strengths``
+    (a preview of the dial)."""
+    view = camera.subset([0]).to(original.device)
+    with torch.no_grad():
+        return torch.cat([render(blend(original, stylized, s, selection), view, backend=backend).rgb.clamp(0, 1)
+                          for s in strengths])

@@ -1,0 +1,80 @@
+"""The command line's selections, shared by ``stylize`` and ``blend``: ``--region`` (a box or a sphere) and
+``--region-mask VIEW:MASK.png`` (masks painted on rendered views, lifted to the Gaussians they see)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+import torch
+
+if TYPE_CHECKING:
+    from ..cameras import CameraSet
+    from ..scene import GaussianScene
+
+
+def add_region_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--region`` and ``--region-mask`` on ``parser``; ``what`` says what the selection limits."""
+    from ..selection import REGION_SYNTAX
+
+    group = parser.add_argument_group("region (the Gaussians that may change; default: all)")
+    group.add_argument("--region", help=f"{REGION_SYNTAX}: {what} only the Gaussians whose centre lies inside, in "
+                       "the scene's units and axes")
+    group.add_argument("--region-mask", action="append", default=[], metavar="VIEW:MASK.png",
+                       help=f"{what} only the Gaussians that a mask's white pixels see; VIEW: the view (index in "
+                       "file order, or image name) the mask was painted on, e.g. on a `render` output of the same "
+                       "cameras (resized to the view); repeat for several views")
+
+
+def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
+    """``VIEW:MASK.png`` -> (view index into ``cameras``, mask path); ValueError naming ``--region-mask``."""
+    view, sep, path = text.partition(":")
+    if not sep or not path:
+        raise ValueError(f"--region-mask: expected VIEW:MASK.png, got {text!r}")
+    if view in cameras.names:
+        return cameras.names.index(view), path
+    if view.isdigit() and int(view) < len(cameras):
+        return int(view), path
+    raise ValueError(f"--region-mask {text}: {view!r} is neither a view index below {len(cameras)} nor a view "
+                     f"name of the cameras (e.g. {cameras.names[0]!r})")
+
+
+def check_region_arguments(args: argparse.Namespace, cameras_required: bool = True) -> None:
+    """Checks that need no file: the region's syntax, one kind of region, masks only with ``--cameras`` where
+    ``cameras_required`` (stylize's views orbiting the scene can carry masks too)."""
+    from ..selection import parse_region
+
+    if args.region and args.region_mask:
+        raise ValueError("give --region or --region-mask, not both")
+    if args.region:
+        parse_region(args.region)
+    if args.region_mask and cameras_required and not args.cameras:
+        raise ValueError("--region-mask needs --cameras: the views its masks were painted on")
+
+
+def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
+    """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither), printing its size."""
+    from ..fileio import load_image, require_regular_file, resize_image
+    from ..selection import parse_region, select_by_masks, select_region
+
+    if args.region:
+        selection = select_region(scene, parse_region(args.region))
+    elif args.region_mask:
+        views, masks = [], []
+        for text in args.region_mask:
+            view, path = parse_region_mask(text, cameras)
+            mask = load_image(require_regular_file(path, "--region-mask image")).mean(-1, keepdim=True)
+            height, width = mask.shape[:2]
+            if abs(width * cameras.height - height * cameras.width) > 0.02 * height * cameras.width:
+                raise ValueError(f"--region-mask {text}: {width}x{height} pixels, not the aspect of the views "
+                                 f"({cameras.width}x{cameras.height})")
+            views.append(view)
+            masks.append(resize_image(mask, cameras.height, cameras.width)[..., 0])
+        selection = select_by_masks(scene, cameras.subset(views), torch.stack(masks))
+    else:
+        return None
+    count = int(selection.sum())
+    if count == 0:
+        raise ValueError(f"--region{'-mask' if args.region_mask else ''}: selects no Gaussian of the scene")
+    print(f"region: {count:,} of {len(scene):,} Gaussians selected", flush=True)
+    return selection

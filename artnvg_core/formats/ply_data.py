@@ -1,0 +1,234 @@
+"""The PLY container (header, elements), read in time and memory bounded by the file's size.
+
+A header is at most :data:`MAX_HEADER_BYTES` and parsed line by line. Only the elements a reader
+asks for are read, each as a numpy structured array of its scalar properties; every other element
+is skipped by its byte count, never built row by row: a fixed-size element's bytes are its count
+times its row size, a list element's are found from the list lengths (one strided look when every
+row has the same lengths, else one pass over the length fields). An element that needs more bytes
+than the file has left is refused before anything is read, and the counts must account for every
+byte (binary) or line (ASCII) of the data.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
+
+_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+          "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+          "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}  # list lengths
+_FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+@dataclass
+class PlyProperty:
+    """One property: ``dtype`` a numpy type code (e.g. "f4"); a list has ``count_dtype`` for its length."""
+
+    name: str
+    dtype: str
+    count_dtype: str | None = None
+
+    @property
+    def is_list(self) -> bool:
+        return self.count_dtype is not None
+
+
+@dataclass
+class PlyElement:
+    """One element: ``count`` rows of ``properties``; ``data`` its rows as a structured array when read."""
+
+    name: str
+    count: int
+    properties: list[PlyProperty]
+    data: np.ndarray | None = None
+
+    @property
+    def property_names(self) -> list[str]:
+        return [p.name for p in self.properties]
+
+
+@dataclass
+class PlyData:
+    """A parsed PLY file: its elements in file order; ``text`` for the ASCII format."""
+
+    elements: list[PlyElement]
+    text: bool
+
+    def __contains__(self, name: str) -> bool:
+        return any(element.name == name for element in self.elements)
+
+    def __getitem__(self, name: str) -> PlyElement:
+        return next(element for element in self.elements if element.name == name)
+
+
+def _header_lines(path: Path, stream: BinaryIO) -> list[str]:
+    """The header's lines from ``ply`` to ``end_header`` (excluded); the stream is left at the first data byte."""
+    head = stream.read(MAX_HEADER_BYTES)
+    lines, position = [], 0
+    while (stop := head.find(b"\n", position)) >= 0:
+        line, position = head[position:stop].strip(), stop + 1
+        if line == b"end_header":
+            break
+        lines.append(line)
+    else:
+        raise ValueError(f"{path}: not a readable PLY file (no end_header line within the first "
+                         f"{MAX_HEADER_BYTES:,} bytes: the header is truncated or far longer than a scene's)")
+    if not lines or lines[0] != b"ply":
+        raise ValueError(f"{path}: not a readable PLY file (it does not start with a line 'ply')")
+    stream.seek(position)
+    try:
+        return [line.decode("ascii") for line in lines]
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a readable PLY file (the header is not ASCII text)") from None
+
+
+def _header(path: Path, stream: BinaryIO) -> tuple[str, list[PlyElement]]:
+    """(format, elements) of the header; the stream is left at the first data byte."""
+    lines = _header_lines(path, stream)
+    fmt, elements = None, []
+    for number, line in enumerate(lines[1:], 2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) == 3 and words[1] in _FORMATS and words[2] == "1.0" and fmt is None:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append(PlyElement(words[1], int(words[2]), []))
+        elif words[0] == "property" and elements and len(words) == 3 and words[1] in _TYPES:
+            elements[-1].properties.append(PlyProperty(words[2], _TYPES[words[1]]))
+        elif (words[0] == "property" and elements and len(words) == 5 and words[1] == "list"
+              and words[2] in _TYPES and words[3] in _TYPES and _TYPES[words[2]][0] in "iu"):
+            elements[-1].properties.append(PlyProperty(words[4], _TYPES[words[3]], _TYPES[words[2]]))
+        else:
+            raise ValueError(f"{path}: not a readable PLY file (header line {number} is not a PLY header line "
+                             "of this version)")
+    for element in elements:
+        if len(set(element.property_names)) != len(element.properties):
+            raise ValueError(f"{path}: not a readable PLY file (element '{element.name}' declares a property twice)")
+    if fmt is None:
+        raise ValueError(f"{path}: not a readable PLY file (no 'format ascii|binary_little_endian|"
+                         "binary_big_endian 1.0' line)")
+    return fmt, elements
+
+
+def _counts_error(path: Path, elements: list[PlyElement], holds: str) -> ValueError:
+    counts = ", ".join(f"{element.name} {element.count}" for element in elements)
+    return ValueError(f"{path}: the header's element counts ({counts}) disagree with the data size: the file "
+                      f"holds {holds}; the file is corrupt or its counts were edited")
+
+
+def _scalar_dtype(element: PlyElement, order: str) -> np.dtype:
+    return np.dtype([(p.name, order + p.dtype) for p in element.properties])
+
+
+def _list_element_bytes(path: Path, element: PlyElement, data: np.ndarray, order: str) -> int:
+    """Bytes of a binary element with list properties at the start of ``data`` (uint8, the rest of the file);
+    the caller has checked that rows of empty lists would fit."""
+    if element.count == 0:
+        return 0
+    fields, first, offset = [], [], 0  # a row with the list lengths of the first row
+    for prop in element.properties:
+        if prop.is_list:
+            size = np.dtype(prop.count_dtype).itemsize
+            length = int(np.frombuffer(data, order + prop.count_dtype, 1, offset)[0]) if offset + size <= len(data) else 0
+            if length < 0:
+                raise ValueError(f"{path}: element '{element.name}': a list of negative length in its first row")
+            fields += [(f"{prop.name} length", order + prop.count_dtype), (prop.name, order + prop.dtype, (length,))]
+            first.append(length)
+            offset += size + length * np.dtype(prop.dtype).itemsize
+        else:
+            fields.append((prop.name, order + prop.dtype))
+            offset += np.dtype(prop.dtype).itemsize
+        if offset > len(data):
+            raise ValueError(f"{path}: element '{element.name}': the file ends inside its first row")
+    row = np.dtype(fields)
+    if element.count * row.itemsize <= len(data):  # one strided look: every row's lengths as the first's?
+        rows = np.frombuffer(data, row, element.count)
+        if all((rows[f"{p.name} length"] == length).all()
+               for p, length in zip([p for p in element.properties if p.is_list], first)):
+            return element.count * row.itemsize
+    steps = [(struct.Struct(order + _STRUCT_CODES[p.count_dtype]), np.dtype(p.dtype).itemsize) if p.is_list
+             else (None, np.dtype(p.dtype).itemsize) for p in element.properties]
+    offset = 0
+    for index in range(element.count):  # rows of differing lengths: one pass over their length fields
+        for length_field, size in steps:
+            if length_field is None:
+                offset += size
+            elif offset + length_field.size <= len(data) and (length := length_field.unpack_from(data, offset)[0]) >= 0:
+                offset += length_field.size + length * size
+            else:
+                raise ValueError(f"{path}: element '{element.name}': row {index}: the file ends inside it, or a "
+                                 "list length is negative")
+    if offset > len(data):
+        raise ValueError(f"{path}: element '{element.name}': the file ends inside its last row")
+    return offset
+
+
+def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyElement], wanted: set[str]) -> None:
+    order = _FORMATS[fmt]
+    start = stream.tell()
+    size = os.fstat(stream.fileno()).st_size
+    data = np.memmap(stream, np.uint8, "r", start) if size > start else np.zeros(0, np.uint8)
+    offset = 0
+    for element in elements:
+        left = len(data) - offset
+        smallest = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in element.properties)
+        if element.count * smallest > left:
+            raise ValueError(f"{path}: element '{element.name}': {element.count:,} rows need at least "
+                             f"{element.count * smallest:,} bytes, but the file has {left:,} left (truncated, or "
+                             "the header's counts are wrong)")
+        if any(p.is_list for p in element.properties):
+            offset += _list_element_bytes(path, element, data[offset:], order)
+            continue
+        dtype = _scalar_dtype(element, order)
+        if element.name in wanted:
+            element.data = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype).copy()
+        offset += element.count * dtype.itemsize
+    if offset != len(data):
+        raise _counts_error(path, elements, f"{len(data) - offset} bytes more than those records need")
+
+
+def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted: set[str]) -> None:
+    lines = [line for line in stream.read().split(b"\n") if line.strip()]
+    declared = sum(element.count for element in elements)
+    if len(lines) != declared:
+        raise _counts_error(path, elements, f"{len(lines)} data lines for {declared} records")
+    start = 0
+    for element in elements:
+        rows = lines[start:start + element.count]
+        start += element.count
+        if element.name not in wanted or any(p.is_list for p in element.properties):
+            continue
+        width = len(element.properties)
+        try:
+            values = np.array([row.split() for row in rows], dtype=np.float64)
+        except ValueError:
+            raise ValueError(f"{path}: element '{element.name}': a row holds something other than numbers, "
+                             f"or not {width} of them") from None
+        if values.shape != (element.count, width):
+            raise ValueError(f"{path}: element '{element.name}': expected {width} numbers a row")
+        element.data = np.empty(element.count, _scalar_dtype(element, "="))
+        with np.errstate(all="ignore"):  # out-of-range values -> inf, rejected by the scene's validation
+            for column, prop in enumerate(element.properties):
+                element.data[prop.name] = values[:, column]
+
+
+def read_ply_data(path: Path, wanted: tuple[str, ...]) -> PlyData:
+    """The PLY at ``path`` with the scalar elements named in ``wanted`` read (their ``data`` set), every other
+    element skipped; a ValueError naming ``path`` for anything that is not a well-formed PLY whose counts
+    account for its data (module docstring)."""
+    with open(path, "rb") as stream:
+        fmt, elements = _header(path, stream)
+        if fmt == "ascii":
+            _read_text(path, stream, elements, set(wanted))
+        else:
+            _read_binary(path, stream, fmt, elements, set(wanted))
+    return PlyData(elements, text=fmt == "ascii")

@@ -1,0 +1,129 @@
+"""Selections: which Gaussians of a scene a stylization may change, and which pixels they cover.
+
+A selection is a boolean tensor [N] over a scene's Gaussians (True: selected). It is made
+
+- from a region of space (:func:`parse_region`: ``box:XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`` or ``sphere:X,Y,Z,R``
+  in the scene's world units and axes): the Gaussians whose centre lies inside (boundary included);
+- from masks painted on rendered views (:func:`select_by_masks`): the Gaussians those pixels see, each
+  Gaussian weighed by what it adds to every pixel's colour (its alpha times the transmittance in front
+  of it, as the renderer composites); a Gaussian is selected when at least half of its weight over the
+  painted views falls on painted pixels. A Gaussian no painted view sees is not selected.
+
+:func:`coverage` gives the pixels a selection covers: per pixel, the selected Gaussians' share of its
+colour, in [0, 1] (the finetune of a region weighs its loss by it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .cameras import CameraSet
+from .fileio import resize_image
+from .raster import render
+from .scene import SH_C0, GaussianScene
+
+MASK_SHARE = 0.5  # a Gaussian is selected by masks when this share of its weight falls on painted pixels
+
+
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned box in world units: ``low`` and ``high`` corners (x, y, z), ``low <= high``."""
+
+    low: tuple[float, float, float]
+    high: tuple[float, float, float]
+
+    def contains(self, points: torch.Tensor) -> torch.Tensor:
+        """[N] bool: which ``points [N, 3]`` lie inside or on the box."""
+        low, high = (torch.tensor(corner, dtype=points.dtype, device=points.device) for corner in (self.low, self.high))
+        return ((points >= low) & (points <= high)).all(dim=1)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A ball in world units: ``center`` (x, y, z) and ``radius`` > 0."""
+
+    center: tuple[float, float, float]
+    radius: float
+
+    def contains(self, points: torch.Tensor) -> torch.Tensor:
+        """[N] bool: which ``points [N, 3]`` lie inside or on the sphere (computed in float64)."""
+        center = torch.tensor(self.center, dtype=torch.float64, device=points.device)
+        return (points.double() - center).square().sum(dim=1) <= self.radius**2
+
+
+Region = Box | Sphere
+REGION_SYNTAX = "box:XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX or sphere:X,Y,Z,R"
+
+
+def parse_region(text: str, option: str = "--region") -> Region:
+    """A :class:`Box` or :class:`Sphere` from ``box:...`` / ``sphere:...`` text (module docstring); ValueError
+    naming ``option`` for anything else."""
+    kind, _, values = text.strip().partition(":")
+    counts = {"box": 6, "sphere": 4}
+    try:
+        numbers = [float(part) for part in values.split(",")]
+    except ValueError:
+        numbers = []
+    if kind not in counts or len(numbers) != counts[kind] or not all(map(math.isfinite, numbers)):
+        raise ValueError(f"{option}: expected {REGION_SYNTAX} (finite numbers in the scene's units), got {text!r}")
+    if kind == "box":
+        low, high = tuple(numbers[:3]), tuple(numbers[3:])
+        if any(a > b for a, b in zip(low, high)):
+            raise ValueError(f"{option}: the box's minimum corner {low} must not exceed its maximum {high}")
+        return Box(low, high)
+    if numbers[3] <= 0:
+        raise ValueError(f"{option}: the sphere's radius must be > 0, got {numbers[3]:g}")
+    return Sphere(tuple(numbers[:3]), numbers[3])
+
+
+def select_region(scene: GaussianScene, region: Region) -> torch.Tensor:
+    """[N] bool on the scene's device: the Gaussians whose centre lies in ``region``."""
+    return region.contains(scene.means.detach())
+
+
+def gaussian_weights(scene: GaussianScene, cameras: CameraSet, pixel_weights: torch.Tensor,
+                     backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """Each Gaussian's compositing weight (alpha times transmittance) summed over the pixels of ``cameras``:
+    ``(weighted [N], total [N])``, the sum with each pixel counted ``pixel_weights [C, H, W]`` times, and with
+    every pixel counted once. Read from the gradient of a render of flat colours (colour is linear in the
+    DC coefficient, the weight its factor), one view at a time."""
+    weighted = scene.means.new_zeros(len(scene), dtype=torch.float64)
+    total = torch.zeros_like(weighted)
+    geometry = scene.map(torch.Tensor.detach)
+    for view in range(len(cameras)):
+        dc = scene.means.new_zeros(len(scene), 1, 3, requires_grad=True)  # colour 0.5: no clamp
+        with torch.enable_grad():
+            rgb = render(dataclasses.replace(geometry, sh=dc), cameras.subset([view]), backend=backend).rgb[0]
+            (rgb[..., 0] * pixel_weights[view].to(rgb) + rgb[..., 1]).sum().backward()
+        weighted += dc.grad[:, 0, 0].double() / SH_C0
+        total += dc.grad[:, 0, 1].double() / SH_C0
+    return weighted, total
+
+
+def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+    """[N] bool: the Gaussians that the painted pixels of ``masks [C, H', W']`` (in [0, 1], 1 painted; one per
+    view of ``cameras``, resized to the cameras' size) see (module docstring)."""
+    if masks.ndim != 3 or masks.shape[0] != len(cameras):
+        raise ValueError(f"select_by_masks: expected one mask [H, W] per view ({len(cameras)}), "
+                         f"got shape {tuple(masks.shape)}")
+    masks = resize_image(masks[..., None].float(), cameras.height, cameras.width)[..., 0].clamp(0, 1)
+    weighted, total = gaussian_weights(scene, cameras.to(scene.device), masks.to(scene.device), backend)
+    return (total > 0) & (weighted >= MASK_SHARE * total)
+
+
+def coverage(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, backend: str = "auto") -> torch.Tensor:
+    """[C, H, W] in [0, 1]: per pixel of each view, the selected Gaussians' share of its colour (their summed
+    compositing weights), from a render in which they are white and the others black, one view at a time."""
+    if selection.dtype != torch.bool or tuple(selection.shape) != (len(scene),):
+        raise ValueError(f"coverage: selection must be a boolean mask of the scene's {len(scene):,} Gaussians, "
+                         f"got {selection.dtype} {tuple(selection.shape)}")
+    dc = ((selection.to(scene.means) - 0.5) / SH_C0)[:, None, None].expand(-1, 1, 3)
+    flat = dataclasses.replace(scene.map(torch.Tensor.detach), sh=dc.contiguous())
+    cameras = cameras.to(scene.device)
+    with torch.no_grad():
+        views = [render(flat, cameras.subset([view]), backend=backend).rgb[0, ..., 0] for view in range(len(cameras))]
+    return torch.stack(views).clamp(0, 1)

@@ -1,0 +1,233 @@
+"""ArtNVG's attention patches on ComfyUI's own models (MODEL and CONTROL_NET), as IPAdapter-style packs patch.
+
+The maths is the core's (:mod:`artnvg_core.diffusion.attention_math`); this module only adapts it to
+how ComfyUI calls a patch: ``patch(q, k, v, extra_options)`` with q/k/v ``[B, L, heads*D]`` after the
+layer's projections, ``extra_options`` holding ``n_heads``, ``original_shape`` (the latent batch
+``[b, C, h, w]``), ``cond_or_uncond`` (which guidance half each of the batch's equal chunks is: 0 the
+conditional, 1 the unconditional) and whatever the sampler put in the model's ``transformer_options``
+(:data:`VIEW_CENTERS`, :data:`CONTENT_TOKENS`, set by Sample Group for the group it samples). The
+views of a group are the latent batch: every chunk of the batch holds all of them, in order.
+
+* :class:`NeighbourViewPatch` (``attn1``): each view attends to all views of its chunk, never across chunks.
+* :class:`ImageTokenPatch` (``attn2``): CSGO's decoupled attention of one layer, style or content tokens.
+* ComfyUI's ControlNet calls its blocks without ``transformer_options``, so a patched ControlNet gets
+  :class:`ControlNetCall` as its model's ``forward`` (ComfyUI hands it the options as an extra condition)
+  and :class:`ControlNetAttention` in place of each patched attention module: object patches of the
+  ControlNet's own ModelPatcher, applied while it is loaded (:func:`patch_controlnet`).
+
+Patches are shared between the clones ComfyUI makes of a MODEL (they are never changed, only moved).
+Nothing here imports ComfyUI.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from artnvg_core.diffusion.attention_math import decoupled_attention, neighbour_view_attention
+from artnvg_core.diffusion.csgo import ImageTokens
+from artnvg_core.grouping import nearest_views
+
+VIEW_CENTERS = "artnvg_view_centers"  # transformer_options key: camera centres [N, 3] of the batch's views
+CONTENT_TOKENS = "artnvg_content_tokens"  # transformer_options key: ImageTokens [N, Q, D] of the views
+CSGO_STATE = "artnvg_csgo"  # transformer_options key: the CSGOState of an Apply CSGO patch
+UNCOND = 1  # ComfyUI's mark of an unconditional chunk in cond_or_uncond
+
+
+class Shared:
+    """Base of objects ComfyUI's ``copy.deepcopy`` of a model's options must share, not copy."""
+
+    def __deepcopy__(self, memo):
+        return self
+
+
+def _views(q: torch.Tensor, extra_options: dict) -> int:
+    """The latent batch size: the batch holds one chunk of it per entry of ``cond_or_uncond``."""
+    return q.shape[0] // len(extra_options["cond_or_uncond"])
+
+
+@dataclass(frozen=True, eq=False)
+class NeighbourViewPatch(Shared):
+    """attn1 replacement: neighbouring-view attention over each chunk's views.
+
+    lowest_level_factor: NV only in layers of at most ``ceil(h/f) * ceil(w/f)`` tokens (f: this factor,
+        the UNet's total downsampling; None: every layer).
+    nearest: each view attends to its k nearest views by camera centre (``VIEW_CENTERS``); None: all.
+    kv_downsample: the other views' keys/values average-pooled by this factor per side (1: exact).
+    """
+
+    lowest_level_factor: int | None = None
+    nearest: int | None = None
+    kv_downsample: int = 1
+
+    def __call__(self, q, k, v, extra_options):
+        views = _views(q, extra_options)
+        height, width = extra_options["original_shape"][2:]
+        factor = self.lowest_level_factor
+        if factor is not None and q.shape[1] > math.ceil(height / factor) * math.ceil(width / factor):
+            views = 1
+        neighbours = None
+        if views > 1 and self.nearest is not None and self.nearest < views - 1:
+            centers = extra_options.get(VIEW_CENTERS)
+            if centers is None or len(centers) != views:
+                raise ValueError(
+                    f"NV-Attention Patch Model: nearest_views {self.nearest} needs the camera centres of the "
+                    f"{views} views sampled together: sample with Sample Group, or set nearest_views to 0"
+                )
+            neighbours = nearest_views(centers, self.nearest)
+        return neighbour_view_attention(q, k, v, extra_options["n_heads"], views, neighbours=neighbours,
+                                        kv_downsample=self.kv_downsample if views > 1 else 1,
+                                        latent_size=(height, width))
+
+
+@dataclass(eq=False)
+class CSGOState(Shared):
+    """What every CSGO layer patch of one Apply CSGO reads: the style tokens [1, Q, D] (conditional from the
+    style image's features, unconditional from zeros), the scales, the content routing, and the content
+    encoder ``IMAGE [N, H, W, 3] -> ImageTokens [N, Q, D]`` that Sample Group calls for the paper routing."""
+
+    style: ImageTokens
+    style_scale: float
+    content_scale: float
+    content_routing: str
+    content_encoder: object = None
+
+
+class ImageTokenPatch(Shared):
+    """attn2 replacement of one layer: ``SDPA(q, text) + scale * SDPA(q, to_k_ip(tokens), to_v_ip(tokens))``.
+
+    to_k_ip / to_v_ip: the layer's CSGO weights [heads*D, token width]; kind: "style" (the state's style
+    tokens) or "content" (the views' tokens Sample Group puts under ``CONTENT_TOKENS``).
+    """
+
+    def __init__(self, to_k_ip: torch.Tensor, to_v_ip: torch.Tensor, kind: str, state: CSGOState):
+        self.weights = (to_k_ip, to_v_ip)
+        self.kind = kind
+        self.state = state
+
+    def to(self, *args, **kwargs):
+        """ComfyUI's convention for moving a patch with its model (a device or a dtype): in place."""
+        self.weights = tuple(w.to(*args, **kwargs) for w in self.weights)
+        return self
+
+    def _tokens(self, extra_options: dict) -> tuple[ImageTokens, float]:
+        if self.kind == "style":
+            return self.state.style, self.state.style_scale
+        tokens = extra_options.get(CONTENT_TOKENS)
+        if tokens is None:
+            raise ValueError("Apply CSGO: content_routing 'paper' needs each view's content tokens: sample with "
+                             "Sample Group (which encodes the content views), or use the 'released' routing")
+        return tokens, self.state.content_scale
+
+    def __call__(self, q, k, v, extra_options):
+        tokens, scale = self._tokens(extra_options)
+        views = _views(q, extra_options)
+        chunks = [(tokens.uncond if half == UNCOND else tokens.cond).expand(views, -1, -1)
+                  for half in extra_options["cond_or_uncond"]]
+        tokens = torch.cat(chunks).to(q)
+        if self.weights[0].device != q.device or self.weights[0].dtype != q.dtype:
+            self.to(q)
+        k_ip, v_ip = (F.linear(tokens, w) for w in self.weights)
+        return decoupled_attention(q, k, v, extra_options["n_heads"], [(k_ip, v_ip, scale)])
+
+
+# --------------------------------------------------------------------------- layers of ComfyUI's UNet / ControlNet
+
+
+@dataclass(frozen=True)
+class TransformerLayer:
+    """One transformer block of a ComfyUI UNet or ControlNet: its patch key ``(block, number, transformer)``
+    (``block`` "input", "middle" or "output"), its module path, and the diffusers name of the same block."""
+
+    block: str
+    number: int
+    transformer: int
+    path: str
+    diffusers_name: str
+
+
+def _diffusers_block(block: str, number: int, per_level: int) -> str:
+    """The diffusers name of ComfyUI's ``input_blocks[number]`` / ``output_blocks[number]`` / middle block."""
+    if block == "middle":
+        return "mid_block.attentions.0"
+    if block == "input":
+        level, index = divmod(number - 1, per_level + 1)
+        return f"down_blocks.{level}.attentions.{index}"
+    level, index = divmod(number, per_level + 1)
+    return f"up_blocks.{level}.attentions.{index}"
+
+
+def transformer_layers(model: torch.nn.Module) -> list[TransformerLayer]:
+    """Every transformer block of ComfyUI's UNet or ControlNet ``model`` (its ``diffusion_model`` / control
+    model), in the order CSGO's released weights index them: input (down), output (up), middle."""
+    per_level = model.num_res_blocks[0]
+    layers = []
+    for attribute, block in (("input_blocks", "input"), ("output_blocks", "output"), ("middle_block", "middle")):
+        blocks = getattr(model, attribute, None)
+        if blocks is None:
+            continue
+        for number, sequence in enumerate(blocks) if block != "middle" else [(0, blocks)]:
+            for position, child in enumerate(sequence):
+                for index, _ in enumerate(getattr(child, "transformer_blocks", ())):
+                    prefix = attribute if block == "middle" else f"{attribute}.{number}"
+                    layers.append(TransformerLayer(
+                        block, number, index, f"{prefix}.{position}.transformer_blocks.{index}",
+                        f"{_diffusers_block(block, number, per_level)}.transformer_blocks.{index}"))
+    return layers
+
+
+# --------------------------------------------------------------------------- the ControlNet
+
+
+class ControlNetCall(Shared):
+    """The ControlNet model's ``forward`` while patched: keeps the sampler's ``transformer_options`` (and the
+    latent batch's shape) for the model's :class:`ControlNetAttention` modules during the call."""
+
+    def __init__(self, model: torch.nn.Module):
+        self.model = model
+        self.options: dict = {}
+
+    def __call__(self, *args, transformer_options=None, **kwargs):
+        x = kwargs["x"] if "x" in kwargs else args[0]
+        self.options = {**(transformer_options or {}), "original_shape": list(x.shape)}
+        try:
+            return type(self.model).forward(self.model, *args, **kwargs)
+        finally:
+            self.options = {}
+
+
+class ControlNetAttention(torch.nn.Module):
+    """Stands in for one attention module of the ControlNet: its own projections around ``patch``."""
+
+    def __init__(self, attention: torch.nn.Module, patch, call: ControlNetCall):
+        super().__init__()
+        self.attention = attention
+        self.patch = patch
+        self.call = call
+
+    def forward(self, x, context=None, value=None, mask=None, transformer_options=None):
+        attention = self.attention
+        context = x if context is None else context
+        q, k = attention.to_q(x), attention.to_k(context)
+        v = attention.to_v(context if value is None else value)
+        return attention.to_out(self.patch(q, k, v, {**self.call.options, "n_heads": attention.heads}))
+
+
+def patch_controlnet(control_net, patches: dict[str, object]):
+    """A copy of ComfyUI's ``control_net`` whose attention modules at ``patches``' module paths (e.g.
+    ``input_blocks.4.1.transformer_blocks.0.attn2``) call those patches; earlier patches of the pack stay."""
+    patched = control_net.copy()
+    wrapped = patched.control_model_wrapped = control_net.control_model_wrapped.clone()
+    call = wrapped.object_patches.get("forward")
+    if not isinstance(call, ControlNetCall):
+        call = ControlNetCall(patched.control_model)
+        wrapped.add_object_patch("forward", call)
+        patched.extra_conds = [*patched.extra_conds, "transformer_options"]
+    for path, patch in patches.items():
+        current = wrapped.get_model_object(path)
+        original = current.attention if isinstance(current, ControlNetAttention) else current
+        wrapped.add_object_patch(path, ControlNetAttention(original, patch, call))
+    return patched

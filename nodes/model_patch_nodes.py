@@ -1,0 +1,225 @@
+"""NV-Attention Patch Model, Load CSGO and Apply CSGO: the method's patches on ComfyUI's own MODEL and CONTROL_NET.
+
+The MODEL comes from Load Checkpoint (LoRAs from the stock LoRA loader), the CONTROL_NET from Load
+ControlNet Model, the CLIP_VISION (ViT-bigG/14) from Load CLIP Vision. Each node checks what it is given
+and names the input and what it expected before any sampling starts. The patches: :mod:`.comfy_patches`.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+
+import torch
+
+from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS, CSGOProjections, released_key_prefix
+from artnvg_core.diffusion.csgo_weights import CSGOFile, read_csgo
+from artnvg_core.diffusion.settings import NV_LEVELS, SamplerSettings
+from artnvg_core.statedict import listed_keys, state_dict_mismatch
+
+from .comfy_bridge import comfy_module, model_file_path, model_files, model_folder_paths
+from .comfy_patches import (
+    CSGO_STATE,
+    CSGOState,
+    ImageTokenPatch,
+    NeighbourViewPatch,
+    patch_controlnet,
+    transformer_layers,
+)
+from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
+from .node_errors import NodeInputError, node_input
+from .node_types import CSGO
+
+CSGO_FOLDER = "csgo"
+CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
+CSGO_URL = ("https://huggingface.co/InstantX/CSGO: `hf download InstantX/CSGO csgo_4_32.bin`, saved as "
+            "models/csgo/csgo_4_32.bin")
+IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter: `hf download h94/IP-Adapter "
+                     "sdxl_models/image_encoder/model.safetensors`, saved (renamed) as "
+                     "models/clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")
+UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
+CONTROLNET_ROUTES = {"input": "style", "middle": None}
+_log = logging.getLogger("artnvg")
+
+
+def diffusion_unet(node: str, model) -> torch.nn.Module:
+    """The UNet of ComfyUI MODEL ``model`` (SD 1.x/2.x/SDXL: input, middle and output blocks); NodeInputError
+    naming input 'model' for any other architecture."""
+    unet = model.get_model_object("diffusion_model")
+    if not all(hasattr(unet, name) for name in ("input_blocks", "middle_block", "output_blocks", "num_res_blocks")):
+        raise NodeInputError(f"{node}: input 'model': a {type(unet).__name__} model; expected a UNet checkpoint "
+                             "(SDXL for the ArtNVG method) from Load Checkpoint")
+    return unet
+
+
+class NVAttentionPatch(ArtNVGNode):
+    """Neighbouring-view attention on a MODEL: in every self-attention each view of a group attends to all the
+    views of its group (the latent batch), the two guidance halves apart. Sample Group applies the same patch
+    to the ControlNet's self-attention.
+
+    The optional inputs trade exactness for speed (docs/presets.md): NV in the lowest-resolution
+    level only, each view's k nearest views only (camera centres from Sample Group), the other views'
+    keys/values pooled.
+    """
+
+    DISPLAY_NAME = "NV-Attention Patch Model"
+    FUNCTION = "patch"
+    RETURN_TYPES = ("MODEL",)
+    RETURN_NAMES = ("model",)
+    REQUIRED = {
+        "model": ("MODEL",),
+        "enabled": ("BOOLEAN", {"default": True, "tooltip": "Off: the model unchanged (each view attends only to "
+                                                             "itself)."}),
+    }
+    OPTIONAL = {
+        "levels": (NV_LEVELS, {"default": "all", "tooltip": (
+            "lowest: NV attention in the lowest-resolution level only (faster, approximate).")}),
+        "nearest_views": ("INT", {"default": 0, "min": 0, "max": 256, "tooltip": (
+            "0: all views of the group; k: each view attends to its k nearest views (approximate).")}),
+        "kv_downsample": ("INT", {"default": 1, "min": 1, "max": 8, "tooltip": (
+            "Pool the other views' keys/values by this factor per side (1: exact).")}),
+    }
+
+    def patch(self, model, enabled, levels="all", nearest_views=0, kv_downsample=1):
+        if not enabled:
+            return (model,)
+        unet = diffusion_unet(self.DISPLAY_NAME, model)
+        lowest = 2 ** (len(unet.channel_mult) - 1) if levels == "lowest" else None
+        patch = NeighbourViewPatch(lowest, nearest_views or None, kv_downsample)
+        patched = model.clone()
+        for block, number in dict.fromkeys((layer.block, layer.number) for layer in transformer_layers(unet)):
+            patched.set_model_attn1_replace(patch, block, number)
+        return (patched,)
+
+
+class LoadCSGO(ArtNVGNode):
+    """Load CSGO's weights (csgo_4_32.bin) from ComfyUI's models/csgo folder: the content and style resamplers
+    and the cross-attention weights that Apply CSGO puts on the MODEL and the ControlNet."""
+
+    DISPLAY_NAME = "Load CSGO"
+    FUNCTION = "load"
+    RETURN_TYPES = (CSGO,)
+    RETURN_NAMES = ("csgo",)
+    REQUIRED = {"csgo_name": lambda: (model_files(CSGO_FOLDER), {"tooltip": (
+        f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_URL}).")})}
+
+    def load(self, csgo_name):
+        path = model_file_path(CSGO_FOLDER, csgo_name)
+        if path is None:
+            folders = ", ".join(model_folder_paths(CSGO_FOLDER)) or f"ComfyUI's models/{CSGO_FOLDER}"
+            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'csgo_name': '{csgo_name}' is not in the "
+                                 f"'{CSGO_FOLDER}' model folder ({folders}); get it from {CSGO_URL}")
+        with node_input(self.DISPLAY_NAME, "csgo_name"):
+            return (read_csgo(path),)
+
+
+def _branch_weights(node: str, csgo: CSGOFile, group: dict, layers: list, routes: dict, what: str,
+                    by_path: bool = False) -> dict:
+    """``{layer: (to_k_ip, to_v_ip)}`` for the ``layers`` (with their attn2 modules) that ``routes`` give image
+    tokens, from CSGO key ``group``; NodeInputError naming input 'csgo' when the file does not fit."""
+    expected, chosen = {}, {}
+    for position, (layer, attention) in enumerate(layers):
+        if routes[layer.block] is None:
+            continue
+        prefix = f"{layer.diffusers_name}.attn2.processor" if by_path else released_key_prefix(position)
+        shape = attention.to_k.weight.shape
+        chosen[layer] = (f"{prefix}.to_k_ip.weight", f"{prefix}.to_v_ip.weight")
+        expected.update({key: torch.empty(shape, device="meta") for key in chosen[layer]})
+    mismatch = state_dict_mismatch(expected, {k: v for k, v in group.items() if k in expected})
+    if mismatch:
+        raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}' does not fit {what}: {mismatch}")
+    others = [key for key in group if key not in expected and ".to_k_ip." not in key and ".to_v_ip." not in key]
+    if by_path and others:  # CSGO's loader would load them into the ControlNet; the ComfyUI path does not
+        _log.warning("%s: '%s' holds %d other ControlNet weights keyed by module path, not applied here %s", node,
+                     csgo.path.name, len(others), listed_keys(others))
+    return {layer: tuple(group[key] for key in keys) for layer, keys in chosen.items()}
+
+
+def _conv_in(node: str, csgo: CSGOFile, unet: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The file's ``conv_in_unet_sd`` group, checked against the UNet's first convolution."""
+    mismatch = state_dict_mismatch(unet.input_blocks[0][0].state_dict(), csgo.conv_in)
+    if mismatch:
+        raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}', group 'conv_in_unet_sd', does not fit this "
+                             f"MODEL's conv_in: {mismatch}")
+    return csgo.conv_in
+
+
+def _attn2_layers(module: torch.nn.Module) -> list:
+    """(TransformerLayer, its attn2 module) of every transformer block of ``module`` (ComfyUI's own module where
+    a loaded ControlNet holds a :class:`~.comfy_patches.ControlNetAttention` in its place)."""
+    found = [(layer, module.get_submodule(f"{layer.path}.attn2")) for layer in transformer_layers(module)]
+    return [(layer, getattr(attention, "attention", attention)) for layer, attention in found]  # unwrapped
+
+
+def _content_tokens(clip_vision, projections: CSGOProjections, images: torch.Tensor):
+    """CSGO content tokens of each image of IMAGE batch ``images`` (ComfyUI's CLIP Vision features)."""
+    return projections.tokens("content", clip_vision.encode_image(images).penultimate_hidden_states)
+
+
+class ApplyCSGO(ArtNVGNode):
+    """CSGO's content/style control on the MODEL and the ControlNet: the style image's tokens enter every
+    cross-attention of the UNet's up blocks and of the ControlNet; content comes through the ControlNet's
+    hint (Sample Group gives each view its own), and with the paper routing also as content tokens in the
+    UNet's down blocks."""
+
+    DISPLAY_NAME = "Apply CSGO"
+    FUNCTION = "apply"
+    RETURN_TYPES = ("MODEL", "CONTROL_NET")
+    RETURN_NAMES = ("model", "control_net")
+    REQUIRED = {
+        "model": ("MODEL", {"tooltip": "An SDXL checkpoint (Load Checkpoint; LoRAs applied before)."}),
+        "control_net": ("CONTROL_NET", {"tooltip": "The TTPlanet SDXL tile ControlNet (Load ControlNet Model)."}),
+        "csgo": (CSGO,),
+        "clip_vision": ("CLIP_VISION", {"tooltip": f"ViT-bigG/14, IP-Adapter's SDXL image encoder: {IMAGE_ENCODER_URL}."}),
+        "style_image": STYLE_IMAGE_INPUT,
+        "style_scale": ("FLOAT", {"default": SamplerSettings.style_scale, "min": 0.0, "max": 10.0, "step": 0.05,
+                                  "tooltip": "Weight of the style tokens (UNet up blocks, ControlNet)."}),
+        "content_scale": ("FLOAT", {"default": SamplerSettings.content_scale, "min": 0.0, "max": 10.0, "step": 0.05,
+                                    "tooltip": "Weight of the content tokens (content_routing paper only)."}),
+        "content_routing": (CONTENT_ROUTINGS, {"default": SamplerSettings.content_routing, "tooltip": (
+            "released: as CSGO's released code, the UNet's down blocks read text only (content comes through "
+            "the ControlNet; content_scale has no effect). paper: content tokens into every UNet down-block "
+            "cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
+    }
+
+    def apply(self, model, control_net, csgo, clip_vision, style_image, style_scale, content_scale,
+              content_routing=SamplerSettings.content_routing):
+        node = self.DISPLAY_NAME
+        model_base = comfy_module("comfy.model_base")
+        if model_base is not None and not isinstance(model.model, model_base.SDXL):
+            raise NodeInputError(f"{node}: input 'model': a {type(model.model).__name__} checkpoint; CSGO needs SDXL "
+                                 "(SDXL 1.0 base or a fine-tune of it, from Load Checkpoint)")
+        control_model = getattr(control_net, "control_model", None)
+        if control_model is None or not hasattr(control_model, "input_hint_block"):
+            raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
+                                 "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
+        unet = diffusion_unet(node, model)
+        unet_layers = _attn2_layers(unet)
+        routes = UNET_ROUTES if content_routing == "paper" else {**UNET_ROUTES, "input": None}
+        if content_routing == "paper" and f"{released_key_prefix(0)}.to_k_ip.weight" not in csgo.unet_branches:
+            raise NodeInputError(f"{node}: input 'content_routing': '{csgo.path.name}' holds no content entries for "
+                                 "the UNet's down blocks (a file saved by CSGO's released code has none); use 'released'")
+        unet_weights = _branch_weights(node, csgo, csgo.unet_branches, unet_layers, routes,
+                                       "this MODEL's cross-attention (an SDXL checkpoint expected)")
+        control_layers = _attn2_layers(control_model)
+        by_path = not all(key.split(".", 1)[0].isdigit() for key in csgo.controlnet_branches)
+        control_weights = _branch_weights(node, csgo, csgo.controlnet_branches, control_layers, CONTROLNET_ROUTES,
+                                          "this ControlNet's cross-attention (an SDXL ControlNet expected)", by_path)
+        projections = CSGOProjections(csgo.content, csgo.style)
+        features = clip_vision.encode_image(style_image[:1]).penultimate_hidden_states
+        if features.shape[-1] != csgo.style.config.embedding_dim:
+            raise NodeInputError(f"{node}: input 'clip_vision': its features are {features.shape[-1]} wide, CSGO's "
+                                 f"resamplers read {csgo.style.config.embedding_dim}: use ViT-bigG/14 ({IMAGE_ENCODER_URL})")
+        state = CSGOState(projections.tokens("style", features), style_scale, content_scale, content_routing,
+                          functools.partial(_content_tokens, clip_vision, projections))
+        patched = model.clone()
+        for layer, (to_k_ip, to_v_ip) in unet_weights.items():
+            patch = ImageTokenPatch(to_k_ip, to_v_ip, routes[layer.block], state)
+            patched.set_model_attn2_replace(patch, layer.block, layer.number, layer.transformer)
+        patched.model_options["transformer_options"][CSGO_STATE] = state
+        if csgo.conv_in is not None:  # the file's UNet conv_in replaces the checkpoint's, as CSGO's loader does
+            patched.add_patches({f"diffusion_model.input_blocks.0.0.{key}": ("set", (weight,))
+                                 for key, weight in _conv_in(node, csgo, unet).items()})
+        control_patches = {f"{layer.path}.attn2": ImageTokenPatch(*weights, "style", state)
+                           for layer, weights in control_weights.items()}
+        return patched, patch_controlnet(control_net, control_patches)

@@ -1,0 +1,72 @@
+"""Select Gaussians: a selection of a scene's Gaussians (box, sphere, or masks painted on views)."""
+
+from __future__ import annotations
+
+import torch
+
+from artnvg_core.cameras.selection import parse_views
+from artnvg_core.selection import parse_region, select_by_masks, select_region
+
+from .comfy_bridge import autograd_enabled, cancellable, compute_device, prepare_rasterizer, progress_text, trainable_copy
+from .cpu_threads import cpu_threads
+from .node_base import ArtNVGNode
+from .node_errors import node_input
+from .node_types import CAMERAS, SCENE, SELECTION
+
+MODES = ("box", "sphere", "mask")
+
+
+class SelectGaussians(ArtNVGNode):
+    """Choose the Gaussians that Finetune Gaussians may change and Blend Stylization mixes.
+
+    box: the Gaussians whose centre lies in XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX; sphere: in X,Y,Z,R (the scene's units
+    and axes). mask: the Gaussians that a mask's painted pixels see, for masks painted on rendered views (e.g.
+    with the mask editor on a Render Views image saved and loaded again); views says which cameras they were
+    painted on. Shows how many Gaussians it selected."""
+
+    DISPLAY_NAME = "Select Gaussians"
+    FUNCTION = "select"
+    RETURN_TYPES = (SELECTION,)
+    RETURN_NAMES = ("selection",)
+    REQUIRED = {
+        "scene": (SCENE,),
+        "mode": (MODES, {"default": "box"}),
+        "bounds": ("STRING", {"default": "-1, -1, -1, 1, 1, 1", "tooltip": (
+            "box: XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX; sphere: X, Y, Z, R; in the scene's units (unused for mask).")}),
+    }
+    OPTIONAL = {
+        "cameras": (CAMERAS, {"tooltip": "mask: the cameras of the views the masks were painted on."}),
+        "mask": ("MASK", {"tooltip": "mask: painted pixels (1) of one or more views, e.g. Load Image's mask."}),
+        "views": ("STRING", {"default": "0", "tooltip": (
+            "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
+    }
+
+    @cancellable
+    def select(self, scene, mode, bounds, cameras=None, mask=None, views="0"):
+        with node_input(self.DISPLAY_NAME, "mode"):
+            if mode not in MODES:
+                raise ValueError(f"expected one of {MODES}, got {mode!r}")
+        if mode != "mask":
+            with node_input(self.DISPLAY_NAME, "bounds"):
+                selection = select_region(scene, parse_region(f"{mode}:{bounds.replace(' ', '')}", "bounds"))
+        else:
+            with node_input(self.DISPLAY_NAME, "mask"):
+                if cameras is None or mask is None:
+                    raise ValueError("mode mask needs cameras and mask connected")
+            masks = mask if mask.ndim == 3 else mask[None]
+            with node_input(self.DISPLAY_NAME, "views"):
+                indices = parse_views(views, len(cameras), "views")
+                if len(indices) != len(masks):
+                    raise ValueError(f"{len(masks)} masks but {len(indices)} views ({views!r}): give one view per mask")
+            device = compute_device()
+            prepare_rasterizer(device)
+            with node_input(self.DISPLAY_NAME, "mask"), autograd_enabled(), cpu_threads(device):
+                # the Gaussians' weights are read from a render's gradient
+                selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),
+                                            masks.clone().to(device)).cpu()
+        count = int(selection.sum())
+        progress_text(f"selected {count:,} of {len(scene):,} Gaussians")
+        with node_input(self.DISPLAY_NAME, "bounds" if mode != "mask" else "mask"):
+            if count == 0:
+                raise ValueError("selects no Gaussian of the scene")
+        return (selection.to(torch.bool),)

@@ -1,0 +1,67 @@
+"""Select Gaussians, and Finetune Gaussians given its selection, called as ComfyUI calls them, against the
+library calls they adapt."""
+
+import pytest
+import torch
+
+from artnvg_core.cameras import load_cameras
+from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.fileio import load_image
+from artnvg_core.formats import load_scene
+from artnvg_core.selection import Box, select_by_masks, select_region
+from artnvg_core.stylize import DemoInputs
+from nodes.finetune_nodes import FinetuneGaussians
+from nodes.node_errors import NodeInputError
+from nodes.selection_nodes import SelectGaussians
+
+
+def call(node_class, **inputs):
+    with torch.inference_mode():
+        return getattr(node_class(), node_class.FUNCTION)(**inputs)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return load_scene(DemoInputs().scene).select(slice(0, None, 20)), load_cameras(DemoInputs().cameras).scaled(0.125)
+
+
+def test_select_node_box_sphere_and_mask_give_the_library_selections(demo):
+    original, cameras = demo
+    (box,) = call(SelectGaussians, scene=original, mode="box", bounds="-1, -1, -1, 1, 1, 1")
+    assert torch.equal(box, select_region(original, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))))
+    (ball,) = call(SelectGaussians, scene=original, mode="sphere", bounds="0, 0, 0, 1")
+    assert torch.equal(ball, (original.means.double().square().sum(1) <= 1))
+    masks = torch.zeros(2, cameras.height, cameras.width)
+    masks[:, :, : cameras.width // 2] = 1
+    (painted,) = call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras, mask=masks, views="3, 7")
+    assert torch.equal(painted, select_by_masks(original, cameras.subset([3, 7]), masks))
+    assert 0 < painted.sum() < len(original)
+
+
+@pytest.mark.parametrize("inputs, message", [
+    ({"mode": "box", "bounds": "1, 2, 3"}, "Select Gaussians.*bounds.*expected box:XMIN"),
+    ({"mode": "sphere", "bounds": "100, 100, 100, 1"}, "Select Gaussians.*bounds.*selects no Gaussian"),
+    ({"mode": "mask", "bounds": ""}, "Select Gaussians.*mask.*needs cameras and mask"),
+])
+def test_select_node_bad_inputs_name_the_input(demo, inputs, message):
+    with pytest.raises(NodeInputError, match=message):
+        call(SelectGaussians, scene=demo[0], **inputs)
+
+
+def test_select_node_needs_one_view_per_mask(demo):
+    original, cameras = demo
+    with pytest.raises(NodeInputError, match="Select Gaussians.*views.*2 masks but 1 views"):
+        call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras,
+             mask=torch.ones(2, cameras.height, cameras.width), views="0")
+
+
+def test_finetune_node_trains_the_selection_alone(demo):
+    scene, cameras = demo
+    (selection,) = call(SelectGaussians, scene=scene, mode="box", bounds="-1, -1, -1, 1, 1, 1")
+    style = load_image(DemoInputs().style)[None]
+    inputs = dict(scene=scene, cameras=cameras.subset([0, 8]), style_image=style, iterations=2, optimize="appearance",
+                  l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0, content_weight=0.15, tv_weight=0.01, seed=0)
+    (result,) = call(FinetuneGaussians, selection=selection, **inputs)
+    expected = finetune(scene, cameras.subset([0, 8]), style, config=FinetuneConfig(iterations=2), selection=selection)
+    torch.testing.assert_close(result.sh, expected.sh, rtol=0, atol=1e-6)
+    assert torch.equal(result.sh[~selection], scene.sh[~selection]) and not torch.equal(result.sh, scene.sh)
