@@ -7,6 +7,7 @@ poses, activated-form conversions, metric sums) on the CPU and keeps device work
 from __future__ import annotations
 
 import importlib.util
+import os
 
 import torch
 
@@ -21,6 +22,22 @@ def mps_available() -> bool:
 def triton_available() -> bool:
     """True when the ``triton`` package can be imported (torch's CUDA builds bring it)."""
     return importlib.util.find_spec("triton") is not None
+
+
+def available_memory() -> int | None:
+    """Bytes of main memory available to a new allocation without swapping (Linux's MemAvailable, else the
+    free pages); None where the system does not say."""
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
 
 
 def best_device() -> torch.device:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import stat
 import tempfile
 import uuid
@@ -22,13 +23,14 @@ from PIL import Image
 
 
 def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
-    """Call ``write`` on a temporary file beside ``path``, then rename it onto ``path``.
+    """Call ``write`` on a temporary file beside ``path`` (:func:`temporary_path`), then rename it onto ``path``.
 
     On any failure (or interruption) the temporary file is removed and
     ``path`` is left untouched.
     """
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    sweep_temporaries(path.parent)
+    temporary = temporary_path(path)
     try:
         with open(temporary, "xb") as stream:
             write(stream)
@@ -51,9 +53,67 @@ def _naming(error: OSError, temporaries: dict[Path, Path], default) -> OSError:
     return OSError(error.errno, error.strerror or str(error), str(target))
 
 
-def _temporary_name(path: Path) -> Path:
-    """A hidden, unique name beside ``path`` that keeps its suffix (writers may go by it)."""
-    return path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.partial{path.suffix}")
+# A temporary's name: hidden, the writer's process id, a random part, and the target's suffix (writers may go
+# by it): ".scene.4242.0f3a9c1e.partial.ply" for scene.ply.
+_TEMPORARY = re.compile(r"\.(?P<stem>.*)\.(?P<pid>\d+)\.[0-9a-f]{8}\.partial(?P<suffix>.*)")
+_TEMPORARY_EXTRA = len(".") + len(".4294967295") + len(".0123abcd") + len(".partial")  # bytes it adds to a name
+
+
+def temporary_path(path: Path) -> Path:
+    """A hidden, unique name beside ``path`` that keeps its suffix and names the writing process, so that
+    :func:`sweep_temporaries` knows it once that process has gone (killed while it wrote)."""
+    return path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.partial{path.suffix}")
+
+
+def sweep_temporaries(folder: Path) -> None:
+    """Remove the temporaries (:func:`temporary_path`) in ``folder`` whose writer no longer runs on this machine:
+    what a process killed while writing (SIGKILL, a power cut) left behind."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        match = _TEMPORARY.fullmatch(entry.name)
+        if match and not _process_runs(int(match["pid"])) and entry.is_file(follow_symlinks=False):
+            Path(entry.path).unlink(missing_ok=True)
+
+
+def _process_runs(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (one that cannot be asked about counts as running)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True  # another user's process, or no such pid to test: left alone
+    return True
+
+
+def _name_limit(folder: Path) -> int:
+    """Bytes a file name may have in ``folder`` (the nearest existing folder's file system; 255 when unknown)."""
+    for candidate in (folder, *folder.parents):
+        try:
+            return os.pathconf(candidate, "PC_NAME_MAX")
+        except (OSError, ValueError):  # not there yet (or its own name too long): ask its parent
+            continue
+    return 255
+
+
+def check_output_name(path: str | os.PathLike, option: str) -> Path:
+    """``path`` when each of its names, and its file's temporary (:func:`temporary_path`), fits the file system
+    (NAME_MAX, mostly 255 bytes): checked before any work, since an over-long name fails only when the file
+    is written. ValueError naming ``option``."""
+    path = Path(path)
+    limit = _name_limit(path.parent)
+    for part in path.parts:
+        if len(os.fsencode(part)) > limit:
+            raise ValueError(f"{option}: the name {part[:40]}... is {len(os.fsencode(part))} bytes long; this file "
+                             f"system allows {limit}")
+    if len(os.fsencode(path.name)) + _TEMPORARY_EXTRA > limit:
+        raise ValueError(f"{option}: the file name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
+                         f"it may have at most {limit - _TEMPORARY_EXTRA} here (the file system allows {limit}, and the "
+                         f"file is first written under a temporary name {_TEMPORARY_EXTRA} bytes longer)")
+    return path
 
 
 def check_output_file(path: str | os.PathLike, option: str) -> Path:
@@ -62,7 +122,7 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     written. Creates nothing (a probe file is made and removed)."""
     if not str(path).strip():
         raise ValueError(f"{option}: the output path is empty")
-    path = Path(path)
+    path = check_output_name(path, option)
     if path.is_dir():
         raise ValueError(f"{option}: {path} is a folder; give a file name (e.g. {path / 'out'}{path.suffix})")
     _check_writable_folder(path.parent, option, path)
@@ -74,7 +134,7 @@ def check_output_folder(path: str | os.PathLike, option: str) -> Path:
     is empty, an existing file, under a file, or cannot be written. Creates nothing."""
     if not str(path).strip():
         raise ValueError(f"{option}: the output folder is empty")
-    path = Path(path)
+    path = check_output_name(Path(path) / "x", option).parent
     if path.exists() and not path.is_dir():
         raise ValueError(f"{option}: {path} exists and is not a folder")
     _check_writable_folder(path, option, path)
@@ -131,10 +191,11 @@ def written_together(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     path, else all are removed and no path is touched. Missing parent folders are created. A
     ValueError raised in the block names the paths, not the temporaries."""
     targets = [Path(p) for p in paths]
-    temporaries = [_temporary_name(t) for t in targets]
+    temporaries = [temporary_path(t) for t in targets]
     try:
         for target in targets:
             target.parent.mkdir(parents=True, exist_ok=True)
+            sweep_temporaries(target.parent)
         try:
             yield temporaries
         except ValueError as error:

@@ -28,7 +28,7 @@ from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import ProgressFn, StopFn
-from .raster import render
+from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 
@@ -62,9 +62,8 @@ def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: Cam
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    with torch.no_grad():
-        before = render(original, subset, backend=backend).rgb
-        after = render(stylized, subset, backend=backend).rgb
+    before = render_views(original, subset, backend=backend).rgb
+    after = render_views(stylized, subset, backend=backend).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -223,8 +222,7 @@ def stylize_diffusion(
     with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
         loading = None if spread else background.submit(load, device, progress=loading_progress,
                                                         should_stop=should_stop)
-        with torch.no_grad():
-            content = render(scene, cameras, backend=config.backend).rgb.clamp(0, 1).cpu()
+        content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
         models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)

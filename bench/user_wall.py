@@ -105,7 +105,7 @@ def split_sampling(stylize):
 core.stylize_diffusion = split_sampling(core.stylize_diffusion)
 timed(core, "stylize_diffusion", "diffusion")
 timed(core, "load_models_for", "models")
-timed(core, "render", "content")
+timed(core, "render_views", "content")
 timed(core, "finetune", "finetune")
 timed(core, "save_result", "save")
 parts["start"] = time.time() - launched

@@ -13,7 +13,6 @@ no progress is shown, nothing is interrupted and the device is CUDA, else Apple'
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import importlib
 import logging
@@ -27,6 +26,7 @@ import torch
 from artnvg_core.devices import best_device
 from artnvg_core.progress import Cancelled, ProgressFn
 from artnvg_core.raster import prepare_backend
+from artnvg_core.tensor_tree import map_tensors
 
 _log = logging.getLogger("artnvg")
 
@@ -149,9 +149,7 @@ def trainable_copy(value):
     Call inside :func:`autograd_enabled`: tensors made under inference mode (every node
     output in ComfyUI) cannot be saved for backward, their clones made outside it can.
     """
-    clones = {f.name: getattr(value, f.name).clone() for f in dataclasses.fields(value)
-              if isinstance(getattr(value, f.name), torch.Tensor)}
-    return dataclasses.replace(value, **clones)
+    return map_tensors(torch.Tensor.clone, value)
 
 
 # --------------------------------------------------------------------------- progress and interrupt

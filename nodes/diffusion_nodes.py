@@ -15,7 +15,14 @@ from artnvg_core.diffusion.settings import SIZE_RULES, SamplerSettings
 from artnvg_core.progress import check_stop
 
 from .comfy_bridge import cancellable, comfy_module, interrupt_requested, progress_bar
-from .comfy_patches import CONTENT_TOKENS, CSGO_STATE, VIEW_CENTERS, NeighbourViewPatch, patch_controlnet, transformer_layers
+from .comfy_patches import (
+    CONTENT_TOKENS,
+    CSGO_STATE,
+    VIEW_CENTERS,
+    NeighbourViewPatch,
+    patch_controlnet,
+    transformer_layers,
+)
 from .model_patch_nodes import diffusion_unet
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
@@ -25,6 +32,7 @@ SAMPLERS, SCHEDULERS = ("ddim",), ("ddim_uniform",)  # ComfyUI's lists replace t
 
 
 def _names(kind: str, fallback: tuple) -> tuple:
+    """ComfyUI's sampler or scheduler names (``kind``: KSampler's "SAMPLERS" / "SCHEDULERS"); ``fallback`` without it."""
     samplers = comfy_module("comfy.samplers")
     return tuple(getattr(samplers.KSampler, kind)) if samplers is not None else fallback
 
@@ -76,8 +84,9 @@ class SampleGroup(ArtNVGNode):
         "seed": ("INT", {"default": 0, "min": 0, "max": 0xFFFFFFFFFFFFFFFF, "control_after_generate": True}),
         "steps": ("INT", {"default": SamplerSettings.steps, "min": 1, "max": 10000}),
         "cfg": ("FLOAT", {"default": SamplerSettings.guidance_scale, "min": 0.0, "max": 100.0, "step": 0.1}),
-        "sampler_name": (lambda: (_names("SAMPLERS", SAMPLERS), {"default": "ddim"})),
-        "scheduler": (lambda: (_names("SCHEDULERS", SCHEDULERS), {"default": "ddim_uniform"})),
+        "sampler_name": lambda: (_names("SAMPLERS", SAMPLERS), {"default": "ddim"}),
+        "scheduler": lambda: (_names("SCHEDULERS", SCHEDULERS), {"default": "ddim_uniform", "tooltip": (
+            "ddim with ddim_uniform: the paper's DDIM (the timesteps of diffusers' DDIM for SDXL).")}),
         "denoise": ("FLOAT", {"default": 1.0, "min": 0.0, "max": 1.0, "step": 0.01, "tooltip": (
             "1: from noise; below 1: from the content views (encoded by the VAE), as KSampler.")}),
         "control_scale": ("FLOAT", {"default": SamplerSettings.control_scale, "min": 0.0, "max": 10.0, "step": 0.05,

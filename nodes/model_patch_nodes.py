@@ -8,13 +8,14 @@ and names the input and what it expected before any sampling starts. The patches
 from __future__ import annotations
 
 import functools
+import logging
 
 import torch
 
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS, CSGOProjections, released_key_prefix
 from artnvg_core.diffusion.csgo_weights import CSGOFile, read_csgo
 from artnvg_core.diffusion.settings import NV_LEVELS, SamplerSettings
-from artnvg_core.statedict import state_dict_mismatch
+from artnvg_core.statedict import listed_keys, state_dict_mismatch
 
 from .comfy_bridge import comfy_module, model_file_path, model_files, model_folder_paths
 from .comfy_patches import (
@@ -36,6 +37,7 @@ IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter/blob/main/sdxl_model
                      "(CLIP-ViT-bigG-14-laion2B-39B-b160k)")
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
+_log = logging.getLogger("artnvg")
 
 
 def diffusion_unet(node: str, model) -> torch.nn.Module:
@@ -124,6 +126,10 @@ def _branch_weights(node: str, csgo: CSGOFile, group: dict, layers: list, routes
     mismatch = state_dict_mismatch(expected, {k: v for k, v in group.items() if k in expected})
     if mismatch:
         raise NodeInputError(f"{node}: input 'csgo': '{csgo.path.name}' does not fit {what}: {mismatch}")
+    others = [key for key in group if key not in expected and ".to_k_ip." not in key and ".to_v_ip." not in key]
+    if by_path and others:  # CSGO's loader would load them into the ControlNet; the ComfyUI path does not
+        _log.warning("%s: '%s' holds %d other ControlNet weights keyed by module path, not applied here %s", node,
+                     csgo.path.name, len(others), listed_keys(others))
     return {layer: tuple(group[key] for key in keys) for layer, keys in chosen.items()}
 
 

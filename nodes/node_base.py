@@ -9,10 +9,13 @@ shown as plain text (:func:`plain_text`), as the editor shows it.
 
 Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names the node and the
 input in the error; a loader's file input is declared, found and checked by an
-:class:`~.input_files.InputFile`.
+:class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values to the
+declared ranges and choices before anything runs (``prompt_checks``).
 """
 
 from __future__ import annotations
+
+import math
 
 from .node_types import CATEGORY, IMAGE
 
@@ -42,6 +45,27 @@ class ArtNVGNode:
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         cls.DESCRIPTION = plain_text(vars(cls).get("DESCRIPTION") or cls.__doc__ or "")
+
+    @classmethod
+    def check_values(cls, **values) -> str | None:
+        """The message naming the first of ``values`` (input name -> a prompt's value; links left out) outside
+        its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, else None."""
+        declared = {**cls.REQUIRED, **cls.OPTIONAL}
+        for name, value in values.items():
+            entry = declared.get(name)
+            if entry is None or callable(entry):  # hidden inputs; file lists, which the loaders check
+                continue
+            kind, options = (*entry, {})[:2]
+            if isinstance(kind, list) and value not in kind:
+                return f"{cls.DISPLAY_NAME}: input '{name}': expected one of {kind}, got {value!r}"
+            if kind not in ("INT", "FLOAT") or isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            if not math.isfinite(value):
+                return f"{cls.DISPLAY_NAME}: input '{name}': expected a finite number, got {value}"
+            if value < options.get("min", -math.inf) or value > options.get("max", math.inf):
+                return (f"{cls.DISPLAY_NAME}: input '{name}': {value} is outside {options.get('min', '-inf')} to "
+                        f"{options.get('max', 'inf')}")
+        return None
 
     @classmethod
     def INPUT_TYPES(cls) -> dict:

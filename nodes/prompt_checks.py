@@ -6,10 +6,13 @@ missing file used to stop only the outputs downstream of it while the rest ran a
 And it repeats a ``VALIDATE_INPUTS`` message once per input that function declares.
 
 So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
-class has ``check_files(**inputs) -> str | None`` (the loaders), it runs that check on the node's
-values; a message is kept under (prompt id, node id). When any loader fails, the prompt's execution
-targets become the outputs that depend on a failing loader, so validation fails as a whole: ComfyUI
-refuses the prompt (HTTP 400) and the editor outlines the loaders and lists their messages; nothing runs.
+class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values within their
+declared ranges and choices) or ``check_files(**inputs) -> str | None`` (the loaders), it runs those
+checks on the node's values; a message is kept under (prompt id, node id). When any node fails, the
+prompt's execution targets become the outputs that depend on a failing node, so validation fails as a
+whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and lists their
+messages (for a value out of range, ComfyUI's own); nothing runs. (Without this, a Finetune Gaussians
+with iterations -1 failed validation while every output not fed by it ran.)
 The loaders' ``VALIDATE_INPUTS`` declare only the hidden input :data:`CHECK_INPUT` (the node id, so
 ComfyUI shows the message once) and return the kept message (:func:`check_result`). Their file lists
 are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
@@ -56,8 +59,8 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
 
 
 def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
-    """Node id -> message of every node whose class's ``check_files`` finds a problem with its values, and of
-    every model loader whose file is not in its folder."""
+    """Node id -> message of every node whose class's ``check_values`` or ``check_files`` finds a problem with
+    its values, and of every model loader whose file is not in its folder."""
     failures = {}
     for node_id, node in prompt.items():
         if not isinstance(node, dict):
@@ -68,12 +71,12 @@ def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
             if model_file_path(folder, str(values.get(name, ""))) is None:
                 failures[str(node_id)] = f"'{values.get(name)}' is not in the '{folder}' model folder"
             continue
-        check = getattr(classes.get(node.get("class_type")), "check_files", None)
-        if check is None:
-            continue
-        message = check(**values)
-        if message:
-            failures[str(node_id)] = message
+        cls = classes.get(node.get("class_type"))
+        for check in (getattr(cls, "check_values", None), getattr(cls, "check_files", None)):
+            message = check(**values) if check is not None else None
+            if message:
+                failures[str(node_id)] = message
+                break
     return failures
 
 

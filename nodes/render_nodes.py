@@ -7,7 +7,7 @@ import torch
 from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
 from artnvg_core.cameras.selection import parse_views
 from artnvg_core.key_views import select_key_views
-from artnvg_core.raster.views import render_views
+from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
@@ -24,7 +24,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     """Every view of ``cameras`` as an IMAGE batch [C, H, W, 3] in [0, 1] on the CPU.
 
     Renders one view at a time on ComfyUI's device, updating the progress bar and
-    stopping (core ``Cancelled``) between views when the user cancels.
+    stopping (core ``Cancelled``) when the user cancels, inside a view as between views.
     """
     device = compute_device()
     prepare_rasterizer(device)
@@ -35,9 +35,11 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
 
 def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: float) -> tuple[torch.Tensor, CameraSet]:
     """(:func:`render_frames` of ``cameras`` at ``scale`` times their size, those cameras), errors naming ``node``'s
-    inputs ``scale`` and ``scene``: the outputs of the render nodes."""
+    inputs ``scale`` and ``scene``: the outputs of the render nodes. A plan whose images would not fit in memory
+    (:func:`~artnvg_core.raster.views.check_render_plan`) is refused before the first view."""
     with node_input(node, "scale"):
         cameras = cameras.scaled(scale)
+        check_render_plan(len(cameras), cameras.width, cameras.height, what=f"{len(cameras)} views at scale {scale}")
     with node_input(node, "scene"):
         return render_frames(scene, cameras), cameras
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
 
+from artnvg_core.fileio import check_output_name
+
 from .comfy_bridge import output_directory, progress_text
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
@@ -69,12 +71,20 @@ class LoadGaussianScene(ArtNVGNode):
             return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras),)
 
 
-def _next_free_path(filename_prefix: str, suffix: str) -> Path:
-    """``<output>/<prefix>_NNNNN<suffix>`` with the next unused counter; the prefix may name subfolders."""
+def _prefix_target(filename_prefix: str, suffix: str) -> Path:
+    """``<output>/<prefix>`` (symlinks and ``..`` resolved), checked before any work: inside the output folder,
+    and short enough that ``<prefix>_NNNNN<suffix>`` and its temporary fit the file system's names."""
     root = output_directory().resolve()
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:
         raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
+    check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the file name")
+    return target
+
+
+def _next_free_path(filename_prefix: str, suffix: str) -> Path:
+    """``<output>/<prefix>_NNNNN<suffix>`` with the next unused counter; the prefix may name subfolders."""
+    target = _prefix_target(filename_prefix, suffix)
     target.parent.mkdir(parents=True, exist_ok=True)
     numbered = re.compile(re.escape(target.name) + r"_(\d{5,})" + re.escape(suffix))
     taken = [int(m.group(1)) for existing in target.parent.iterdir() if (m := numbered.fullmatch(existing.name))]
@@ -112,7 +122,23 @@ class SaveGaussianScene(ArtNVGNode):
             "degree 2.")}),
     }
 
-    def save(self, scene, filename_prefix, format="ply"):
+    HIDDEN = HIDDEN
+
+    @classmethod
+    def check_files(cls, filename_prefix="", format="ply", **_other_inputs) -> str | None:
+        """The message when the file this node would write cannot be (``prompt_checks``: refused before the
+        graph runs, not after its work), else None."""
+        try:
+            _prefix_target(filename_prefix, f".{format}")
+        except ValueError as error:
+            return f"{cls.DISPLAY_NAME}: input 'filename_prefix': {error}"
+        return None
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)
+
+    def save(self, scene, filename_prefix, format="ply", files=None):
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")

@@ -14,7 +14,7 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     demo = DemoInputs()
     scene = tmp_path / "scene.ply"
     write_ply(load_scene(demo.scene).select(slice(0, None, 40)), scene)  # 1,000 Gaussians: quick renders
-    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path),
+    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path / "out"),
                  "--views", "0,5,9", "--scale", "0.1", "--device", "cpu"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert re.fullmatch(rf"loading {re.escape(str(scene))} \(0\.1 MiB\)", lines[0])
@@ -22,7 +22,7 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     assert lines[2].startswith("rendering 3 views at ")
     views = [line for line in lines if line.startswith("[")]
     assert [line.split("]")[0] + "]" for line in views] == ["[1/3]", "[2/3]", "[3/3]"]
-    assert len(list(tmp_path.glob("*.png"))) == 3
+    assert len(list((tmp_path / "out").glob("*.png"))) == 3
 
 
 def _small_scene(tmp_path):
@@ -224,7 +224,7 @@ def test_render_never_writes_over_the_captures_photos(tmp_path, capsys):
     (tmp_path / "transforms.json").write_text(json.dumps(transforms))
     scene = _small_scene(tmp_path)
     assert main(["render", str(scene), "--cameras", str(tmp_path / "transforms.json"), "--out",
-                 str(tmp_path / "images"), "--views", "0,1", "--device", "cpu"]) == 2
+                 str(tmp_path / "images"), "--views", "0,1", "--device", "cpu", "--overwrite"]) == 2
     captured = capsys.readouterr()
     assert re.search(r"error: --out: .*frame_\d+\.png is the same file as the capture's image .*frame_\d+\.png",
                      captured.err) and "loading" not in captured.out
@@ -369,3 +369,52 @@ def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     lines = done.stdout.splitlines()
     assert any(line.startswith("stylizer: nnfm (preset preview: ") for line in lines), done.stdout
     assert lines[-1] == "[]" and out.is_file()
+
+
+def test_render_into_a_folder_that_is_not_empty_needs_overwrite(tmp_path, capsys):
+    scene, out = _small_scene(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / "kept.png").write_bytes(b"an earlier render")
+    command = ["render", str(scene), "--cameras", str(DemoInputs().cameras), "--out", str(out), "--views", "0",
+               "--scale", "0.1", "--device", "cpu"]
+    assert main(command) == 2
+    captured = capsys.readouterr()
+    assert f"error: --out: {out} is not empty; give an empty or new folder, or --overwrite" in captured.err
+    assert "loading" not in captured.out and sorted(p.name for p in out.iterdir()) == ["kept.png"]
+    assert main([*command, "--overwrite"]) == 0
+    assert (out / "kept.png").read_bytes() == b"an earlier render" and len(list(out.glob("*.png"))) == 2
+
+
+def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, capsys, monkeypatch):
+    import json
+
+    import artnvg_core.raster.views as views
+
+    transforms = json.loads(DemoInputs().cameras.read_text())
+    transforms["frames"][0]["file_path"] = "images/" + "v" * 250 + ".jpg"
+    (tmp_path / "transforms.json").write_text(json.dumps(transforms))
+    scene = _small_scene(tmp_path)
+    assert main(["render", str(scene), "--cameras", str(tmp_path / "transforms.json"), "--out", str(tmp_path / "out"),
+                 "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert "error: --out (the PNG of view 0): the file name vvvv" in captured.err and "loading" not in captured.out
+    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    assert main(["render", str(scene), "--orbit-size", "8192", "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert ("error: --orbit-size and --scale: 60 views of 8192x8192 pixels, 1 of their images held at once, need "
+            "2.8 GiB, more than half the 1.0 GiB of memory available now") in captured.err
+    assert "loading" not in captured.out and not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_while_saving_stops_without_a_traceback(tmp_path, capsys, monkeypatch):
+    import artnvg_core.fileio as fileio
+
+    def interrupted(image, path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fileio, "save_png", interrupted)
+    assert main(["render", str(_small_scene(tmp_path)), "--cameras", str(DemoInputs().cameras), "--out",
+                 str(tmp_path / "out"), "--views", "0", "--scale", "0.1", "--device", "cpu"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err == "interrupted: stopped; no file was left half-written\n"
+    assert list((tmp_path / "out").iterdir()) == []

@@ -210,3 +210,48 @@ def test_a_full_disk_is_named_by_the_file_being_written(tmp_path):
         with written_together(tmp_path / "a.ply", tmp_path / "b.png") as (first, _):
             raise PermissionError(13, "Permission denied", str(first))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_output_names_are_checked_with_their_temporary_before_any_work(tmp_path):
+    from artnvg_core.fileio import check_output_file, check_output_folder
+
+    assert check_output_file(tmp_path / ("a" * 222 + ".ply"), "--out") == tmp_path / ("a" * 222 + ".ply")
+    with pytest.raises(ValueError, match=r"--out: the file name a{40}\.\.\. is 234 bytes long; it may have at most "
+                       r"226 here \(the file system allows 255, and the file is first written under a temporary name "
+                       r"29 bytes longer\)"):
+        check_output_file(tmp_path / ("a" * 230 + ".ply"), "--out")
+    with pytest.raises(ValueError, match=r"--out: the name b{40}\.\.\. is 256 bytes long; this file system allows 255"):
+        check_output_folder(tmp_path / ("b" * 256) / "views", "--out")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_temporaries_of_writers_that_died_are_swept_and_the_living_ones_kept(tmp_path):
+    import subprocess
+    import sys
+
+    from artnvg_core.fileio import temporary_path, write_atomically
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    target = tmp_path / "scene.ply"
+    left = tmp_path / f".scene.{int(dead.stdout)}.0123abcd.partial.ply"  # a writer killed while it wrote
+    living = temporary_path(target)  # this process: still writing
+    other = tmp_path / f".notes.{int(dead.stdout)}.txt"  # not a temporary's name
+    for path in (left, living, other):
+        path.write_bytes(b"half")
+    write_atomically(target, lambda stream: stream.write(b"whole"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([living.name, other.name, "scene.ply"])
+
+
+def test_sigterm_while_writing_leaves_no_temporary(tmp_path):
+    import signal
+
+    from artnvg_core.cli.common import terminate_as_interrupt
+    from artnvg_core.fileio import write_atomically
+
+    def write(stream):
+        stream.write(b"half")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    with pytest.raises(KeyboardInterrupt), terminate_as_interrupt() as received:
+        write_atomically(tmp_path / "scene.ply", write)
+    assert received == [signal.SIGTERM] and list(tmp_path.iterdir()) == []

@@ -87,6 +87,25 @@ def test_only_the_latest_prompts_are_remembered(executing):
     assert check_result("1") is True
 
 
+def test_values_outside_a_nodes_declared_ranges_block_every_output_it_feeds():
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    finetune = {"class_type": "ArtNVGFinetuneGaussians", "inputs": {"iterations": -1, "scene": ["9", 0]}}
+    prompt = {"1": finetune, "2": {"class_type": "Output", "inputs": {"scene": ["1", 0]}},
+              "3": {"class_type": "ArtNVGSaveGaussianScene", "inputs": {"format": "obj", "filename_prefix": "a"}},
+              "4": {"class_type": "Output", "inputs": {"x": ["3", 0]}}, "5": {"class_type": "Output", "inputs": {}}}
+    request = check_prompt({"prompt": prompt}, classes)
+    assert failed_checks(prompt, classes) == {
+        "1": "Finetune Gaussians: input 'iterations': -1 is outside 0 to 100000",
+        "3": "Save Gaussian Scene: input 'format': expected one of ['ply', 'spz', 'splat', 'ksplat'], got 'obj'"}
+    assert request["partial_execution_targets"] == ["2", "3", "4"]  # the others (5) do not run either
+    finetune["inputs"]["iterations"], prompt["3"]["inputs"]["format"] = 10, "spz"
+    assert failed_checks(prompt, classes) == {}
+    finetune["inputs"]["iterations"] = float("nan")
+    assert failed_checks(prompt, classes)["1"] == "Finetune Gaussians: input 'iterations': expected a finite number, got nan"
+
+
 def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):
     """ComfyUI's own loaders (and Load CSGO) are checked by folder: ComfyUI names the file itself."""
     monkeypatch.setattr(prompt_checks, "model_file_path",

@@ -5,6 +5,8 @@ output is compared with the direct ``artnvg_core`` call it adapts. Without Comfy
 input and output folders are ``./input`` and ``./output`` of the working directory.
 """
 
+import shutil
+
 import pytest
 import torch
 
@@ -48,22 +50,27 @@ def small_bear(bear):
 
 @pytest.fixture
 def comfy_dirs(tmp_path, monkeypatch, bear):
-    """A working directory whose input folder holds the bear capture (as ComfyUI users lay it out)."""
+    """A working directory whose input folder holds the bear capture (as ComfyUI users lay it out; copies, since
+    a link that leads out of ComfyUI's folders is not read)."""
     monkeypatch.chdir(tmp_path)
     capture = tmp_path / "input" / "bear"
     capture.mkdir(parents=True)
     for name in ("scene.ply", "transforms.json"):
-        (capture / name).symlink_to(bear["folder"] / name)
+        shutil.copyfile(bear["folder"] / name, capture / name)
     return tmp_path
 
 
-def test_load_scene_from_input_folder_or_path(comfy_dirs, bear):
+def test_load_scene_from_input_folder_or_path(comfy_dirs, bear, monkeypatch):
     listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"]
     assert listed[0] == "COMBO" and listed[1]["options"] == ["bear/scene.ply"]
     assert LoadGaussianScene.check_files(scene_file="bear/scene.ply", drop_invalid=True) is None
     (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")
-    (from_path,) = call(LoadGaussianScene, scene_file="", path=str(bear["folder"] / "scene.ply"))
+    (from_path,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "input" / "bear" / "scene.ply"))
     assert _same_scene(from_list, bear["scene"]) and _same_scene(from_path, bear["scene"])
+    outside = str(bear["folder"] / "scene.ply")
+    assert "is outside ComfyUI's input" in LoadGaussianScene.check_files(scene_file="", path=outside)
+    monkeypatch.setenv("ARTNVG_READ_ANY_PATH", "1")  # the setting that opens every path
+    assert _same_scene(call(LoadGaussianScene, scene_file="", path=outside)[0], bear["scene"])
 
 
 def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
@@ -82,12 +89,13 @@ def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
     listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"]
     assert listed[1]["options"] == ["bear/transforms.json"]
     (from_list,) = call(LoadCameras, camera_source="bear/transforms.json")
-    (from_folder,) = call(LoadCameras, camera_source="", path=str(bear["folder"]))
+    (from_folder,) = call(LoadCameras, camera_source="", path=str(comfy_dirs / "input" / "bear"))
     for cameras in (from_list, from_folder):
         assert torch.equal(cameras.world_to_cam, bear["cameras"].world_to_cam)
         assert cameras.names == bear["cameras"].names
     assert "camera_source" in LoadCameras.check_files(camera_source="bear/missing.json")
-    assert LoadCameras.check_files(camera_source="", path=str(bear["folder"])) is None
+    assert LoadCameras.check_files(camera_source="", path=str(comfy_dirs / "input" / "bear")) is None
+    assert "is outside ComfyUI's input" in LoadCameras.check_files(camera_source="", path=str(bear["folder"]))
 
 
 def test_render_views_matches_the_core_renderer(small_bear, bear):
@@ -233,3 +241,25 @@ def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_d
         assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):
         call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")
+
+
+def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_runs(comfy_dirs):
+    fits = "artnvg/" + "s" * 200  # 200 + "_00001.ply" and the temporary's 29 bytes: 239 of 255
+    assert SaveGaussianScene.check_files(filename_prefix=fits) is None
+    message = SaveGaussianScene.check_files(filename_prefix="artnvg/" + "s" * 225, format="ply")
+    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the file name: the file name ssss")
+    assert "is 235 bytes long; it may have at most 226 here" in message
+    assert SaveGaussianScene.check_files(filename_prefix="../escape").startswith(
+        "Save Gaussian Scene: input 'filename_prefix': '../escape' must name a file inside the output folder")
+    assert not (comfy_dirs / "output" / "artnvg").exists()  # nothing made by a check
+
+
+def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):
+    import artnvg_core.raster.views as views
+
+    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
+    with pytest.raises(NodeInputError, match=r"Render Camera Path: input 'scale': 60 views at scale 4\.0: 60 views of "
+                       r"2048x2048 pixels, all their images held at once, need 2\.9 GiB, more than half the 1\.0 GiB"):
+        call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
+             key_views="", frames_per_segment=30, loop=False)

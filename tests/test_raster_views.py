@@ -26,17 +26,30 @@ def test_chunks_give_each_view_as_rendered_alone(chunk):
     assert calls == [(n, len(cameras), {}) for n in done]
 
 
-def test_without_depth_and_stopped_before_a_chunk():
+def _stop_at_ask(number: int, asked: list):
+    def stop() -> bool:
+        asked.append(True)
+        return len(asked) >= number
+    return stop
+
+
+def test_without_depth_and_stopped_between_views():
     scene, cameras = hard_scene(seed=4), make_cameras(EYES)
     assert render_views(scene, cameras, cpu=True).depth is None
-    asked = []
-
-    def stop_after_two_chunks():
-        asked.append(True)
-        return len(asked) > 2
-
+    asked: list = []
+    render(scene, cameras.subset([0]), should_stop=_stop_at_ask(10**9, asked))
+    per_view = len(asked)  # before the view, then before each batch of its tiles
+    asked.clear()
     with pytest.raises(Cancelled):
-        render_views(scene, cameras, chunk=2, should_stop=stop_after_two_chunks)
-    assert len(asked) == 3
+        render_views(scene, cameras, chunk=2, should_stop=_stop_at_ask(per_view + 1, asked))  # before the second view
+    assert len(asked) == per_view + 1
     with pytest.raises(ValueError, match="chunk"):
         render_views(scene, cameras, chunk=0)
+
+
+def test_one_large_view_stops_between_its_batches_of_tiles():
+    scene, view = hard_scene(seed=3), make_cameras(EYES[:1], width=512, height=512, focal=450.0)
+    asked: list = []
+    with pytest.raises(Cancelled):
+        render_views(scene, view, should_stop=_stop_at_ask(3, asked))  # before the view, after its first batch, ...
+    assert len(asked) == 3

@@ -68,7 +68,7 @@ def test_the_models_load_while_the_content_views_render_and_a_prefetch_is_used(t
 
     scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
     rendering, loads = threading.Event(), []
-    load, render = loader._load_models, stylize.render
+    load, render_views = loader._load_models, stylize.render_views
 
     def load_once_rendering(*args):
         assert rendering.wait(timeout=120), "the models were loaded before the content views rendered"
@@ -76,7 +76,7 @@ def test_the_models_load_while_the_content_views_render_and_a_prefetch_is_used(t
         return load(*args)
 
     monkeypatch.setattr(loader, "_load_models", load_once_rendering)
-    monkeypatch.setattr(stylize, "render", lambda *args, **kwargs: rendering.set() or render(*args, **kwargs))
+    monkeypatch.setattr(stylize, "render_views", lambda *args, **kwargs: rendering.set() or render_views(*args, **kwargs))
     for prefetch in (False, True):
         forget_models()
         rendering.clear()

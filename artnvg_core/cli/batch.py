@@ -29,7 +29,6 @@ import functools
 import io
 import json
 import os
-import signal
 import sys
 import threading
 import time
@@ -42,7 +41,7 @@ import torch
 
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..progress import Cancelled, StopFn
-from .common import parse_devices
+from .common import parse_devices, terminate_as_interrupt
 from .stylize import add_stylize_arguments
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
@@ -405,27 +404,6 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
         if result.status == "failed":
             print(f"  failed job {result.job.number}: {result.message}")
     return 143 if terminated else 130 if counts["cancelled"] else 1 if counts["failed"] else 0
-
-
-@contextlib.contextmanager
-def terminate_as_interrupt():
-    """For the block, SIGTERM (``kill``, a scheduler's stop) raises KeyboardInterrupt in the main thread, so
-    the batch stops as on Ctrl-C: running jobs cancelled, nothing half-written, Ray shut down. Yields a
-    list that holds the signal once one came. Outside the main thread, or without SIGTERM, nothing changes."""
-    received: list[int] = []
-
-    def interrupt(signum, frame):
-        received.append(signum)
-        raise KeyboardInterrupt
-
-    if not hasattr(signal, "SIGTERM") or threading.current_thread() is not threading.main_thread():
-        yield received
-        return
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield received
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _line(result: JobResult, total: int) -> str:

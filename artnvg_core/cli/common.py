@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+import signal
+import threading
 import time
 from typing import TYPE_CHECKING
 
@@ -86,6 +89,28 @@ def parse_devices(text: str | None) -> list[torch.device] | None:
         except RuntimeError as error:
             raise ValueError(f"--devices: {part.strip()!r} is not a device (expected e.g. cuda:0,cuda:1)") from error
     return devices
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """For the block, SIGTERM (``kill``, a scheduler's stop) raises KeyboardInterrupt in the main thread, so
+    a command stops as on Ctrl-C: its temporaries removed, nothing half-written (and a batch's running jobs
+    cancelled, Ray shut down). Yields a list that holds the signal once one came. Outside the main thread,
+    or without SIGTERM, nothing changes."""
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    if not hasattr(signal, "SIGTERM") or threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class ProgressBar:
@@ -210,14 +235,19 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
                        "full: all round always")
 
 
+def orbit_size(args: argparse.Namespace) -> tuple[int, int]:
+    """(width, height) in pixels from ``--orbit-size`` (WIDTHxHEIGHT or N); ValueError naming the option."""
+    parts = args.orbit_size.lower().split("x")
+    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
+        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
+    return int(parts[0]), int(parts[-1])
+
+
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
     """:func:`~artnvg_core.orbit.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
     from ..orbit import orbit_cameras
 
-    parts = args.orbit_size.lower().split("x")
-    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
-        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
-    width, height = int(parts[0]), int(parts[-1])
+    width, height = orbit_size(args)
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
                             around=args.orbit_around)
     print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",

@@ -22,9 +22,11 @@ from .common import (
     is_out_of_memory,
     load_scene_verbose,
     orbit_from_args,
+    orbit_size,
     parse_device,
     positive_number,
     prepare_rasterizer,
+    terminate_as_interrupt,
 )
 from .evaluate import add_evaluate_arguments
 from .stylize import add_stylize_arguments
@@ -32,19 +34,32 @@ from .stylize import add_stylize_arguments
 
 def cmd_render(args: argparse.Namespace) -> None:
     from ..cameras import load_cameras
-    from ..fileio import check_output_folder, refuse_overwrites, save_png
+    from ..fileio import check_output_folder, check_output_name, refuse_overwrites, save_png, sweep_temporaries
     from ..raster import render
+    from ..raster.views import check_render_plan
 
     device = parse_device(args.device)
     out_dir = check_output_folder(args.out, "--out")
+    sweep_temporaries(out_dir)  # left by a render that was killed
+    if not args.overwrite and out_dir.is_dir() and any(out_dir.iterdir()):
+        raise ValueError(f"--out: {out_dir} is not empty; give an empty or new folder, or --overwrite to write into "
+                         "it (PNGs of the same views are replaced)")
+
     def chosen(cameras):
-        return cameras.subset(parse_views(args.views, len(cameras), "--views")).scaled(args.scale)
+        cameras = cameras.subset(parse_views(args.views, len(cameras), "--views")).scaled(args.scale)
+        check_render_plan(len(cameras), cameras.width, cameras.height, kept=1, what="--scale")
+        for index, name in enumerate(cameras.names):
+            check_output_name(out_dir / f"{name}.png", f"--out (the PNG of view {index})")
+        return cameras
 
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
     cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
+    if cameras is None:  # the views made from the scene: their size checked before it loads
+        width, height = (max(1, round(side * args.scale)) for side in orbit_size(args))
+        check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                cameras=cameras)
     if cameras is None:
@@ -74,7 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = commands.add_parser("render", help="render a scene's views to PNG files")
     p.add_argument("scene", help=f"scene file: {SCENE_FILES}")
     add_camera_arguments(p)
-    p.add_argument("--out", required=True, help="output folder; one PNG per view, named after its image file")
+    p.add_argument("--out", required=True, help="output folder, empty or new (see --overwrite); one PNG per view, "
+                   "named after its image file")
+    p.add_argument("--overwrite", action="store_true", help="write into a folder that is not empty, replacing "
+                   "PNGs of the same names")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto")
@@ -98,8 +116,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    terminated: list[int] = []
     try:
-        status = args.run(args)
+        with terminate_as_interrupt() as terminated:
+            status = args.run(args)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: every file is written whole or not at all, so no traceback
+        print(f"{'terminated' if terminated else 'interrupted'}: stopped; no file was left half-written",
+              file=sys.stderr)
+        return 143 if terminated else 130
     except (ValueError, OSError) as error:  # bad input, or a file the system would not read or write
         print(f"error: {error}", file=sys.stderr)
         return 2

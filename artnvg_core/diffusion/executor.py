@@ -11,7 +11,6 @@ same seed: the result is unchanged. Needs Ray (``pip install "artnvg[cluster]"``
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 import uuid
@@ -22,6 +21,7 @@ import torch
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..grouping import ViewGroups
 from ..progress import ProgressFn, StopFn
+from ..tensor_tree import map_tensors
 from .conditioning import StyleConditioning, prepare_conditioning
 from .images import check_images
 from .models import DiffusionModels
@@ -66,7 +66,7 @@ class GroupWorker:
     def conditioning(self, style_image: torch.Tensor | None, prompt: str, negative_prompt: str | None) -> StyleConditioning:
         """:func:`prepare_conditioning` with this worker's models, returned on the CPU."""
         self._check()
-        return _moved(prepare_conditioning(self.models, style_image, prompt, negative_prompt), torch.device("cpu"))
+        return map_tensors(torch.Tensor.cpu, prepare_conditioning(self.models, style_image, prompt, negative_prompt))
 
     def stylize(self, run: str, images: torch.Tensor, groups: ViewGroups, index: int, conditioning: StyleConditioning,
                 settings: SamplerSettings, seed: int) -> torch.Tensor:
@@ -78,7 +78,7 @@ class GroupWorker:
 
         start = time.perf_counter()
         try:
-            views = stylize_owned_views(self.models, images, groups, index, _moved(conditioning, self.device), settings,
+            views = stylize_owned_views(self.models, images, groups, index, map_tensors(lambda t: t.to(self.device), conditioning), settings,
                                         seed=seed, progress=report, should_stop=lambda: run in self.stopped)
             return views.cpu()
         finally:
@@ -121,7 +121,7 @@ class GroupExecutor(WorkerPool):
     def conditioning(self, style_image: torch.Tensor | None, prompt: str, negative_prompt: str | None) -> StyleConditioning:
         """:func:`prepare_conditioning` on the first worker (on the CPU)."""
         ray = import_ray("GroupExecutor")
-        style_image = _moved(style_image, torch.device("cpu"))
+        style_image = map_tensors(torch.Tensor.cpu, style_image)  # or None
         return ray.get(self.actors[0].conditioning.remote(style_image, prompt, negative_prompt))
 
     def stylize_groups(
@@ -156,7 +156,7 @@ class GroupExecutor(WorkerPool):
         if not chosen:
             return output
         run = uuid.uuid4().hex
-        shared = ray.put(images), ray.put(_moved(conditioning, torch.device("cpu")))
+        shared = ray.put(images), ray.put(map_tensors(torch.Tensor.cpu, conditioning))
         largest_first = sorted(chosen, key=lambda g: -len(groups[g].all_views))
         meter = _StepMeter(self.actors, run, chosen, settings.steps, len(groups), progress)
 
@@ -248,14 +248,3 @@ def stylize_on_workers(
         conditioning = executor.conditioning(style_image, prompt, negative_prompt)
         return executor.stylize_groups(images, groups, conditioning, settings, seed=seed, progress=progress,
                                        should_stop=should_stop)
-
-
-def _moved(value, device: torch.device):
-    """``value`` (a tensor, or a dataclass of tensors, dataclasses and None) on ``device``."""
-    if isinstance(value, torch.Tensor):
-        return value.to(device)
-    if dataclasses.is_dataclass(value):
-        return dataclasses.replace(
-            value, **{field.name: _moved(getattr(value, field.name), device) for field in dataclasses.fields(value)}
-        )
-    return value

@@ -1,5 +1,5 @@
-"""The one loader of the diffusion models for a device (:func:`load_models_for`): the command line's,
-the workers' and ComfyUI's Load ArtNVG Models; once per process, placed for the memory mode, compiled
+"""The one loader of the diffusion models for a device (:func:`load_models_for`): the command line's and
+the workers'; once per process, placed for the memory mode, compiled
 where asked. Finding the files is :mod:`.model_files`'s."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
                     *, loras: tuple[LoRA, ...] = (), dtype: torch.dtype | None = None,
                     sdxl_config_dir: str | Path | None = None, on_cpu: bool = False, progress: ProgressFn | None = None,
                     should_stop: StopFn | None = None):
-    """The diffusion models of ``files`` for ``device``: the one loader of the command line, the
-    workers and ComfyUI's Load ArtNVG Models.
+    """The diffusion models of ``files`` for ``device``: the one loader of the command line and the
+    workers.
 
     loras: fused into SDXL (:func:`.lora.fuse_loras`).
     dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``

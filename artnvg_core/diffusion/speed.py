@@ -192,7 +192,7 @@ def apply_speedups(models, options: SpeedOptions) -> None:
         cache_hint_embedding(models.controlnet)
 
 
-# What users switch on (command line ``--compile``, Load ArtNVG Models' ``compile``): regional
+# What users switch on (command line ``--compile``): regional
 # compilation with dynamic shapes and the cached hint embedding; exact up to bf16 rounding.
 # Its speed-up, first-call cost and pay-back: BENCHMARKS.md, "Diffusion step".
 COMPILED_BLOCKS = SpeedOptions(compile="default", compile_scope="blocks", compile_dynamic=True,

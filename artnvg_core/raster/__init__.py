@@ -20,6 +20,7 @@ import torch
 
 from ..cameras import CameraSet
 from ..devices import triton_available
+from ..progress import StopFn, check_stop
 from ..scene import GaussianScene
 from .gsplat_backend import gsplat_available, load_kernels, rasterize_gsplat
 from .projection import project
@@ -122,6 +123,7 @@ def render(
     near_plane: float = 0.01,
     checked: bool = False,
     list_capacity: ListCapacity | None = None,
+    should_stop: StopFn | None = None,
 ) -> RenderOutput:
     """Render ``scene`` from every camera of ``cameras``.
 
@@ -144,6 +146,8 @@ def render(
         after another, so that they do not wait for their tile intersection counts (ignored by the other
         backends); the caller checks it after each render for one that overflowed and must be redone
         (:class:`.step_renderer.StepRenderer` does so).
+    should_stop: asked before each view and, on the reference backend, between its batches of tiles; raises
+        :class:`~artnvg_core.progress.Cancelled` when it says so (a huge view stops within a second or so).
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
     low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is
@@ -162,7 +166,7 @@ def render(
     cameras = cameras.to(scene.device)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
-    composite = rasterize
+    composite = functools.partial(rasterize, should_stop=should_stop)
     name = choose_backend(backend, scene.device, scene.means.dtype)
     if name == "gsplat":
         load_kernels()
@@ -175,6 +179,7 @@ def render(
     width, height = cameras.width, cameras.height
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
+        check_stop(should_stop)
         w2c, k, center = cameras.world_to_cam[c], cameras.intrinsics[c], cameras.centers[c]
         if name == "triton":  # one fused kernel; culled Gaussians stay, with no tiles
             proj, colors = project_color_triton(scene.means, scene.quats, scene.log_scales, scene.opacity_logits,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from ..progress import StopFn, check_stop
 from .projection import ALPHA_MIN, Projection
 
 TILE = 8
@@ -135,12 +136,14 @@ def rasterize(
     *,
     chunk: int = 64,
     budget: int | None = None,
+    should_stop: StopFn | None = None,
 ):
     """Rasterize one camera's projected Gaussians.
 
     features: [M, F] values to blend per projected Gaussian (e.g. colour, depth).
     chunk: Gaussians per tile composited at once; budget: the most elements
-    in one [tiles, pixels, chunk] intermediate (default 2^21 on CPU, 2^25 on CUDA).
+    in one [tiles, pixels, chunk] intermediate (default 2^21 on CPU, 2^25 on CUDA); should_stop: asked before
+    each batch of tiles (:class:`~artnvg_core.progress.Cancelled` when it says so).
     Returns blended features [H, W, F] (no background) and transmittance [H, W], in the autograd
     graph of the inputs even when no Gaussian reaches a tile (their gradients are then zero).
     """
@@ -155,6 +158,7 @@ def rasterize(
         budget = 1 << (25 if features.device.type == "cuda" else 21)
     batch = max(1, budget // (TILE * TILE * chunk))
     for i in range(0, len(occupied), batch):
+        check_stop(should_stop)
         tiles = occupied[i : i + batch]
         args = (tiles, order, starts, counts, *inputs, width, chunk)
         out = checkpoint(_composite_tiles, *args, use_reentrant=False) if needs_grad else _composite_tiles(*args)

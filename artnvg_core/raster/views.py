@@ -6,11 +6,31 @@ from __future__ import annotations
 import torch
 
 from ..cameras import CameraSet
-from ..progress import ProgressFn, StopFn, check_stop
+from ..devices import available_memory
+from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
 from . import RenderOutput, render
 
 RENDER_CHUNK = 8  # views a render call: few enough to bound memory, enough to keep a GPU busy
+# Bytes a pixel takes: an image kept (float32 RGB, ComfyUI's IMAGE), and the view being rendered (float32
+# RGB and alpha out, and the compositing's blended features and transmittance: eight floats).
+KEPT_BYTES_PER_PIXEL = 12
+RENDERING_BYTES_PER_PIXEL = 32
+
+
+def check_render_plan(views: int, width: int, height: int, *, kept: int | None = None, what: str = "views") -> None:
+    """Before any work: a ValueError naming ``what`` (the inputs that chose the plan) when rendering ``views``
+    views of ``width`` x ``height`` pixels, ``kept`` of whose images are held at once (default: all, as the render
+    nodes return them; 1 where each is written as it is done), needs more than half the main memory available
+    (:func:`~artnvg_core.devices.available_memory`; no check where the system does not say)."""
+    kept = views if kept is None else min(kept, views)
+    needed = width * height * (kept * KEPT_BYTES_PER_PIXEL + RENDERING_BYTES_PER_PIXEL)
+    available = available_memory()
+    if available is not None and needed > available // 2:
+        held = "all their images held at once" if kept == views else f"{kept} of their images held at once"
+        raise ValueError(f"{what}: {views} views of {width}x{height} pixels, {held}, need {needed / 2**30:.1f} GiB, "
+                         f"more than half the {available / 2**30:.1f} GiB of memory available now; render fewer "
+                         "views or at a smaller scale")
 
 
 @torch.no_grad()
@@ -22,16 +42,15 @@ def render_views(scene: GaussianScene, cameras: CameraSet, *, chunk: int = RENDE
     Returns rgb [C, H, W, 3] clamped to [0, 1], alpha [C, H, W, 1] and, with ``depth``, depth
     [C, H, W, 1] (else None), on the scene's device, or on the CPU with ``cpu`` (each chunk moved
     there as it is done, so the device holds one chunk). Calls ``progress(views done, C, {})``
-    after each chunk and raises :class:`~artnvg_core.progress.Cancelled` before a chunk when
-    ``should_stop()`` says so.
+    after each chunk and raises :class:`~artnvg_core.progress.Cancelled` as soon as ``should_stop()`` says
+    so (checked inside each view, as :func:`~artnvg_core.raster.render` does).
     """
     if chunk < 1:
         raise ValueError(f"render_views: chunk must be >= 1, got {chunk}")
     parts = []
     for start in range(0, len(cameras), chunk):
-        check_stop(should_stop)
         views = range(start, min(start + chunk, len(cameras)))
-        out = render(scene, cameras.subset(views), return_depth=depth, backend=backend)
+        out = render(scene, cameras.subset(views), return_depth=depth, backend=backend, should_stop=should_stop)
         tensors = (out.rgb.clamp(0, 1), out.alpha, out.depth)
         parts.append(RenderOutput(*(t.cpu() if cpu and t is not None else t for t in tensors)))
         if progress is not None:

@@ -174,7 +174,8 @@ def main(checkout: Path, folder: Path) -> None:
     inputs = load_file(folder / "inputs.safetensors")
     model, unet_config = _model(folder, configs)
     control_net, vae, clip_vision = _controlnet(folder, unet_config), _vae(folder, configs), _clip_vision(folder, configs)
-    csgo = read_csgo(folder / "csgo.bin", dim_head=configs["resampler_head_width"])
+    head_width = configs["resampler_head_width"]
+    csgo = read_csgo(folder / "csgo.bin", dim_head=head_width)
     views = inputs["content_views"]
     groups = ViewGroups((ViewGroup(tuple(range(len(views)))),), len(views),
                         centers=tuple(map(tuple, inputs["centers"].tolist())))
@@ -184,7 +185,8 @@ def main(checkout: Path, folder: Path) -> None:
     with torch.inference_mode():
         for name, case in cases.items():
             patched, control = patch_nodes.ApplyCSGO().apply(
-                model, control_net, csgo, clip_vision, inputs["style_image"], case["style_scale"],
+                model, control_net, read_csgo(folder / case.get("csgo_file", "csgo.bin"), dim_head=head_width),
+                clip_vision, inputs["style_image"], case["style_scale"],
                 case["content_scale"], case["content_routing"])
             (patched,) = patch_nodes.NVAttentionPatch().patch(patched, case["neighbour_views"])
             (outputs[name],) = diffusion_nodes.SampleGroup().sample(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import urllib.error
 import urllib.request
 import uuid
 from pathlib import Path
@@ -228,6 +229,23 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     climbing = "../" * len(comfy_server.input_dir.resolve().parts) + str(outside).lstrip("/")
     listed = _refusal(comfy_server, f"Load Gaussian Scene.scene_file={climbing}")
     assert listed == existing.replace(f"'path': {str(outside)!r}", f"'scene_file': {climbing!r}")
+
+
+@pytest.mark.parametrize("override, node, expected", [
+    ("Finetune Gaussians.iterations=-1", FINETUNE, "iterations"),
+    ("Save Gaussian Scene.filename_prefix=artnvg/" + "s" * 225, "7", "is 235 bytes long; it may have at most 226"),
+])
+def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected):
+    before = sorted(comfy_server.output_dir.rglob("*"))
+    request = urllib.request.Request(comfy_server.url + "/prompt", headers={"Content-Type": "application/json"},
+                                     data=json.dumps({"prompt": _workflow(comfy_server, override)}).encode())
+    with pytest.raises(urllib.error.HTTPError) as rejected:  # HTTP 400: refused whole (not 200 with node_errors)
+        urllib.request.urlopen(request, timeout=60)
+    assert rejected.value.code == 400
+    errors = json.loads(rejected.value.read())["node_errors"]
+    assert expected in json.dumps(errors[node]), errors
+    assert set(errors) <= {node, "7", "9"}  # the outputs it feeds, reported; no other output ran either
+    assert sorted(comfy_server.output_dir.rglob("*")) == before
 
 
 @pytest.mark.parametrize("input_name, value", [

@@ -49,6 +49,9 @@ CASES = {
     "per_view_released": dict(COMMON, neighbour_views=False, content_routing="released"),
     "nv_paper": dict(COMMON, neighbour_views=True, content_routing="paper"),
     "per_view_paper": dict(COMMON, neighbour_views=False, content_routing="paper"),
+    # the same weights, the ControlNet's keyed by module path (the other layout CSGO's loader reads)
+    "nv_released_module_path_keys": dict(COMMON, neighbour_views=True, content_routing="released",
+                                         csgo_file="csgo_by_path.bin"),
 }
 
 
@@ -70,6 +73,8 @@ def _models(tmp_path: Path) -> DiffusionModels:
     generator = torch.Generator().manual_seed(5)
     conv_in = {name: 0.2 * torch.randn(value.shape, generator=generator) for name, value in unet.conv_in.state_dict().items()}
     path = write_csgo_file(tmp_path / "csgo.bin", {**csgo_state(unet, controlnet), "conv_in_unet_sd": conv_in})
+    write_csgo_file(tmp_path / "csgo_by_path.bin",
+                    {**csgo_state(unet, controlnet, controlnet_by_index=False), "conv_in_unet_sd": conv_in})
     weights = {"unet": unet.state_dict(), "controlnet": controlnet.state_dict(), "vae": vae.state_dict()}
     encoder = tiny_image_encoder()
     weights["image_encoder"] = encoder.state_dict()
