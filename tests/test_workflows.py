@@ -147,6 +147,7 @@ API_FILES = sorted(API_WORKFLOWS.glob("*_api.json"))
 NNFM_API = API_WORKFLOWS / "ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json"
 CAMERA_FREE_API = API_WORKFLOWS / "ArtNVG_2_scene_without_cameras_NNFM_api.json"
 FULL_API = API_WORKFLOWS / "ArtNVG_3_full_method_CSGO_SDXL_needs_4_model_files_api.json"
+REGION_API = API_WORKFLOWS / "ArtNVG_4_strength_dial_and_region_NNFM_api.json"
 
 
 def api_twin(ui_path: Path) -> Path:
@@ -156,7 +157,8 @@ def api_twin(ui_path: Path) -> Path:
 def test_each_workflow_comes_in_both_formats_and_the_template_folder_holds_ui_workflows_only():
     assert [p.stem for p in UI_FILES] == ["ArtNVG_1_quick_start_NNFM_no_model_downloads",
                                           "ArtNVG_2_scene_without_cameras_NNFM",
-                                          "ArtNVG_3_full_method_CSGO_SDXL_needs_4_model_files"]
+                                          "ArtNVG_3_full_method_CSGO_SDXL_needs_4_model_files",
+                                          "ArtNVG_4_strength_dial_and_region_NNFM"]
     assert API_FILES == [api_twin(p) for p in UI_FILES]
     assert all("nodes" in json.loads(p.read_text()) for p in UI_FILES)  # the browser opens only UI workflows
     assert sorted(p.name for p in WORKFLOWS.iterdir()) == sorted(
@@ -283,6 +285,18 @@ def test_camera_free_workflow_needs_only_a_scene_file_and_a_style_image():
     rig = next(node_id for node_id, node in api.items() if node["class_type"] == "ArtNVGCamerasAroundScene")
     views = next(node for node in api.values() if node["class_type"] == "ArtNVGRenderViews")
     assert views["inputs"]["cameras"] == [rig, 0]
+
+
+def test_region_workflow_finetunes_and_blends_one_selection_without_diffusion():
+    api = json.loads(REGION_API.read_text())
+    used = {node["class_type"] for node in api.values()}
+    assert not used & {"ArtNVGLoadModels", "ArtNVGSampleGroup"}  # the NNFM stylizer
+    (select,) = [i for i, node in api.items() if node["class_type"] == "ArtNVGSelectGaussians"]
+    (finetune,) = [i for i, node in api.items() if node["class_type"] == "ArtNVGFinetuneGaussians"]
+    (blend,) = [node for node in api.values() if node["class_type"] == "ArtNVGBlendStylization"]
+    assert api[finetune]["inputs"]["selection"] == blend["inputs"]["selection"] == [select, 0]
+    assert blend["inputs"]["stylized"] == [finetune, 0]
+    assert blend["inputs"]["original"] == api[finetune]["inputs"]["scene"] == api[select]["inputs"]["scene"]
 
 
 def test_full_workflow_feeds_stylized_views_to_the_finetune():
