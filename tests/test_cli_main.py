@@ -350,6 +350,7 @@ def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_ply
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
 
 
+@pytest.mark.slow
 def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     """A whole ``stylize --preset preview`` run in a fresh process (the demo at 1/8 size, 2 steps) never
     imports diffusers, transformers or peft: seconds of start-up the preview does not need. (torch._dynamo

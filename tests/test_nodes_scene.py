@@ -207,6 +207,7 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
     size = (folder / "stylized_00002.ply").stat().st_size
     assert saved[1]["ui"]["text"] == [f"wrote output/artnvg/stylized_00002.ply ({size / 1e6:.1f} MB, "
                                       f"{len(small_bear):,} Gaussians)"]
+    assert saved[1]["result"][0] == "artnvg/stylized_00002.ply"  # the path Preview Any shows and Preview 3D loads
     (folder / "stylized_00007.ply").write_bytes(b"")
     (folder / "stylized_extra_00009.ply").write_bytes(b"")  # another prefix: not counted
     call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")

@@ -23,8 +23,8 @@ def cmd_blend(args: argparse.Namespace) -> None:
     check_region_arguments(args)
     cameras = load_cameras(args.cameras) if args.cameras else None
     device = torch.device("cpu")
-    original = load_scene_verbose(args.original, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
-    stylized = load_scene_verbose(args.stylized, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes)
+    original, stylized = (load_scene_verbose(path, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
+                                             cameras=cameras) for path in (args.original, args.stylized))
     selection = selection_from_args(args, original, cameras)
     start = time.perf_counter()
     result = blend(original, stylized, args.strength, selection, names=(str(args.original), str(args.stylized)))
