@@ -174,7 +174,8 @@ def _check_frame(path: Path, meta: dict, index: int, frame, size: tuple[int, int
     if size is not None and (width, height) != size:
         raise ValueError(f"{where}: image size {width}x{height} differs from the first frame's {size[0]}x{size[1]}; "
                          "all frames must share one size")
-    fx, fy = (check_camera_value(_number(value(key), f"{where}: '{key}'"), f"{where}: '{key}'") for key in ("fl_x", "fl_y"))
+    fx, fy = (check_camera_value(_number(value(key), f"{where}: '{key}'"), f"{where}: '{key}'")
+              for key in ("fl_x", "fl_y"))
     if fx <= 0 or fy <= 0:
         raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
     for key, default in (("cx", width / 2), ("cy", height / 2)):
@@ -200,24 +201,23 @@ def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.T
     defaults = {key: meta.get(key) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model")}
     rows = []
     for frame in frames:
-        get = frame.get if type(frame) is dict else defaults.get
-        w, h, cx, cy = (get(key, defaults[key]) for key in ("w", "h", "cx", "cy"))
-        if get("camera_model", defaults["camera_model"]) not in (None, *PERSPECTIVE_MODELS):
-            rows.append(None)
-            break
-        rows.append((w, h, get("fl_x", defaults["fl_x"]), get("fl_y", defaults["fl_y"]),
-                     w / 2 if cx is None and type(w) is float else cx, h / 2 if cy is None and type(h) is float else cy))
-    if all(type(row) is tuple for row in rows) and all(type(v) is float for row in rows for v in row):
-        table = torch.tensor(rows, dtype=torch.float64)
-        width, height = table[0, :2].tolist()
-        sizes_ok = ((table[:, 0] == width) & (table[:, 1] == height)).all() and width == int(width) and \
-            height == int(height) and 0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE
-        values_ok = (table[:, 2:4] > 0).all() and (table[:, 2:].abs() <= MAX_CAMERA_VALUE).all()
-        if sizes_ok and values_ok and all(type(frame) is dict for frame in frames):
-            k = torch.zeros(len(rows), 3, 3, dtype=torch.float64)
-            k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2] = table[:, 2:].unbind(1)
-            k[:, 2, 2] = 1
-            return int(width), int(height), k
+        model = frame.get("camera_model", defaults["camera_model"]) if type(frame) is dict else None
+        if type(frame) is not dict or model not in (None, *PERSPECTIVE_MODELS):
+            break  # named frame by frame below
+        w, h, fx, fy, cx, cy = (frame.get(key, defaults[key]) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy"))
+        rows.append((w, h, fx, fy, w / 2 if cx is None and type(w) is float else cx,
+                     h / 2 if cy is None and type(h) is float else cy))
+    else:
+        if all(type(v) is float for row in rows for v in row):
+            table = torch.tensor(rows, dtype=torch.float64)
+            width, height = table[0, :2].tolist()
+            sizes_ok = ((table[:, 0] == width) & (table[:, 1] == height)).all() and width == int(width) and \
+                height == int(height) and 0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE
+            if sizes_ok and (table[:, 2:4] > 0).all() and (table[:, 2:].abs() <= MAX_CAMERA_VALUE).all():
+                k = torch.zeros(len(rows), 3, 3, dtype=torch.float64)
+                k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2] = table[:, 2:].unbind(1)
+                k[:, 2, 2] = 1
+                return int(width), int(height), k
     _check_frames(path, meta, frames)
     raise AssertionError("_check_frames found nothing wrong with frames the bulk check refused")
 
@@ -246,7 +246,8 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     meta = _read_json_object(path)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise ValueError(f"{path}: 'frames': expected a non-empty list, got {_kind(frames) if frames is not None else 'nothing'}")
+        got = _kind(frames) if frames is not None else "nothing"
+        raise ValueError(f"{path}: 'frames': expected a non-empty list, got {got}")
     if "camera_model" in meta:
         _check_camera_model(meta["camera_model"], f"{path}: 'camera_model'")
 
@@ -269,7 +270,8 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     far = (cam_to_world[:, :3, 3].abs() > MAX_CAMERA_VALUE).nonzero()
     if len(far):
         index, axis = far[0].tolist()
-        check_camera_value(cam_to_world[index, axis, 3].item(), f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
+        check_camera_value(cam_to_world[index, axis, 3].item(),
+                           f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
     cam_to_world = cam_to_world @ _FLIP_YZ
     if dataparser_transforms is not None:
         transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
