@@ -30,6 +30,7 @@ HARD = {case.name: case for case in hard_cases()}
 MIN_PSNR, MAX_GRAD_ERROR = 120.0, 1e-4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(HARD))
 def test_hard_cases_agree_with_float64_forward_and_backward(name):
     result = parity(HARD[name], "triton", DEVICE)
