@@ -1,4 +1,5 @@
-"""No import cycles between the modules of artnvg_core and of the node pack, lazy imports included.
+"""No import cycles between the modules of artnvg_core and of the node pack, lazy imports included, and
+no import from a lower floor of the house to a higher one (:data:`FLOORS`).
 
 Every module's source is parsed (nothing is imported): each ``import`` and ``from ... import``
 statement, at the top or inside a function, is an arrow to the module it names; ``from P import
@@ -15,6 +16,20 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("artnvg_core", "nodes")
+# The floors of the house (docs/design.md, "Layout"), ground first: a module imports only from its own floor
+# or below. A room is a top-level module or package of artnvg_core (its modules with it), or the node pack.
+FLOORS = (
+    ("artnvg_core", "artnvg_core.scene", "artnvg_core.fileio", "artnvg_core.statedict", "artnvg_core.progress",
+     "artnvg_core.devices", "artnvg_core.tensor_tree"),  # the data and the plumbing
+    ("artnvg_core.cameras", "artnvg_core.cluster", "artnvg_core.losses", "artnvg_core.preview"),
+    ("artnvg_core.formats", "artnvg_core.activated", "artnvg_core.raster", "artnvg_core.grouping",
+     "artnvg_core.key_views"),
+    ("artnvg_core.orbit", "artnvg_core.selection", "artnvg_core.blend", "artnvg_core.diffusion"),
+    ("artnvg_core.finetune", "artnvg_core.presets"),  # the two stages' settings and the finetune
+    ("artnvg_core.metrics", "artnvg_core.stylize"),  # the measures and the whole job
+    ("artnvg_core.cli", "nodes"),  # the two faces: the command line and ComfyUI's nodes
+    ("artnvg_core.__main__",),
+)
 
 
 def module_names(root: Path = ROOT, packages=PACKAGES) -> dict[str, Path]:
@@ -111,6 +126,34 @@ def test_lazy_relative_and_submodule_imports_are_arrows(tmp_path):
     assert cycles(graph) == [["pkg.a", "pkg.c", "pkg.sub.b"]]
     (package / "c.py").write_text("from pkg.sub import g\n")  # a name of a package: the package
     assert cycles(import_graph(tmp_path, ("pkg",))) == [["pkg.c", "pkg.sub", "pkg.sub.b"]]
+
+
+def room_of(module: str) -> str:
+    """The room of ``module``: ``nodes`` for the node pack, else its top-level module or package."""
+    return "nodes" if module.split(".")[0] == "nodes" else ".".join(module.split(".")[:2])
+
+
+def arrows_up(graph: dict[str, set[str]], floors=FLOORS) -> list[str]:
+    """``A -> B`` for each import of ``graph`` from a room on a lower floor to one on a higher floor, and
+    ``A: no floor`` for a module whose room :data:`FLOORS` does not name."""
+    floor = {room: level for level, rooms in enumerate(floors) for room in rooms}
+    found = [f"{a}: no floor (add its room to FLOORS)" for a in sorted(graph) if room_of(a) not in floor]
+    found += [f"{a} -> {b}" for a in sorted(graph) for b in sorted(graph[a])
+              if room_of(a) in floor and room_of(b) in floor and floor[room_of(b)] > floor[room_of(a)]]
+    return found
+
+
+def test_no_module_imports_from_a_higher_floor():
+    graph = import_graph()
+    assert "artnvg_core.raster.step_renderer" in graph["artnvg_core.finetune.loop"]  # the parse sees the arrows
+    assert not arrows_up(graph), "imports up a floor (tests/test_imports.py, FLOORS):\n" + "\n".join(arrows_up(graph))
+
+
+def test_an_import_up_a_floor_or_a_room_without_a_floor_is_found():
+    floors = (("pkg.a",), ("pkg.b",))
+    assert arrows_up({"pkg.b": {"pkg.a"}, "pkg.a": set()}, floors) == []
+    assert arrows_up({"pkg.a.x": {"pkg.b.y"}, "pkg.b.y": set()}, floors) == ["pkg.a.x -> pkg.b.y"]
+    assert arrows_up({"pkg.a": set(), "pkg.c": {"pkg.a"}}, floors) == ["pkg.c: no floor (add its room to FLOORS)"]
 
 
 @pytest.mark.parametrize("graph, expected", [
