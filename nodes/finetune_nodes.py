@@ -79,7 +79,7 @@ class FinetuneGaussians(ArtNVGNode):
         "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
         "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
             "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
-            "(512: ARF's half resolution for 1024 px views, about 2x faster there); 0: full resolution.")}),
+            "(512: ARF's half resolution for 1024 px views, a quarter of the features to match); 0: full resolution.")}),
         "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
             "Without stylized_views: match the scene's colours to the style image's mean and covariance "
             "before and after finetuning, as ARF does (exact, no extra iterations).")}),

@@ -422,7 +422,7 @@ def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(
     bit for bit, and steps were taken again."""
     pytest.importorskip("triton")
     from artnvg_core.raster.step_renderer import StepRenderer
-    from artnvg_core.raster.triton_backend import ListCapacity
+    from artnvg_core.raster.triton_tiles import ListCapacity
     from raster_scenes import EYES, hard_scene, make_cameras
 
     device = "cuda" if torch.cuda.is_available() else "cpu"

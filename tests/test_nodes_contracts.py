@@ -56,7 +56,7 @@ PUBLIC_OUTPUTS = {
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
     "ArtNVGSelectGaussians": ("ARTNVG_SELECTION",),
     "ArtNVGBlendStylization": ("ARTNVG_SCENE", "IMAGE"),
-    "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_SPLAT_ANY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
+    "ArtNVGSaveGaussianScene": ("STRING", "LOAD3D_CAMERA"),  # + "FILE_3D_SPLAT_ANY" on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),
 }

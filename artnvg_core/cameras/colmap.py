@@ -41,6 +41,7 @@ _COLMAP_PARAM_COUNTS = dict(_COLMAP_MODELS.values())
 _SINGLE_FOCAL_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 
 
+MAX_VIEWS = 1_000_000  # images (and cameras) a binary model may declare
 _MAX_NAME_BYTES = 4096  # an image name (a relative path) in images.bin
 _MAX_LINE_CHARS = 64 * 2**20  # a line of cameras.txt / images.txt (a 2D-points line of a million points fits)
 
@@ -85,6 +86,15 @@ class _BinaryReader:
             raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
         self.offset = 0
 
+    def records(self, count: int, smallest: int, what: str) -> range:
+        """``range(count)`` for ``count`` records of at least ``smallest`` bytes each; a ValueError, before any
+        is read, when the bytes left cannot hold them or they are more than :data:`MAX_VIEWS`."""
+        if count > MAX_VIEWS or count * smallest > len(self.data) - self.offset:
+            raise ValueError(f"{self.path}: the header says {count:,} {what}; the file's "
+                             f"{len(self.data) - self.offset:,} bytes left hold at most "
+                             f"{(len(self.data) - self.offset) // smallest:,}, and a model may have {MAX_VIEWS:,}")
+        return range(count)
+
     def end(self, count: int, what: str) -> None:
         """ValueError unless every byte was read: the header's count of ``what`` covers every record."""
         if self.offset != len(self.data):
@@ -122,7 +132,7 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
     reader = _BinaryReader(path)
     (count,) = reader.unpack("Q", "the camera count")
     cameras = {}
-    for index in range(count):
+    for index in reader.records(count, struct.calcsize("<IiQQ") + 3 * 8, "cameras"):
         camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
         if model_id not in _COLMAP_MODELS:
             raise ValueError(f"{path}: camera {camera_id}: unknown camera model id {model_id}")
@@ -137,7 +147,7 @@ def _read_images_bin(path: Path) -> list[_ColmapImage]:
     reader = _BinaryReader(path)
     (count,) = reader.unpack("Q", "the image count")
     images = []
-    for index in range(count):
+    for index in reader.records(count, struct.calcsize("<I7dI") + 1 + 8, "images"):
         image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
         name = reader.c_string(f"the name of image {image_id}")
         (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")

@@ -43,10 +43,10 @@ from ..progress import ProgressFn, StopFn, check_stop
 from ..raster.step_renderer import StepRenderer
 from ..raster.views import render_views
 from ..scene import GaussianScene
-from ..selection import coverage
-from .color_transfer import ColorTransform, match_colors, recolor_scene
+from .color_transfer import match_colors
 from .config import FinetuneConfig
 from .finite_steps import FiniteAdam
+from .region import placed, recolor, region_pixels, region_views
 from .step_loss import GRAPH_MIN_ITERATIONS, StepLoss, can_graph, graphed, nchw, vgg_input
 
 APPEARANCE = ("sh", "opacity_logits")
@@ -81,50 +81,6 @@ def _scene_of(params: dict[str, torch.Tensor], like: GaussianScene, frozen: Gaus
     if frozen is None:
         return scene
     return dataclasses.replace(scene, **{k: torch.cat([v, getattr(frozen, k)]) for k, v in scene.tensors().items()})
-
-
-def _placed(every: torch.Tensor, selected: torch.Tensor, selection: torch.Tensor) -> torch.Tensor:
-    """A copy of ``every [N, ...]`` with the rows of ``selection [N]`` replaced by ``selected``."""
-    placed = every.clone()
-    placed[selection] = selected
-    return placed
-
-
-def _recolor(scene: GaussianScene, transform: ColorTransform, selection: torch.Tensor | None) -> GaussianScene:
-    """``scene`` recoloured by ``transform`` (:func:`recolor_scene`), the selected Gaussians only when given."""
-    recolored = recolor_scene(scene, transform)
-    if selection is None:
-        return recolored
-    return dataclasses.replace(scene, sh=torch.where(selection[:, None, None], recolored.sh, scene.sh))
-
-
-def _region_pixels(images: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
-    """The pixels [P, 3] of ``images [C, H, W, 3]`` whose region ``weights [C, H, W]`` are at least 0.5 (all
-    without weights); ValueError when there are none."""
-    if weights is None:
-        return images
-    pixels = images[weights >= 0.5]
-    if len(pixels) == 0:
-        raise ValueError("finetune: the selection covers no pixel of the views by half or more; choose a larger "
-                         "region or switch off the colour transfer")
-    return pixels
-
-
-def _region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, stylized: torch.Tensor | None,
-                  backend: str) -> tuple[CameraSet, torch.Tensor | None, torch.Tensor]:
-    """The views where ``selection`` covers at least a pixel's worth, their stylized views (when given) and
-    their coverage [C', H, W]; ValueError for a selection of the wrong size or one no view sees."""
-    if selection.dtype != torch.bool or tuple(selection.shape) != (len(scene),):
-        raise ValueError(f"finetune: selection must be a boolean mask of the scene's {len(scene):,} Gaussians, got "
-                         f"{selection.dtype} {tuple(selection.shape)}")
-    weights = coverage(scene, selection, cameras, backend)
-    seen = (weights.flatten(1).sum(1) >= 1).nonzero()[:, 0].tolist()
-    if not seen:
-        raise ValueError(f"finetune: the {int(selection.sum()):,} selected Gaussians cover no pixel of any of the "
-                         f"{len(cameras)} views")
-    if len(seen) < len(cameras):
-        _log.info("finetune: %d of %d views see the selection; the others are left out", len(seen), len(cameras))
-    return cameras.subset(seen), None if stylized is None else stylized[seen], weights[seen]
 
 
 def camera_extent(cameras: CameraSet, scene: GaussianScene) -> float:
@@ -249,7 +205,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     weights = None
     if selection is not None:
         selection = selection.to(device)
-        cameras, stylized, weights = _region_views(scene, selection, cameras, stylized, config.backend)
+        cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend)
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers
@@ -262,8 +218,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     if color_transfer or (stylized is None and config.content_weight > 0):
         content = _render_views(scene, cameras, config, "setup", render_progress, should_stop)
         if color_transfer:
-            transform = match_colors(_region_pixels(content, weights), style_image)
-            scene = _recolor(scene, transform, selection)
+            transform = match_colors(region_pixels(content, weights), style_image)
+            scene = recolor(scene, transform, selection)
             content = transform.apply(content).clamp(0, 1)  # ARF's recoloured training views
         if config.content_weight > 0:
             originals = vgg_input(content, config)
@@ -308,9 +264,9 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     adam.summary()
     result = _scene_of({k: v.detach() for k, v in params.items()}, scene)
     if selection is not None:  # the trained Gaussians back in their places among the others
-        result = dataclasses.replace(scene, **{k: _placed(getattr(scene, k), v, selection)
+        result = dataclasses.replace(scene, **{k: placed(getattr(scene, k), v, selection)
                                                for k, v in result.tensors().items()})
     if color_transfer:  # ARF's post-transform: the stylized renders' colours matched to the style again
         renders = _render_views(result, cameras, config, "final", render_progress, should_stop)
-        result = _recolor(result, match_colors(_region_pixels(renders, weights), style_image), selection)
+        result = recolor(result, match_colors(region_pixels(renders, weights), style_image), selection)
     return result

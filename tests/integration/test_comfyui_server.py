@@ -16,10 +16,11 @@ from pathlib import Path
 import pytest
 import torch
 from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
-from test_workflows import CAMERA_FREE_API, NNFM_API, STOCK_NODES
+from test_workflows import CAMERA_FREE_API, NNFM_API, REGION_API, STOCK_NODES
 from ws_client import WebSocket
 
 from artnvg_core.formats import read_ply
+from artnvg_core.selection import parse_region, select_region
 
 REPO = Path(__file__).resolve().parents[2]
 FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
@@ -102,7 +103,8 @@ def test_object_info_lists_every_node_with_its_inputs(comfy_server):
     core = _core_splat_type(info)
     saved_file = ("FILE_3D_SPLAT_ANY" if "FILE_3D_SPLAT_ANY" in json.dumps(info)
                   else "FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT")
-    with_core_types = {"ArtNVGSaveGaussianScene": (saved_file,), "ArtNVGSceneToSplat": (core,)} if core else {}
+    with_core_types = ({"ArtNVGSaveGaussianScene": (*PUBLIC_OUTPUTS["ArtNVGSaveGaussianScene"], saved_file),
+                        "ArtNVGSceneToSplat": (core,)} if core else {})
     for name, inputs in PUBLIC_INPUTS.items():
         node = info[name]
         order = node["input_order"]
@@ -125,7 +127,8 @@ def test_splat_nodes_say_what_this_comfyui_lacks(comfy_server):
     if _core_splat_type(info) is None:  # e.g. 0.3.64: everything as before, and the descriptions say why
         assert "This ComfyUI lacks it, so this node cannot run here" in to_splat["description"]
         assert "This ComfyUI lacks it, so this node cannot run here" in to_scene["description"]
-        assert save["output"] == [] and "this ComfyUI lacks them, so it has no output" in save["description"]
+        assert save["output"] == ["STRING", "LOAD3D_CAMERA"]
+        assert "this ComfyUI lacks them, so it has no model_3d output" in save["description"]
     else:
         assert "lacks" not in to_splat["description"] + to_scene["description"] + save["description"]
         assert to_scene["input"]["required"]["splat"][0] == to_splat["output"][0] == _core_splat_type(info)
@@ -166,6 +169,28 @@ def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
     result, original = read_ply(comfy_server.output_dir / saved["file"]), read_ply(comfy_server.input_dir / folder / "scene.ply")
     assert torch.equal(result.means, original.means) and not torch.equal(result.sh, original.sh)
     assert len([o for o in summary["outputs"] if o["kind"] == "images"]) == 3 + 2  # content views + orbit frames
+
+
+def test_region_workflow_stylizes_and_blends_only_the_selection(comfy_server):
+    folder = comfy_server.test_folder
+    workflow = queue.load_api_workflow(REGION_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={folder}/scene.ply",
+                       f"Load Cameras.camera_source={folder}/transforms.json", f"Style image.image={folder}/style.jpg",
+                       "Render Views.scale=0.125", "Render Views.stride=12", "Finetune Gaussians.iterations=3",
+                       "Blend Stylization.preview_strengths=0, 1",
+                       f"Save Gaussian Scene.filename_prefix={folder}/region"):
+        queue.apply_override(workflow, assignment)
+    entry, _ = _run(comfy_server, workflow)
+    summary = queue.run_summary(entry)
+    assert summary["status"] == "success", summary["error"]
+    (saved,) = [o for o in summary["outputs"] if o["kind"] == "scenes"]
+    result, original = read_ply(comfy_server.output_dir / saved["file"]), read_ply(comfy_server.input_dir / folder / "scene.ply")
+    select = next(node for node in workflow.values() if node["class_type"] == "ArtNVGSelectGaussians")["inputs"]
+    selection = select_region(original, parse_region(f"{select['mode']}:{select['bounds'].replace(' ', '')}"))
+    assert 0 < selection.sum() < len(original)
+    assert torch.equal(result.sh[~selection], original.sh[~selection]) and torch.equal(result.means, original.means)
+    assert not torch.equal(result.sh[selection], original.sh[selection])
+    assert len([o for o in summary["outputs"] if o["kind"] == "images"]) == 2 + 1  # content views + the strip
 
 
 def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
