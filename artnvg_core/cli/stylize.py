@@ -86,7 +86,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
-    if stylizer == "diffusion" and not args.devices and not args.ray_address:  # read while the scene loads
+    prefetched = stylizer == "diffusion" and not args.devices and not args.ray_address  # read as the scene loads
+    if prefetched:
         print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         prefetch_models(files, device, preset=args.preset, compile_blocks=args.compile, loras=args.lora,
                         progress=ProgressBar("models", "B"))
@@ -132,6 +133,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
                                           compile_blocks=args.compile,
+                                          loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
                                           progress=ProgressBar("finetune"), should_stop=args.should_stop,
                                           selection=selection)
