@@ -15,7 +15,7 @@ import functools
 import threading
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -151,8 +151,9 @@ def stylize_diffusion(
     selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
-    ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
-    loaded for the next call with the same files and options (:func:`load_models_for`).
+    ControlNet and neighbouring-view attention, then finetune the scene toward them. The model files are
+    read in a background thread while the content views render; the models stay loaded for the next call
+    with the same files and options (:func:`load_models_for`; :func:`prefetch_models` starts that load earlier).
 
     Args:
         scene (`GaussianScene`): the scene to stylize, on its compute device; not modified.
@@ -206,13 +207,10 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
-    if chosen.sampler is None:
-        raise ValueError(f"stylize_diffusion: preset {preset!r} is diffusion-free (run stylize_nnfm)")
-    changes = dict(sampler_changes or {})
-    unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
-    if unknown:
-        raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
-    settings = replace(chosen.sampler, content_routing=content_routing, **changes)
+    try:
+        settings = chosen.sampler_settings(content_routing, sampler_changes)
+    except ValueError as error:
+        raise ValueError(f"stylize_diffusion: preset {preset!r}: {error}") from None
     keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None

@@ -5,9 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
-
 from artnvg_core.fileio import check_output_name
+from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
 
 from .comfy_bridge import output_directory
 from .input_files import InputFile, list_input_files

@@ -403,7 +403,7 @@ def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, 
     assert main(["render", str(scene), "--orbit-size", "8192", "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
     captured = capsys.readouterr()
     assert ("error: --orbit-size and --scale: 60 views of 8192x8192 pixels, 1 of their images held at once, need "
-            "2.8 GiB, more than half the 1.0 GiB of memory available now") in captured.err
+            "11.1 GiB, more than half the 1.0 GiB of memory available now") in captured.err
     assert "loading" not in captured.out and not (tmp_path / "out").exists()
 
 
