@@ -10,9 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 from .diffusion.settings import SamplerSettings
-from .finetune import FinetuneConfig
+
+if TYPE_CHECKING:
+    from .finetune import FinetuneConfig  # only a type here: importing the presets loads no finetune
 
 
 @dataclass(frozen=True)
