@@ -15,7 +15,7 @@ import functools
 import threading
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -207,13 +207,10 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
-    if chosen.sampler is None:
-        raise ValueError(f"stylize_diffusion: preset {preset!r} is diffusion-free (run stylize_nnfm)")
-    changes = dict(sampler_changes or {})
-    unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
-    if unknown:
-        raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
-    settings = replace(chosen.sampler, content_routing=content_routing, **changes)
+    try:
+        settings = chosen.sampler_settings(content_routing, sampler_changes)
+    except ValueError as error:
+        raise ValueError(f"stylize_diffusion: preset {preset!r}: {error}") from None
     keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None

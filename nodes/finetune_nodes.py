@@ -103,16 +103,14 @@ class FinetuneGaussians(ArtNVGNode):
                  color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
                  nnfm_search=_DEFAULTS.nnfm_search, selection=None):
         with node_input(self.DISPLAY_NAME), autograd_enabled():
-            if preset == "preview":
-                chosen = PRESETS["preview"]
-                iterations, views_per_step = chosen.finetune_iterations, chosen.views_per_step
-                cameras = cameras.scaled(chosen.scale)
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
                 nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer, views_per_step=views_per_step,
                 nnfm_search=nnfm_search,
             )
+            if preset == "preview":
+                cameras, config = cameras.scaled(_PREVIEW.scale), _PREVIEW.finetune_config(config)
             device = compute_device()
             prepare_rasterizer(device)
             report = staged_progress()

@@ -177,6 +177,7 @@ def test_lists_given_a_capacity_equal_the_exact_ones_or_say_they_overflowed():
     assert not bool(capacity.take_overflow()) and not capacity.overflowed()
 
 
+@pytest.mark.slow
 def test_skipping_blocks_no_pixel_uses_changes_nothing():
     """The kernels skip blocks of Gaussians that no open pixel uses: bit for bit the same images, and
     the same gradients (up to the order of the backward's atomic additions on a GPU)."""

@@ -108,23 +108,21 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
 
-    def iterations_for(stylizer: str) -> int:
-        if args.iters is not None:
-            return args.iters
+    def finetune_config(stylizer: str) -> FinetuneConfig:
+        config = FinetuneConfig(iterations=60 if demo else 1000, seed=args.seed, color_transfer=args.color_transfer,
+                                nnfm_search=args.nnfm_search)
         if diffusion_free or stylizer == "diffusion":
-            return preset.finetune_iterations
-        return 60 if demo else 1000
+            config = preset.finetune_config(config)
+        return config if args.iters is None else dataclasses.replace(config, iterations=args.iters)
 
-    iterations = iterations_for(stylizer)
+    config = finetune_config(stylizer)
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
     key_views = preset.key_views if args.key_views is None else args.key_views
     described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
                  + (f"; {key_views} key views" if key_views else ""))
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
-          f"{iterations} iterations on {device}")
-    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
-                            views_per_step=preset.views_per_step, nnfm_search=args.nnfm_search)
+          f"{config.iterations} iterations on {device}")
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -142,7 +140,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
-            stylizer, config = "nnfm", dataclasses.replace(config, iterations=iterations_for("nnfm"))
+            stylizer, config = "nnfm", finetune_config("nnfm")
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
