@@ -242,13 +242,14 @@ def stylize_diffusion(
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto") -> Path:
-    """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
-    contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3) -> Path:
+    """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
+    :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
+    neither and nothing on disk changes.
     Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
-        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes)
+        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version)
         save_png(sheet, sheet_file)
     return sheet_path(out_ply)

@@ -110,7 +110,8 @@ class FinetuneGaussians(ArtNVGNode):
                 nnfm_search=nnfm_search,
             )
             if preset == "preview":
-                cameras, config = cameras.scaled(_PREVIEW.scale), _PREVIEW.finetune_config(config)
+                chosen = PRESETS["preview"]
+                cameras, config = cameras.scaled(chosen.scale), chosen.finetune_config(config)
             device = compute_device()
             prepare_rasterizer(device)
             report = staged_progress()

@@ -38,7 +38,7 @@ PUBLIC_INPUTS = {
                                 "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search", "selection"],
     "ArtNVGSelectGaussians": ["scene", "mode", "bounds", "cameras", "mask", "views"],
     "ArtNVGBlendStylization": ["original", "stylized", "strength", "selection", "cameras", "view", "preview_strengths"],
-    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],
+    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format", "spz_version"],
     "ArtNVGSceneToSplat": ["scene"],
     "ArtNVGSplatToScene": ["splat"],
 }

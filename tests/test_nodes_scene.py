@@ -5,7 +5,9 @@ output is compared with the direct ``artnvg_core`` call it adapts. Without Comfy
 input and output folders are ``./input`` and ``./output`` of the working directory.
 """
 
+import gzip
 import shutil
+import struct
 
 import pytest
 import torch
@@ -242,6 +244,17 @@ def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_d
         assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):
         call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")
+
+
+def test_save_scene_spz_version_reaches_the_writer(comfy_dirs, small_bear):
+    """spz_version 2 (for spz-js) writes a version 2 header; 3 is the default; others are refused by name."""
+    for version in ("2", "3", None):
+        saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="v", format="spz",
+                     **({} if version is None else {"spz_version": version}))
+        header = gzip.decompress((comfy_dirs / "output" / saved["ui"]["scenes"][0]["filename"]).read_bytes())
+        assert header[:8] == struct.pack("<II", 0x5053474E, int(version or 3)), version
+    with pytest.raises(NodeInputError, match=r"Save Gaussian Scene: input 'spz_version': expected one of \['3', '2'\]"):
+        call(SaveGaussianScene, scene=small_bear, filename_prefix="v", format="spz", spz_version="4")
 
 
 def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_runs(comfy_dirs):

@@ -146,7 +146,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
                               should_stop=args.should_stop, selection=selection)
     check_stop(args.should_stop)
-    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
+    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
+                        spz_version=args.spz_version)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
