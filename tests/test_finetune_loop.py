@@ -215,6 +215,7 @@ def test_color_transfer_on_an_all_black_scene_stays_finite(demo):
         assert render(result, cameras).rgb.mean() > 0.05  # the style's mean colour, shifted in
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stylized", [False, True])
 def test_bf16_vgg_moves_the_result_by_its_rounding_only(demo, stylized):
     scene, cameras, style = demo
@@ -334,6 +335,7 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
     assert not torch.equal(result.sh[8:], scene.sh[8:]) and not torch.equal(result.means[8:], scene.means[8:])
 
 
+@pytest.mark.slow
 def test_the_contact_sheet_is_bounded_whatever_the_cameras_and_the_style_image(demo):
     """An 80000x1 style image (once a 10.8 GB sheet) becomes a line in a tile at most twice as wide as
     high; 4x the cameras' size renders the sheet's views at 1024 px on their long side."""

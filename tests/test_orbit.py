@@ -144,6 +144,7 @@ def test_bad_scenes_raise_instead_of_nan_cameras():
             orbit_cameras(some_nan, **kwargs)
 
 
+@pytest.mark.slow
 def test_cli_stylize_and_render_without_cameras(tmp_path):
     demo = DemoInputs()
     out = tmp_path / "stylized.ply"
