@@ -8,9 +8,14 @@ short and at reduced resolution, a first look in seconds (BENCHMARKS.md, "A firs
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 from .diffusion.settings import SamplerSettings
+
+if TYPE_CHECKING:
+    from .finetune import FinetuneConfig  # only a type here: importing the presets loads no finetune
 
 
 @dataclass(frozen=True)
@@ -28,6 +33,22 @@ class Preset:
     key_views: int = 0
     scale: float = 1.0
     views_per_step: int = 1
+
+    def finetune_config(self, config: FinetuneConfig) -> FinetuneConfig:
+        """The finetune's share: ``config`` with this preset's length and views per step (the views' scale,
+        :attr:`scale`, is the caller's to apply where it makes its views)."""
+        return replace(config, iterations=self.finetune_iterations, views_per_step=self.views_per_step)
+
+    def sampler_settings(self, content_routing: str, changes: Mapping[str, object] | None = None) -> SamplerSettings:
+        """The diffusion stage's share: this preset's sampler settings with ``content_routing`` and the fields of
+        ``changes`` replaced (ValueError for a diffusion-free preset or a name that is no field)."""
+        if self.sampler is None:
+            raise ValueError("diffusion-free (run stylize_nnfm)")
+        changes = dict(changes or {})
+        unknown = sorted(set(changes) - {f.name for f in fields(self.sampler)})
+        if unknown:
+            raise ValueError(f"sampler_changes names no SamplerSettings field: {unknown}")
+        return replace(self.sampler, content_routing=content_routing, **changes)
 
 
 PRESETS = {

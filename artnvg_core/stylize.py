@@ -15,7 +15,7 @@ import functools
 import threading
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -151,8 +151,9 @@ def stylize_diffusion(
     selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
-    ControlNet and neighbouring-view attention, then finetune the scene toward them. The models stay
-    loaded for the next call with the same files and options (:func:`load_models_for`).
+    ControlNet and neighbouring-view attention, then finetune the scene toward them. The model files are
+    read in a background thread while the content views render; the models stay loaded for the next call
+    with the same files and options (:func:`load_models_for`; :func:`prefetch_models` starts that load earlier).
 
     Args:
         scene (`GaussianScene`): the scene to stylize, on its compute device; not modified.
@@ -206,13 +207,10 @@ def stylize_diffusion(
     from .presets import get_preset
 
     chosen = get_preset(preset)
-    if chosen.sampler is None:
-        raise ValueError(f"stylize_diffusion: preset {preset!r} is diffusion-free (run stylize_nnfm)")
-    changes = dict(sampler_changes or {})
-    unknown = sorted(set(changes) - {f.name for f in fields(chosen.sampler)})
-    if unknown:
-        raise ValueError(f"stylize_diffusion: sampler_changes names no SamplerSettings field: {unknown}")
-    settings = replace(chosen.sampler, content_routing=content_routing, **changes)
+    try:
+        settings = chosen.sampler_settings(content_routing, sampler_changes)
+    except ValueError as error:
+        raise ValueError(f"stylize_diffusion: preset {preset!r}: {error}") from None
     keys = select_key_views(cameras, chosen.key_views if key_views is None else key_views)
     cameras = cameras if len(keys) == len(cameras) else cameras.subset(keys)
     explicit = [torch.device(d) for d in devices] if devices else None
@@ -244,13 +242,14 @@ def stylize_diffusion(
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto") -> Path:
-    """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, see :func:`~artnvg_core.formats.save_scene`) and its
-    contact sheet together: both appear, or (on any failure) neither and nothing on disk changes.
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3) -> Path:
+    """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
+    :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
+    neither and nothing on disk changes.
     Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
-        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes)
+        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version)
         save_png(sheet, sheet_file)
     return sheet_path(out_ply)

@@ -96,7 +96,8 @@ def stage_rows(device, count, size):
     reference projection + colours (what the backend used before its fused kernels) for comparison."""
     from artnvg_core.raster.projection import project
     from artnvg_core.raster.sh import sh_to_color
-    from artnvg_core.raster.triton_backend import rasterize_triton, tile_lists
+    from artnvg_core.raster.triton_backend import rasterize_triton
+    from artnvg_core.raster.triton_tiles import tile_lists
     from artnvg_core.raster.triton_projection import project_color_triton
 
     scene = random_scene(count, device=device)
@@ -146,7 +147,8 @@ FIRST_USE = """
 import time, torch, sys
 sys.path.insert(0, {bench!r})
 from common import orbit_cameras, random_scene
-from artnvg_core.raster.triton_backend import rasterize_triton, tile_lists
+from artnvg_core.raster.triton_backend import rasterize_triton
+from artnvg_core.raster.triton_tiles import tile_lists
 from artnvg_core.raster.triton_projection import project_color_triton
 torch.zeros(1, device="cuda")
 scene = random_scene(10000, device="cuda")

@@ -4,7 +4,7 @@
 
 For each random scene (``common.random_scene``, one orbit camera, the fused projection done once):
 
-- tile lists: each step of ``triton_backend.tile_lists`` alone (depth order, counting, writing, the
+- tile lists: each step of ``triton_tiles.tile_lists`` alone (depth order, counting, writing, the
   stable sort by 16-bit and by 32-bit tile keys, the gather, the offsets), the intersections and the
   footprint boxes' tiles (what the lists were before tiles out of a Gaussian's reach were left out);
 - the forward kernel for each ``triton_backend.Pass`` (pixel rows per program, Gaussians per block,
@@ -31,15 +31,8 @@ from common import orbit_cameras, print_table, random_scene, timed
 
 from artnvg_core.raster import render
 from artnvg_core.raster.torch_backend import rasterize
-from artnvg_core.raster.triton_backend import (
-    PASSES,
-    TILE,
-    Pass,
-    _Composite,
-    _count_tiles,
-    _write_pairs,
-    tile_lists,
-)
+from artnvg_core.raster.triton_backend import PASSES, Pass, _Composite
+from artnvg_core.raster.triton_tiles import TILE, _count_tiles, _write_pairs, tile_lists
 from artnvg_core.raster.triton_projection import project_color_triton
 from artnvg_core.scene import GaussianScene
 

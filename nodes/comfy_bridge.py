@@ -67,14 +67,20 @@ def readable_folders() -> list[Path]:
 
 
 def register_model_folder(name: str, extensions: set[str]) -> None:
-    """Make ``models/<name>`` a ComfyUI model folder listing files with ``extensions``.
+    """Make ``models/<name>`` a ComfyUI model folder listing files with ``extensions``, and create it, so
+    that the folder a missing-file message names is there to put the file into.
 
-    Keeps any paths the user already configured for ``name`` (extra_model_paths.yaml).
+    Keeps any paths the user already configured for ``name`` (extra_model_paths.yaml). A models folder
+    that cannot be written is logged, not raised: the pack still loads.
     """
     folder_paths = comfy_module("folder_paths")
     if folder_paths is None:
         return
     default = os.path.join(folder_paths.models_dir, name)
+    try:
+        os.makedirs(default, exist_ok=True)
+    except OSError as error:
+        _log.warning("ArtNVG: could not create the model folder %s (%s)", default, error)
     if name in folder_paths.folder_names_and_paths:
         paths, known = folder_paths.folder_names_and_paths[name]
         if default not in paths:

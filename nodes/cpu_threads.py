@@ -1,10 +1,11 @@
 """How many CPU threads torch uses while a node computes on the CPU.
 
-torch starts one thread per core. When other processes keep those cores busy, its threads wait on
-each other and a step gets several times slower (measured on a shared 2-core machine: docs/comfyui.md). So while a node runs on the CPU, :func:`cpu_threads` sets torch's thread count to the
-cores this process may use less the machine's load (1-minute average of runnable processes, which
-includes ComfyUI's own recent work), at least 1, and restores the previous count afterwards. Nothing
-changes when ComfyUI computes on a GPU, or when ``OMP_NUM_THREADS`` is set: the user chose then.
+torch starts one thread per core. When other processes keep those cores busy, its threads wait on each
+other and a step gets several times slower. So while a node runs on the CPU, :func:`cpu_threads` sets
+torch's thread count to the cores this process may use less the machine's load (1-minute average of
+runnable processes, which includes ComfyUI's own recent work), at least 1, and restores the previous
+count afterwards. Nothing changes when ComfyUI computes on a GPU, or when ``OMP_NUM_THREADS`` is set: the
+user chose then.
 """
 
 from __future__ import annotations

@@ -79,7 +79,7 @@ class FinetuneGaussians(ArtNVGNode):
         "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
         "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
             "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
-            "(512: ARF's half resolution for 1024 px views, about 2x faster there); 0: full resolution.")}),
+            "(512: ARF's half resolution for 1024 px views, a quarter of the features to match); 0: full resolution.")}),
         "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
             "Without stylized_views: match the scene's colours to the style image's mean and covariance "
             "before and after finetuning, as ARF does (exact, no extra iterations).")}),
@@ -103,16 +103,15 @@ class FinetuneGaussians(ArtNVGNode):
                  color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
                  nnfm_search=_DEFAULTS.nnfm_search, selection=None):
         with node_input(self.DISPLAY_NAME), autograd_enabled():
-            if preset == "preview":
-                chosen = PRESETS["preview"]
-                iterations, views_per_step = chosen.finetune_iterations, chosen.views_per_step
-                cameras = cameras.scaled(chosen.scale)
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
                 nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer, views_per_step=views_per_step,
                 nnfm_search=nnfm_search,
             )
+            if preset == "preview":
+                chosen = PRESETS["preview"]
+                cameras, config = cameras.scaled(chosen.scale), chosen.finetune_config(config)
             device = compute_device()
             prepare_rasterizer(device)
             report = staged_progress()

@@ -122,13 +122,11 @@ class InputFile:
     def _refusal(self, node: str, listed: str, path: str) -> str | None:
         """The message when the chosen path, or a file loading it reads, lies outside ComfyUI's folders."""
         file, input_name = self.resolve(listed, path)
-        if outside_folders(file):
-            return outside_message(node, input_name, path.strip() if input_name == "path" else listed)
         try:
-            read = self.read(file) if self.exists(file) else []
+            read = self.read(file) if not outside_folders(file) and self.exists(file) else []
         except (OSError, ValueError):  # not loadable: the loader says why, naming the chosen path only
             read = []
-        if any(outside_folders(part) for part in read):
+        if outside_folders(file) or any(outside_folders(part) for part in read):
             return outside_message(node, input_name, path.strip() if input_name == "path" else listed)
         return None
 

@@ -32,9 +32,11 @@ from .node_types import CSGO
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
-CSGO_URL = "https://huggingface.co/InstantX/CSGO (csgo_4_32.bin)"
-IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter/blob/main/sdxl_models/image_encoder/model.safetensors "
-                     "(CLIP-ViT-bigG-14-laion2B-39B-b160k)")
+CSGO_URL = ("https://huggingface.co/InstantX/CSGO: `hf download InstantX/CSGO csgo_4_32.bin`, saved as "
+            "models/csgo/csgo_4_32.bin")
+IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter: `hf download h94/IP-Adapter "
+                     "sdxl_models/image_encoder/model.safetensors`, saved (renamed) as "
+                     "models/clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
 _log = logging.getLogger("artnvg")

@@ -5,17 +5,17 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, load_scene, save_scene
-
 from artnvg_core.fileio import check_output_name
+from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, SPZ_VERSIONS, load_scene, save_scene
 
-from .comfy_bridge import output_directory, progress_text
+from .comfy_bridge import output_directory
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, SCENE
+from .preview3d import preview_camera
 from .prompt_checks import HIDDEN, check_result
-from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, file3d, file3d_link_type
+from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, MODEL_3D, file3d, file3d_link_type
 
 SCENE_FILE = InputFile(
     "scene_file",
@@ -96,19 +96,24 @@ def saved_text(name: str, size: int, gaussians: int) -> str:
     return f"wrote output/{name} ({size / 1e6:.1f} MB, {gaussians:,} Gaussians)"
 
 
+SPZ_VERSION_CHOICES = [str(v) for v in sorted(SPZ_VERSIONS, reverse=True)]  # "3", the default, first
+
+
 class SaveGaussianScene(ArtNVGNode):
     """Write the scene into ComfyUI's output folder (``<prefix>_00001.ply``, ...): an INRIA 3DGS PLY, or
-    by ``format`` a Niantic ``.spz``, an antimatter15 ``.splat`` or a GaussianSplats3D ``.ksplat`` (smaller
-    files, quantised). Shows the file it wrote under itself: name, size, Gaussians.
+    by ``format`` a Niantic ``.spz`` (``spz_version`` 3, or 2 for spz-js), an antimatter15 ``.splat`` or a
+    GaussianSplats3D ``.ksplat`` (smaller files, quantised).
 
-    Its model_3d output is that file, for Preview Gaussian Splat (3D view in the editor)."""
+    model_file: the file written, as a path inside the output folder (connect it to Preview Any to keep it
+    in view, and to Preview 3D's model_file). camera_info: a Preview 3D camera that frames the scene's bulk,
+    not its stray Gaussians."""
 
     DISPLAY_NAME = "Save Gaussian Scene"
     FUNCTION = "save"
-    RETURN_TYPES = (file3d_link_type(SAVE_SUFFIXES),) if FILE3D_CLASS is not None else ()
-    RETURN_NAMES = ("model_3d",) if FILE3D_CLASS is not None else ()
+    RETURN_TYPES = ("STRING", "LOAD3D_CAMERA") + ((file3d_link_type(SAVE_SUFFIXES),) if FILE3D_CLASS is not None else ())
+    RETURN_NAMES = ("model_file", "camera_info") + (("model_3d",) if FILE3D_CLASS is not None else ())
     OUTPUT_NODE = True
-    DESCRIPTION = __doc__ if FILE3D_CLASS is not None else __doc__.split("\n\n")[0] + "\n\n" + MISSING_FILE3D
+    DESCRIPTION = __doc__ + "\n\n" + (MODEL_3D if FILE3D_CLASS is not None else MISSING_FILE3D)
     REQUIRED = {
         "scene": (SCENE,),
         "filename_prefix": ("STRING", {"default": "artnvg/stylized", "tooltip": (
@@ -120,6 +125,10 @@ class SaveGaussianScene(ArtNVGNode):
             "ply: INRIA 3DGS PLY, exact. spz: Niantic SPZ, about 10x smaller, quantised. "
             "splat: antimatter15 .splat, SH degree 0 only. ksplat: GaussianSplats3D level 0, SH up to "
             "degree 2.")}),
+        "spz_version": (SPZ_VERSION_CHOICES, {"default": "3", "tooltip": (
+            "SPZ version of a .spz (other formats ignore it). 3: read by Niantic's spz library, "
+            "splat-transform and SuperSplat. 2: also read by spz-js and similar older readers (versions 1-2 only); "
+            "rotations stored a little coarser.")}),
     }
 
     HIDDEN = HIDDEN
@@ -138,21 +147,24 @@ class SaveGaussianScene(ArtNVGNode):
     def VALIDATE_INPUTS(cls, files=None):
         return check_result(files)
 
-    def save(self, scene, filename_prefix, format="ply", files=None):
+    def save(self, scene, filename_prefix, format="ply", spz_version="3", files=None):
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
+        with node_input(self.DISPLAY_NAME, "spz_version"):
+            if spz_version not in SPZ_VERSION_CHOICES:
+                raise ValueError(f"expected one of {SPZ_VERSION_CHOICES}, got {spz_version!r}")
         with node_input(self.DISPLAY_NAME, "filename_prefix"):
             file = _next_free_path(filename_prefix, f".{format}")
         try:
             with node_input(self.DISPLAY_NAME, "scene"):
-                save_scene(scene, file)
+                save_scene(scene, file, spz_version=int(spz_version))
         except OSError as error:
             raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
-        progress_text(written)
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
               "text": [written]}
-        return {"ui": ui, "result": (file3d(file),)} if FILE3D_CLASS is not None else {"ui": ui}
+        result = (relative.as_posix(), preview_camera(scene))
+        return {"ui": ui, "result": result + ((file3d(file),) if FILE3D_CLASS is not None else ())}

@@ -51,9 +51,10 @@ MISSING_SPLAT = (
     "Needs ComfyUI's core Gaussian splat type (comfy_api.latest Types.SPLAT, or Types.GAUSSIAN before its "
     "rename; ComfyUI releases of 2026). This ComfyUI lacks it, so this node cannot run here."
 )
+MODEL_3D = "model_3d: the saved file as ComfyUI's 3D file type, for Preview Gaussian Splat."
 MISSING_FILE3D = (
-    "On a ComfyUI with 3D file types (comfy_api.latest Types.File3D, 2026) it also outputs the saved file for "
-    "Preview Gaussian Splat; this ComfyUI lacks them, so it has no output."
+    "On a ComfyUI with 3D file types (comfy_api.latest Types.File3D, 2026) it also outputs the saved file as "
+    "model_3d, for Preview Gaussian Splat; this ComfyUI lacks them, so it has no model_3d output."
 )
 
 _ORIGINS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # splat -> the scene it was made from

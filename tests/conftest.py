@@ -43,13 +43,17 @@ def fixed_cpu_threads(monkeypatch):
         monkeypatch.setenv("OMP_NUM_THREADS", str(torch.get_num_threads()))
 
 
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects: it must see the ``slow`` marks added here
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``cuda`` are skipped where torch sees no CUDA GPU."""
-    if torch.cuda.is_available():
-        return
-    skip = pytest.mark.skip(reason="needs a CUDA GPU (marker 'cuda')")
+    """Tests in tests/integration (a real ComfyUI server) and tests on the local Ray instance (its workers
+    start in tens of seconds) are marked ``slow``; tests marked ``cuda`` are skipped where torch sees no
+    CUDA GPU."""
+    integration = REPO / "tests" / "integration"
+    skip = None if torch.cuda.is_available() else pytest.mark.skip(reason="needs a CUDA GPU (marker 'cuda')")
     for item in items:
-        if item.get_closest_marker("cuda") is not None:
+        if integration in item.path.parents or "ray_local" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+        if skip is not None and item.get_closest_marker("cuda") is not None:
             item.add_marker(skip)
 
 

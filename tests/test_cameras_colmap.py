@@ -173,3 +173,13 @@ def test_colmap_text_errors_never_quote_the_file(tmp_path):
             load_colmap(folder)
         assert "root" not in str(refused.value).replace(str(tmp_path), "")
         (folder / file).write_text(original)
+
+
+def test_colmap_binary_counts_beyond_the_file_are_refused_before_any_record(tmp_path):
+    quats, trans = random_capture(2, seed=4)
+    folder = write_colmap(tmp_path / "model", {1: ("PINHOLE", 64, 48, [50.0] * 4)}, colmap_images(quats, trans), True)
+    data = (folder / "images.bin").read_bytes()
+    (folder / "images.bin").write_bytes((2**40).to_bytes(8, "little") + data[8:])
+    with pytest.raises(ValueError, match=r"images\.bin: the header says 1,099,511,627,776 images; the file's \d+ bytes "
+                       r"left hold at most \d, and a model may have 1,000,000"):
+        load_colmap(folder)

@@ -1,6 +1,8 @@
 """``python -m artnvg_core blend``: a region blended at a strength, written in every format; refusals."""
 
 import dataclasses
+import gzip
+import struct
 
 import numpy as np
 import pytest
@@ -66,6 +68,28 @@ def test_the_blend_is_written_in_every_format_with_the_sh_it_holds(tmp_path, suf
     assert len(set(nearest.tolist())) == len(reference)
     colour = lambda sh: (sh[:, 0] * SH_C0 + 0.5).clamp(0, 1)  # noqa: E731
     np.testing.assert_allclose(colour(result.sh).numpy(), colour(reference.sh[nearest]).numpy(), rtol=0, atol=tolerance)
+
+
+def _spz_version(path) -> int:
+    """The version in a version 1-3 .spz's header (after the magic, inside its gzip stream)."""
+    return struct.unpack_from("<I", gzip.decompress(path.read_bytes()), 4)[0]
+
+
+def test_spz_version_2_is_written_on_request_and_reads_back_as_the_default_version_3(tmp_path):
+    """--spz-version 2 (for spz-js, which reads versions 1-2 only): its header says 2, and it reads back as
+    the default version 3 does, but for the rotations, whose x y z it stores in 8 bits (w >= 0 derived)."""
+    _pair(tmp_path)
+    for name, extra in (("v3", []), ("v2", ["--spz-version", "2"])):
+        assert main(["blend", str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "0.5",
+                     "--out", str(tmp_path / f"{name}.spz"), *extra]) == 0
+    assert (_spz_version(tmp_path / "v3.spz"), _spz_version(tmp_path / "v2.spz")) == (3, 2)
+    v3, v2 = load_scene(tmp_path / "v3.spz"), load_scene(tmp_path / "v2.spz")
+    for name, value in v3.tensors().items():
+        if name != "quats":
+            assert torch.equal(getattr(v2, name), value), name
+    a, b = (q[:, 1:] / q.norm(dim=1, keepdim=True) for q in (v2.quats.double(), v3.quats.double()))  # x y z of unit q
+    error = torch.minimum((a - b).abs().amax(1), (a + b).abs().amax(1))  # q and -q are one rotation
+    assert error.max() <= 0.5 / 127.5 + 0.002  # the two versions' bounds (formats/spz.py)
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -107,7 +107,7 @@ def test_stylized_scene_and_its_2d_views(inputs, no_cached_models, tmp_path):
     assert metrics["cfsd"]["mean"] > 0
     assert metrics["warp"]["stylized"]["short"]["rmse"] != metrics["warp"]["floor"]["short"]["rmse"]
     assert metrics["csd"]["skipped"].startswith("no --csd given; CSD style descriptor weights (ViT-L/14) not found")
-    assert "huggingface-cli download openai/clip-vit-large-patch14" in metrics["clip_dc"]["skipped"]
+    assert "hf download openai/clip-vit-large-patch14" in metrics["clip_dc"]["skipped"]
 
     # The same stylized views as 2D images (as the diffusion stage writes them) score the same,
     # up to 8-bit quantisation.

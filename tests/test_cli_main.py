@@ -332,7 +332,10 @@ def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_
 
 def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_plys_axes(tmp_path, capsys):
     """render of a .spz holding RUB with no record renders as the scene itself by default (its --cameras
-    decide), upside down with --spz-axes ply; stylize writes its .spz in the PLY's axes by default."""
+    decide), upside down with --spz-axes ply; stylize writes its .spz in the PLY's axes by default (here as
+    --spz-version 2 asks)."""
+    import gzip
+
     from artnvg_core.formats import save_scene
 
     demo, scene = DemoInputs(), _small_scene(tmp_path)
@@ -345,11 +348,22 @@ def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_ply
         renders[name] = load_image(next((tmp_path / name).glob("*.png")))
     assert (renders["auto"] - renders["ply"]).abs().mean() < 0.01
     assert (renders["ply_axes"] - renders["ply"]).abs().mean() > 0.05
-    assert _stylize(scene, demo.style, tmp_path / "out.spz") == 0
+    assert _stylize(scene, demo.style, tmp_path / "out.spz", "--spz-version", "2") == 0
+    assert gzip.decompress((tmp_path / "out.spz").read_bytes())[4] == 2  # the header's version
     kept = load_scene(tmp_path / "out.spz", spz_axes="ply").means
     assert (kept - load_scene(scene).means).abs().max() <= 2.0**-12
 
 
+@pytest.mark.parametrize("command", [["stylize", "scene.ply", "--style", "s.png"],
+                                     ["blend", "a.ply", "b.ply", "--strength", "1"]])
+def test_an_spz_version_other_than_2_or_3_is_refused_by_name(tmp_path, capsys, command):
+    with pytest.raises(SystemExit) as exit_:
+        main([*command, "--out", str(tmp_path / "o.spz"), "--spz-version", "4"])
+    assert exit_.value.code == 2
+    assert "argument --spz-version: invalid choice: 4 (choose from 2, 3)" in capsys.readouterr().err
+
+
+@pytest.mark.slow
 def test_a_diffusion_free_preview_imports_no_diffusion_library(tmp_path):
     """A whole ``stylize --preset preview`` run in a fresh process (the demo at 1/8 size, 2 steps) never
     imports diffusers, transformers or peft: seconds of start-up the preview does not need. (torch._dynamo
@@ -402,7 +416,7 @@ def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, 
     assert main(["render", str(scene), "--orbit-size", "8192", "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
     captured = capsys.readouterr()
     assert ("error: --orbit-size and --scale: 60 views of 8192x8192 pixels, 1 of their images held at once, need "
-            "2.8 GiB, more than half the 1.0 GiB of memory available now") in captured.err
+            "11.1 GiB, more than half the 1.0 GiB of memory available now") in captured.err
     assert "loading" not in captured.out and not (tmp_path / "out").exists()
 
 

@@ -16,6 +16,7 @@ from diffusion_tiny import diffusers_pipeline, kohya_lora_deltas, kohya_lora_sta
 @pytest.fixture(scope="module")
 def sdxl(tmp_path_factory):
     """(a tiny SDXL diffusers folder, the SDXLBase it was written from, a kohya LoRA file for it, its state)."""
+    pytest.importorskip("peft")  # the optional [lora] extra
     root = tmp_path_factory.mktemp("lora")
     base = tiny_base()
     diffusers_pipeline(base, tiny_scheduler()).save_pretrained(root / "sdxl")
@@ -54,6 +55,18 @@ def test_a_bad_strength_is_refused_naming_it(text, message):
         parse_lora(text)
     with pytest.raises(ValueError, match="strength must be a finite number"):
         LoRA(Path("a.safetensors"), float("nan"))
+
+
+def test_without_peft_a_lora_is_refused_naming_the_extra(tmp_path, monkeypatch):
+    import importlib.util
+
+    lora = tmp_path / "style.safetensors"
+    save_file({"lora_unet_x.lora_down.weight": torch.zeros(2, 4)}, str(lora))
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None if name == "peft" else find_spec(name, *args))
+    with pytest.raises(LoRAError, match=f"LoRA '{lora}': LoRAs are applied through the peft package, which is not "
+                                        r'installed: pip install "artnvg\[lora\]"'):
+        check_lora(LoRA(lora))
 
 
 def test_a_file_that_is_not_a_lora_is_refused_naming_it(tmp_path, sdxl):

@@ -93,6 +93,7 @@ def test_load_models_for_fuses_the_loras_and_keys_them_by_file_and_strength(tmp_
     from artnvg_core.diffusion.loader import DiffusionModelsUnavailable
     from diffusion_tiny import kohya_lora_deltas, kohya_lora_state, tiny_base
 
+    pytest.importorskip("peft")  # the optional [lora] extra
     paths = ModelFiles(**write_model_files(tmp_path))
     state = kohya_lora_state(tiny_base())
     save_file(state, str(tmp_path / "lora.safetensors"))

@@ -68,7 +68,7 @@ def test_fp16_request_keeps_an_overflowing_vae_in_float32(sdxl_folder):
 
 
 def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):
-    with pytest.raises(MissingModelError, match="looked for '.*missing_sdxl'.*`huggingface-cli download "
+    with pytest.raises(MissingModelError, match="looked for '.*missing_sdxl'.*`hf download "
                        "stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors`"):  # one file suffices
         load_sdxl(tmp_path / "missing_sdxl")
     (tmp_path / "partial").mkdir()
@@ -151,7 +151,7 @@ def test_locate_explicit_path_then_hf_cache(tmp_path):
     message = str(error.value)
     assert "CSGO content/style weights" in message and str(tmp_path / "csgo_4_32.bin") in message
     assert "https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin" in message
-    assert "huggingface-cli download InstantX/CSGO csgo_4_32.bin" in message
+    assert "hf download InstantX/CSGO csgo_4_32.bin" in message
     repo = tmp_path / "cache" / "models--h94--IP-Adapter"
     (repo / "refs").mkdir(parents=True)
     (repo / "refs" / "main").write_text("abc123\n")

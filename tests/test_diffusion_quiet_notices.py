@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 from artnvg_core.diffusion.models import load_sdxl
@@ -23,6 +24,7 @@ NOTICE = ("`CLIPImageProcessor` requires torchvision (not installed); falling ba
           "for backward compatibility.")
 
 
+@pytest.mark.slow
 def test_models_module_imports_without_the_notice_when_torchvision_is_missing():
     """A fresh Python in which torchvision cannot be imported (a None entry in sys.modules makes
     find_spec answer None, as for an absent package) imports the models module silently."""

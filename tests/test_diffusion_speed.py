@@ -221,6 +221,7 @@ def fresh_dynamo():
     torch._dynamo.reset()
 
 
+@pytest.mark.slow
 def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models, step_inputs, fresh_dynamo):
     """Dynamo traces every transformer/ResNet block (eager backend: no code generation on the CPU
     test machine); the noise prediction is unchanged and the models themselves stay uncompiled;
@@ -237,6 +238,7 @@ def test_regional_compile_compiles_repeated_blocks_only_and_keeps_output(models,
     assert _relative_l2(_noise(variant, step_inputs), _noise(models, step_inputs)) < TOLERANCE
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dynamic", [True, None])
 def test_dynamic_regional_compile_keeps_its_graphs_for_a_new_group_size(models, dynamic, fresh_dynamo):
     """With symbolic shapes, a group of another size reuses the blocks' graphs (Dynamo's default,

@@ -38,6 +38,7 @@ def nnfm_of(scene, cameras, style):
         return float(loss(vgg(images.permute(0, 3, 1, 2), LAYERS)))
 
 
+@pytest.mark.slow
 def test_nnfm_stylization_reduces_style_loss_and_keeps_geometry(demo):
     scene, cameras, style = demo
     before = nnfm_of(scene, cameras, style)
@@ -49,6 +50,7 @@ def test_nnfm_stylization_reduces_style_loss_and_keeps_geometry(demo):
     assert not torch.equal(result.sh, scene.sh)
 
 
+@pytest.mark.slow
 def test_own_renders_as_targets_keep_the_scene(demo):
     scene, cameras, style = demo
     with torch.no_grad():
@@ -415,6 +417,7 @@ def test_the_steps_check_their_inputs_once_and_a_bad_scene_fails_before_any_step
     assert steps == []
 
 
+@pytest.mark.slow
 def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(monkeypatch):
     """The Triton steps render into tile lists sized from earlier counts, not waiting for their own; a
     step whose lists overflow is skipped on the device and taken again with room. With no margin at
@@ -422,7 +425,7 @@ def test_steps_that_outgrow_their_tile_lists_are_taken_again_and_change_nothing(
     bit for bit, and steps were taken again."""
     pytest.importorskip("triton")
     from artnvg_core.raster.step_renderer import StepRenderer
-    from artnvg_core.raster.triton_backend import ListCapacity
+    from artnvg_core.raster.triton_tiles import ListCapacity
     from raster_scenes import EYES, hard_scene, make_cameras
 
     device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -28,6 +28,13 @@ def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
         save_scene(scene, tmp_path / "scene.ckpt")
 
 
+@pytest.mark.parametrize(("option", "value"), [("spz_version", 4), ("spz_version", "2"), ("spz_axes", "up")])
+def test_a_bad_spz_option_is_refused_by_name_before_writing(tmp_path, option, value):
+    with pytest.raises(ValueError, match=rf"{option}: expected one of .*, got {value!r}"):
+        save_scene(random_scene(4, 1), tmp_path / "scene.spz", **{option: value})
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
 @pytest.mark.parametrize(("field", "value"), [("means", float("nan")), ("log_scales", float("inf")),
                                               ("sh", -float("inf")), ("quats", 0.0)])

@@ -6,8 +6,8 @@ are skipped."""
 import pytest
 import torch
 
+from artnvg_core.cli.main import main
 from artnvg_core.formats import load_scene, save_scene
-from artnvg_core.formats.spz import write_spz
 from artnvg_core.stylize import DemoInputs
 from tests.npm_tools import splat_transform, spz_js
 
@@ -59,13 +59,15 @@ def test_our_files_load_upright_in_splat_transform(tmp_path, npm_tools, ours):
 
 def test_spz_js_files_load_upright_here_and_ours_there(tmp_path, npm_tools):
     """spz-js writes version 2 in the PLY's axes and reads versions 1-2 only: its .spz loads upright here by
-    default, and ours written as version 2 (default axes) converts back to the source's PLY there. Opacities
-    stay below 254.5 / 255: spz-js writes a stored 255 to its PLY as an infinite logit."""
+    default, and ours written through the command line with --spz-version 2 (default axes) converts back to
+    the source's PLY there. Opacities stay below 254.5 / 255: spz-js writes a stored 255 to its PLY as an
+    infinite logit."""
     source = _source()
     source.opacity_logits.clamp_(max=4.0)
     save_scene(source, tmp_path / "source.ply")
     spz_js(tmp_path / "source.ply", tmp_path / "theirs.spz")
     _assert_upright(source, load_scene(tmp_path / "theirs.spz"), "spz-js .spz")
-    write_spz(source, tmp_path / "ours.spz", version=2)
+    ply = str(tmp_path / "source.ply")  # blended with itself at strength 1: the scene, written as given
+    assert main(["blend", ply, ply, "--strength", "1", "--out", str(tmp_path / "ours.spz"), "--spz-version", "2"]) == 0
     spz_js(tmp_path / "ours.spz", tmp_path / "back.ply")
     _assert_upright(source, load_scene(tmp_path / "back.ply"), "our .spz through spz-js")

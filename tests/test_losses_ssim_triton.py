@@ -25,6 +25,7 @@ def pair(shape, seed=0):
     return a, (a + 0.2 * torch.randn(shape, generator=generator)).clamp(0, 1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size, sigma, per_image", [(11, 1.5, True), (5, 1.0, False)])
 def test_value_and_both_gradients_match_brute_force(size, sigma, per_image):
     # 2 images x 1 channel of 9 x (TILE_W + 3): the window overhangs every border, two tiles a row

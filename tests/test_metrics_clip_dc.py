@@ -96,7 +96,7 @@ def test_loader_errors_name_what_is_missing(tmp_path, monkeypatch):
     from huggingface_hub import constants
 
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty-cache"))
-    with pytest.raises(MissingModelError, match="empty-cache.*huggingface-cli download openai/clip-vit-large-patch14"):
+    with pytest.raises(MissingModelError, match="empty-cache.*hf download openai/clip-vit-large-patch14"):
         load_clip_image_encoder(None)
     (tmp_path / "config.json").write_text('{"model_type": "clip_vision_model"}')
     with pytest.raises(MissingModelError, match="no weights file"):

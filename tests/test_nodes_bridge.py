@@ -159,19 +159,31 @@ def test_folders_and_model_lists_come_from_comfyui(comfy):
     assert comfy_bridge.model_file_path("checkpoints", "sdxl.safetensors") == root / "models/checkpoints/sdxl.safetensors"
     assert comfy_bridge.model_file_path("checkpoints", "other.safetensors") is None
     comfy_bridge.register_model_folder(CSGO_FOLDER, {".bin"})
-    (root / "models" / CSGO_FOLDER).mkdir()
+    assert (root / "models" / CSGO_FOLDER).is_dir()  # registering creates it
     (root / "models" / CSGO_FOLDER / "csgo_4_32.bin").write_bytes(b"")
     assert LoadCSGO.INPUT_TYPES()["required"]["csgo_name"][0] == ["csgo_4_32.bin"]
 
 
 def test_register_model_folder_keeps_user_paths(comfy):
     registry = comfy.modules["folder_paths"].folder_names_and_paths
+    assert not (comfy.root / "models" / "csgo").exists()
     comfy_bridge.register_model_folder("csgo", {".bin", ".safetensors"})
     assert registry["csgo"] == ([str(comfy.root / "models" / "csgo")], {".bin", ".safetensors"})
+    assert (comfy.root / "models" / "csgo").is_dir()  # created, for the file a missing-file message asks for
     registry["csgo"] = (["/elsewhere/csgo"], {".pt"})  # e.g. from extra_model_paths.yaml
     comfy_bridge.register_model_folder("csgo", {".bin"})
     comfy_bridge.register_model_folder("csgo", {".bin"})
     assert registry["csgo"] == (["/elsewhere/csgo", str(comfy.root / "models" / "csgo")], {".pt", ".bin"})
+
+
+def test_a_models_folder_that_cannot_be_written_is_logged_and_registered(comfy, caplog):
+    (comfy.root / "models").mkdir()
+    (comfy.root / "models" / "csgo").write_text("a file where the folder belongs")
+    with caplog.at_level("WARNING", logger="artnvg"):
+        comfy_bridge.register_model_folder("csgo", {".bin"})
+    assert [r.message.split(" (")[0] for r in caplog.records] == [
+        f"ArtNVG: could not create the model folder {comfy.root / 'models' / 'csgo'}"]
+    assert "csgo" in comfy.modules["folder_paths"].folder_names_and_paths
 
 
 def test_cancelled_becomes_comfyui_interrupt(comfy):

@@ -38,7 +38,7 @@ PUBLIC_INPUTS = {
                                 "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search", "selection"],
     "ArtNVGSelectGaussians": ["scene", "mode", "bounds", "cameras", "mask", "views"],
     "ArtNVGBlendStylization": ["original", "stylized", "strength", "selection", "cameras", "view", "preview_strengths"],
-    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format"],
+    "ArtNVGSaveGaussianScene": ["scene", "filename_prefix", "format", "spz_version"],
     "ArtNVGSceneToSplat": ["scene"],
     "ArtNVGSplatToScene": ["splat"],
 }
@@ -56,7 +56,7 @@ PUBLIC_OUTPUTS = {
     "ArtNVGFinetuneGaussians": ("ARTNVG_SCENE",),
     "ArtNVGSelectGaussians": ("ARTNVG_SELECTION",),
     "ArtNVGBlendStylization": ("ARTNVG_SCENE", "IMAGE"),
-    "ArtNVGSaveGaussianScene": (),  # ("FILE_3D_SPLAT_ANY",) on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
+    "ArtNVGSaveGaussianScene": ("STRING", "LOAD3D_CAMERA"),  # + "FILE_3D_SPLAT_ANY" on a ComfyUI with 3D file types (tests/test_nodes_splat.py)
     "ArtNVGSceneToSplat": ("SPLAT",),  # the core's name: "GAUSSIAN" before its rename
     "ArtNVGSplatToScene": ("ARTNVG_SCENE",),
 }

@@ -29,5 +29,6 @@ def test_sample_group_names_the_bad_input(views, group_index, message):
 
 def test_load_csgo_says_where_the_file_belongs_and_where_to_get_it():
     with pytest.raises(NodeInputError, match=r"^Load CSGO: input 'csgo_name': 'csgo_4_32.bin' is not in the 'csgo' "
-                                             r"model folder .*; get it from https://huggingface.co/InstantX/CSGO"):
+                                             r"model folder .*; get it from https://huggingface.co/InstantX/CSGO: "
+                                             r"`hf download InstantX/CSGO csgo_4_32.bin`, saved as models/csgo/csgo_4_32.bin$"):
         LoadCSGO().load("csgo_4_32.bin")

@@ -5,7 +5,9 @@ output is compared with the direct ``artnvg_core`` call it adapts. Without Comfy
 input and output folders are ``./input`` and ``./output`` of the working directory.
 """
 
+import gzip
 import shutil
+import struct
 
 import pytest
 import torch
@@ -207,6 +209,7 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
     size = (folder / "stylized_00002.ply").stat().st_size
     assert saved[1]["ui"]["text"] == [f"wrote output/artnvg/stylized_00002.ply ({size / 1e6:.1f} MB, "
                                       f"{len(small_bear):,} Gaussians)"]
+    assert saved[1]["result"][0] == "artnvg/stylized_00002.ply"  # the path Preview Any shows and Preview 3D loads
     (folder / "stylized_00007.ply").write_bytes(b"")
     (folder / "stylized_extra_00009.ply").write_bytes(b"")  # another prefix: not counted
     call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")
@@ -243,6 +246,17 @@ def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_d
         call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format="obj")
 
 
+def test_save_scene_spz_version_reaches_the_writer(comfy_dirs, small_bear):
+    """spz_version 2 (for spz-js) writes a version 2 header; 3 is the default; others are refused by name."""
+    for version in ("2", "3", None):
+        saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="v", format="spz",
+                     **({} if version is None else {"spz_version": version}))
+        header = gzip.decompress((comfy_dirs / "output" / saved["ui"]["scenes"][0]["filename"]).read_bytes())
+        assert header[:8] == struct.pack("<II", 0x5053474E, int(version or 3)), version
+    with pytest.raises(NodeInputError, match=r"Save Gaussian Scene: input 'spz_version': expected one of \['3', '2'\]"):
+        call(SaveGaussianScene, scene=small_bear, filename_prefix="v", format="spz", spz_version="4")
+
+
 def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_runs(comfy_dirs):
     fits = "artnvg/" + "s" * 200  # 200 + "_00001.ply" and the temporary's 29 bytes: 239 of 255
     assert SaveGaussianScene.check_files(filename_prefix=fits) is None
@@ -260,6 +274,6 @@ def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view
     monkeypatch.setattr(views, "available_memory", lambda: 2**30)
     monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
     with pytest.raises(NodeInputError, match=r"Render Camera Path: input 'scale': 60 views at scale 4\.0: 60 views of "
-                       r"2048x2048 pixels, all their images held at once, need 2\.9 GiB, more than half the 1\.0 GiB"):
+                       r"2048x2048 pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):
         call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
              key_views="", frames_per_segment=30, loop=False)

@@ -58,9 +58,11 @@ def test_without_core_types_the_nodes_say_what_is_missing(tmp_path, monkeypatch)
     with pytest.raises(NodeInputError, match="Gaussian Scene to Splat: Needs ComfyUI's core Gaussian splat type"):
         nodes.splat_nodes.SceneToSplat().convert(random_scene(n=3))
     save = nodes.scene_nodes.SaveGaussianScene
-    assert save.RETURN_TYPES == () and "Preview Gaussian Splat; this ComfyUI lacks them" in save.DESCRIPTION
+    assert save.RETURN_TYPES == ("STRING", "LOAD3D_CAMERA")
+    assert "Preview Gaussian Splat; this ComfyUI lacks them, so it has no model_3d output" in save.DESCRIPTION
     monkeypatch.chdir(tmp_path)
-    assert set(save().save(random_scene(n=3), "artnvg/plain")) == {"ui"}
+    model_file, camera = save().save(random_scene(n=3), "artnvg/plain")["result"]
+    assert model_file == "artnvg/plain_00001.ply" and camera["cameraType"] == "perspective"
 
 
 def test_scene_to_splat_and_back_is_bit_exact(core):
@@ -137,10 +139,12 @@ def test_bad_render_settings_are_refused(core, settings, message):
 def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     save = core.scene_nodes.SaveGaussianScene
-    assert save.RETURN_TYPES == ("FILE_3D_SPLAT_ANY",) and save.RETURN_NAMES == ("model_3d",)
+    assert save.RETURN_TYPES == ("STRING", "LOAD3D_CAMERA", "FILE_3D_SPLAT_ANY")
+    assert save.RETURN_NAMES == ("model_file", "camera_info", "model_3d")
     scene = random_scene(n=50)
     result = save().save(scene, "artnvg/stylized")
-    (model_3d,) = result["result"]
+    model_file, _, model_3d = result["result"]
+    assert model_file == "artnvg/stylized_00001.ply"
     assert model_3d.format == "ply" and result["ui"]["scenes"][0]["filename"] == "stylized_00001.ply"
     written = tmp_path / "output" / "artnvg" / "stylized_00001.ply"
     assert model_3d.get_bytes() == written.read_bytes()
@@ -148,10 +152,10 @@ def test_save_outputs_the_written_ply_for_preview_gaussian_splat(core, tmp_path,
     model_3d.save_to(str(copy))
     for name, value in read_ply(copy).tensors().items():
         assert np.array_equal(getattr(scene, name).numpy(), value.numpy()), name
-    (spz,) = save().save(scene, "artnvg/stylized", "spz")["result"]
+    *_, spz = save().save(scene, "artnvg/stylized", "spz")["result"]
     assert spz.format == "spz" and spz.get_bytes() == (tmp_path / "output" / "artnvg" / "stylized_00001.spz").read_bytes()
 
-    (ksplat,) = save().save(scene, "artnvg/stylized", "ksplat")["result"]
+    *_, ksplat = save().save(scene, "artnvg/stylized", "ksplat")["result"]
     assert ksplat.format == "ksplat"
 
 
@@ -160,7 +164,7 @@ def test_before_file3d_splat_any_each_container_is_listed(monkeypatch):
     comfy_api_standin.install(monkeypatch, "SPLAT", splat_any=False)
     try:
         _, _, scene_nodes = reload_all()
-        assert scene_nodes.SaveGaussianScene.RETURN_TYPES == ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT",)
+        assert scene_nodes.SaveGaussianScene.RETURN_TYPES[2:] == ("FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT",)
     finally:
         monkeypatch.undo()
         reload_all()

@@ -58,3 +58,23 @@ def test_preview_is_the_only_diffusion_free_preset_and_refuses_the_diffusion_sty
     assert main(["stylize", "--preset", "preview", "--stylizer", "diffusion", "--out", str(tmp_path / "s.ply")]) == 2
     assert "--preset preview runs without diffusion" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_preset_sets_the_finetunes_length_and_views_and_keeps_the_rest():
+    from artnvg_core.finetune import FinetuneConfig
+
+    fast, given = get_preset("fast"), FinetuneConfig(iterations=7, seed=3, views_per_step=5, color_transfer=False)
+    assert fast.finetune_config(given) == dataclasses.replace(given, iterations=fast.finetune_iterations,
+                                                              views_per_step=fast.views_per_step)
+    assert (fast.finetune_iterations, fast.views_per_step) != (7, 5)  # the test shows a change
+
+
+def test_a_preset_gives_its_sampler_settings_with_the_changes_and_refuses_unknown_ones():
+    fast = get_preset("fast")
+    settings = fast.sampler_settings("paper", {"steps": 9})
+    assert settings == dataclasses.replace(fast.sampler, content_routing="paper", steps=9)
+    assert fast.sampler_settings("released") == dataclasses.replace(fast.sampler, content_routing="released")
+    with pytest.raises(ValueError, match=r"no SamplerSettings field: \['stpes'\]"):
+        fast.sampler_settings("released", {"stpes": 9})
+    with pytest.raises(ValueError, match="diffusion-free"):
+        get_preset("preview").sampler_settings("released")

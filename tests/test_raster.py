@@ -116,6 +116,7 @@ def smooth_scene(seed=5, n=6):
     )
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences_float64():
     base = smooth_scene()
     cams = make_cameras([[0.3, -0.2, -3.0], [2.0, 0.5, -2.0]], width=20, height=18, dtype=torch.float64)

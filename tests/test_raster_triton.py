@@ -1,4 +1,4 @@
-"""Triton backend (raster/triton_backend.py): its kernels, forward and backward, against the float64
+"""Triton backend (raster/triton_backend.py, triton_tiles.py): its kernels, forward and backward, against the float64
 references on the hard cases. Without a GPU they run in Triton's CPU interpreter (TRITON_INTERPRET=1,
 set here before the kernels are first imported); tests marked ``cuda`` run them compiled on a GPU
 (docs/cuda_run.md records the last run)."""
@@ -17,7 +17,8 @@ pytest.importorskip("triton")
 from artnvg_core.raster import choose_backend, prepare_backend, render  # noqa: E402
 from artnvg_core.raster.projection import ALPHA_MIN, project  # noqa: E402
 from artnvg_core.raster.torch_backend import TILE, _tile_lists, rasterize  # noqa: E402
-from artnvg_core.raster.triton_backend import ListCapacity, Pass, rasterize_triton, tile_lists  # noqa: E402
+from artnvg_core.raster.triton_backend import Pass, rasterize_triton  # noqa: E402
+from artnvg_core.raster.triton_tiles import ListCapacity, tile_lists  # noqa: E402
 from artnvg_core.scene import GaussianScene  # noqa: E402
 
 from raster_scenes import EYES, hard_cases, hard_scene, make_cameras, parity  # noqa: E402
@@ -29,6 +30,7 @@ HARD = {case.name: case for case in hard_cases()}
 MIN_PSNR, MAX_GRAD_ERROR = 120.0, 1e-4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(HARD))
 def test_hard_cases_agree_with_float64_forward_and_backward(name):
     result = parity(HARD[name], "triton", DEVICE)
@@ -175,6 +177,7 @@ def test_lists_given_a_capacity_equal_the_exact_ones_or_say_they_overflowed():
     assert not bool(capacity.take_overflow()) and not capacity.overflowed()
 
 
+@pytest.mark.slow
 def test_skipping_blocks_no_pixel_uses_changes_nothing():
     """The kernels skip blocks of Gaussians that no open pixel uses: bit for bit the same images, and
     the same gradients (up to the order of the backward's atomic additions on a GPU)."""

@@ -51,5 +51,5 @@ def test_one_large_view_stops_between_its_batches_of_tiles():
     scene, view = hard_scene(seed=3), make_cameras(EYES[:1], width=512, height=512, focal=450.0)
     asked: list = []
     with pytest.raises(Cancelled):
-        render_views(scene, view, should_stop=_stop_at_ask(3, asked))  # before the view, after its first batch, ...
+        render_views(scene, view, should_stop=_stop_at_ask(3, asked))  # before the view, then twice inside it
     assert len(asked) == 3

@@ -32,6 +32,7 @@ def _small_inputs(tmp_path, monkeypatch):
             ModelFiles(**write_model_files(tmp_path)), FinetuneConfig(iterations=2, backend="torch"))
 
 
+@pytest.mark.slow
 def test_low_memory_preset_and_compile_are_wired_through(tmp_path, monkeypatch):
     """An exact preset changes no view (beyond float32 rounding); the scene is finetuned; the compile
     switch reaches the loaded models."""
@@ -131,6 +132,7 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path, monkeypatch):
     """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
     the preset's settings run. --key-views K (or the preset's key_views) stylizes only the K views

@@ -10,6 +10,7 @@ tests/integration/ compares that description with a real server's /object_info.
 import http.server
 import importlib.util
 import json
+import re
 import threading
 from pathlib import Path
 from typing import ClassVar
@@ -30,6 +31,7 @@ FILE_LISTS = {"scene_file", "camera_source", "image", "ckpt_name", "lora_name", 
               "csgo_name"}
 BYPASSED = 4  # a UI node's mode when bypassed: the queued prompt leaves it out and passes its inputs through
 SEED_CONTROL = ("fixed", "increment", "decrement", "randomize")
+ANY = "*"  # the input type that takes any link
 
 # Stock ComfyUI nodes the workflows use: INPUT_TYPES (file lists as []), RETURN_TYPES, display name.
 STOCK_NODES = {
@@ -46,8 +48,12 @@ STOCK_NODES = {
     "CLIPVisionLoader": ({"required": {"clip_name": ([],)}}, ("CLIP_VISION",), "Load CLIP Vision"),
     "CLIPTextEncode": ({"required": {"text": ("STRING", {"multiline": True}), "clip": ("CLIP",)}}, ("CONDITIONING",),
                        "CLIP Text Encode (Prompt)"),
+    "PreviewAny": ({"required": {"source": (ANY, {})}}, (), "Preview Any"),
+    "Preview3D": ({"required": {"model_file": ("STRING", {"default": "", "multiline": False})},
+                   "optional": {"camera_info": ("LOAD3D_CAMERA", {})}}, (), "Preview 3D"),
 }
 UPLOAD_WIDGET_VALUE = "image"  # LoadImage's upload button, stored after the file name
+EDITOR_WIDGETS = {"Preview3D": [""]}  # values of widgets the editor adds after the node's own (its 3D view)
 
 
 def load_queue_script():
@@ -103,7 +109,9 @@ def widget_values_by_name(class_type: str, values: list) -> dict:
     file list is followed by its upload button's value.
     """
     inputs, _ = node_spec(class_type)
-    named, remaining = {}, list(values)
+    added = EDITOR_WIDGETS.get(class_type, [])
+    assert values[len(values) - len(added):] == added, f"{class_type}: the editor's own widget values"
+    named, remaining = {}, list(values[:len(values) - len(added)])
     for name, spec in inputs.items():
         if not is_widget(spec):
             continue
@@ -222,8 +230,8 @@ def test_ui_workflow_links_and_widgets(path):
         assert origin_outputs[origin_slot] == kind, (path.name, link_id)
         assert link_id in nodes[origin]["outputs"][origin_slot]["links"]
         socket = nodes[target]["inputs"][target_slot]
-        assert socket["link"] == link_id and socket["type"] == kind
-        assert node_spec(nodes[target]["type"])[0][socket["name"]][0] == kind, (path.name, link_id)
+        assert socket["link"] == link_id and socket["type"] in (kind, ANY)
+        assert node_spec(nodes[target]["type"])[0][socket["name"]][0] in (kind, ANY), (path.name, link_id)
     for node in ui["nodes"]:
         if node["type"] in FRONTEND_ONLY:
             continue
@@ -243,11 +251,11 @@ def test_api_workflow_links_and_widgets(path):
         inputs, _ = node_spec(node["class_type"])
         assert set(node["inputs"]) <= set(inputs), node_id
         for name, value in node["inputs"].items():
-            if is_widget(inputs[name]):
+            if is_widget(inputs[name]) and not isinstance(value, list):  # a widget may take a link instead
                 assert widget_problem(name, inputs[name], value) is None, (path.name, node_id)
             else:
                 origin, slot = value
-                assert node_spec(api[origin]["class_type"])[1][slot] == inputs[name][0], (path.name, node_id, name)
+                assert inputs[name][0] in (node_spec(api[origin]["class_type"])[1][slot], ANY), (path.name, node_id, name)
         assert required_inputs(node["class_type"]) <= set(node["inputs"]), (path.name, node_id)
 
 
@@ -349,6 +357,29 @@ def test_overrides_by_id_or_title(queue):
             queue.apply_override(workflow, bad)
 
 
+def test_unknown_inputs_are_refused_with_the_inputs_the_node_has(queue):
+    workflow = queue.load_api_workflow(NNFM_API)
+    with pytest.raises(queue.WorkflowError) as refused:
+        queue.apply_override(workflow, "4.iterations=200")  # node 4 is Render Views, which has no iterations
+    assert str(refused.value) == ("--set: node 4 (Render Views) has no input 'iterations'; its inputs that take a "
+                                  "value: scale, stride, views, key_views")
+    with pytest.raises(queue.WorkflowError, match="node 6 \\(Finetune Gaussians\\) has no input 'iteratons'; .*iterations"):
+        queue.apply_override(workflow, "Finetune Gaussians.iteratons=5")
+    with pytest.raises(queue.WorkflowError) as unknown:
+        queue.apply_override(workflow, "Finetune.iterations=5")
+    assert "1 (Load Gaussian Scene), 2 (Load Cameras), 3 (Style image), 4 (Render Views)" in str(unknown.value)
+    assert "iterations" in workflow["6"]["inputs"] and "iteratons" not in workflow["6"]["inputs"]
+
+
+def test_a_name_of_two_nodes_is_refused_as_ambiguous(queue):
+    workflow = queue.load_api_workflow(NNFM_API)
+    workflow["9"]["_meta"]["title"] = "Content views"  # two nodes titled alike
+    workflow["8"]["_meta"]["title"] = "4"  # node 8's title is node 4's id
+    for key, named in (("Content views", "5 (Content views), 9 (Content views)"), ("4", "4 (Render Views), 8 (4)")):
+        with pytest.raises(queue.WorkflowError, match=f"node '{key}' is ambiguous: it names {re.escape(named)}"):
+            queue.apply_override(workflow, f"{key}.scale=1")
+
+
 def test_ui_format_is_refused_with_advice(queue):
     with pytest.raises(queue.WorkflowError, match="UI-format workflow; queue the API-format file"):
         queue.load_api_workflow(UI_FILES[0])
@@ -385,6 +416,7 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
     """Answers /prompt and /history like ComfyUI; ``reject`` makes /prompt fail validation."""
 
     reject = False
+    partial = False  # /prompt queues the workflow but reports node_errors, as ComfyUI does when some outputs validate
     posted: ClassVar[list] = []
 
     def _answer(self, code: int, payload: dict) -> None:
@@ -396,8 +428,15 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
         self.wfile.write(body)
 
     def do_POST(self):
-        self.posted.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
-        if self.reject:
+        self.posted.append((self.path, json.loads(self.rfile.read(int(self.headers["Content-Length"])))))
+        if self.path != "/prompt":
+            self._answer(200, {})
+        elif self.partial:
+            self._answer(200, {"prompt_id": "abc", "number": 0, "node_errors": {"6": {
+                "class_type": "ArtNVGFinetuneGaussians", "dependent_outputs": ["7"], "errors": [
+                    {"type": "value_smaller_than_min", "message": "Value smaller than min",
+                     "details": "iterations -1 < 1", "extra_info": {"input_name": "iterations"}}]}}})
+        elif self.reject:
             self._answer(400, {"error": {"message": "Prompt outputs failed validation", "details": ""},
                                "node_errors": {"1": {"class_type": "ArtNVGLoadGaussianScene", "errors": [
                                    {"message": "Custom validation failed for node",
@@ -422,14 +461,14 @@ def fake_server():
     _FakeServer.posted.clear()
     yield f"http://127.0.0.1:{server.server_address[1]}"
     server.shutdown()
-    _FakeServer.reject = False
+    _FakeServer.reject = _FakeServer.partial = False
 
 
 def test_main_queues_waits_and_reports(queue, fake_server, capsys):
     status = queue.main([str(NNFM_API), "--server", fake_server,
                          "--set", "6.iterations=3", "--json"])
     assert status == 0
-    assert _FakeServer.posted[0]["prompt"]["6"]["inputs"]["iterations"] == 3
+    assert _FakeServer.posted[0][1]["prompt"]["6"]["inputs"]["iterations"] == 3
     report = json.loads(capsys.readouterr().out)
     assert report["status"] == "success" and report["outputs"][0]["file"] == "artnvg/nnfm_00001.ply"
 
@@ -443,3 +482,12 @@ def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, cap
     closed.server_close()
     assert queue.main([str(NNFM_API), "--server", address]) == 3
     assert "cannot reach the server" in capsys.readouterr().err
+
+
+def test_node_errors_in_an_accepted_prompt_are_a_failure_and_the_prompt_is_withdrawn(queue, fake_server, capsys):
+    _FakeServer.partial = True
+    assert queue.main([str(NNFM_API), "--server", fake_server, "--set", "Finetune Gaussians.iterations=-1"]) == 2
+    assert ("node 6 (Finetune Gaussians), input 'iterations': Value smaller than min: iterations -1 < 1"
+            in capsys.readouterr().err)
+    assert [path for path, _ in _FakeServer.posted] == ["/prompt", "/queue", "/interrupt"]
+    assert _FakeServer.posted[1][1] == {"delete": ["abc"]} and _FakeServer.posted[2][1] == {"prompt_id": "abc"}

@@ -5,17 +5,21 @@ Standard library only. Usage::
 
     python workflows_api/queue_workflow.py workflows_api/ArtNVG_1_quick_start_NNFM_no_model_downloads_api.json \\
         --server http://127.0.0.1:8188 \\
-        --set "Load Gaussian Scene.path=/data/bear/scene.ply" \\
-        --set 4.iterations=200
+        --set "Finetune Gaussians.iterations=24" \\
+        --set "Save Gaussian Scene.filename_prefix=artnvg/my_first"
 
 ``--set NODE.INPUT=VALUE`` overrides one input before queueing. NODE is a node id of the
-API file or a node's title (``_meta.title``, e.g. ``Load Gaussian Scene``); VALUE is read
-as JSON when it parses (numbers, true/false, lists) and as a plain string otherwise.
-Linked inputs (``["node", slot]``) cannot be overridden.
+API file or a node's title (``_meta.title``, e.g. ``Finetune Gaussians``); a name that is the
+title of several nodes, or the id of one and the title of another, is refused as ambiguous.
+INPUT must be one of the node's inputs in the file (an unknown node or input is refused with
+the list of valid ones). VALUE is read as JSON when it parses (numbers, true/false, lists) and
+as a plain string otherwise. Linked inputs (``["node", slot]``) cannot be overridden.
 
 Exit status: 0 the run succeeded; 1 it failed or was interrupted; 2 the server rejected
-the workflow (validation errors are printed per node) or the file or an override is bad;
-3 the server could not be reached or the run did not finish within ``--timeout`` seconds.
+the workflow or any of its nodes (validation errors are printed per node and input; a
+workflow the server would run only in part is withdrawn from its queue), or the file or an
+override is bad; 3 the server could not be reached or the run did not finish within
+``--timeout`` seconds.
 """
 
 from __future__ import annotations
@@ -76,17 +80,22 @@ def parse_value(text: str):
         return text
 
 
+def _node_name(workflow: dict, node_id: str) -> str:
+    node = workflow.get(node_id, {})
+    return f"{node_id} ({node.get('_meta', {}).get('title') or node.get('class_type', '?')})"
+
+
 def find_node(workflow: dict, key: str) -> str:
-    """The id of the node called ``key``: a node id, or a unique node title (``_meta.title``)."""
-    if key in workflow:
-        return key
-    titled = [node_id for node_id, node in workflow.items() if node.get("_meta", {}).get("title") == key]
-    if len(titled) == 1:
-        return titled[0]
-    known = ", ".join(f"{node_id} ({node.get('_meta', {}).get('title', node['class_type'])})"
-                      for node_id, node in workflow.items())
-    problem = "is ambiguous" if titled else "matches no node id or title"
-    raise WorkflowError(f"--set: node '{key}' {problem}; nodes: {known}")
+    """The id of the node called ``key``: a node id or a node title (``_meta.title``), naming one node only."""
+    matches = {node_id for node_id, node in workflow.items()
+               if node_id == key or node.get("_meta", {}).get("title") == key}
+    if len(matches) == 1:
+        return matches.pop()
+    if matches:
+        named = ", ".join(_node_name(workflow, node_id) for node_id in sorted(matches))
+        raise WorkflowError(f"--set: node '{key}' is ambiguous: it names {named}; use the node id")
+    known = ", ".join(_node_name(workflow, node_id) for node_id in workflow)
+    raise WorkflowError(f"--set: node '{key}' matches no node id or title; nodes: {known}")
 
 
 def apply_override(workflow: dict, assignment: str) -> None:
@@ -95,9 +104,14 @@ def apply_override(workflow: dict, assignment: str) -> None:
     key, dot, input_name = target.rpartition(".")
     if not sep or not dot or not key or not input_name:
         raise WorkflowError(f"--set: expected NODE.INPUT=VALUE, got {assignment!r}")
-    inputs = workflow[find_node(workflow, key)]["inputs"]
-    if isinstance(inputs.get(input_name), list):
-        raise WorkflowError(f"--set: input '{input_name}' of node '{key}' is a link, not a value")
+    node_id = find_node(workflow, key)
+    inputs = workflow[node_id]["inputs"]
+    if input_name not in inputs:
+        values = ", ".join(name for name, current in inputs.items() if not isinstance(current, list)) or "none"
+        raise WorkflowError(f"--set: node {_node_name(workflow, node_id)} has no input '{input_name}'; "
+                            f"its inputs that take a value: {values}")
+    if isinstance(inputs[input_name], list):
+        raise WorkflowError(f"--set: input '{input_name}' of node {_node_name(workflow, node_id)} is a link, not a value")
     inputs[input_name] = parse_value(value)
 
 
@@ -123,12 +137,18 @@ def _request(server: str, path: str, payload: dict | None = None, timeout: float
 
 
 def queue_prompt(server: str, workflow: dict, client_id: str | None = None) -> str:
-    """POST the workflow to ``/prompt``; returns its prompt id. Raises RejectedError on validation errors.
+    """POST the workflow to ``/prompt``; returns its prompt id.
 
-    ``client_id``: the id of a websocket connection (``/ws?clientId=...``) that should receive
-    the run's progress messages.
+    Raises RejectedError when the server refuses it, and also when it queues it with ``node_errors``
+    (ComfyUI then runs only the outputs that validated): such a prompt is first withdrawn from the
+    queue, or interrupted if it has started. ``client_id``: the id of a websocket connection
+    (``/ws?clientId=...``) that should receive the run's progress messages.
     """
     answer = _request(server, "/prompt", {"prompt": workflow, "client_id": client_id or uuid.uuid4().hex})
+    if answer.get("node_errors"):
+        _request(server, "/queue", {"delete": [answer["prompt_id"]]})
+        _request(server, "/interrupt", {"prompt_id": answer["prompt_id"]})
+        raise RejectedError(f"{server}/prompt: nodes failed validation", answer)
     return answer["prompt_id"]
 
 
@@ -191,14 +211,18 @@ def summary_text(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def _rejection_text(details: dict) -> str:
+def rejection_text(details: dict, workflow: dict) -> str:
+    """The server's validation errors, one line per node and input: ``node 6 (Finetune Gaussians), input
+    'iterations': Value smaller than min: iterations -1 < 1``."""
     lines = []
     error = details.get("error")
     if isinstance(error, dict):
         lines.append(f"{error.get('message', '')} {error.get('details', '')}".strip())
     for node_id, node in (details.get("node_errors") or {}).items():
         for item in node.get("errors", []):
-            lines.append(f"node {node_id} ({node.get('class_type')}): {item.get('message')}: {item.get('details')}")
+            input_name = (item.get("extra_info") or {}).get("input_name")
+            where = f", input '{input_name}'" if input_name else ""
+            lines.append(f"node {_node_name(workflow, node_id)}{where}: {item.get('message')}: {item.get('details')}")
     return "\n".join(lines) or json.dumps(details)
 
 
@@ -226,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except RejectedError as error:
-        print(f"error: the server rejected the workflow:\n{_rejection_text(error.details)}", file=sys.stderr)
+        print(f"error: the server rejected the workflow:\n{rejection_text(error.details, workflow)}", file=sys.stderr)
         return 2
     except ServerError as error:
         print(f"error: {error}", file=sys.stderr)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-import mmap
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +41,7 @@ _COLMAP_PARAM_COUNTS = dict(_COLMAP_MODELS.values())
 _SINGLE_FOCAL_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 
 
+MAX_VIEWS = 1_000_000  # images (and cameras) a binary model may declare
 _MAX_NAME_BYTES = 4096  # an image name (a relative path) in images.bin
 _MAX_LINE_CHARS = 64 * 2**20  # a line of cameras.txt / images.txt (a 2D-points line of a million points fits)
 
@@ -72,79 +73,99 @@ def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
 
 
 class _BinaryReader:
-    """Little-endian reads from a file mapped into memory (skipped bytes are never read: an images.bin of
-    many 2D points costs what its image records do); truncation raises ValueError naming the file."""
+    """Little-endian reads from a binary model file, a context manager (the file is open inside it). Skipped
+    bytes are never read: an images.bin of many 2D points costs what its image records do. Truncation
+    raises ValueError naming the file."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
-            with open(path, "rb") as stream:
-                size = path.stat().st_size
-                self.data = mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+            self.stream = open(path, "rb")
         except OSError as error:
             raise ValueError(f"{path}: cannot read the file ({error.strerror or error})") from None
-        self.offset = 0
+        self.size = os.fstat(self.stream.fileno()).st_size
+
+    def __enter__(self) -> "_BinaryReader":
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.stream.close()
+
+    @property
+    def left(self) -> int:
+        return self.size - self.stream.tell()
+
+    def records(self, count: int, smallest: int, what: str) -> range:
+        """``range(count)`` for ``count`` records of at least ``smallest`` bytes each; a ValueError, before any
+        is read, when the bytes left cannot hold them or they are more than :data:`MAX_VIEWS`."""
+        if count > MAX_VIEWS or count * smallest > self.left:
+            raise ValueError(f"{self.path}: the header says {count:,} {what}; the file's {self.left:,} bytes left "
+                             f"hold at most {self.left // smallest:,}, and a model may have {MAX_VIEWS:,}")
+        return range(count)
 
     def end(self, count: int, what: str) -> None:
         """ValueError unless every byte was read: the header's count of ``what`` covers every record."""
-        if self.offset != len(self.data):
-            raise ValueError(f"{self.path}: the header says {count:,} {what}, but {len(self.data) - self.offset:,} "
-                             "bytes follow the last of them (the count is wrong or the file is corrupt)")
+        if self.left:
+            raise ValueError(f"{self.path}: the header says {count:,} {what}, but {self.left:,} bytes follow the "
+                             "last of them (the count is wrong or the file is corrupt)")
+
+    def _truncated(self, what: str, at: int) -> ValueError:
+        return ValueError(f"{self.path}: file ends inside {what} at byte {at} (truncated?)")
 
     def unpack(self, fmt: str, what: str) -> tuple:
-        size = struct.calcsize("<" + fmt)
-        if self.offset + size > len(self.data):
-            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
-        values = struct.unpack_from("<" + fmt, self.data, self.offset)
-        self.offset += size
-        return values
+        size, at = struct.calcsize("<" + fmt), self.stream.tell()
+        data = self.stream.read(size)
+        if len(data) < size:
+            raise self._truncated(what, at)
+        return struct.unpack("<" + fmt, data)
 
     def skip(self, size: int, what: str) -> None:
-        if self.offset + size > len(self.data):
-            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
-        self.offset += size
+        if size > self.left:
+            raise self._truncated(what, self.stream.tell())
+        self.stream.seek(size, os.SEEK_CUR)
 
     def c_string(self, what: str) -> str:
-        end = self.data.find(b"\0", self.offset, self.offset + _MAX_NAME_BYTES + 1)
-        if end < 0 and self.offset + _MAX_NAME_BYTES >= len(self.data):
-            raise ValueError(f"{self.path}: file ends inside {what} at byte {self.offset} (truncated?)")
+        at = self.stream.tell()
+        chunk = self.stream.read(_MAX_NAME_BYTES + 1)
+        end = chunk.find(b"\0")
         if end < 0:
-            raise ValueError(f"{self.path}: {what} at byte {self.offset}: longer than {_MAX_NAME_BYTES} bytes (corrupt?)")
-        raw = self.data[self.offset : end]
-        self.offset = end + 1
+            if len(chunk) <= _MAX_NAME_BYTES:
+                raise self._truncated(what, at)
+            raise ValueError(f"{self.path}: {what} at byte {at}: longer than {_MAX_NAME_BYTES} bytes (corrupt?)")
+        self.stream.seek(at + end + 1)
         try:
-            return raw.decode("utf-8")
+            return chunk[:end].decode("utf-8")
         except UnicodeDecodeError:
-            raise ValueError(f"{self.path}: {what} (at byte {self.offset}) is not UTF-8") from None
+            raise ValueError(f"{self.path}: {what} (at byte {at}) is not UTF-8") from None
 
 
 def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
-    reader = _BinaryReader(path)
-    (count,) = reader.unpack("Q", "the camera count")
-    cameras = {}
-    for index in range(count):
-        camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
-        if model_id not in _COLMAP_MODELS:
-            raise ValueError(f"{path}: camera {camera_id}: unknown camera model id {model_id}")
-        model, num_params = _COLMAP_MODELS[model_id]
-        params = reader.unpack(f"{num_params}d", f"the parameters of camera {camera_id}")
-        cameras[camera_id] = _ColmapCamera(model, width, height, params)
-    reader.end(count, "cameras")
-    return cameras
+    with _BinaryReader(path) as reader:
+        (count,) = reader.unpack("Q", "the camera count")
+        cameras = {}
+        for index in reader.records(count, struct.calcsize("<IiQQ") + 3 * 8, "cameras"):
+            camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
+            if model_id not in _COLMAP_MODELS:
+                raise ValueError(f"{path}: camera {camera_id}: unknown camera model id {model_id}")
+            model, num_params = _COLMAP_MODELS[model_id]
+            params = reader.unpack(f"{num_params}d", f"the parameters of camera {camera_id}")
+            cameras[camera_id] = _ColmapCamera(model, width, height, params)
+        reader.end(count, "cameras")
+        return cameras
 
 
 def _read_images_bin(path: Path) -> list[_ColmapImage]:
-    reader = _BinaryReader(path)
-    (count,) = reader.unpack("Q", "the image count")
-    images = []
-    for index in range(count):
-        image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
-        name = reader.c_string(f"the name of image {image_id}")
-        (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
-        reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
-        images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index))
-    reader.end(count, "images")
-    return images
+    with _BinaryReader(path) as reader:
+        (count,) = reader.unpack("Q", "the image count")
+        images = []
+        for index in reader.records(count, struct.calcsize("<I7dI") + 1 + 8, "images"):
+            image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
+            name = reader.c_string(f"the name of image {image_id}")
+            (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
+            reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
+            images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index))
+        reader.end(count, "images")
+        return images
 
 
 def _text_records(path: Path) -> list[tuple[int, str]]:

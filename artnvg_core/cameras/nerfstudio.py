@@ -15,7 +15,6 @@ from .common import (
     MAX_CAMERA_VALUE,
     check_camera_value,
     loaded_camera_set,
-    pinhole_matrix,
     read_text,
     view_names,
 )
@@ -161,6 +160,68 @@ def _dataparser_rigid_transform(path: Path, meta: dict, transforms_path: Path) -
     return transform, scale
 
 
+def _check_frame(path: Path, meta: dict, index: int, frame, size: tuple[int, int] | None) -> tuple[int, int]:
+    """Every check of frame ``index`` but its matrix, one value at a time: ValueError naming the file, the frame
+    and the key; else the frame's (width, height). ``size``: the first frame's."""
+    where = f"{path}: frame {index}"
+    if not isinstance(frame, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {_kind(frame)}")
+    value = partial(_frame_value, frame, meta, where)
+    if "camera_model" in frame:
+        _check_camera_model(frame["camera_model"], f"{where}: 'camera_model'")
+    width = _image_size(value("w"), f"{where}: 'w'")
+    height = _image_size(value("h"), f"{where}: 'h'")
+    if size is not None and (width, height) != size:
+        raise ValueError(f"{where}: image size {width}x{height} differs from the first frame's {size[0]}x{size[1]}; "
+                         "all frames must share one size")
+    fx, fy = (check_camera_value(_number(value(key), f"{where}: '{key}'"), f"{where}: '{key}'")
+              for key in ("fl_x", "fl_y"))
+    if fx <= 0 or fy <= 0:
+        raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
+    for key, default in (("cx", width / 2), ("cy", height / 2)):
+        check_camera_value(_number(value(key, default), f"{where}: '{key}'"), f"{where}: '{key}'")
+    file_path = value("file_path")
+    if not isinstance(file_path, str) or not file_path:
+        raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {_kind(file_path)}")
+    return width, height
+
+
+def _check_frames(path: Path, meta: dict, frames: list) -> None:
+    """:func:`_check_frame` of every frame in file order: raises for the first that is wrong."""
+    size = None
+    for index, frame in enumerate(frames):
+        frame_size = _check_frame(path, meta, index, frame, size)
+        size = size or frame_size
+
+
+def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.Tensor]:
+    """(width, height, K [C, 3, 3] float64) of the frames. Read in bulk (JSON numbers are floats, see
+    :func:`_read_json_object`), then checked as tensors; only when something is wrong are the frames
+    checked one by one (:func:`_check_frames`), for the message that names the first bad one."""
+    defaults = {key: meta.get(key) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model")}
+    rows = []
+    for frame in frames:
+        model = frame.get("camera_model", defaults["camera_model"]) if type(frame) is dict else None
+        if type(frame) is not dict or model not in (None, *PERSPECTIVE_MODELS):
+            break  # named frame by frame below
+        w, h, fx, fy, cx, cy = (frame.get(key, defaults[key]) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy"))
+        rows.append((w, h, fx, fy, w / 2 if cx is None and type(w) is float else cx,
+                     h / 2 if cy is None and type(h) is float else cy))
+    else:
+        if all(type(v) is float for row in rows for v in row):
+            table = torch.tensor(rows, dtype=torch.float64)
+            width, height = table[0, :2].tolist()
+            sizes_ok = ((table[:, 0] == width) & (table[:, 1] == height)).all() and width == int(width) and \
+                height == int(height) and 0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE
+            if sizes_ok and (table[:, 2:4] > 0).all() and (table[:, 2:].abs() <= MAX_CAMERA_VALUE).all():
+                k = torch.zeros(len(rows), 3, 3, dtype=torch.float64)
+                k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2] = table[:, 2:].unbind(1)
+                k[:, 2, 2] = 1
+                return int(width), int(height), k
+    _check_frames(path, meta, frames)
+    raise AssertionError("_check_frames found nothing wrong with frames the bulk check refused")
+
+
 def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     """Cameras of a nerfstudio ``transforms.json``, in file order.
 
@@ -185,44 +246,20 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     meta = _read_json_object(path)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise ValueError(f"{path}: 'frames': expected a non-empty list, got {_kind(frames) if frames is not None else 'nothing'}")
+        got = _kind(frames) if frames is not None else "nothing"
+        raise ValueError(f"{path}: 'frames': expected a non-empty list, got {got}")
     if "camera_model" in meta:
         _check_camera_model(meta["camera_model"], f"{path}: 'camera_model'")
 
-    poses, intrinsics, names, image_paths = [], [], [], []
-    size = None
+    width, height, intrinsics = _intrinsics(path, meta, frames)
+    names = [frame.get("file_path", meta.get("file_path")) for frame in frames]
+    if not all(type(name) is str and name for name in names):
+        _check_frames(path, meta, frames)
+    image_paths = [path.parent / name for name in names]
+    poses = []
     for index, frame in enumerate(frames):
         where = f"{path}: frame {index}"
-        if not isinstance(frame, dict):
-            raise ValueError(f"{where}: expected a JSON object, got {type(frame).__name__}")
-
-        value = partial(_frame_value, frame, meta, where)
-        if "camera_model" in frame:
-            _check_camera_model(frame["camera_model"], f"{where}: 'camera_model'")
-        width = _image_size(value("w"), f"{where}: 'w'")
-        height = _image_size(value("h"), f"{where}: 'h'")
-        if size is None:
-            size = (width, height)
-        elif (width, height) != size:
-            raise ValueError(
-                f"{where}: image size {width}x{height} differs from the first frame's {size[0]}x{size[1]}; "
-                "all frames must share one size"
-            )
-        fx, fy = (check_camera_value(_number(value(key), f"{where}: '{key}'"), f"{where}: '{key}'")
-                  for key in ("fl_x", "fl_y"))
-        if fx <= 0 or fy <= 0:
-            raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
-        cx, cy = (check_camera_value(_number(value(key, default), f"{where}: '{key}'"), f"{where}: '{key}'")
-                  for key, default in (("cx", width / 2), ("cy", height / 2)))
-        intrinsics.append(pinhole_matrix(fx, fy, cx, cy))
-
-        file_path = value("file_path")
-        if not isinstance(file_path, str) or not file_path:
-            raise ValueError(f"{where}: 'file_path' must be a non-empty string, got {_kind(file_path)}")
-        names.append(file_path)
-        image_paths.append(path.parent / file_path)
-
-        poses.append(_matrix_rows(value("transform_matrix"), f"{where}: 'transform_matrix'"))
+        poses.append(_matrix_rows(_frame_value(frame, meta, where, "transform_matrix"), f"{where}: 'transform_matrix'"))
 
     def matrix_of(index: int) -> str:
         return f"{path}: frame {index}: 'transform_matrix'"
@@ -233,13 +270,14 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     far = (cam_to_world[:, :3, 3].abs() > MAX_CAMERA_VALUE).nonzero()
     if len(far):
         index, axis = far[0].tolist()
-        check_camera_value(cam_to_world[index, axis, 3].item(), f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
+        check_camera_value(cam_to_world[index, axis, 3].item(),
+                           f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
     cam_to_world = cam_to_world @ _FLIP_YZ
     if dataparser_transforms is not None:
         transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
         cam_to_world = transform @ cam_to_world
         cam_to_world[:, :3, 3] *= scale
     world_to_cam = rigid_inverse(cam_to_world)
-    return loaded_camera_set(world_to_cam, intrinsics, size[0], size[1], view_names(names, path), image_paths,
+    return loaded_camera_set(world_to_cam, intrinsics, width, height, view_names(names, path), image_paths,
                              lambda index: f"{path}: frame {index}")
 

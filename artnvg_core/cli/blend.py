@@ -29,7 +29,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     result = blend(original, stylized, args.strength, selection, names=(str(args.original), str(args.stylized)))
     elapsed = time.perf_counter() - start
-    save_scene(result, out, spz_axes=args.spz_axes)
+    save_scene(result, out, spz_axes=args.spz_axes, spz_version=args.spz_version)
     print(f"blended at strength {args.strength:g} in {elapsed * 1000:.0f} ms; wrote {out}")
 
 

@@ -205,8 +205,8 @@ SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .
 
 def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -> None:
     """``--drop-invalid`` and ``--spz-axes``: how the scene file is read (and ``written``, when the command
-    writes one)."""
-    from ..formats import SPZ_AXES
+    writes one, with ``--spz-version``)."""
+    from ..formats import SPZ_AXES, SPZ_VERSIONS
 
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
@@ -216,6 +216,10 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
                         "y down, z forward), as splat-transform, SuperSplat, spz-js and Niantic's ply-to-spz write "
                         "them; rub (x right, y up, z back), the SPZ description's; auto (default): read in the one "
                         "that puts the scene in front of --cameras when given, else ply; written in ply")
+    if written:
+        parser.add_argument("--spz-version", type=int, choices=SPZ_VERSIONS, default=3,
+                            help="SPZ version of a .spz --out: 3 (default; Niantic's library, splat-transform, "
+                            "SuperSplat) or 2 (also spz-js and other readers of versions 1-2 only)")
 
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:

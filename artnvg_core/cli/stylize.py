@@ -86,7 +86,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
-    if stylizer == "diffusion" and not args.devices and not args.ray_address:  # read while the scene loads
+    prefetched = stylizer == "diffusion" and not args.devices and not args.ray_address  # read as the scene loads
+    if prefetched:
         print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)
         prefetch_models(files, device, preset=args.preset, compile_blocks=args.compile, loras=args.lora,
                         progress=ProgressBar("models", "B"))
@@ -107,23 +108,21 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     from ..diffusion.loader import DiffusionModelsUnavailable
     from ..finetune import FinetuneConfig
 
-    def iterations_for(stylizer: str) -> int:
-        if args.iters is not None:
-            return args.iters
+    def finetune_config(stylizer: str) -> FinetuneConfig:
+        config = FinetuneConfig(iterations=60 if demo else 1000, seed=args.seed, color_transfer=args.color_transfer,
+                                nnfm_search=args.nnfm_search)
         if diffusion_free or stylizer == "diffusion":
-            return preset.finetune_iterations
-        return 60 if demo else 1000
+            config = preset.finetune_config(config)
+        return config if args.iters is None else dataclasses.replace(config, iterations=args.iters)
 
-    iterations = iterations_for(stylizer)
+    config = finetune_config(stylizer)
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
     key_views = preset.key_views if args.key_views is None else args.key_views
     described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
                  + (f"; {key_views} key views" if key_views else ""))
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
     print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
-          f"{iterations} iterations on {device}")
-    config = FinetuneConfig(iterations=iterations, seed=args.seed, color_transfer=args.color_transfer,
-                            views_per_step=preset.views_per_step, nnfm_search=args.nnfm_search)
+          f"{config.iterations} iterations on {device}")
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -134,19 +133,21 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
                                           compile_blocks=args.compile,
+                                          loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
                                           progress=ProgressBar("finetune"), should_stop=args.should_stop,
                                           selection=selection)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
-            stylizer, config = "nnfm", dataclasses.replace(config, iterations=iterations_for("nnfm"))
+            stylizer, config = "nnfm", finetune_config("nnfm")
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
                               should_stop=args.should_stop, selection=selection)
     check_stop(args.should_stop)
-    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes)
+    sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
+                        spz_version=args.spz_version)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 

@@ -1,6 +1,6 @@
 """The one loader of the diffusion models for a device (:func:`load_models_for`): the command line's and
-the workers'; once per process, placed for the memory mode, compiled
-where asked. Finding the files is :mod:`.model_files`'s."""
+the workers'; once per process, placed for the memory mode, compiled where asked. Finding the files is
+:mod:`.model_files`'s."""
 
 from __future__ import annotations
 
@@ -27,17 +27,16 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     workers.
 
     loras: fused into SDXL (:func:`.lora.fuse_loras`).
-    dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory``
-    loaded on the CPU and placed by :func:`.memory.enable_low_memory`; with
-    ``on_cpu`` left on the CPU whatever the memory mode (the caller places them when they run). ``compile_blocks`` applies
-    :data:`.speed.COMPILED_BLOCKS` (full memory only: with ``low_memory`` a
-    ValueError) and loads an earlier run's compile artifacts (:mod:`.compile_cache`).
-    Loaded once per process: the same files (path, size and modification time), device and options return
-    the same models (:mod:`.model_cache`). Any failure to load raises
-    :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each model)
-    raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
-    (:func:`.models.load_diffusion_models`). A module-level function, so a
-    ``functools.partial`` of it can be sent to worker processes."""
+    dtype: default float16 on CUDA, float32 elsewhere. Placement: on ``device``; with ``low_memory`` loaded
+    on the CPU and placed by :func:`.memory.enable_low_memory`; with ``on_cpu`` left on the CPU whatever the
+    memory mode (the caller places them when they run). ``compile_blocks`` applies
+    :data:`.speed.COMPILED_BLOCKS` (full memory only: with ``low_memory`` a ValueError) and loads an earlier
+    run's compile artifacts (:mod:`.compile_cache`). Loaded once per process: the same files (path, size and
+    modification time), device and options return the same models (:mod:`.model_cache`). Any failure to
+    load raises :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each
+    model) raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
+    (:func:`.models.load_diffusion_models`). A module-level function, so a ``functools.partial`` of it can
+    be sent to worker processes."""
     if compile_blocks and low_memory:
         raise ValueError("compile: the compiled blocks run in the full-memory mode only, not with low memory")
     device = indexed_device(device)

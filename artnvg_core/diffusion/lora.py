@@ -10,6 +10,7 @@ plain models at the plain models' speed (and strength 0 leaves the weights as th
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 from dataclasses import dataclass
@@ -56,10 +57,14 @@ def parse_lora(text: str) -> LoRA:
 
 def check_lora(lora: LoRA) -> None:
     """LoRAError naming the file unless it is a readable ``.safetensors`` whose every tensor is a LoRA's
-    (its name holds 'lora' or is an alpha); reads the header only."""
+    (its name holds 'lora' or is an alpha), and unless PEFT, which applies it, is installed (the optional
+    ``lora`` extra); reads the header only."""
     from safetensors import SafetensorError, safe_open
 
     where = f"LoRA '{lora.path}'"
+    if importlib.util.find_spec("peft") is None:
+        raise LoRAError(f"{where}: LoRAs are applied through the peft package, which is not installed: "
+                        'pip install "artnvg[lora]"')
     if not lora.path.is_file():
         raise LoRAError(f"{where}: no such file")
     if lora.path.suffix.lower() != ".safetensors":

@@ -39,13 +39,15 @@ class ModelSource:
 
     @property
     def download_command(self) -> str:
+        """The command that fetches it into the Hugging Face cache: ``hf download`` (huggingface_hub's command
+        line since 0.34; 1.x and later have no ``huggingface-cli``)."""
         if self.download_file:
-            return f"huggingface-cli download {self.repo} {self.download_file}"
+            return f"hf download {self.repo} {self.download_file}"
         if not self.repo_path:
-            return f"huggingface-cli download {self.repo}"
+            return f"hf download {self.repo}"
         if self._is_file:
-            return f"huggingface-cli download {self.repo} {self.repo_path}"
-        return f"huggingface-cli download {self.repo} --include '{self.repo_path}/*'"
+            return f"hf download {self.repo} {self.repo_path}"
+        return f"hf download {self.repo} --include '{self.repo_path}/*'"
 
 
 SDXL_BASE = ModelSource(

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+
 import torch
 
 from ..cameras import CameraSet, scene_frame

@@ -3,10 +3,11 @@
 Read: ``.ply`` (INRIA 3DGS, Mip-Splatting, PlayCanvas/SuperSplat compressed),
 ``.splat`` (antimatter15), ``.spz`` (Niantic, versions 1-4), ``.ksplat``
 (mkkellogg GaussianSplats3D, levels 0-2), ``.ckpt`` (nerfstudio splatfacto).
-Written: ``.ply`` (INRIA), ``.spz`` (version 3), ``.splat``, ``.ksplat`` (level 0). Each format's module states its layout, coordinate convention and
-quantisation; scenes are held in the INRIA layout and the PLY's axes, and
-axes are converted only inside the reader and writer of a format that stores
-others (SPZ). Every reader validates the scene (bad input: ValueError naming
+Written: ``.ply`` (INRIA), ``.spz`` (version 3, or 2 for older readers),
+``.splat``, ``.ksplat`` (level 0). Each format's module states its layout,
+coordinate convention and quantisation; scenes are held in the INRIA layout
+and the PLY's axes, and axes are converted only inside the reader and writer
+of a format that stores others (SPZ). Every reader validates the scene (bad input: ValueError naming
 the file and the field); every writer refuses an invalid scene before
 writing and writes atomically.
 """
@@ -33,13 +34,14 @@ WRITERS = {".ply": write_ply, ".spz": write_spz, ".splat": write_splat, ".ksplat
 GEOMETRY_CHECKS = {".spz": spz.check_geometry, ".splat": splat.check_geometry, ".ksplat": ksplat.check_geometry}
 SCENE_SUFFIXES = tuple(READERS)
 SPZ_AXES = spz.AXES
+SPZ_VERSIONS = spz.WRITTEN_VERSIONS
 SAVE_SUFFIXES = tuple(WRITERS)
 _DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
 
 
-def _check_spz_axes(spz_axes: str) -> None:
-    if spz_axes not in SPZ_AXES:
-        raise ValueError(f"spz_axes: expected one of {', '.join(SPZ_AXES)}, got {spz_axes!r}")
+def _check_option(name: str, value, allowed: tuple) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name}: expected one of {', '.join(map(str, allowed))}, got {value!r}")
 
 
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
@@ -49,7 +51,7 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     front of ``cameras`` when given, else the PLY's axes, as most writers store them; :mod:`.spz`)."""
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
-    _check_spz_axes(spz_axes)
+    _check_option("spz_axes", spz_axes, SPZ_AXES)
     if reader is None:
         raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
     try:
@@ -82,12 +84,15 @@ def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> No
         check(scene_to_write(scene, path), path)
 
 
-def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto") -> None:
+def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto",
+               spz_version: int = 3) -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
-    a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them."""
+    a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them,
+    as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js)."""
     path = writable_scene_path(path)
-    _check_spz_axes(spz_axes)
+    _check_option("spz_axes", spz_axes, SPZ_AXES)
+    _check_option("spz_version", spz_version, SPZ_VERSIONS)
     if path.suffix.lower() == ".spz":
-        write_spz(scene, path, axes=spz_axes)
+        write_spz(scene, path, axes=spz_axes, version=spz_version)
     else:
         WRITERS[path.suffix.lower()](scene, path)

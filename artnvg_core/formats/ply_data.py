@@ -209,12 +209,12 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
             continue
         width = len(element.properties)
         try:
-            values = np.array([row.split() for row in rows], dtype=np.float64)
+            values = np.array([row.split() for row in rows], dtype=np.float64) if rows else np.empty((0, width))
         except ValueError:
+            values = None  # ragged rows, or text that is no number
+        if values is None or values.shape != (element.count, width):
             raise ValueError(f"{path}: element '{element.name}': a row holds something other than numbers, "
-                             f"or not {width} of them") from None
-        if values.shape != (element.count, width):
-            raise ValueError(f"{path}: element '{element.name}': expected {width} numbers a row")
+                             f"or not {width} of them")
         element.data = np.empty(element.count, _scalar_dtype(element, "="))
         with np.errstate(all="ignore"):  # out-of-range values -> inf, rejected by the scene's validation
             for column, prop in enumerate(element.properties):

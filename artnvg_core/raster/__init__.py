@@ -6,7 +6,7 @@ for the device (``StepRenderer``, the finetune's).
 ``torch`` (the reference, any device and dtype) and ``gsplat`` share the projection
 (:mod:`.projection`) and colours (:mod:`.sh`) and differ in the per-pixel compositing; ``triton``
 (Triton kernels, float32 CUDA, the default there) computes both in one fused kernel
-(:mod:`.triton_projection`) and composites with :mod:`.triton_backend`; ``gsplat`` (gsplat's CUDA kernels,
+(:mod:`.triton_projection`) and composites with :mod:`.triton_backend` over :mod:`.triton_tiles`' lists; ``gsplat`` (gsplat's CUDA kernels,
 optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from .sh import sh_to_color
 from .torch_backend import rasterize
 
 if TYPE_CHECKING:
-    from .triton_backend import ListCapacity
+    from .triton_tiles import ListCapacity
 
 BACKENDS = ("auto", "torch", "triton", "gsplat")
 
@@ -142,7 +142,7 @@ def render(
     near_plane: Gaussians with camera-space z <= near_plane are culled.
     checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
         the checks, which wait for the device, are skipped (:class:`.step_renderer.StepRenderer` does so).
-    list_capacity: the Triton backend's :class:`.triton_backend.ListCapacity` shared by renders made one
+    list_capacity: the Triton backend's :class:`.triton_tiles.ListCapacity` shared by renders made one
         after another, so that they do not wait for their tile intersection counts (ignored by the other
         backends); the caller checks it after each render for one that overflowed and must be redone
         (:class:`.step_renderer.StepRenderer` does so).

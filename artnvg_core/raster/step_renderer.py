@@ -19,7 +19,7 @@ class StepRenderer:
     Made once before the steps: resolves ``backend`` (:attr:`backend`; see
     :func:`~artnvg_core.raster.render`) and checks the inputs (:func:`~artnvg_core.raster.check_render_inputs`,
     ValueError), which waits for the device; the steps' renders skip both. On the Triton backend the renders'
-    tile lists get room from earlier counts (:class:`.triton_backend.ListCapacity`) instead of waiting for
+    tile lists get room from earlier counts (:class:`.triton_tiles.ListCapacity`) instead of waiting for
     their own; a render that outgrew that room is incomplete: :meth:`render` says so on the device, so that the
     step can be skipped there, and :meth:`redo`, asked once the step is queued, says on the host that the
     step must be taken again (with room grown)."""
@@ -34,7 +34,7 @@ class StepRenderer:
         """The Triton renders' shared room for tile lists; None for the other backends."""
         if self.backend != "triton":
             return None
-        from .triton_backend import ListCapacity  # imports Triton: only when the steps render with it
+        from .triton_tiles import ListCapacity  # imports Triton: only when the steps render with it
 
         return ListCapacity()
 

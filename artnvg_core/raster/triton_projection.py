@@ -11,7 +11,7 @@ third of the time one large one took.
 Same semantics as the reference: camera-space mean, culling (near plane, opacity >= 1/255, on
 screen), means2d, conics, depth, opacity (antialiased compensation when asked), radii and colours
 (SH up to ``degree``, capped as :mod:`.sh`). Every output has N rows; culled Gaussians get radii
--1 (which :func:`.triton_backend.tile_lists` gives no tiles) and zero gradients, so no host sync
+-1 (which :func:`.triton_tiles.tile_lists` gives no tiles) and zero gradients, so no host sync
 sizes anything here. Float32 throughout except the 2D covariance and its inverse (largest scale
 factored out, determinant as a sum of squared 2x2 minors, the reference's formulation), kept in
 float64: factored by the largest scale k in float32, a needle's thin axes square below float32's
@@ -26,18 +26,14 @@ import torch
 import triton
 import triton.language as tl
 
-from ..scene import SH_C0
 from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
-from .sh import COLOR_MAX, SH_C1, SH_C2, SH_C3
+from .triton_sh import basis_grad, basis_rows, channel_sums, clamped_color, direction, sh_rows, unclamped_grad
 
 BLOCK = 128  # Gaussians per program
 COLOR_BLOCK = 32  # per program of the colours' backward (its seven [Gaussians, 3 K] blocks spill at 128)
 # the kernels' constants (Triton reads globals only as constexpr)
 TINY64 = tl.constexpr(2.2250738585072014e-308)  # float64's smallest normal: the determinant's floor, as the reference's
 _ALPHA_MIN, _MAX_EXTENT, _MAX_RADIUS = tl.constexpr(ALPHA_MIN), tl.constexpr(MAX_EXTENT), tl.constexpr(MAX_RADIUS_PX)
-_COLOR_MAX, _C0, _C1 = tl.constexpr(COLOR_MAX), tl.constexpr(SH_C0), tl.constexpr(SH_C1)
-_C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = (tl.constexpr(c) for c in SH_C2)
-_C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = (tl.constexpr(c) for c in SH_C3)
 
 
 @triton.jit
@@ -144,125 +140,6 @@ def _geometry(means_ptr, quats_ptr, scales_ptr, logits_ptr, cam_ptr, i, live, wi
             inv_k2, bl, ca, cb, cc, m0, m1, m2, det_un, det)
 
 
-@triton.jit
-def _direction(means_ptr, cam_ptr, i, live):
-    """Unit viewing direction (camera centre -> mean), its length (clamped at 1e-12) and whether it
-    was clamped."""
-    dx = tl.load(means_ptr + i * 3 + 0, mask=live, other=1.0) - tl.load(cam_ptr + 16)
-    dy = tl.load(means_ptr + i * 3 + 1, mask=live, other=0.0) - tl.load(cam_ptr + 17)
-    dz = tl.load(means_ptr + i * 3 + 2, mask=live, other=0.0) - tl.load(cam_ptr + 18)
-    length = tl.sqrt(dx * dx + dy * dy + dz * dz)
-    div = tl.maximum(length, 1e-12)
-    return dx / div, dy / div, dz / div, div, length >= 1e-12
-
-
-@triton.jit
-def _basis(x, y, z, DEGREE: tl.constexpr):
-    """The 16 real SH basis values (0 past ``DEGREE``), each formed as :func:`.sh.sh_to_color` forms it."""
-    zero = tl.zeros_like(x)
-    b1, b2, b3, b4, b5, b6, b7, b8 = zero, zero, zero, zero, zero, zero, zero, zero
-    b9, b10, b11, b12, b13, b14, b15 = zero, zero, zero, zero, zero, zero, zero
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    if DEGREE > 0:
-        b1, b2, b3 = -(y * _C1), z * _C1, -(x * _C1)
-    if DEGREE > 1:
-        b4 = xy * _C2_0
-        b5 = yz * _C2_1
-        b6 = (2 * zz - xx - yy) * _C2_2
-        b7 = xz * _C2_3
-        b8 = (xx - yy) * _C2_4
-    if DEGREE > 2:
-        b9 = y * (3 * xx - yy) * _C3_0
-        b10 = xy * z * _C3_1
-        b11 = y * (4 * zz - xx - yy) * _C3_2
-        b12 = z * (2 * zz - 3 * xx - 3 * yy) * _C3_3
-        b13 = x * (4 * zz - xx - yy) * _C3_4
-        b14 = z * (xx - yy) * _C3_5
-        b15 = x * (xx - 3 * yy) * _C3_6
-    return b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15
-
-
-@triton.jit
-def _basis_grad(k: tl.constexpr, x, y, z):
-    """d basis_k / d (x, y, z) for k >= 1."""
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    zero = tl.zeros_like(x)
-    if k == 1:
-        out = (zero, zero - _C1, zero)
-    elif k == 2:
-        out = (zero, zero, zero + _C1)
-    elif k == 3:
-        out = (zero - _C1, zero, zero)
-    elif k == 4:
-        out = (y * _C2_0, x * _C2_0, zero)
-    elif k == 5:
-        out = (zero, z * _C2_1, y * _C2_1)
-    elif k == 6:
-        out = (x * (-2 * _C2_2), y * (-2 * _C2_2), z * (4 * _C2_2))
-    elif k == 7:
-        out = (z * _C2_3, zero, x * _C2_3)
-    elif k == 8:
-        out = (x * (2 * _C2_4), y * (-2 * _C2_4), zero)
-    elif k == 9:
-        out = (6 * xy * _C3_0, (3 * xx - 3 * yy) * _C3_0, zero)
-    elif k == 10:
-        out = (yz * _C3_1, xz * _C3_1, xy * _C3_1)
-    elif k == 11:
-        out = (xy * (-2 * _C3_2), (4 * zz - xx - 3 * yy) * _C3_2, yz * (8 * _C3_2))
-    elif k == 12:
-        out = (xz * (-6 * _C3_3), yz * (-6 * _C3_3), (6 * zz - 3 * xx - 3 * yy) * _C3_3)
-    elif k == 13:
-        out = ((4 * zz - 3 * xx - yy) * _C3_4, xy * (-2 * _C3_4), xz * (8 * _C3_4))
-    elif k == 14:
-        out = (xz * (2 * _C3_5), yz * (-2 * _C3_5), (xx - yy) * _C3_5)
-    else:
-        out = ((3 * xx - 3 * yy) * _C3_6, xy * (-6 * _C3_6), zero)
-    return out
-
-
-@triton.jit
-def _basis_rows(x, y, z, k, DEGREE: tl.constexpr):
-    """The SH basis as rows [BLOCK, W]: a column of basis index ``k`` [W] holds SH_C0 (k = 0) or basis
-    value k (0 past ``DEGREE`` and past 15)."""
-    b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15 = _basis(x, y, z, DEGREE)
-    k = k[None, :]
-    rows = tl.where(k == 0, _C0, 0.0) + tl.zeros_like(x)[:, None]
-    if DEGREE > 0:
-        rows = tl.where(k == 1, b1[:, None], tl.where(k == 2, b2[:, None], tl.where(k == 3, b3[:, None], rows)))
-    if DEGREE > 1:
-        rows = tl.where(k == 4, b4[:, None], tl.where(k == 5, b5[:, None], tl.where(k == 6, b6[:, None], rows)))
-        rows = tl.where(k == 7, b7[:, None], tl.where(k == 8, b8[:, None], rows))
-    if DEGREE > 2:
-        rows = tl.where(k == 9, b9[:, None], tl.where(k == 10, b10[:, None], tl.where(k == 11, b11[:, None], rows)))
-        rows = tl.where(k == 12, b12[:, None], tl.where(k == 13, b13[:, None], rows))
-        rows = tl.where(k == 14, b14[:, None], tl.where(k == 15, b15[:, None], rows))
-    return rows
-
-
-@triton.jit
-def _sh_rows(sh_ptr, i, live, K: tl.constexpr, W: tl.constexpr, DEGREE: tl.constexpr):
-    """The SH coefficients of Gaussians ``i`` as rows [BLOCK, W] in memory order (column c: coefficient
-    c // 3 of channel c % 3; 0 past ``DEGREE``), the basis index and channel of each column [W]: one
-    contiguous load per Gaussian, whatever the degree (a kernel of few memory operations also
-    compiles in a fraction of the time)."""
-    cols = tl.arange(0, W)
-    used = live[:, None] & (cols[None, :] < 3 * (DEGREE + 1) * (DEGREE + 1))
-    return tl.load(sh_ptr + i[:, None] * (K * 3) + cols[None, :], mask=used, other=0.0), cols // 3, cols % 3
-
-
-@triton.jit
-def _channel_sums(rows, channel):
-    """Each channel's sum over its columns of ``rows`` [BLOCK, W] (column channels ``channel`` [W])."""
-    return (tl.sum(tl.where(channel[None, :] == 0, rows, 0.0), axis=1),
-            tl.sum(tl.where(channel[None, :] == 1, rows, 0.0), axis=1),
-            tl.sum(tl.where(channel[None, :] == 2, rows, 0.0), axis=1))
-
-
-@triton.jit
-def _unclamped_grad(g_ptr, color, keep):
-    """A colour's gradient where the forward's clamp to [0, COLOR_MAX] let the colour through, else 0."""
-    return tl.where((color >= 0) & (color <= _COLOR_MAX), tl.load(g_ptr, mask=keep, other=0.0), 0.0)
-
 
 @triton.jit
 def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_ptr,
@@ -304,12 +181,12 @@ def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_pt
     tl.store(depths_ptr + i, zc, mask=live)
     tl.store(opac_ptr + i, opacity, mask=live)
     # colours: SH(dir) + 0.5, clamped to [0, COLOR_MAX]
-    dx, dy, dz, _, _ = _direction(means_ptr, cam_ptr, i, live)
-    coefficients, k, channel = _sh_rows(sh_ptr, i, live, K, W, DEGREE)
-    r, g, b = _channel_sums(_basis_rows(dx, dy, dz, k, DEGREE) * coefficients, channel)
-    tl.store(colors_ptr + i * 3 + 0, tl.minimum(tl.maximum(r + 0.5, 0.0), _COLOR_MAX), mask=live)
-    tl.store(colors_ptr + i * 3 + 1, tl.minimum(tl.maximum(g + 0.5, 0.0), _COLOR_MAX), mask=live)
-    tl.store(colors_ptr + i * 3 + 2, tl.minimum(tl.maximum(b + 0.5, 0.0), _COLOR_MAX), mask=live)
+    dx, dy, dz, _, _ = direction(means_ptr, cam_ptr, i, live)
+    coefficients, k, channel = sh_rows(sh_ptr, i, live, K, W, DEGREE)
+    r, g, b = channel_sums(basis_rows(dx, dy, dz, k, DEGREE) * coefficients, channel)
+    tl.store(colors_ptr + i * 3 + 0, clamped_color(r), mask=live)
+    tl.store(colors_ptr + i * 3 + 1, clamped_color(g), mask=live)
+    tl.store(colors_ptr + i * 3 + 2, clamped_color(b), mask=live)
 
 
 @triton.jit
@@ -323,13 +200,13 @@ def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, 
     live = i < n
     i = i.to(tl.int64)
     keep = live & (tl.load(radii_ptr + i * 2, mask=live, other=-1) >= 0)
-    dx, dy, dz, dlen, dfree = _direction(means_ptr, cam_ptr, i, live)
-    coefficients, k, channel = _sh_rows(sh_ptr, i, keep, K, W, DEGREE)
-    basis = _basis_rows(dx, dy, dz, k, DEGREE)
-    r, g, b = _channel_sums(basis * coefficients, channel)
-    g_r = _unclamped_grad(g_colors_ptr + i * 3 + 0, r + 0.5, keep)
-    g_g = _unclamped_grad(g_colors_ptr + i * 3 + 1, g + 0.5, keep)
-    g_b = _unclamped_grad(g_colors_ptr + i * 3 + 2, b + 0.5, keep)
+    dx, dy, dz, dlen, dfree = direction(means_ptr, cam_ptr, i, live)
+    coefficients, k, channel = sh_rows(sh_ptr, i, keep, K, W, DEGREE)
+    basis = basis_rows(dx, dy, dz, k, DEGREE)
+    r, g, b = channel_sums(basis * coefficients, channel)
+    g_r = unclamped_grad(g_colors_ptr + i * 3 + 0, r + 0.5, keep)
+    g_g = unclamped_grad(g_colors_ptr + i * 3 + 1, g + 0.5, keep)
+    g_b = unclamped_grad(g_colors_ptr + i * 3 + 2, b + 0.5, keep)
     g_color = tl.where(channel[None, :] == 0, g_r[:, None], tl.where(channel[None, :] == 1, g_g[:, None], g_b[:, None]))
     cols = tl.arange(0, W)
     tl.store(g_sh_ptr + i[:, None] * (K * 3) + cols[None, :], g_color * basis,
@@ -339,7 +216,7 @@ def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, 
     ddy = tl.zeros_like(basis)
     ddz = tl.zeros_like(basis)
     for basis_k in tl.static_range(1, (DEGREE + 1) * (DEGREE + 1)):
-        kx, ky, kz = _basis_grad(basis_k, dx, dy, dz)
+        kx, ky, kz = basis_grad(basis_k, dx, dy, dz)
         column = k[None, :] == basis_k
         ddx = tl.where(column, kx[:, None], ddx)
         ddy = tl.where(column, ky[:, None], ddy)

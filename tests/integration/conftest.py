@@ -3,7 +3,9 @@
 Skipped unless ARTNVG_COMFYUI_ROOT names a ComfyUI install: either a ComfyUI checkout (the
 folder holding main.py) or a folder holding one as ComfyUI/. The server runs on the CPU with
 the Python of ARTNVG_COMFYUI_PYTHON, else of a venv/ beside or inside the checkout, else the one
-running the tests; the pack's dependencies must be installed there. The session starts its own
+running the tests; the pack's dependencies must be installed there. ARTNVG_COMFYUI_FRONTEND_ROOT,
+when set, names another frontend's static folder (e.g. the ``static/`` of a newer
+comfyui-frontend-package), passed to ComfyUI as ``--front-end-root``. The session starts its own
 server on a free port and stops it at the end (log: ROOT/artnvg_server.log). The project is
 linked as ComfyUI/custom_nodes/artnvg-comfyui (unless a link to it is there already), the demo
 files the pack installs are removed from the input folder first (a fresh install), and test inputs are written under
@@ -29,7 +31,7 @@ from artnvg_core.formats import read_ply, write_ply
 from artnvg_core.stylize import DemoInputs
 from nodes.demo_inputs import demo_files
 
-ROOT_ENV, PYTHON_ENV = "ARTNVG_COMFYUI_ROOT", "ARTNVG_COMFYUI_PYTHON"
+ROOT_ENV, PYTHON_ENV, FRONTEND_ENV = "ARTNVG_COMFYUI_ROOT", "ARTNVG_COMFYUI_PYTHON", "ARTNVG_COMFYUI_FRONTEND_ROOT"
 REPO = Path(__file__).resolve().parents[2]
 TEST_FOLDER = "artnvg_test"
 TEST_GAUSSIANS = 10_000
@@ -100,8 +102,10 @@ def _write_inputs(input_dir: Path) -> None:
 
 
 def _start(python: str, comfy: Path, port: int, log: Path) -> subprocess.Popen:
+    frontend = os.environ.get(FRONTEND_ENV)
     with log.open("wb") as output:
-        server = subprocess.Popen([python, "main.py", "--cpu", "--listen", "127.0.0.1", "--port", str(port)],
+        server = subprocess.Popen([python, "main.py", "--cpu", "--listen", "127.0.0.1", "--port", str(port),
+                                   *(["--front-end-root", frontend] if frontend else [])],
                                   cwd=comfy, stdout=output, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline:

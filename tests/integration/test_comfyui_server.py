@@ -103,7 +103,8 @@ def test_object_info_lists_every_node_with_its_inputs(comfy_server):
     core = _core_splat_type(info)
     saved_file = ("FILE_3D_SPLAT_ANY" if "FILE_3D_SPLAT_ANY" in json.dumps(info)
                   else "FILE_3D_PLY,FILE_3D_SPZ,FILE_3D_SPLAT,FILE_3D_KSPLAT")
-    with_core_types = {"ArtNVGSaveGaussianScene": (saved_file,), "ArtNVGSceneToSplat": (core,)} if core else {}
+    with_core_types = ({"ArtNVGSaveGaussianScene": (*PUBLIC_OUTPUTS["ArtNVGSaveGaussianScene"], saved_file),
+                        "ArtNVGSceneToSplat": (core,)} if core else {})
     for name, inputs in PUBLIC_INPUTS.items():
         node = info[name]
         order = node["input_order"]
@@ -126,7 +127,8 @@ def test_splat_nodes_say_what_this_comfyui_lacks(comfy_server):
     if _core_splat_type(info) is None:  # e.g. 0.3.64: everything as before, and the descriptions say why
         assert "This ComfyUI lacks it, so this node cannot run here" in to_splat["description"]
         assert "This ComfyUI lacks it, so this node cannot run here" in to_scene["description"]
-        assert save["output"] == [] and "this ComfyUI lacks them, so it has no output" in save["description"]
+        assert save["output"] == ["STRING", "LOAD3D_CAMERA"]
+        assert "this ComfyUI lacks them, so it has no model_3d output" in save["description"]
     else:
         assert "lacks" not in to_splat["description"] + to_scene["description"] + save["description"]
         assert to_scene["input"]["required"]["splat"][0] == to_splat["output"][0] == _core_splat_type(info)
