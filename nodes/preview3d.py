@@ -4,8 +4,8 @@ Preview 3D (``Preview3D``: ``model_file``, a path inside the output folder, and 
 LOAD3D_CAMERA) frames the whole bounding box of what it loads, so the stray Gaussians far out that most
 captures hold make the subject a speck. :func:`preview_camera` aims at the scene's bulk instead: the
 subject sphere of :func:`~artnvg_core.cameras.framing.scene_frame` (centre: the weighted median of the
-Gaussians; radius: the weighted 90 % quantile of their distances), seen from 20 degrees above its
-horizon at the distance where that sphere fills the view.
+Gaussians; radius: the weighted median of their distances, the subject of a capture rather than its
+background), seen from 20 degrees above its horizon at the distance where that sphere fills the view.
 
 Frontends that show Gaussian splat files in Preview 3D (the newer ones, e.g. 1.58.1) load them with
 Spark, whose splat mesh turns the file's axes half a turn about x: a point (x, y, z) of the file is
@@ -23,7 +23,7 @@ from artnvg_core.cameras.framing import horizontal_axes, scene_frame
 from artnvg_core.scene import GaussianScene
 
 PREVIEW_FOV_DEG = 35.0  # Preview 3D's perspective camera
-BULK_QUANTILE = 0.9  # the share of the Gaussians' weight the framed sphere holds
+BULK_QUANTILE = 0.5  # the share of the Gaussians' weight the framed sphere holds: the subject
 ELEVATION_DEG = 20.0
 FILE_TO_VIEWER = torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)  # Spark's half turn about x
 

@@ -5,7 +5,7 @@ import math
 import torch
 
 from artnvg_core.scene import GaussianScene
-from nodes.preview3d import PREVIEW_FOV_DEG, preview_camera
+from nodes.preview3d import BULK_QUANTILE, PREVIEW_FOV_DEG, preview_camera
 
 
 def _scene(means: torch.Tensor) -> GaussianScene:
@@ -30,8 +30,8 @@ def test_the_camera_frames_the_bulk_whatever_the_stray_gaussians():
     target, position = _vector(camera["target"]), _vector(camera["position"])
     viewer_centre = centre.double() * torch.tensor([1.0, -1.0, -1.0])  # the file's (x, y, z) drawn at (x, -y, -z)
     assert (target - viewer_centre).norm() < 0.1
-    # the sphere holding 90 % of the Gaussians (all weigh alike here) just fills the field of view
-    radius = float(torch.quantile((bulk.double() - bulk.double().median(0).values).norm(dim=1), 0.9))
+    # the sphere holding half the Gaussians (all weigh alike here) just fills the field of view
+    radius = float(torch.quantile((bulk.double() - bulk.double().median(0).values).norm(dim=1), BULK_QUANTILE))
     half_angle = math.degrees(math.asin(radius / float((position - target).norm())))
     assert abs(half_angle - PREVIEW_FOV_DEG / 2) < 1.0, half_angle
     alone = preview_camera(_scene(bulk))  # the strays move nothing that matters
