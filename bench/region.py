@@ -1,14 +1,14 @@
 """What the strength dial and a region cost, and what a region keeps: two tables and the seam's pictures.
 
     cd bench && python region.py [--shared ../../shared/data] [--scene bear] [--style starry]
-        [--region sphere:0.823,0.238,-1.130,1.2] [--iters 100] [--scale 0.25] [--gaussians 1000000] [--out DIR]
+        [--region sphere:0.823,0.238,-1.130,1.2] [--iters 100] [--scale 0.25] [--every 1] [--gaussians 1000000] [--out DIR]
 
 * **Blend**: :func:`artnvg_core.blend.blend` of a ``--gaussians`` scene (SH degree 3) with a stylized copy (every
   SH band and opacity changed), geometry unchanged (an appearance finetune) and moved (``optimize="all"``), whole
   and in a selection of half the Gaussians: the median of 5 calls after one warm-up, on the CPU, wall time and
   the process's CPU time (on a machine shared with other jobs, the CPU time is what the blend itself costs).
 * **Region finetune**: the NNFM stylizer (:func:`artnvg_core.stylize.stylize_nnfm`, ARF's colour transfer) of the
-  scene's capture views at ``--scale``, ``--iters`` steps, the whole scene and ``--region`` alone: the time of the
+  scene's capture views (every ``--every``-th) at ``--scale``, ``--iters`` steps, the whole scene and ``--region`` alone: the time of the
   call; on every view, the PSNR against the original's renders of the pixels the region covers less than 1e-3 of
   (:func:`artnvg_core.selection.coverage`: the unselected Gaussians' own pixels), and the mean/covariance colour
   distance to the style (``metrics.color``) of the pixels it covers half or more of, before and after.
@@ -73,6 +73,7 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 def region_table(args) -> None:
     folder = Path(args.shared) / "scenes" / args.scene
     scene, cameras = load_scene(folder / "scene.ply"), load_cameras(folder).scaled(args.scale)
+    cameras = cameras.subset(list(range(0, len(cameras), args.every)))
     style = load_image(next((Path(args.shared) / "styles").glob(f"{args.style}.*")))
     selection = select_region(scene, parse_region(args.region))
     covered = coverage(scene, selection, cameras)
@@ -120,6 +121,7 @@ def main() -> None:
     parser.add_argument("--region", default="sphere:0.823,0.238,-1.130,1.2")
     parser.add_argument("--iters", type=int, default=100)
     parser.add_argument("--scale", type=float, default=0.25)
+    parser.add_argument("--every", type=int, default=1, help="every N-th capture view (default 1: all)")
     parser.add_argument("--gaussians", type=int, default=1_000_000)
     parser.add_argument("--out", default="region_out")
     parser.add_argument("--skip-blend", action="store_true")

@@ -24,9 +24,9 @@ _log = logging.getLogger(__name__)
 
 def placed(every: torch.Tensor, selected: torch.Tensor, selection: torch.Tensor) -> torch.Tensor:
     """A copy of ``every [N, ...]`` with the rows of ``selection [N]`` replaced by ``selected``."""
-    placed = every.clone()
-    placed[selection] = selected
-    return placed
+    result = every.clone()
+    result[selection] = selected
+    return result
 
 
 def recolor(scene: GaussianScene, transform: ColorTransform, selection: torch.Tensor | None) -> GaussianScene:
