@@ -283,7 +283,7 @@ def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file(edit
     _close_dialogs(editor)
     dialogs = editor.evaluate(QUEUE % (json.dumps(workflow), SHOWN_PROBLEMS))
     _screenshot(editor, screenshots / "missing_models.png")
-    # the server's refusal as each frontend shows it: the validation errors of ComfyUI's own loaders and of
+    # the refused run as each frontend shows it: the validation errors of ComfyUI's own loaders and of
     # Load CSGO, each naming its file (1.27.10), or the Missing Models group marked "Blocked last run" (1.58.1)
     (text,) = [d for d in dialogs if "failed validation" in d or "Blocked last run" in d]
     for name in files:
