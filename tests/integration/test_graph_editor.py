@@ -106,8 +106,8 @@ def _json(url: str):
         return json.loads(response.read())
 
 
-@pytest.fixture(scope="module")
-def editor(comfy_server, tmp_path_factory):
+@pytest.fixture
+def editor(comfy_server, tmp_path_factory):  # a fresh browser per test: no test sees another's dialogs or panels
     if CHROMIUM is None:
         pytest.skip("no chromium on PATH (Debian: apt-get install chromium)")
     profile = tmp_path_factory.mktemp("chromium")
