@@ -154,37 +154,38 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     assert len(previews) == 4  # 2 content views + 2 orbit frames
 
 
-def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
-    folder = comfy_server.test_folder
-    workflow = queue.load_api_workflow(CAMERA_FREE_API)
-    for assignment in (f"Load Gaussian Scene.scene_file={folder}/scene.ply", f"Style image.image={folder}/style.jpg",
-                       "Cameras Around Scene.count=3", "Render Views.scale=0.125", "Finetune Gaussians.iterations=3",
-                       "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
-                       f"Save Gaussian Scene.filename_prefix={folder}/camera_free"):
+def _run_saving_a_scene(server, api_workflow: Path, assignments) -> tuple:
+    """Queue a shipped API workflow with ``queue_workflow``'s overrides; it must succeed and save one scene of the
+    test folder's scene.ply. (workflow, run summary, the saved scene, the original scene)."""
+    workflow = queue.load_api_workflow(api_workflow)
+    for assignment in assignments:
         queue.apply_override(workflow, assignment)
-    entry, messages = _run(comfy_server, workflow)
+    entry, _ = _run(server, workflow)
     summary = queue.run_summary(entry)
     assert summary["status"] == "success", summary["error"]
     (saved,) = [o for o in summary["outputs"] if o["kind"] == "scenes"]
-    result, original = read_ply(comfy_server.output_dir / saved["file"]), read_ply(comfy_server.input_dir / folder / "scene.ply")
+    original = read_ply(server.input_dir / server.test_folder / "scene.ply")
+    return workflow, summary, read_ply(server.output_dir / saved["file"]), original
+
+
+def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
+    folder = comfy_server.test_folder
+    _, summary, result, original = _run_saving_a_scene(comfy_server, CAMERA_FREE_API, (
+        f"Load Gaussian Scene.scene_file={folder}/scene.ply", f"Style image.image={folder}/style.jpg",
+        "Cameras Around Scene.count=3", "Render Views.scale=0.125", "Finetune Gaussians.iterations=3",
+        "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
+        f"Save Gaussian Scene.filename_prefix={folder}/camera_free"))
     assert torch.equal(result.means, original.means) and not torch.equal(result.sh, original.sh)
     assert len([o for o in summary["outputs"] if o["kind"] == "images"]) == 3 + 2  # content views + orbit frames
 
 
 def test_region_workflow_stylizes_and_blends_only_the_selection(comfy_server):
     folder = comfy_server.test_folder
-    workflow = queue.load_api_workflow(REGION_API)
-    for assignment in (f"Load Gaussian Scene.scene_file={folder}/scene.ply",
-                       f"Load Cameras.camera_source={folder}/transforms.json", f"Style image.image={folder}/style.jpg",
-                       "Render Views.scale=0.125", "Render Views.stride=12", "Finetune Gaussians.iterations=3",
-                       "Blend Stylization.preview_strengths=0, 1",
-                       f"Save Gaussian Scene.filename_prefix={folder}/region"):
-        queue.apply_override(workflow, assignment)
-    entry, _ = _run(comfy_server, workflow)
-    summary = queue.run_summary(entry)
-    assert summary["status"] == "success", summary["error"]
-    (saved,) = [o for o in summary["outputs"] if o["kind"] == "scenes"]
-    result, original = read_ply(comfy_server.output_dir / saved["file"]), read_ply(comfy_server.input_dir / folder / "scene.ply")
+    workflow, summary, result, original = _run_saving_a_scene(comfy_server, REGION_API, (
+        f"Load Gaussian Scene.scene_file={folder}/scene.ply",
+        f"Load Cameras.camera_source={folder}/transforms.json", f"Style image.image={folder}/style.jpg",
+        "Render Views.scale=0.125", "Render Views.stride=12", "Finetune Gaussians.iterations=3",
+        "Blend Stylization.preview_strengths=0, 1", f"Save Gaussian Scene.filename_prefix={folder}/region"))
     select = next(node for node in workflow.values() if node["class_type"] == "ArtNVGSelectGaussians")["inputs"]
     selection = select_region(original, parse_region(f"{select['mode']}:{select['bounds'].replace(' ', '')}"))
     assert 0 < selection.sum() < len(original)
