@@ -24,6 +24,9 @@ folders and the inputs into ``input/``. The model files are the released ones wi
   less the cap, so ComfyUI plans for a card of ``--cap-gib``) through a wrapper that caps PyTorch's
   allocations at ``--cap-gib`` (``torch.cuda.set_per_process_memory_fraction``, after ComfyUI has chosen
   its allocator, checked by an allocation over the cap that must fail) before ComfyUI's ``main.py`` runs.
+  The cap bounds what PyTorch allocates; when the server stops, PyTorch's own peaks (allocated, reserved)
+  over its life are printed under the table (nvidia-smi's figure adds the CUDA context and what the
+  allocator's pool keeps).
 
 Whole run: a process from launch to exit; a queued workflow from queueing to the end of its execution.
 Groups (native): from the websocket's progress messages of Sample Group: group 1 from the node's start
@@ -84,6 +87,16 @@ except torch.cuda.OutOfMemoryError:
 else:
     sys.exit(f"memory cap: {cap / 2**30:g} GiB does not hold (an allocation over it succeeded)")
 torch.cuda.empty_cache()
+
+def peaks(*_):  # at SIGTERM (stop_server): PyTorch's own peaks over the server's life, then exit at once
+    try:
+        print(f"memory cap: PyTorch's peak allocated {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB, "
+              f"peak reserved {torch.cuda.max_memory_reserved() / 2**30:.2f} GiB", flush=True)
+    finally:
+        os._exit(0)
+
+import signal
+signal.signal(signal.SIGTERM, peaks)
 runpy.run_path("main.py", run_name="__main__")
 """
 
@@ -264,7 +277,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
     (frontend / "index.html").write_text("<!doctype html><title>no frontend: a benchmark server</title>\n")
     watch = MemoryWatch(gpu)
-    rows, report = [], []
+    rows, report, notes = [], [], []
 
     def record(preset: str, path: str, groups: list[float], wall: float, peak: float | None, end: str, **more) -> None:
         rows.append([preset, path, statistics.median(groups) if groups else None,
@@ -324,10 +337,15 @@ def main() -> None:
                     fresh = False
         finally:
             stop_server(server)
+        notes += [f"{label}: {line}" for line in log.read_text().splitlines() if line.startswith("memory cap:")]
     watch.stop()
     print_table("The bear's job: ComfyUI's native path against the diffusers path (seconds, GiB)",
                 ["preset", "path", "per group (median)", "groups", "whole run", "peak GiB", "end"], rows,
                 "python " + shlex.join(sys.argv))
+    print("\n".join(["", *notes]))
+    if args.json:
+        args.json.write_text(json.dumps({"baseline_gib": getattr(watch, "baseline", None), "runs": report,
+                                         "notes": notes}, indent=1))
 
 
 if __name__ == "__main__":
