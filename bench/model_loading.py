@@ -5,23 +5,26 @@
 Writes, where DIR lacks them, full-size files with random weights in the released layouts
 (``model_files.py``). Then times :func:`load_controlnet` (the Tile ControlNet's fp16 ``.safetensors``)
 and :func:`load_image_encoder` (the image encoder's ``model.safetensors``) to ``--device`` in ``--dtype``,
-and diffusers' ``UNet2DConditionModel.from_single_file`` on ``sd_xl_base_1.0.safetensors`` (what
-:func:`load_sdxl` runs for the UNet of a single file) with and without ``low_cpu_mem_usage``
-(diffusers' building without random weights, which needs the ``accelerate`` package), and
-:func:`load_diffusion_models` on all four files (SDXL's single file, the ControlNet, the image
-encoder's folder, ``csgo_4_32.bin``: what a stylize run loads), ``--repeats`` times each (the first
-read may come from disk, later ones from the page cache). Prints a table.
+:func:`load_sdxl` on ``sd_xl_base_1.0.safetensors`` (read straight to the device, converted there) and,
+for comparison, diffusers' ``StableDiffusionXLPipeline.from_single_file`` on it then moved to the device
+(how :func:`load_sdxl` loaded it before), and :func:`load_diffusion_models` on all four files (SDXL's
+single file, the ControlNet, the image encoder's folder, ``csgo_4_32.bin``: what a stylize run loads),
+``--repeats`` times each (the first read may come from disk, later ones from the page cache).
+
+Beside each load a thread counts in Python: "others' GIL share" is its count per second during the load
+over its count while nothing else runs, so 1 means the loading left the interpreter lock to the rest of
+the process (it waited in system calls and device copies), 0 that it held it throughout. Prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 from pathlib import Path
 
 import torch
-from diffusers import UNet2DConditionModel
 
 from common import print_table, synchronize
 from model_files import write_model_files
@@ -29,7 +32,7 @@ from model_files import write_model_files
 from artnvg_core.diffusion.architectures import SDXL_UNET_CONFIG
 from artnvg_core.diffusion.model_cache import file_key
 from artnvg_core.diffusion.model_files import ModelFiles
-from artnvg_core.diffusion.models import load_controlnet, load_diffusion_models, load_image_encoder
+from artnvg_core.diffusion.models import load_controlnet, load_diffusion_models, load_image_encoder, load_sdxl
 from artnvg_core.diffusion.sdxl_config import built_in_sdxl_config
 
 DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
@@ -47,34 +50,64 @@ def main() -> None:
     four = ModelFiles(files["sdxl"], files["controlnet"], files["image encoder"], files["csgo"])
     files["image encoder"] = files["image encoder"] / "model.safetensors"
 
-    def unet(low_cpu_mem_usage: bool):
+    def pipeline():  # SDXL as load_sdxl read it before: diffusers' pipeline on the CPU, then moved
+        from diffusers import StableDiffusionXLPipeline
+
         with built_in_sdxl_config() as config:
-            return UNet2DConditionModel.from_single_file(
-                str(files["sdxl"]), config=str(config), subfolder="unet", torch_dtype=dtype,
-                low_cpu_mem_usage=low_cpu_mem_usage, local_files_only=True).to(device)
+            pipe = StableDiffusionXLPipeline.from_single_file(str(files["sdxl"]), config=str(config), torch_dtype=dtype,
+                                                              local_files_only=True, add_watermarker=False)
+        return [part.to(device) for part in (pipe.unet, pipe.vae, pipe.text_encoder, pipe.text_encoder_2)]
 
     loaders = {"controlnet": lambda: load_controlnet(files["controlnet"], unet_config=SDXL_UNET_CONFIG, dtype=dtype,
                                                      device=device),
                "image encoder": lambda: load_image_encoder(files["image encoder"], dtype=dtype, device=device),
-               "sdxl": lambda: unet(True),
-               "sdxl, low_cpu_mem_usage=False (no accelerate)": lambda: unet(False),
+               "sdxl": lambda: load_sdxl(files["sdxl"], dtype=dtype, device=device),
+               "sdxl, diffusers from_single_file then moved (before)": pipeline,
                "all four": lambda: load_diffusion_models(four, dtype=dtype, device=device)}
+    idle = Ticker().rate(1.0)
     rows = []
     for name, load in loaders.items():
         paths = [path for _, path in four.items()] if name == "all four" else [files[name.split(",")[0]]]
         size = sum(size for path in paths for _, size, _ in file_key(path)[1])
         for run in range(1, args.repeats + 1):
             synchronize(device)
-            start = time.perf_counter()
-            model = load()
-            synchronize(device)
-            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run,
-                         time.perf_counter() - start])
+            with Ticker() as ticker:
+                start = time.perf_counter()
+                model = load()
+                synchronize(device)
+                seconds = time.perf_counter() - start
+            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds,
+                         f"{ticker.count / seconds / idle:.2f}"])
             print(rows[-1], flush=True)
             del model
     print_table(f"Loading single weight files to {args.device} in {args.dtype} (torch threads: "
-                f"{torch.get_num_threads()})", ["model", "file", "GiB", "run", "seconds"], rows,
+                f"{torch.get_num_threads()})", ["model", "file", "GiB", "run", "seconds", "others' GIL share"], rows,
                 "python " + " ".join(sys.argv))
+
+
+class Ticker:
+    """A thread counting in Python while the block runs (``count``); :meth:`rate`: counts per second alone."""
+
+    def __init__(self) -> None:
+        self.count, self._running = 0, False
+
+    def _tick(self) -> None:
+        while self._running:
+            self.count += 1
+
+    def __enter__(self) -> "Ticker":
+        self._running, self._thread = True, threading.Thread(target=self._tick, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_) -> None:
+        self._running = False
+        self._thread.join()
+
+    def rate(self, seconds: float) -> float:
+        with self:
+            time.sleep(seconds)
+        return self.count / seconds
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ Nothing here imports ComfyUI.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -94,6 +94,20 @@ class CSGOState(Shared):
     content_scale: float
     content_routing: str
     content_encoder: object = None
+    _batches: dict = field(default_factory=dict, repr=False)
+
+    def batch_tokens(self, kind: str, tokens: ImageTokens, halves: tuple, views: int, like: torch.Tensor) -> torch.Tensor:
+        """``tokens`` laid out as a latent batch [len(halves) * views, Q, D] (per chunk of ``views``, the
+        unconditional or conditional tokens as ``halves``, ComfyUI's ``cond_or_uncond``, says) on ``like``'s
+        device and dtype. Built once per tokens and layout (ComfyUI may run the halves as separate batches)
+        and shared by every layer patch of this state: a copy to the GPU in each layer's call would make the
+        host wait for the GPU each time."""
+        key = (kind, halves, views, like.device, like.dtype)
+        cached = self._batches.get(key)
+        if cached is None or cached[0] is not tokens:
+            chunks = [(tokens.uncond if half == UNCOND else tokens.cond).expand(views, -1, -1) for half in halves]
+            cached = self._batches[key] = (tokens, torch.cat(chunks).to(like))
+        return cached[1]
 
 
 class ImageTokenPatch(Shared):
@@ -124,10 +138,8 @@ class ImageTokenPatch(Shared):
 
     def __call__(self, q, k, v, extra_options):
         tokens, scale = self._tokens(extra_options)
-        views = _views(q, extra_options)
-        chunks = [(tokens.uncond if half == UNCOND else tokens.cond).expand(views, -1, -1)
-                  for half in extra_options["cond_or_uncond"]]
-        tokens = torch.cat(chunks).to(q)
+        tokens = self.state.batch_tokens(self.kind, tokens, tuple(extra_options["cond_or_uncond"]),
+                                         _views(q, extra_options), q)
         if self.weights[0].device != q.device or self.weights[0].dtype != q.dtype:
             self.to(q)
         k_ip, v_ip = (F.linear(tokens, w) for w in self.weights)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from artnvg_core.diffusion.images import check_images, resize_images, sampling_size
-from artnvg_core.diffusion.settings import SIZE_RULES, SamplerSettings
+from artnvg_core.diffusion.settings import SIZE_RULES, SamplerSettings, guided_steps
 from artnvg_core.progress import check_stop
 
 from .comfy_bridge import cancellable, comfy_module, interrupt_requested, progress_bar
@@ -97,10 +97,15 @@ class SampleGroup(ArtNVGNode):
             "long_side: CSGO's rule, the long side becomes the resolution (16:9 samples at 1024x576); "
             "area: about resolution² pixels (16:9 at 1344x768, 1.75x the tokens, about 3x the NV cost).")}),
     }
+    OPTIONAL = {
+        "cfg_until": ("FLOAT", {"default": 1.0, "min": 0.0, "max": 1.0, "step": 0.05, "tooltip": (
+            "Guidance (cfg) in the first ceil(cfg_until x steps) steps only, none after (half the work per step): "
+            "the fast and balanced presets use 0.5. 1: every step.")}),
+    }
 
     @cancellable
     def sample(self, model, positive, negative, vae, control_net, content_views, groups, group_index, seed, steps,
-               cfg, sampler_name, scheduler, denoise, control_scale, resolution, size_rule):
+               cfg, sampler_name, scheduler, denoise, control_scale, resolution, size_rule, cfg_until=1.0):
         node = self.DISPLAY_NAME
         if len(content_views) != groups.num_views:
             raise NodeInputError(f"{node}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -120,25 +125,28 @@ class SampleGroup(ArtNVGNode):
         chosen = range(len(groups)) if group_index < 0 else [group_index]
         report, output = progress_bar(), images.clone()
         for done, index in enumerate(chosen):
-            def step(i, denoised, x, total, done=done):
+            def step(i, done=done):
                 check_stop(interrupt_requested)
                 if report is not None:
-                    report(done * total + i + 1, len(chosen) * total, {})
+                    report(done * steps + i + 1, len(chosen) * steps, {})
 
             group = groups[index]
             owned = self._sample_views(model, positive, negative, vae, control_net, images[list(group.all_views)],
                                        None if groups.centers is None else [groups.centers[v] for v in group.all_views],
-                                       size, seed + index, steps, cfg, sampler_name, scheduler, denoise, control_scale,
-                                       step)
+                                       size, seed + index, steps, cfg, cfg_until, sampler_name, scheduler, denoise,
+                                       control_scale, step)
             output[list(group.views)] = resize_images(owned[: len(group.views)], height, width)
         if group_index >= 0:
             output = output[list(groups[group_index].views)]
         return (output,)
 
     @staticmethod
-    def _sample_views(model, positive, negative, vae, control_net, views, centers, size, seed, steps, cfg,
-                      sampler_name, scheduler, denoise, control_scale, callback) -> torch.Tensor:
-        """One group's views [N, H, W, 3] sampled jointly at ``size``; IMAGE [N, h, w, 3] at that size."""
+    def _sample_views(model, positive, negative, vae, control_net, views, centers, size, seed, steps, cfg, cfg_until,
+                      sampler_name, scheduler, denoise, control_scale, step) -> torch.Tensor:
+        """One group's views [N, H, W, 3] sampled jointly at ``size``; IMAGE [N, h, w, 3] at that size. The
+        guided steps and the rest are two runs of ComfyUI's sampler over one schedule, as two chained
+        KSampler (Advanced) nodes with start/end steps: the second at cfg 1, which ComfyUI samples without the
+        unconditional half; ``step(i)`` is called after step i of ``steps``."""
         sample = comfy_module("comfy.sample")
         work = resize_images(views, *size)
         control = control_net.copy().set_cond_hint(work.movedim(-1, 1), control_scale)
@@ -154,8 +162,14 @@ class SampleGroup(ArtNVGNode):
         else:
             channels = model.get_model_object("latent_format").latent_channels
             latent = torch.zeros(len(views), channels, size[0] // vae.downscale_ratio, size[1] // vae.downscale_ratio)
+        positive, negative = _with_control(positive, control, size), _with_control(negative, control, size)
+        guided = guided_steps(steps, cfg_until, cfg) if cfg > 1 else steps  # cfg <= 1: as given at every step
         noise = sample.prepare_noise(latent, seed)
-        samples = sample.sample(grouped, noise, steps, cfg, sampler_name, scheduler,
-                                _with_control(positive, control, size), _with_control(negative, control, size),
-                                latent, denoise=denoise, callback=callback, disable_pbar=True, seed=seed)
-        return vae.decode(samples)
+        for first, last, scale in ((0, guided, cfg), (guided, steps, 1.0)):
+            if first == last:
+                continue
+            latent = sample.sample(grouped, torch.zeros_like(noise) if first else noise, steps, scale, sampler_name,
+                                   scheduler, positive, negative, latent, denoise=denoise, start_step=first, last_step=last,
+                                   force_full_denoise=last == steps, seed=seed, disable_pbar=True,
+                                   callback=lambda i, denoised, x, total, first=first: step(first + i))
+        return vae.decode(latent)

@@ -87,13 +87,11 @@ TINY_TEXT = dict(vocab_size=49408, hidden_size=4, intermediate_size=16, num_hidd
 TINY_TEXT_2 = dict(TINY_TEXT, hidden_size=12, pad_token_id=0)  # widths 4 + 12: the tiny UNet's context of 16
 
 
-def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path, monkeypatch):
-    """A checkpoint in sd_xl_base_1.0.safetensors' key layout loads with no network, an empty Hugging Face cache
-    and no config folder: every weight arrives unchanged and the shipped CLIP tokenizers are used."""
-    import socket
+def _tiny_single_file(tmp_path, monkeypatch, dtype: torch.dtype = torch.float32):
+    """A tiny SDXL (in ``dtype``) written in sd_xl_base_1.0.safetensors' key layout, and the shipped config
+    folder's layout with its architectures put where the loader looks for the built-in one."""
     from contextlib import contextmanager
 
-    from huggingface_hub import constants
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection
 
     from artnvg_core.diffusion import models
@@ -103,6 +101,8 @@ def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path,
     torch.manual_seed(3)
     original.text_encoder = CLIPTextModel(CLIPTextConfig(**TINY_TEXT)).eval()
     original.text_encoder_2 = CLIPTextModelWithProjection(CLIPTextConfig(**TINY_TEXT_2)).eval()
+    for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
+        getattr(original, name).to(dtype)
     checkpoint = write_single_file_checkpoint(tmp_path / "sd_xl_base_1.0.safetensors", original)
 
     @contextmanager
@@ -110,10 +110,22 @@ def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path,
         yield write_sdxl_config_dir(tmp_path / "configs", unet=dict(original.unet.config),
                                     vae=dict(original.vae.config), text_encoder=TINY_TEXT, text_encoder_2=TINY_TEXT_2)
 
+    monkeypatch.setattr(models, "built_in_sdxl_config", tiny_built_in_config)
+    return original, checkpoint, tiny_built_in_config
+
+
+def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path, monkeypatch):
+    """A checkpoint in sd_xl_base_1.0.safetensors' key layout loads with no network, an empty Hugging Face cache
+    and no config folder: every weight arrives unchanged and the shipped CLIP tokenizers are used."""
+    import socket
+
+    from huggingface_hub import constants
+
+    original, checkpoint, _ = _tiny_single_file(tmp_path, monkeypatch)
+
     def no_network(*args, **kwargs):
         raise AssertionError("network access")
 
-    monkeypatch.setattr(models, "built_in_sdxl_config", tiny_built_in_config)
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty_cache"))
     monkeypatch.setattr(socket.socket, "connect", no_network)
@@ -123,6 +135,35 @@ def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path,
     assert loaded.tokenizer("a photo of a cat").input_ids == [49406, 320, 1125, 539, 320, 2368, 49407]
     assert (loaded.tokenizer.pad_token, loaded.tokenizer_2.pad_token) == ("<|endoftext|>", "!")
     assert loaded.scheduler_config["_class_name"] == "EulerDiscreteScheduler" and loaded.force_zeros_for_empty_prompt
+
+
+def test_single_file_loads_bit_for_bit_as_diffusers_pipeline_loads_it(tmp_path, monkeypatch):
+    """An fp16 checkpoint read straight to the device and converted there gives, in float16, the very
+    tensors, dtypes and configs that diffusers' ``StableDiffusionXLPipeline.from_single_file`` gives
+    (the VAE kept in float32 for its force_upcast, as before), and a scheduler config from which every
+    scheduler the sampler offers is built alike."""
+    from diffusers import StableDiffusionXLPipeline
+
+    _, checkpoint, configs = _tiny_single_file(tmp_path, monkeypatch, torch.float16)
+    loaded = load_sdxl(checkpoint, dtype=torch.float16)
+    with configs() as folder:
+        pipe = StableDiffusionXLPipeline.from_single_file(str(checkpoint), config=str(folder), torch_dtype=torch.float16,
+                                                          local_files_only=True, add_watermarker=False)
+    pipe.vae.to(torch.float32)
+    for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
+        ours, theirs = getattr(loaded, name).state_dict(), getattr(pipe, name).state_dict()
+        assert ours.keys() == theirs.keys(), name
+        for key, tensor in theirs.items():
+            assert ours[key].dtype == tensor.dtype and torch.equal(ours[key], tensor), (name, key)
+        assert dict(getattr(loaded, name).config) == dict(getattr(pipe, name).config) if name in ("unet", "vae") \
+            else getattr(loaded, name).config.to_dict() == getattr(pipe, name).config.to_dict()
+    from artnvg_core.diffusion.sampler import SCHEDULERS
+
+    def built(scheduler_class, config):  # what the sampler builds from a scheduler config
+        return {k: v for k, v in scheduler_class.from_config(config).config.items() if k != "_use_default_values"}
+
+    for scheduler_class in SCHEDULERS.values():
+        assert built(scheduler_class, loaded.scheduler_config) == built(scheduler_class, pipe.scheduler.config)
 
 
 def test_shipped_configs_are_sdxl_base_1_0():

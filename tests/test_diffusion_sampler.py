@@ -12,10 +12,10 @@ from artnvg_core.diffusion.memory import enable_low_memory, visiting
 from artnvg_core.diffusion.sampler import (
     SCHEDULERS,
     SamplerSettings,
-    guided_steps,
     resample_noise,
     stylize_group,
 )
+from artnvg_core.diffusion.settings import guided_steps
 from artnvg_core.diffusion.stylize import stylize_groups, stylize_views
 from artnvg_core.grouping import group_views
 from artnvg_core.progress import Cancelled
@@ -261,8 +261,8 @@ def test_guidance_truncation_halves_the_late_steps(csgo_models):
     torch.testing.assert_close(truncated[1], truncated[0], rtol=0, atol=1e-5)
     torch.testing.assert_close(truncated[2], _run(csgo_models, images, steps=5, guidance_scale=1.0), rtol=0, atol=1e-5)
     assert (truncated[0] - full).abs().max() > 1e-4 and (truncated[0] - truncated[2]).abs().max() > 1e-4
-    assert guided_steps(SamplerSettings(steps=50, cfg_until=0.8), 50) == 40
-    assert guided_steps(SamplerSettings(steps=50, cfg_until=0.8, guidance_scale=1.0), 50) == 0
+    assert guided_steps(50, 0.8, 5.0) == 40 and guided_steps(5, 0.5, 5.0) == 3
+    assert guided_steps(50, 0.8, 1.0) == 0
     for value in (-0.1, 1.5):
         with pytest.raises(ValueError, match="SamplerSettings.cfg_until must be in \\[0, 1\\]"):
             SamplerSettings(cfg_until=value)

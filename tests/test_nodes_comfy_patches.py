@@ -58,24 +58,47 @@ def _state(generator) -> CSGOState:
     return CSGOState(style, style_scale=0.7, content_scale=1.3, content_routing="paper")
 
 
-@pytest.mark.parametrize("kind", ["style", "content"])
-def test_image_token_patch_gives_each_half_its_tokens(kind):
-    generator = torch.Generator().manual_seed(2)
-    state = _state(generator)
-    weights = [torch.randn(WIDTH, 5, generator=generator, dtype=torch.float64) for _ in range(2)]
-    content = ImageTokens(torch.randn(VIEWS, 3, 5, generator=generator, dtype=torch.float64),
-                          torch.randn(VIEWS, 3, 5, generator=generator, dtype=torch.float64))
-    q, k, v = _qkv(2, generator)
-    out = ImageTokenPatch(*weights, kind, state)(q, k, v, _options([1, 0], **{CONTENT_TOKENS: content}))
-    tokens, scale = (state.style, 0.7) if kind == "style" else (content, 1.3)
+def _expected(q, k, v, weights, tokens: ImageTokens, scale: float, cond_or_uncond) -> torch.Tensor:
+    """Text attention plus each view's own decoupled image attention, row by row, in float64."""
     expected = attend(q, k, v, HEADS).clone()
-    for chunk, half in enumerate([tokens.uncond, tokens.cond]):
+    for chunk, half in enumerate(tokens.uncond if h == 1 else tokens.cond for h in cond_or_uncond):
         for view in range(VIEWS):
             row = chunk * VIEWS + view
             image = half[min(view, len(half) - 1)]
             k_ip, v_ip = image @ weights[0].T, image @ weights[1].T
             expected[row] += scale * attend(q[row:row + 1], k_ip[None], v_ip[None], HEADS)[0]
-    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    return expected
+
+
+def _content(generator) -> ImageTokens:
+    return ImageTokens(torch.randn(VIEWS, 3, 5, generator=generator, dtype=torch.float64),
+                       torch.randn(VIEWS, 3, 5, generator=generator, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("kind", ["style", "content"])
+def test_image_token_patch_gives_each_half_its_tokens(kind):
+    generator = torch.Generator().manual_seed(2)
+    state = _state(generator)
+    weights = [torch.randn(WIDTH, 5, generator=generator, dtype=torch.float64) for _ in range(2)]
+    content = _content(generator)
+    q, k, v = _qkv(2, generator)
+    out = ImageTokenPatch(*weights, kind, state)(q, k, v, _options([1, 0], **{CONTENT_TOKENS: content}))
+    tokens, scale = (state.style, 0.7) if kind == "style" else (content, 1.3)
+    torch.testing.assert_close(out, _expected(q, k, v, weights, tokens, scale, [1, 0]), rtol=1e-12, atol=1e-12)
+
+
+def test_image_token_patch_follows_each_groups_tokens_and_batch_layout():
+    """The state builds each token batch once (on the queries' device) and reuses it: a new group's content
+    tokens, the halves as separate batches, and back, each give that call's own result."""
+    generator = torch.Generator().manual_seed(4)
+    state = _state(generator)
+    weights = [torch.randn(WIDTH, 5, generator=generator, dtype=torch.float64) for _ in range(2)]
+    first, second = _content(generator), _content(generator)
+    patch = ImageTokenPatch(*weights, "content", state)
+    for tokens, cond_or_uncond in ((first, [1, 0]), (second, [1, 0]), (second, [0]), (second, [1]), (first, [1, 0])):
+        q, k, v = _qkv(len(cond_or_uncond), generator)
+        out = patch(q, k, v, _options(cond_or_uncond, **{CONTENT_TOKENS: tokens}))
+        torch.testing.assert_close(out, _expected(q, k, v, weights, tokens, 1.3, cond_or_uncond), rtol=1e-12, atol=1e-12)
 
 
 def test_content_patch_without_content_tokens_says_what_to_do():

@@ -32,7 +32,7 @@ PUBLIC_INPUTS = {
     "ArtNVGNVAttentionPatch": ["model", "enabled", "levels", "nearest_views", "kv_downsample"],
     "ArtNVGSampleGroup": ["model", "positive", "negative", "vae", "control_net", "content_views", "groups",
                           "group_index", "seed", "steps", "cfg", "sampler_name", "scheduler", "denoise",
-                          "control_scale", "resolution", "size_rule"],
+                          "control_scale", "resolution", "size_rule", "cfg_until"],
     "ArtNVGFinetuneGaussians": ["scene", "cameras", "style_image", "iterations", "optimize", "l1_weight",
                                 "ssim_weight", "nnfm_weight", "content_weight", "tv_weight", "seed", "stylized_views",
                                 "nnfm_max_side", "color_transfer", "preset", "views_per_step", "nnfm_search", "selection"],

@@ -34,6 +34,7 @@ import torch
 from torch import nn
 
 from ..statedict import listed_keys, parameters_on_meta, state_dict_mismatch
+from ..tensor_files import read_tensors, read_torch_file
 from .csgo import (
     CONTROLNET_ROUTES,
     UNET_ROUTES,
@@ -55,22 +56,21 @@ class CSGOWeightsError(ValueError):
     """A CSGO weight file does not match the expected layout."""
 
 
-def read_csgo_file(path: str | Path) -> dict[str, dict[str, torch.Tensor]]:
+def read_csgo_file(path: str | Path, device: str | torch.device = "cpu") -> dict[str, dict[str, torch.Tensor]]:
     """Read the key groups of a CSGO file (``.bin``/``.pt`` via ``torch.load(weights_only=True)``,
-    or ``.safetensors``) onto the CPU; the required groups must be there, others are dropped with a warning."""
+    or ``.safetensors``) straight onto ``device`` (:mod:`artnvg_core.tensor_files`); the required groups
+    must be there, others are dropped with a warning."""
     path = Path(path)
     if not path.is_file():
         raise CSGOWeightsError(f"CSGO weights: file '{path}' does not exist")
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
         groups: dict[str, dict[str, torch.Tensor]] = {}
-        for key, tensor in load_file(str(path)).items():
+        for key, tensor in read_tensors(path, device).items():
             group, _, rest = key.partition(".")
             groups.setdefault(group, {})[rest] = tensor
     else:
         try:
-            groups = torch.load(path, map_location="cpu", weights_only=True)
+            groups = read_torch_file(path, device)
         except Exception as error:  # unpickling errors have many types
             raise CSGOWeightsError(f"CSGO weights '{path}': not a readable torch file ({error})") from error
     if not isinstance(groups, dict):
@@ -156,11 +156,12 @@ class CSGOFile:
     conv_in: dict[str, torch.Tensor] | None = None  # the optional ``conv_in_unet_sd`` group
 
 
-def read_csgo(path: str | Path, dim_head: int = 64) -> CSGOFile:
-    """The CSGO file at ``path`` with its resamplers built (head width ``dim_head``: 64 in CSGO, not stored).
-    Raises :class:`CSGOWeightsError` naming the file and group on a missing group or a bad resampler."""
+def read_csgo(path: str | Path, dim_head: int = 64, device: str | torch.device = "cpu") -> CSGOFile:
+    """The CSGO file at ``path`` read onto ``device`` with its resamplers built (head width ``dim_head``: 64 in
+    CSGO, not stored). Raises :class:`CSGOWeightsError` naming the file and group on a missing group or a
+    bad resampler."""
     path = Path(path)
-    groups = read_csgo_file(path)
+    groups = read_csgo_file(path, device)
     return CSGOFile(
         path=path,
         content=_load_resampler(groups["content_image_proj"], "content_image_proj", path, dim_head),
@@ -185,7 +186,7 @@ def load_csgo(
     dim_head: the resamplers' head width (64 in CSGO; not stored in the file).
     Raises :class:`CSGOWeightsError` on a missing or mis-shaped key (see the module docstring).
     """
-    csgo = read_csgo(path, dim_head)
+    csgo = read_csgo(path, dim_head, unet.conv_in.weight.device)
     path, content, style = csgo.path, csgo.content, csgo.style
     cross_dim = unet.config.cross_attention_dim
     for name, resampler in (("content_image_proj", content), ("style_image_proj", style)):

@@ -16,7 +16,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from .quiet_notices import lora_loading_notices_silenced
+from .quiet_notices import lora_loading_notices_silenced, torchvision_fallback_notice_silenced
 
 LORA_COMPONENTS = ("unet", "text_encoder", "text_encoder_2")  # what an SDXL LoRA may change
 
@@ -80,12 +80,20 @@ def check_lora(lora: LoRA) -> None:
                          f"{foreign[:3] if foreign else 'none at all'})")
 
 
-def fuse_loras(pipe, loras: tuple[LoRA, ...]) -> None:
-    """Merge ``loras`` into the UNet and text encoders of ``pipe`` (a diffusers SDXL pipeline) in place
-    (module docstring). LoRAError naming the file for one that diffusers cannot read as an SDXL LoRA
+def fuse_loras(base, loras: tuple[LoRA, ...]) -> None:
+    """Merge ``loras`` into the UNet and text encoders of ``base`` (an
+    :class:`~artnvg_core.diffusion.models.SDXLBase`) in place, through a diffusers SDXL pipeline over its
+    models (module docstring). LoRAError naming the file for one that diffusers cannot read as an SDXL LoRA
     or that matches no layer of these models."""
     if not loras:
         return
+    with torchvision_fallback_notice_silenced():  # the pipeline's module imports transformers' image processors
+        from diffusers import EulerDiscreteScheduler, StableDiffusionXLPipeline
+
+    pipe = StableDiffusionXLPipeline(
+        vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
+        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=EulerDiscreteScheduler.from_config(base.scheduler_config),
+        add_watermarker=False)
     names = []
     for index, lora in enumerate(loras):
         check_lora(lora)

@@ -18,6 +18,7 @@ Single weight files are loaded strictly: missing or unexpected keys raise ValueE
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,6 +28,7 @@ from pathlib import Path
 import torch
 from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
 from transformers import (
+    CLIPTextConfig,
     CLIPTextModel,
     CLIPTextModelWithProjection,
     CLIPTokenizer,
@@ -36,6 +38,7 @@ from transformers import (
 
 from ..progress import ProgressFn, StopFn, check_stop
 from ..statedict import parameters_on_meta, state_dict_mismatch
+from ..tensor_files import read_tensors
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
 from .csgo_weights import load_csgo
@@ -53,12 +56,8 @@ from .model_files import (
     locate,
     require_path,
 )
-from .quiet_notices import sdxl_loading_notices_silenced, torchvision_fallback_notice_silenced
+from .quiet_notices import sdxl_loading_notices_silenced
 from .sdxl_config import built_in_sdxl_config
-
-with torchvision_fallback_notice_silenced():  # its module imports transformers' image processors
-    from diffusers import StableDiffusionXLPipeline
-
 
 @dataclass
 class SDXLBase:
@@ -93,27 +92,26 @@ def _vae_dtype(force_upcast: bool, dtype: torch.dtype) -> torch.dtype:
     return torch.float32 if dtype == torch.float16 and force_upcast else dtype
 
 
-def _read_weights(path: Path, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
-    """The tensors of a ``.safetensors`` file or a ``torch.save`` file, read onto ``device``."""
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+def load_state_dict_strict(model: torch.nn.Module, path: Path, device: str | torch.device = "cpu",
+                           dtype: torch.dtype | None = None) -> None:
+    """Load the weight file at ``path`` into ``model`` (built in :func:`parameters_on_meta` or not), its
+    tensors read straight onto ``device`` (:func:`~artnvg_core.tensor_files.read_tensors`; floating ones in
+    ``dtype`` when given, else the file's); every key must match in name and shape
+    (:func:`assign_strict`)."""
+    assign_strict(model, read_tensors(path, device, dtype), f"weights '{path}'")
 
-        return load_file(str(path), device=str(torch.device(device)))
-    return torch.load(path, map_location=device, weights_only=True)
 
-
-def load_state_dict_strict(model: torch.nn.Module, path: Path, device: str | torch.device = "cpu") -> None:
-    """Load the weight file at ``path`` into ``model`` (built in :func:`parameters_on_meta` or not),
-    taking the file's tensors as they are, read straight onto ``device`` (no other copy, the file's
-    dtype); every key must match in name and shape (else ValueError listing the missing, unexpected and
-    mis-shaped keys). Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
+def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: str) -> None:
+    """Make ``state``'s tensors ``model``'s (``load_state_dict(assign=True)``: no copy); every key must match
+    in name and shape, else ValueError starting with ``what`` and listing the missing, unexpected and
+    mis-shaped keys. Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
     files) are ignored: the model computes them itself."""
     expected = model.state_dict()
     recomputed = {name for name, _ in model.named_buffers()} - set(expected)
-    state = {k: v for k, v in _read_weights(path, device).items() if k not in recomputed}
+    state = {k: v for k, v in state.items() if k not in recomputed}
     mismatch = state_dict_mismatch(expected, state)
     if mismatch:
-        raise ValueError(f"weights '{path}' do not fit {type(model).__name__}: {mismatch}")
+        raise ValueError(f"{what} do not fit {type(model).__name__}: {mismatch}")
     model.load_state_dict(state, assign=True)
 
 
@@ -136,6 +134,33 @@ def _weights_variant(folder: Path) -> str | None:
     return "fp16" if files and not plain else None
 
 
+def _weights_file(folder: Path, dtype: torch.dtype) -> Path | None:
+    """The one ``.safetensors`` file of a model folder that a load in ``dtype`` reads: its fp16 variant for
+    float16 when there is one, else the plain file (the variant when it is all there is); None for sharded
+    or ``.bin`` weights (their library's own loader reads those)."""
+    files = sorted(folder.glob("*.safetensors"))
+    fp16 = [f for f in files if f.name.endswith(".fp16.safetensors")]
+    plain = [f for f in files if f not in fp16]
+    chosen = fp16 if (dtype == torch.float16 and fp16) or not plain else plain
+    return chosen[0] if len(chosen) == 1 else None
+
+
+def _from_folder(cls, folder: Path, device: str | torch.device, dtype: torch.dtype) -> torch.nn.Module:
+    """A diffusers or transformers model (``cls``) from its folder: built on the meta device from its
+    ``config.json`` and its one weight file read straight onto ``device`` in ``dtype``
+    (:func:`load_state_dict_strict`: the file's keys must be the model's); other layouts through the
+    library's own ``from_pretrained``, then placed."""
+    weights = _weights_file(folder, dtype)
+    if weights is None:
+        model = cls.from_pretrained(folder, local_files_only=True, variant=_weights_variant(folder))
+        return _placed(model, device, dtype)
+    with parameters_on_meta():
+        model = (cls.from_config(cls.load_config(folder)) if hasattr(cls, "load_config")
+                 else cls(cls.config_class.from_pretrained(folder)))
+    load_state_dict_strict(model, weights, device, dtype)
+    return model.eval()
+
+
 @contextmanager
 def _config_folder(config_dir: str | Path | None) -> Iterator[Path]:
     """The SDXL config folder of a single-file checkpoint: ``config_dir`` when given, else the built-in one."""
@@ -144,6 +169,56 @@ def _config_folder(config_dir: str | Path | None) -> Iterator[Path]:
         return
     with built_in_sdxl_config() as folder:
         yield folder
+
+
+SDXL_FILE_TEXT_ENCODER_2 = "conditioner.embedders.1.model."  # OpenCLIP bigG's keys in an SDXL single file
+
+
+def _sdxl_models_from_file(path: Path, folder: Path, dtype: torch.dtype, vae_dtype: torch.dtype,
+                           device: str | torch.device) -> dict[str, torch.nn.Module]:
+    """SDXL's four models from a single-file checkpoint (original key layout) and the configs in ``folder``:
+    the file read once straight onto ``device`` in its own dtype, its keys mapped to diffusers' and
+    transformers' by diffusers' converters there, each model built on the meta device and given the
+    converted tensors, cast to its dtype on the device. Strict: a model whose keys the file does not
+    fill exactly is a ValueError naming the file."""
+    from diffusers.loaders.single_file_utils import (
+        convert_ldm_clip_checkpoint,
+        convert_ldm_unet_checkpoint,
+        convert_ldm_vae_checkpoint,
+        convert_open_clip_checkpoint,
+    )
+
+    checkpoint = read_tensors(path, device)
+    with parameters_on_meta():
+        unet = UNet2DConditionModel.from_config(UNet2DConditionModel.load_config(folder / "unet"))
+        vae = AutoencoderKL.from_config(AutoencoderKL.load_config(folder / "vae"))
+        text_encoder = CLIPTextModel(CLIPTextConfig.from_pretrained(folder / "text_encoder"))
+        text_encoder_2 = CLIPTextModelWithProjection(CLIPTextConfig.from_pretrained(folder / "text_encoder_2"))
+    clip_l = convert_ldm_clip_checkpoint(checkpoint)
+    if not hasattr(text_encoder, "text_model"):  # transformers >= 5.6 builds CLIPTextModel without the wrapper
+        clip_l = {k.removeprefix("text_model."): v for k, v in clip_l.items()}
+    states = {"unet": convert_ldm_unet_checkpoint(checkpoint, dict(unet.config)),
+              "vae": convert_ldm_vae_checkpoint(checkpoint, dict(vae.config)), "text_encoder": clip_l,
+              "text_encoder_2": convert_open_clip_checkpoint(text_encoder_2, checkpoint, SDXL_FILE_TEXT_ENCODER_2)}
+    del checkpoint
+    models = {"unet": unet, "vae": vae, "text_encoder": text_encoder, "text_encoder_2": text_encoder_2}
+    for name, model in models.items():
+        wanted = vae_dtype if name == "vae" else dtype
+        assign_strict(model, {k: v.to(wanted) if v.is_floating_point() else v for k, v in states.pop(name).items()},
+                      f"SDXL checkpoint '{path}' ({name})")
+        model.eval()
+    return models
+
+
+def _sdxl_models_from_folder(path: Path, dtype: torch.dtype, vae_dtype: torch.dtype,
+                             device: str | torch.device) -> dict[str, torch.nn.Module]:
+    """SDXL's four models from a diffusers folder: the UNet and VAE by :func:`_from_folder`, the text
+    encoders by transformers' ``from_pretrained`` (which knows its key renames), then placed."""
+    text = {name: _placed(cls.from_pretrained(path / name, local_files_only=True,
+                                              variant=_weights_variant(path / name)), device, dtype)
+            for name, cls in (("text_encoder", CLIPTextModel), ("text_encoder_2", CLIPTextModelWithProjection))}
+    return {"unet": _from_folder(UNet2DConditionModel, path / "unet", device, dtype),
+            "vae": _from_folder(AutoencoderKL, path / "vae", device, vae_dtype), **text}
 
 
 def load_sdxl(
@@ -159,40 +234,25 @@ def load_sdxl(
     ``loras`` fused into its UNet and text encoders on ``device`` (:func:`~artnvg_core.diffusion.lora.fuse_loras`).
 
     path None looks in the Hugging Face cache. For a single file, ``config_dir`` (default: the
-    configs and tokenizers shipped with the package) provides configs and tokenizers.
+    configs and tokenizers shipped with the package) provides configs and tokenizers. The weights are read
+    straight onto ``device`` (:mod:`artnvg_core.tensor_files`); no diffusers pipeline is built unless
+    ``loras`` are fused.
     """
     path = locate(SDXL_BASE, path, hf_cache_dir=hf_cache_dir)
     check_sdxl(path, config_dir)
-    if path.is_dir():
-        vae_config = json.loads((path / "vae" / "config.json").read_text())
-        dtypes = {"default": dtype, "vae": _vae_dtype(vae_config.get("force_upcast", True), dtype)}
-        with sdxl_loading_notices_silenced():
-            pipe = StableDiffusionXLPipeline.from_pretrained(
-                path,
-                torch_dtype=dtypes,
-                local_files_only=True,
-                variant=_weights_variant(path / "unet"),
-                add_watermarker=False,
-            )
-    else:
-        with _config_folder(config_dir) as folder, sdxl_loading_notices_silenced():
-            pipe = StableDiffusionXLPipeline.from_single_file(
-                str(path), config=str(folder), torch_dtype=dtype, local_files_only=True, add_watermarker=False
-            )
-    _placed(pipe.vae, device, _vae_dtype(pipe.vae.config.force_upcast, dtype))
-    for part in (pipe.unet, pipe.text_encoder, pipe.text_encoder_2):
-        part.to(device).eval()
-    fuse_loras(pipe, loras)
-    return SDXLBase(
-        unet=pipe.unet,
-        vae=pipe.vae,
-        text_encoder=pipe.text_encoder,
-        text_encoder_2=pipe.text_encoder_2,
-        tokenizer=pipe.tokenizer,
-        tokenizer_2=pipe.tokenizer_2,
-        scheduler_config=dict(pipe.scheduler.config),
-        force_zeros_for_empty_prompt=bool(pipe.config.get("force_zeros_for_empty_prompt", True)),
-    )
+    configs = contextlib.nullcontext(path) if path.is_dir() else _config_folder(config_dir)
+    with configs as folder, sdxl_loading_notices_silenced():
+        vae_config = json.loads((folder / "vae" / "config.json").read_text())
+        vae_dtype = _vae_dtype(vae_config.get("force_upcast", True), dtype)
+        models = (_sdxl_models_from_folder(path, dtype, vae_dtype, device) if path.is_dir()
+                  else _sdxl_models_from_file(path, folder, dtype, vae_dtype, device))
+        tokenizers = {name: CLIPTokenizer.from_pretrained(folder / name) for name in ("tokenizer", "tokenizer_2")}
+        scheduler_config = json.loads((folder / "scheduler" / "scheduler_config.json").read_text())
+        index = json.loads((folder / "model_index.json").read_text())
+    base = SDXLBase(**models, **tokenizers, scheduler_config=scheduler_config,
+                    force_zeros_for_empty_prompt=bool(index.get("force_zeros_for_empty_prompt", True)))
+    fuse_loras(base, loras)
+    return base
 
 
 def load_vae(
@@ -212,7 +272,7 @@ def load_vae(
             raise MissingModelError(f"VAE weights '{path}': no config.json beside the file")
         with parameters_on_meta():
             vae = AutoencoderKL.from_config(config)
-        load_state_dict_strict(vae, path, device)
+        load_state_dict_strict(vae, path, device, _vae_dtype(vae.config.force_upcast, dtype))
     return _placed(vae, device, _vae_dtype(vae.config.force_upcast, dtype))
 
 
@@ -230,17 +290,16 @@ def load_controlnet(
     """
     path = locate(TILE_CONTROLNET, path, hf_cache_dir=hf_cache_dir)
     if path.is_dir():
-        controlnet = ControlNetModel.from_pretrained(path, local_files_only=True, variant=_weights_variant(path))
-    else:
-        config = _config_beside(path)
-        if config is None and unet_config is None:
-            raise MissingModelError(
-                f"ControlNet weights '{path}': no config.json beside the file and no UNet config to derive one from"
-            )
-        with parameters_on_meta():
-            controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
-        load_state_dict_strict(controlnet, path, device)
-    return _placed(controlnet, device, dtype)
+        return _from_folder(ControlNetModel, path, device, dtype)
+    config = _config_beside(path)
+    if config is None and unet_config is None:
+        raise MissingModelError(
+            f"ControlNet weights '{path}': no config.json beside the file and no UNet config to derive one from"
+        )
+    with parameters_on_meta():
+        controlnet = ControlNetModel.from_config(config or controlnet_config_from_unet(unet_config))
+    load_state_dict_strict(controlnet, path, device, dtype)
+    return controlnet.eval()
 
 
 def load_image_encoder(
@@ -254,13 +313,12 @@ def load_image_encoder(
     path = locate(IMAGE_ENCODER, path, hf_cache_dir=hf_cache_dir)
     if path.is_dir():
         require_path(path / "config.json", "image encoder folder")
-        encoder = CLIPVisionModelWithProjection.from_pretrained(path, local_files_only=True)
-    else:
-        config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
-        with parameters_on_meta():
-            encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**transformers_config_kwargs(config)))
-        load_state_dict_strict(encoder, path, device)
-    return _placed(encoder, device, dtype)
+        return _from_folder(CLIPVisionModelWithProjection, path, device, dtype)
+    config = _config_beside(path) or VIT_BIGG_IMAGE_ENCODER_CONFIG
+    with parameters_on_meta():
+        encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(**transformers_config_kwargs(config)))
+    load_state_dict_strict(encoder, path, device, dtype)
+    return encoder.eval()
 
 
 def _bytes(path: Path) -> int:

@@ -28,7 +28,6 @@ With neighbouring-view attention off and zero CSGO scales this is exactly diffus
 from __future__ import annotations
 
 import inspect
-import math
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -48,7 +47,7 @@ from .conditioning import StyleConditioning, content_tokens
 from .images import check_images, resize_images, sampling_size
 from .memory import visiting
 from .models import DiffusionModels
-from .settings import SamplerSettings
+from .settings import SamplerSettings, guided_steps
 from .speed import sdpa_backend
 
 SCHEDULERS = {
@@ -58,14 +57,6 @@ SCHEDULERS = {
     "dpmpp_2m": DPMSolverMultistepScheduler,
     "unipc": UniPCMultistepScheduler,
 }  # keys: settings.SCHEDULER_NAMES, in that order
-
-
-def guided_steps(settings: SamplerSettings, steps: int) -> int:
-    """How many of the first ``steps`` denoising steps use classifier-free guidance: ``ceil(cfg_until * steps)``
-    (rounded to 1e-6 first, so 0.8 x 50 is 40), or 0 when ``guidance_scale <= 1`` (no unconditional half)."""
-    if settings.guidance_scale <= 1:
-        return 0
-    return min(steps, math.ceil(round(settings.cfg_until * steps, 6)))
 
 
 def _time_ids(models: DiffusionModels, height: int, width: int, pooled_dim: int) -> torch.Tensor:
@@ -291,7 +282,7 @@ def stylize_group(
     latents = (noise * scheduler.init_noise_sigma).to(unet.device)
     step_kwargs = _step_kwargs(scheduler, generator)
     timesteps = scheduler.timesteps
-    guided = guided_steps(settings, len(timesteps))
+    guided = guided_steps(len(timesteps), settings.cfg_until, settings.guidance_scale)
     for step, t in enumerate(timesteps):
         check_stop(should_stop)
         model_input = scheduler.scale_model_input(latents, t).to(unet.dtype)

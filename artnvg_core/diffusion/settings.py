@@ -6,6 +6,7 @@ importing diffusers or transformers (seconds of start-up a diffusion-free run do
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from .csgo import CONTENT_ROUTINGS
@@ -106,3 +107,11 @@ class SamplerSettings:
             raise ValueError(f"SamplerSettings.resolution must be >= 64 or None, got {self.resolution}")
         if self.noise_resolution is not None and self.noise_resolution < 64:
             raise ValueError(f"SamplerSettings.noise_resolution must be >= 64 or None, got {self.noise_resolution}")
+
+
+def guided_steps(steps: int, cfg_until: float, guidance_scale: float) -> int:
+    """How many of the first ``steps`` denoising steps use classifier-free guidance: ``ceil(cfg_until * steps)``
+    (rounded to 1e-6 first, so 0.8 x 50 is 40), or 0 when ``guidance_scale <= 1`` (no unconditional half)."""
+    if guidance_scale <= 1:
+        return 0
+    return min(steps, math.ceil(round(cfg_until * steps, 6)))

@@ -140,8 +140,8 @@ def _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, style, fold
 
 
 def _cancelled(sample) -> dict:
-    """Sample Group under ComfyUI's progress hook: the steps it reports, then the exception a pressed Cancel
-    (ComfyUI's interrupt flag) raises at the next step."""
+    """Sample Group under ComfyUI's progress hook (2 steps, the first guided: two sampler runs): the steps it
+    reports, then the exception a pressed Cancel (ComfyUI's interrupt flag) raises at the next step."""
     import comfy.model_management
     import comfy.utils
 
@@ -191,12 +191,12 @@ def main(checkout: Path, folder: Path) -> None:
             (patched,) = patch_nodes.NVAttentionPatch().patch(patched, case["neighbour_views"])
             (outputs[name],) = diffusion_nodes.SampleGroup().sample(
                 patched, positive, negative, vae, control, views, groups, -1, case["seed"], case["steps"], case["cfg"],
-                "ddim", "simple", 1.0, case["control_scale"], case["resolution"], "long_side")
+                "ddim", "simple", 1.0, case["control_scale"], case["resolution"], "long_side", case.get("cfg_until", 1.0))
         checks = {"errors": _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"],
                                     folder, configs),
                   **_cancelled(lambda: diffusion_nodes.SampleGroup().sample(
-                      model, positive, negative, vae, control_net, views, groups, 0, 0, 2, 1.0, "euler", "simple", 1.0,
-                      1.0, 64, "long_side"))}
+                      model, positive, negative, vae, control_net, views, groups, 0, 0, 2, 5.0, "euler", "simple", 1.0,
+                      1.0, 64, "long_side", 0.5))}
     save_file({name: image.contiguous() for name, image in outputs.items()}, str(folder / "native.safetensors"))
     (folder / "checks.json").write_text(json.dumps(checks))
 

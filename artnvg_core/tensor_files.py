@@ -1,0 +1,151 @@
+"""Weight files read straight onto the device that computes with them.
+
+:func:`read_tensors` reads a ``.safetensors`` file (its own small parser: an 8-byte little-endian
+header length, a JSON header of ``{name: {dtype, shape, data_offsets}}``, then the raw bytes) into
+tensors allocated once on the target device, or a ``torch.save`` file (memory-mapped, then moved).
+On CUDA the bytes pass through two small pinned buffers in turn: while the GPU copies one, the file
+is read into the other, on a stream of its own, so the reading thread waits in system calls and
+copies (the interpreter lock released) and the default stream's work (rendering, say) goes on beside
+it. No CPU copy of the whole file is made, and nothing is converted on the CPU: a ``dtype`` asked
+for is applied on the device, tensor by tensor.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import zipfile
+from pathlib import Path
+
+import torch
+
+SAFETENSORS_DTYPES = {
+    "F64": torch.float64, "F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16,
+    "I64": torch.int64, "I32": torch.int32, "I16": torch.int16, "I8": torch.int8, "U8": torch.uint8,
+    "BOOL": torch.bool, "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
+}
+MAX_HEADER_BYTES = 100 * 2**20  # as the safetensors library's own limit
+STAGING_BYTES = 64 * 2**20  # each of the two pinned buffers a CUDA read passes through
+
+
+def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
+                 dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
+    """The tensors of the ``.safetensors`` or ``torch.save`` file at ``path``, on ``device``; floating-point
+    tensors converted to ``dtype`` there when given (others keep theirs). A malformed ``.safetensors``
+    header is a ValueError naming the file and what is wrong."""
+    path, device = Path(path), torch.device(device)
+    tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else read_torch_file(path, device)
+    return tensors if dtype is None else {k: _cast(v, dtype) for k, v in tensors.items()}
+
+
+def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu"):
+    """What ``torch.save`` wrote at ``path`` (tensors, dicts of them ...), its tensors on ``device``. For another
+    device than the CPU a zip-format file is memory-mapped (no copy of the file in memory), each tensor moved
+    from the mapping; CPU tensors are read into memory of their own (a mapping would follow later changes
+    to the file)."""
+    device = torch.device(device)
+    return torch.load(path, map_location=device, weights_only=True,
+                      mmap=device.type != "cpu" and zipfile.is_zipfile(path))
+
+
+def _cast(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return tensor.to(dtype) if tensor.is_floating_point() else tensor
+
+
+def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, list[int], int, int]]]:
+    """(byte offset of the data, {name: (dtype, shape, begin, end)}) of a ``.safetensors`` file, offsets
+    relative to the data; checked against the file's size and each tensor's byte count."""
+    size = path.stat().st_size
+    with open(path, "rb") as stream:
+        head = stream.read(8)
+        length = struct.unpack("<Q", head)[0] if len(head) == 8 else -1
+        if not 0 < length <= min(MAX_HEADER_BYTES, size - 8):
+            raise ValueError(f"weights '{path}': not a safetensors file (header length {length}, file {size} bytes)")
+        try:
+            header = json.loads(stream.read(length))
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise ValueError(f"weights '{path}': safetensors header is not JSON ({error})") from None
+    if not isinstance(header, dict):
+        raise ValueError(f"weights '{path}': safetensors header is not a JSON object")
+    start, entries = 8 + length, {}
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        try:
+            dtype, shape, (begin, end) = SAFETENSORS_DTYPES[info["dtype"]], list(info["shape"]), info["data_offsets"]
+            nbytes = math.prod(shape) * dtype.itemsize
+            valid = all(isinstance(n, int) and n >= 0 for n in (*shape, begin, end))
+        except (KeyError, TypeError, ValueError):
+            valid = False
+        if not valid or end - begin != nbytes or start + end > size:
+            raise ValueError(f"weights '{path}': tensor '{name}' has a bad entry in the safetensors header "
+                             f"(dtype, shape and data_offsets within the file's {size} bytes expected)")
+        entries[name] = (dtype, shape, begin, end)
+    return start, entries
+
+
+def read_safetensors(path: Path, device: torch.device) -> dict[str, torch.Tensor]:
+    """The tensors of a ``.safetensors`` file, each allocated on ``device`` and filled from the file (see
+    the module docstring); in the file's dtypes."""
+    start, entries = safetensors_header(path)
+    ordered = sorted(entries.items(), key=lambda item: item[1][2])
+    landing = device if device.type in ("cpu", "cuda") else torch.device("cpu")  # others: through the CPU
+    raw = {name: torch.empty(end - begin, dtype=torch.uint8, device=landing) for name, (_, _, begin, end) in ordered}
+    with open(path, "rb", buffering=0) as file:
+        if hasattr(os, "posix_fadvise"):
+            os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
+        if landing.type == "cuda":  # copies on a stream of their own, after what the device was already given
+            stream = torch.cuda.Stream(landing)
+            stream.wait_stream(torch.cuda.current_stream(landing))  # the memory may have been another tensor's
+            with torch.cuda.stream(stream):
+                stream_into(file, start, [(raw[name], begin) for name, (_, _, begin, _) in ordered])
+        else:  # straight into each tensor's memory
+            for name, (_, _, begin, _) in ordered:
+                file.seek(start + begin)
+                _read_into(file, raw[name])
+    return {name: raw[name].view(dtype).view(shape).to(device) for name, (dtype, shape, _, _) in entries.items()}
+
+
+def _read_into(file, target: torch.Tensor) -> None:
+    """Fill the uint8 CPU tensor ``target`` from ``file``'s position; a file that ends first is a ValueError."""
+    view, done = memoryview(target.numpy()), 0
+    while done < len(view):
+        count = file.readinto(view[done:])
+        if not count:
+            raise ValueError(f"weights '{getattr(file, 'name', file)}': the file ends before its tensors do")
+        done += count
+
+
+def stream_into(file, start: int, targets: list[tuple[torch.Tensor, int]], chunk_bytes: int = STAGING_BYTES) -> None:
+    """Copy the bytes of ``file`` from ``start`` on into ``targets``: (uint8 tensor, offset from ``start``)
+    pairs in ascending offsets, all on one device, through two buffers of ``chunk_bytes`` used in turn.
+    For CUDA targets the buffers are pinned and the copies asynchronous on the current stream: the file
+    is read into one buffer while the other is copied out; returns once every copy is done."""
+    cuda = bool(targets) and targets[0][0].is_cuda
+    buffers = [torch.empty(chunk_bytes, dtype=torch.uint8, pin_memory=cuda) for _ in range(2)]
+    copied = [None, None]  # per buffer, the event after the last copy out of it
+    end = max((offset + len(target) for target, offset in targets), default=0)
+    position, turn, first = 0, 0, 0
+    file.seek(start)
+    while position < end:
+        buffer, count = buffers[turn], min(chunk_bytes, end - position)
+        if copied[turn] is not None:
+            copied[turn].synchronize()
+        _read_into(file, buffer[:count])
+        while first < len(targets) and targets[first][1] + len(targets[first][0]) <= position:
+            first += 1
+        index = first
+        while index < len(targets) and targets[index][1] < position + count:
+            target, offset = targets[index]
+            low, high = max(offset, position), min(offset + len(target), position + count)
+            if high > low:
+                target[low - offset:high - offset].copy_(buffer[low - position:high - position], non_blocking=cuda)
+            index += 1
+        if cuda:
+            copied[turn] = torch.cuda.Event()
+            copied[turn].record()
+        position, turn = position + count, 1 - turn
+    if cuda:
+        torch.cuda.current_stream().synchronize()

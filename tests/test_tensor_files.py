@@ -1,0 +1,84 @@
+"""Weight files read onto a device: the safetensors parser against the safetensors library, the chunked
+copy at every chunk size, malformed files refused by name."""
+
+import json
+import struct
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from artnvg_core.tensor_files import read_tensors, safetensors_header, stream_into
+
+
+def _tensors() -> dict[str, torch.Tensor]:
+    generator = torch.Generator().manual_seed(0)
+    return {"weight": torch.randn(5, 7, generator=generator), "half": torch.randn(3, generator=generator).half(),
+            "bf16": torch.randn(2, 3, generator=generator).bfloat16(), "double": torch.randn(4, dtype=torch.float64, generator=generator),
+            "ids": torch.arange(6, dtype=torch.int64).reshape(2, 3), "small": torch.arange(3, dtype=torch.int8),
+            "flags": torch.tensor([True, False, True]), "scalar": torch.tensor(2.5), "empty": torch.zeros(0, 4)}
+
+
+@pytest.fixture
+def weights_file(tmp_path):
+    path = tmp_path / "w.safetensors"
+    save_file(_tensors(), str(path))
+    return path
+
+
+def test_safetensors_read_as_the_safetensors_library_reads_them(weights_file):
+    expected, read = load_file(str(weights_file)), read_tensors(weights_file)
+    assert read.keys() == expected.keys()
+    for name, tensor in expected.items():
+        assert read[name].dtype == tensor.dtype and read[name].shape == tensor.shape and torch.equal(read[name], tensor)
+
+
+def test_a_dtype_converts_floating_tensors_only(weights_file):
+    read = read_tensors(weights_file, dtype=torch.float16)
+    for name, tensor in _tensors().items():
+        wanted = tensor.to(torch.float16) if tensor.is_floating_point() else tensor
+        assert read[name].dtype == wanted.dtype and torch.equal(read[name], wanted), name
+
+
+def test_torch_save_files_are_read_too(tmp_path):
+    path = tmp_path / "w.bin"
+    torch.save(_tensors(), path)
+    read = read_tensors(path, dtype=torch.bfloat16)
+    assert read["ids"].dtype == torch.int64 and torch.equal(read["weight"], _tensors()["weight"].bfloat16())
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 8, 50, 1 << 20])
+def test_chunked_copies_land_every_byte_in_its_tensor(weights_file, chunk):
+    """The copy through two staging buffers at chunk sizes below, across and above the tensors' sizes
+    gives each tensor its own bytes (CPU targets: the same code as on CUDA, copies synchronous)."""
+    start, entries = safetensors_header(weights_file)
+    ordered = sorted(entries.items(), key=lambda item: item[1][2])
+    targets = [(torch.full((end - begin,), 7, dtype=torch.uint8), begin) for _, (_, _, begin, end) in ordered]
+    with open(weights_file, "rb", buffering=0) as file:
+        stream_into(file, start, targets, chunk_bytes=chunk)
+    expected = load_file(str(weights_file))
+    for (name, (dtype, shape, _, _)), (target, _) in zip(ordered, targets):
+        assert torch.equal(target.view(dtype).view(shape), expected[name]), name
+
+
+def _write_raw(path, header: bytes, data: bytes = b"") -> None:
+    path.write_bytes(struct.pack("<Q", len(header)) + header + data)
+
+
+@pytest.mark.parametrize("header, data, message", [
+    (None, b"", "not a safetensors file"),
+    (b"{not json", b"", "header is not JSON"),
+    (b"[1, 2]", b"", "not a JSON object"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}}).encode(), b"\0" * 4, "tensor 'x'"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
+    (json.dumps({"x": {"dtype": "Q9", "shape": [2], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [-2], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
+])
+def test_malformed_files_are_refused_naming_the_file(tmp_path, header, data, message):
+    path = tmp_path / "bad.safetensors"
+    if header is None:
+        path.write_bytes(struct.pack("<Q", 1 << 40))
+    else:
+        _write_raw(path, header, data)
+    with pytest.raises(ValueError, match=f"weights '.*bad.safetensors'.*{message}"):
+        read_tensors(path)
