@@ -10,6 +10,9 @@ solves a size-constrained (balanced) k-means on the camera centres:
   ``floor(C / G)`` or ``ceil(C / G)`` (at most ``N``), so sizes differ by at most one and,
   for ``C >= N``, no group holds fewer than ``ceil(N / 2)`` views: no fragments
   (96 views, N = 15: 7 groups, five of 14 and two of 13);
+* ``multiple`` rounds G up to a multiple of it (at most one group per view), the sizes still
+  balanced: groups that share ``multiple`` devices evenly (96 views, N = 15, multiple 4: 8 groups
+  of 12, where 7 leave one of 4 devices idle for the last round);
 * the partition seeks the least within-group sum of squared distances of the
   centres to their group mean (balanced k-means; a local optimum, found to be the
   global one on small brute-forced sets): starting from a recursive
@@ -127,8 +130,10 @@ def group_views(
     group_size: int = DEFAULT_GROUP_SIZE,
     *,
     context: int = 0,
+    multiple: int = 1,
 ) -> ViewGroups:
-    """Split views into the fewest balanced groups of at most ``group_size`` nearby cameras.
+    """Split views into the fewest balanced groups of at most ``group_size`` nearby cameras, their
+    number rounded up to a multiple of ``multiple`` (at most one group per view).
 
     ``cameras`` is a CameraSet or its camera centres ``[C, 3]`` (tensor or array, world units).
     ``context`` views per group are borrowed from other groups (fewer when fewer
@@ -139,6 +144,8 @@ def group_views(
         raise ValueError(f"group_views: group_size must be an integer >= 1, got {group_size!r}")
     if isinstance(context, bool) or not isinstance(context, int) or context < 0:
         raise ValueError(f"group_views: context must be an integer >= 0, got {context!r}")
+    if isinstance(multiple, bool) or not isinstance(multiple, int) or multiple < 1:
+        raise ValueError(f"group_views: multiple must be an integer >= 1, got {multiple!r}")
     centers = _centers_array(cameras, "group_views")
     count = len(centers)
     if count == 0:
@@ -146,7 +153,7 @@ def group_views(
 
     canonical = np.lexsort(centers.T[::-1])  # by x, then y, then z; stable for duplicates
     points = centers[canonical] - centers[canonical].mean(axis=0)
-    sizes = balanced_group_sizes(count, group_size)
+    sizes = balanced_group_sizes(count, group_size, multiple)
     if 1 < len(sizes) < count:
         labels = _balanced_kmeans(points, sizes)
     else:  # one group, or one view per group
@@ -165,10 +172,11 @@ def group_views(
     return ViewGroups(groups=tuple(groups), num_views=count, centers=centers)
 
 
-def balanced_group_sizes(num_views: int, group_size: int) -> list[int]:
-    """Sizes of the ``G = ceil(C / N)`` groups (each at most N, differing by at most one), larger first,
-    summing to C."""
-    num_groups = max(1, -(-num_views // group_size))
+def balanced_group_sizes(num_views: int, group_size: int, multiple: int = 1) -> list[int]:
+    """Sizes of the ``G = ceil(C / N)`` groups, G rounded up to a multiple of ``multiple`` but at most C
+    (each at most N, differing by at most one), larger first, summing to C."""
+    fewest = max(1, -(-num_views // group_size))
+    num_groups = min(-(-fewest // multiple) * multiple, max(num_views, 1))
     base, extra = divmod(num_views, num_groups)
     return [base + 1] * extra + [base] * (num_groups - extra)
 

@@ -143,6 +143,7 @@ def stylize_diffusion(
     devices: Sequence[str | torch.device] | None = None,
     ray_address: str | None = None,
     group_size: int = 15,
+    group_multiple: int = 1,
     compile_blocks: bool = False,
     loading_progress: ProgressFn | None = None,
     sampling_progress: ProgressFn | None = None,
@@ -181,6 +182,9 @@ def stylize_diffusion(
         ray_address (`str` or None, defaults to None): a running Ray cluster (``"auto"`` or
             ``"HOST:PORT"``) whose GPUs share the groups.
         group_size (`int`, defaults to 15): the most views in a neighbouring-view group (the paper's N).
+        group_multiple (`int`, defaults to 1): the number of groups is rounded up to a multiple of it
+            (:func:`~artnvg_core.grouping.group_views`); the number of ``devices`` keeps each busy to the end.
+            The groups, and so the result, depend on it and never on the devices.
         compile_blocks (`bool`, defaults to False): compile the repeated blocks (:func:`load_models_for`;
             full memory only); on one device the compile artifacts are saved after the diffusion stage
             for the next run (:func:`artnvg_core.diffusion.compile_cache.save_compile_cache`).
@@ -222,7 +226,7 @@ def stylize_diffusion(
                                                         should_stop=should_stop)
         content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
         models = None if loading is None else loading.result()
-    groups = group_views(cameras, group_size)
+    groups = group_views(cameras, group_size, multiple=group_multiple)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:
         from .diffusion.executor import stylize_on_workers

@@ -44,13 +44,14 @@ ENDS = ("execution_success", "execution_error", "execution_interrupted")
 
 def run_once(server: str, workflow: dict, timeout: float) -> dict:
     """Queue ``workflow`` and follow it to its end: wall and waiting seconds, seconds per executed node
-    (in execution order), the cached nodes, and how it ended."""
+    (in execution order) and when each ran ([start, end] seconds after queueing), the nodes' progress
+    messages ([node, value, max, seconds after queueing]), the cached nodes, and how it ended."""
     client_id = uuid.uuid4().hex
     socket = WebSocket(f"{server.replace('http', 'ws', 1)}/ws?clientId={client_id}", timeout=timeout)
     try:
         queued = time.perf_counter()
         prompt_id = queue.queue_prompt(server, workflow, client_id)
-        started, current, nodes, cached, end = None, None, {}, [], None
+        started, current, nodes, spans, progress, cached, end = None, None, {}, {}, [], [], None
         while end is None:
             message = socket.receive_json()
             data, now = message.get("data", {}), time.perf_counter()
@@ -61,9 +62,12 @@ def run_once(server: str, workflow: dict, timeout: float) -> dict:
                 started = now
             elif kind == "execution_cached":
                 cached = list(data.get("nodes", []))
+            elif kind == "progress":
+                progress.append([data.get("node"), data["value"], data["max"], now - queued])
             if current is not None and (kind == "executing" or kind in ENDS):
                 node, since = current
                 nodes[node] = nodes.get(node, 0.0) + now - since
+                spans[node] = [since - queued, now - queued]
                 current = None
             if kind == "executing" and data.get("node") is not None:
                 current = (data["node"], now)
@@ -72,8 +76,8 @@ def run_once(server: str, workflow: dict, timeout: float) -> dict:
         wall = time.perf_counter() - queued
     finally:
         socket.close()
-    return {"wall": wall, "waiting": (started or queued) - queued, "nodes": nodes, "cached": cached,
-            "end": end.removeprefix("execution_")}
+    return {"wall": wall, "waiting": (started or queued) - queued, "nodes": nodes, "spans": spans,
+            "progress": progress, "cached": cached, "end": end.removeprefix("execution_")}
 
 
 def main() -> None:
@@ -95,7 +99,7 @@ def main() -> None:
     for number in range(1, args.runs + 1):
         queue.apply_override(workflow, f"{args.vary}={number}")
         runs.append(run_once(args.server, workflow, args.timeout))
-        print(json.dumps(runs[-1]), flush=True)
+        print(json.dumps({key: value for key, value in runs[-1].items() if key != "progress"}), flush=True)
         if args.json:
             args.json.write_text(json.dumps({"workflow": args.workflow, "runs": runs}, indent=1))
     shown = [node for node in workflow if any(node in run["nodes"] for run in runs)]

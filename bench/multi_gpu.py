@@ -1,22 +1,31 @@
 """What more GPUs buy, through Ray: one scene's groups (the executor) and a batch of scenes (``batch``).
 
-* ``groups``: the bear's content views, rendered once, grouped as ``stylize`` groups them
-  (``--views`` evenly spaced cameras, groups of 15), stylized at each ``--presets`` preset's sampler
-  settings by a :class:`GroupExecutor` of 1 worker, then of 2, 4 and ``--gpus`` workers (default: every
-  visible GPU), each with random full-size models built from one seed. Wall time from every
-  worker ready (models built) to the assembled result; the largest difference from the 1-GPU output.
+* ``groups``: the bear's content views, rendered once, grouped as ``stylize --group-multiple M``
+  groups them (``--views`` evenly spaced cameras, groups of at most 15, their number a multiple of
+  ``--group-multiple``, default the least common multiple of the worker counts run, so every run has
+  the same groups), stylized at each ``--presets`` preset's sampler settings by a :class:`GroupExecutor`
+  of 1 worker, then of 2, 4 and ``--gpus`` workers (default: every visible GPU), each with random
+  full-size models built from one seed. Wall time from every worker ready (models built) to the
+  assembled result; the largest difference from the 1-GPU output. A GPU is busy while it samples a
+  group (from the task's start, its inputs received, to its end); receiving inputs, returning views
+  and waiting for the others count as idle. Each worker's groups and their times follow each row.
 * ``batch``: ``--batch-scenes`` stylized whole (render, diffusion at ``--batch-preset``, finetune,
   contact sheet, save) as ``batch`` jobs on 1 worker, then on 2, 4 and ``--gpus`` workers, from random
   full-size model files written once to ``--models``. Wall time from start to the last job,
-  including each worker's one model load; whether every output file equals the 1-GPU run's.
+  including each worker's start and one model load (busy: inside a job, that load included); each
+  output against the 1-GPU run's: the scene's largest parameter difference and the contact sheet's
+  PSNR. The 1-GPU worker runs the first job a second time (not timed): the same comparison for one GPU
+  twice (the rasterizer's backward adds gradients with atomics, in no fixed order, so two finetunes
+  differ in the last bits and then drift).
 
 For each run: speed-up over 1 GPU; per GPU the busy fraction (seconds inside group or job tasks over
-the wall: the rest is waiting for work, or loading) and the peak memory allocated. Both runs of a
+the wall: the rest is waiting for work, or loading) and the peak memory allocated. The runs of a
 section go in one Ray session (a local instance with the GPUs given), one after the other.
 
     python bench/multi_gpu.py --sections groups --presets fast             # ~3 min on 2 H200s
     python bench/multi_gpu.py --sections groups --presets paper --views 30 # 2 groups of 15
     python bench/multi_gpu.py --sections batch                             # 4 scenes, fast
+    python bench/multi_gpu.py --sections batch --batch-scenes bear face bear face bear face bear face --workers 1 4 2
     python bench/multi_gpu.py --tiny --device cpu --views 8 --presets fast --batch-scenes bear face  # CPU smoke test
 """
 
@@ -26,6 +35,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import sys
 import tempfile
 import time
@@ -39,6 +49,7 @@ from artnvg_core.cli.batch import BatchPool, load_jobs, stylize_options  # noqa:
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.cluster import Workers, ray_session  # noqa: E402
 from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402
+from artnvg_core.fileio import load_image  # noqa: E402
 from artnvg_core.formats import load_scene  # noqa: E402
 from artnvg_core.grouping import group_views  # noqa: E402
 from artnvg_core.preview import evenly_spaced  # noqa: E402
@@ -57,9 +68,10 @@ def seeded_models(tiny: bool, seed: int, device: torch.device):
     return build_models(tiny, device, torch.bfloat16 if device.type == "cuda" else torch.float32)
 
 
-def content_views(scene_folder: Path, views: int | None, size: int | None) -> tuple[torch.Tensor, object]:
+def content_views(scene_folder: Path, views: int | None, size: int | None,
+                  multiple: int) -> tuple[torch.Tensor, object]:
     """The scene's content views [V, H, W, 3] (CPU; ``views`` evenly spaced cameras, long side ``size``)
-    and their groups, as ``stylize`` groups them."""
+    and their groups, as ``stylize --group-multiple MULTIPLE`` groups them."""
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     scene = load_scene(scene_folder / "scene.ply").to(device)
     cameras = load_cameras(scene_folder / "transforms.json")
@@ -67,7 +79,7 @@ def content_views(scene_folder: Path, views: int | None, size: int | None) -> tu
         cameras = cameras.subset(evenly_spaced(len(cameras), views))
     if size:
         cameras = cameras.scaled(size / max(cameras.width, cameras.height))
-    return render_views(scene, cameras, cpu=True).rgb, group_views(cameras, 15)
+    return render_views(scene, cameras, cpu=True).rgb, group_views(cameras, 15, multiple=multiple)
 
 
 def busy_row(label: str, workers: int, wall: float, reference_wall: float, stats: list[dict], equal: str) -> str:
@@ -76,15 +88,32 @@ def busy_row(label: str, workers: int, wall: float, reference_wall: float, stats
     return f"| {label} | {workers} | {wall:.1f} | {reference_wall / wall:.2f}x | {busy} | {peak} | {equal} |"
 
 
-def worker_counts(available: int) -> list[int]:
-    """1 GPU, then 2, 4, ... and every one available."""
-    return sorted({count for count in (1, 2, 4, available) if count <= available})
+def timeline(start: float, end: float, tasks: list[list[tuple[str, float, float]]]) -> str:
+    """Per worker its tasks ``(name, start, end)`` (Unix seconds) relative to ``start``, and how long it
+    waited before the first and after the last until ``end``."""
+    lines = []
+    for worker, own in enumerate(tasks):
+        own = sorted(own, key=lambda task: task[1])
+        spans = ", ".join(f"{name} {a - start:.1f}-{b - start:.1f}" for name, a, b in own)
+        lead = own[0][1] - start if own else end - start
+        tail = end - own[-1][2] if own else 0.0
+        lines.append(f"    GPU {worker}: {spans} (waited {lead:.1f} s first, {tail:.1f} s at the end)")
+    return "\n".join(lines)
+
+
+def worker_counts(args, available: int) -> list[int]:
+    """``--workers`` (the first run is the reference), else 1 GPU, then 2, 4 and every one available."""
+    counts = args.workers or sorted({count for count in (1, 2, 4, available) if count <= available})
+    if max(counts) > available:
+        raise ValueError(f"--workers: {max(counts)} workers asked for, {available} devices given")
+    return counts
 
 
 def groups_section(args, devices: list[str], rows: list[str]) -> None:
-    images, groups = content_views(args.shared / "scenes" / "bear", args.views, args.size)
+    multiple = args.group_multiple or math.lcm(*worker_counts(args, len(devices)))
+    images, groups = content_views(args.shared / "scenes" / "bear", args.views, args.size, multiple)
     print(f"bear: {len(images)} views at {images.shape[2]}x{images.shape[1]}, {len(groups)} groups of "
-          f"{sorted({len(g.views) for g in groups})} views", flush=True)
+          f"{sorted({len(g.views) for g in groups})} views (--group-multiple {multiple})", flush=True)
     device = torch.device(devices[0].split(":")[0])  # the conditioning, once, from models built here
     models = seeded_models(args.tiny, args.seed, device)
     with torch.no_grad():
@@ -100,18 +129,20 @@ def groups_section(args, devices: list[str], rows: list[str]) -> None:
             if args.tiny:
                 settings = dataclasses.replace(settings, resolution=None)
             reference, reference_wall = None, None
-            for count in worker_counts(available.count):
+            for count in worker_counts(args, available.count):
                 with GroupExecutor(load, Workers(available.kind, count)) as executor:
                     executor.describe()  # every worker has built its models
-                    start = time.perf_counter()
+                    start = time.time()
                     output = executor.stylize_groups(images, groups, conditioning, settings, seed=args.seed)
-                    wall = time.perf_counter() - start
+                    end = time.time()
                     stats = executor.stats()
+                wall = end - start
                 reference = output if reference is None else reference
                 reference_wall = reference_wall or wall
                 difference = (output - reference).abs().max().item()
                 rows.append(busy_row(f"groups, {name}", count, wall, reference_wall, stats, f"max abs diff {difference:.3g}"))
                 print(rows[-1], flush=True)
+                print(timeline(start, end, [[(f"g{g}", a, b) for g, a, b in s["tasks"]] for s in stats]), flush=True)
 
 
 def write_random_model_files(folder: Path, tiny: bool, seed: int) -> dict[str, Path]:
@@ -190,32 +221,67 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
         folder = args.shared / "scenes" / name
         entries.append({"scene": str(folder / "scene.ply"), "cameras": str(folder / "transforms.json"),
                         "style": str(style), "seed": args.seed + number, "out": f"OUT/{number}-{name}.ply", **stylizer})
+
+    def jobs_to(label: str, chosen: list[dict]):
+        path = work / f"jobs-{label}.json"
+        path.write_text(json.dumps(chosen).replace("OUT/", f"{label}/"))
+        return load_jobs(path, stylize_options())
+
     with ray_session(devices) as available:
-        outputs, reference_wall = {}, None
-        for count in worker_counts(available.count):
-            jobs_path = work / f"jobs-{count}.json"
-            jobs_path.write_text(json.dumps(entries).replace("OUT/", f"out-{count}/"))
-            jobs = load_jobs(jobs_path, stylize_options())
+        reference, reference_wall = None, None
+        for count in worker_counts(args, available.count):
+            jobs, spans = jobs_to(f"out-{count}", entries), {}  # job number -> [worker, start, end]
+
+            def record(kind: str, job, detail) -> None:
+                if kind == "started":
+                    spans[job.number] = [detail["worker"], time.time(), None]
+                elif job.number in spans:
+                    spans[job.number][2] = time.time()
+
             with BatchPool(Workers(available.kind, count)) as pool:
-                start = time.perf_counter()
-                results = pool.run(jobs)
-                wall = time.perf_counter() - start
+                start = time.time()
+                results = pool.run(jobs, on_event=record)
+                end = time.time()
+                again = jobs_to("again", entries[:1]) if reference is None and count == 1 else None
+                if again:  # the first job once more on the same GPU, its models loaded (not timed)
+                    results += pool.run(again)
             bad = [f"job {r.job.number}: {r.status} {r.message}" for r in results if r.status != "done"]
             if bad:
                 raise RuntimeError("batch bench: " + "; ".join(bad))
-            per_worker = {}
-            for result in results:
-                entry = per_worker.setdefault(result.worker, {"busy_s": 0.0, "peak_gib": None})
+            per_worker = [{"busy_s": 0.0, "peak_gib": None} for _ in range(count)]
+            for result in results[: len(jobs)]:
+                entry = per_worker[spans[result.job.number][0]]
                 entry["busy_s"] += result.seconds
                 if result.peak_gib is not None:
                     entry["peak_gib"] = max(entry["peak_gib"] or 0.0, result.peak_gib)
-            files_now = {job.number: [job.out.read_bytes(), sheet_path(job.out).read_bytes()] for job in jobs}
-            equal = "reference" if not outputs else f"outputs equal: {files_now == outputs}"
-            outputs = outputs or files_now
-            reference_wall = reference_wall or wall
-            rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, wall, reference_wall,
-                                 list(per_worker.values()), equal))
+            reference = reference or jobs
+            reference_wall = reference_wall or end - start
+            equal = "reference" if reference is jobs else compare_outputs(jobs, reference)
+            rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, end - start, reference_wall,
+                                 per_worker, equal))
             print(rows[-1], flush=True)
+            names = {job.number: f"job {job.number} ({args.batch_scenes[job.number - 1]})" for job in jobs}
+            print(timeline(start, end, [[(names[n], a, b) for n, (w, a, b) in spans.items() if w == worker]
+                                        for worker in range(count)]), flush=True)
+            if again:
+                rows.append(f"| batch, job 1 twice on 1 GPU | 1 | | | | | {compare_outputs(again, reference[:1])} |")
+                print(rows[-1], flush=True)
+
+
+SCENE_TENSORS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def compare_outputs(jobs, reference) -> str:
+    """Over the jobs, the largest difference of an output scene's parameters from the reference job's
+    and the lowest PSNR of a contact sheet against the reference's (inf: equal)."""
+    largest, lowest = 0.0, math.inf
+    for job, other in zip(jobs, reference):
+        mine, theirs = load_scene(job.out), load_scene(other.out)
+        largest = max(largest, *((getattr(mine, name) - getattr(theirs, name)).abs().max().item()
+                                 for name in SCENE_TENSORS))
+        error = (load_image(sheet_path(job.out)) - load_image(sheet_path(other.out))).square().mean().item()
+        lowest = min(lowest, math.inf if error == 0 else -10 * math.log10(error))
+    return f"params max abs diff {largest:.3g}, sheet PSNR {lowest:.1f} dB"
 
 
 def main() -> None:
@@ -223,10 +289,14 @@ def main() -> None:
     parser.add_argument("--sections", nargs="+", choices=["groups", "batch"], default=["groups", "batch"])
     parser.add_argument("--presets", nargs="+", choices=DIFFUSION_PRESETS, default=["fast", "paper"])
     parser.add_argument("--views", type=int, help="groups: this many evenly spaced cameras of the bear (default all 96)")
+    parser.add_argument("--group-multiple", type=int, help="groups: the number of groups a multiple of this (default: "
+                        "the least common multiple of the worker counts run)")
     parser.add_argument("--size", type=int, help="groups: long side of the content views (default the cameras' 512)")
     parser.add_argument("--batch-scenes", nargs="+", default=["bear", "face", "bear", "face"])
     parser.add_argument("--batch-preset", choices=DIFFUSION_PRESETS, default="fast")
     parser.add_argument("--gpus", type=int, help="GPUs of the multi-GPU runs (default: every visible one)")
+    parser.add_argument("--workers", type=int, nargs="+", help="worker counts to run, in this order, the first the "
+                        "reference (default: 1, 2, 4 and --gpus)")
     parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda")
     parser.add_argument("--tiny", action="store_true", help="tiny models, native view size (smoke test)")
     parser.add_argument("--models", type=Path, default=Path(tempfile.gettempdir()) / "artnvg-random-models",

@@ -15,7 +15,14 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
 ``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render
-forward+backward by total time (torch.profiler). Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
+forward+backward by total time (torch.profiler), for ``render()``, the finetune's path
+(``common.finetune_render``) and, where installed, gsplat's fused ``rasterization()``, each with the sum of
+its kernels' times beside its time from CUDA events (the difference: the GPU waiting for the host).
+``--variants "rows,chunk,warps,atomics;..."``: instead of the sweep, the backward kernel with each of those
+:class:`~artnvg_core.raster.triton_backend.Pass` settings (time, deviation, error as above), and whole
+renders forward+backward with each (``ARTNVG_RASTER_BACKWARD``; the finetune's path and ``render()``) beside
+the largest deviation of their scene gradients from the shipped settings'. Medians of 10 after 3 warm-ups,
+CUDA events. Needs CUDA.
 """
 
 from __future__ import annotations
@@ -23,13 +30,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import os
 import sys
 
 import torch
 
-from common import orbit_cameras, print_table, random_scene, timed
+from common import finetune_render, orbit_cameras, print_table, random_scene, timed
+from gsplat_parity import fused_render
 
 from artnvg_core.raster import render
+from artnvg_core.raster.gsplat_backend import gsplat_available
 from artnvg_core.raster.torch_backend import rasterize
 from artnvg_core.raster.triton_backend import PASSES, Pass, _Composite
 from artnvg_core.raster.triton_tiles import TILE, _count_tiles, _write_pairs, tile_lists
@@ -123,7 +133,8 @@ def relative_l2(got, expected) -> float:
     return max(float((a.double() - b).norm() / b.norm().clamp_min(1e-300)) for a, b in zip(got, expected))
 
 
-def kernel_rows(name, proj, feats, size):
+def kernel_rows(name, proj, feats, size, settings=SETTINGS, kernels=("forward", "backward"),
+                skips=(True, False)):
     lists = tile_lists(proj, size, size)
     g = torch.Generator(device="cuda").manual_seed(0)
     grads = (torch.randn(size, size, 4, device="cuda", generator=g), torch.randn(size, size, device="cuda", generator=g))
@@ -131,7 +142,7 @@ def kernel_rows(name, proj, feats, size):
     reference = float64_reference(proj, feats, size, grads)
     device = torch.device("cuda")
     rows = []
-    for kernel, setting, skip in itertools.product(("forward", "backward"), SETTINGS, (True, False)):
+    for kernel, setting, skip in itertools.product(kernels, settings, skips):
         if not skip and setting.rows < TILE:
             continue  # walking every block: measured for whole-tile programs only
         passes = (setting, PASSES[1]) if kernel == "forward" else (PASSES[0], setting)
@@ -140,26 +151,73 @@ def kernel_rows(name, proj, feats, size):
             run = lambda: _Composite.apply(proj.means2d, proj.conics, proj.opacities, feats, *lists,  # noqa: E731
                                            size, size, TILE, passes, skip)
         ms = timed(run if kernel == "forward" else backward, device, repeats=10, warmup=3) * 1e3
-        rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)])
+        rows.append([name, kernel, *setting[:3], skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)]
+                    + ([setting.atomics] if kernel == "backward" else []))
         print(rows[-1], flush=True)
     return rows
 
 
+def render_paths(scene, camera) -> dict:
+    """Closures (a scene -> rgb) of the renders compared: render(), the finetune's path and, where
+    installed, gsplat's fused rasterization()."""
+    paths = {"render()": lambda s: render(s, camera, backend="triton").rgb,
+             "as the finetune renders": finetune_render(scene, camera)}
+    if gsplat_available():
+        paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
+    return paths
+
+
 def profile_rows(name, scene, camera, top=12):
-    """The CUDA kernels of one render forward+backward, by total time."""
+    """The CUDA kernels of one render forward+backward on each path, by total time, then the sum of all
+    its kernels and the time from CUDA events (ms per render)."""
     from torch.profiler import ProfilerActivity, profile
 
     params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
-    run = lambda: render(GaussianScene(**params), camera, backend="triton").rgb.sum().backward()  # noqa: E731
-    for _ in range(3):
-        run()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        for _ in range(5):
-            run()
+    rows = []
+    for path, render_fn in render_paths(scene, camera).items():
+        run = lambda: render_fn(GaussianScene(**params)).sum().backward()  # noqa: E731
+        wall = timed(run, torch.device("cuda"), repeats=10, warmup=3) * 1e3
         torch.cuda.synchronize()
-    events = sorted(prof.key_averages(), key=lambda e: -e.device_time_total)[:top]
-    return [[name, e.key[:70], e.count // 5, e.device_time_total / 5 / 1e3] for e in events]
+        with profile(activities=[ProfilerActivity.CUDA]) as prof:
+            for _ in range(5):
+                run()
+            torch.cuda.synchronize()
+        events = sorted(prof.key_averages(), key=lambda e: -e.device_time_total)
+        rows += [[name, path, e.key[:70], e.count // 5, e.device_time_total / 5 / 1e3] for e in events[:top]]
+        rows.append([name, path, "(all kernels)", sum(e.count for e in events) // 5,
+                     sum(e.device_time_total for e in events) / 5 / 1e3])
+        rows.append([name, path, "(CUDA events, start to end)", None, wall])
+    return rows
+
+
+def variant_rows(name, scene, camera, settings):
+    """Forward+backward ms of whole renders (the finetune's path, render()) with each backward setting
+    (``ARTNVG_RASTER_BACKWARD``), and the largest deviation of the scene's gradients from the shipped
+    settings' on the finetune's path, relative to their largest magnitude."""
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
+    trainable = GaussianScene(**params)
+    paths = {path: fn for path, fn in render_paths(scene, camera).items() if path != "gsplat fused"}
+
+    def gradients(render_fn):
+        for p in params.values():
+            p.grad = None
+        render_fn(trainable).sum().backward()
+        return [p.grad.clone() for p in params.values()]
+
+    shipped = gradients(paths["as the finetune renders"])
+    rows = []
+    try:
+        for setting in settings:
+            os.environ["ARTNVG_RASTER_BACKWARD"] = ",".join(map(str, setting))
+            for path, render_fn in paths.items():
+                grads = gradients(render_fn)
+                step = lambda: render_fn(trainable).sum().backward()  # noqa: E731, B023
+                ms = timed(step, torch.device("cuda"), repeats=10, warmup=3) * 1e3
+                rows.append([name, *setting, path, ms, deviation(grads, shipped)])
+                print(rows[-1], flush=True)
+    finally:
+        os.environ.pop("ARTNVG_RASTER_BACKWARD", None)
+    return rows
 
 
 def main() -> None:
@@ -168,27 +226,42 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--lists-only", action="store_true")
+    parser.add_argument("--variants", default="", help='backward settings "rows,chunk,warps,atomics;..."')
     args = parser.parse_args()
     command = "python " + " ".join(sys.argv)
-    lists, kernels, profiles = [], [], []
+    settings = [Pass(int(r), int(c), int(w), a) for r, c, w, a in
+                (spec.split(",") for spec in args.variants.split(";") if spec)]
+    lists, kernels, profiles, wholes = [], [], [], []
     for count in map(int, args.counts.split(",")):
         name = f"{count:,} @ {args.size}"
         scene, camera, proj, feats = projected(count, args.size)
         lists += tile_list_rows(name, proj, args.size)
-        kernels += [] if args.lists_only else kernel_rows(name, proj, feats, args.size)
+        if settings:
+            kernels += kernel_rows(name, proj, feats, args.size, settings, ("backward",), (True,))
+            wholes += variant_rows(name, scene, camera, settings)
+        elif not args.lists_only:
+            kernels += kernel_rows(name, proj, feats, args.size)
         if args.profile:
             profiles += profile_rows(name, scene, camera)
     gpu = torch.cuda.get_device_name()
     if profiles:
-        print_table(f"Kernels of one render forward+backward ({gpu})", ["scene", "kernel", "calls", "ms"], profiles,
-                    command)
+        print_table(f"Kernels of one render forward+backward ({gpu})", ["scene", "path", "kernel", "calls", "ms"],
+                    profiles, command)
     print_table(f"Tile lists, step by step ({gpu})", ["scene", "step", "ms"], lists, command)
     if args.lists_only:
+        return
+    if settings:
+        print_table(f"Backward kernel settings ({gpu}; shipped: {tuple(PASSES[1])}, skipping)",
+                    ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
+                     "max deviation from shipped", "rel. L2 error vs float64", "atomics"], kernels, command)
+        print_table(f"Whole renders forward+backward with each backward setting ({gpu})",
+                    ["scene", "rows", "chunk", "warps", "atomics", "path", "fwd+bwd ms",
+                     "max gradient deviation from shipped"], wholes, command)
         return
     print_table(f"Compositing kernels' settings ({gpu}; shipped: forward {tuple(PASSES[0])}, backward "
                 f"{tuple(PASSES[1])}, skipping)", ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
                                                    "max deviation from shipped", "rel. L2 error vs float64"],
-                kernels, command)
+                [row[:9] for row in kernels], command)
     for kernel in ("forward", "backward"):
         best = {}
         for row in kernels:

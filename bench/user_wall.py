@@ -124,6 +124,29 @@ def drop_page_cache() -> bool:
         return False
 
 
+def process_env(caches: Path) -> dict:
+    """This process's environment for a stylize process: the checkout on its path, Python's bytecode,
+    Triton's, torch's compile and ArtNVG's caches in ``caches``."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env.update(PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
+               PYTHONPYCACHEPREFIX=str(caches / "pycache"), TRITON_CACHE_DIR=str(caches / "triton"),
+               TORCHINDUCTOR_CACHE_DIR=str(caches / "inductor"), ARTNVG_CACHE_DIR=str(caches / "artnvg"))
+    return env
+
+
+def stylize_argv(scene, cameras, style, preset: str, device: str, out: Path, files: dict | None,
+                 layout: str = "file", more: list[str] = ()) -> list[str]:
+    """The arguments of ``stylize`` as a user types them: ``files`` (:func:`write_model_files`' paths; None for
+    the diffusion-free ``preview``) with SDXL as the single ``file`` or the diffusers ``folder``."""
+    argv = [str(scene), f"--cameras={cameras}", f"--style={style}", f"--preset={preset}", f"--device={device}",
+            f"--out={out}", *more]
+    if files is not None:
+        argv += ["--stylizer=diffusion", f"--sdxl={files['sdxl' if layout == 'file' else 'sdxl folder']}",
+                 f"--controlnet={files['controlnet']}", f"--image-encoder={files['image encoder']}",
+                 f"--csgo={files['csgo']}"]
+    return argv
+
+
 def run_process(argv: list[str], env: dict, parts_path: Path, log: Path) -> dict:
     """One stylize process; its wall time, exit status and parts (sampling: what ``stylize_diffusion``
     spent between the content views and the finetune)."""
@@ -173,21 +196,15 @@ def main() -> None:
         shutil.rmtree(caches, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    env.update(PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
-               PYTHONPYCACHEPREFIX=str(caches / "pycache"), TRITON_CACHE_DIR=str(caches / "triton"),
-               TORCHINDUCTOR_CACHE_DIR=str(caches / "inductor"), ARTNVG_CACHE_DIR=str(caches / "artnvg"))
+    env = process_env(caches)
     dropped = not args.keep_caches and drop_page_cache()
     print(f"page cache dropped before the first process: {dropped}", flush=True)
 
     rows, split, report = [], [], []
     for number, (preset, layout) in enumerate(runs, 1):
-        argv = [args.scene, f"--cameras={args.cameras}", f"--style={args.style}", f"--preset={preset}",
-                f"--device={args.device}", f"--out={work / f'{number}_{preset}.ply'}", *args.more.split()]
-        if preset != "preview":
-            argv += ["--stylizer=diffusion", f"--sdxl={files['sdxl' if layout == 'file' else 'sdxl folder']}",
-                     f"--controlnet={files['controlnet']}", f"--image-encoder={files['image encoder']}",
-                     f"--csgo={files['csgo']}"]
+        argv = stylize_argv(args.scene, args.cameras, args.style, preset, args.device,
+                            work / f"{number}_{preset}.ply", files if preset != "preview" else None, layout,
+                            args.more.split())
         log = work / f"{number}_{preset}.log"
         result = run_process(argv, env, work / f"{number}.json", log)
         known = sum(result.get(part, 0.0) for part in PARTS if part not in OVERLAPPING)

@@ -100,6 +100,19 @@ def test_two_workers_match_one_device_bit_for_bit_with_progress(executor, refere
     assert len({c[2]["device"] for c in calls}) == 2 and all(c[2]["device"].startswith("cpu on ") for c in calls)
 
 
+def test_stats_record_when_each_group_ran(executor, reference):
+    begin = time.time()
+    _run(executor, reference)
+    end = time.time()
+    stats = executor.stats()
+    tasks = [task for worker in stats for task in worker["tasks"] if task[1] >= begin]
+    assert sorted(group for group, _, _ in tasks) == [0, 1, 2]  # each group once, on some worker
+    assert all(begin <= start <= stop <= end for _, start, stop in tasks)
+    for worker in stats:
+        assert worker["busy_s"] == pytest.approx(sum(stop - start for _, start, stop in worker["tasks"]))
+        assert worker["peak_gib"] is None and worker["worker"].startswith("cpu on ")
+
+
 def test_conditioning_from_a_worker_equals_the_local_one(executor, reference):
     def tensors(value):
         if isinstance(value, torch.Tensor):

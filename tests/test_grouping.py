@@ -99,6 +99,28 @@ def test_balanced_group_sizes_bounds_exhaustive():
                 assert min(sizes) >= Fraction(group_size, 2)
 
 
+def test_group_count_rounded_to_a_multiple_exhaustive():
+    for multiple in (1, 2, 3, 4, 8):
+        for group_size in range(1, 21):
+            for count in range(1, 121):
+                sizes = balanced_group_sizes(count, group_size, multiple)
+                fewest = len(balanced_group_sizes(count, group_size))
+                assert sum(sizes) == count and max(sizes) - min(sizes) <= 1 and max(sizes) <= group_size
+                assert sizes == sorted(sizes, reverse=True)
+                # the smallest multiple of `multiple` that is at least the fewest groups, or one group per view
+                expected = min(next(g for g in range(fewest, fewest + multiple) if g % multiple == 0), count)
+                assert len(sizes) == expected
+
+
+def test_groups_for_four_devices_on_the_bear_orbit():
+    cameras = _orbit(96)
+    groups = group_views(cameras, 15, multiple=4)
+    assert [len(g.views) for g in groups] == [12] * 8
+    assert sorted(v for g in groups for v in g.views) == list(range(96))
+    assert len(group_views(cameras, 15)) == 7  # the default stays the fewest groups
+    assert len(group_views(cameras, 15, multiple=1)) == 7
+
+
 @pytest.mark.parametrize("shape", SHAPES)
 def test_deterministic_and_invariant_to_input_order(shape):
     cameras = _camera_set(SHAPES[shape](96))
@@ -240,6 +262,8 @@ def test_context_is_capped_by_the_views_of_other_groups():
         (_orbit(5), {"group_size": 2.5}, "group_size"),
         (_orbit(5), {"group_size": True}, "group_size"),
         (_orbit(5), {"context": -1}, "context"),
+        (_orbit(5), {"multiple": 0}, "multiple"),
+        (_orbit(5), {"multiple": True}, "multiple"),
         (_orbit(5)[:, :2], {}, r"shape \(C, 3\)"),
         (torch.tensor([[0.0, 0.0, float("nan")]]), {}, "finite"),
         ([[0.0, 0.0, 0.0]], {}, "CameraSet or a \\[C, 3\\] tensor or array"),

@@ -205,10 +205,8 @@ def test_invalid_inputs_rejected(mutate, field):
         render(GaussianScene(**params), make_cameras(EYES[:1]), backend="torch")
 
 
-def test_input_checks_read_the_device_once(monkeypatch):
-    """render's value checks (every scene tensor finite, the cameras finite, positive focal lengths) are
-    reduced where the tensors live and read back together: one wait for the device, not one a check."""
-    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1])
+def _device_reads(monkeypatch) -> list[str]:
+    """The names of the tensor-to-host reads made from now on (the test's end restores them)."""
     reads = []
     for method in ("tolist", "item", "__bool__"):
         original = getattr(torch.Tensor, method)
@@ -217,11 +215,37 @@ def test_input_checks_read_the_device_once(monkeypatch):
             return _original(self, *args)
 
         monkeypatch.setattr(torch.Tensor, method, counted)
+    return reads
+
+
+def test_input_checks_read_the_device_once(monkeypatch):
+    """render's value checks (every scene tensor finite, the cameras finite, positive focal lengths) are
+    reduced where the tensors live and read back together: one wait for the device, not one a check."""
+    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1])
+    reads = _device_reads(monkeypatch)
     check_render_inputs(scene, cams)
     assert reads == ["tolist"]
     broken = CameraSet(cams.world_to_cam * float("nan"), cams.intrinsics, 40, 32, ["x"])
     with pytest.raises(ValueError, match="non-finite poses"):
         check_render_inputs(scene, broken)
+
+
+def test_inputs_that_passed_are_checked_again_only_once_changed_in_place(monkeypatch):
+    """A scene and cameras that passed are not read again (a scene rendered view after view waits once);
+    a non-finite value or a negative focal length written in place afterwards is still caught."""
+    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1])
+    check_render_inputs(scene, cams)
+    reads = _device_reads(monkeypatch)
+    check_render_inputs(scene, cams)
+    assert reads == []
+    scene.sh[2, 1, 0] = float("nan")
+    with pytest.raises(ValueError, match="scene.sh has non-finite"):
+        render(scene, cams, backend="torch")
+    assert reads == ["tolist"]
+    scene.sh[2, 1, 0] = 0.0
+    cams.intrinsics[0, 1, 1] *= -1
+    with pytest.raises(ValueError, match="focal"):
+        check_render_inputs(scene, cams)
 
 
 def test_bad_arguments_rejected():

@@ -68,7 +68,7 @@ def _composite(backend, proj, leaves, width=40, height=24, **options):
 
 
 @pytest.mark.parametrize(("tile", "passes"), [(16, ((16, 32, 4), (16, 32, 4))), (8, ((8, 4, 2), (2, 16, 1))),
-                                              (16, ((4, 16, 2), (2, 4, 1)))])
+                                              (16, ((4, 16, 2), (2, 4, 1))), (16, ((2, 8, 1), (4, 8, 1, "relaxed")))])
 def test_compositing_and_every_gradient_match_the_float64_reference(tile, passes):
     """Blended colour and depth, transmittance and the gradients by means2d, conics, opacities and
     features, against the reference compositor in float64 on the same projection, for tile, rows and

@@ -92,7 +92,7 @@ def test_two_devices_spread_the_groups_over_ray_workers_with_the_same_result(tmp
     scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
     result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
     spread_result, spread = stylize_diffusion(scene, cameras, style, config, paths, devices=["cpu", "cpu"],
-                                              group_size=2)
+                                              group_size=4, group_multiple=2)  # 2 groups of 2, as group_size=2
     assert torch.equal(spread, views) and torch.equal(spread_result.sh, result.sh)
 
 
@@ -136,17 +136,19 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
 def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path, monkeypatch):
     """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
     the preset's settings run. --key-views K (or the preset's key_views) stylizes only the K views
-    select_key_views picks, grouped among themselves, and the finetune sees only those views."""
+    select_key_views picks, grouped among themselves, and the finetune sees only those views.
+    --group-multiple M rounds the number of groups up to a multiple of M."""
     from artnvg_core.cli import main as cli
     from artnvg_core import stylize
     from artnvg_core.diffusion import stylize as diffusion_stylize
     from artnvg_core.key_views import select_key_views
 
-    seen, stylized, trained = [], [], []
+    seen, stylized, trained, group_counts = [], [], [], []
 
     def record(models, images, groups, conditioning, settings, **kwargs):
         seen.append(settings)
         stylized.append((len(images), groups.num_views))
+        group_counts.append(len(groups))
         return images
 
     def finetune(scene, cameras, style_image, stylized=None, **kwargs):
@@ -174,7 +176,10 @@ def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path,
     monkeypatch.setitem(PRESETS, "fast", dataclasses.replace(PRESETS["fast"], key_views=6))
     assert cli.main(["stylize", *common, "--preset", "fast"]) == 0 and stylized[3] == (6, 6)
     assert cli.main(["stylize", *common, "--preset", "fast", "--key-views", "0"]) == 0 and stylized[4] == (24, 24)
-    for bad in (["--steps", "0"], ["--cfg-until", "1.5"], ["--scheduler", "plms"], ["--key-views", "-1"]):
+    assert cli.main(["stylize", *common, "--preset", "fast", "--key-views", "0", "--group-multiple", "3"]) == 0
+    assert group_counts[4:] == [2, 3]  # 24 views: the fewest groups of at most 15, then a multiple of 3
+    for bad in (["--steps", "0"], ["--cfg-until", "1.5"], ["--scheduler", "plms"], ["--key-views", "-1"],
+                ["--group-multiple", "0"]):
         with pytest.raises(SystemExit):
             cli.build_parser().parse_args(["stylize", *bad])
     with pytest.raises(ValueError, match="sampler_changes names no SamplerSettings field: \\['stpes'\\]"):

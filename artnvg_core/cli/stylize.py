@@ -132,7 +132,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
                                           devices=parse_devices(args.devices), ray_address=args.ray_address,
-                                          compile_blocks=args.compile,
+                                          group_multiple=args.group_multiple, compile_blocks=args.compile,
                                           loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
                                           progress=ProgressBar("finetune"), should_stop=args.should_stop,
@@ -195,6 +195,10 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
+    p.add_argument("--group-multiple", type=integer_at_least(1), default=1, metavar="M",
+                   help="diffusion: round the number of neighbouring-view groups up to a multiple of M, e.g. the "
+                   "GPUs sharing them, so that none idles in the last round (smaller groups; the result depends on "
+                   "M, never on the GPUs; default 1: the fewest groups of at most 15 views)")
     p.add_argument("--iters", type=integer_at_least(0), default=None,
                    help="finetune iterations (default: the preset's for diffusion and preview, 1000 for nnfm; 60 for "
                         "the demo)")

@@ -1,10 +1,13 @@
 """Stylizing a scene's groups on several devices at once: Ray actors, one per device, each holding the models once.
 
 Groups are independent (each has its own seed and its own neighbouring-view attention), so a
-:class:`GroupExecutor` hands them to its workers as tasks, largest first so the devices finish at
-about the same time. Group ``g`` is sampled with seed ``seed + g`` whichever worker runs it, and the
-views come back into view order, so the result equals a one-device run on the same kind of device
-(bit for bit where the kernels are deterministic; on the CPU, with one thread as every CPU worker has).
+:class:`GroupExecutor` hands them to its workers as tasks, largest first, each task carrying only its
+group's views. Group ``g`` is sampled with seed ``seed + g`` whichever worker runs it, and the views
+come back into view order, so the result equals a one-device run of the same groups on the same kind
+of device (bit for bit where the kernels are deterministic; on the CPU, with one thread as every CPU
+worker has). The groups do not depend on the number of workers: with ``G`` groups on ``W`` workers the
+last round leaves ``W - G mod W`` of them idle unless G is a multiple of W, which
+:func:`~artnvg_core.grouping.group_views`'s ``multiple`` gives when asked (``stylize --group-multiple``).
 A group whose worker dies (a killed process, a lost machine) is handed to another worker, with the
 same seed: the result is unchanged. Needs Ray (``pip install "artnvg[cluster]"``; :mod:`artnvg_core.cluster`).
 """
@@ -25,8 +28,8 @@ from ..tensor_tree import map_tensors
 from .conditioning import StyleConditioning, prepare_conditioning
 from .images import check_images
 from .models import DiffusionModels
-from .sampler import SamplerSettings
-from .stylize import stylize_owned_views
+from .sampler import SamplerSettings, stylize_group
+from .stylize import group_members
 
 
 class GroupWorker:
@@ -41,7 +44,7 @@ class GroupWorker:
             torch.set_num_threads(1)
         self.steps: tuple[str, int, int] | None = None  # (run, group, steps done) of the group being sampled
         self.stopped: set[str] = set()
-        self.busy_s = 0.0  # seconds spent stylizing groups
+        self.tasks: list[tuple[int, float, float]] = []  # (group, start, end) of each group stylized, Unix time
         try:
             self.models, self.error = load_models(self.device), None
         except Exception as error:  # raised to the caller by describe(), conditioning() and stylize()
@@ -68,27 +71,32 @@ class GroupWorker:
         self._check()
         return map_tensors(torch.Tensor.cpu, prepare_conditioning(self.models, style_image, prompt, negative_prompt))
 
-    def stylize(self, run: str, images: torch.Tensor, groups: ViewGroups, index: int, conditioning: StyleConditioning,
-                settings: SamplerSettings, seed: int) -> torch.Tensor:
-        """:func:`stylize_owned_views` of group ``index`` (on the CPU); stops when ``run`` is stopped."""
+    def stylize(self, run: str, index: int, members: torch.Tensor, centers: torch.Tensor | None, owned: int,
+                conditioning: StyleConditioning, settings: SamplerSettings, seed: int) -> torch.Tensor:
+        """Group ``index`` sampled with ``seed`` from its ``members`` [M, H, W, 3] (owned views first; camera
+        ``centers`` [M, 3] or None, :func:`~artnvg_core.diffusion.stylize.group_members`): its ``owned``
+        stylized views (on the CPU). Stops when ``run`` is stopped."""
         self._check()
 
         def report(step: int, total: int, info: dict) -> None:
             self.steps = (run, index, step)
 
-        start = time.perf_counter()
+        start = time.time()
         try:
-            views = stylize_owned_views(self.models, images, groups, index, map_tensors(lambda t: t.to(self.device), conditioning), settings,
-                                        seed=seed, progress=report, should_stop=lambda: run in self.stopped)
-            return views.cpu()
+            views = stylize_group(self.models, members, map_tensors(lambda t: t.to(self.device), conditioning),
+                                  settings, seed=seed, view_centers=centers, progress=report,
+                                  should_stop=lambda: run in self.stopped)
+            return views[:owned].cpu()
         finally:
-            self.busy_s += time.perf_counter() - start
+            self.tasks.append((index, start, time.time()))
 
     def stats(self) -> dict:
-        """"worker" (:meth:`describe`), "busy_s" (seconds spent stylizing groups) and "peak_gib" (the most
-        GPU memory allocated so far, GiB; None on the CPU)."""
+        """"worker" (:meth:`describe`), "tasks" (``(group, start, end)`` of every group stylized so far, Unix
+        time in seconds), "busy_s" (their total seconds) and "peak_gib" (the most GPU memory allocated so
+        far, GiB; None on the CPU)."""
         peak = torch.cuda.max_memory_allocated(self.device) / 2**30 if self.device.type == "cuda" else None
-        return {"worker": self.describe(), "busy_s": self.busy_s, "peak_gib": peak}
+        busy = sum(end - start for _, start, end in self.tasks)
+        return {"worker": self.describe(), "tasks": list(self.tasks), "busy_s": busy, "peak_gib": peak}
 
     def progress(self) -> tuple[str, int, int] | None:
         return self.steps
@@ -114,7 +122,8 @@ class GroupExecutor(WorkerPool):
         return ray.get([actor.describe.remote() for actor in self.actors])
 
     def stats(self) -> list[dict]:
-        """Per worker: where it runs, the seconds it spent stylizing and its peak GPU memory (:meth:`GroupWorker.stats`)."""
+        """Per worker: where it runs, the groups it stylized and when, the seconds that took and its peak GPU
+        memory (:meth:`GroupWorker.stats`)."""
         ray = import_ray("GroupExecutor")
         return ray.get([actor.stats.remote() for actor in self.actors])
 
@@ -156,12 +165,14 @@ class GroupExecutor(WorkerPool):
         if not chosen:
             return output
         run = uuid.uuid4().hex
-        shared = ray.put(images), ray.put(map_tensors(torch.Tensor.cpu, conditioning))
+        shared = ray.put(map_tensors(torch.Tensor.cpu, conditioning))
         largest_first = sorted(chosen, key=lambda g: -len(groups[g].all_views))
         meter = _StepMeter(self.actors, run, chosen, settings.steps, len(groups), progress)
 
         def submit(actor, index: int):
-            return actor.stylize.remote(run, shared[0], groups, index, shared[1], settings, seed)
+            members, centers = group_members(images, groups, index)
+            return actor.stylize.remote(run, index, members, centers, len(groups[index].views), shared, settings,
+                                        seed + index)
 
         try:
             for index, actor, views, error in dispatch(self.actors, largest_first, submit, on_start=meter.started,

@@ -107,12 +107,19 @@ def stylize_owned_views(
     """Group ``index`` of ``images`` [V, H, W, 3] sampled with seed ``seed + index`` (and the members' own
     ``noise_seeds`` when given, one per view of ``images``), its context views included; returns its owned
     views' stylized images [len(views), H, W, 3] in ``groups[index].views`` order."""
-    group = groups[index]
-    members = list(group.all_views)
-    centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
     if noise_seeds is not None and len(noise_seeds) != len(images):
         raise ValueError(f"stylize_owned_views: {len(noise_seeds)} noise_seeds for {len(images)} views")
-    result = stylize_group(models, images[members], conditioning, settings, seed=seed + index,
-                           noise_seeds=None if noise_seeds is None else [noise_seeds[v] for v in members],
+    members, centers = group_members(images, groups, index)
+    seeds = None if noise_seeds is None else [noise_seeds[v] for v in groups[index].all_views]
+    result = stylize_group(models, members, conditioning, settings, seed=seed + index, noise_seeds=seeds,
                            view_centers=centers, progress=progress, should_stop=should_stop)
-    return result[: len(group.views)]
+    return result[: len(groups[index].views)]
+
+
+def group_members(images: torch.Tensor, groups: ViewGroups, index: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What sampling group ``index`` of ``images`` [V, H, W, 3] reads: its members' images [M, H, W, 3]
+    (owned views, then context views) and their camera centres [M, 3] float64 (None when ``groups``
+    records none)."""
+    members = list(groups[index].all_views)
+    centers = None if groups.centers is None else torch.tensor([groups.centers[v] for v in members])
+    return images[members], centers

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import torch
+from torch.utils.weak import WeakIdKeyDictionary
 
 from ..cameras import CameraSet
 from ..devices import triton_available
@@ -82,34 +83,48 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     return name
 
 
+# tensors whose values passed render's checks -> their version then (``Tensor._version`` counts in-place changes)
+_PASSED = WeakIdKeyDictionary()
+
+
+def _positive_focals(intrinsics: torch.Tensor) -> torch.Tensor:
+    return intrinsics[:, [0, 1], [0, 1]] > 0
+
+
 def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int | None = None,
                         background: torch.Tensor | None = None) -> None:
     """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the scene's
     tensors finite and on its device, finite camera poses and intrinsics with positive focal lengths,
     the background's shape. The value checks are reduced on the device and read back together: one
-    wait for the device (one per device where the cameras live elsewhere)."""
+    wait for the device (one per device where the cameras live elsewhere). A tensor that passed them is
+    not checked again until it is changed in place (its version counter moves; writes that bypass it,
+    through ``.data`` or shared memory, go unseen): a scene rendered view after view waits once."""
     sh_degree = scene.sh_degree if sh_degree is None else sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
     if background is not None and tuple(background.shape) not in ((3,), (len(cameras), 3)):
         raise ValueError(f"render: background must have shape (3,) or ({len(cameras)}, 3), got {tuple(background.shape)}")
-    checks = []  # (message if false, device bool scalar), in the order they are reported
+    tests = []  # (message if false, tensor, test), in the order they are reported
     for name, value in scene.tensors().items():
         if value.device != scene.device:
             raise ValueError(f"render: scene.{name} is on {value.device}, expected {scene.device}")
-        checks.append((f"render: scene.{name} has non-finite values", torch.isfinite(value).all()))
-    checks.append(("render: cameras have non-finite poses or intrinsics",
-                   torch.isfinite(cameras.world_to_cam).all() & torch.isfinite(cameras.intrinsics).all()))
-    checks.append(("render: cameras.intrinsics must have positive focal lengths fx, fy",
-                   (cameras.intrinsics[:, [0, 1], [0, 1]] > 0).all()))
+        tests.append((f"render: scene.{name} has non-finite values", value, torch.isfinite))
+    tests += [("render: cameras have non-finite poses or intrinsics", cameras.world_to_cam, torch.isfinite),
+              ("render: cameras have non-finite poses or intrinsics", cameras.intrinsics, torch.isfinite),
+              ("render: cameras.intrinsics must have positive focal lengths fx, fy", cameras.intrinsics,
+               _positive_focals)]
+    checks = [(message, tensor, test(tensor).all()) for message, tensor, test in tests
+              if _PASSED.get(tensor) != tensor._version]
     passed = [True] * len(checks)
-    for device in {flag.device for _, flag in checks}:
-        where = [i for i, (_, flag) in enumerate(checks) if flag.device == device]
-        for i, ok in zip(where, torch.stack([checks[i][1] for i in where]).tolist()):
+    for device in {flag.device for _, _, flag in checks}:
+        where = [i for i, (_, _, flag) in enumerate(checks) if flag.device == device]
+        for i, ok in zip(where, torch.stack([checks[i][2] for i in where]).tolist()):
             passed[i] = ok
-    for (message, _), ok in zip(checks, passed):
+    for (message, _, _), ok in zip(checks, passed):
         if not ok:
             raise ValueError(message)
+    for _, tensor, _ in checks:
+        _PASSED[tensor] = tensor._version
 
 
 def render(
@@ -141,7 +156,8 @@ def render(
         tiles, :mod:`.triton_backend`'s kernels or gsplat's, see :mod:`.gsplat_backend`).
     near_plane: Gaussians with camera-space z <= near_plane are culled.
     checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
-        the checks, which wait for the device, are skipped (:class:`.step_renderer.StepRenderer` does so).
+        the checks, which wait for the device where the inputs are new or changed, are skipped
+        (:class:`.step_renderer.StepRenderer`, whose optimiser changes the scene at every step, does so).
     list_capacity: the Triton backend's :class:`.triton_tiles.ListCapacity` shared by renders made one
         after another, so that they do not wait for their tile intersection counts (ignored by the other
         backends); the caller checks it after each render for one that overflowed and must be redone
@@ -176,11 +192,11 @@ def render(
         from .triton_projection import project_color_triton
 
         composite = functools.partial(rasterize_triton, capacity=list_capacity)
-    width, height = cameras.width, cameras.height
+    width, height, centers = cameras.width, cameras.height, cameras.centers
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
         check_stop(should_stop)
-        w2c, k, center = cameras.world_to_cam[c], cameras.intrinsics[c], cameras.centers[c]
+        w2c, k, center = cameras.world_to_cam[c], cameras.intrinsics[c], centers[c]
         if name == "triton":  # one fused kernel; culled Gaussians stay, with no tiles
             proj, colors = project_color_triton(scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
                                                 scene.sh, w2c, k, center, width, height, degree, near_plane,
@@ -201,4 +217,9 @@ def render(
         alphas.append(alpha[..., None])
         if return_depth:
             depths.append(torch.where(alpha > 0, blended[..., 3] / alpha.clamp_min(1e-10), torch.zeros_like(alpha))[..., None])
-    return RenderOutput(torch.stack(rgbs), torch.stack(alphas), torch.stack(depths) if return_depth else None)
+    return RenderOutput(_batch(rgbs), _batch(alphas), _batch(depths) if return_depth else None)
+
+
+def _batch(images: list[torch.Tensor]) -> torch.Tensor:
+    """The views' images as one contiguous [C, ...] tensor (one view's without a copy where it is contiguous)."""
+    return images[0].unsqueeze(0).contiguous() if len(images) == 1 else torch.stack(images)
