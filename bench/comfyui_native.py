@@ -224,14 +224,20 @@ def stop_server(server: subprocess.Popen) -> None:
 
 
 def native_groups(run: dict, node: str, steps: int) -> list[float]:
-    """Seconds per group of Sample Group (``node``) from its progress messages (see the module docstring)."""
-    last_steps = {}
-    for name, value, _, moment in run["progress"]:
-        if name == node and value % steps == 0:
-            last_steps.setdefault(value // steps, moment)
+    """Seconds per group of Sample Group (``node``) from its progress messages (see the module docstring): its
+    bar is the longest one the node completed whose length is a multiple of ``steps`` (a node may show other
+    bars, e.g. a tiled decoding's)."""
+    bars: dict[int, dict[int, float]] = {}
+    for name, value, total, moment in run["progress"]:
+        if name == node and total % steps == 0:
+            bars.setdefault(total, {}).setdefault(value, moment)
+    complete = [total for total, seen in bars.items() if len(seen) == total]
     start = run["spans"].get(node, [None])[0]
-    marks = [start] + [last_steps[g] for g in sorted(last_steps)]
-    return [] if start is None else [b - a for a, b in zip(marks, marks[1:])]
+    if start is None or not complete:
+        return []
+    total = max(complete)
+    marks = [start] + [bars[total][value] for value in range(steps, total + 1, steps)]
+    return [b - a for a, b in zip(marks, marks[1:])]
 
 
 def runs_per_preset(text: str) -> list[tuple[str, int]]:
