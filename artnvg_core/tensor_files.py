@@ -27,7 +27,7 @@ SAFETENSORS_DTYPES = {
     "BOOL": torch.bool, "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
 }
 MAX_HEADER_BYTES = 100 * 2**20  # as the safetensors library's own limit
-STAGING_BYTES = 64 * 2**20  # each of the two pinned buffers a CUDA read passes through
+STAGING_BYTES = 128 * 2**20  # each of the two pinned buffers a CUDA read passes through
 
 
 def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",

@@ -217,4 +217,9 @@ def render(
         alphas.append(alpha[..., None])
         if return_depth:
             depths.append(torch.where(alpha > 0, blended[..., 3] / alpha.clamp_min(1e-10), torch.zeros_like(alpha))[..., None])
-    return RenderOutput(torch.stack(rgbs), torch.stack(alphas), torch.stack(depths) if return_depth else None)
+    return RenderOutput(_batch(rgbs), _batch(alphas), _batch(depths) if return_depth else None)
+
+
+def _batch(images: list[torch.Tensor]) -> torch.Tensor:
+    """The views' images as one contiguous [C, ...] tensor (one view's without a copy where it is contiguous)."""
+    return images[0].unsqueeze(0).contiguous() if len(images) == 1 else torch.stack(images)
