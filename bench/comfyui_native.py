@@ -196,6 +196,11 @@ def start_server(python: str, comfy: Path, port: int, log: Path, frontend: Path,
                  cap_gib: float | None, caches: Path) -> tuple[subprocess.Popen, float]:
     """A ComfyUI server (capped: through :data:`CAPPED`), its caches in ``caches`` (as
     :func:`user_wall.process_env`'s, the checkout left off its path), and the seconds until it answered."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/system_stats", timeout=5):
+            raise RuntimeError(f"a server answers on port {port} already; stop it or pass another --port")
+    except OSError:
+        pass
     entry = ["-c", CAPPED, "main.py"] if cap_gib else ["main.py"]
     env = {**process_env(caches), "PYTHONPATH": os.environ.get("PYTHONPATH", ""),
            **({"COMFYUI_NATIVE_CAP_GIB": str(cap_gib)} if cap_gib else {})}
