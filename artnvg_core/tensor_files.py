@@ -1,13 +1,14 @@
 """Weight files read straight onto the device that computes with them.
 
-:func:`read_tensors` reads a ``.safetensors`` file (its own small parser: an 8-byte little-endian
-header length, a JSON header of ``{name: {dtype, shape, data_offsets}}``, then the raw bytes) into
-tensors allocated once on the target device, or a ``torch.save`` file (memory-mapped, then moved).
-On CUDA the bytes pass through two small pinned buffers in turn: while the GPU copies one, the file
-is read into the other, on a stream of its own, so the reading thread waits in system calls and
-copies (the interpreter lock released) and the default stream's work (rendering, say) goes on beside
-it. No CPU copy of the whole file is made, and nothing is converted on the CPU: a ``dtype`` asked
-for is applied on the device, tensor by tensor.
+:func:`read_tensors` reads a ``.safetensors`` file or a ``torch.save`` file. A ``.safetensors`` header
+(an 8-byte little-endian length, then JSON ``{name: {dtype, shape, data_offsets}}``, then the raw
+bytes) is checked first by our own parser. For CUDA the tensors are allocated on the GPU and the file's
+bytes pass through two pinned buffers in turn: while the GPU copies one out, the file is read into the
+other, on a stream of its own, so the reading thread mostly waits in system calls (the interpreter
+lock released) and the default stream's work (rendering, say) goes on beside it; no CPU copy of the
+file is made, and a ``dtype`` asked for is applied on the GPU. For the CPU (and other devices) the
+safetensors library reads it, memory-mapped: pages are read as they are used and stay shared with
+the page cache.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ SAFETENSORS_DTYPES = {
     "BOOL": torch.bool, "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
 }
 MAX_HEADER_BYTES = 100 * 2**20  # as the safetensors library's own limit
-STAGING_BYTES = 64 * 2**20  # each of the two pinned buffers a CUDA read passes through
+STAGING_BYTES = 128 * 2**20  # each of the two pinned buffers a CUDA read passes through
 
 
 def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
@@ -87,25 +88,22 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
 
 
 def read_safetensors(path: Path, device: torch.device) -> dict[str, torch.Tensor]:
-    """The tensors of a ``.safetensors`` file, each allocated on ``device`` and filled from the file (see
-    the module docstring); in the file's dtypes."""
+    """The tensors of a ``.safetensors`` file on ``device``, in the file's dtypes (see the module docstring)."""
     start, entries = safetensors_header(path)
+    if device.type != "cuda":
+        from safetensors.torch import load_file
+
+        return load_file(str(path), device=str(device))
     ordered = sorted(entries.items(), key=lambda item: item[1][2])
-    landing = device if device.type in ("cpu", "cuda") else torch.device("cpu")  # others: through the CPU
-    raw = {name: torch.empty(end - begin, dtype=torch.uint8, device=landing) for name, (_, _, begin, end) in ordered}
+    raw = {name: torch.empty(end - begin, dtype=torch.uint8, device=device) for name, (_, _, begin, end) in ordered}
     with open(path, "rb", buffering=0) as file:
         if hasattr(os, "posix_fadvise"):
             os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
-        if landing.type == "cuda":  # copies on a stream of their own, after what the device was already given
-            stream = torch.cuda.Stream(landing)
-            stream.wait_stream(torch.cuda.current_stream(landing))  # the memory may have been another tensor's
-            with torch.cuda.stream(stream):
-                stream_into(file, start, [(raw[name], begin) for name, (_, _, begin, _) in ordered])
-        else:  # straight into each tensor's memory
-            for name, (_, _, begin, _) in ordered:
-                file.seek(start + begin)
-                _read_into(file, raw[name])
-    return {name: raw[name].view(dtype).view(shape).to(device) for name, (dtype, shape, _, _) in entries.items()}
+        stream = torch.cuda.Stream(device)  # the copies after what the device was given before: the memory
+        stream.wait_stream(torch.cuda.current_stream(device))  # may have been a tensor that work still reads
+        with torch.cuda.stream(stream):
+            stream_into(file, start, [(raw[name], begin) for name, (_, _, begin, _) in ordered])
+    return {name: raw[name].view(dtype).view(shape) for name, (dtype, shape, _, _) in entries.items()}
 
 
 def _read_into(file, target: torch.Tensor) -> None:

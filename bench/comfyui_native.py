@@ -82,8 +82,8 @@ cap = float(os.environ["COMFYUI_NATIVE_CAP_GIB"]) * 2**30
 torch.cuda.set_per_process_memory_fraction(cap / torch.cuda.get_device_properties(0).total_memory, 0)
 try:
     probe = torch.empty(int(cap) + 2**28, dtype=torch.uint8, device="cuda")
-except torch.cuda.OutOfMemoryError:
-    print(f"memory cap: {cap / 2**30:g} GiB holds (an allocation over it failed)", flush=True)
+except RuntimeError as error:  # torch.cuda.OutOfMemoryError
+    print(f"memory cap: {cap / 2**30:g} GiB holds (an allocation over it failed: {type(error).__name__})", flush=True)
 else:
     sys.exit(f"memory cap: {cap / 2**30:g} GiB does not hold (an allocation over it succeeded)")
 torch.cuda.empty_cache()
@@ -101,20 +101,16 @@ runpy.run_path("main.py", run_name="__main__")
 """
 
 
-def gpu_index() -> str:
-    """nvidia-smi's index of the GPU that CUDA sees first."""
-    return (os.environ.get("CUDA_VISIBLE_DEVICES") or "0").split(",")[0]
-
-
 class MemoryWatch:
     """The GPU's used memory (nvidia-smi, every 100 ms) in the background; :meth:`peak` in GiB above the
     first second's median. Inactive without nvidia-smi or ``active`` False."""
 
     def __init__(self, active: bool):
         self.samples: list[tuple[float, float]] = []
-        self.process = None
+        self.process, self.baseline = None, None
         if active and shutil.which("nvidia-smi"):
-            self.process = subprocess.Popen(["nvidia-smi", "-i", gpu_index(), "--query-gpu=memory.used",
+            index = (os.environ.get("CUDA_VISIBLE_DEVICES") or "0").split(",")[0]  # the GPU CUDA sees first
+            self.process = subprocess.Popen(["nvidia-smi", "-i", index, "--query-gpu=memory.used",
                                              "--format=csv,noheader,nounits", "-lms", "100"],
                                             stdout=subprocess.PIPE, text=True)
             threading.Thread(target=self._read, daemon=True).start()
@@ -133,13 +129,6 @@ class MemoryWatch:
     def stop(self) -> None:
         if self.process:
             self.process.terminate()
-
-
-def total_gib() -> float:
-    """The GPU's memory in GiB (nvidia-smi)."""
-    out = subprocess.run(["nvidia-smi", "-i", gpu_index(), "--query-gpu=memory.total", "--format=csv,noheader,nounits"],
-                         capture_output=True, text=True, check=True).stdout
-    return int(out.strip()) / 1024
 
 
 def native_workflow(preset_name: str, key_views: int | None) -> dict:
@@ -196,6 +185,11 @@ def start_server(python: str, comfy: Path, port: int, log: Path, frontend: Path,
                  cap_gib: float | None, caches: Path) -> tuple[subprocess.Popen, float]:
     """A ComfyUI server (capped: through :data:`CAPPED`), its caches in ``caches`` (as
     :func:`user_wall.process_env`'s, the checkout left off its path), and the seconds until it answered."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/system_stats", timeout=5):
+            raise RuntimeError(f"a server answers on port {port} already; stop it or pass another --port")
+    except OSError:
+        pass
     entry = ["-c", CAPPED, "main.py"] if cap_gib else ["main.py"]
     env = {**process_env(caches), "PYTHONPATH": os.environ.get("PYTHONPATH", ""),
            **({"COMFYUI_NATIVE_CAP_GIB": str(cap_gib)} if cap_gib else {})}
@@ -225,8 +219,8 @@ def stop_server(server: subprocess.Popen) -> None:
 
 def native_groups(run: dict, node: str, steps: int) -> list[float]:
     """Seconds per group of Sample Group (``node``) from its progress messages (see the module docstring): its
-    bar is the longest one the node completed whose length is a multiple of ``steps`` (a node may show other
-    bars, e.g. a tiled decoding's)."""
+    bar is the first one the node started of those it completed whose length is a multiple of ``steps`` (a
+    node may show other bars, e.g. a tiled decoding's fallback after the first group)."""
     bars: dict[int, dict[int, float]] = {}
     for name, value, total, moment in run["progress"]:
         if name == node and total % steps == 0:
@@ -235,7 +229,7 @@ def native_groups(run: dict, node: str, steps: int) -> list[float]:
     start = run["spans"].get(node, [None])[0]
     if start is None or not complete:
         return []
-    total = max(complete)
+    total = min(complete, key=lambda length: bars[length][1])
     marks = [start] + [bars[total][value] for value in range(steps, total + 1, steps)]
     return [b - a for a, b in zip(marks, marks[1:])]
 
@@ -275,7 +269,7 @@ def main() -> None:
     files = write_model_files(args.dir / "models", args.device)
     if gpu:
         import torch
-        torch.cuda.empty_cache()
+        torch.cuda.empty_cache()  # the baseline below then holds this process's CUDA context alone
     say("model files ready")
     prepare_comfyui(args.comfyui, files, args.scene, args.cameras, args.style)
     frontend, logs = args.dir / "frontend", args.dir / "logs"
@@ -292,8 +286,7 @@ def main() -> None:
                        **more})
         say(f"{preset}, {path}: {end}, wall {wall:.1f} s, groups {rows[-1][3]}, peak {peak} GiB")
         if args.json:
-            args.json.write_text(json.dumps({"baseline_gib": getattr(watch, "baseline", None), "runs": report},
-                                            indent=1))
+            args.json.write_text(json.dumps({"baseline_gib": watch.baseline, "runs": report}, indent=1))
 
     for preset in filter(None, args.diffusers.split(",")):
         more = [f"--key-views={key_views[preset]}"] if preset in key_views else []
@@ -306,7 +299,10 @@ def main() -> None:
                watch.peak(since, time.perf_counter()), "success" if result["exit"] == 0 else f"exit {result['exit']}",
                parts=result, output=log.read_text()[-3000:])
 
-    low = ["--lowvram", "--reserve-vram", f"{total_gib() - args.cap_gib:.2f}"] if gpu else ["--cpu"]
+    if gpu:  # ComfyUI plans with torch's view of the card, less what --reserve-vram keeps back
+        import torch
+        total = torch.cuda.get_device_properties(0).total_memory / 2**30
+    low = ["--lowvram", "--reserve-vram", f"{total - args.cap_gib:.2f}"] if gpu else ["--cpu"]
     for label, plan, extra, cap in (("native", args.native, [] if gpu else ["--cpu"], None),
                                     (f"native --lowvram, {args.cap_gib:g} GiB cap", args.lowvram, low, args.cap_gib)):
         plan = runs_per_preset(plan)
@@ -335,11 +331,11 @@ def main() -> None:
                         record(preset, f"{label}, run {number}", [], time.perf_counter() - since, None, "failed",
                                error=str(getattr(error, "details", error)), log=log.read_text()[-3000:])
                         break
-                    where = "fresh server" if fresh else ("sampling on" if number > 1 else "models loaded")
+                    where = (f"fresh server, up in {started:.1f} s" if fresh else
+                             "sampling on" if number > 1 else "models loaded")
                     record(preset, f"{label}, run {number} ({where})",
                            native_groups(run, node, get_preset(preset).sampler.steps), run["wall"],
-                           watch.peak(since, time.perf_counter()), run["end"], server_start=started if fresh else None,
-                           nodes=run["nodes"], log=log.read_text()[-3000:] if run["end"] != "success" else "")
+                           watch.peak(since, time.perf_counter()), run["end"], nodes=run["nodes"], log=log.read_text()[-3000:] if run["end"] != "success" else "")
                     fresh = False
         finally:
             stop_server(server)
@@ -350,7 +346,7 @@ def main() -> None:
                 "python " + shlex.join(sys.argv))
     print("\n".join(["", *notes]))
     if args.json:
-        args.json.write_text(json.dumps({"baseline_gib": getattr(watch, "baseline", None), "runs": report,
+        args.json.write_text(json.dumps({"baseline_gib": watch.baseline, "runs": report,
                                          "notes": notes}, indent=1))
 
 

@@ -77,13 +77,13 @@ def _sdxl_base(device: torch.device):
     )
 
 
-def _write_sdxl(single: Path, folder: Path, device: torch.device):
+def _write_sdxl(single: Path, folder: Path | None, device: torch.device):
     from diffusers import EulerDiscreteScheduler, StableDiffusionXLPipeline
 
     base = _sdxl_base(device)
     if not single.exists():
         write_single_file_checkpoint(single, base)
-    if not folder.exists():
+    if folder is not None and not folder.exists():
         StableDiffusionXLPipeline(
             vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2,
             tokenizer=base.tokenizer, tokenizer_2=base.tokenizer_2, unet=base.unet,
@@ -105,8 +105,9 @@ def _csgo_state(unet, controlnet) -> dict[str, dict[str, torch.Tensor]]:
             "controlnet_adapter_modules": half(_image_branch_keys(controlnet, ("down_blocks",), True, seed=9))}
 
 
-def write_model_files(folder: Path, device: str | torch.device = "cpu") -> dict[str, Path]:
-    """The released files (see the module docstring) in ``folder``, written where missing; paths by role."""
+def write_model_files(folder: Path, device: str | torch.device = "cpu", sdxl_folder: bool = True) -> dict[str, Path]:
+    """The released files (see the module docstring) in ``folder``, written where missing (SDXL's diffusers
+    folder only with ``sdxl_folder``: 6.5 GiB more); paths by role."""
     from diffusers import ControlNetModel, UNet2DConditionModel
     from safetensors.torch import save_file
     from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
@@ -115,8 +116,8 @@ def write_model_files(folder: Path, device: str | torch.device = "cpu") -> dict[
     folder.mkdir(parents=True, exist_ok=True)
     paths = {role: folder / name for role, name in NAMES.items()}
     unet = None
-    if not (paths["sdxl"].exists() and paths["sdxl folder"].exists()):
-        unet = _write_sdxl(paths["sdxl"], paths["sdxl folder"], device)
+    if not (paths["sdxl"].exists() and (paths["sdxl folder"].exists() or not sdxl_folder)):
+        unet = _write_sdxl(paths["sdxl"], paths["sdxl folder"] if sdxl_folder else None, device)
     if not (paths["controlnet"].exists() and paths["csgo"].exists()):
         if unet is None:
             with torch.device("meta"):  # the CSGO writer needs only the layers' names and shapes

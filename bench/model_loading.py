@@ -11,9 +11,11 @@ for comparison, diffusers' ``StableDiffusionXLPipeline.from_single_file`` on it 
 single file, the ControlNet, the image encoder's folder, ``csgo_4_32.bin``: what a stylize run loads),
 ``--repeats`` times each (the first read may come from disk, later ones from the page cache).
 
-Beside each load a thread counts in Python: "others' GIL share" is its count per second during the load
-over its count while nothing else runs, so 1 means the loading left the interpreter lock to the rest of
-the process (it waited in system calls and device copies), 0 that it held it throughout. Prints a table.
+Each load runs alone, then again beside a thread that counts in Python (as the command's main thread
+renders beside the background load): "beside s" is that load's time, "others' GIL share" the thread's
+count per second during it over its count alone, so 1 means the loading left the interpreter lock to the
+rest of the process (it waited in system calls and device copies), 0 that it held it throughout. Prints
+a table.
 """
 
 from __future__ import annotations
@@ -70,19 +72,26 @@ def main() -> None:
         paths = [path for _, path in four.items()] if name == "all four" else [files[name.split(",")[0]]]
         size = sum(size for path in paths for _, size, _ in file_key(path)[1])
         for run in range(1, args.repeats + 1):
-            synchronize(device)
+            seconds = timed_load(load, device)
             with Ticker() as ticker:
-                start = time.perf_counter()
-                model = load()
-                synchronize(device)
-                seconds = time.perf_counter() - start
-            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds,
-                         f"{ticker.count / seconds / idle:.2f}"])
+                beside = timed_load(load, device)
+            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds, beside,
+                         f"{ticker.count / beside / idle:.2f}"])
             print(rows[-1], flush=True)
-            del model
     print_table(f"Loading single weight files to {args.device} in {args.dtype} (torch threads: "
-                f"{torch.get_num_threads()})", ["model", "file", "GiB", "run", "seconds", "others' GIL share"], rows,
+                f"{torch.get_num_threads()})", ["model", "file", "GiB", "run", "seconds", "beside s", "others' GIL share"], rows,
                 "python " + " ".join(sys.argv))
+
+
+def timed_load(load, device: torch.device) -> float:
+    """Seconds of ``load()``, the device waited for at both ends; what it loaded is dropped."""
+    synchronize(device)
+    start = time.perf_counter()
+    model = load()
+    synchronize(device)
+    seconds = time.perf_counter() - start
+    del model
+    return seconds
 
 
 class Ticker:

@@ -186,7 +186,8 @@ def main() -> None:
 
     start = time.time()
     if any(preset != "preview" for preset, _ in runs):
-        files = write_model_files(args.dir / "models", args.device)
+        files = write_model_files(args.dir / "models", args.device,
+                                  sdxl_folder=any(layout == "folder" for preset, layout in runs if preset != "preview"))
         print(f"model files ready in {time.time() - start:.0f} s", flush=True)
     if args.lora:
         args.more += f" --lora={write_random_lora(args.dir / 'models' / 'random_lora_rank64.safetensors')}"

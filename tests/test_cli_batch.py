@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from artnvg_core.cli import main as cli
-from artnvg_core.cli.batch import Job, load_jobs, output_complete, read_jobs, stylize_options
+from artnvg_core.cli.batch import Job, expected_work, load_jobs, output_complete, read_jobs, stylize_options
 from artnvg_core.formats import load_scene, save_scene
 from artnvg_core.presets import PRESETS
 from artnvg_core.stylize import DemoInputs, sheet_path
@@ -103,6 +103,27 @@ def test_a_jobs_file_that_cannot_be_read_names_itself(tmp_path, name, text, mess
         (tmp_path / name).write_text(text)
     with pytest.raises(ValueError, match=f"{name}: {message}"):
         read_jobs(tmp_path / name)
+
+
+def test_expected_work_ranks_jobs_by_steps_then_iterations_then_scene_size(tmp_path):
+    (tmp_path / "big.ply").write_bytes(b"x" * 300)
+    (tmp_path / "small.ply").write_bytes(b"x" * 100)
+    base = {"style": "s.jpg"}
+    entries = [
+        {**base, "scene": "small.ply", "preset": "fast", "out": "fast-small.ply"},  # 5 steps, 3 guided
+        {**base, "scene": "big.ply", "preset": "fast", "out": "fast-big.ply"},
+        {**base, "scene": "big.ply", "preset": "paper", "out": "paper.ply"},  # 50 steps, all guided
+        {**base, "scene": "big.ply", "preset": "preview", "out": "preview.ply"},  # no diffusion, 100 iterations
+        {**base, "scene": "big.ply", "stylizer": "nnfm", "out": "nnfm.ply"},  # 1000 iterations
+        {**base, "scene": "small.ply", "preset": "fast", "steps": 8, "cfg_until": 1, "iters": 5, "out": "f8.ply"},
+        {**base, "scene": "missing.ply", "stylizer": "nnfm", "iters": 1000, "out": "m.ply"},
+    ]
+    jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
+    assert [job.work for job in jobs] == [(8, 300, 100), (8, 300, 300), (100, 1000, 300), (0, 100, 300),
+                                          (0, 1000, 300), (16, 5, 100), (0, 1000, 0)]
+    assert expected_work(cli.build_parser().parse_args(["stylize", "--preset", "fast", "--cfg-until", "0"]),
+                         tmp_path) == (5, 300, 0)
+    assert [job.number for job in sorted(jobs, key=lambda job: job.work, reverse=True)] == [3, 6, 2, 1, 5, 7, 4]
 
 
 def test_output_complete_needs_a_scene_that_loads_and_its_contact_sheet(tmp_path):
@@ -254,12 +275,13 @@ def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs,
     def kill_the_first_worker(kind: str, job: Job, detail) -> None:
         if kind == "started":
             starts.append(job.number)
-            if starts == [1]:  # the worker that took job 1 dies as the job begins
+            if len(starts) == 1:  # the worker that took the first job dies as the job begins
                 os.kill(ray_local.get(detail["actor"].ping.remote()), signal.SIGKILL)
 
     results = pool.run(jobs, on_event=kill_the_first_worker)
     assert [r.status for r in results] == ["done", "done", "done", "failed", "failed"], results
-    assert starts.count(1) == 2 and sorted(set(starts)) == [1, 2, 3, 4]  # job 5 fails before it starts
+    # the longest first: the diffusion job, then the NNFM jobs by scene size; job 5 fails before it starts
+    assert starts[:2] == [2, 1] and starts.count(2) == 2 and sorted(set(starts)) == [1, 2, 3, 4], starts
     for number, reference in references.items():
         assert _same_output(jobs[number - 1].out, reference), number
     assert "missing.ply" in results[3].message and "argument --preset: invalid choice: 'slow'" in results[4].message

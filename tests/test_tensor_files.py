@@ -1,5 +1,6 @@
-"""Weight files read onto a device: the safetensors parser against the safetensors library, the chunked
-copy at every chunk size, malformed files refused by name."""
+"""Weight files read onto a device: our safetensors header parser and the chunked copy CUDA reads go
+through (here into CPU tensors) against the safetensors library at every chunk size, dtype casts,
+malformed files refused by name."""
 
 import json
 import struct

@@ -9,7 +9,8 @@ stylize option works here and none can drift. Relative paths start at the JOBS f
 jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 
 Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the
-diffusion models loaded from one job to the next; the diffusion groups of a job run on that worker's
+diffusion models loaded from one job to the next. Jobs start longest first (:func:`expected_work`), so
+that no long job starts last while the other workers idle; results are reported in job order; the diffusion groups of a job run on that worker's
 GPU (``stylize --devices`` spreads one scene's groups over several GPUs instead). A job whose worker
 dies is run again on another worker; a job that fails (bad input, missing file) fails alone, as does one
 that would write over its own inputs or over another job's output or contact sheet (``a.ply`` and
@@ -40,6 +41,8 @@ from pathlib import Path
 import torch
 
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..diffusion.settings import guided_steps
+from ..presets import PRESETS
 from ..progress import Cancelled, StopFn
 from .common import parse_devices, terminate_as_interrupt
 from .stylize import add_stylize_arguments
@@ -53,13 +56,15 @@ STOP_SECONDS = 30.0  # how long stopped jobs may take to unwind before their wor
 @dataclass(frozen=True)
 class Job:
     """One line of JOBS: ``number`` (from 1), ``argv`` (stylize's arguments), ``folder`` (where relative
-    paths start), ``out`` (absolute output scene) and ``error`` (why it cannot run, else None)."""
+    paths start), ``out`` (absolute output scene), ``error`` (why it cannot run, else None) and ``work``
+    (:func:`expected_work`: larger runs longer)."""
 
     number: int
     argv: tuple[str, ...]
     folder: Path
     out: Path | None
     error: str | None = None
+    work: tuple[int, int, int] = (0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -165,6 +170,26 @@ def parse_stylize(argv: Sequence[str], label: str) -> argparse.Namespace:
         raise ValueError(f"{label}: {text[-1].split('error: ', 1)[-1] if text else 'cannot be parsed'}") from None
 
 
+def expected_work(args: argparse.Namespace, folder: Path) -> tuple[int, int, int]:
+    """How long a job of stylize's ``args`` should run, compared as a tuple: its denoising steps per view
+    (guided steps count twice: they sample a double batch; 0 for the NNFM stylizer and ``preview``), its
+    finetune iterations, then its scene file's size in bytes (0 when missing). Steps and iterations
+    follow the preset and the options that replace them; the views' count and size are not read."""
+    preset = PRESETS[args.preset]
+    sampler = None if args.stylizer == "nnfm" else preset.sampler  # "auto": diffusion, as when its files load
+    steps = 0
+    if sampler is not None:
+        count = args.steps or sampler.steps
+        cfg_until = sampler.cfg_until if args.cfg_until is None else args.cfg_until
+        steps = count + guided_steps(count, cfg_until, sampler.guidance_scale)
+    if args.iters is not None:
+        iterations = args.iters
+    else:  # the NNFM stylizer's 1000 unless the preset is diffusion-free (preview)
+        iterations = preset.finetune_iterations if sampler is not None or preset.sampler is None else 1000
+    scene = folder / args.scene if args.scene else None
+    return steps, iterations, scene.stat().st_size if scene is not None and scene.is_file() else 0
+
+
 def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> list[Job]:
     """The jobs of a JOBS file (see the module docstring). A job that cannot be parsed, that would write
     over one of its own inputs, or whose output or contact sheet another job writes too (``a.ply`` and
@@ -200,7 +225,7 @@ def load_jobs(path: str | os.PathLike, options: dict[str, argparse.Action]) -> l
             jobs.append(Job(number, (), folder, None, str(error)))
             continue
         owners.update((file_identity(file), number) for file in outputs)
-        jobs.append(Job(number, tuple(argv), folder, out))
+        jobs.append(Job(number, tuple(argv), folder, out, work=expected_work(args, folder)))
     return jobs
 
 
@@ -302,7 +327,7 @@ class BatchPool(WorkerPool):
         """One :class:`JobResult` per job, in job order.
 
         Jobs with an error fail at once; jobs whose output is complete are skipped (unless ``redo``);
-        the others run on the workers in order. ``on_event("started", job, {"worker": i, "actor": actor})``
+        the others run on the workers, the most :attr:`Job.work` first (in job order where equal). ``on_event("started", job, {"worker": i, "actor": actor})``
         when a job is handed out (again, if its worker died) and ``on_event("finished", job, result)``
         for every job. When ``should_stop`` says so, or on KeyboardInterrupt (Ctrl-C), the running jobs
         are stopped (a worker whose job has not stopped within :data:`STOP_SECONDS` is killed), and
@@ -324,6 +349,7 @@ class BatchPool(WorkerPool):
                 finish(JobResult(job, "skipped", "output complete"))
             else:
                 todo.append(job)
+        todo.sort(key=lambda job: job.work, reverse=True)  # a stable sort: equal work keeps job order
         run, running = uuid.uuid4().hex, {}  # job number -> (job, reference) while it runs
 
         def submit(actor, job: Job):

@@ -13,6 +13,7 @@ import torch
 
 from ..cameras.selection import parse_views
 from ..devices import DEVICE_CHOICES
+from ..diffusion.lora import keep_peft_out
 from .batch import add_batch_command
 from .blend import add_blend_command
 from .common import (
@@ -116,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "stylize" and not args.lora:  # this process fuses no LoRA (batch jobs run in workers)
+        keep_peft_out()
     terminated: list[int] = []
     try:
         with terminate_as_interrupt() as terminated:

@@ -53,15 +53,15 @@ def _bytes_to_unicode() -> list[str]:
 
 def clip_vocabulary(merges_text: str) -> dict[str, int]:
     """CLIP's token -> id map from the text of its ``merges.txt`` (first line a ``#version`` header)."""
-    merges = [line.split() for line in merges_text.splitlines()[1:] if line]
+    merged = [line.replace(" ", "") for line in merges_text.splitlines()[1:] if line]  # "a b" merges into "ab"
     characters = _bytes_to_unicode()
-    tokens = characters + [c + "</w>" for c in characters] + ["".join(pair) for pair in merges] + [START, END]
+    tokens = characters + [c + "</w>" for c in characters] + merged + [START, END]
     return {token: index for index, token in enumerate(tokens)}
 
 
 def _write_json(path: Path, value: Mapping) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(value, indent=1))
+    path.write_text(json.dumps(value))  # no indent: json's C encoder (the vocabulary's 49,408 entries)
 
 
 def write_sdxl_config_dir(
