@@ -286,8 +286,7 @@ def main() -> None:
                        **more})
         say(f"{preset}, {path}: {end}, wall {wall:.1f} s, groups {rows[-1][3]}, peak {peak} GiB")
         if args.json:
-            args.json.write_text(json.dumps({"baseline_gib": watch.baseline, "runs": report},
-                                            indent=1))
+            args.json.write_text(json.dumps({"baseline_gib": watch.baseline, "runs": report}, indent=1))
 
     for preset in filter(None, args.diffusers.split(",")):
         more = [f"--key-views={key_views[preset]}"] if preset in key_views else []
@@ -332,11 +331,11 @@ def main() -> None:
                         record(preset, f"{label}, run {number}", [], time.perf_counter() - since, None, "failed",
                                error=str(getattr(error, "details", error)), log=log.read_text()[-3000:])
                         break
-                    where = "fresh server" if fresh else ("sampling on" if number > 1 else "models loaded")
+                    where = (f"fresh server, up in {started:.1f} s" if fresh else
+                             "sampling on" if number > 1 else "models loaded")
                     record(preset, f"{label}, run {number} ({where})",
                            native_groups(run, node, get_preset(preset).sampler.steps), run["wall"],
-                           watch.peak(since, time.perf_counter()), run["end"], server_start=started if fresh else None,
-                           nodes=run["nodes"], log=log.read_text()[-3000:] if run["end"] != "success" else "")
+                           watch.peak(since, time.perf_counter()), run["end"], nodes=run["nodes"], log=log.read_text()[-3000:] if run["end"] != "success" else "")
                     fresh = False
         finally:
             stop_server(server)

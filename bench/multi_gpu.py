@@ -45,9 +45,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from artnvg_core.cli.batch import BatchPool, load_jobs, stylize_options  # noqa: E402
+from artnvg_core.cli.batch import BatchPool, BatchWorker, load_jobs, stylize_options  # noqa: E402
 from artnvg_core.cameras import load_cameras  # noqa: E402
-from artnvg_core.cluster import Workers, ray_session  # noqa: E402
+from artnvg_core.cluster import WorkerPool, Workers, ray_session  # noqa: E402
 from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402
 from artnvg_core.fileio import load_image  # noqa: E402
 from artnvg_core.formats import load_scene  # noqa: E402
@@ -145,6 +145,47 @@ def groups_section(args, devices: list[str], rows: list[str]) -> None:
                 print(timeline(start, end, [[(f"g{g}", a, b) for g, a, b in s["tasks"]] for s in stats]), flush=True)
 
 
+# the parts of a stylize job timed in the batch's workers: (module, function, part)
+JOB_PARTS = (("artnvg_core.cli.stylize", "load_scene_verbose", "scene"),
+             *(("artnvg_core.stylize", name, part) for name, part in (
+                 ("load_models_for", "models"), ("render_views", "render"), ("stylize_diffusion", "diffusion"),
+                 ("finetune", "finetune"), ("save_result", "save"))))
+
+
+class TimedBatchWorker(BatchWorker):
+    """A batch worker that records when each part of its jobs (:data:`JOB_PARTS`) ran, Unix seconds: the
+    models' load runs in a background thread beside the scene and the content render; ``render`` inside
+    ``save`` is the contact sheet's."""
+
+    def __init__(self, workers: Workers):
+        super().__init__(workers)
+        import importlib
+
+        self.spans: list[tuple[str, float, float]] = []
+        for module_name, name, part in JOB_PARTS:
+            module = importlib.import_module(module_name)
+            setattr(module, name, self._timed(getattr(module, name), part))
+
+    def _timed(self, call, part: str):
+        def timed(*args, **kwargs):
+            start = time.time()
+            try:
+                return call(*args, **kwargs)
+            finally:
+                self.spans.append((part, start, time.time()))
+        return timed
+
+    def parts(self) -> list[tuple[str, float, float]]:
+        return self.spans
+
+
+class TimedBatchPool(BatchPool):
+    """:class:`BatchPool` of :class:`TimedBatchWorker` actors."""
+
+    def __init__(self, workers: Workers):
+        WorkerPool.__init__(self, TimedBatchWorker, workers, workers)
+
+
 def write_random_model_files(folder: Path, tiny: bool, seed: int) -> dict[str, Path]:
     """Random full-size (or tiny) model files in the layouts the loaders read, float16; returns their paths."""
     from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
@@ -227,6 +268,8 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
         path.write_text(json.dumps(chosen).replace("OUT/", f"{label}/"))
         return load_jobs(path, stylize_options())
 
+    import ray
+
     with ray_session(devices) as available:
         reference, reference_wall = None, None
         for count in worker_counts(args, available.count):
@@ -238,10 +281,11 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
                 elif job.number in spans:
                     spans[job.number][2] = time.time()
 
-            with BatchPool(Workers(available.kind, count)) as pool:
+            with TimedBatchPool(Workers(available.kind, count)) as pool:
                 start = time.time()
                 results = pool.run(jobs, on_event=record)
                 end = time.time()
+                parts = ray.get([actor.parts.remote() for actor in pool.actors])
                 again = jobs_to("again", entries[:1]) if reference is None and count == 1 else None
                 if again:  # the first job once more on the same GPU, its models loaded (not timed)
                     results += pool.run(again)
@@ -260,9 +304,11 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
             rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, end - start, reference_wall,
                                  per_worker, equal))
             print(rows[-1], flush=True)
-            names = {job.number: f"job {job.number} ({args.batch_scenes[job.number - 1]})" for job in jobs}
+            names = {r.job.number: f"job {r.job.number} ({args.batch_scenes[r.job.number - 1]}, {r.seconds:.1f} s "
+                     "in the worker)" for r in results[: len(jobs)]}
             print(timeline(start, end, [[(names[n], a, b) for n, (w, a, b) in spans.items() if w == worker]
                                         for worker in range(count)]), flush=True)
+            print("  parts of the jobs:\n" + timeline(start, end, parts), flush=True)
             if again:
                 rows.append(f"| batch, job 1 twice on 1 GPU | 1 | | | | | {compare_outputs(again, reference[:1])} |")
                 print(rows[-1], flush=True)
