@@ -23,7 +23,7 @@ import torch
 from .cameras import CameraSet
 from .diffusion.loader import indexed_device, load_models_for
 from .diffusion.lora import LoRA
-from .diffusion.model_files import ModelFiles, missing_model
+from .diffusion.model_files import ModelFiles, check_model_files, missing_model, weight_files
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
@@ -31,6 +31,7 @@ from .progress import ProgressFn, StopFn
 from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
+from .tensor_files import read_ahead
 
 STYLIZERS = ("auto", "nnfm", "diffusion")
 DEMO_DIR = Path(__file__).resolve().parent / "demo"
@@ -115,17 +116,21 @@ def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: st
                     compile_blocks: bool = False, loras: Sequence[LoRA] = (), progress: ProgressFn | None = None
                     ) -> None:
     """Start loading, in a background thread, the models that :func:`stylize_diffusion` with these arguments
-    on one ``device`` loads, so that reading the files overlaps what comes before it (loading the scene).
-    stylize_diffusion's own load then waits for this one and gets its models (:func:`load_models_for`
-    loads once per process). A failure here is dropped: stylize_diffusion's load meets it again and
-    reports it."""
+    on one ``device`` loads, so that reading the files overlaps what comes before it (the diffusion
+    libraries' imports, loading the scene). Another thread first asks the kernel to read the weight files
+    into the page cache (:func:`~artnvg_core.tensor_files.read_ahead`), so that from a cold disk they
+    stream in while the libraries are imported. stylize_diffusion's own load then waits for this one and
+    gets its models (:func:`load_models_for` loads once per process). A failure here is dropped:
+    stylize_diffusion's load meets it again and reports it."""
     load, device = _models_loader(files, preset, compile_blocks, loras), indexed_device(device)  # this thread's
 
-    def quietly() -> None:
+    def quietly(work) -> None:
         with contextlib.suppress(Exception):
-            load(device, progress=progress)
+            work()
 
-    threading.Thread(target=quietly, name="prefetch models", daemon=True).start()
+    for name, work in (("read ahead", lambda: read_ahead(weight_files(check_model_files(files)))),
+                       ("prefetch models", lambda: load(device, progress=progress))):
+        threading.Thread(target=quietly, args=(work,), name=name, daemon=True).start()
 
 
 def stylize_diffusion(

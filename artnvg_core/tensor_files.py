@@ -18,6 +18,7 @@ import math
 import os
 import struct
 import zipfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import torch
@@ -39,6 +40,26 @@ def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
     path, device = Path(path), torch.device(device)
     tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else read_torch_file(path, device)
     return tensors if dtype is None else {k: _cast(v, dtype) for k, v in tensors.items()}
+
+
+def read_ahead(paths: Iterable[str | os.PathLike]) -> None:
+    """Ask the kernel to start reading each file of ``paths`` whole into the page cache
+    (``POSIX_FADV_WILLNEED``: it returns once the reads are queued, the reading goes on in the kernel), so
+    that a later read finds it there; files it cannot open are skipped; nothing on systems without the
+    call."""
+    if not hasattr(os, "posix_fadvise"):
+        return
+    for path in paths:
+        try:
+            descriptor = os.open(path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            os.posix_fadvise(descriptor, 0, os.fstat(descriptor).st_size, os.POSIX_FADV_WILLNEED)
+        except OSError:
+            pass
+        finally:
+            os.close(descriptor)
 
 
 def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu"):

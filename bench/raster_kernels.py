@@ -15,12 +15,13 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
 ``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render
-forward+backward by total time (torch.profiler), for ``render()``, the finetune's path
+forward+backward by total time (torch.profiler), for ``render()`` (also with its tile lists' room kept
+from the scene's earlier renders: ``ARTNVG_RENDER_LISTS=reuse``), the finetune's path
 (``common.finetune_render``) and, where installed, gsplat's fused ``rasterization()``, each with the sum of
 its kernels' times beside its time from CUDA events (the difference: the GPU waiting for the host).
 ``--variants "rows,chunk,warps,atomics;..."``: instead of the sweep, the backward kernel with each of those
 :class:`~artnvg_core.raster.triton_backend.Pass` settings (time, deviation, error as above), and whole
-renders forward+backward with each (``ARTNVG_RASTER_BACKWARD``; the finetune's path and ``render()``) beside
+renders forward+backward with each (``ARTNVG_RASTER_BACKWARD``; the paths above but gsplat's) beside
 the largest deviation of their scene gradients from the shipped settings'. Medians of 10 after 3 warm-ups,
 CUDA events. Needs CUDA.
 """
@@ -158,9 +159,17 @@ def kernel_rows(name, proj, feats, size, settings=SETTINGS, kernels=("forward", 
 
 
 def render_paths(scene, camera) -> dict:
-    """Closures (a scene -> rgb) of the renders compared: render(), the finetune's path and, where
+    """Closures (a scene -> rgb) of the renders compared: render(), render() with the tile lists' room kept
+    from the scene's earlier renders (``ARTNVG_RENDER_LISTS=reuse``), the finetune's path and, where
     installed, gsplat's fused rasterization()."""
-    paths = {"render()": lambda s: render(s, camera, backend="triton").rgb,
+    def reusing(s):
+        os.environ["ARTNVG_RENDER_LISTS"] = "reuse"
+        try:
+            return render(s, camera, backend="triton").rgb
+        finally:
+            os.environ.pop("ARTNVG_RENDER_LISTS")
+
+    paths = {"render()": lambda s: render(s, camera, backend="triton").rgb, "render(), room kept": reusing,
              "as the finetune renders": finetune_render(scene, camera)}
     if gsplat_available():
         paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
@@ -191,7 +200,7 @@ def profile_rows(name, scene, camera, top=12):
 
 
 def variant_rows(name, scene, camera, settings):
-    """Forward+backward ms of whole renders (the finetune's path, render()) with each backward setting
+    """Forward+backward ms of whole renders (:func:`render_paths` but gsplat's) with each backward setting
     (``ARTNVG_RASTER_BACKWARD``), and the largest deviation of the scene's gradients from the shipped
     settings' on the finetune's path, relative to their largest magnitude."""
     params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}

@@ -359,3 +359,18 @@ def test_loading_reports_the_bytes_of_each_model_and_stops_between_models(tmp_pa
         load_diffusion_models(paths, dtype=torch.float32, should_stop=lambda: len(seen) == 2,
                               progress=lambda done, total, info: seen.append(info["loading"]))
     assert seen == ["SDXL", "ControlNet"]
+
+
+def test_weight_files_are_the_files_a_load_reads(tmp_path):
+    """Single files as given; in folders each weight file, the fp16 variant and not its plain twin."""
+    from artnvg_core.diffusion.model_files import weight_files
+
+    for name in ("sdxl/unet/diffusion_pytorch_model.safetensors", "sdxl/unet/diffusion_pytorch_model.fp16.safetensors",
+                 "sdxl/vae/diffusion_pytorch_model.safetensors", "sdxl/text_encoder/model.bin", "sdxl/unet/config.json",
+                 "encoder/model.safetensors", "tile.safetensors", "csgo.bin"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
+    found = ModelFiles(tmp_path / "sdxl", tmp_path / "tile.safetensors", tmp_path / "encoder", tmp_path / "csgo.bin")
+    assert weight_files(found) == [tmp_path / name for name in (
+        "sdxl/text_encoder/model.bin", "sdxl/unet/diffusion_pytorch_model.fp16.safetensors",
+        "sdxl/vae/diffusion_pytorch_model.safetensors", "tile.safetensors", "encoder/model.safetensors", "csgo.bin")]

@@ -83,3 +83,18 @@ def test_malformed_files_are_refused_naming_the_file(tmp_path, header, data, mes
         _write_raw(path, header, data)
     with pytest.raises(ValueError, match=f"weights '.*bad.safetensors'.*{message}"):
         read_tensors(path)
+
+
+def test_read_ahead_asks_the_kernel_for_each_whole_file_and_skips_what_it_cannot_open(tmp_path, monkeypatch):
+    import os
+
+    from artnvg_core.tensor_files import read_ahead
+
+    asked = []
+    monkeypatch.setattr(os, "posix_fadvise", lambda fd, offset, length, advice: asked.append((offset, length, advice)),
+                        raising=False)
+    monkeypatch.setattr(os, "POSIX_FADV_WILLNEED", 3, raising=False)
+    (tmp_path / "a.bin").write_bytes(b"x" * 10)
+    (tmp_path / "b.bin").write_bytes(b"y" * 3)
+    read_ahead([tmp_path / "a.bin", tmp_path / "missing.bin", tmp_path / "b.bin"])
+    assert asked == [(0, 10, 3), (0, 3, 3)]

@@ -156,6 +156,22 @@ def check_model_files(
     return found
 
 
+def weight_files(found: ModelFiles) -> list[Path]:
+    """The weight files a load of ``found`` (existing paths, :func:`check_model_files`) reads: each single
+    file, and in a folder every ``.safetensors``/``.bin`` file but the plain twin of an fp16 variant
+    (``x.safetensors`` beside ``x.fp16.safetensors``: a float16 load reads the variant)."""
+    paths = []
+    for _, path in found.items():
+        path = Path(path)
+        if path.is_file():
+            paths.append(path)
+            continue
+        weights = sorted(p for suffix in ("*.safetensors", "*.bin") for p in path.rglob(suffix))
+        variants = {p.with_name(p.name.replace(".fp16.", ".")) for p in weights if ".fp16." in p.name}
+        paths += [p for p in weights if p not in variants]
+    return paths
+
+
 def missing_model(files: ModelFiles, *, sdxl_config_dir: str | Path | None = None) -> str | None:
     """None when every file the diffusion models' load reads is there (:func:`check_model_files`), else the
     first missing one's message."""
