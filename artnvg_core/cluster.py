@@ -3,10 +3,11 @@
 * :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
   already initialised in this process, or starts a local Ray instance with exactly the given devices
   (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
-* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them, one task at a
-  time per actor, in the order given. A task whose actor died (a killed process, a lost machine) is
-  handed again to the next idle actor; the dead actor restarts by itself (``max_restarts``) and
-  rejoins once it answers.
+* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them in the order
+  given, one at a time per actor or, with ``per_actor=2``, the next one while it runs one (so that
+  the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
+  killed process, a lost machine) is handed again to the next idle actor; the dead actor restarts by
+  itself (``max_restarts``) and rejoins once it answers.
 
 Ray is imported here, and only when one of these is called: without it installed nothing else changes.
 Actors see only the GPU Ray gave them, as ``cuda:0``.
@@ -155,13 +156,14 @@ def _cluster_gpus(ray, address: str | None) -> Workers:
 
 
 class WorkerPool:
-    """``workers.count`` Ray actors of class ``worker``, each built with ``args`` and given two threads
-    (one works, the other answers progress and stop requests); leaving the ``with`` block, or
-    :meth:`close`, ends them and frees their memory. Ray must be connected (:func:`ray_session`)."""
+    """``workers.count`` Ray actors of class ``worker``, each built with ``args`` and given ``threads``
+    threads (one per task it holds at once, one more to answer progress and stop requests); leaving the
+    ``with`` block, or :meth:`close`, ends them and frees their memory. Ray must be connected
+    (:func:`ray_session`)."""
 
-    def __init__(self, worker: type, workers: Workers, *args):
+    def __init__(self, worker: type, workers: Workers, *args, threads: int = 2):
         ray = import_ray(worker.__name__)
-        actor = ray.remote(worker).options(**workers.actor_options(), max_concurrency=2)
+        actor = ray.remote(worker).options(**workers.actor_options(), max_concurrency=threads)
         self.actors = [actor.remote(*args) for _ in range(workers.count)]
 
     def __enter__(self):
@@ -185,11 +187,14 @@ def dispatch(
     on_start: Callable[[Any, int], None] | None = None,
     on_tick: Callable[[], None] | None = None,
     should_stop: StopFn | None = None,
+    per_actor: int = 1,
 ) -> Iterator[tuple[Any, int, Any, BaseException | None]]:
     """Run ``tasks`` on ``actors``; yields ``(task, actor index, value, error)`` as each task ends.
 
-    * ``submit(actor, task)`` starts a task and returns its Ray object reference; each actor runs one
-      task at a time, tasks start in the order given.
+    * ``submit(actor, task)`` starts a task and returns its Ray object reference; each actor holds at
+      most ``per_actor`` tasks at once, tasks are handed out in the order given: one to every actor
+      before a second to any (a second is committed before it is known which actor frees first: for
+      tasks of about equal length).
     * ``error`` is the task's own exception (value None) or :class:`WorkerLost` when its actor died
       :data:`ATTEMPTS` times with it. A task whose actor died is handed out again first; the actor is
       asked (its ``ping`` method) whether it is back before it gets more work.
@@ -203,7 +208,7 @@ def dispatch(
 
     queue = deque(range(len(tasks)))
     handed = [0] * len(tasks)
-    idle = deque(range(len(actors)))
+    idle = deque(list(range(len(actors))) * per_actor)  # an actor's free places
     running: dict[Any, tuple[int, int]] = {}  # reference -> (task, actor)
     probing: dict[Any, tuple[int, int]] = {}  # ping reference -> (actor, probes so far)
     while queue or running:

@@ -111,6 +111,9 @@ def test_stats_record_when_each_group_ran(executor, reference):
     for worker in stats:
         assert worker["busy_s"] == pytest.approx(sum(stop - start for _, start, stop in worker["tasks"]))
         assert worker["peak_gib"] is None and worker["worker"].startswith("cpu on ")
+        # a worker holds its next group while it samples one, but samples one at a time
+        spans = sorted((start, stop) for _, start, stop in worker["tasks"])
+        assert all(stop <= next_start for (_, stop), (next_start, _) in zip(spans, spans[1:]))
 
 
 def test_conditioning_from_a_worker_equals_the_local_one(executor, reference):

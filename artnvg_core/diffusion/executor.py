@@ -2,7 +2,8 @@
 
 Groups are independent (each has its own seed and its own neighbouring-view attention), so a
 :class:`GroupExecutor` hands them to its workers as tasks, largest first, each task carrying only its
-group's views. Group ``g`` is sampled with seed ``seed + g`` whichever worker runs it, and the views
+group's views, and each worker gets its next group while it samples one (its inputs arrive meanwhile).
+Group ``g`` is sampled with seed ``seed + g`` whichever worker runs it, and the views
 come back into view order, so the result equals a one-device run of the same groups on the same kind
 of device (bit for bit where the kernels are deterministic; on the CPU, with one thread as every CPU
 worker has). The groups do not depend on the number of workers: with ``G`` groups on ``W`` workers the
@@ -15,8 +16,10 @@ same seed: the result is unchanged. Needs Ray (``pip install "artnvg[cluster]"``
 from __future__ import annotations
 
 import os
+import threading
 import time
 import uuid
+from collections import Counter
 from collections.abc import Callable, Sequence
 
 import torch
@@ -33,8 +36,9 @@ from .stylize import group_members
 
 
 class GroupWorker:
-    """Ray actor (two threads: one stylizes, one answers progress and stop requests) holding the models
-    of ``load_models(device)`` on its device. A failed load is raised by every later call."""
+    """Ray actor holding the models of ``load_models(device)`` on its device; three threads: two take
+    groups in turn (one samples while the next one's inputs arrive), one answers progress and stop
+    requests. A failed load is raised by every later call."""
 
     def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
         self.device = workers.device()
@@ -44,6 +48,7 @@ class GroupWorker:
             torch.set_num_threads(1)
         self.steps: tuple[str, int, int] | None = None  # (run, group, steps done) of the group being sampled
         self.stopped: set[str] = set()
+        self.sampling = threading.Lock()  # one group at a time on the device
         self.tasks: list[tuple[int, float, float]] = []  # (group, start, end) of each group stylized, Unix time
         try:
             self.models, self.error = load_models(self.device), None
@@ -81,14 +86,15 @@ class GroupWorker:
         def report(step: int, total: int, info: dict) -> None:
             self.steps = (run, index, step)
 
-        start = time.time()
-        try:
-            views = stylize_group(self.models, members, map_tensors(lambda t: t.to(self.device), conditioning),
-                                  settings, seed=seed, view_centers=centers, progress=report,
-                                  should_stop=lambda: run in self.stopped)
-            return views[:owned].cpu()
-        finally:
-            self.tasks.append((index, start, time.time()))
+        with self.sampling:
+            start = time.time()
+            try:
+                views = stylize_group(self.models, members, map_tensors(lambda t: t.to(self.device), conditioning),
+                                      settings, seed=seed, view_centers=centers, progress=report,
+                                      should_stop=lambda: run in self.stopped)
+                return views[:owned].cpu()
+            finally:
+                self.tasks.append((index, start, time.time()))
 
     def stats(self) -> dict:
         """"worker" (:meth:`describe`), "tasks" (``(group, start, end)`` of every group stylized so far, Unix
@@ -114,7 +120,7 @@ class GroupExecutor(WorkerPool):
     """
 
     def __init__(self, load_models: Callable[[torch.device], DiffusionModels], workers: Workers):
-        super().__init__(GroupWorker, workers, load_models, workers)
+        super().__init__(GroupWorker, workers, load_models, workers, threads=3)
 
     def describe(self) -> list[str]:
         """Where each worker runs (waits until they are loaded; raises a worker's load error)."""
@@ -176,7 +182,7 @@ class GroupExecutor(WorkerPool):
 
         try:
             for index, actor, views, error in dispatch(self.actors, largest_first, submit, on_start=meter.started,
-                                                       on_tick=meter.poll, should_stop=should_stop):
+                                                       on_tick=meter.poll, should_stop=should_stop, per_actor=2):
                 if error is not None:
                     raise error
                 output[list(groups[index].views)] = views
@@ -193,16 +199,18 @@ class _StepMeter:
     def __init__(self, actors, run: str, chosen: list[int], steps: int, groups: int, progress: ProgressFn | None):
         self.actors, self.run, self.steps, self.groups, self.progress = actors, run, steps, groups, progress
         self.done = dict.fromkeys(chosen, 0)
-        self.busy: dict[int, int] = {}  # actor -> group
+        self.busy: Counter[int] = Counter()  # actor -> groups it holds
         self.polls: dict[int, object] = {}  # actor -> progress reference
         self.where: dict[int, str] = {}
         self.reported = 0
 
     def started(self, index: int, actor: int) -> None:
-        self.busy[actor] = index
+        self.busy[actor] += 1
 
     def finished(self, index: int, actor: int) -> None:
-        self.busy.pop(actor, None)
+        self.busy[actor] -= 1
+        if self.busy[actor] <= 0:
+            del self.busy[actor]
         self.done[index] = self.steps
         self._report(index, actor)
 
