@@ -115,9 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, whole_process: bool = False) -> int:
+    """Run the command of ``argv`` (default: the process's arguments); its exit status. ``whole_process``
+    (``python -m artnvg_core``): the command is all this process runs, so a ``stylize`` without ``--lora``
+    keeps PEFT out of it (:func:`~artnvg_core.diffusion.lora.keep_peft_out`)."""
     args = build_parser().parse_args(argv)
-    if args.command == "stylize" and not args.lora:  # this process fuses no LoRA (batch jobs run in workers)
+    if whole_process and args.command == "stylize" and not args.lora:
         keep_peft_out()
     terminated: list[int] = []
     try:
