@@ -2,11 +2,11 @@
 
 :func:`read_tensors` reads a ``.safetensors`` file or a ``torch.save`` file. A ``.safetensors`` header
 (an 8-byte little-endian length, then JSON ``{name: {dtype, shape, data_offsets}}``, then the raw
-bytes) is checked first by our own parser. For CUDA the tensors are allocated on the GPU and the file's
-bytes pass through two pinned buffers in turn: while the GPU copies one out, the file is read into the
-other, on a stream of its own, so the reading thread mostly waits in system calls (the interpreter
-lock released) and the default stream's work (rendering, say) goes on beside it; no CPU copy of the
-file is made, and a ``dtype`` asked for is applied on the GPU. For the CPU (and other devices) the
+bytes) is checked first by our own parser. For CUDA the tensors are allocated on the GPU and
+:data:`READERS` threads read a part of the file each, through two pinned buffers in turn: while the GPU
+copies one out, the file is read into the other, on a stream of the reader's own, so the readers mostly
+wait in system calls (the interpreter lock released) and the default stream's work (rendering, say)
+goes on beside them; no CPU copy of the file is made, and a ``dtype`` asked for is applied on the GPU. For the CPU (and other devices) the
 safetensors library reads it, memory-mapped: pages are read as they are used and stay shared with
 the page cache.
 """
@@ -19,6 +19,7 @@ import os
 import struct
 import zipfile
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -29,7 +30,8 @@ SAFETENSORS_DTYPES = {
     "BOOL": torch.bool, "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
 }
 MAX_HEADER_BYTES = 100 * 2**20  # as the safetensors library's own limit
-STAGING_BYTES = 128 * 2**20  # each of the two pinned buffers a CUDA read passes through
+STAGING_BYTES = 64 * 2**20  # each of the two pinned buffers of a CUDA reader
+READERS = 4  # threads reading parts of one file onto a GPU at once (page cache to pinned memory is a CPU copy)
 
 
 def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
@@ -117,14 +119,33 @@ def read_safetensors(path: Path, device: torch.device) -> dict[str, torch.Tensor
         return load_file(str(path), device=str(device))
     ordered = sorted(entries.items(), key=lambda item: item[1][2])
     raw = {name: torch.empty(end - begin, dtype=torch.uint8, device=device) for name, (_, _, begin, end) in ordered}
+    targets = [(raw[name], begin) for name, (_, _, begin, _) in ordered]
+    spans = reader_spans(max((begin + len(target) for target, begin in targets), default=0))
+    with ThreadPoolExecutor(len(spans) or 1) as pool:
+        list(pool.map(lambda span: _read_span(path, start, targets, span, device), spans))
+    return {name: raw[name].view(dtype).view(shape) for name, (dtype, shape, _, _) in entries.items()}
+
+
+def reader_spans(length: int) -> list[tuple[int, int]]:
+    """How :func:`read_safetensors` shares ``length`` bytes among its readers: contiguous (start, end) spans
+    covering them, cut at whole pages, at most :data:`READERS`, one per two staging buffers' worth at least."""
+    readers = max(1, min(READERS, length // (2 * STAGING_BYTES)))
+    step = -(-length // readers // 4096) * 4096
+    return [(low, min(low + step, length)) for low in range(0, length, step)] if length else []
+
+
+def _read_span(path: Path, start: int, targets: list[tuple[torch.Tensor, int]], span: tuple[int, int],
+               device: torch.device) -> None:
+    """One reader of :func:`read_safetensors`: the bytes ``span`` of the data into ``targets`` through its own
+    file handle, pinned buffers and stream. The stream first waits for what the device was given before (the
+    targets' memory may have been a tensor that queued work still reads)."""
     with open(path, "rb", buffering=0) as file:
         if hasattr(os, "posix_fadvise"):
-            os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
-        stream = torch.cuda.Stream(device)  # the copies after what the device was given before: the memory
-        stream.wait_stream(torch.cuda.current_stream(device))  # may have been a tensor that work still reads
+            os.posix_fadvise(file.fileno(), start + span[0], span[1] - span[0], os.POSIX_FADV_SEQUENTIAL)
+        stream = torch.cuda.Stream(device)
+        stream.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(stream):
-            stream_into(file, start, [(raw[name], begin) for name, (_, _, begin, _) in ordered])
-    return {name: raw[name].view(dtype).view(shape) for name, (dtype, shape, _, _) in entries.items()}
+            stream_into(file, start, targets, span=span)
 
 
 def _read_into(file, target: torch.Tensor) -> None:
@@ -137,17 +158,20 @@ def _read_into(file, target: torch.Tensor) -> None:
         done += count
 
 
-def stream_into(file, start: int, targets: list[tuple[torch.Tensor, int]], chunk_bytes: int = STAGING_BYTES) -> None:
+def stream_into(file, start: int, targets: list[tuple[torch.Tensor, int]], chunk_bytes: int = STAGING_BYTES,
+                span: tuple[int, int] | None = None) -> None:
     """Copy the bytes of ``file`` from ``start`` on into ``targets``: (uint8 tensor, offset from ``start``)
-    pairs in ascending offsets, all on one device, through two buffers of ``chunk_bytes`` used in turn.
-    For CUDA targets the buffers are pinned and the copies asynchronous on the current stream: the file
-    is read into one buffer while the other is copied out; returns once every copy is done."""
+    pairs in ascending offsets, all on one device, through two buffers of ``chunk_bytes`` used in turn;
+    with ``span`` (offsets from ``start``, end excluded), only the bytes of that span, into the parts of the
+    targets it covers. For CUDA targets the buffers are pinned and the copies asynchronous on the current
+    stream: the file is read into one buffer while the other is copied out; returns once every copy is
+    done."""
     cuda = bool(targets) and targets[0][0].is_cuda
     buffers = [torch.empty(chunk_bytes, dtype=torch.uint8, pin_memory=cuda) for _ in range(2)]
     copied = [None, None]  # per buffer, the event after the last copy out of it
-    end = max((offset + len(target) for target, offset in targets), default=0)
-    position, turn, first = 0, 0, 0
-    file.seek(start)
+    position, end = span or (0, max((offset + len(target) for target, offset in targets), default=0))
+    turn, first = 0, 0
+    file.seek(start + position)
     while position < end:
         buffer, count = buffers[turn], min(chunk_bytes, end - position)
         if copied[turn] is not None:

@@ -64,8 +64,8 @@ def main() -> None:
                                                      device=device),
                "image encoder": lambda: load_image_encoder(files["image encoder"], dtype=dtype, device=device),
                "sdxl": lambda: load_sdxl(files["sdxl"], dtype=dtype, device=device),
-               "sdxl, diffusers from_single_file then moved (before)": pipeline,
-               "all four": lambda: load_diffusion_models(four, dtype=dtype, device=device)}
+               "all four": lambda: load_diffusion_models(four, dtype=dtype, device=device),
+               "sdxl, diffusers from_single_file then moved (before)": pipeline}
     idle = Ticker().rate(1.0)
     rows = []
     for name, load in loaders.items():

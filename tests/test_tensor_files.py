@@ -9,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from artnvg_core.tensor_files import read_tensors, safetensors_header, stream_into
+from artnvg_core.tensor_files import READERS, STAGING_BYTES, reader_spans, read_tensors, safetensors_header, stream_into
 
 
 def _tensors() -> dict[str, torch.Tensor]:
@@ -49,17 +49,33 @@ def test_torch_save_files_are_read_too(tmp_path):
 
 
 @pytest.mark.parametrize("chunk", [1, 3, 8, 50, 1 << 20])
-def test_chunked_copies_land_every_byte_in_its_tensor(weights_file, chunk):
-    """The copy through two staging buffers at chunk sizes below, across and above the tensors' sizes
-    gives each tensor its own bytes (CPU targets: the same code as on CUDA, copies synchronous)."""
+@pytest.mark.parametrize("cuts", [(), (5,), (37, 38, 100)])
+def test_chunked_copies_land_every_byte_in_its_tensor(weights_file, chunk, cuts):
+    """The copy through two staging buffers at chunk sizes below, across and above the tensors' sizes, by
+    one reader or by several reading spans that cut tensors anywhere, gives each tensor its own bytes (CPU
+    targets: the code CUDA reads run, with synchronous copies)."""
     start, entries = safetensors_header(weights_file)
     ordered = sorted(entries.items(), key=lambda item: item[1][2])
     targets = [(torch.full((end - begin,), 7, dtype=torch.uint8), begin) for _, (_, _, begin, end) in ordered]
-    with open(weights_file, "rb", buffering=0) as file:
-        stream_into(file, start, targets, chunk_bytes=chunk)
+    end = max(offset + len(target) for target, offset in targets)
+    bounds = [0, *cuts, end]
+    for span in zip(bounds, bounds[1:]) if cuts else [None]:
+        with open(weights_file, "rb", buffering=0) as file:
+            stream_into(file, start, targets, chunk_bytes=chunk, span=span)
     expected = load_file(str(weights_file))
     for (name, (dtype, shape, _, _)), (target, _) in zip(ordered, targets):
         assert torch.equal(target.view(dtype).view(shape), expected[name]), name
+
+
+@pytest.mark.parametrize("length", [0, 1, 4097, 2 * STAGING_BYTES - 1, 5 * STAGING_BYTES + 3, 100 * STAGING_BYTES + 1])
+def test_reader_spans_cover_the_data_once_cut_at_pages(length):
+    spans = reader_spans(length)
+    if not length:
+        assert spans == []
+        return
+    assert [low for low, _ in spans] == [0] + [high for _, high in spans[:-1]] and spans[-1][1] == length
+    assert all(low % 4096 == 0 and high > low for low, high in spans)
+    assert len(spans) == min(READERS, max(1, length // (2 * STAGING_BYTES)))
 
 
 def _write_raw(path, header: bytes, data: bytes = b"") -> None:
