@@ -349,6 +349,21 @@ def test_stylize_keeps_peft_out_of_a_process_without_a_lora(tmp_path):
     assert result.stdout.split("\n")[:2] == ["True", "False None"]
 
 
+def test_the_process_ends_with_its_exit_handlers_run_and_streams_flushed(tmp_path):
+    """python -m artnvg_core ends through exit_without_teardown: the status is kept, atexit handlers run and
+    what was printed but not yet flushed comes out."""
+    import subprocess
+    import sys
+
+    code = ("import atexit, pathlib, sys; from artnvg_core.cli.main import exit_without_teardown; "
+            f"atexit.register(lambda: pathlib.Path({str(tmp_path / 'ran')!r}).write_text('yes')); "
+            "sys.stdout.write('no newline, not flushed'); sys.stderr.write('err'); exit_without_teardown(3)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+    assert result.returncode == 3 and result.stdout == "no newline, not flushed" and result.stderr == "err"
+    assert (tmp_path / "ran").read_text() == "yes"
+
+
 def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_plys_axes(tmp_path, capsys):
     """render of a .spz holding RUB with no record renders as the scene itself by default (its --cameras
     decide), upside down with --spz-axes ply; stylize writes its .spz in the PLY's axes by default (here as

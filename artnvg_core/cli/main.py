@@ -6,8 +6,11 @@ This module holds ``render``, the parser of every command and :func:`main`; ``st
 from __future__ import annotations
 
 import argparse
+import atexit
+import os
 import sys
 import time
+from typing import NoReturn
 
 import torch
 
@@ -113,6 +116,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_batch_command(commands)
     return parser
+
+
+def exit_without_teardown(code: int) -> NoReturn:
+    """End this process with ``code`` as the interpreter would, less its teardown: the exit handlers run
+    (``atexit``: logging's flush, Ray's shutdown, finalizers), the standard streams are flushed, then
+    ``os._exit`` leaves the modules, models and tensors to the system, which frees the memory at once
+    instead of object by object (after a stylize run: 12 GiB of models on the GPU). For
+    ``python -m artnvg_core``, whose work is done when :func:`main` returns."""
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None, *, whole_process: bool = False) -> int:
