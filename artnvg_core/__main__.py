@@ -1,7 +1,5 @@
-"""``python -m artnvg_core``: the command line of :mod:`artnvg_core.cli.main`."""
+"""``python -m artnvg_core``: the command line of :mod:`artnvg_core.cli.main`, as a whole process."""
 
-import sys
+from .cli.main import exit_without_teardown, main
 
-from .cli.main import main
-
-sys.exit(main())
+exit_without_teardown(main(whole_process=True))

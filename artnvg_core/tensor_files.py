@@ -45,10 +45,10 @@ def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
 
 
 def read_ahead(paths: Iterable[str | os.PathLike]) -> None:
-    """Ask the kernel to start reading each file of ``paths`` whole into the page cache
-    (``POSIX_FADV_WILLNEED``: it returns once the reads are queued, the reading goes on in the kernel), so
-    that a later read finds it there; files it cannot open are skipped; nothing on systems without the
-    call."""
+    """Ask the kernel to read each file of ``paths`` whole into the page cache (``POSIX_FADV_WILLNEED``: the
+    call may wait while it queues the reads, which go on in the kernel after it returns), so that a later
+    read finds it there; files it cannot open are skipped; nothing on systems without the call. Run it
+    in a thread of its own: it holds no interpreter lock while it waits."""
     if not hasattr(os, "posix_fadvise"):
         return
     for path in paths:
@@ -65,10 +65,9 @@ def read_ahead(paths: Iterable[str | os.PathLike]) -> None:
 
 
 def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu"):
-    """What ``torch.save`` wrote at ``path`` (tensors, dicts of them ...), its tensors on ``device``. For another
-    device than the CPU a zip-format file is memory-mapped (no copy of the file in memory), each tensor moved
-    from the mapping; CPU tensors are read into memory of their own (a mapping would follow later changes
-    to the file)."""
+    """What ``torch.save`` wrote at ``path`` (tensors, dicts of them ...), its tensors on ``device``. For a
+    device other than the CPU a zip-format file is memory-mapped (no copy of the file in memory) and each
+    tensor moved from the mapping; for the CPU, ``torch.load`` reads it as it always has."""
     device = torch.device(device)
     return torch.load(path, map_location=device, weights_only=True,
                       mmap=device.type != "cpu" and zipfile.is_zipfile(path))

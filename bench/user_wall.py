@@ -54,7 +54,7 @@ SAMPLING = ("conditioning", "group", "decoding")  # parts of sampling, the GPU w
 
 # Runs the command with timers around its calls; writes {part: seconds} to $USER_WALL_PARTS at exit.
 WRAPPER = """
-import atexit, json, os, sys, time
+import atexit, json, os, runpy, sys, time
 launched = float(os.environ["USER_WALL_LAUNCH"])
 parts, active = {}, []
 from artnvg_core.cli import main as cli, stylize as command
@@ -110,7 +110,8 @@ timed(core, "finetune", "finetune")
 timed(core, "save_result", "save")
 parts["start"] = time.time() - launched
 atexit.register(lambda: json.dump(parts, open(os.environ["USER_WALL_PARTS"], "w")))
-sys.exit(cli.main(sys.argv[1:]))
+sys.argv[0] = "artnvg_core"  # the command as `python -m artnvg_core` runs it, its exit included
+runpy.run_module("artnvg_core", run_name="__main__", alter_sys=True)
 """
 
 

@@ -331,20 +331,37 @@ def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_
 
 
 def test_stylize_keeps_peft_out_of_a_process_without_a_lora(tmp_path):
-    """diffusers imports PEFT when it can find it: a stylize process given no --lora hides it first, one
-    given a LoRA keeps it."""
+    """diffusers imports PEFT when it can find it: a stylize process (``python -m artnvg_core``) given no
+    --lora hides it first, one given a LoRA keeps it, and main() called inside another process (a test's,
+    a batch worker's) leaves it alone."""
     import subprocess
     import sys
 
     stylize = (f"['stylize', {str(_small_scene(tmp_path))!r}, '--style', {str(DemoInputs().style)!r}, "
                f"'--out', {str(tmp_path / 'out.txt')!r}")  # refused at once: '.txt'
     code = ("import importlib.util, sys; from artnvg_core.cli.main import main; "
-            f"main({stylize}, '--lora', 'style.safetensors']); print(importlib.util.find_spec('peft') is not None); "
-            f"main({stylize}]); import diffusers.utils.import_utils as u; print(u.is_peft_available(), "
-            "importlib.util.find_spec('peft'))")
+            f"main({stylize}, '--lora', 'style.safetensors'], whole_process=True); "
+            f"main({stylize}]); print(importlib.util.find_spec('peft') is not None); "
+            f"main({stylize}], whole_process=True); import diffusers.utils.import_utils as u; "
+            "print(u.is_peft_available(), importlib.util.find_spec('peft'))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
     assert result.stdout.split("\n")[:2] == ["True", "False None"]
+
+
+def test_the_process_ends_with_its_exit_handlers_run_and_streams_flushed(tmp_path):
+    """python -m artnvg_core ends through exit_without_teardown: the status is kept, atexit handlers run and
+    what was printed but not yet flushed comes out."""
+    import subprocess
+    import sys
+
+    code = ("import atexit, pathlib, sys; from artnvg_core.cli.main import exit_without_teardown; "
+            f"atexit.register(lambda: pathlib.Path({str(tmp_path / 'ran')!r}).write_text('yes')); "
+            "sys.stdout.write('no newline, not flushed'); sys.stderr.write('err'); exit_without_teardown(3)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+    assert result.returncode == 3 and result.stdout == "no newline, not flushed" and result.stderr == "err"
+    assert (tmp_path / "ran").read_text() == "yes"
 
 
 def test_spz_axes_default_reads_a_spz_in_front_of_the_cameras_and_writes_the_plys_axes(tmp_path, capsys):

@@ -13,7 +13,12 @@
   (config from a ``config.json`` beside it, else ViT-bigG/14).
 * CSGO weights: see :mod:`artnvg_core.diffusion.csgo_weights` (installs ArtNVG's processors).
 
-Single weight files are loaded strictly: missing or unexpected keys raise ValueError.
+Weights are read straight onto the device they run on (:mod:`artnvg_core.tensor_files`), into models
+built on the meta device, and cast there; no diffusers pipeline is built (LoRAs excepted,
+:func:`~artnvg_core.diffusion.lora.fuse_loras`). Single weight files, and a model folder's one weight
+file, are loaded strictly: missing or unexpected keys raise ValueError. A folder's sharded or ``.bin``
+weights, and the text encoders of an SDXL folder (transformers renames their keys), go through the
+library's own ``from_pretrained``, then to the device.
 """
 
 from __future__ import annotations
