@@ -48,7 +48,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
     device, dtype = torch.device(args.device), DTYPES[args.dtype]
-    files = write_model_files(Path(args.dir), device)
+    files = write_model_files(Path(args.dir), device, sdxl_folder=False)
     four = ModelFiles(files["sdxl"], files["controlnet"], files["image encoder"], files["csgo"])
     files["image encoder"] = files["image encoder"] / "model.safetensors"
 
