@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -191,10 +191,10 @@ def dispatch(
 ) -> Iterator[tuple[Any, int, Any, BaseException | None]]:
     """Run ``tasks`` on ``actors``; yields ``(task, actor index, value, error)`` as each task ends.
 
-    * ``submit(actor, task)`` starts a task and returns its Ray object reference; each actor holds at
-      most ``per_actor`` tasks at once, tasks are handed out in the order given: one to every actor
-      before a second to any (a second is committed before it is known which actor frees first: for
-      tasks of about equal length).
+    * ``submit(actor, task)`` starts a task and returns its Ray object reference; tasks are handed out
+      in the order given, each actor holding at most ``per_actor`` at once: to an actor that holds none
+      first, and to one that holds some only while at least one task per actor waits (so the last
+      round goes to whichever actors free first, and none waits behind another's queued task).
     * ``error`` is the task's own exception (value None) or :class:`WorkerLost` when its actor died
       :data:`ATTEMPTS` times with it. A task whose actor died is handed out again first; the actor is
       asked (its ``ping`` method) whether it is back before it gets more work.
@@ -211,10 +211,22 @@ def dispatch(
     idle = deque(list(range(len(actors))) * per_actor)  # an actor's free places
     running: dict[Any, tuple[int, int]] = {}  # reference -> (task, actor)
     probing: dict[Any, tuple[int, int]] = {}  # ping reference -> (actor, probes so far)
+
+    def next_actor() -> int | None:
+        holding = Counter(actor for _, actor in running.values())
+        for place, actor in enumerate(idle):
+            if not holding[actor]:
+                del idle[place]
+                return actor
+        return idle.popleft() if len(queue) >= len(actors) else None
+
     while queue or running:
         check_stop(should_stop)
         while queue and idle:
-            task, actor = queue.popleft(), idle.popleft()
+            actor = next_actor()
+            if actor is None:
+                break
+            task = queue.popleft()
             handed[task] += 1
             running[submit(actors[actor], tasks[task])] = (task, actor)
             if on_start is not None:

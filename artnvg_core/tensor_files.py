@@ -6,9 +6,9 @@ bytes) is checked first by our own parser. For CUDA the tensors are allocated on
 :data:`READERS` threads read a part of the file each, through two pinned buffers in turn: while the GPU
 copies one out, the file is read into the other, on a stream of the reader's own, so the readers mostly
 wait in system calls (the interpreter lock released) and the default stream's work (rendering, say)
-goes on beside them; no CPU copy of the file is made, and a ``dtype`` asked for is applied on the GPU. For the CPU (and other devices) the
-safetensors library reads it, memory-mapped: pages are read as they are used and stay shared with
-the page cache.
+goes on beside them; no CPU copy of the file is made, and a ``dtype`` asked for is applied on the GPU.
+For the CPU (and other devices) the safetensors library reads it, memory-mapped: pages are read as
+they are used and stay shared with the page cache.
 """
 
 from __future__ import annotations

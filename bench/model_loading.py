@@ -79,7 +79,8 @@ def main() -> None:
                          f"{ticker.count / beside / idle:.2f}"])
             print(rows[-1], flush=True)
     print_table(f"Loading single weight files to {args.device} in {args.dtype} (torch threads: "
-                f"{torch.get_num_threads()})", ["model", "file", "GiB", "run", "seconds", "beside s", "others' GIL share"], rows,
+                f"{torch.get_num_threads()})",
+                ["model", "file", "GiB", "run", "seconds", "beside s", "others' GIL share"], rows,
                 "python " + " ".join(sys.argv))
 
 

@@ -1,5 +1,6 @@
-"""cluster: which workers --devices asks for, and the message when Ray is missing (no Ray needed here;
-dispatch's hand-outs and retries are tested through GroupExecutor and batch on a local Ray cluster)."""
+"""cluster: which workers --devices asks for, and the message when Ray is missing (no Ray needed); the
+order of dispatch's hand-outs on a local Ray cluster (its retries are tested through GroupExecutor and
+batch)."""
 
 import sys
 
@@ -37,3 +38,36 @@ def test_without_ray_the_options_that_need_it_say_how_to_install_it(monkeypatch,
     (tmp_path / "jobs.json").write_text('[{"scene": "a.ply", "out": "a.ply"}]')
     assert cli.main(["batch", str(tmp_path / "jobs.json")]) == 2
     assert "error: batch needs Ray, which is not installed" in capsys.readouterr().err
+
+
+class Echo:
+    """A Ray actor whose tasks return at once (no CPU slot: it fits beside any pool of the session)."""
+
+    def run(self, task: int) -> int:
+        return 10 * task
+
+    def ping(self) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("tasks, per_actor, handed_before_any_ends", [
+    (5, 1, [(0, 0), (1, 1)]),
+    (5, 2, [(0, 0), (1, 1), (2, 0), (3, 1)]),  # a second task each while a whole round waits
+    (3, 2, [(0, 0), (1, 1)]),  # the last round waits for whichever actor frees first
+])
+def test_dispatch_hands_a_second_task_only_while_a_round_waits(ray_local, tasks, per_actor, handed_before_any_ends):
+    from artnvg_core.cluster import dispatch
+
+    actors = [ray_local.remote(num_cpus=0)(Echo).remote() for _ in range(2)]
+    events = []
+    for task, actor, value, error in dispatch(actors, list(range(tasks)), lambda a, t: a.run.remote(t),
+                                              on_start=lambda task, actor: events.append((task, actor)),
+                                              per_actor=per_actor):
+        assert error is None and value == 10 * task
+        events.append(("ended", task))
+    first_end = next(i for i, event in enumerate(events) if event[0] == "ended")
+    assert events[:first_end] == handed_before_any_ends
+    assert sorted(event[1] for event in events if event[0] == "ended") == list(range(tasks))
+    assert sorted(event[0] for event in events if event[0] != "ended") == list(range(tasks))
+    for actor in actors:
+        ray_local.kill(actor)

@@ -100,13 +100,17 @@ def test_two_workers_match_one_device_bit_for_bit_with_progress(executor, refere
     assert len({c[2]["device"] for c in calls}) == 2 and all(c[2]["device"].startswith("cpu on ") for c in calls)
 
 
-def test_stats_record_when_each_group_ran(executor, reference):
+def test_workers_hold_their_next_group_sample_one_at_a_time_and_record_when(executor, reference):
+    """Four groups on two workers: each gets its second group while it samples its first."""
+    style, images, conditioning, _, flag = reference
+    pairs = ViewGroups([ViewGroup((0, 1)), ViewGroup((2, 3)), ViewGroup((4, 5)), ViewGroup((6,), context=(0,))], 7)
+    expected = stylize_groups(load_tiny_models(flag, torch.device("cpu")), images, pairs, conditioning, SETTINGS, seed=SEED)
     begin = time.time()
-    _run(executor, reference)
+    assert torch.equal(executor.stylize_groups(images, pairs, conditioning, SETTINGS, seed=SEED), expected)
     end = time.time()
     stats = executor.stats()
     tasks = [task for worker in stats for task in worker["tasks"] if task[1] >= begin]
-    assert sorted(group for group, _, _ in tasks) == [0, 1, 2]  # each group once, on some worker
+    assert sorted(group for group, _, _ in tasks) == [0, 1, 2, 3]  # each group once, on some worker
     assert all(begin <= start <= stop <= end for _, start, stop in tasks)
     for worker in stats:
         assert worker["busy_s"] == pytest.approx(sum(stop - start for _, start, stop in worker["tasks"]))

@@ -147,8 +147,9 @@ def test_single_file_loads_bit_for_bit_as_diffusers_pipeline_loads_it(tmp_path, 
     _, checkpoint, configs = _tiny_single_file(tmp_path, monkeypatch, torch.float16)
     loaded = load_sdxl(checkpoint, dtype=torch.float16)
     with configs() as folder:
-        pipe = StableDiffusionXLPipeline.from_single_file(str(checkpoint), config=str(folder), torch_dtype=torch.float16,
-                                                          local_files_only=True, add_watermarker=False)
+        pipe = StableDiffusionXLPipeline.from_single_file(str(checkpoint), config=str(folder),
+                                                          torch_dtype=torch.float16, local_files_only=True,
+                                                          add_watermarker=False)
     pipe.vae.to(torch.float32)
     for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
         ours, theirs = getattr(loaded, name).state_dict(), getattr(pipe, name).state_dict()

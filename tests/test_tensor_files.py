@@ -15,7 +15,8 @@ from artnvg_core.tensor_files import READERS, STAGING_BYTES, reader_spans, read_
 def _tensors() -> dict[str, torch.Tensor]:
     generator = torch.Generator().manual_seed(0)
     return {"weight": torch.randn(5, 7, generator=generator), "half": torch.randn(3, generator=generator).half(),
-            "bf16": torch.randn(2, 3, generator=generator).bfloat16(), "double": torch.randn(4, dtype=torch.float64, generator=generator),
+            "bf16": torch.randn(2, 3, generator=generator).bfloat16(),
+            "double": torch.randn(4, dtype=torch.float64, generator=generator),
             "ids": torch.arange(6, dtype=torch.int64).reshape(2, 3), "small": torch.arange(3, dtype=torch.int8),
             "flags": torch.tensor([True, False, True]), "scalar": torch.tensor(2.5), "empty": torch.zeros(0, 4)}
 

@@ -102,8 +102,8 @@ def fuse_loras(base, loras: tuple[LoRA, ...]) -> None:
 
     pipe = StableDiffusionXLPipeline(
         vae=base.vae, text_encoder=base.text_encoder, text_encoder_2=base.text_encoder_2, tokenizer=base.tokenizer,
-        tokenizer_2=base.tokenizer_2, unet=base.unet, scheduler=EulerDiscreteScheduler.from_config(base.scheduler_config),
-        add_watermarker=False)
+        tokenizer_2=base.tokenizer_2, unet=base.unet,
+        scheduler=EulerDiscreteScheduler.from_config(base.scheduler_config), add_watermarker=False)
     names = []
     for index, lora in enumerate(loras):
         check_lora(lora)
