@@ -248,6 +248,19 @@ def test_inputs_that_passed_are_checked_again_only_once_changed_in_place(monkeyp
         check_render_inputs(scene, cams)
 
 
+def test_inference_tensors_are_checked_at_every_render():
+    """Tensors made under torch.inference_mode (ComfyUI runs its nodes so) have no version counter: they
+    render, and a value written in place between renders is still caught."""
+    with torch.inference_mode():
+        scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1])
+        assert scene.sh.is_inference()
+        first = render(scene, cams, backend="torch").rgb
+        torch.testing.assert_close(render(scene, cams, backend="torch").rgb, first, rtol=0, atol=0)
+        scene.sh[2, 1, 0] = float("nan")
+        with pytest.raises(ValueError, match="scene.sh has non-finite"):
+            render(scene, cams, backend="torch")
+
+
 def test_bad_arguments_rejected():
     scene = hard_scene(0, n=5, degree=1)
     cams = make_cameras(EYES[:1])

@@ -110,7 +110,7 @@ def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: 
     """Make ``state``'s tensors ``model``'s (``load_state_dict(assign=True)``: no copy); every key must match
     in name and shape, else ValueError starting with ``what`` and listing the missing, unexpected and
     mis-shaped keys. Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
-    files) are ignored: the model computes them itself."""
+    files) are ignored: the model computes them itself, and they follow the state's tensors to their device."""
     expected = model.state_dict()
     recomputed = {name for name, _ in model.named_buffers()} - set(expected)
     state = {k: v for k, v in state.items() if k not in recomputed}
@@ -118,6 +118,11 @@ def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: 
     if mismatch:
         raise ValueError(f"{what} do not fit {type(model).__name__}: {mismatch}")
     model.load_state_dict(state, assign=True)
+    device = next(iter(state.values())).device if state else None
+    for name in recomputed:
+        owner, _, buffer = name.rpartition(".")
+        module = model.get_submodule(owner)
+        module._buffers[buffer] = module._buffers[buffer].to(device)
 
 
 def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dtype) -> torch.nn.Module:

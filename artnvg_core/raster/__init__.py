@@ -98,7 +98,9 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
     the background's shape. The value checks are reduced on the device and read back together: one
     wait for the device (one per device where the cameras live elsewhere). A tensor that passed them is
     not checked again until it is changed in place (its version counter moves; writes that bypass it,
-    through ``.data`` or shared memory, go unseen): a scene rendered view after view waits once."""
+    through ``.data`` or shared memory, go unseen): a scene rendered view after view waits once. Inference
+    tensors (made under ``torch.inference_mode``, as ComfyUI runs its nodes) keep no such counter and are
+    checked at every render."""
     sh_degree = scene.sh_degree if sh_degree is None else sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
@@ -114,7 +116,7 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
               ("render: cameras.intrinsics must have positive focal lengths fx, fy", cameras.intrinsics,
                _positive_focals)]
     checks = [(message, tensor, test(tensor).all()) for message, tensor, test in tests
-              if _PASSED.get(tensor) != tensor._version]
+              if tensor.is_inference() or _PASSED.get(tensor) != tensor._version]
     passed = [True] * len(checks)
     for device in {flag.device for _, _, flag in checks}:
         where = [i for i, (_, _, flag) in enumerate(checks) if flag.device == device]
@@ -124,7 +126,8 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
         if not ok:
             raise ValueError(message)
     for _, tensor, _ in checks:
-        _PASSED[tensor] = tensor._version
+        if not tensor.is_inference():  # made under torch.inference_mode (as ComfyUI runs nodes): no counter
+            _PASSED[tensor] = tensor._version
 
 
 def render(
