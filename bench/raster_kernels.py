@@ -15,15 +15,10 @@ For each random scene (``common.random_scene``, one orbit camera, the fused proj
   compositor in float64 on the same projection; last, the five fastest settings of each kernel.
 
 ``--lists-only``: the tile lists alone. ``--profile``: the CUDA kernels of one whole render
-forward+backward by total time (torch.profiler), for ``render()`` (also with its tile lists' room kept
-from the scene's earlier renders: ``ARTNVG_RENDER_LISTS=reuse``), the finetune's path
+forward+backward by total time (torch.profiler), for ``render()``, the finetune's path
 (``common.finetune_render``) and, where installed, gsplat's fused ``rasterization()``, each with the sum of
 its kernels' times beside its time from CUDA events (the difference: the GPU waiting for the host).
-``--variants "rows,chunk,warps,atomics;..."``: instead of the sweep, the backward kernel with each of those
-:class:`~artnvg_core.raster.triton_backend.Pass` settings (time, deviation, error as above), and whole
-renders forward+backward with each (``ARTNVG_RASTER_BACKWARD``; the paths above but gsplat's) beside
-the largest deviation of their scene gradients from the shipped settings'. Medians of 10 after 3 warm-ups,
-CUDA events. Needs CUDA.
+Medians of 10 after 3 warm-ups, CUDA events. Needs CUDA.
 """
 
 from __future__ import annotations
@@ -31,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
-import os
 import sys
 
 import torch
@@ -134,8 +128,7 @@ def relative_l2(got, expected) -> float:
     return max(float((a.double() - b).norm() / b.norm().clamp_min(1e-300)) for a, b in zip(got, expected))
 
 
-def kernel_rows(name, proj, feats, size, settings=SETTINGS, kernels=("forward", "backward"),
-                skips=(True, False)):
+def kernel_rows(name, proj, feats, size):
     lists = tile_lists(proj, size, size)
     g = torch.Generator(device="cuda").manual_seed(0)
     grads = (torch.randn(size, size, 4, device="cuda", generator=g), torch.randn(size, size, device="cuda", generator=g))
@@ -143,7 +136,7 @@ def kernel_rows(name, proj, feats, size, settings=SETTINGS, kernels=("forward", 
     reference = float64_reference(proj, feats, size, grads)
     device = torch.device("cuda")
     rows = []
-    for kernel, setting, skip in itertools.product(kernels, settings, skips):
+    for kernel, setting, skip in itertools.product(("forward", "backward"), SETTINGS, (True, False)):
         if not skip and setting.rows < TILE:
             continue  # walking every block: measured for whole-tile programs only
         passes = (setting, PASSES[1]) if kernel == "forward" else (PASSES[0], setting)
@@ -152,24 +145,15 @@ def kernel_rows(name, proj, feats, size, settings=SETTINGS, kernels=("forward", 
             run = lambda: _Composite.apply(proj.means2d, proj.conics, proj.opacities, feats, *lists,  # noqa: E731
                                            size, size, TILE, passes, skip)
         ms = timed(run if kernel == "forward" else backward, device, repeats=10, warmup=3) * 1e3
-        rows.append([name, kernel, *setting[:3], skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)]
-                    + ([setting.atomics] if kernel == "backward" else []))
+        rows.append([name, kernel, *setting, skip, ms, deviation(outputs, shipped), relative_l2(outputs, reference)])
         print(rows[-1], flush=True)
     return rows
 
 
 def render_paths(scene, camera) -> dict:
-    """Closures (a scene -> rgb) of the renders compared: render(), render() with the tile lists' room kept
-    from the scene's earlier renders (``ARTNVG_RENDER_LISTS=reuse``), the finetune's path and, where
+    """Closures (a scene -> rgb) of the renders compared: render(), the finetune's path and, where
     installed, gsplat's fused rasterization()."""
-    def reusing(s):
-        os.environ["ARTNVG_RENDER_LISTS"] = "reuse"
-        try:
-            return render(s, camera, backend="triton").rgb
-        finally:
-            os.environ.pop("ARTNVG_RENDER_LISTS")
-
-    paths = {"render()": lambda s: render(s, camera, backend="triton").rgb, "render(), room kept": reusing,
+    paths = {"render()": lambda s: render(s, camera, backend="triton").rgb,
              "as the finetune renders": finetune_render(scene, camera)}
     if gsplat_available():
         paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
@@ -199,57 +183,20 @@ def profile_rows(name, scene, camera, top=12):
     return rows
 
 
-def variant_rows(name, scene, camera, settings):
-    """Forward+backward ms of whole renders (:func:`render_paths` but gsplat's) with each backward setting
-    (``ARTNVG_RASTER_BACKWARD``), and the largest deviation of the scene's gradients from the shipped
-    settings' on the finetune's path, relative to their largest magnitude."""
-    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
-    trainable = GaussianScene(**params)
-    paths = {path: fn for path, fn in render_paths(scene, camera).items() if path != "gsplat fused"}
-
-    def gradients(render_fn):
-        for p in params.values():
-            p.grad = None
-        render_fn(trainable).sum().backward()
-        return [p.grad.clone() for p in params.values()]
-
-    shipped = gradients(paths["as the finetune renders"])
-    rows = []
-    try:
-        for setting in settings:
-            os.environ["ARTNVG_RASTER_BACKWARD"] = ",".join(map(str, setting))
-            for path, render_fn in paths.items():
-                grads = gradients(render_fn)
-                step = lambda: render_fn(trainable).sum().backward()  # noqa: E731, B023
-                ms = timed(step, torch.device("cuda"), repeats=10, warmup=3) * 1e3
-                rows.append([name, *setting, path, ms, deviation(grads, shipped)])
-                print(rows[-1], flush=True)
-    finally:
-        os.environ.pop("ARTNVG_RASTER_BACKWARD", None)
-    return rows
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--counts", default="100000,1000000")
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--lists-only", action="store_true")
-    parser.add_argument("--variants", default="", help='backward settings "rows,chunk,warps,atomics;..."')
     args = parser.parse_args()
     command = "python " + " ".join(sys.argv)
-    settings = [Pass(int(r), int(c), int(w), a) for r, c, w, a in
-                (spec.split(",") for spec in args.variants.split(";") if spec)]
-    lists, kernels, profiles, wholes = [], [], [], []
+    lists, kernels, profiles = [], [], []
     for count in map(int, args.counts.split(",")):
         name = f"{count:,} @ {args.size}"
         scene, camera, proj, feats = projected(count, args.size)
         lists += tile_list_rows(name, proj, args.size)
-        if settings:
-            kernels += kernel_rows(name, proj, feats, args.size, settings, ("backward",), (True,))
-            wholes += variant_rows(name, scene, camera, settings)
-        elif not args.lists_only:
-            kernels += kernel_rows(name, proj, feats, args.size)
+        kernels += [] if args.lists_only else kernel_rows(name, proj, feats, args.size)
         if args.profile:
             profiles += profile_rows(name, scene, camera)
     gpu = torch.cuda.get_device_name()
@@ -259,18 +206,10 @@ def main() -> None:
     print_table(f"Tile lists, step by step ({gpu})", ["scene", "step", "ms"], lists, command)
     if args.lists_only:
         return
-    if settings:
-        print_table(f"Backward kernel settings ({gpu}; shipped: {tuple(PASSES[1])}, skipping)",
-                    ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
-                     "max deviation from shipped", "rel. L2 error vs float64", "atomics"], kernels, command)
-        print_table(f"Whole renders forward+backward with each backward setting ({gpu})",
-                    ["scene", "rows", "chunk", "warps", "atomics", "path", "fwd+bwd ms",
-                     "max gradient deviation from shipped"], wholes, command)
-        return
     print_table(f"Compositing kernels' settings ({gpu}; shipped: forward {tuple(PASSES[0])}, backward "
                 f"{tuple(PASSES[1])}, skipping)", ["scene", "kernel", "rows", "chunk", "warps", "skip empty blocks", "ms",
                                                    "max deviation from shipped", "rel. L2 error vs float64"],
-                [row[:9] for row in kernels], command)
+                kernels, command)
     for kernel in ("forward", "backward"):
         best = {}
         for row in kernels:

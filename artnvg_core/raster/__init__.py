@@ -186,7 +186,6 @@ def render(
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
     composite = functools.partial(rasterize, should_stop=should_stop)
-    own_capacity = None  # the tile lists' room kept from this scene's earlier renders: an overflowed view is redone
     name = choose_backend(backend, scene.device, scene.means.dtype)
     if name == "gsplat":
         load_kernels()
@@ -194,11 +193,8 @@ def render(
     elif name == "triton":
         from .triton_backend import rasterize_triton  # imports Triton: only when it renders
         from .triton_projection import project_color_triton
-        from .triton_tiles import scene_capacity
 
-        if list_capacity is None and os.environ.get("ARTNVG_RENDER_LISTS") == "reuse":
-            own_capacity = scene_capacity(scene.means, cameras.width, cameras.height)
-        composite = functools.partial(rasterize_triton, capacity=list_capacity or own_capacity)
+        composite = functools.partial(rasterize_triton, capacity=list_capacity)
     width, height, centers = cameras.width, cameras.height, cameras.centers
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
@@ -216,8 +212,6 @@ def render(
         features = torch.cat([colors, proj.depths[:, None]], -1) if return_depth else colors
         # nothing projected: the reference's empty image (kept in the autograd graph), for either backend
         blended, trans = (composite if len(proj.index) else rasterize)(proj, features, width, height)
-        while own_capacity is not None and own_capacity.overflowed():  # waits for the count, not the compositing
-            blended, trans = composite(proj, features, width, height)
         rgb = blended[..., :3]
         if background is not None:
             rgb = rgb + trans[..., None] * background[c]

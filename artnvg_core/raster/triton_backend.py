@@ -14,7 +14,9 @@ the final transmittance and the end of the list prefix that contributed; the bac
 the list back to front from there (as gsplat does): the transmittance before each Gaussian is
 recovered by division from the final one (a reversed scan along the chunk), and the colour still to
 come is a suffix sum, so no difference of large sums loses precision. Per-Gaussian gradients are
-summed over the program's pixels, then added with atomics (in no fixed order).
+summed over the program's pixels, then added with relaxed atomics (in no fixed order; the kernel never reads
+them back, so no add waits for its result, as CUDA's atomicAdd: Triton's default order, acq_rel, made each
+wait and took twice the time).
 
 The kernels run on CUDA tensors, or on the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set
 before this module is imported), which is how the tests check them where no GPU is.
@@ -22,7 +24,6 @@ before this module is imported), which is how the tests check them where no GPU 
 
 from __future__ import annotations
 
-import os
 from typing import NamedTuple
 
 import torch
@@ -36,27 +37,16 @@ from .triton_tiles import TILE, ListCapacity, tile_lists
 
 class Pass(NamedTuple):
     """How a compositing kernel is launched: each program owns ``rows`` pixel rows of a tile (powers of
-    two up to the tile's side), walks its list ``chunk`` Gaussians at a time and runs ``warps`` warps;
-    the backward adds its gradients with ``atomics`` ("acq_rel": Triton's default, each add waits for
-    its result; "relaxed": fire-and-forget reductions, as CUDA's atomicAdd)."""
+    two up to the tile's side), walks its list ``chunk`` Gaussians at a time and runs ``warps`` warps."""
 
     rows: int
     chunk: int
     warps: int
-    atomics: str = "acq_rel"
 
 
-PASSES = (Pass(2, 8, 1), Pass(4, 8, 1))  # forward, backward: among the fastest on an H100 and an H200 (BENCHMARKS.md)
-
-
-def passes_in_use() -> tuple[Pass, Pass]:
-    """:data:`PASSES`, the backward's replaced by ``ARTNVG_RASTER_BACKWARD`` ("rows,chunk,warps,atomics")
-    where set: the backward variants bench/raster_kernels.py ``--variants`` measures against each other."""
-    spec = os.environ.get("ARTNVG_RASTER_BACKWARD")
-    if not spec:
-        return PASSES
-    rows, chunk, warps, atomics = spec.split(",")
-    return PASSES[0], Pass(int(rows), int(chunk), int(warps), atomics)
+# forward, backward: among the fastest on an H100 (bench/raster_kernels.py). The backward's 4 pixel-Gaussian
+# pairs a thread keep it under 100 registers (16 pairs took 255 and spilled), so 2.5x the warps stay resident.
+PASSES = (Pass(2, 8, 1), Pass(2, 4, 1))
 
 
 @triton.jit
@@ -176,7 +166,7 @@ def _forward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, out_ptr, trans_p
 def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last_ptr, grad_out_ptr, grad_trans_ptr,
                      grad_params_ptr, grad_feat_ptr, width, height, tiles_x,
                      F: tl.constexpr, TILE: tl.constexpr, ROWS: tl.constexpr, CHUNK: tl.constexpr,
-                     ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, SKIP: tl.constexpr, SEM: tl.constexpr):
+                     ALPHA_MIN: tl.constexpr, ALPHA_MAX: tl.constexpr, SKIP: tl.constexpr):
     """Gradients of the forward's outputs back to params [M, 6] (means2d, conics, opacity) and
     features [M, F], replaying each pixel's contributing prefix back to front (see the module)."""
     tile, pix, px, py, inside = _pixels(width, height, tiles_x, TILE, ROWS)
@@ -218,19 +208,19 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
             touched = valid & (tl.max(used.to(tl.int32), axis=0) > 0)
             gp = grad_params_ptr + gid * 6
             tl.atomic_add(gp + 0, tl.sum(-grad_sigma * (ca[None, :] * dx + cb[None, :] * dy), axis=0), mask=touched,
-                          sem=SEM)
+                          sem="relaxed")
             tl.atomic_add(gp + 1, tl.sum(-grad_sigma * (cb[None, :] * dx + cc[None, :] * dy), axis=0), mask=touched,
-                          sem=SEM)
-            tl.atomic_add(gp + 2, tl.sum(0.5 * grad_sigma * dx * dx, axis=0), mask=touched, sem=SEM)
-            tl.atomic_add(gp + 3, tl.sum(grad_sigma * dx * dy, axis=0), mask=touched, sem=SEM)
-            tl.atomic_add(gp + 4, tl.sum(0.5 * grad_sigma * dy * dy, axis=0), mask=touched, sem=SEM)
-            tl.atomic_add(gp + 5, tl.sum(grad_alpha * vis, axis=0), mask=touched, sem=SEM)
+                          sem="relaxed")
+            tl.atomic_add(gp + 2, tl.sum(0.5 * grad_sigma * dx * dx, axis=0), mask=touched, sem="relaxed")
+            tl.atomic_add(gp + 3, tl.sum(grad_sigma * dx * dy, axis=0), mask=touched, sem="relaxed")
+            tl.atomic_add(gp + 4, tl.sum(0.5 * grad_sigma * dy * dy, axis=0), mask=touched, sem="relaxed")
+            tl.atomic_add(gp + 5, tl.sum(grad_alpha * vis, axis=0), mask=touched, sem="relaxed")
             gfeat = grad_feat_ptr + gid * F
-            tl.atomic_add(gfeat + 0, tl.sum(weight * g0[:, None], axis=0), mask=touched, sem=SEM)
-            tl.atomic_add(gfeat + 1, tl.sum(weight * g1[:, None], axis=0), mask=touched, sem=SEM)
-            tl.atomic_add(gfeat + 2, tl.sum(weight * g2[:, None], axis=0), mask=touched, sem=SEM)
+            tl.atomic_add(gfeat + 0, tl.sum(weight * g0[:, None], axis=0), mask=touched, sem="relaxed")
+            tl.atomic_add(gfeat + 1, tl.sum(weight * g1[:, None], axis=0), mask=touched, sem="relaxed")
+            tl.atomic_add(gfeat + 2, tl.sum(weight * g2[:, None], axis=0), mask=touched, sem="relaxed")
             if F == 4:
-                tl.atomic_add(gfeat + 3, tl.sum(weight * g3[:, None], axis=0), mask=touched, sem=SEM)
+                tl.atomic_add(gfeat + 3, tl.sum(weight * g3[:, None], axis=0), mask=touched, sem="relaxed")
             later += tl.sum(wg, axis=1)
             trans = tl.max(before, axis=1)
 
@@ -268,23 +258,22 @@ class _Composite(torch.autograd.Function):
         _backward_kernel[grid](params, features, ids, offsets, trans, last, grad_out.contiguous(),
                                grad_trans.contiguous(), grad_params, grad_features, width, height, tiles_x,
                                F=features.shape[1], TILE=tile, ROWS=backward.rows, CHUNK=backward.chunk,
-                               ALPHA_MIN=ALPHA_MIN, ALPHA_MAX=ALPHA_MAX, SKIP=skip, SEM=backward.atomics,
-                               num_warps=backward.warps)
+                               ALPHA_MIN=ALPHA_MIN, ALPHA_MAX=ALPHA_MAX, SKIP=skip, num_warps=backward.warps)
         return (grad_params[:, :2], grad_params[:, 2:5], grad_params[:, 5], grad_features,
                 None, None, None, None, None, None, None)
 
 
 def rasterize_triton(proj: Projection, features: torch.Tensor, width: int, height: int, *, tile: int = TILE,
-                     passes: tuple[Pass, Pass] | None = None, skip: bool = True, capacity: ListCapacity | None = None):
+                     passes: tuple[Pass, Pass] = PASSES, skip: bool = True, capacity: ListCapacity | None = None):
     """Composite one camera's projected Gaussians with the Triton kernels; the reference
     :func:`~.torch_backend.rasterize`'s contract (features [M, F] float32 with F 3 or 4, on CUDA or
     interpreted on the CPU). ``tile``: pixels per tile side (8 or 16); ``passes``: the forward and the
-    backward kernel's :class:`Pass` (rows at most ``tile``; None: :func:`passes_in_use`); ``skip``: pass
-    over blocks of Gaussians no pixel uses; ``capacity``: the tile lists' room (:class:`ListCapacity`; None: sized by waiting for the
+    backward kernel's :class:`Pass` (rows at most ``tile``); ``skip``: pass over blocks of
+    Gaussians no pixel uses; ``capacity``: the tile lists' room (:class:`ListCapacity`; None: sized by waiting for the
     count). Returns blended features [H, W, F] (no background) and transmittance [H, W].
     """
     if features.shape[1] not in (3, 4):
         raise ValueError(f"rasterize_triton: features must have 3 or 4 channels, got {features.shape[1]}")
     ids, offsets = tile_lists(proj, width, height, tile, capacity)
     return _Composite.apply(proj.means2d, proj.conics, proj.opacities, features, ids, offsets,
-                            width, height, tile, passes_in_use() if passes is None else passes, skip)
+                            width, height, tile, passes, skip)

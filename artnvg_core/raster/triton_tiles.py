@@ -13,12 +13,9 @@ before this module is imported).
 
 from __future__ import annotations
 
-import threading
-
 import torch
 import triton
 import triton.language as tl
-from torch.utils.weak import WeakIdKeyDictionary
 
 from .projection import ALPHA_MIN, Projection
 
@@ -198,26 +195,6 @@ class ListCapacity:
             self.size_for(largest)
             return True
         return False
-
-
-class _SceneRooms(threading.local):
-    """Per thread: a scene's means tensor -> {(width, height): the ListCapacity of its renders at that size}."""
-
-    def __init__(self):
-        self.by_scene = WeakIdKeyDictionary()
-
-
-_ROOMS = _SceneRooms()
-
-
-def scene_capacity(means: torch.Tensor, width: int, height: int) -> ListCapacity:
-    """The :class:`ListCapacity` of the renders of the scene whose means are ``means`` (the same tensor) at
-    ``width`` x ``height`` made in this thread, kept while that tensor lives: its first render waits for its
-    count, later ones take their room from the largest so far (a caller redoes one that overflowed)."""
-    sizes = _ROOMS.by_scene.get(means)
-    if sizes is None:
-        sizes = _ROOMS.by_scene[means] = {}
-    return sizes.setdefault((width, height), ListCapacity())
 
 
 def _footprint_inputs(proj: Projection) -> tuple[torch.Tensor, ...]:
