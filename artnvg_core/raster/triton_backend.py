@@ -14,9 +14,9 @@ the final transmittance and the end of the list prefix that contributed; the bac
 the list back to front from there (as gsplat does): the transmittance before each Gaussian is
 recovered by division from the final one (a reversed scan along the chunk), and the colour still to
 come is a suffix sum, so no difference of large sums loses precision. Per-Gaussian gradients are
-summed over the program's pixels, then added with relaxed atomics (in no fixed order; the kernel never reads
-them back, so no add waits for its result, as CUDA's atomicAdd: Triton's default order, acq_rel, made each
-wait and took twice the time).
+summed over the program's pixels, then added with relaxed atomics (in no fixed order; nothing reads them
+back in the kernel, so no add waits for its result, as with CUDA's atomicAdd: Triton's default order,
+acq_rel, made each wait and the kernel take twice the time).
 
 The kernels run on CUDA tensors, or on the CPU in Triton's interpreter (``TRITON_INTERPRET=1`` set
 before this module is imported), which is how the tests check them where no GPU is.
@@ -268,8 +268,8 @@ def rasterize_triton(proj: Projection, features: torch.Tensor, width: int, heigh
     """Composite one camera's projected Gaussians with the Triton kernels; the reference
     :func:`~.torch_backend.rasterize`'s contract (features [M, F] float32 with F 3 or 4, on CUDA or
     interpreted on the CPU). ``tile``: pixels per tile side (8 or 16); ``passes``: the forward and the
-    backward kernel's :class:`Pass` (rows at most ``tile``); ``skip``: pass over blocks of
-    Gaussians no pixel uses; ``capacity``: the tile lists' room (:class:`ListCapacity`; None: sized by waiting for the
+    backward kernel's :class:`Pass` (rows at most ``tile``); ``skip``: pass over blocks of Gaussians no
+    pixel uses; ``capacity``: the tile lists' room (:class:`ListCapacity`; None: sized by waiting for the
     count). Returns blended features [H, W, F] (no background) and transmittance [H, W].
     """
     if features.shape[1] not in (3, 4):
