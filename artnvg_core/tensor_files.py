@@ -116,6 +116,13 @@ def read_safetensors(path: Path, device: torch.device) -> dict[str, torch.Tensor
         from safetensors.torch import load_file
 
         return load_file(str(path), device=str(device))
+    return read_by_readers(path, start, entries, device)
+
+
+def read_by_readers(path: Path, start: int, entries: dict[str, tuple[torch.dtype, list[int], int, int]],
+                    device: torch.device) -> dict[str, torch.Tensor]:
+    """The tensors ``entries`` (:func:`safetensors_header`) of the file at ``path``, allocated on ``device`` and
+    filled by readers sharing the data (:func:`reader_spans`), each a thread of its own (:func:`_read_span`)."""
     ordered = sorted(entries.items(), key=lambda item: item[1][2])
     raw = {name: torch.empty(end - begin, dtype=torch.uint8, device=device) for name, (_, _, begin, end) in ordered}
     targets = [(raw[name], begin) for name, (_, _, begin, _) in ordered]
@@ -136,15 +143,15 @@ def reader_spans(length: int) -> list[tuple[int, int]]:
 def _read_span(path: Path, start: int, targets: list[tuple[torch.Tensor, int]], span: tuple[int, int],
                device: torch.device) -> None:
     """One reader of :func:`read_safetensors`: the bytes ``span`` of the data into ``targets`` through its own
-    file handle, pinned buffers and stream. The stream first waits for what the device was given before (the
+    file handle, buffers and (CUDA) stream. The stream first waits for what the device was given before (the
     targets' memory may have been a tensor that queued work still reads)."""
-    with open(path, "rb", buffering=0) as file:
+    stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+    if stream is not None:
+        stream.wait_stream(torch.cuda.current_stream(device))
+    with open(path, "rb", buffering=0) as file, torch.cuda.stream(stream):
         if hasattr(os, "posix_fadvise"):
             os.posix_fadvise(file.fileno(), start + span[0], span[1] - span[0], os.POSIX_FADV_SEQUENTIAL)
-        stream = torch.cuda.Stream(device)
-        stream.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(stream):
-            stream_into(file, start, targets, span=span)
+        stream_into(file, start, targets, span=span)
 
 
 def _read_into(file, target: torch.Tensor) -> None:

@@ -9,7 +9,16 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from artnvg_core.tensor_files import READERS, STAGING_BYTES, reader_spans, read_tensors, safetensors_header, stream_into
+import artnvg_core.tensor_files as tensor_files
+from artnvg_core.tensor_files import (
+    READERS,
+    STAGING_BYTES,
+    read_by_readers,
+    read_tensors,
+    reader_spans,
+    safetensors_header,
+    stream_into,
+)
 
 
 def _tensors() -> dict[str, torch.Tensor]:
@@ -77,6 +86,21 @@ def test_reader_spans_cover_the_data_once_cut_at_pages(length):
     assert [low for low, _ in spans] == [0] + [high for _, high in spans[:-1]] and spans[-1][1] == length
     assert all(low % 4096 == 0 and high > low for low, high in spans)
     assert len(spans) == min(READERS, max(1, length // (2 * STAGING_BYTES)))
+
+
+def test_several_readers_fill_every_tensor(tmp_path, monkeypatch):
+    """What CUDA reads run, into CPU memory: with staging buffers of a page, 72 kB of tensors are shared
+    among READERS threads, whose spans cut tensors, and every tensor gets its own bytes."""
+    path = tmp_path / "w.safetensors"
+    generator = torch.Generator().manual_seed(1)
+    save_file({f"t{i}": torch.randn(3001, generator=generator) for i in range(6)}, str(path))
+    monkeypatch.setattr(tensor_files, "STAGING_BYTES", 4096)
+    start, entries = safetensors_header(path)
+    assert len(reader_spans(max(end for *_, end in entries.values()))) == READERS
+    read, expected = read_by_readers(path, start, entries, torch.device("cpu")), load_file(str(path))
+    assert read.keys() == expected.keys()
+    for name, tensor in expected.items():
+        assert read[name].dtype == tensor.dtype and torch.equal(read[name], tensor), name
 
 
 def _write_raw(path, header: bytes, data: bytes = b"") -> None:
