@@ -11,7 +11,8 @@
   and waiting for the others count as idle. Each worker's groups and their times follow each row.
 * ``batch``: ``--batch-scenes`` stylized whole (render, diffusion at ``--batch-preset``, finetune,
   contact sheet, save) as ``batch`` jobs on 1 worker, then on 2, 4 and ``--gpus`` workers, from random
-  full-size model files written once to ``--models``, the Triton kernels compiled before the first run
+  full-size model files in ``--models`` (``bench/model_files.py``'s released layout, SDXL as its single
+  file; written where missing), the Triton kernels compiled before the first run
   (:func:`compile_job_kernels`). Wall time from start to the last job,
   including each worker's start and one model load (busy: inside a job, that load included); each
   output against the 1-GPU run's: the scene's largest parameter difference and the contact sheet's
@@ -60,7 +61,6 @@ from artnvg_core.stylize import sheet_path  # noqa: E402
 from bench.diffusion import POOLED_DIM, TINY_POOLED_DIM, build_models, random_conditioning  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-TINY_TEXT = dict(hidden_size=8, intermediate_size=16, num_hidden_layers=2, num_attention_heads=2)
 
 
 def seeded_models(tiny: bool, seed: int, device: torch.device):
@@ -187,75 +187,27 @@ class TimedBatchPool(BatchPool):
         WorkerPool.__init__(self, TimedBatchWorker, workers, workers)
 
 
-def write_random_model_files(folder: Path, tiny: bool, seed: int) -> dict[str, Path]:
-    """Random full-size (or tiny) model files in the layouts the loaders read, float16; returns their paths."""
-    from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
-    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection, CLIPVisionConfig, \
-        CLIPVisionModelWithProjection
-
-    from artnvg_core.diffusion.architectures import BIGG_TEXT_CONFIG, CLIP_L_TEXT_CONFIG, SDXL_UNET_CONFIG, \
-        SDXL_VAE_CONFIG, VIT_BIGG_IMAGE_ENCODER_CONFIG
-    from artnvg_core.diffusion.sdxl_config import write_sdxl_config_dir
-    from bench.diffusion import TINY_ENCODER, TINY_UNET, TINY_VAE
-
-    paths = {"sdxl": folder / "sdxl", "controlnet": folder / "controlnet", "image_encoder": folder / "image_encoder",
-             "csgo": folder / "csgo.bin"}
-    if all(p.exists() for p in paths.values()):
-        return paths
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    shrink = (lambda config, small: {**config, **small}) if tiny else (lambda config, small: config)
-    unet_config = shrink(SDXL_UNET_CONFIG, TINY_UNET)
-    text_l = shrink(CLIP_L_TEXT_CONFIG, TINY_TEXT)
-    text_g = shrink(BIGG_TEXT_CONFIG, {**TINY_TEXT, "projection_dim": TINY_POOLED_DIM})
-    write_sdxl_config_dir(paths["sdxl"], unet=unet_config, vae=shrink(SDXL_VAE_CONFIG, TINY_VAE),
-                          text_encoder=text_l, text_encoder_2=text_g)
-    torch.manual_seed(seed)
-    with torch.device(device):
-        unet = UNet2DConditionModel(**unet_config).half()
-        unet.save_pretrained(paths["sdxl"] / "unet")
-        ControlNetModel.from_unet(unet).half().save_pretrained(paths["controlnet"])
-        AutoencoderKL(**shrink(SDXL_VAE_CONFIG, TINY_VAE)).half().save_pretrained(paths["sdxl"] / "vae")
-        CLIPTextModel(CLIPTextConfig(**text_l)).half().save_pretrained(paths["sdxl"] / "text_encoder")
-        CLIPTextModelWithProjection(CLIPTextConfig(**text_g)).half().save_pretrained(paths["sdxl"] / "text_encoder_2")
-        encoder_config = CLIPVisionConfig(**shrink(VIT_BIGG_IMAGE_ENCODER_CONFIG, TINY_ENCODER))
-        CLIPVisionModelWithProjection(encoder_config).half().save_pretrained(paths["image_encoder"])
-        models = build_models(tiny, torch.device(device), torch.float16)  # CSGO's parts, in the released layout
-    torch.save(csgo_state(models), paths["csgo"])
-    return paths
-
-
-def csgo_state(models) -> dict[str, dict[str, torch.Tensor]]:
-    """A CSGO file's dict from ``models``' projections and image branches (keys indexed over the attention
-    processors in the released order, as :mod:`artnvg_core.diffusion.csgo_weights` reads them)."""
-    def branches(model, blocks: tuple[str, ...]) -> dict[str, torch.Tensor]:
-        state = {}
-        for index, name in enumerate(model.attn_processors):
-            if name.endswith("attn2.processor") and name.startswith(blocks):
-                layer = model.get_submodule(name[: -len(".processor")])
-                for part in ("to_k_ip", "to_v_ip"):
-                    shape = (layer.to_k.out_features, layer.to_k.in_features)
-                    state[f"{index}.{part}.weight"] = 0.02 * torch.randn(shape, dtype=torch.float16)
-        return state
-
-    return {"content_image_proj": models.csgo.content.state_dict(), "style_image_proj": models.csgo.style.state_dict(),
-            "ip_adapter": branches(models.base.unet, ("down_blocks", "up_blocks")),
-            "controlnet_adapter_modules": branches(models.controlnet, ("down_blocks",))}
-
-
 def batch_section(args, devices: list[str], rows: list[str]) -> None:
-    """With --tiny the model files are written and loaded once (a check of the writer), and the jobs
+    """With --tiny the tests' tiny model files are written and loaded once (a check of the loader), and the jobs
     use the NNFM stylizer at 1/8 scale (a preset's 768 or 1024 px working size takes minutes a view
     with tiny models on a CPU): it checks the plumbing, not the diffusion."""
-    files = write_random_model_files(args.models, args.tiny, args.seed)
     if args.tiny:
         from artnvg_core.diffusion.model_files import ModelFiles
         from artnvg_core.diffusion.loader import load_models_for
 
-        load_models_for(ModelFiles(**files), False, torch.device("cpu"))
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        from diffusion_tiny import write_model_files as write_tiny_model_files
+
+        args.models.mkdir(parents=True, exist_ok=True)
+        load_models_for(ModelFiles(**write_tiny_model_files(args.models)), False, torch.device("cpu"))
         stylizer = {"stylizer": "nnfm", "scale": 0.125, "iters": 2}
-    else:
-        stylizer = {"stylizer": "diffusion", "preset": args.batch_preset,
-                    **{role: str(path) for role, path in files.items()}}
+    else:  # the released files as a user downloads them, SDXL as its single file
+        from bench.model_files import write_model_files
+
+        files = write_model_files(args.models, "cuda", sdxl_folder=False)
+        stylizer = {"stylizer": "diffusion", "preset": args.batch_preset, "sdxl": str(files["sdxl"]),
+                    "controlnet": str(files["controlnet"]), "image_encoder": str(files["image encoder"]),
+                    "csgo": str(files["csgo"])}
     style = sorted((args.shared / "styles").glob("*.jpg"))[0]
     work = Path(tempfile.mkdtemp(prefix="artnvg-batch-bench-"))
     entries = []
