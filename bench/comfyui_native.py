@@ -15,11 +15,10 @@ folders and the inputs into ``input/``. The model files are the released ones wi
   process, each group's time from ``user_wall.py``'s timers (the GPU waited for; its decoding included).
 - **native**: a ComfyUI server started fresh (``python main.py``), queued with workflow 3's API twin
   (``workflows_api/``) without its orbit render and previews, its inputs set from the preset
-  (:data:`artnvg_core.presets.PRESETS`: key views, steps, guidance, DDIM as ``ddim``/``ddim_uniform``,
-  resolution, NV levels, finetune iterations). Each preset runs ``N`` times on the same server, as
-  ``comfyui_wall.py`` runs them: run ``i`` sets Sample Group's seed to ``i - 1``, so later runs execute only
-  the sampling and what follows it. Presets after the first find the models loaded. The preset's
-  ``cfg_until`` has no node input: the native path guides every step.
+  (:data:`artnvg_core.presets.PRESETS`: key views, steps, guidance and its ``cfg_until``, DDIM as
+  ``ddim``/``ddim_uniform``, resolution, NV levels, finetune iterations). Each preset runs ``N`` times on the
+  same server, as ``comfyui_wall.py`` runs them: run ``i`` sets Sample Group's seed to ``i - 1``, so later
+  runs execute only the sampling and what follows it. Presets after the first find the models loaded.
 - **lowvram**: the same on a server started with ``--lowvram --reserve-vram R`` (R: the card's memory
   less the cap, so ComfyUI plans for a card of ``--cap-gib``) through a wrapper that caps PyTorch's
   allocations at ``--cap-gib`` (``torch.cuda.set_per_process_memory_fraction``, after ComfyUI has chosen
@@ -149,6 +148,7 @@ def native_workflow(preset_name: str, key_views: int | None) -> dict:
         "Apply CSGO.style_scale": sampler.style_scale, "Apply CSGO.content_scale": sampler.content_scale,
         "Apply CSGO.content_routing": sampler.content_routing,
         "Sample Group.steps": sampler.steps, "Sample Group.cfg": sampler.guidance_scale,
+        "Sample Group.cfg_until": sampler.cfg_until,
         "Sample Group.sampler_name": sampler_name, "Sample Group.scheduler": scheduler,
         "Sample Group.resolution": sampler.resolution, "Sample Group.size_rule": sampler.size_rule,
         "Sample Group.control_scale": sampler.control_scale, "Sample Group.seed": 0,
