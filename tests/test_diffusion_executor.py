@@ -104,7 +104,8 @@ def test_workers_hold_their_next_group_sample_one_at_a_time_and_record_when(exec
     """Four groups on two workers: each gets its second group while it samples its first."""
     style, images, conditioning, _, flag = reference
     pairs = ViewGroups([ViewGroup((0, 1)), ViewGroup((2, 3)), ViewGroup((4, 5)), ViewGroup((6,), context=(0,))], 7)
-    expected = stylize_groups(load_tiny_models(flag, torch.device("cpu")), images, pairs, conditioning, SETTINGS, seed=SEED)
+    models = load_tiny_models(flag, torch.device("cpu"))
+    expected = stylize_groups(models, images, pairs, conditioning, SETTINGS, seed=SEED)
     begin = time.time()
     assert torch.equal(executor.stylize_groups(images, pairs, conditioning, SETTINGS, seed=SEED), expected)
     end = time.time()

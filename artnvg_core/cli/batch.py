@@ -10,14 +10,15 @@ jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 
 Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the
 diffusion models loaded from one job to the next. Jobs start longest first (:func:`expected_work`), so
-that no long job starts last while the other workers idle; results are reported in job order; the diffusion groups of a job run on that worker's
-GPU (``stylize --devices`` spreads one scene's groups over several GPUs instead). A job whose worker
-dies is run again on another worker; a job that fails (bad input, missing file) fails alone, as does one
-that would write over its own inputs or over another job's output or contact sheet (``a.ply`` and
-``a.spz`` share ``a.contact.png``), refused before any work; a job whose output scene loads and whose
-contact sheet exists, both its own, is skipped (``--redo`` runs it anyway); outputs
-are written whole or not at all (:func:`artnvg_core.fileio.written_together`). Ctrl-C or SIGTERM stops
-the running jobs at their next Python step, so none leaves a file behind.
+that no long job starts last while the other workers idle; results are reported in job order. The
+diffusion groups of a job run on that worker's GPU (``stylize --devices`` spreads one scene's groups
+over several GPUs instead). A job whose worker dies is run again on another worker; a job that fails
+(bad input, missing file) fails alone, as does one that would write over its own inputs or over
+another job's output or contact sheet (``a.ply`` and ``a.spz`` share ``a.contact.png``), refused
+before any work; a job whose output scene loads and whose contact sheet exists, both its own, is
+skipped (``--redo`` runs it anyway); outputs are written whole or not at all
+(:func:`artnvg_core.fileio.written_together`). Ctrl-C or SIGTERM stops the running jobs at their next
+Python step, so none leaves a file behind.
 """
 
 from __future__ import annotations
@@ -327,11 +328,11 @@ class BatchPool(WorkerPool):
         """One :class:`JobResult` per job, in job order.
 
         Jobs with an error fail at once; jobs whose output is complete are skipped (unless ``redo``);
-        the others run on the workers, the most :attr:`Job.work` first (in job order where equal). ``on_event("started", job, {"worker": i, "actor": actor})``
-        when a job is handed out (again, if its worker died) and ``on_event("finished", job, result)``
-        for every job. When ``should_stop`` says so, or on KeyboardInterrupt (Ctrl-C), the running jobs
-        are stopped (a worker whose job has not stopped within :data:`STOP_SECONDS` is killed), and
-        every job not finished is ``cancelled``.
+        the others run on the workers, the most :attr:`Job.work` first (in job order where equal).
+        ``on_event("started", job, {"worker": i, "actor": actor})`` when a job is handed out (again, if its
+        worker died) and ``on_event("finished", job, result)`` for every job. When ``should_stop`` says
+        so, or on KeyboardInterrupt (Ctrl-C), the running jobs are stopped (a worker whose job has not
+        stopped within :data:`STOP_SECONDS` is killed), and every job not finished is ``cancelled``.
         """
         ray = import_ray("batch")
         results: dict[int, JobResult] = {}
