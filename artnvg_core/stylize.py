@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from .background import brief_switches
 from .cameras import CameraSet
 from .diffusion.loader import indexed_device, load_models_for
 from .diffusion.lora import LoRA
@@ -138,7 +139,8 @@ def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: st
             promised.set()
         read_ahead([path for path in paths if read is None or path.suffix != ".safetensors"])
         if read is not None:
-            read()
+            with brief_switches():  # beside the imports (background.py)
+                read()
 
     def load_models() -> None:
         promised.wait()

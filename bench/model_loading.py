@@ -3,7 +3,8 @@
     python bench/model_loading.py --dir DIR [--device cpu|cuda] [--dtype bf16|fp16] [--repeats 2]
 
 Writes, where DIR lacks them, full-size files with random weights in the released layouts
-(``model_files.py``). Then times :func:`load_controlnet` (the Tile ControlNet's fp16 ``.safetensors``)
+(``model_files.py``). Then times reading ``sd_xl_base_1.0.safetensors``'s tensors alone
+(:func:`~artnvg_core.tensor_files.read_tensors`), :func:`load_controlnet` (the Tile ControlNet's fp16 ``.safetensors``)
 and :func:`load_image_encoder` (the image encoder's ``model.safetensors``) to ``--device`` in ``--dtype``,
 :func:`load_sdxl` on ``sd_xl_base_1.0.safetensors`` (read straight to the device, converted there) and,
 for comparison, diffusers' ``StableDiffusionXLPipeline.from_single_file`` on it then moved to the device
@@ -36,6 +37,7 @@ from artnvg_core.diffusion.model_cache import file_key
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.diffusion.models import load_controlnet, load_diffusion_models, load_image_encoder, load_sdxl
 from artnvg_core.diffusion.sdxl_config import built_in_sdxl_config
+from artnvg_core.tensor_files import read_tensors
 
 DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
@@ -60,7 +62,8 @@ def main() -> None:
                                                               local_files_only=True, add_watermarker=False)
         return [part.to(device) for part in (pipe.unet, pipe.vae, pipe.text_encoder, pipe.text_encoder_2)]
 
-    loaders = {"controlnet": lambda: load_controlnet(files["controlnet"], unet_config=SDXL_UNET_CONFIG, dtype=dtype,
+    loaders = {"sdxl, read only": lambda: read_tensors(files["sdxl"], device),
+               "controlnet": lambda: load_controlnet(files["controlnet"], unet_config=SDXL_UNET_CONFIG, dtype=dtype,
                                                      device=device),
                "image encoder": lambda: load_image_encoder(files["image encoder"], dtype=dtype, device=device),
                "sdxl": lambda: load_sdxl(files["sdxl"], dtype=dtype, device=device),

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from ..background import brief_switches
 from ..progress import Cancelled, ProgressFn, StopFn
 from .lora import LoRA, LoRAError
 from .model_cache import file_key, load_once
@@ -34,7 +35,9 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     run's compile artifacts (:mod:`.compile_cache`). Loaded once per process: the same files (path, size and
     modification time), device and options return the same models (:mod:`.model_cache`). Any failure to
     load raises :class:`DiffusionModelsUnavailable` saying why; a stop (``should_stop``, checked before each
-    model) raises :class:`~artnvg_core.progress.Cancelled`. ``progress`` follows the bytes loaded
+    model) raises :class:`~artnvg_core.progress.Cancelled`. While it runs, Python threads hand the interpreter
+    lock over every 0.1 ms (:func:`~artnvg_core.background.brief_switches`: a load in a background thread
+    beside a busy one). ``progress`` follows the bytes loaded
     (:func:`.models.load_diffusion_models`). A module-level function, so a ``functools.partial`` of it can
     be sent to worker processes."""
     if compile_blocks and low_memory:
@@ -44,8 +47,9 @@ def load_models_for(files: ModelFiles, low_memory: bool, device: str | torch.dev
     key = ("diffusion models", tuple(file_key(path) for _, path in files.items()),
            tuple((file_key(lora.path), lora.strength) for lora in loras), file_key(sdxl_config_dir),
            str(dtype), str(device), low_memory, compile_blocks, on_cpu)
-    return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device, compile_blocks,
-                                            dtype, sdxl_config_dir, on_cpu, progress, should_stop))
+    with brief_switches():  # loaded beside other threads' Python (background.py)
+        return load_once(key, functools.partial(_load_models, files, tuple(loras), low_memory, device,
+                                                compile_blocks, dtype, sdxl_config_dir, on_cpu, progress, should_stop))
 
 
 def indexed_device(device: str | torch.device) -> torch.device:
