@@ -31,7 +31,7 @@ from .progress import ProgressFn, StopFn
 from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
-from .tensor_files import read_ahead
+from .tensor_files import drop_early_reads, read_ahead, read_early
 
 STYLIZERS = ("auto", "nnfm", "diffusion")
 DEMO_DIR = Path(__file__).resolve().parent / "demo"
@@ -117,19 +117,41 @@ def prefetch_models(files: ModelFiles, device: str | torch.device, *, preset: st
                     ) -> None:
     """Start loading, in a background thread, the models that :func:`stylize_diffusion` with these arguments
     on one ``device`` loads, so that reading the files overlaps what comes before it (the diffusion
-    libraries' imports, loading the scene). Another thread first asks the kernel to read the weight files
-    into the page cache (:func:`~artnvg_core.tensor_files.read_ahead`), so that from a cold disk they
-    stream in while the libraries are imported. stylize_diffusion's own load then waits for this one and
-    gets its models (:func:`load_models_for` loads once per process). A failure here is dropped:
+    libraries' imports, loading the scene). Another thread reads the weight files meanwhile: for models
+    that go to a GPU, the ``.safetensors`` files onto it, which the loader then takes
+    (:func:`~artnvg_core.tensor_files.read_early`), so that reading overlaps the diffusion libraries'
+    imports; the other files it asks the kernel to read into the page cache
+    (:func:`~artnvg_core.tensor_files.read_ahead`). stylize_diffusion's own load then waits for this one
+    and gets its models (:func:`load_models_for` loads once per process). A failure here is dropped:
     stylize_diffusion's load meets it again and reports it."""
+    from .presets import get_preset
+
     load, device = _models_loader(files, preset, compile_blocks, loras), indexed_device(device)  # this thread's
+    onto_gpu = device.type == "cuda" and not get_preset(preset).low_memory
+    promised = threading.Event()  # the early reads are promised before the load looks for them
+
+    def read_files() -> None:
+        try:
+            paths = weight_files(check_model_files(files))
+            read = read_early(paths, device) if onto_gpu else None
+        finally:
+            promised.set()
+        read_ahead([path for path in paths if read is None or path.suffix != ".safetensors"])
+        if read is not None:
+            read()
+
+    def load_models() -> None:
+        promised.wait()
+        try:
+            load(device, progress=progress)
+        finally:
+            drop_early_reads()
 
     def quietly(work) -> None:
         with contextlib.suppress(Exception):
             work()
 
-    for name, work in (("read ahead", lambda: read_ahead(weight_files(check_model_files(files)))),
-                       ("prefetch models", lambda: load(device, progress=progress))):
+    for name, work in (("read model files", read_files), ("prefetch models", load_models)):
         threading.Thread(target=quietly, args=(work,), name=name, daemon=True).start()
 
 

@@ -17,9 +17,10 @@ import json
 import math
 import os
 import struct
+import threading
 import zipfile
-from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -40,8 +41,63 @@ def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
     tensors converted to ``dtype`` there when given (others keep theirs). A malformed ``.safetensors``
     header is a ValueError naming the file and what is wrong."""
     path, device = Path(path), torch.device(device)
-    tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else read_torch_file(path, device)
+    tensors = _taken_early(path, device)
+    if tensors is None:
+        tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else read_torch_file(path, device)
     return tensors if dtype is None else {k: _cast(v, dtype) for k, v in tensors.items()}
+
+
+_early: dict[tuple, Future] = {}  # read_early's promised reads, by _early_key
+_early_lock = threading.Lock()
+
+
+def _early_key(path: str | os.PathLike, device: torch.device) -> tuple:
+    stat = os.stat(path)
+    return str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns, str(device)
+
+
+def read_early(paths: Iterable[str | os.PathLike], device: str | torch.device) -> Callable[[], None]:
+    """Promise the ``.safetensors`` files of ``paths``, read onto ``device``, to the :func:`read_tensors` calls
+    of the same file (path, size, modification time) and device, each of which takes its file's tensors
+    once (waiting while they are read) instead of reading; returns the function that reads them, one after
+    another (run it in a thread of its own: it mostly waits in system calls). A file whose read fails is
+    read again by its :func:`read_tensors` call, which reports the error. :func:`drop_early_reads` forgets
+    what no call took. For files read before the code that reads them is imported (seconds, under the
+    interpreter lock)."""
+    device = torch.device(device)
+    promised = []
+    with _early_lock:
+        for path in paths:
+            key = _early_key(path, device) if Path(path).suffix == ".safetensors" else None
+            if key is not None and key not in _early:
+                _early[key] = Future()
+                promised.append((Path(path), _early[key]))
+
+    def read() -> None:
+        for path, future in promised:
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(read_safetensors(path, device))
+                except Exception:  # read again, and reported, by the read_tensors call
+                    future.set_result(None)
+
+    return read
+
+
+def _taken_early(path: Path, device: torch.device) -> dict[str, torch.Tensor] | None:
+    """The tensors :func:`read_early` promised for ``path`` on ``device`` (waited for), else None."""
+    with _early_lock:
+        future = _early.pop(_early_key(path, device), None) if _early else None
+    return None if future is None else future.result()
+
+
+def drop_early_reads() -> None:
+    """Forget the reads :func:`read_early` promised that no :func:`read_tensors` call took (their memory
+    is freed once read)."""
+    with _early_lock:
+        for future in _early.values():
+            future.cancel()
+        _early.clear()
 
 
 def read_ahead(paths: Iterable[str | os.PathLike]) -> None:

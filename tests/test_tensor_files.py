@@ -139,3 +139,63 @@ def test_read_ahead_asks_the_kernel_for_each_whole_file_and_skips_what_it_cannot
     (tmp_path / "b.bin").write_bytes(b"y" * 3)
     read_ahead([tmp_path / "a.bin", tmp_path / "missing.bin", tmp_path / "b.bin"])
     assert asked == [(0, 10, 3), (0, 3, 3)]
+
+
+@pytest.fixture
+def counted_reads(monkeypatch):
+    """Every read_safetensors call's path, in order (the real read still runs); early reads forgotten after."""
+    calls, read = [], tensor_files.read_safetensors
+
+    def counting(path, device):
+        calls.append(path.name)
+        return read(path, device)
+
+    monkeypatch.setattr(tensor_files, "read_safetensors", counting)
+    yield calls
+    tensor_files.drop_early_reads()
+
+
+def test_an_early_read_is_taken_once_by_the_read_of_its_file(weights_file, counted_reads):
+    import threading
+
+    weights_file.with_name("csgo.bin").write_bytes(b"")  # not .safetensors: left to its loader
+    reader = tensor_files.read_early([weights_file, weights_file.with_name("csgo.bin")], "cpu")
+    taken = {}
+    waiting = threading.Thread(target=lambda: taken.update(read_tensors(weights_file)))
+    waiting.start()  # asks before the file is read: waits for the early read
+    reader()
+    waiting.join()
+    assert counted_reads == ["w.safetensors"]
+    expected = load_file(str(weights_file))
+    assert taken.keys() == expected.keys() and all(torch.equal(taken[k], expected[k]) for k in expected)
+    read_tensors(weights_file)  # taken already: read again
+    assert counted_reads == ["w.safetensors", "w.safetensors"]
+
+
+def test_an_early_read_of_a_changed_or_dropped_file_is_not_taken(weights_file, counted_reads):
+    import os
+
+    tensor_files.read_early([weights_file], "cpu")()
+    stat = os.stat(weights_file)
+    os.utime(weights_file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # the file changed since
+    read_tensors(weights_file)
+    assert counted_reads == ["w.safetensors", "w.safetensors"]
+    reader = tensor_files.read_early([weights_file], "cpu")
+    tensor_files.drop_early_reads()
+    reader()  # forgotten before it ran: reads nothing
+    read_tensors(weights_file)
+    assert counted_reads == ["w.safetensors"] * 3
+
+
+def test_a_failed_early_read_is_read_again_by_the_loader(weights_file, monkeypatch):
+    failing = [True]
+    read = tensor_files.read_safetensors
+
+    def flaky(path, device):
+        if failing.pop() if failing else False:
+            raise OSError("disk hiccup")
+        return read(path, device)
+
+    monkeypatch.setattr(tensor_files, "read_safetensors", flaky)
+    tensor_files.read_early([weights_file], "cpu")()
+    assert torch.equal(read_tensors(weights_file)["weight"], _tensors()["weight"])
