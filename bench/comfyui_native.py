@@ -23,9 +23,9 @@ folders and the inputs into ``input/``. The model files are the released ones wi
   less the cap, so ComfyUI plans for a card of ``--cap-gib``) through a wrapper that caps PyTorch's
   allocations at ``--cap-gib`` (``torch.cuda.set_per_process_memory_fraction``, after ComfyUI has chosen
   its allocator, checked by an allocation over the cap that must fail) before ComfyUI's ``main.py`` runs.
-  The cap bounds what PyTorch allocates; when the server stops, PyTorch's own peaks (allocated, reserved)
-  over its life are printed under the table (nvidia-smi's figure adds the CUDA context and what the
-  allocator's pool keeps).
+  The cap bounds what PyTorch allocates (under ComfyUI's default cudaMallocAsync allocator not what its pool
+  reserves, which may pass the cap); when the server stops, PyTorch's own peaks (allocated, reserved) over its
+  life are printed under the table (nvidia-smi's figure adds the CUDA context and what the pool keeps).
 
 Whole run: a process from launch to exit; a queued workflow from queueing to the end of its execution.
 Groups (native): from the websocket's progress messages of Sample Group: group 1 from the node's start
@@ -308,7 +308,7 @@ def main() -> None:
         plan = runs_per_preset(plan)
         if not plan:
             continue
-        log = logs / f"comfyui_{'lowvram' if cap else 'native'}.log"
+        log = logs / f"comfyui_{'lowvram' if cap else 'native'}_{args.port}.log"  # one per invocation
         since = time.perf_counter()
         try:
             server, started = start_server(args.comfyui_python, args.comfyui, args.port, log, frontend, extra,

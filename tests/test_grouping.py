@@ -1,6 +1,7 @@
 """Tests of artnvg_core.grouping: balanced neighbouring-view groups."""
 
 import itertools
+import heapq
 import math
 from fractions import Fraction
 
@@ -110,6 +111,34 @@ def test_group_count_rounded_to_a_multiple_exhaustive():
                 # the smallest multiple of `multiple` that is at least the fewest groups, or one group per view
                 expected = min(next(g for g in range(fewest, fewest + multiple) if g % multiple == 0), count)
                 assert len(sizes) == expected
+
+
+def _finish_times(durations: list[float], workers: int) -> list[float]:
+    """When each worker ends if the durations are handed out largest first, each to the worker free
+    first (lowest index on a tie), as GroupExecutor's dispatch does."""
+    free = [(0.0, worker) for worker in range(workers)]
+    for duration in sorted(durations, reverse=True):
+        start, worker = heapq.heappop(free)
+        heapq.heappush(free, (start + duration, worker))
+    return [end for end, _ in sorted(free, key=lambda item: item[1])]
+
+
+@pytest.mark.parametrize("workers", [2, 3, 4, 8])
+def test_groups_a_multiple_of_the_workers_leave_none_idle_on_a_tail(workers):
+    """Fake durations growing with a group's size (attention: faster than linearly): with the group count a
+    multiple of the workers, every worker ends within one view's cost of the last (so the makespan is the
+    average within that); with the fewest groups a worker can wait a whole group."""
+    cost = lambda size: size ** 1.5  # noqa: E731
+    waits_a_group = 0
+    for count in range(15 * workers, 300, 7):
+        sizes = balanced_group_sizes(count, 15, workers)
+        ends = _finish_times([cost(size) for size in sizes], workers)
+        assert max(ends) - min(ends) <= cost(max(sizes)) - cost(min(sizes)) + 1e-9, (count, sizes)
+        assert max(ends) <= sum(map(cost, sizes)) / workers + cost(max(sizes)) - cost(min(sizes)) + 1e-9
+        fewest = balanced_group_sizes(count, 15)
+        ends = _finish_times([cost(size) for size in fewest], workers)
+        waits_a_group += max(ends) - min(ends) >= cost(min(fewest))
+    assert waits_a_group  # the default grouping does leave workers idle for a group's time
 
 
 def test_groups_for_four_devices_on_the_bear_orbit():
