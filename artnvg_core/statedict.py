@@ -34,11 +34,13 @@ def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str
 @contextmanager
 def parameters_on_meta() -> Iterator[None]:
     """Modules built inside this context get their parameters on the meta device: no memory and no
-    random initialisation, for weights a file is about to replace. Buffers stay real (a model's
+    random initialisation, for weights a file is about to replace (the :data:`UNINITIALISED` layers skip
+    their ``reset_parameters``, which would only run on meta tensors). Buffers stay real (a model's
     computed buffers, e.g. CLIP's position ids, keep their values). Fill them with
     ``load_state_dict(state, assign=True)`` (as :func:`artnvg_core.diffusion.models.load_state_dict_strict`
-    does), which takes the state's tensors."""
+    does), which takes the state's tensors. The patches are the process's while the block runs."""
     register = torch.nn.Module.register_parameter
+    resets = {layer: layer.__dict__["reset_parameters"] for layer in UNINITIALISED}
 
     def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
         if param is not None and not param.is_meta:
@@ -46,7 +48,20 @@ def parameters_on_meta() -> Iterator[None]:
         register(module, name, param)
 
     torch.nn.Module.register_parameter = on_meta
+    for layer in UNINITIALISED:
+        layer.reset_parameters = _no_reset
     try:
         yield
     finally:
         torch.nn.Module.register_parameter = register
+        for layer, reset in resets.items():
+            layer.reset_parameters = reset
+
+
+def _no_reset(self: torch.nn.Module) -> None:
+    """A layer's ``reset_parameters`` inside :func:`parameters_on_meta`: its parameters are meta, nothing to set."""
+
+
+# the layers whose reset_parameters sets their own parameters only (kept within parameters_on_meta)
+UNINITIALISED = (torch.nn.Linear, torch.nn.modules.conv._ConvNd, torch.nn.Embedding, torch.nn.LayerNorm,
+                 torch.nn.GroupNorm)
