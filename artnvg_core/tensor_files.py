@@ -9,6 +9,10 @@ wait in system calls (the interpreter lock released) and the default stream's wo
 goes on beside them; no CPU copy of the file is made, and a ``dtype`` asked for is applied on the GPU.
 For the CPU (and other devices) the safetensors library reads it, memory-mapped: pages are read as
 they are used and stay shared with the page cache.
+
+Reading before the loader asks: :func:`read_early` reads files in a thread of its own and hands each to
+the :func:`read_tensors` call of the same file and device; :func:`read_ahead` asks the kernel to read
+files into the page cache.
 """
 
 from __future__ import annotations
