@@ -20,7 +20,8 @@ PACKAGES = ("artnvg_core", "nodes")
 # or below. A room is a top-level module or package of artnvg_core (its modules with it), or the node pack.
 FLOORS = (
     ("artnvg_core", "artnvg_core.scene", "artnvg_core.fileio", "artnvg_core.statedict", "artnvg_core.progress",
-     "artnvg_core.devices", "artnvg_core.tensor_tree", "artnvg_core.tensor_files"),  # the data and the plumbing
+     "artnvg_core.devices", "artnvg_core.tensor_tree", "artnvg_core.tensor_files",
+     "artnvg_core.background"),  # the data and the plumbing
     ("artnvg_core.cameras", "artnvg_core.cluster", "artnvg_core.losses", "artnvg_core.preview"),
     ("artnvg_core.formats", "artnvg_core.activated", "artnvg_core.raster", "artnvg_core.grouping",
      "artnvg_core.key_views"),
