@@ -267,7 +267,12 @@ def _leftovers(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
 
 
-def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs, pool, ray_local):
+@pytest.fixture(scope="module")
+def first_batch(inputs, pool, ray_local):
+    """The JOBS file's first run on the pool, the worker that takes the first job killed as it begins;
+    returns (results, the job numbers in the order they started, {job number: its output equals the
+    single run's}, the hidden files left in the output folder), read right after the batch, so that
+    each test may run first."""
     jobs_path, references = inputs
     jobs = load_jobs(jobs_path, stylize_options())
     starts = []
@@ -279,19 +284,25 @@ def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs,
                 os.kill(ray_local.get(detail["actor"].ping.remote()), signal.SIGKILL)
 
     results = pool.run(jobs, on_event=kill_the_first_worker)
+    same = {number: _same_output(jobs[number - 1].out, reference) for number, reference in references.items()}
+    return results, starts, same, _leftovers(jobs_path.parent / "out")
+
+
+def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs, first_batch):
+    jobs_path, _ = inputs
+    results, starts, same, leftovers = first_batch
     assert [r.status for r in results] == ["done", "done", "done", "failed", "failed"], results
     # the longest first: the diffusion job, then the NNFM jobs by scene size; job 5 fails before it starts
     assert starts[:2] == [2, 1] and starts.count(2) == 2 and sorted(set(starts)) == [1, 2, 3, 4], starts
-    for number, reference in references.items():
-        assert _same_output(jobs[number - 1].out, reference), number
+    assert same == {1: True, 2: True, 3: True}
     assert "missing.ply" in results[3].message and "argument --preset: invalid choice: 'slow'" in results[4].message
-    assert not (jobs_path.parent / "out" / "missing.ply").exists() and not _leftovers(jobs_path.parent / "out")
+    assert not (jobs_path.parent / "out" / "missing.ply").exists() and not leftovers
 
 
-def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, capsys):
+def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, first_batch, capsys):
     jobs_path, references = inputs
     jobs = load_jobs(jobs_path, stylize_options())
-    assert all(output_complete(jobs[n - 1].out) for n in references)  # the test above ran the batch
+    assert all(output_complete(jobs[n - 1].out) for n in references)
     modified = {n: jobs[n - 1].out.stat().st_mtime_ns for n in references}
     # the command line, on the three good jobs and the one that cannot be parsed: no job needs a
     # worker (the module's pool holds the session's two CPUs)
