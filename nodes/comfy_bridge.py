@@ -3,7 +3,7 @@
 Inside ComfyUI this uses ``folder_paths`` (input/output/model folders),
 ``comfy.utils.ProgressBar`` (the node's progress bar), ``server.PromptServer`` with
 ``comfy_execution.utils`` (text under the running node) and ``comfy.model_management``
-(the user's interrupt, and the compute device), and ``comfy_api.latest.Types`` (the core's data
+(the user's interrupt, the compute device and the low-VRAM state), and ``comfy_api.latest.Types`` (the core's data
 classes, where present); it also lifts the ``torch.inference_mode``
 under which ComfyUI runs every node, for nodes that need gradients. Without ComfyUI
 (tests, scripts) every function falls back: the input and output folders are ``./input``
@@ -137,6 +137,14 @@ def compute_device() -> torch.device:
     if model_management is not None:
         return torch.device(model_management.get_torch_device())
     return best_device()
+
+
+def low_vram_mode() -> bool:
+    """Whether ComfyUI runs in its low-VRAM state (``--lowvram`` or ``--novram``); False without ComfyUI."""
+    model_management = comfy_module("comfy.model_management")
+    if model_management is None:
+        return False
+    return model_management.vram_state in (model_management.VRAMState.LOW_VRAM, model_management.VRAMState.NO_VRAM)
 
 
 # --------------------------------------------------------------------------- autograd

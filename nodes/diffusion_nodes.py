@@ -3,7 +3,10 @@
 Each group's views form the latent batch that ComfyUI samples (``comfy.sample.sample``: its samplers,
 schedulers, memory management and model patches, as KSampler), with the ControlNet applied to each view
 from its own content image and the MODEL's neighbouring-view patch (NV-Attention Patch Model) mirrored
-onto the ControlNet's self-attention.
+onto the ControlNet's self-attention. In ComfyUI's low-VRAM state (``--lowvram``, ``--novram``) the
+UNet's and the ControlNet's feed-forward layers run one sample at a time, as the library's ``low-memory``
+preset runs them (their activations are a block's largest: where a group at 1024 px ran out of memory
+under a 12 GiB cap, BENCHMARKS.md "ComfyUI's native path").
 """
 
 from __future__ import annotations
@@ -14,12 +17,13 @@ from artnvg_core.diffusion.images import check_images, resize_images, sampling_s
 from artnvg_core.diffusion.settings import SIZE_RULES, SamplerSettings, guided_steps
 from artnvg_core.progress import check_stop
 
-from .comfy_bridge import cancellable, comfy_module, interrupt_requested, progress_bar
+from .comfy_bridge import cancellable, comfy_module, interrupt_requested, low_vram_mode, progress_bar
 from .comfy_patches import (
     CONTENT_TOKENS,
     CSGO_STATE,
     VIEW_CENTERS,
     NeighbourViewPatch,
+    feed_forward_one_sample_at_a_time,
     patch_controlnet,
     transformer_layers,
 )
@@ -119,6 +123,8 @@ class SampleGroup(ArtNVGNode):
         if nv is not None:
             control_net = patch_controlnet(control_net, {f"{layer.path}.attn1": nv
                                                          for layer in transformer_layers(control_net.control_model)})
+        if low_vram_mode():
+            model, control_net = feed_forward_one_sample_at_a_time(model, control_net)
         height, width = images.shape[1:3]
         multiple = vae.downscale_ratio * 2 ** (len(unet.channel_mult) - 1)
         size = sampling_size(height, width, resolution or None, size_rule, multiple)

@@ -1,5 +1,6 @@
-"""The pack's ComfyUI attention patches called as ComfyUI calls them, without ComfyUI: against the core's maths
-applied to each guidance chunk alone, in float64."""
+"""The pack's ComfyUI patches called as ComfyUI calls them, without ComfyUI: the attention patches against the
+core's maths applied to each guidance chunk alone, in float64; the low-VRAM feed-forward against the layers
+run on the whole batch."""
 
 import pytest
 import torch
@@ -13,6 +14,7 @@ from nodes.comfy_patches import (
     CSGOState,
     ImageTokenPatch,
     NeighbourViewPatch,
+    OneSampleAtATime,
     transformer_layers,
 )
 
@@ -135,3 +137,19 @@ def test_transformer_layers_follow_the_released_order_and_diffusers_names():
     assert layers[13].diffusers_name == "up_blocks.1.attentions.1.transformer_blocks.0"
     assert layers[-1].path == "middle_block.1.transformer_blocks.1"
     assert layers[-1].diffusers_name == "mid_block.attentions.0.transformer_blocks.1"
+
+
+def test_one_sample_at_a_time_equals_the_batch_and_keeps_the_layers_names():
+    """ComfyUI's FeedForward.net (projection and GELU, dropout, projection) on a batch of 5 samples: equal to
+    the batch run, each layer sees one sample, and the parameters keep their names (weight patches key them)."""
+    torch.manual_seed(0)
+    net = nn.Sequential(nn.Sequential(nn.Linear(6, 24, dtype=torch.float64), nn.GELU()), nn.Dropout(0.0),
+                        nn.Linear(24, 6, dtype=torch.float64))
+    x = torch.randn(5, 7, 6, dtype=torch.float64)
+    expected = net(x)
+    patched = OneSampleAtATime(*net)
+    seen = []
+    patched[0].register_forward_hook(lambda module, args, out: seen.append(args[0].shape[0]))
+    torch.testing.assert_close(patched(x), expected, rtol=0, atol=1e-12)  # the GEMMs block by batch size
+    assert seen == [1] * 5
+    assert list(patched.state_dict()) == list(net.state_dict()) and patched[2] is net[2]

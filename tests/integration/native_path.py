@@ -7,9 +7,10 @@ prompt embeddings, camera centres) and ``cases.json``. ComfyUI's checkpoint dete
 models only, so the script builds ComfyUI's own model objects (``comfy.supported_models.SDXL``, the
 ControlNet loader, ``comfy.sd.VAE``, ``comfy.clip_vision.ClipVisionModel``) from those weights with
 ComfyUI's own key converters, then runs the pack's nodes on them: NV-Attention Patch Model, Apply CSGO
-and Sample Group, which samples through ``comfy.sample``. Writes ``native.safetensors`` (one IMAGE per case)
-and ``checks.json``: the errors Apply CSGO gives for inputs of the wrong kind, and what ComfyUI's
-progress bar saw and raised when a Sample Group run is cancelled.
+and Sample Group, which samples through ``comfy.sample``; a case with ``low_vram`` runs in ComfyUI's
+low-VRAM state (``--lowvram``). Writes ``native.safetensors`` (one IMAGE per case) and ``checks.json``:
+the batch sizes each case's feed-forward layers (ComfyUI's GEGLU) saw, the errors Apply CSGO gives for
+inputs of the wrong kind, and what ComfyUI's progress bar saw and raised when a Sample Group run is cancelled.
 """
 
 from __future__ import annotations
@@ -181,9 +182,20 @@ def main(checkout: Path, folder: Path) -> None:
                         centers=tuple(map(tuple, inputs["centers"].tolist())))
     positive = [[inputs["text"], {"pooled_output": inputs["pooled"]}]]
     negative = [[inputs["negative_text"], {"pooled_output": inputs["negative_pooled"]}]]
-    outputs = {}
+    import comfy.ldm.modules.attention
+    import comfy.model_management as model_management
+
+    outputs, batches, normal = {}, {}, model_management.vram_state
+
+    def feed_forward_batches(module, args, output) -> None:
+        if isinstance(module, comfy.ldm.modules.attention.GEGLU):
+            batches[name].add(args[0].shape[0])
+
+    hook = torch.nn.modules.module.register_module_forward_hook(feed_forward_batches)
     with torch.inference_mode():
         for name, case in cases.items():
+            batches[name] = set()
+            model_management.vram_state = model_management.VRAMState.LOW_VRAM if case.get("low_vram") else normal
             patched, control = patch_nodes.ApplyCSGO().apply(
                 model, control_net, read_csgo(folder / case.get("csgo_file", "csgo.bin"), dim_head=head_width),
                 clip_vision, inputs["style_image"], case["style_scale"],
@@ -192,7 +204,10 @@ def main(checkout: Path, folder: Path) -> None:
             (outputs[name],) = diffusion_nodes.SampleGroup().sample(
                 patched, positive, negative, vae, control, views, groups, -1, case["seed"], case["steps"], case["cfg"],
                 "ddim", "simple", 1.0, case["control_scale"], case["resolution"], "long_side", case.get("cfg_until", 1.0))
-        checks = {"errors": _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"],
+        model_management.vram_state = normal
+        hook.remove()
+        checks = {"feed_forward_batches": {name: sorted(sizes) for name, sizes in batches.items()},
+                  "errors": _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"],
                                     folder, configs),
                   **_cancelled(lambda: diffusion_nodes.SampleGroup().sample(
                       model, positive, negative, vae, control_net, views, groups, 0, 0, 2, 5.0, "euler", "simple", 1.0,

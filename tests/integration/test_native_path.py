@@ -54,6 +54,8 @@ CASES = {
     # the same weights, the ControlNet's keyed by module path (the other layout CSGO's loader reads)
     "nv_released_module_path_keys": dict(COMMON, neighbour_views=True, content_routing="released",
                                          csgo_file="csgo_by_path.bin"),
+    # in ComfyUI's low-VRAM state (--lowvram): the feed-forward layers one sample at a time
+    "nv_released_low_vram": dict(COMMON, neighbour_views=True, content_routing="released", low_vram=True),
 }
 
 
@@ -137,6 +139,15 @@ def test_each_patch_changes_the_result_well_beyond_the_tolerance(outputs):
     for first, second in (("nv_released", "per_view_released"), ("nv_paper", "nv_released"),
                           ("per_view_paper", "per_view_released"), ("nv_released_guided_1_of_4", "nv_released")):
         assert (native[first] - native[second]).abs().max() > 10 * TOLERANCE, (first, second)
+
+
+def test_low_vram_runs_each_feed_forward_one_sample_at_a_time(outputs):
+    """Under --lowvram every GEGLU of the UNet and the ControlNet sees one sample (the case is held to the
+    diffusers path by test_native_path_equals_the_diffusers_path); otherwise the whole batch: both guidance
+    halves of the views."""
+    batches = outputs[2]["feed_forward_batches"]
+    assert batches["nv_released_low_vram"] == [1]
+    assert batches["nv_released"] == [2 * VIEWS]
 
 
 def test_inputs_of_the_wrong_kind_are_named_before_sampling(outputs):
