@@ -262,8 +262,8 @@ class OneSampleAtATime(torch.nn.Sequential):
     """A transformer block's feed-forward layers (ComfyUI's ``FeedForward.net``, the same child modules under
     the same names, so weight patches and low-VRAM casting still find them) run on one sample of the batch
     at a time: the same result, with the hidden activations of one sample alive at once. SDXL's GEGLU
-    holds ``[B, L, 12 x width]`` of them at its peak (its projection, the gate's GELU, their product): 2.2
-    GiB in fp16 for a group of 14 views at 1024 px (L 4096, width 640), 0.16 GiB one sample at a time."""
+    holds ``[B, L, 16 x width]`` of them at its peak (its projection to 8 x width, the gate's GELU and the
+    product, 4 x width each): 1.1 GiB in fp16 for 14 views at 1024 px (L 4096, width 640), 80 MiB for one."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.cat([torch.nn.Sequential.forward(self, sample) for sample in x.split(1)])
