@@ -27,7 +27,7 @@ from .comfy_patches import (
     patch_controlnet,
     transformer_layers,
 )
-from .model_patch_nodes import diffusion_unet
+from .model_patch_nodes import controlnet_model, diffusion_unet
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import GROUPS, IMAGE
@@ -119,10 +119,11 @@ class SampleGroup(ArtNVGNode):
         with node_input(node, "content_views"):
             images = check_images(content_views, "the views")
         unet = diffusion_unet(node, model)
+        control_model = controlnet_model(node, control_net)
         nv = _nv_patch(model)
         if nv is not None:
             control_net = patch_controlnet(control_net, {f"{layer.path}.attn1": nv
-                                                         for layer in transformer_layers(control_net.control_model)})
+                                                         for layer in transformer_layers(control_model)})
         if low_vram_mode():
             model, control_net = feed_forward_one_sample_at_a_time(model, control_net)
         height, width = images.shape[1:3]

@@ -52,6 +52,17 @@ def diffusion_unet(node: str, model) -> torch.nn.Module:
     return unet
 
 
+def controlnet_model(node: str, control_net) -> torch.nn.Module:
+    """The control model of ComfyUI CONTROL_NET ``control_net`` (a ControlNet with a hint encoder, as Load
+    ControlNet Model gives); NodeInputError naming input 'control_net' for anything else (a T2I-Adapter, a
+    Control-LoRA, another type)."""
+    control_model = getattr(control_net, "control_model", None)
+    if control_model is None or not hasattr(control_model, "input_hint_block"):
+        raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
+                             "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
+    return control_model
+
+
 class NVAttentionPatch(ArtNVGNode):
     """Neighbouring-view attention on a MODEL: in every self-attention each view of a group attends to all the
     views of its group (the latent batch), the two guidance halves apart. Sample Group applies the same patch
@@ -189,10 +200,7 @@ class ApplyCSGO(ArtNVGNode):
         if model_base is not None and not isinstance(model.model, model_base.SDXL):
             raise NodeInputError(f"{node}: input 'model': a {type(model.model).__name__} checkpoint; CSGO needs SDXL "
                                  "(SDXL 1.0 base or a fine-tune of it, from Load Checkpoint)")
-        control_model = getattr(control_net, "control_model", None)
-        if control_model is None or not hasattr(control_model, "input_hint_block"):
-            raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
-                                 "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
+        control_model = controlnet_model(node, control_net)
         unet = diffusion_unet(node, model)
         unet_layers = _attn2_layers(unet)
         routes = UNET_ROUTES if content_routing == "paper" else {**UNET_ROUTES, "input": None}

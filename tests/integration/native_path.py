@@ -206,9 +206,14 @@ def main(checkout: Path, folder: Path) -> None:
                 "ddim", "simple", 1.0, case["control_scale"], case["resolution"], "long_side", case.get("cfg_until", 1.0))
         model_management.vram_state = normal
         hook.remove()
+        errors = _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"], folder, configs)
+        try:  # the VAE given as Sample Group's ControlNet
+            diffusion_nodes.SampleGroup().sample(model, positive, negative, vae, vae, views, groups, 0, 0, 1, 5.0, "ddim",
+                                                 "simple", 1.0, 1.0, 64, "long_side")
+        except ValueError as error:
+            errors["sample_group_control_net"] = str(error)
         checks = {"feed_forward_batches": {name: sorted(sizes) for name, sizes in batches.items()},
-                  "errors": _errors(patch_nodes, model, control_net, vae, clip_vision, csgo, inputs["style_image"],
-                                    folder, configs),
+                  "errors": errors,
                   **_cancelled(lambda: diffusion_nodes.SampleGroup().sample(
                       model, positive, negative, vae, control_net, views, groups, 0, 0, 2, 5.0, "euler", "simple", 1.0,
                       1.0, 64, "long_side", 0.5))}

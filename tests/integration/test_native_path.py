@@ -154,6 +154,8 @@ def test_inputs_of_the_wrong_kind_are_named_before_sampling(outputs):
     errors = outputs[2]["errors"]
     assert errors["model"].startswith("Apply CSGO: input 'model': a BaseModel checkpoint; CSGO needs SDXL")
     assert errors["control_net"].startswith("Apply CSGO: input 'control_net': a VAE; expected an SDXL ControlNet")
+    assert errors["sample_group_control_net"].startswith("Sample Group: input 'control_net': a VAE; expected an SDXL "
+                                                          "ControlNet")
     assert errors["clip_vision"].startswith("Apply CSGO: input 'clip_vision': its features are 24 wide, CSGO's "
                                             "resamplers read 16: use ViT-bigG/14")
     assert errors["csgo"].startswith("Apply CSGO: input 'csgo': 'csgo.bin' does not fit this MODEL's cross-attention")
