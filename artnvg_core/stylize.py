@@ -28,7 +28,7 @@ from .diffusion.model_files import ModelFiles, check_model_files, missing_model,
 from .fileio import save_png, written_together
 from .finetune import FinetuneConfig, finetune
 from .preview import comparison_strip, evenly_spaced
-from .progress import ProgressFn, StopFn
+from .progress import Cancelled, ProgressFn, StopFn
 from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
@@ -182,7 +182,7 @@ def stylize_diffusion(
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The model files are
-    read in a background thread while the content views render; the models stay loaded for the next call
+    read in a background thread while the content views render (a load that fails ends the renders); the models stay loaded for the next call
     with the same files and options (:func:`load_models_for`; :func:`prefetch_models` starts that load earlier).
 
     Args:
@@ -253,7 +253,17 @@ def stylize_diffusion(
     with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
         loading = None if spread else background.submit(load, device, progress=loading_progress,
                                                         should_stop=should_stop)
-        content = render_views(scene, cameras, backend=config.backend, cpu=True).rgb
+
+        def load_failed() -> bool:
+            return loading is not None and loading.done() and loading.exception() is not None
+
+        try:  # a failed load is reported at once, not after every view has rendered
+            content = render_views(scene, cameras, backend=config.backend, cpu=True,
+                                   should_stop=lambda: load_failed() or (should_stop is not None and should_stop())).rgb
+        except Cancelled:
+            if load_failed():
+                loading.result()  # raises the load's error
+            raise
         models = None if loading is None else loading.result()
     groups = group_views(cameras, group_size, multiple=group_multiple)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)

@@ -132,6 +132,39 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
 
 
+def test_a_failed_load_or_a_stop_ends_the_content_renders(tmp_path, monkeypatch):
+    """The content views render while the model files load: a load that fails ends the renders and its error
+    is raised at once; a stop asked during the renders cancels them. (Each render call here waits, up to 60 s,
+    for the stop it is given to say stop.)"""
+    import time
+
+    from artnvg_core.diffusion.loader import DiffusionModelsUnavailable
+    from artnvg_core.progress import Cancelled
+    from artnvg_core.raster import views as raster_views
+
+    scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
+    calls = []
+
+    def render_until_stopped(scene, cameras, should_stop=None, **kwargs):
+        calls.append(len(cameras))
+        deadline = time.monotonic() + 60
+        while not (should_stop is not None and should_stop()):
+            assert time.monotonic() < deadline, "the render was never told to stop"
+            time.sleep(0.01)
+        raise Cancelled("stopped")
+
+    monkeypatch.setattr(raster_views, "render", render_until_stopped)
+    paths.csgo.write_bytes(b"not a torch file")
+    with pytest.raises(DiffusionModelsUnavailable, match="CSGO weights"):
+        stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
+    assert calls == [4]
+    paths = ModelFiles(**write_model_files(tmp_path / "good"))
+    asked = time.monotonic() + 0.5
+    with pytest.raises(Cancelled):
+        stylize_diffusion(scene, cameras, style, config, paths, group_size=2, should_stop=lambda: time.monotonic() > asked)
+    assert calls == [4, 4]
+
+
 @pytest.mark.slow
 def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path, monkeypatch):
     """--scheduler, --steps and --cfg-until reach the sampler in place of the preset's values; left out,
