@@ -182,8 +182,9 @@ def stylize_diffusion(
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The model files are
-    read in a background thread while the content views render (a load that fails ends the renders); the models stay loaded for the next call
-    with the same files and options (:func:`load_models_for`; :func:`prefetch_models` starts that load earlier).
+    read in a background thread while the content views render (a load that fails ends the renders); the
+    models stay loaded for the next call with the same files and options (:func:`load_models_for`;
+    :func:`prefetch_models` starts that load earlier).
 
     Args:
         scene (`GaussianScene`): the scene to stylize, on its compute device; not modified.
