@@ -9,8 +9,9 @@ ControlNet loader, ``comfy.sd.VAE``, ``comfy.clip_vision.ClipVisionModel``) from
 ComfyUI's own key converters, then runs the pack's nodes on them: NV-Attention Patch Model, Apply CSGO
 and Sample Group, which samples through ``comfy.sample``; a case with ``low_vram`` runs in ComfyUI's
 low-VRAM state (``--lowvram``). Writes ``native.safetensors`` (one IMAGE per case) and ``checks.json``:
-the batch sizes each case's feed-forward layers (ComfyUI's GEGLU) saw, the errors Apply CSGO gives for
-inputs of the wrong kind, and what ComfyUI's progress bar saw and raised when a Sample Group run is cancelled.
+the batch sizes each case's feed-forward layers (ComfyUI's GEGLU) saw, the errors Apply CSGO and Sample
+Group give for inputs of the wrong kind, and what ComfyUI's progress bar saw and raised when a Sample
+Group run is cancelled.
 """
 
 from __future__ import annotations
