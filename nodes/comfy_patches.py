@@ -283,7 +283,7 @@ def feed_forward_one_sample_at_a_time(model, control_net) -> tuple:
     """Copies of ComfyUI's SDXL ``model`` (MODEL) and ``control_net`` (CONTROL_NET) whose transformer blocks
     run their feed-forward one sample at a time (:class:`OneSampleAtATime`); their other patches stay."""
     model = model.clone()
-    _feed_forwards(model, model.model.diffusion_model, "diffusion_model.")
+    _feed_forwards(model, model.get_model_object("diffusion_model"), "diffusion_model.")
     control_net = _controlnet_copy(control_net)
     _feed_forwards(control_net.control_model_wrapped, control_net.control_model, "")
     return model, control_net
