@@ -3,7 +3,7 @@
 Only ``paper`` (and ``low-memory``, up to rounding) give the paper's result; ``balanced`` and ``fast``
 trade accuracy for speed. What each costs in time and in the final scene: BENCHMARKS.md, "Presets on
 the final scene" (docs/presets.md explains them). ``preview`` is diffusion-free: the NNFM stylizer,
-short and at reduced resolution, a first look in seconds (BENCHMARKS.md, "A first look").
+short and at reduced resolution, a first look in seconds (BENCHMARKS.md, "First look").
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ PRESETS = {
     "low-memory": Preset(SamplerSettings(sequential_cfg=True), 1000, True,
                          "the paper's result within 12 GiB: idle models on the CPU, guidance halves one at a time"),
     # chosen from the measured curve of time against the final scene's distance from the 1,000-iteration NNFM
-    # result (BENCHMARKS.md, "A first look")
+    # result (BENCHMARKS.md, "First look")
     "preview": Preset(None, 100, False,
                       "a first look without diffusion: the NNFM stylizer, 100 iterations at the views' own size "
                       "(its cost: BENCHMARKS.md, First look)"),
