@@ -2,18 +2,20 @@
 
     cd bench && python user_wall.py --dir DIR --scene SCENE --cameras T.json --style S.jpg \
         [--runs fast:file,fast:file,fast:folder,balanced:file] [--device cuda] [--json OUT.json] \
-        [--keep-caches] [--lora --more "--steps 4 --cfg-until 0"]
+        [--keep-caches | --bytecode installed|none] [--lora --more "--steps 4 --cfg-until 0"]
 
 Writes the released model files with random weights into DIR where missing (``model_files.py``),
 then runs each ``PRESET:SDXL`` of ``--runs`` in order as a new process, as a user types it:
 ``python -m artnvg_core stylize SCENE --cameras T --style S --preset PRESET --stylizer diffusion
 --sdxl ... --controlnet ... --image-encoder ... --csgo ... --device DEVICE --out ...`` (SDXL ``file``:
 the single ``sd_xl_base_1.0.safetensors``; ``folder``: the diffusers folder). ``--preset preview`` needs
-no model file. The first process finds every cache empty, as on a fresh install: Python's bytecode
-(``PYTHONPYCACHEPREFIX``), Triton's kernels, torch's compile cache and ArtNVG's, all in DIR/caches,
-emptied when the bench starts (``--keep-caches``: kept from an earlier invocation, the page cache too,
-so every process is warm); the later ones find what the earlier ones left. ``--lora`` gives every
-diffusion process a random LoRA of a few-step LoRA's shape (time only). The model files are
+no model file. The first process finds the caches as a fresh install leaves them, all in DIR/caches and
+emptied when the bench starts: Triton's kernels, torch's compile cache, ArtNVG's and the checkout's Python
+bytecode (``PYTHONPYCACHEPREFIX``) empty, the bytecode of the standard library and the installed packages
+compiled before it, as installing them does (``--bytecode installed``, the default; ``none``: the first
+process compiles every module); ``--keep-caches`` keeps them from an earlier invocation, the page cache
+too, so every process is warm. The later processes find what the earlier ones left. ``--lora`` gives
+every diffusion process a random LoRA of a few-step LoRA's shape (time only). The model files are
 read from the page cache after the first process (the bench asks the kernel to drop it first; whether
 it could is printed).
 
@@ -135,6 +137,21 @@ def process_env(caches: Path) -> dict:
     return env
 
 
+def compile_installed_bytecode(env: dict) -> float:
+    """Compile the bytecode of every module on the stylize process's path outside the checkout (the
+    standard library and the installed packages) into ``env``'s bytecode cache (``PYTHONPYCACHEPREFIX``),
+    as installing them leaves it; returns the seconds it took. Files that do not compile are skipped, as
+    pip skips them."""
+    start = time.time()
+    path = json.loads(subprocess.run([sys.executable, "-c", "import json, sys; print(json.dumps(sys.path))"],
+                                     env=env, capture_output=True, text=True, check=True).stdout)
+    folders = {str(Path(entry).resolve()) for entry in path if entry and Path(entry).is_dir()}
+    installed = sorted(f for f in folders if not Path(f).is_relative_to(REPO))
+    subprocess.run([sys.executable, "-m", "compileall", "-q", "-j", "0", *installed], env=env,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.time() - start
+
+
 def stylize_argv(scene, cameras, style, preset: str, device: str, out: Path, files: dict | None,
                  layout: str = "file", more: list[str] = ()) -> list[str]:
     """The arguments of ``stylize`` as a user types them: ``files`` (:func:`write_model_files`' paths; None for
@@ -178,6 +195,9 @@ def main() -> None:
     parser.add_argument("--more", default="", help="more stylize options for every process, e.g. '--iters 20'")
     parser.add_argument("--keep-caches", action="store_true",
                         help="keep DIR's caches and the page cache from an earlier invocation: every process warm")
+    parser.add_argument("--bytecode", choices=("installed", "none"), default="installed",
+                        help="the first process's bytecode of the standard library and the installed packages: "
+                        "compiled before it, as installing them leaves it, or none (it compiles every module)")
     parser.add_argument("--lora", action="store_true",
                         help="write a random few-step-sized LoRA (model_files.write_random_lora) and pass it to "
                         "every diffusion process; add its steps and guidance with --more (time only)")
@@ -198,6 +218,8 @@ def main() -> None:
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     env = process_env(caches)
+    if not args.keep_caches and args.bytecode == "installed":
+        print(f"installed packages' bytecode compiled in {compile_installed_bytecode(env):.0f} s", flush=True)
     dropped = not args.keep_caches and drop_page_cache()
     print(f"page cache dropped before the first process: {dropped}", flush=True)
 
