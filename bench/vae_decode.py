@@ -1,12 +1,14 @@
 """Decoding a group's latents with SDXL's VAE: how the sampler does it beside batched and channels-last variants.
 
-    cd bench && python vae_decode.py [--views 14] [--sizes 768,1024] [--batches 1,2,7] [--device cuda]
+    cd bench && python vae_decode.py [--views 14] [--sizes 768,1024] [--batches 1,2,7] [--dtypes fp32,bf16]
+                                     [--device cuda]
 
-A random-weight full-size SDXL VAE in bf16 (CUDA) decodes ``--views`` random latents of one group
-(96x96 for 768 px, 128x128 for 1024 px): the sampler's own ``_decode`` (one view at a time, NCHW) and,
+A random-weight full-size SDXL VAE decodes ``--views`` random latents of one group (96x96 for 768 px,
+128x128 for 1024 px): the sampler's own ``_decode`` (one view at a time, NCHW) with the VAE in each of
+``--dtypes`` (its deviation from the first dtype's images: what a VAE dtype costs), then, in the last dtype,
 for each batch size, NCHW and channels-last (NHWC) decoding, with and without cuDNN's autotuner. Prints ms
-per view (median of 3 after a warm-up), peak GiB and each variant's deviation from the sampler's images
-(largest absolute difference, PSNR; images in [0, 1]).
+per view (median of 3 after a warm-up), peak GiB and each row's deviation (largest absolute difference,
+PSNR; images in [0, 1]). Random weights: the deviations only indicate the arithmetic's error.
 """
 
 from __future__ import annotations
@@ -26,6 +28,13 @@ from diffusers import AutoencoderKL  # noqa: E402
 
 from artnvg_core.diffusion.sampler import _decode  # noqa: E402
 from artnvg_core.diffusion.sdxl_config import SDXL_VAE_CONFIG  # noqa: E402
+
+
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def dtype_name(dtype: torch.dtype) -> str:
+    return next(name for name, value in DTYPES.items() if value == dtype)
 
 
 class _Base:
@@ -70,20 +79,29 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=14)
     parser.add_argument("--sizes", default="768,1024")
     parser.add_argument("--batches", default="1,2,7")
+    parser.add_argument("--dtypes", default=None, help="the VAE's dtypes for the sampler's decoding "
+                        "(default bf16 on CUDA, else fp32); the variants use the last")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
     device = torch.device(args.device)
-    dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+    dtypes = [DTYPES[name] for name in (args.dtypes or ("bf16" if device.type == "cuda" else "fp32")).split(",")]
     torch.manual_seed(0)
     with torch.device(device):
-        vae = AutoencoderKL(**SDXL_VAE_CONFIG).to(dtype).eval()
+        vae = AutoencoderKL(**SDXL_VAE_CONFIG).eval()
     rows = []
     for size in [int(s) for s in args.sizes.split(",")]:
         latents = torch.randn(args.views, 4, size // 8, size // 8, generator=torch.Generator().manual_seed(size))
         latents = latents.to(device) * vae.config.scaling_factor
         vae.to(memory_format=torch.contiguous_format)
-        reference, seconds = median_seconds(device, lambda: _decode(_Models(vae), latents))
-        rows.append([size, "sampler (_decode)", 1, "NCHW", "off", 1000 * seconds / args.views, None, 0.0, "exact"])
+        first = None
+        for dtype in dtypes:
+            vae.to(dtype)
+            reference, seconds = median_seconds(device, lambda: _decode(_Models(vae), latents))
+            first = reference if first is None else first
+            largest, psnr = deviation(reference, first)
+            rows.append([size, f"sampler (_decode), {dtype_name(dtype)}", 1, "NCHW", "off",
+                         1000 * seconds / args.views, None, largest, "exact" if math.isinf(psnr) else f"{psnr:.1f}"])
+            print(rows[-1], flush=True)
         for channels_last in (False, True):
             vae.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
             for benchmark in (False, True):
@@ -101,7 +119,7 @@ def main() -> None:
                     print(rows[-1], flush=True)
         torch.backends.cudnn.benchmark = False
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    print_table(f"VAE decoding of {args.views} views, {name}, {dtype}, torch {torch.__version__}",
+    print_table(f"VAE decoding of {args.views} views, {name}, variants in {dtype_name(dtypes[-1])}, torch {torch.__version__}",
                 ["px", "path", "views a call", "layout", "cuDNN autotune", "ms / view", "peak GiB",
                  "max abs diff", "PSNR dB"], rows, "python " + " ".join(sys.argv))
 
