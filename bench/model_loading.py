@@ -13,10 +13,12 @@ single file, the ControlNet, the image encoder's folder, ``csgo_4_32.bin``: what
 ``--repeats`` times each (the first read may come from disk, later ones from the page cache).
 
 Each load runs alone, then again beside a thread that counts in Python (as the command's main thread
-renders beside the background load): "beside s" is that load's time, "others' GIL share" the thread's
-count per second during it over its count alone, so 1 means the loading left the interpreter lock to the
-rest of the process (it waited in system calls and device copies), 0 that it held it throughout. Prints
-a table.
+renders beside the background load), within :func:`~artnvg_core.background.brief_switches` as the
+command's background load runs (with the interpreter's default 5 ms switch interval, each of a loader's
+thousands of calls into C waits for the counting thread's turn to end: minutes): "beside s" is that load's
+time, "others' GIL share" the thread's count per second during it over its count alone, so 1 means the
+loading left the interpreter lock to the rest of the process (it waited in system calls and device
+copies), 0 that it held it throughout. Prints a table.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import torch
 from common import print_table, synchronize
 from model_files import write_model_files
 
+from artnvg_core.background import brief_switches
 from artnvg_core.diffusion.architectures import SDXL_UNET_CONFIG
 from artnvg_core.diffusion.model_cache import file_key
 from artnvg_core.diffusion.model_files import ModelFiles
@@ -76,7 +79,7 @@ def main() -> None:
         size = sum(size for path in paths for _, size, _ in file_key(path)[1])
         for run in range(1, args.repeats + 1):
             seconds = timed_load(load, device)
-            with Ticker() as ticker:
+            with Ticker() as ticker, brief_switches():
                 beside = timed_load(load, device)
             rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds, beside,
                          f"{ticker.count / beside / idle:.2f}"])
