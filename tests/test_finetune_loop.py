@@ -12,6 +12,7 @@ from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.progress import Cancelled
 from artnvg_core.raster import render
+from artnvg_core.raster.views import RENDER_CHUNK
 from artnvg_core.formats import read_ply
 from artnvg_core.scene import SH_C0, GaussianScene
 from artnvg_core.stylize import DemoInputs, save_result, sheet_path, stylize_nnfm
@@ -356,15 +357,17 @@ def test_the_contact_sheet_is_bounded_whatever_the_cameras_and_the_style_image(d
     assert wide.shape[:2] == (height, cameras.width + 4 + round(style.shape[1] * height / style.shape[0]))
 
 
-def test_renders_before_and_after_the_steps_report_each_view(demo):
-    """Without stylized views (colour transfer on) every view is rendered before and after the steps."""
+def test_renders_before_and_after_the_steps_report_each_render_call(demo):
+    """Without stylized views (colour transfer on) every view is rendered before and after the steps,
+    RENDER_CHUNK views a call, the views done reported after each call."""
     scene, cameras, style = demo
+    count = RENDER_CHUNK + 2
     seen = []
-    finetune(scene, cameras.subset([0, 1, 2]), style,
-             config=FinetuneConfig(iterations=1), render_progress=lambda view, views, info: seen.append(
-                 (view, views, info["stage"])))
-    assert seen == [(1, 3, "setup"), (2, 3, "setup"), (3, 3, "setup"), (1, 3, "final"), (2, 3, "final"),
-                    (3, 3, "final")]
+    finetune(scene, cameras.subset([view % len(cameras) for view in range(count)]), style,
+             config=FinetuneConfig(iterations=1), render_progress=lambda done, views, info: seen.append(
+                 (done, views, info["stage"])))
+    assert seen == [(RENDER_CHUNK, count, "setup"), (count, count, "setup"), (RENDER_CHUNK, count, "final"),
+                    (count, count, "final")]
 
 
 @pytest.mark.parametrize("renderer, fused", [("triton", None), ("torch", False), ("gsplat", False)])

@@ -217,8 +217,9 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
         (result,) = node.finetune(scene, cameras, style, 2, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
     assert not torch.equal(result.sh, scene.sh)
     assert torch.equal(result.means, scene.means)  # appearance only
-    # one bar, three stages: the 2 views rendered before (colour transfer), the 2 steps, the 2 views after
-    assert comfy.bars == [[(1, 2), (2, 2), (1, 2), (2, 2), (1, 2), (2, 2)]]
+    # one bar, three stages: the 2 views rendered before (colour transfer, one render call), the 2 steps,
+    # the 2 views after
+    assert comfy.bars == [[(2, 2), (1, 2), (2, 2), (2, 2)]]
 
     def interrupt_after_first_step(step, total, info):
         comfy.interrupted = True

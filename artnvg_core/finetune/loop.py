@@ -137,10 +137,11 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
 
 def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
                   report: ProgressFn | None, should_stop: StopFn | None) -> torch.Tensor:
-    """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], one view at a time, reporting each."""
+    """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], :data:`~artnvg_core.raster.views.RENDER_CHUNK`
+    views a render call (a call launches the same kernels for one view as for several), reporting the views
+    done after each."""
     progress = None if report is None else lambda done, total, info: report(done, total, {"stage": stage})
-    return render_views(scene, cameras, chunk=1, backend=config.backend, progress=progress,
-                        should_stop=should_stop).rgb
+    return render_views(scene, cameras, backend=config.backend, progress=progress, should_stop=should_stop).rgb
 
 
 def finetune(
@@ -167,9 +168,9 @@ def finetune(
         holds the loss terms as floats (reading them waits for the device, so not every step).
         should_stop(): checked before every step; when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
-    render_progress(view, views, info): called after each view of the renders of every camera
-        before the steps (``info["stage"] == "setup"``: colour transfer, content term) and after
-        them (``"final"``: colour transfer), which ``should_stop`` can also end.
+    render_progress(done, views, info): called after each render call (a few views) of the renders of
+        every camera before the steps (``info["stage"] == "setup"``: colour transfer, content term) and
+        after them (``"final"``: colour transfer), which ``should_stop`` can also end.
     selection: optional [N] bool on the scene's device: finetune these Gaussians only, for the pixels they
         cover (module docstring).
     No step writes a non-finite value (:mod:`artnvg_core.finetune.finite_steps`): a step with a

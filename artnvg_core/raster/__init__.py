@@ -74,12 +74,16 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     announced through ``announce`` where the caller's user looks, before it starts. Returns the
     backend. Without this, the first gsplat render announces it as a logged warning. Triton
     compiles its kernels at their first launch in a process that finds no cached build (seconds,
-    see docs/cuda_run.md); here it is only imported."""
+    see docs/cuda_run.md); here it is imported, and the hashing of its own files that its first kernel
+    waits for begins in the background (:mod:`~artnvg_core.raster.triton_runtime`)."""
     name = choose_backend(backend, torch.device(device))
     if name == "gsplat":
         load_kernels(announce)
     elif name == "triton":
         from . import triton_backend  # noqa: F401  (import errors surface before the first render)
+        from .triton_runtime import hash_triton_in_background
+
+        hash_triton_in_background()
     return name
 
 
