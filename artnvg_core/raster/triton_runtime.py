@@ -5,13 +5,17 @@ shared library (``triton.runtime.cache.triton_key``): the key its cached kernels
 a warm first look on an H200 host (BENCHMARKS.md, "First look"). :func:`hash_triton_in_background` starts
 that hashing in a thread of its own as soon as the caller knows Triton will render; reading files and
 hashing release the interpreter lock, so it goes on beside the work before the first render (the style's
-features, say). Triton keeps the key for the rest of the process. A Triton without that function is left
-as it is.
+features, say), within :func:`~artnvg_core.background.brief_switches` (with the default switch interval
+each of its hundreds of reads waits for the main thread's turn to end: on the 2-core CPU here 1.5-4.5 s
+beside a thread spinning in Python, against 0.3 s alone). Triton keeps the key for the rest of the process.
+A Triton without that function is left as it is.
 """
 
 from __future__ import annotations
 
 import threading
+
+from ..background import brief_switches
 
 _started: threading.Thread | None = None
 _lock = threading.Lock()
@@ -29,6 +33,11 @@ def hash_triton_in_background() -> threading.Thread | None:
     with _lock:
         if _started is not None or cache_info is None or cache_info().currsize:
             return None
-        _started = threading.Thread(target=triton_key, name="triton-key", daemon=True)
+        _started = threading.Thread(target=_hash, args=(triton_key,), name="triton-key", daemon=True)
         _started.start()
         return _started
+
+
+def _hash(triton_key) -> None:
+    with brief_switches():
+        triton_key()
