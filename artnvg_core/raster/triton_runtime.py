@@ -6,8 +6,8 @@ a warm first look on an H200 host (BENCHMARKS.md, "First look"). :func:`hash_tri
 that hashing in a thread of its own as soon as the caller knows Triton will render; reading files and
 hashing release the interpreter lock, so it goes on beside the work before the first render (the style's
 features, say), within :func:`~artnvg_core.background.brief_switches` (with the default switch interval
-each of its hundreds of reads waits for the main thread's turn to end: on the 2-core CPU here 1.5-4.5 s
-beside a thread spinning in Python, against 0.3 s alone). Triton keeps the key for the rest of the process.
+each of its hundreds of reads waits for the main thread's turn to end: on the 2-core CPU here 5.9-6.1 s
+beside a thread spinning in Python, 0.5-0.6 s within it, 0.3-0.5 s alone). Triton keeps the key for the rest of the process.
 A Triton without that function is left as it is.
 """
 
