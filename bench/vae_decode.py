@@ -33,10 +33,6 @@ from artnvg_core.diffusion.sdxl_config import SDXL_VAE_CONFIG  # noqa: E402
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def dtype_name(dtype: torch.dtype) -> str:
-    return next(name for name, value in DTYPES.items() if value == dtype)
-
-
 class _Base:
     def __init__(self, vae):
         self.vae = vae
@@ -84,7 +80,9 @@ def main() -> None:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
     device = torch.device(args.device)
-    dtypes = [DTYPES[name] for name in (args.dtypes or ("bf16" if device.type == "cuda" else "fp32")).split(",")]
+    dtypes = (args.dtypes or ("bf16" if device.type == "cuda" else "fp32")).split(",")
+    if set(dtypes) - set(DTYPES):
+        parser.error(f"--dtypes: each of {', '.join(DTYPES)}")
     torch.manual_seed(0)
     with torch.device(device):
         vae = AutoencoderKL(**SDXL_VAE_CONFIG).eval()
@@ -95,11 +93,11 @@ def main() -> None:
         vae.to(memory_format=torch.contiguous_format)
         first = None
         for dtype in dtypes:
-            vae.to(dtype)
+            vae.to(DTYPES[dtype])
             reference, seconds = median_seconds(device, lambda: _decode(_Models(vae), latents))
             first = reference if first is None else first
             largest, psnr = deviation(reference, first)
-            rows.append([size, f"sampler (_decode), {dtype_name(dtype)}", 1, "NCHW", "off",
+            rows.append([size, f"sampler (_decode), {dtype}", 1, "NCHW", "off",
                          1000 * seconds / args.views, None, largest, "exact" if math.isinf(psnr) else f"{psnr:.1f}"])
             print(rows[-1], flush=True)
         for channels_last in (False, True):
@@ -119,7 +117,7 @@ def main() -> None:
                     print(rows[-1], flush=True)
         torch.backends.cudnn.benchmark = False
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    print_table(f"VAE decoding of {args.views} views, {name}, variants in {dtype_name(dtypes[-1])}, torch {torch.__version__}",
+    print_table(f"VAE decoding of {args.views} views, {name}, variants in {dtypes[-1]}, torch {torch.__version__}",
                 ["px", "path", "views a call", "layout", "cuDNN autotune", "ms / view", "peak GiB",
                  "max abs diff", "PSNR dB"], rows, "python " + " ".join(sys.argv))
 
