@@ -26,7 +26,7 @@ from .diffusion.loader import indexed_device, load_models_for
 from .diffusion.lora import LoRA
 from .diffusion.model_files import ModelFiles, check_model_files, missing_model, weight_files
 from .fileio import save_png, written_together
-from .finetune import FinetuneConfig, finetune
+from .finetune import FinetuneConfig, compile_kernels, finetune
 from .preview import comparison_strip, evenly_spaced
 from .progress import Cancelled, ProgressFn, StopFn
 from .raster.views import render_views
@@ -251,6 +251,7 @@ def stylize_diffusion(
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = _models_loader(files, preset, compile_blocks, loras)
     device = explicit[0] if explicit else scene.device
+    compile_kernels(scene, cameras, config)  # the renders' and the finetune's, beside the models' loading
     with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
         loading = None if spread else background.submit(load, device, progress=loading_progress,
                                                         should_stop=should_stop)

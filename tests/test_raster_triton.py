@@ -318,3 +318,28 @@ def test_fused_backward_matches_float64_vector_jacobian_products(degree, antiali
     proj = project(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, cams.world_to_cam[0],
                    cams.intrinsics[0], cams.width, cams.height)
     assert {0, 4, 5, 6, 7} <= set(proj.index.tolist())  # the hard rows are kept, so their gradients count
+
+
+@pytest.mark.parametrize("n, width, height, degree, depth, antialiased", [
+    (37, 40, 24, None, False, False),  # sizes no multiple of 16; the scene's own degree
+    (48, 64, 33, 1, True, True),  # below the scene's degree, depth (4 features), the opacity compensated
+])
+def test_the_warmups_are_the_launches_a_render_and_its_backward_make(monkeypatch, n, width, height, degree, depth,
+                                                                     antialiased):
+    from artnvg_core.raster import triton_warmups
+
+    from triton_launches import record_launches, warmed
+
+    scene = dataclasses.replace(hard_scene(3, n=n), antialiased=antialiased).to(DEVICE)
+    cameras = make_cameras(EYES[:2], width, height).to(DEVICE)
+    launched = record_launches(monkeypatch)
+    leaves = [t.detach().requires_grad_(True) for t in (scene.means, scene.quats, scene.log_scales,
+                                                         scene.opacity_logits, scene.sh)]
+    seen = dataclasses.replace(scene, means=leaves[0], quats=leaves[1], log_scales=leaves[2],
+                               opacity_logits=leaves[3], sh=leaves[4])
+    out = render(seen, cameras, sh_degree=degree, return_depth=depth, backend="triton")
+    (out.rgb.sum() + out.alpha.sum()).backward()
+    warmups = triton_warmups(scene, cameras, sh_degree=degree, return_depth=depth, gradients=True)
+    assert len(launched) == 7 and launched == warmed(warmups)  # projection 3, tiles 2, compositing 2
+    forward = warmed(triton_warmups(scene, cameras, sh_degree=degree, return_depth=depth))
+    assert len(forward) == 4 and forward < launched

@@ -17,6 +17,8 @@ import torch
 import triton
 import triton.language as tl
 
+from ..raster.triton_runtime import Warmup, stand_in
+
 BLOCK = 1024  # values per program
 
 
@@ -29,7 +31,7 @@ def _held_kernel(grad, held, count, D, limit, BLOCK: tl.constexpr):
     tl.store(held + offsets // D, tl.full((BLOCK,), 1, tl.uint8), mask=unusable)  # same byte, same value: no race
 
 
-@triton.jit(do_not_specialize=["count", "D"])
+@triton.jit(do_not_specialize=["count", "D", "step_size"])  # step_size: a parameter's entry of a vector
 def _adam_kernel(param, grad, exp_avg, exp_avg_sq, held, skipped, step_size, correction2_sqrt, count, D,
                  one_minus_beta1, beta2, one_minus_beta2, eps, BLOCK: tl.constexpr):
     offsets = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
@@ -46,6 +48,14 @@ def _adam_kernel(param, grad, exp_avg, exp_avg_sq, held, skipped, step_size, cor
     tl.store(param + offsets, tl.where(skip | zero, p, p - update), mask=inside)
     tl.store(exp_avg + offsets, tl.where(skip, m, tl.where(zero, 0.0, m_new)), mask=inside)
     tl.store(exp_avg_sq + offsets, tl.where(skip, v, tl.where(zero, 0.0, v_new)), mask=inside)
+
+
+def warmups(device: torch.device | str) -> list[Warmup]:
+    """The launches :func:`mark_held_rows` and :func:`adam_rows` make, as
+    :class:`~artnvg_core.raster.triton_runtime.Warmup`."""
+    f32, u8 = stand_in(torch.float32, device), stand_in(torch.uint8, device)
+    return [Warmup(_held_kernel, (f32, u8, 0, 0, 0.0), dict(BLOCK=BLOCK)),
+            Warmup(_adam_kernel, (f32, f32, f32, f32, u8, u8, f32, f32, 0, 0, 0.0, 0.0, 0.0, 0.0), dict(BLOCK=BLOCK))]
 
 
 def _grid(tensor: torch.Tensor) -> tuple[int]:

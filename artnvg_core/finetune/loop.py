@@ -41,6 +41,7 @@ from ..cameras import CameraSet, scene_frame
 from ..fileio import resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop
+from ..raster import choose_backend, triton_warmups
 from ..raster.step_renderer import StepRenderer
 from ..raster.views import render_views
 from ..scene import GaussianScene
@@ -144,6 +145,19 @@ def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConf
     return render_views(scene, cameras, backend=config.backend, progress=progress, should_stop=should_stop).rgb
 
 
+def compile_kernels(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig) -> None:
+    """Start compiling, in the background, the Triton kernels that :func:`finetune` launches for ``scene`` and
+    ``cameras`` (the renders' forward and backward, Adam's step) where it renders with Triton; the first
+    render waits for them (:mod:`~artnvg_core.raster.triton_runtime`). Nothing on other backends."""
+    if choose_backend(config.backend, scene.device, scene.means.dtype) != "triton":
+        return
+    from ..raster.triton_runtime import compile_in_background
+    from .finite_steps_triton import warmups as adam_warmups
+
+    compile_in_background([*triton_warmups(scene, cameras, gradients=True), *adam_warmups(scene.device)],
+                          scene.device)
+
+
 def finetune(
     scene: GaussianScene,
     cameras: CameraSet,
@@ -208,6 +222,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     if selection is not None:
         selection = selection.to(device)
         cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend)
+    compile_kernels(scene, cameras, config)  # beside the VGG's loading and the style's features
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers

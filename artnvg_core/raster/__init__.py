@@ -87,6 +87,20 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     return name
 
 
+def triton_warmups(scene: GaussianScene, cameras: CameraSet, *, sh_degree: int | None = None,
+                   return_depth: bool = False, gradients: bool = False) -> list:
+    """The Triton kernels' launches :func:`render` makes on the Triton backend for ``scene`` seen by ``cameras``
+    (``sh_degree``, ``return_depth`` as it takes them; with ``gradients``: its backward's too), as
+    :class:`.triton_runtime.Warmup` for :func:`.triton_runtime.compile_in_background`. Imports Triton."""
+    from . import triton_backend, triton_projection
+
+    degree = scene.sh_degree if sh_degree is None else sh_degree
+    width, height = cameras.width, cameras.height
+    return [*triton_projection.warmups(scene.device, scene.sh.shape[1], width, height, degree, bool(scene.antialiased),
+                                       gradients),
+            *triton_backend.warmups(scene.device, 4 if return_depth else 3, width, height, gradients)]
+
+
 # tensors whose values passed render's checks -> their version then (``Tensor._version`` counts in-place changes)
 _PASSED = WeakIdKeyDictionary()
 
@@ -197,7 +211,9 @@ def render(
     elif name == "triton":
         from .triton_backend import rasterize_triton  # imports Triton: only when it renders
         from .triton_projection import project_color_triton
+        from .triton_runtime import wait_for_compilation
 
+        wait_for_compilation()  # the kernels compiling in the background, if any: not compiled twice
         composite = functools.partial(rasterize_triton, capacity=list_capacity)
     width, height, centers = cameras.width, cameras.height, cameras.centers
     rgbs, alphas, depths = [], [], []

@@ -32,7 +32,9 @@ import triton.language as tl
 
 from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
+from .triton_runtime import Warmup, stand_in
 from .triton_tiles import TILE, ListCapacity, tile_lists
+from .triton_tiles import warmups as tile_warmups
 
 
 class Pass(NamedTuple):
@@ -226,6 +228,31 @@ def _backward_kernel(params_ptr, feat_ptr, ids_ptr, offsets_ptr, trans_ptr, last
 
 
 
+def _forward_options(channels: int, tile: int, forward: Pass, skip: bool) -> dict:
+    """The forward kernel's constants and warps for ``channels`` features (the backward's below)."""
+    return dict(F=channels, TILE=tile, ROWS=forward.rows, CHUNK=forward.chunk, ALPHA_MIN=ALPHA_MIN,
+                ALPHA_MAX=ALPHA_MAX, T_MIN=T_MIN, SKIP=skip, num_warps=forward.warps)
+
+
+def _backward_options(channels: int, tile: int, backward: Pass, skip: bool) -> dict:
+    return dict(F=channels, TILE=tile, ROWS=backward.rows, CHUNK=backward.chunk, ALPHA_MIN=ALPHA_MIN,
+                ALPHA_MAX=ALPHA_MAX, SKIP=skip, num_warps=backward.warps)
+
+
+def warmups(device: torch.device | str, channels: int, width: int, height: int, gradients: bool, *,
+            tile: int = TILE, passes: tuple[Pass, Pass] = PASSES, skip: bool = True) -> list[Warmup]:
+    """The launches :func:`rasterize_triton` makes (its tile lists' included) for ``channels`` features and a
+    ``width`` x ``height`` image (with ``gradients``: its backward's too), as :class:`.triton_runtime.Warmup`."""
+    f32, i32 = stand_in(torch.float32, device), stand_in(torch.int32, device)
+    found = [*tile_warmups(device, width, height, tile),
+             Warmup(_forward_kernel, (f32, f32, i32, i32, f32, f32, i32, width, height, -(-width // tile)),
+                    _forward_options(channels, tile, passes[0], skip))]
+    if gradients:
+        found.append(Warmup(_backward_kernel, (f32, f32, i32, i32, f32, i32, f32, f32, f32, f32, width, height,
+                                               -(-width // tile)), _backward_options(channels, tile, passes[1], skip)))
+    return found
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, ids, offsets, width, height, tile, passes, skip):
@@ -239,8 +266,7 @@ class _Composite(torch.autograd.Function):
         forward = passes[0]
         grid = (tiles_x * -(-height // tile) * (tile // forward.rows),)
         _forward_kernel[grid](params, features, ids, offsets, out, trans, last, width, height, tiles_x,
-                              F=channels, TILE=tile, ROWS=forward.rows, CHUNK=forward.chunk, ALPHA_MIN=ALPHA_MIN,
-                              ALPHA_MAX=ALPHA_MAX, T_MIN=T_MIN, SKIP=skip, num_warps=forward.warps)
+                              **_forward_options(channels, tile, forward, skip))
         ctx.save_for_backward(params, features, ids, offsets, trans, last)
         ctx.settings = (width, height, tile, passes[1], skip)
         return out, trans
@@ -257,8 +283,7 @@ class _Composite(torch.autograd.Function):
         grid = (tiles_x * -(-height // tile) * (tile // backward.rows),)
         _backward_kernel[grid](params, features, ids, offsets, trans, last, grad_out.contiguous(),
                                grad_trans.contiguous(), grad_params, grad_features, width, height, tiles_x,
-                               F=features.shape[1], TILE=tile, ROWS=backward.rows, CHUNK=backward.chunk,
-                               ALPHA_MIN=ALPHA_MIN, ALPHA_MAX=ALPHA_MAX, SKIP=skip, num_warps=backward.warps)
+                               **_backward_options(features.shape[1], tile, backward, skip))
         return (grad_params[:, :2], grad_params[:, 2:5], grad_params[:, 5], grad_features,
                 None, None, None, None, None, None, None)
 

@@ -27,6 +27,7 @@ import triton
 import triton.language as tl
 
 from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
+from .triton_runtime import Warmup, stand_in
 from .triton_sh import basis_grad, basis_rows, channel_sums, clamped_color, direction, sh_rows, unclamped_grad
 
 BLOCK = 128  # Gaussians per program
@@ -141,7 +142,7 @@ def _geometry(means_ptr, quats_ptr, scales_ptr, logits_ptr, cam_ptr, i, live, wi
 
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n"])
 def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_ptr,
                     means2d_ptr, conics_ptr, depths_ptr, opac_ptr, colors_ptr, radii_ptr,
                     n, width, height, near, blur,
@@ -189,7 +190,7 @@ def _forward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, sh_ptr, cam_pt
     tl.store(colors_ptr + i * 3 + 2, clamped_color(b), mask=live)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n"])
 def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, g_means_ptr, g_sh_ptr, n,
                            K: tl.constexpr, W: tl.constexpr, DEGREE: tl.constexpr, BLOCK: tl.constexpr):
     """Gradients of the colours: all of the SH coefficients' (g_sh) and the means' through the viewing
@@ -231,7 +232,7 @@ def _color_backward_kernel(means_ptr, sh_ptr, cam_ptr, radii_ptr, g_colors_ptr, 
     tl.store(g_means_ptr + i * 3 + 2, (gdz - dz * radial_d) / dlen, mask=live)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n"])
 def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, cam_ptr, radii_ptr,
                      g_means2d_ptr, g_conics_ptr, g_depths_ptr, g_opac_ptr,
                      g_means_ptr, g_quats_ptr, g_scales_ptr, g_logits_ptr,
@@ -361,6 +362,35 @@ def _backward_kernel(means_ptr, quats_ptr, scales_ptr, logits_ptr, cam_ptr, radi
     tl.store(g_logits_ptr + i, tl.where(keep, g_op * op * (1 - op), 0.0), mask=live)
 
 
+def _forward_options(coefficients: int, degree: int, antialiased: bool) -> dict:
+    """The forward kernel's constants and warps for SH ``coefficients`` (K) per channel (the backward's below)."""
+    return dict(K=coefficients, W=triton.next_power_of_2(3 * coefficients), DEGREE=degree, AA=antialiased,
+                BLOCK=BLOCK, num_warps=4)
+
+
+def _color_backward_options(coefficients: int, degree: int) -> dict:
+    return dict(K=coefficients, W=triton.next_power_of_2(3 * coefficients), DEGREE=degree, BLOCK=COLOR_BLOCK,
+                num_warps=4)
+
+
+def _backward_options(antialiased: bool) -> dict:
+    return dict(AA=antialiased, BLOCK=BLOCK, num_warps=4)
+
+
+def warmups(device: torch.device | str, coefficients: int, width: int, height: int, degree: int, antialiased: bool,
+            gradients: bool) -> list[Warmup]:
+    """The launches :func:`project_color_triton` makes for SH ``coefficients`` per channel (K) at ``degree``
+    and a ``width`` x ``height`` camera (with ``gradients``: its backward's too), as :class:`.triton_runtime.Warmup`."""
+    f32, i64 = stand_in(torch.float32, device), stand_in(torch.int64, device)
+    bounds = (0, width, height, 0.0, 0.0)  # n, width, height, near plane, blur
+    found = [Warmup(_forward_kernel, (f32,) * 11 + (i64, *bounds), _forward_options(coefficients, degree, antialiased))]
+    if gradients:
+        found += [Warmup(_color_backward_kernel, (f32, f32, f32, i64, f32, f32, f32, 0),
+                         _color_backward_options(coefficients, degree)),
+                  Warmup(_backward_kernel, (f32,) * 5 + (i64,) + (f32,) * 8 + bounds, _backward_options(antialiased))]
+    return found
+
+
 class _ProjectColor(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, log_scales, opacity_logits, sh, camera, settings):
@@ -370,9 +400,8 @@ class _ProjectColor(torch.autograd.Function):
         means2d, conics = means.new_empty(n, 2), means.new_empty(n, 3)
         depths, opacities, colors = means.new_empty(n), means.new_empty(n), means.new_empty(n, 3)
         radii = torch.empty(n, 2, dtype=torch.long, device=means.device)
-        _forward_kernel[(triton.cdiv(n, BLOCK),)](*inputs, means2d, conics, depths, opacities, colors, radii,
-                                                  n, width, height, near, blur, K=k, W=triton.next_power_of_2(3 * k),
-                                                  DEGREE=degree, AA=antialiased, BLOCK=BLOCK, num_warps=4)
+        _forward_kernel[(triton.cdiv(n, BLOCK),)](*inputs, means2d, conics, depths, opacities, colors, radii, n,
+                                                  width, height, near, blur, **_forward_options(k, degree, antialiased))
         ctx.save_for_backward(*inputs, radii)
         ctx.settings = settings
         ctx.mark_non_differentiable(radii)
@@ -388,11 +417,10 @@ class _ProjectColor(torch.autograd.Function):
                                      (g_opacities, (n,)), (g_colors, (n, 3)))]
         g_means, g_quats, g_scales, g_logits, g_sh = (torch.empty_like(t) for t in (means, quats, log_scales, logits, sh))
         _color_backward_kernel[(triton.cdiv(n, COLOR_BLOCK),)](
-            means, sh, camera, radii, grads_in[4], g_means, g_sh, n, K=sh.shape[1],
-            W=triton.next_power_of_2(3 * sh.shape[1]), DEGREE=degree, BLOCK=COLOR_BLOCK, num_warps=4)
+            means, sh, camera, radii, grads_in[4], g_means, g_sh, n, **_color_backward_options(sh.shape[1], degree))
         _backward_kernel[(triton.cdiv(n, BLOCK),)](
             means, quats, log_scales, logits, camera, radii, *grads_in[:4], g_means, g_quats, g_scales, g_logits, n,
-            width, height, near, blur, AA=antialiased, BLOCK=BLOCK, num_warps=4)
+            width, height, near, blur, **_backward_options(antialiased))
         return g_means, g_quats, g_scales, g_logits, g_sh, None, None
 
 

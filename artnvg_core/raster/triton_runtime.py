@@ -1,4 +1,5 @@
-"""Triton's once-a-process start-up, begun before the first kernel waits for it.
+"""Triton's start-up, begun before the first kernel waits for it: its key hashed and a run's kernels compiled
+in background threads.
 
 Before it loads or compiles its first kernel, a process hashes Triton's own compiler sources and its shared
 library (``triton.runtime.cache.triton_key``): the key its cached kernels are found under, 0.5 s of a warm
@@ -9,16 +10,79 @@ before the first render (the style's features, say), within :func:`~artnvg_core.
 (with the default switch interval each of its hundreds of reads waits for the main thread's turn to end: on
 the 2-core CPU here 5.9-6.1 s beside a thread spinning in Python, 0.5-0.6 s within it, 0.3-0.5 s alone).
 Triton keeps the key for the rest of the process. A Triton without that function is left as it is.
+
+A process that finds no cached build of a kernel compiles it at its first launch, one kernel after another: 11
+kernels, 8.1 s, for a first look on an H200 host, and 2.9 s more building their launchers with the C compiler.
+:func:`compile_in_background` compiles the launches a run will make (:class:`Warmup`, each module of kernels
+says which its work makes) in threads, side by side (the compiler's passes, ``ptxas`` and the C compiler run
+without the interpreter lock), while the caller goes on; :func:`wait_for_compilation`, which the renders call
+before their first launch, waits for them, so that no kernel is compiled twice. Where a warm-up's arguments
+are not quite those of the launch (another specialization), the launch compiles its own, as without it.
 """
 
 from __future__ import annotations
 
+import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, NamedTuple, Sequence
+
+import torch
 
 from ..background import brief_switches
 
 _started: threading.Thread | None = None
 _lock = threading.Lock()
+_compiling: list[Future] = []  # the warm-ups not yet waited for
+
+
+class Warmup(NamedTuple):
+    """One launch of a Triton kernel, compiled before it is made: the kernel (``triton.jit``) and the positional
+    and keyword arguments the launch passes, a tensor standing for its dtype, device and alignment only
+    (:func:`stand_in`)."""
+
+    kernel: Any
+    args: tuple
+    kwargs: dict
+
+
+def stand_in(dtype: torch.dtype, device: torch.device | str) -> torch.Tensor:
+    """An empty ``dtype`` tensor on ``device``: a warm-up's argument for a launch's (16-byte aligned) tensor."""
+    return torch.empty(0, dtype=dtype, device=device)
+
+
+def compile_in_background(warmups: Sequence[Warmup], device: torch.device | str) -> None:
+    """Compile (or load from Triton's cache) each of ``warmups``' kernels for CUDA ``device``, with its launcher,
+    in threads of their own (one a CPU core), within :func:`~artnvg_core.background.brief_switches`; returns
+    at once. Nothing on other devices (Triton's interpreter compiles nothing). A warm-up that fails is left to
+    its launch, which compiles it again and reports the error there."""
+    device = torch.device(device)
+    if device.type != "cuda" or not warmups:
+        return
+    pool = ThreadPoolExecutor(min(len(warmups), os.cpu_count() or 1), thread_name_prefix="triton-compile")
+    with _lock:
+        _compiling.extend(pool.submit(_compile, warmup, device) for warmup in warmups)
+    pool.shutdown(wait=False)
+
+
+def wait_for_compilation() -> None:
+    """Wait for the warm-ups :func:`compile_in_background` started (none: returns at once)."""
+    with _lock:
+        pending = list(_compiling)
+        _compiling.clear()
+    for future in pending:
+        future.exception()  # waits; a failure is the launch's to report
+
+
+def _compile(warmup: Warmup, device: torch.device) -> None:
+    torch.cuda.set_device(device)  # the thread's device: the kernel's cache and its binary's context
+    with brief_switches():
+        if _started is not None:
+            _started.join()  # the key it hashes: once, not in every thread
+        compiled = warmup.kernel.warmup(*warmup.args, grid=(1,), **warmup.kwargs)
+        init_handles = getattr(compiled, "_init_handles", None)  # loads the binary and builds its launcher
+        if init_handles is not None:
+            init_handles()
 
 
 def hash_triton_in_background() -> threading.Thread | None:

@@ -18,6 +18,7 @@ import triton
 import triton.language as tl
 
 from .projection import ALPHA_MIN, Projection
+from .triton_runtime import Warmup, stand_in
 
 TILE = 16  # pixels per tile side
 # The tile test's margins (:func:`_gaussian_level`, :func:`_row_tiles`): the compositing's float32 sigma
@@ -97,7 +98,7 @@ def _row_tiles(a, b, c, det, level, cx, cy, row, x0, span_x, TILE: tl.constexpr)
     return first.to(tl.int32), last.to(tl.int32)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n"])
 def _count_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, counts_ptr, n, tiles_x, tiles_y,
                   TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_R: tl.constexpr):
     """counts[i]: the tiles whose pixel centres the i-th Gaussian in depth order reaches at alpha >=
@@ -116,7 +117,7 @@ def _count_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, count
     tl.store(counts_ptr + i, total, mask=inside)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n", "room"])
 def _emit_kernel(means2d_ptr, radii_ptr, conics_ptr, opac_ptr, order_ptr, ends_ptr, tile_ptr, id_ptr, n,
                  tiles_x, tiles_y, room, TILE: tl.constexpr, BLOCK_G: tl.constexpr, BLOCK_T: tl.constexpr):
     """The i-th Gaussian in depth order writes its (tile id, Gaussian id) pairs, row by row of its box
@@ -197,6 +198,35 @@ class ListCapacity:
         return False
 
 
+COUNT_BLOCK, EMIT_BLOCK = 64, 32  # Gaussians per program of the kernels that count and write the pairs
+
+
+def _count_options(tile: int) -> dict:
+    return dict(TILE=tile, BLOCK_G=COUNT_BLOCK, BLOCK_R=4, num_warps=4)
+
+
+def _emit_options(tile: int) -> dict:
+    return dict(TILE=tile, BLOCK_G=EMIT_BLOCK, BLOCK_T=8, num_warps=1)
+
+
+def _sizes(width: int, height: int, tile: int) -> tuple[int, int, torch.dtype]:
+    """Tiles across and down a ``width`` x ``height`` image, and the dtype of their ids with room for the bound
+    ``tiles`` (16-bit keys while they fit: half the radix sort's passes of 32-bit ones)."""
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    return tiles_x, tiles_y, torch.int16 if tiles_x * tiles_y < 2**15 else torch.int32
+
+
+def warmups(device: torch.device | str, width: int, height: int, tile: int = TILE) -> list[Warmup]:
+    """The launches :func:`tile_lists` makes for a ``width`` x ``height`` image, as
+    :class:`.triton_runtime.Warmup`."""
+    tiles_x, tiles_y, key = _sizes(width, height, tile)
+    f32, i64, i32 = (stand_in(dtype, device) for dtype in (torch.float32, torch.int64, torch.int32))
+    footprints = (f32, i64, f32, f32, i64)  # _footprint_inputs, the depth order
+    return [Warmup(_count_kernel, (*footprints, i32, 0, tiles_x, tiles_y), _count_options(tile)),
+            Warmup(_emit_kernel, (*footprints, i64, stand_in(key, device), i32, 0, tiles_x, tiles_y, 0),
+                   _emit_options(tile))]
+
+
 def _footprint_inputs(proj: Projection) -> tuple[torch.Tensor, ...]:
     """What the tile kernels read of a projection: means2d, radii, conics, opacities (detached, contiguous)."""
     return (proj.means2d.detach().contiguous(), proj.radii.contiguous(), proj.conics.detach().contiguous(),
@@ -208,8 +238,8 @@ def _count_tiles(proj: Projection, by_depth: torch.Tensor, tiles_x: int, tiles_y
     n = len(by_depth)
     counts = torch.zeros(max(n, 1), dtype=torch.int32, device=by_depth.device)
     if n:
-        _count_kernel[(triton.cdiv(n, 64),)](*_footprint_inputs(proj), by_depth, counts, n, tiles_x, tiles_y,
-                                             TILE=tile, BLOCK_G=64, BLOCK_R=4, num_warps=4)
+        _count_kernel[(triton.cdiv(n, COUNT_BLOCK),)](*_footprint_inputs(proj), by_depth, counts, n, tiles_x,
+                                                      tiles_y, **_count_options(tile))
     return counts
 
 
@@ -222,8 +252,8 @@ def _write_pairs(proj: Projection, by_depth: torch.Tensor, ends: torch.Tensor, r
     ids = torch.zeros(room, dtype=torch.int32, device=by_depth.device)
     n = len(by_depth)
     if room and n:
-        _emit_kernel[(triton.cdiv(n, 32),)](*_footprint_inputs(proj), by_depth, ends, tile_id, ids, n, tiles_x,
-                                            tiles_y, room, TILE=tile, BLOCK_G=32, BLOCK_T=8, num_warps=1)
+        _emit_kernel[(triton.cdiv(n, EMIT_BLOCK),)](*_footprint_inputs(proj), by_depth, ends, tile_id, ids, n,
+                                                    tiles_x, tiles_y, room, **_emit_options(tile))
     return tile_id, ids
 
 
@@ -239,9 +269,8 @@ def tile_lists(proj: Projection, width: int, height: int, tile: int = TILE, capa
     length I is the count, which the host waits for, or, with a sized ``capacity``, its room (no wait;
     entries past the count hold the key ``tiles``, so they sort last and no tile's run includes them).
     """
-    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    tiles_x, tiles_y, key = _sizes(width, height, tile)
     tiles = tiles_x * tiles_y
-    key = torch.int16 if tiles < 2**15 else torch.int32  # tile ids and the bound ``tiles`` fit
     with torch.no_grad():
         by_depth = torch.argsort(proj.depths, stable=True)
         ends = torch.cumsum(_count_tiles(proj, by_depth, tiles_x, tiles_y, tile), 0)
