@@ -122,3 +122,20 @@ def test_a_non_finite_loss_or_a_skipped_step_changes_nothing(fused, caplog):
     assert [r.message for r in caplog.records] == [
         "test: step 2: the loss is not finite (l1 nan, tv 0.5); the step is skipped",
         "test: 1 steps skipped for a non-finite loss (first at step 2)"]
+
+
+def test_the_warmups_are_the_launches_of_the_fused_step(monkeypatch):
+    pytest.importorskip("triton")
+    from artnvg_core.finetune.finite_steps_triton import warmups
+
+    from triton_launches import record_launches, warmed
+
+    device = DEVICES[True]
+    launched = record_launches(monkeypatch)
+    params = _params(device=device)
+    adam = FiniteAdam(params, LRS, "test", fused=True)
+    for step in (1, 2):
+        _set(params, _grads(step, device))
+        adam.step(step, torch.tensor(1.0, device=device), {})
+    # the second parameter's step size is no 16-byte aligned entry of the rates: still the one compilation
+    assert len(launched) == 2 and launched == warmed(warmups(device))

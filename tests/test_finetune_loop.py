@@ -7,7 +7,7 @@ import torch
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.fileio import load_image
-from artnvg_core.finetune import FinetuneConfig, camera_extent, finetune
+from artnvg_core.finetune import FinetuneConfig, camera_extent, compile_kernels, finetune
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.progress import Cancelled
@@ -475,3 +475,23 @@ def test_steps_between_reports_never_wait_for_the_gpu(demo, with_stylized):
                  progress=strict)
     finally:
         torch.cuda.set_sync_debug_mode("default")
+
+
+def test_the_finetune_compiles_every_kernel_it_launches_before_its_first_render(monkeypatch):
+    pytest.importorskip("triton")
+    from artnvg_core.finetune.finite_steps_triton import warmups as adam_warmups
+    from artnvg_core.raster import triton_runtime
+
+    from raster_scenes import EYES, hard_scene, make_cameras
+    from triton_launches import record_launches, warmed
+
+    started = []
+    monkeypatch.setattr(triton_runtime, "compile_in_background", lambda warmups, device: started.append(warmups))
+    launched = record_launches(monkeypatch)  # Triton's interpreter on a CPU (tests/conftest.py)
+    scene, cameras = hard_scene(2, n=24), make_cameras(EYES[:1], 40, 24)
+    style = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(0))
+    finetune(scene, cameras, style, config=FinetuneConfig(iterations=1, backend="triton"))
+    assert len(started) == 1 and len(launched) == 7  # the render's, forward and backward (Adam: PyTorch's on a CPU)
+    assert launched <= warmed(started[0]) and warmed(adam_warmups("cpu")) <= warmed(started[0])
+    compile_kernels(scene, cameras, FinetuneConfig(backend="torch"))
+    assert len(started) == 1  # nothing to compile for another backend
