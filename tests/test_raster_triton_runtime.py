@@ -6,6 +6,7 @@ import sys
 import threading
 
 import pytest
+import torch
 
 triton_cache = pytest.importorskip("triton.runtime.cache")
 
@@ -55,8 +56,8 @@ def test_nothing_where_the_key_is_known_or_triton_has_no_such_function(fake_key,
 class FakeKernel:
     """A kernel whose warm-up records its arguments, thread and device, after ``gate`` opens; fails when told."""
 
-    def __init__(self, log, gate=None, fails=False):
-        self.log, self.gate, self.fails = log, gate, fails
+    def __init__(self, log, gate=None, fails=False, source="kernel source"):
+        self.log, self.gate, self.fails, self.cache_key = log, gate, fails, source
 
     def warmup(self, *args, grid, **kwargs):
         if self.gate is not None:
@@ -71,11 +72,16 @@ class FakeKernel:
 
 
 @pytest.fixture
-def cuda_devices(monkeypatch):
-    """torch.cuda.set_device recorded (thread, device) instead of called: the warm-ups' threads run on a CPU."""
+def cuda_devices(monkeypatch, tmp_path):
+    """torch.cuda.set_device recorded (thread, device) instead of called, so that the warm-ups' threads run on a
+    CPU; an H100's architecture; Triton's cache in ``tmp_path``."""
+    from triton import knobs
+
     chosen = []
     monkeypatch.setattr(triton_runtime.torch.cuda, "set_device",
                         lambda device: chosen.append((threading.current_thread().name, str(device))))
+    monkeypatch.setattr(triton_runtime.torch.cuda, "get_device_capability", lambda device: (9, 0))
+    monkeypatch.setattr(knobs.cache, "dir", str(tmp_path))
     monkeypatch.setattr(triton_runtime, "_started", None)
     return chosen
 
@@ -122,3 +128,26 @@ def test_warmups_wait_for_the_key_being_hashed(cuda_devices, monkeypatch):
     threading.Timer(0.2, release.set).start()
     triton_runtime.wait_for_compilation()
     assert [entry if isinstance(entry, str) else entry[0] for entry in log] == ["key hashed", "compiled", "launcher"]
+
+
+def test_a_set_compiled_once_is_not_compiled_again_by_later_processes(cuda_devices, tmp_path):
+    log = []
+
+    def compiled(warmups):
+        triton_runtime.compile_in_background(warmups, "cuda")
+        triton_runtime.wait_for_compilation()
+        count = sum(entry[0] == "compiled" for entry in log)
+        log.clear()
+        return count
+
+    kernels = [FakeKernel(log), FakeKernel(log, source="another kernel")]
+    warmups = [triton_runtime.Warmup(kernel, (triton_runtime.stand_in(torch.float32, "cpu"), 16), {"BLOCK": 8})
+               for kernel in kernels]
+    assert compiled(warmups) == 2 and len(list((tmp_path / "artnvg-compiled").iterdir())) == 1
+    assert compiled(warmups) == 0  # the file in Triton's cache says so: no threads, the launches load them
+    changed = [warmups[0]._replace(args=(warmups[0].args[0], 17)), warmups[1]]  # another launch
+    assert compiled(changed) == 2
+    kernels[1].cache_key = "its source changed"
+    assert compiled(warmups) == 2
+    failing = [warmups[0]._replace(kernel=FakeKernel(log, fails=True, source="new")), warmups[1]]
+    assert compiled(failing) == 1 and compiled(failing) == 1  # not all compiled: no file, tried again
