@@ -74,7 +74,8 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     announced through ``announce`` where the caller's user looks, before it starts. Returns the
     backend. Without this, the first gsplat render announces it as a logged warning. Triton
     compiles its kernels at their first launch in a process that finds no cached build (seconds,
-    see docs/cuda_run.md); here it is imported, and the hashing of its own files that its first kernel
+    see docs/cuda_run.md), unless its caller has them compiled in the background first (:func:`triton_warmups`;
+    the finetune does); here it is imported, and the hashing of its own files that its first kernel
     waits for begins in the background (:mod:`~artnvg_core.raster.triton_runtime`)."""
     name = choose_backend(backend, torch.device(device))
     if name == "gsplat":
