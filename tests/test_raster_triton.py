@@ -322,7 +322,7 @@ def test_fused_backward_matches_float64_vector_jacobian_products(degree, antiali
 
 @pytest.mark.parametrize("n, width, height, degree, depth, antialiased", [
     (37, 40, 24, None, False, False),  # no size a multiple of 16; the scene's own degree
-    (16, 48, 17, 1, True, True),  # a width of 3 tiles; below the scene's degree, depth (4 features), the opacity compensated
+    (16, 48, 17, 1, True, True),  # 3 tiles wide; a lower degree, depth (4 features), opacity compensated
 ])
 def test_the_warmups_are_the_launches_a_render_and_its_backward_make(monkeypatch, n, width, height, degree, depth,
                                                                      antialiased):

@@ -11,8 +11,8 @@ before the first render (the style's features, say), within :func:`~artnvg_core.
 the 2-core CPU here 5.9-6.1 s beside a thread spinning in Python, 0.5-0.6 s within it, 0.3-0.5 s alone).
 Triton keeps the key for the rest of the process. A Triton without that function is left as it is.
 
-A process that finds no cached build of a kernel compiles it at its first launch, one kernel after another: 11
-kernels, 8.1 s, for a first look on an H200 host, and 2.9 s more building their launchers with the C compiler.
+A process that finds no cached build of a kernel compiles it at its first launch, one kernel after another
+(a first look's 11 compilations took 6.5 s on an H200 host, their launchers' builds with the C compiler besides).
 :func:`compile_in_background` compiles the launches a run will make (:class:`Warmup`, each module of kernels
 says which its work makes) in threads, side by side (the compiler's passes, ``ptxas`` and the C compiler run
 without the interpreter lock), while the caller goes on; :func:`wait_for_compilation`, which the renders call
