@@ -251,7 +251,7 @@ def stylize_diffusion(
     spread = ray_address is not None or (explicit is not None and len(explicit) > 1)
     load = _models_loader(files, preset, compile_blocks, loras)
     device = explicit[0] if explicit else scene.device
-    compile_kernels(scene, cameras, config)  # the renders' and the finetune's, beside the models' loading
+    compile_kernels(scene, cameras, config, targets=True)  # the renders' and the finetune's, beside the load
     with ThreadPoolExecutor(1) as background:  # the model files are read while the content views render
         loading = None if spread else background.submit(load, device, progress=loading_progress,
                                                         should_stop=should_stop)

@@ -480,6 +480,7 @@ def test_steps_between_reports_never_wait_for_the_gpu(demo, with_stylized):
 def test_the_finetune_compiles_every_kernel_it_launches_before_its_first_render(monkeypatch):
     pytest.importorskip("triton")
     from artnvg_core.finetune.finite_steps_triton import warmups as adam_warmups
+    from artnvg_core.losses.ssim_triton import warmups as ssim_warmups
     from artnvg_core.raster import triton_runtime
 
     from raster_scenes import EYES, hard_scene, make_cameras
@@ -490,8 +491,12 @@ def test_the_finetune_compiles_every_kernel_it_launches_before_its_first_render(
     launched = record_launches(monkeypatch)  # Triton's interpreter on a CPU (tests/conftest.py)
     scene, cameras = hard_scene(2, n=24), make_cameras(EYES[:1], 40, 24)
     style = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(0))
-    finetune(scene, cameras, style, config=FinetuneConfig(iterations=1, backend="triton"))
-    assert len(started) == 1 and len(launched) == 7  # the render's, forward and backward (Adam: PyTorch's on a CPU)
-    assert launched <= warmed(started[0]) and warmed(adam_warmups("cpu")) <= warmed(started[0])
-    compile_kernels(scene, cameras, FinetuneConfig(backend="torch"))
-    assert len(started) == 1  # nothing to compile for another backend
+    config = FinetuneConfig(iterations=1, backend="triton")
+    finetune(scene, cameras, style, stylized=torch.rand(1, 24, 40, 3), config=config)
+    assert len(started) == 1 and len(launched) == 7  # the render's, forward and backward (Adam, SSIM: PyTorch's)
+    ssim = warmed(ssim_warmups("cpu", 3, 24, 40))  # on CUDA Adam's and the L1/SSIM term's kernels too
+    assert launched <= warmed(started[0]) and warmed(adam_warmups("cpu")) | ssim <= warmed(started[0])
+    compile_kernels(scene, cameras, config, targets=False)  # the NNFM stylizer: no SSIM
+    assert len(started) == 2 and not ssim & warmed(started[1])
+    compile_kernels(scene, cameras, FinetuneConfig(backend="torch"), targets=True)
+    assert len(started) == 2  # nothing to compile for another backend

@@ -84,3 +84,15 @@ def test_cuda_ssim_is_the_fused_one_and_matches_the_float64_brute_force():
     value.sum().backward()
     reference.sum().backward()
     torch.testing.assert_close(a_cuda.grad.double().cpu(), a64.grad, atol=1e-6, rtol=1e-4)
+
+
+def test_the_warmups_are_the_launches_of_the_finetunes_ssim(monkeypatch):
+    from artnvg_core.losses.ssim_triton import warmups
+
+    from triton_launches import record_launches, warmed
+
+    launched = record_launches(monkeypatch)
+    a, b = pair((1, 3, 16, 9))  # 16 rows: specialized as a multiple of 16
+    a = a.to(DEVICE).requires_grad_(True)  # the render; its target needs no gradient
+    (1 - fused_ssim(a, b.to(DEVICE), window_on(11, 1.5, DEVICE), C1, C2)).backward()
+    assert len(launched) == 2 and launched == warmed(warmups(DEVICE, 3, 16, 9))

@@ -145,17 +145,21 @@ def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConf
     return render_views(scene, cameras, backend=config.backend, progress=progress, should_stop=should_stop).rgb
 
 
-def compile_kernels(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig) -> None:
+def compile_kernels(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, targets: bool) -> None:
     """Start compiling, in the background, the Triton kernels that :func:`finetune` launches for ``scene`` and
-    ``cameras`` (the renders' forward and backward, Adam's step) where it renders with Triton; the first
-    render waits for them (:mod:`~artnvg_core.raster.triton_runtime`). Nothing on other backends."""
+    ``cameras`` (the renders' forward and backward, Adam's step and, with stylized ``targets``, the SSIM's)
+    where it renders with Triton; the first render waits for them (:mod:`~artnvg_core.raster.triton_runtime`).
+    Nothing on other backends."""
     if choose_backend(config.backend, scene.device, scene.means.dtype) != "triton":
         return
+    from ..losses.ssim_triton import warmups as ssim_warmups
     from ..raster.triton_runtime import compile_in_background
     from .finite_steps_triton import warmups as adam_warmups
 
-    compile_in_background([*triton_warmups(scene, cameras, gradients=True), *adam_warmups(scene.device)],
-                          scene.device)
+    warmups = [*triton_warmups(scene, cameras, gradients=True), *adam_warmups(scene.device)]
+    if targets:
+        warmups += ssim_warmups(scene.device, 3, cameras.height, cameras.width)
+    compile_in_background(warmups, scene.device)
 
 
 def finetune(
@@ -222,7 +226,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     if selection is not None:
         selection = selection.to(device)
         cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend)
-    compile_kernels(scene, cameras, config)  # beside the VGG's loading and the style's features
+    compile_kernels(scene, cameras, config, stylized is not None)  # beside the VGG and the style's features
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
     layers = config.nnfm_layers

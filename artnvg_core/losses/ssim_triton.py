@@ -24,6 +24,8 @@ import torch
 import triton
 import triton.language as tl
 
+from ..raster.triton_runtime import Warmup, stand_in
+
 TILE_H, TILE_W = 16, 32  # pixels of a program
 
 
@@ -126,6 +128,29 @@ def _backward_kernel(a_ptr, b_ptr, window_ptr, maps_ptr, scale_ptr, grad_a_ptr, 
         tl.store(grad_b_ptr + pixels, grad_b, mask=inside)
 
 
+def _forward_options(size: int, maps: bool) -> dict:
+    """The forward kernel's constants for a window of ``size`` taps (the backward's below)."""
+    return dict(SIZE=size, TH=TILE_H, TW=TILE_W, MAPS=maps)
+
+
+def _backward_options(size: int, grad_a: bool, grad_b: bool) -> dict:
+    return dict(SIZE=size, TH=TILE_H, TW=TILE_W, GRAD_A=grad_a, GRAD_B=grad_b)
+
+
+def warmups(device: torch.device | str, channels: int, height: int, width: int, size: int = 11,
+            gradients: tuple[bool, bool] = (True, False)) -> list[Warmup]:
+    """The launches :func:`fused_ssim` makes for float32 images of ``channels`` x ``height`` x ``width`` and a
+    window of ``size`` taps, differentiable in (a, b) as ``gradients`` says (the finetune's: the render, not
+    its target), as :class:`~artnvg_core.raster.triton_runtime.Warmup`."""
+    f32, tiles_w = stand_in(torch.float32, device), triton.cdiv(width, TILE_W)
+    found = [Warmup(_forward_kernel, (f32,) * 5 + (height, width, tiles_w, 0.0, 0.0),
+                    _forward_options(size, any(gradients)))]
+    if any(gradients):
+        found.append(Warmup(_backward_kernel, (f32,) * 7 + (channels, height, width, tiles_w),
+                            _backward_options(size, *gradients)))
+    return found
+
+
 def _grid(a: torch.Tensor) -> tuple[int, int, int]:
     """(programs per image channel, programs per row of tiles, image channels) of [B, C, H, W] ``a``."""
     batch, channels, height, width = a.shape
@@ -141,7 +166,7 @@ class _FusedSSIM(torch.autograd.Function):
         sums = torch.empty(planes, tiles, device=a.device, dtype=torch.float32)
         partials = torch.empty((4, planes, height, width) if maps else (0,), device=a.device, dtype=torch.float32)
         _forward_kernel[(tiles, planes)](a, b, window, sums, partials, height, width, tiles_w, c1, c2,
-                                         SIZE=window.numel(), TH=TILE_H, TW=TILE_W, MAPS=maps)
+                                         **_forward_options(window.numel(), maps))
         ctx.save_for_backward(a, b, window, partials)
         ctx.per_image = per_image
         per = sums.view(batch, -1).sum(1) / (channels * height * width)
@@ -158,7 +183,7 @@ class _FusedSSIM(torch.autograd.Function):
         out_a = torch.empty_like(a, dtype=torch.float32) if need_a else a  # unneeded: a pointer never written
         out_b = torch.empty_like(b, dtype=torch.float32) if need_b else b
         _backward_kernel[(tiles, planes)](a, b, window, partials, scale, out_a, out_b, channels, height, width, tiles_w,
-                                          SIZE=window.numel(), TH=TILE_H, TW=TILE_W, GRAD_A=need_a, GRAD_B=need_b)
+                                          **_backward_options(window.numel(), need_a, need_b))
         grads = (out_a.to(a.dtype) if need_a else None, out_b.to(b.dtype) if need_b else None)
         return (*grads, None, None, None, None, None)
 
