@@ -481,7 +481,7 @@ def test_the_finetune_compiles_every_kernel_it_launches_before_its_first_render(
     pytest.importorskip("triton")
     from artnvg_core.finetune.finite_steps_triton import warmups as adam_warmups
     from artnvg_core.losses.ssim_triton import warmups as ssim_warmups
-    from artnvg_core.raster import triton_runtime
+    from artnvg_core import triton_runtime
 
     from raster_scenes import EYES, hard_scene, make_cameras
     from triton_launches import record_launches, warmed

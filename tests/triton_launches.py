@@ -29,7 +29,7 @@ def specialization(kernel: InterpretedFunction, args: tuple, kwargs: dict) -> tu
 
 
 def warmed(warmups) -> set:
-    """The specializations ``warmups`` (:class:`~artnvg_core.raster.triton_runtime.Warmup`) compile."""
+    """The specializations ``warmups`` (:class:`~artnvg_core.triton_runtime.Warmup`) compile."""
     return {specialization(w.kernel, w.args, w.kwargs) for w in warmups}
 
 

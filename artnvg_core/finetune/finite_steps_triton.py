@@ -17,7 +17,7 @@ import torch
 import triton
 import triton.language as tl
 
-from ..raster.triton_runtime import Warmup, stand_in
+from ..triton_runtime import Warmup, stand_in
 
 BLOCK = 1024  # values per program
 
@@ -52,7 +52,7 @@ def _adam_kernel(param, grad, exp_avg, exp_avg_sq, held, skipped, step_size, cor
 
 def warmups(device: torch.device | str) -> list[Warmup]:
     """The launches :func:`mark_held_rows` and :func:`adam_rows` make, as
-    :class:`~artnvg_core.raster.triton_runtime.Warmup`."""
+    :class:`~artnvg_core.triton_runtime.Warmup`."""
     f32, u8 = stand_in(torch.float32, device), stand_in(torch.uint8, device)
     return [Warmup(_held_kernel, (f32, u8, 0, 0, 0.0), dict(BLOCK=BLOCK)),
             Warmup(_adam_kernel, (f32, f32, f32, f32, u8, u8, f32, f32, 0, 0, 0.0, 0.0, 0.0, 0.0), dict(BLOCK=BLOCK))]

@@ -148,12 +148,12 @@ def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConf
 def compile_kernels(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, targets: bool) -> None:
     """Start compiling, in the background, the Triton kernels that :func:`finetune` launches for ``scene`` and
     ``cameras`` (the renders' forward and backward, Adam's step and, with stylized ``targets``, the SSIM's)
-    where it renders with Triton; the first render waits for them (:mod:`~artnvg_core.raster.triton_runtime`).
+    where it renders with Triton; the first render waits for them (:mod:`~artnvg_core.triton_runtime`).
     Nothing on other backends."""
     if choose_backend(config.backend, scene.device, scene.means.dtype) != "triton":
         return
     from ..losses.ssim_triton import warmups as ssim_warmups
-    from ..raster.triton_runtime import compile_in_background
+    from ..triton_runtime import compile_in_background
     from .finite_steps_triton import warmups as adam_warmups
 
     warmups = [*triton_warmups(scene, cameras, gradients=True), *adam_warmups(scene.device)]

@@ -24,7 +24,7 @@ import torch
 import triton
 import triton.language as tl
 
-from ..raster.triton_runtime import Warmup, stand_in
+from ..triton_runtime import Warmup, stand_in
 
 TILE_H, TILE_W = 16, 32  # pixels of a program
 
@@ -141,7 +141,7 @@ def warmups(device: torch.device | str, channels: int, height: int, width: int, 
             gradients: tuple[bool, bool] = (True, False)) -> list[Warmup]:
     """The launches :func:`fused_ssim` makes for float32 images of ``channels`` x ``height`` x ``width`` and a
     window of ``size`` taps, differentiable in (a, b) as ``gradients`` says (the finetune's: the render, not
-    its target), as :class:`~artnvg_core.raster.triton_runtime.Warmup`."""
+    its target), as :class:`~artnvg_core.triton_runtime.Warmup`."""
     f32, tiles_w = stand_in(torch.float32, device), triton.cdiv(width, TILE_W)
     found = [Warmup(_forward_kernel, (f32,) * 5 + (height, width, tiles_w, 0.0, 0.0),
                     _forward_options(size, any(gradients)))]

@@ -76,13 +76,13 @@ def prepare_backend(device: torch.device | str, backend: str = "auto",
     compiles its kernels at their first launch in a process that finds no cached build (seconds,
     see docs/cuda_run.md), unless its caller has them compiled in the background first (:func:`triton_warmups`;
     the finetune does); here it is imported, and the hashing of its own files that its first kernel
-    waits for begins in the background (:mod:`~artnvg_core.raster.triton_runtime`)."""
+    waits for begins in the background (:mod:`~artnvg_core.triton_runtime`)."""
     name = choose_backend(backend, torch.device(device))
     if name == "gsplat":
         load_kernels(announce)
     elif name == "triton":
         from . import triton_backend  # noqa: F401  (import errors surface before the first render)
-        from .triton_runtime import hash_triton_in_background
+        from ..triton_runtime import hash_triton_in_background
 
         hash_triton_in_background()
     return name
@@ -92,7 +92,8 @@ def triton_warmups(scene: GaussianScene, cameras: CameraSet, *, sh_degree: int |
                    return_depth: bool = False, gradients: bool = False) -> list:
     """The Triton kernels' launches :func:`render` makes on the Triton backend for ``scene`` seen by ``cameras``
     (``sh_degree``, ``return_depth`` as it takes them; with ``gradients``: its backward's too), as
-    :class:`.triton_runtime.Warmup` for :func:`.triton_runtime.compile_in_background`. Imports Triton."""
+    :class:`~artnvg_core.triton_runtime.Warmup` (for :func:`~artnvg_core.triton_runtime.compile_in_background`).
+    Imports Triton."""
     from . import triton_backend, triton_projection
 
     degree = scene.sh_degree if sh_degree is None else sh_degree
@@ -212,7 +213,7 @@ def render(
     elif name == "triton":
         from .triton_backend import rasterize_triton  # imports Triton: only when it renders
         from .triton_projection import project_color_triton
-        from .triton_runtime import wait_for_compilation
+        from ..triton_runtime import wait_for_compilation
 
         wait_for_compilation()  # the kernels compiling in the background, if any: not compiled twice
         composite = functools.partial(rasterize_triton, capacity=list_capacity)

@@ -32,7 +32,7 @@ import triton.language as tl
 
 from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
-from .triton_runtime import Warmup, stand_in
+from ..triton_runtime import Warmup, stand_in
 from .triton_tiles import TILE, ListCapacity, tile_lists
 from .triton_tiles import warmups as tile_warmups
 
@@ -242,7 +242,8 @@ def _backward_options(channels: int, tile: int, backward: Pass, skip: bool) -> d
 def warmups(device: torch.device | str, channels: int, width: int, height: int, gradients: bool, *,
             tile: int = TILE, passes: tuple[Pass, Pass] = PASSES, skip: bool = True) -> list[Warmup]:
     """The launches :func:`rasterize_triton` makes (its tile lists' included) for ``channels`` features and a
-    ``width`` x ``height`` image (with ``gradients``: its backward's too), as :class:`.triton_runtime.Warmup`."""
+    ``width`` x ``height`` image (with ``gradients``: its backward's too), as
+    :class:`~artnvg_core.triton_runtime.Warmup`."""
     f32, i32 = stand_in(torch.float32, device), stand_in(torch.int32, device)
     found = [*tile_warmups(device, width, height, tile),
              Warmup(_forward_kernel, (f32, f32, i32, i32, f32, f32, i32, width, height, -(-width // tile)),

@@ -27,7 +27,7 @@ import triton
 import triton.language as tl
 
 from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
-from .triton_runtime import Warmup, stand_in
+from ..triton_runtime import Warmup, stand_in
 from .triton_sh import basis_grad, basis_rows, channel_sums, clamped_color, direction, sh_rows, unclamped_grad
 
 BLOCK = 128  # Gaussians per program
@@ -380,7 +380,8 @@ def _backward_options(antialiased: bool) -> dict:
 def warmups(device: torch.device | str, coefficients: int, width: int, height: int, degree: int, antialiased: bool,
             gradients: bool) -> list[Warmup]:
     """The launches :func:`project_color_triton` makes for SH ``coefficients`` per channel (K) at ``degree``
-    and a ``width`` x ``height`` camera (with ``gradients``: its backward's too), as :class:`.triton_runtime.Warmup`."""
+    and a ``width`` x ``height`` camera (with ``gradients``: its backward's too), as
+    :class:`~artnvg_core.triton_runtime.Warmup`."""
     f32, i64 = stand_in(torch.float32, device), stand_in(torch.int64, device)
     bounds = (0, width, height, 0.0, 0.0)  # n, width, height, near plane, blur
     found = [Warmup(_forward_kernel, (f32,) * 11 + (i64, *bounds), _forward_options(coefficients, degree, antialiased))]

@@ -18,7 +18,7 @@ import triton
 import triton.language as tl
 
 from .projection import ALPHA_MIN, Projection
-from .triton_runtime import Warmup, stand_in
+from ..triton_runtime import Warmup, stand_in
 
 TILE = 16  # pixels per tile side
 # The tile test's margins (:func:`_gaussian_level`, :func:`_row_tiles`): the compositing's float32 sigma
@@ -218,7 +218,7 @@ def _sizes(width: int, height: int, tile: int) -> tuple[int, int, torch.dtype]:
 
 def warmups(device: torch.device | str, width: int, height: int, tile: int = TILE) -> list[Warmup]:
     """The launches :func:`tile_lists` makes for a ``width`` x ``height`` image, as
-    :class:`.triton_runtime.Warmup`."""
+    :class:`~artnvg_core.triton_runtime.Warmup`."""
     tiles_x, tiles_y, key = _sizes(width, height, tile)
     f32, i64, i32 = (stand_in(dtype, device) for dtype in (torch.float32, torch.int64, torch.int32))
     footprints = (f32, i64, f32, f32, i64)  # _footprint_inputs, the depth order

@@ -1,4 +1,4 @@
-"""raster/triton_runtime.py: Triton's key hashed once a process, in a thread of its own, only where it has not run;
+"""triton_runtime.py: Triton's key hashed once a process, in a thread of its own, only where it has not run;
 warm-ups compiled in threads, waited for before the first render."""
 
 import functools
@@ -11,7 +11,7 @@ import torch
 triton_cache = pytest.importorskip("triton.runtime.cache")
 
 from artnvg_core.background import SWITCH_INTERVAL  # noqa: E402
-from artnvg_core.raster import triton_runtime  # noqa: E402
+from artnvg_core import triton_runtime  # noqa: E402
 
 
 @pytest.fixture

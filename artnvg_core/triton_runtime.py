@@ -35,7 +35,7 @@ from typing import Any, NamedTuple, Sequence
 
 import torch
 
-from ..background import brief_switches
+from .background import brief_switches
 
 _started: threading.Thread | None = None
 _lock = threading.Lock()
