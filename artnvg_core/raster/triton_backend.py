@@ -245,12 +245,13 @@ def warmups(device: torch.device | str, channels: int, width: int, height: int, 
     ``width`` x ``height`` image (with ``gradients``: its backward's too), as
     :class:`~artnvg_core.triton_runtime.Warmup`."""
     f32, i32 = stand_in(torch.float32, device), stand_in(torch.int32, device)
+    sizes = (width, height, -(-width // tile))  # width, height, tiles across
     found = [*tile_warmups(device, width, height, tile),
-             Warmup(_forward_kernel, (f32, f32, i32, i32, f32, f32, i32, width, height, -(-width // tile)),
+             Warmup(_forward_kernel, (f32, f32, i32, i32, f32, f32, i32, *sizes),
                     _forward_options(channels, tile, passes[0], skip))]
     if gradients:
-        found.append(Warmup(_backward_kernel, (f32, f32, i32, i32, f32, i32, f32, f32, f32, f32, width, height,
-                                               -(-width // tile)), _backward_options(channels, tile, passes[1], skip)))
+        found.append(Warmup(_backward_kernel, (f32, f32, i32, i32, f32, i32, f32, f32, f32, f32, *sizes),
+                            _backward_options(channels, tile, passes[1], skip)))
     return found
 
 
