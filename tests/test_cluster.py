@@ -4,11 +4,12 @@ batch)."""
 
 import sys
 
+import numpy as np
 import pytest
 import torch
 
 from artnvg_core.cli import main as cli
-from artnvg_core.cluster import RayUnavailable, Workers, plan_workers, ray_session
+from artnvg_core.cluster import RayUnavailable, Workers, from_wire, plan_workers, ray_session, to_wire
 
 
 def test_devices_become_workers_of_one_kind():
@@ -38,6 +39,22 @@ def test_without_ray_the_options_that_need_it_say_how_to_install_it(monkeypatch,
     (tmp_path / "jobs.json").write_text('[{"scene": "a.ply", "out": "a.ply"}]')
     assert cli.main(["batch", str(tmp_path / "jobs.json")]) == 2
     assert "error: batch needs Ray, which is not installed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.uint8, torch.bfloat16])
+def test_tensors_cross_ray_as_numpy_arrays_in_shared_memory_and_come_back_the_same(ray_local, dtype):
+    tensor = (torch.randn(8, 128, 128, 3, dtype=torch.float64) * 100).to(dtype)[:, ::2]  # not contiguous, > 100 KiB:
+    # Ray keeps smaller objects in its own process memory
+    assert to_wire(None) is None and from_wire(None) is None
+    sent = ray_local.get(ray_local.put(to_wire(tensor)))
+    if dtype == torch.bfloat16:  # NumPy has no bfloat16: Ray pickles the tensor
+        assert isinstance(sent, torch.Tensor)
+    else:  # an array, which Ray serializes as out-of-band buffers (a view of its store, mostly read-only)
+        assert isinstance(sent, np.ndarray) and sent.dtype == to_wire(tensor).dtype
+    received = from_wire(sent)
+    assert received.dtype == dtype and received.shape == tensor.shape and torch.equal(received, tensor)
+    received += 1  # its own memory, writable
+    assert not isinstance(sent, np.ndarray) or not np.shares_memory(received.numpy(), sent)
 
 
 class Echo:

@@ -22,9 +22,10 @@ import uuid
 from collections import Counter
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 
-from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..cluster import WorkerPool, Workers, dispatch, from_wire, import_ray, ray_session, to_wire
 from ..grouping import ViewGroups
 from ..progress import ProgressFn, StopFn
 from ..tensor_tree import map_tensors
@@ -76,11 +77,12 @@ class GroupWorker:
         self._check()
         return map_tensors(torch.Tensor.cpu, prepare_conditioning(self.models, style_image, prompt, negative_prompt))
 
-    def stylize(self, run: str, index: int, members: torch.Tensor, centers: torch.Tensor | None, owned: int,
-                conditioning: StyleConditioning, settings: SamplerSettings, seed: int) -> torch.Tensor:
+    def stylize(self, run: str, index: int, members: np.ndarray, centers: np.ndarray | None, owned: int,
+                conditioning: StyleConditioning, settings: SamplerSettings, seed: int) -> np.ndarray:
         """Group ``index`` sampled with ``seed`` from its ``members`` [M, H, W, 3] (owned views first; camera
-        ``centers`` [M, 3] or None, :func:`~artnvg_core.diffusion.stylize.group_members`): its ``owned``
-        stylized views (on the CPU). Stops when ``run`` is stopped."""
+        ``centers`` [M, 3] or None, :func:`~artnvg_core.diffusion.stylize.group_members`; both as
+        :func:`~artnvg_core.cluster.to_wire` sends them): its ``owned`` stylized views, the same way.
+        Stops when ``run`` is stopped."""
         self._check()
 
         def report(step: int, total: int, info: dict) -> None:
@@ -89,10 +91,11 @@ class GroupWorker:
         with self.sampling:
             start = time.time()
             try:
-                views = stylize_group(self.models, members, map_tensors(lambda t: t.to(self.device), conditioning),
-                                      settings, seed=seed, view_centers=centers, progress=report,
+                views = stylize_group(self.models, from_wire(members),
+                                      map_tensors(lambda t: t.to(self.device), conditioning), settings, seed=seed,
+                                      view_centers=from_wire(centers), progress=report,
                                       should_stop=lambda: run in self.stopped)
-                return views[:owned].cpu()
+                return to_wire(views[:owned])
             finally:
                 self.tasks.append((index, start, time.time()))
 
@@ -177,15 +180,15 @@ class GroupExecutor(WorkerPool):
 
         def submit(actor, index: int):
             members, centers = group_members(images, groups, index)
-            return actor.stylize.remote(run, index, members, centers, len(groups[index].views), shared, settings,
-                                        seed + index)
+            return actor.stylize.remote(run, index, to_wire(members), to_wire(centers), len(groups[index].views),
+                                        shared, settings, seed + index)
 
         try:
             for index, actor, views, error in dispatch(self.actors, largest_first, submit, on_start=meter.started,
                                                        on_tick=meter.poll, should_stop=should_stop, per_actor=2):
                 if error is not None:
                     raise error
-                output[list(groups[index].views)] = views
+                output[list(groups[index].views)] = from_wire(views)
                 meter.finished(index, actor)
         finally:
             for actor in self.actors:
