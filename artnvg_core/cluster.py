@@ -4,7 +4,7 @@
   already initialised in this process, or starts a local Ray instance with exactly the given devices
   (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
 * :func:`to_wire` and :func:`from_wire`: a tensor as a task's argument or result (a NumPy array, which
-  Ray hands over through its shared memory) and back.
+  Ray passes through its shared store without pickling) and back.
 * :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them in the order
   given, one at a time per actor or, with ``per_actor=2``, the next one while it runs one (so that
   the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
@@ -160,9 +160,9 @@ def _cluster_gpus(ray, address: str | None) -> Workers:
 
 def to_wire(tensor: torch.Tensor | None) -> np.ndarray | torch.Tensor | None:
     """``tensor`` as a Ray task's argument or result: a NumPy array on the CPU, the same bits, which Ray
-    stores and hands over through shared memory without copying (a tensor it pickles, storage and all:
-    0.15-0.2 s against 0.01-0.03 s for a task's 50 MB of views). bfloat16, which NumPy lacks, stays a
-    tensor; None stays None. :func:`from_wire` undoes it."""
+    copies into its shared store as a raw buffer that the other process reads in place (a tensor it
+    pickles, storage and all: 0.15-0.2 s against 0.01-0.03 s for a task's 50 MB of views). bfloat16,
+    which NumPy lacks, stays a tensor; None stays None. :func:`from_wire` undoes it."""
     if tensor is None or tensor.dtype == torch.bfloat16:
         return tensor
     return tensor.detach().cpu().numpy()
