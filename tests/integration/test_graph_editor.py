@@ -211,27 +211,42 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots
     assert image[:8] == b"\x89PNG\r\n\x1a\n" and len(image) > 20_000
 
 
+UNTIL = """
+  // the first truthy value of find() within `seconds` (polled every 250 ms), else its last value
+  const until = async (find, seconds) => {
+    for (const end = Date.now() + seconds * 1000; ; await new Promise((done) => setTimeout(done, 250))) {
+      const found = find();
+      if (found || Date.now() > end) return found;
+    }
+  };
+"""
+
 BROWSE = """
 (async () => {
+  %s
   await app.extensionManager.command.execute('Comfy.BrowseTemplates');
-  await new Promise((done) => setTimeout(done, 2500));
   // the category named after the pack: a list entry (1.27.10) or a sidebar entry under Extensions (1.58.1)
-  const entry = [...document.querySelectorAll('[role=dialog] li, [role=dialog] [role=option], [role=dialog] span')]
-    .find((e) => e.innerText && e.innerText.trim() === %s);
+  const entry = await until(() => [...document.querySelectorAll(
+    '[role=dialog] li, [role=dialog] [role=option], [role=dialog] span')].find((e) => e.innerText && e.innerText.trim() === %s), 30);
   if (!entry) return null;
   entry.click();
-  await new Promise((done) => setTimeout(done, 3000));
-  return [...document.querySelectorAll('[data-testid^="template-workflow-"]')].map((card) => ({
+  const expected = JSON.stringify(%s);  // the workflows' names, sorted: wait for their cards and thumbnails
+  const cards = () => [...document.querySelectorAll('[data-testid^="template-workflow-"]')].map((card) => ({
     name: card.dataset.testid.slice('template-workflow-'.length), text: card.innerText,
-    thumbnails: [...card.querySelectorAll('img')].map((img) => img.naturalWidth)}));
+    thumbnails: [...card.querySelectorAll('img')].map((img) => img.complete ? img.naturalWidth : 0)}));
+  await until(() => { const shown = cards();
+    return JSON.stringify(shown.map((c) => c.name).sort()) === expected && shown.every((c) => c.thumbnails.every((w) => w > 0)); }, 30);
+  return cards();
 })()
 """
 
 OPEN_CARD = """
 (async () => {
+  %s
   document.querySelector('[data-testid="template-workflow-%s"]').click();
-  await new Promise((done) => setTimeout(done, 3000));
-  return app.graph.serialize().nodes.map((n) => n.type).sort();
+  const types = () => app.graph.serialize().nodes.map((n) => n.type).sort();
+  await until(() => JSON.stringify(types()) === JSON.stringify(%s), 30);  // the template's nodes, sorted
+  return types();
 })()
 """
 
@@ -245,18 +260,20 @@ def test_template_browser_shows_each_workflow_with_thumbnail_and_description_and
                                     timeout=10) as response:
             assert response.headers["Content-Type"] == "image/jpeg" and response.read()[:2] == b"\xff\xd8"
     _close_dialogs(editor)
-    cards = editor.evaluate(BROWSE % json.dumps(comfy_server.pack))
+    names = [p.stem for p in UI_WORKFLOWS]
+    cards = editor.evaluate(BROWSE % (UNTIL, json.dumps(comfy_server.pack), json.dumps(names)))
     _screenshot(editor, screenshots / "template_browser.png")
     assert cards is not None, f"no '{comfy_server.pack}' category in the template browser"
-    assert sorted(card["name"] for card in cards) == [p.stem for p in UI_WORKFLOWS]
+    assert sorted(card["name"] for card in cards) == names
     for card in cards:
         assert card["name"] in card["text"] or card["name"].replace("_", " ") in card["text"]  # name or description
         assert card["thumbnails"] and all(width > 0 for width in card["thumbnails"]), card["name"]
     for path in UI_WORKFLOWS:
         if editor.evaluate("!document.querySelector('[data-testid^=\"template-workflow-\"]')"):
-            editor.evaluate(BROWSE % json.dumps(comfy_server.pack))
-        opened = editor.evaluate(OPEN_CARD % path.stem)
-        assert opened == sorted(n["type"] for n in json.loads(path.read_text())["nodes"]), path.stem
+            editor.evaluate(BROWSE % (UNTIL, json.dumps(comfy_server.pack), json.dumps(names)))
+        types = sorted(n["type"] for n in json.loads(path.read_text())["nodes"])
+        opened = editor.evaluate(OPEN_CARD % (UNTIL, path.stem, json.dumps(types)))
+        assert opened == types, path.stem
         _screenshot(editor, screenshots / f"template_{path.stem}.png")
 
 
