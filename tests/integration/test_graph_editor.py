@@ -28,6 +28,16 @@ REPO = Path(__file__).resolve().parents[2]
 UI_WORKFLOWS = sorted((REPO / "workflows").glob("*.json"))
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
+UNTIL = """
+  // the first truthy value of find() within `seconds` (polled every 250 ms), else its last value
+  const until = async (find, seconds) => {
+    for (const end = Date.now() + seconds * 1000; ; await new Promise((done) => setTimeout(done, 250))) {
+      const found = find();
+      if (found || Date.now() > end) return found;
+    }
+  };
+"""
+
 SHOWN_PROBLEMS = """
 (async () => {
   // what the editor tells the user: its dialogs (1.27.10), and the issue groups its
@@ -45,9 +55,13 @@ SHOWN_PROBLEMS = """
 
 INSPECT = """
 (async () => {
+  %s
   const workflow = %s;
   await app.loadGraphData(workflow, true, true, "artnvg-test");
   await new Promise((done) => setTimeout(done, 1000));
+  if (workflow.models && workflow.models.length)  // the missing files' dialog (1.27.10) or toast (1.58.1) is due
+    await until(() => [...document.querySelectorAll('.p-dialog')].some((d) => d.innerText.includes('Missing Models')) ||
+      [...document.querySelectorAll('button')].some((b) => b.innerText.trim() === 'View details'), 15);
   const graph = app.graph;
   const missing = workflow.nodes.map((n) => n.type).filter((t) => !LiteGraph.registered_node_types[t]);
   const problems = [];
@@ -191,7 +205,7 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots
     workflow = json.loads(path.read_text())
     _close_dialogs(editor)
     first_event = len(editor.events)
-    report = editor.evaluate(INSPECT % (json.dumps(workflow), SHOWN_PROBLEMS))
+    report = editor.evaluate(INSPECT % (UNTIL, json.dumps(workflow), SHOWN_PROBLEMS))
     exceptions = [e for e in editor.events[first_event:] if e.get("method") == "Runtime.exceptionThrown"]
     image = _screenshot(editor, screenshots / f"{path.stem}.png")
 
@@ -210,16 +224,6 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots
     assert _declared_inputs_only(report["output"], comfy_server) == api  # the editor's own API export
     assert image[:8] == b"\x89PNG\r\n\x1a\n" and len(image) > 20_000
 
-
-UNTIL = """
-  // the first truthy value of find() within `seconds` (polled every 250 ms), else its last value
-  const until = async (find, seconds) => {
-    for (const end = Date.now() + seconds * 1000; ; await new Promise((done) => setTimeout(done, 250))) {
-      const found = find();
-      if (found || Date.now() > end) return found;
-    }
-  };
-"""
 
 BROWSE = """
 (async () => {
