@@ -283,13 +283,18 @@ def test_template_browser_shows_each_workflow_with_thumbnail_and_description_and
 
 QUEUE = """
 (async () => {
+  %s
   await app.loadGraphData(%s, true, true, "artnvg-run");
   await new Promise((done) => setTimeout(done, 500));
   await app.queuePrompt(0, 1);
   await new Promise((done) => setTimeout(done, 2000));
+  await until(() => %s, 30);  // what the caller expects on screen (true: nothing more)
   return await %s;
 })()
 """
+# on screen once a run is refused: ComfyUI's validation errors (1.27.10) or the issues toast (1.58.1)
+REFUSED = ("[...document.querySelectorAll('.p-dialog')].some((d) => d.innerText.includes('failed validation')) || "
+           "[...document.querySelectorAll('button')].some((b) => b.innerText.trim() === 'View details')")
 
 
 def _history_count(server) -> int:
@@ -302,7 +307,7 @@ def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file(edit
     files = [m["name"] for m in workflow["models"]]
     runs = _history_count(comfy_server)
     _close_dialogs(editor)
-    dialogs = editor.evaluate(QUEUE % (json.dumps(workflow), SHOWN_PROBLEMS))
+    dialogs = editor.evaluate(QUEUE % (UNTIL, json.dumps(workflow), REFUSED, SHOWN_PROBLEMS))
     _screenshot(editor, screenshots / "missing_models.png")
     # the refused run as each frontend shows it: the validation errors of ComfyUI's own loaders and of
     # Load CSGO, each naming its file (1.27.10), or the Missing Models group marked "Blocked last run" (1.58.1)
@@ -333,7 +338,8 @@ def test_quick_start_runs_from_the_editor_on_a_fresh_install(editor, comfy_serve
                                for kind in ("ArtNVGSaveGaussianScene", "PreviewAny", "Preview3D"))
     runs = _history_count(comfy_server)
     _close_dialogs(editor)
-    assert not [d for d in editor.evaluate(QUEUE % (json.dumps(workflow), SHOWN_PROBLEMS)) if "failed" in d.lower()]
+    assert not [d for d in editor.evaluate(QUEUE % (UNTIL, json.dumps(workflow), "true", SHOWN_PROBLEMS))
+                if "failed" in d.lower()]
     _wait(editor, f"fetch('/history').then((r) => r.json()).then((h) => Object.keys(h).length > {runs})", 900)
     entry = list(_json(f"{comfy_server.url}/history").values())[-1]  # the newest run
     assert entry["status"]["status_str"] == "success", entry["status"]
