@@ -30,9 +30,9 @@ import torch
 import triton
 import triton.language as tl
 
+from ..triton_runtime import Warmup, stand_in
 from .projection import ALPHA_MIN, Projection
 from .torch_backend import ALPHA_MAX, T_MIN
-from ..triton_runtime import Warmup, stand_in
 from .triton_tiles import TILE, ListCapacity, tile_lists
 from .triton_tiles import warmups as tile_warmups
 

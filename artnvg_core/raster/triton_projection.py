@@ -26,8 +26,8 @@ import torch
 import triton
 import triton.language as tl
 
-from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
 from ..triton_runtime import Warmup, stand_in
+from .projection import ALPHA_MIN, MAX_EXTENT, MAX_RADIUS_PX, Projection
 from .triton_sh import basis_grad, basis_rows, channel_sums, clamped_color, direction, sh_rows, unclamped_grad
 
 BLOCK = 128  # Gaussians per program

@@ -17,8 +17,8 @@ import torch
 import triton
 import triton.language as tl
 
-from .projection import ALPHA_MIN, Projection
 from ..triton_runtime import Warmup, stand_in
+from .projection import ALPHA_MIN, Projection
 
 TILE = 16  # pixels per tile side
 # The tile test's margins (:func:`_gaussian_level`, :func:`_row_tiles`): the compositing's float32 sigma
