@@ -90,6 +90,9 @@ def test_jobs_writing_over_their_inputs_or_each_others_outputs_are_refused_befor
     assert jobs[5].argv[0] == os.path.join(".", "-x.ply") and jobs[5].out == folder / "b.ply"
 
 
+FOLDER = object()  # a jobs path that is a folder
+
+
 @pytest.mark.parametrize("name, text, message", [
     ("missing.json", None, "jobs file not found"),
     ("jobs.json", "[{", "not valid JSON"),
@@ -97,9 +100,16 @@ def test_jobs_writing_over_their_inputs_or_each_others_outputs_are_refused_befor
     ("jobs.json", "[]", "no jobs"),
     ("jobs.csv", "scene,out\na.ply,a.ply,extra\n", "row 2 has more cells than the header has names"),
     ("jobs.csv", "scene,out\n", "no jobs"),
+    ("jobs.json", b'\xff\xfe[{"out": "a.ply"}]', "not UTF-8 text"),
+    ("jobs.csv", b"scene,out\na\xe9.ply,a.ply\n", "not UTF-8 text"),
+    ("jobs.json", FOLDER, "cannot read the jobs file"),
 ])
 def test_a_jobs_file_that_cannot_be_read_names_itself(tmp_path, name, text, message):
-    if text is not None:
+    if text is FOLDER:
+        (tmp_path / name).mkdir()
+    elif isinstance(text, bytes):
+        (tmp_path / name).write_bytes(text)
+    elif text is not None:
         (tmp_path / name).write_text(text)
     with pytest.raises(ValueError, match=f"{name}: {message}"):
         read_jobs(tmp_path / name)

@@ -85,13 +85,17 @@ class JobResult:
 def read_jobs(path: str | os.PathLike) -> list:
     """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell).
 
-    ValueError naming the file when it cannot be read as a JSON list or a CSV table with a header;
-    an entry that is not an object is returned as it is (its job fails alone)."""
+    ValueError naming the file when it cannot be read (missing, a folder, not UTF-8) or is not a JSON list
+    or a CSV table with a header; an entry that is not an object is returned as it is (its job fails alone)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ValueError(f"{path}: jobs file not found") from None
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not UTF-8 text (at byte offset {error.start}); save it as UTF-8") from None
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read the jobs file ({error.strerror or error})") from None
     if path.suffix.lower() == ".csv":
         rows = list(csv.DictReader(io.StringIO(text)))
         for number, row in enumerate(rows, 1):
