@@ -7,7 +7,8 @@ The library imports nothing from ComfyUI. Main entry points:
   .splat, .spz, .ksplat, splatfacto .ckpt
 - :mod:`artnvg_core.cameras`  -- ``CameraSet``, camera loaders, paths, ``scene_frame``
 - :mod:`artnvg_core.orbit`    -- ``orbit_cameras``: views around a scene that came without cameras
-- :mod:`artnvg_core.raster`   -- ``render`` (differentiable Gaussian rasterizer), ``render_views``
+- :mod:`artnvg_core.raster`   -- ``render`` (differentiable Gaussian rasterizer); ``raster.views.render_views``
+  renders every view of a set
 - :mod:`artnvg_core.stylize`  -- the whole job: ``stylize_nnfm``, ``stylize_diffusion``
 - :mod:`artnvg_core.cli`      -- the commands of ``python -m artnvg_core`` (docs/command_line.md)
 """

@@ -56,8 +56,8 @@ class ArtNVGNode:
             if entry is None or callable(entry):  # hidden inputs; file lists, which the loaders check
                 continue
             kind, options = (*entry, {})[:2]
-            if isinstance(kind, list) and value not in kind:
-                return f"{cls.DISPLAY_NAME}: input '{name}': expected one of {kind}, got {value!r}"
+            if isinstance(kind, (list, tuple)) and value not in kind:  # choices, as a list or a tuple
+                return f"{cls.DISPLAY_NAME}: input '{name}': expected one of {list(kind)}, got {value!r}"
             if kind not in ("INT", "FLOAT") or isinstance(value, bool) or not isinstance(value, (int, float)):
                 continue
             if not math.isfinite(value):

@@ -104,6 +104,9 @@ def test_values_outside_a_nodes_declared_ranges_block_every_output_it_feeds():
     assert failed_checks(prompt, classes) == {}
     finetune["inputs"]["iterations"] = float("nan")
     assert failed_checks(prompt, classes)["1"] == "Finetune Gaussians: input 'iterations': expected a finite number, got nan"
+    finetune["inputs"]["iterations"], finetune["inputs"]["optimize"] = 10, "everything"  # choices declared as a tuple
+    assert failed_checks(prompt, classes)["1"] == (
+        "Finetune Gaussians: input 'optimize': expected one of ['appearance', 'all'], got 'everything'")
 
 
 def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):

@@ -8,17 +8,18 @@ null leaves the option out). Jobs are parsed by ``stylize``'s own parser, so eve
 stylize option works here and none can drift. Relative paths start at the JOBS file's folder. Where
 jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 
-Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the
-diffusion models loaded from one job to the next. Jobs start longest first (:func:`expected_work`), so
-that no long job starts last while the other workers idle; results are reported in job order. The
-diffusion groups of a job run on that worker's GPU (``stylize --devices`` spreads one scene's groups
-over several GPUs instead). A job whose worker dies is run again on another worker; a job that fails
-(bad input, missing file) fails alone, as does one that would write over its own inputs or over
-another job's output or contact sheet (``a.ply`` and ``a.spz`` share ``a.contact.png``), refused
-before any work; a job whose output scene loads and whose contact sheet exists, both its own, is
-skipped (``--redo`` runs it anyway); outputs are written whole or not at all
+Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the diffusion
+models loaded from one job to the next. Jobs start longest first (:func:`expected_work`), so that no long
+job starts last while the other workers idle; each job's line is printed as it finishes, and the summary
+lists the failed ones in job order. The diffusion groups of a job run on that worker's GPU (``stylize
+--devices`` spreads one scene's groups over several GPUs instead). A job whose worker dies is run again
+on another worker; a job that fails (bad input, missing file) fails alone, as does one that would write
+over its own inputs or over another job's output or contact sheet (``a.ply`` and ``a.spz`` share
+``a.contact.png``), refused before any work; a job whose output scene loads and whose contact sheet
+exists, both its own, is skipped (``--redo`` runs it anyway); outputs are written whole or not at all
 (:func:`artnvg_core.fileio.written_together`). Ctrl-C or SIGTERM stops the running jobs at their next
-Python step, so none leaves a file behind.
+Python step; a job that does not get there within 30 s has its worker killed, which may leave a hidden
+temporary (``.NAME.*.partial.*``) behind.
 """
 
 from __future__ import annotations

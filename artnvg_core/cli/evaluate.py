@@ -30,6 +30,7 @@ import torch
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
 from ..cameras.selection import parse_views
 from .common import (
+    SCENE_FILES,
     ProgressBar,
     add_camera_arguments,
     fraction,
@@ -59,9 +60,9 @@ STRIP_VIEWS = 6
 
 def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``evaluate`` options to ``parser`` and set ``run=run_evaluate``."""
-    parser.add_argument("--original", required=True, help="original scene (.ply or splatfacto .ckpt)")
+    parser.add_argument("--original", required=True, help=f"original scene: {SCENE_FILES}")
     stylized = parser.add_mutually_exclusive_group(required=True)
-    stylized.add_argument("--stylized", help="stylized scene (.ply or .ckpt)")
+    stylized.add_argument("--stylized", help="stylized scene, any of the same formats")
     stylized.add_argument("--stylized-images", help="folder of 2D stylized views named after the view stems (e.g. frame_00001.png)")
     add_camera_arguments(parser)
     parser.add_argument("--style", required=True, help="the style image")

@@ -1,7 +1,7 @@
 """The finetune stage: the original Gaussians' appearance finetuned toward stylized views and a style
 image (:mod:`.loop`), with its settings (:mod:`.config`), one step's loss (:mod:`.step_loss`), an Adam
 that writes finite values only (:mod:`.finite_steps`) and ARF's colour transfer (:mod:`.color_transfer`).
-It renders through :class:`~artnvg_core.raster.StepRenderer` and knows no backend's internals."""
+It renders through :class:`~artnvg_core.raster.step_renderer.StepRenderer` and knows no backend's internals."""
 
 from .config import OPTIMIZE_CHOICES, FinetuneConfig
 from .loop import camera_extent, compile_kernels, finetune

@@ -41,8 +41,8 @@ class FinetuneConfig:
         vgg_precision (`str`, defaults to ``"tf32"``): arithmetic of the VGG terms' convolutions, forward and
             backward, one of :data:`artnvg_core.losses.VGG_PRECISIONS`: ``"fp32"``, ``"tf32"`` (PyTorch's
             default for cuDNN on a CUDA GPU; float32 elsewhere) or ``"bf16"`` (autocast: features and their
-            gradients in bfloat16; the NNFM and content terms themselves in float32; its price: BENCHMARKS.md,
-            NNFM search precision). SSIM is float32 either way.
+            gradients in bfloat16; the NNFM and content terms themselves in float32; its price: BENCHMARKS.md
+            at b9baa74, NNFM search precision). SSIM is float32 either way.
         cuda_graph (`bool` or None, defaults to None): on a CUDA device, record the loss of a step's renders
             (the VGG terms, SSIM, L1, TV; forward and backward) once as CUDA graphs and replay them every step
             (:mod:`artnvg_core.finetune.step_loss`; the same result, without queueing its ~250 kernels one by one);
