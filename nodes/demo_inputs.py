@@ -10,11 +10,10 @@ a user's edits stay, and a deleted file comes back at the next start.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
+from artnvg_core.fileio import write_atomically
 from artnvg_core.stylize import DEMO_DIR
 
 DEMO_FOLDER = "artnvg_demo"
@@ -34,16 +33,10 @@ def demo_files() -> dict[str, Path]:
 
 
 def _copy(source: Path, target: Path) -> None:
-    """Copy ``source`` to ``target`` through a temporary file in the same folder, then rename."""
+    """Copy ``source`` to ``target`` whole or not at all (:func:`~artnvg_core.fileio.write_atomically`)."""
     target.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-    os.close(handle)
-    try:
-        shutil.copyfile(source, temporary)
-        os.replace(temporary, target)
-    except BaseException:
-        os.unlink(temporary)
-        raise
+    with source.open("rb") as original:
+        write_atomically(target, lambda stream: shutil.copyfileobj(original, stream))
 
 
 def install_demo_inputs(input_dir: Path) -> list[str]:

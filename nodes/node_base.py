@@ -30,8 +30,13 @@ def plain_text(doc: str) -> str:
 
 
 def _declared(inputs: dict) -> dict:
-    """``inputs`` with every entry that is a function replaced by what it returns now."""
-    return {name: entry() if callable(entry) else entry for name, entry in inputs.items()}
+    """``inputs`` as ComfyUI reads them: every entry that is a function replaced by what it returns now, and
+    choices declared as a tuple given as a list (ComfyUI holds a value to its choices only when they are one)."""
+    declared = {}
+    for name, entry in inputs.items():
+        entry = entry() if callable(entry) else entry
+        declared[name] = (list(entry[0]), *entry[1:]) if isinstance(entry[0], tuple) else entry
+    return declared
 
 
 class ArtNVGNode:

@@ -170,9 +170,11 @@ FILE_CHOICES = {"scene_file", "camera_source"}
 
 
 def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_them(pack):
-    """ComfyUI does not compare a COMBO input's value with its options: only the file lists are COMBOs, and
-    their nodes check the files themselves (check_files, run on the whole prompt: nodes/prompt_checks.py)."""
+    """ComfyUI compares a value with its choices only when they are a list (a tuple or a COMBO escapes): every
+    choice input is a list but the file lists, COMBOs whose nodes check the files themselves (check_files, run
+    on the whole prompt: nodes/prompt_checks.py)."""
     for name, node in pack.NODE_CLASS_MAPPINGS.items():
+        assert not [input_name for input_name, spec in _all_inputs(node).items() if isinstance(spec[0], tuple)], name
         combos = {input_name for input_name, spec in _all_inputs(node).items() if spec[0] == "COMBO"}
         assert combos <= FILE_CHOICES, name
         if combos:

@@ -1,6 +1,7 @@
 """The demo inputs the pack puts into ComfyUI's input folder (nodes/demo_inputs.py)."""
 
 import logging
+import os
 
 from nodes.demo_inputs import DEMO_CAMERAS, DEMO_SCENE, DEMO_STYLE, demo_files, install_demo_inputs
 from nodes.input_files import list_input_files
@@ -16,6 +17,9 @@ def test_missing_files_are_copied_once_and_never_overwritten(tmp_path, caplog):
     assert (tmp_path / DEMO_STYLE).read_bytes() == DemoInputs().style.read_bytes()
     assert DEMO_STYLE in caplog.text and str(tmp_path) in caplog.text
     assert not [p for p in tmp_path.rglob(".*")]  # no temporary file left
+    umask = os.umask(0)
+    os.umask(umask)
+    assert {oct(p.stat().st_mode & 0o777) for p in tmp_path.rglob("*") if p.is_file()} == {oct(0o666 & ~umask)}  # as a user's files
 
     (tmp_path / DEMO_CAMERAS).write_text("edited by the user")
     (tmp_path / DEMO_STYLE).unlink()
