@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from artnvg_core.fileio import check_output_name
+from artnvg_core.fileio import check_output_folder, check_output_name
 from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, SPZ_VERSIONS, load_scene, save_scene
 
 from .comfy_bridge import output_directory
@@ -73,12 +73,14 @@ class LoadGaussianScene(ArtNVGNode):
 
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:
     """``<output>/<prefix>`` (symlinks and ``..`` resolved), checked before any work: inside the output folder,
-    and short enough that ``<prefix>_NNNNN<suffix>`` and its temporary fit the file system's names."""
+    short enough that ``<prefix>_NNNNN<suffix>`` and its temporary fit the file system's names, in a folder
+    that is one or can be made and written (not a file). Creates nothing."""
     root = output_directory().resolve()
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:
         raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
     check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the file name")
+    check_output_folder(target.parent, "its folder")
     return target
 
 

@@ -277,3 +277,17 @@ def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view
                        r"2048x2048 pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):
         call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
              key_views="", frames_per_segment=30, loop=False)
+
+
+def test_save_scene_refuses_a_prefix_whose_folder_is_a_file_before_the_graph_runs(comfy_dirs, small_bear):
+    """A prefix's folder that is a file in the output folder is refused by name before the run, and by the
+    node itself, rather than failing in mkdir with a bare FileExistsError; the file is left as it was."""
+    taken = comfy_dirs / "output" / "taken"
+    taken.parent.mkdir()
+    taken.write_bytes(b"a user's file")
+    expected = f"Save Gaussian Scene: input 'filename_prefix': its folder: {taken.resolve()} exists and is not a folder"
+    assert SaveGaussianScene.check_files(filename_prefix="taken/stylized") == expected
+    with pytest.raises(NodeInputError) as refused:
+        call(SaveGaussianScene, scene=small_bear, filename_prefix="taken/stylized")
+    assert str(refused.value) == expected
+    assert taken.read_bytes() == b"a user's file" and sorted(taken.parent.iterdir()) == [taken]
