@@ -466,3 +466,19 @@ def test_ctrl_c_while_saving_stops_without_a_traceback(tmp_path, capsys, monkeyp
     captured = capsys.readouterr()
     assert captured.err == "interrupted: stopped; no file was left half-written\n"
     assert list((tmp_path / "out").iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate"])
+@pytest.mark.parametrize("option, value, expected", [
+    ("--orbit-views", "0", "expected an integer >= 1, got '0'"),
+    ("--fov", "180", "expected degrees between 0 and 180 (both excluded), got '180'"),
+    ("--fov", "nan", "expected degrees between 0 and 180 (both excluded), got 'nan'"),
+    ("--orbit-size", "100000", "expected WIDTHxHEIGHT or N, each 1 to 16384 pixels, e.g. 512x384, got '100000'"),
+    ("--orbit-size", "0x3", "expected WIDTHxHEIGHT or N, each 1 to 16384 pixels, e.g. 512x384, got '0x3'"),
+])
+def test_orbit_options_are_checked_by_the_parser_naming_the_option(capsys, command, option, value, expected):
+    """The views built around a scene without cameras: bad values are refused by name before the scene loads
+    (not by orbit_cameras or CameraSet, naming their own arguments, after it)."""
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "scene.ply", option, value])
+    assert exit_.value.code == 2 and f"error: argument {option}: {expected}" in capsys.readouterr().err

@@ -154,4 +154,6 @@ def test_cli_stylize_and_render_without_cameras(tmp_path):
     assert main(["render", str(out), "--out", str(tmp_path / "renders"), "--orbit-views", "2", "--orbit-size", "24x16",
                  "--orbit-around", "full", "--up=-x", "--device", "cpu"]) == 0
     assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == ["orbit_0000.png", "orbit_0001.png"]
-    assert main(["render", str(out), "--out", str(tmp_path / "r"), "--orbit-size", "0x3"]) == 2
+    with pytest.raises(SystemExit) as exit_:
+        main(["render", str(out), "--out", str(tmp_path / "r"), "--orbit-size", "0x3"])
+    assert exit_.value.code == 2

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ..cameras.camera_set import MAX_IMAGE_SIDE
 from ..devices import device_for
 
 if TYPE_CHECKING:
@@ -76,6 +77,25 @@ def fraction(text: str) -> float:
     if not 0 <= value < 1:
         raise argparse.ArgumentTypeError(f"expected a number from 0 up to (not including) 1, got {text!r}")
     return value
+
+
+def field_of_view(text: str) -> float:
+    """argparse type of ``--fov``: degrees strictly between 0 and 180."""
+    value = _number(text)
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"expected degrees between 0 and 180 (both excluded), got {text!r}")
+    return value
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """argparse type of ``--orbit-size``: WIDTHxHEIGHT or N (NxN) in pixels, each 1 to the largest view side
+    -> (width, height)."""
+    parts = text.lower().split("x")
+    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and 1 <= int(part) <= MAX_IMAGE_SIDE
+                                           for part in parts):
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT or N, each 1 to {MAX_IMAGE_SIDE} pixels, "
+                                         f"e.g. 512x384, got {text!r}")
+    return int(parts[0]), int(parts[-1])
 
 
 def parse_devices(text: str | None) -> list[torch.device] | None:
@@ -229,29 +249,23 @@ def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
                         "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
     orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
-    orbit.add_argument("--orbit-views", type=int, default=60, help="number of views (default 60: four groups of 15)")
-    orbit.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")
+    orbit.add_argument("--orbit-views", type=integer_at_least(1), default=60,
+                       help="number of views (default 60: four groups of 15)")
+    orbit.add_argument("--fov", type=field_of_view, default=50.0, help="horizontal field of view in degrees (default 50)")
     orbit.add_argument("--up", default="auto", choices=("auto", *UP_AXES),
                        help="the scene's up axis, e.g. --up=-y (default auto: detected; COLMAP scenes are often -y)")
-    orbit.add_argument("--orbit-size", default="512", help="image size WIDTHxHEIGHT or N for NxN (default 512)")
+    orbit.add_argument("--orbit-size", type=image_size, default="512",
+                       help="image size WIDTHxHEIGHT or N for NxN (default 512)")
     orbit.add_argument("--orbit-around", default="auto", choices=("auto", "full"),
                        help="auto (default): views on the side the capture looked from (all round for a 360 capture); "
                        "full: all round always")
-
-
-def orbit_size(args: argparse.Namespace) -> tuple[int, int]:
-    """(width, height) in pixels from ``--orbit-size`` (WIDTHxHEIGHT or N); ValueError naming the option."""
-    parts = args.orbit_size.lower().split("x")
-    if len(parts) not in (1, 2) or not all(part.strip().isdigit() and int(part) > 0 for part in parts):
-        raise ValueError(f"--orbit-size: expected WIDTHxHEIGHT or N in pixels, e.g. 512x384, got {args.orbit_size!r}")
-    return int(parts[0]), int(parts[-1])
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:
     """:func:`~artnvg_core.orbit.orbit_cameras` around ``scene`` with the options of :func:`add_camera_arguments`."""
     from ..orbit import orbit_cameras
 
-    width, height = orbit_size(args)
+    width, height = args.orbit_size
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
                             around=args.orbit_around)
     print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",

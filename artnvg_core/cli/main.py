@@ -26,7 +26,6 @@ from .common import (
     is_out_of_memory,
     load_scene_verbose,
     orbit_from_args,
-    orbit_size,
     parse_device,
     positive_number,
     prepare_rasterizer,
@@ -62,7 +61,7 @@ def cmd_render(args: argparse.Namespace) -> None:
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
     if cameras is None:  # the views made from the scene: their size checked before it loads
-        width, height = (max(1, round(side * args.scale)) for side in orbit_size(args))
+        width, height = (max(1, round(side * args.scale)) for side in args.orbit_size)
         check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                cameras=cameras)
