@@ -51,7 +51,8 @@ def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
     entries = [good, {**good, "out": "b.ply", "strength": 3}, {**good, "out": "c.ply", "devices": "cuda:0"},
                {**good, "out": "d.ply", "compile": "maybe"}, {"scene": "a.ply"}, {**good, "out": "e.ply", "preset": "slow"},
                {**good, "out": "f.ply", "iters": "many"}, "a.ply", {**good, "out": "./a.ply"},
-               {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "h.ply"}]
+               {**good, "out": "g.ply", "seed": [1, 2]}, {**good, "out": "i.ply", "Iters": 5, "iters": 1000},
+               {**good, "out": "h.ply"}]
     jobs = load_jobs(_write_jobs(tmp_path / "jobs.json", entries), stylize_options())
     errors = [job.error for job in jobs]
     assert errors[0] is None and errors[-1] is None and jobs[-1].argv[0] == "in.ply"
@@ -59,7 +60,8 @@ def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
                 "'compile' is a flag; expected true or false, got 'maybe'", "no out given",
                 "argument --preset: invalid choice: 'slow'", "argument --iters: expected an integer, got 'many'",
                 'expected an object of stylize options, got "a.ply"', "writes " + str(tmp_path.resolve() / "a.ply") +
-                ", as job 1 does", "'seed' takes one value, got [1, 2]"]
+                ", as job 1 does", "'seed' takes one value, got [1, 2]",
+                "'Iters', 'iters' name one option; give it once"]
     for number, (error, message) in enumerate(zip(errors[1:-1], expected), 2):
         assert error.startswith(f"jobs.json job {number}: ") and message in error, (error, message)
         assert jobs[number - 1].out is None and jobs[number - 1].argv == ()
@@ -100,6 +102,7 @@ FOLDER = object()  # a jobs path that is a folder
     ("jobs.json", "[]", "no jobs"),
     ("jobs.csv", "scene,out\na.ply,a.ply,extra\n", "row 2 has more cells than the header has names"),
     ("jobs.csv", "scene,out\n", "no jobs"),
+    ("jobs.csv", "scene,out,out\na.ply,a.ply,b.ply\n", "the header names 'out' twice"),
     ("jobs.json", b'\xff\xfe[{"out": "a.ply"}]', "not UTF-8 text"),
     ("jobs.csv", b"scene,out\na\xe9.ply,a.ply\n", "not UTF-8 text"),
     ("jobs.json", FOLDER, "cannot read the jobs file"),

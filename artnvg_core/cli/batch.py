@@ -98,7 +98,12 @@ def read_jobs(path: str | os.PathLike) -> list:
     except OSError as error:
         raise ValueError(f"{path}: cannot read the jobs file ({error.strerror or error})") from None
     if path.suffix.lower() == ".csv":
-        rows = list(csv.DictReader(io.StringIO(text)))
+        reader = csv.DictReader(io.StringIO(text))
+        header = reader.fieldnames or []
+        repeated = next((name for name in header if header.count(name) > 1), None)
+        if repeated is not None:  # a dict keeps one of its cells: refused, not chosen for the user
+            raise ValueError(f"{path}: the header names '{repeated}' twice")
+        rows = list(reader)
         for number, row in enumerate(rows, 1):
             if None in row:
                 raise ValueError(f"{path}: row {number + 1} has more cells than the header has names")
@@ -119,11 +124,14 @@ def read_jobs(path: str | os.PathLike) -> list:
 
 def job_arguments(entry, options: dict[str, argparse.Action], label: str) -> list[str]:
     """``stylize``'s command-line arguments for one entry of JOBS (``options``: stylize's actions by option
-    string). ValueError starting with ``label`` for an unknown option, one the batch decides, a bad flag
-    value or a missing ``out``."""
+    string). ValueError starting with ``label`` for an unknown option, one the batch decides, one named twice
+    (``iters`` and ``Iters``), a bad flag value or a missing ``out``."""
     if not isinstance(entry, dict):
         raise ValueError(f"{label}: expected an object of stylize options, got {json.dumps(entry)[:80]}")
     names = [str(key).strip().lower().replace("_", "-") for key in entry]
+    repeated = [f"'{key}'" for key, name in zip(entry, names) if names.count(name) > 1]
+    if repeated:
+        raise ValueError(f"{label}: {', '.join(repeated)} name one option; give it once")
     if "out" not in names or _empty(entry[list(entry)[names.index("out")]]):
         raise ValueError(f"{label}: no out given (each job writes its own output scene)")
     argv = []
