@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 import struct
 import threading
 import zipfile
@@ -131,6 +132,17 @@ def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu")
     device = torch.device(device)
     return torch.load(path, map_location=device, weights_only=True,
                       mmap=device.type != "cpu" and zipfile.is_zipfile(path))
+
+
+
+def load_failure(error: Exception) -> str:
+    """Why ``torch.load(..., weights_only=True)`` failed, for a user: its refusal of a pickle that holds more
+    than tensors and plain data in the project's words (torch's own text advises ``weights_only=False``,
+    which would run the file's code, and quotes the pickle's names), any other error as its type and text."""
+    if isinstance(error, pickle.UnpicklingError):
+        return ("not a pickle of tensors and plain data: a corrupt file, another format, or Python objects, which "
+                "are not loaded since loading them could run code")
+    return f"{type(error).__name__}: {error}"
 
 
 def _cast(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:

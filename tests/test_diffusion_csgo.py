@@ -2,6 +2,8 @@
 and scale-0 identity on tiny SDXL models."""
 
 import logging
+import pickle
+from fractions import Fraction
 
 import pytest
 import torch
@@ -18,6 +20,7 @@ from artnvg_core.diffusion.csgo import (
     routed_keys,
 )
 from artnvg_core.diffusion.csgo_weights import CSGOWeightsError, load_csgo
+from artnvg_core.tensor_files import load_failure
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import CROSS_DIM, RESAMPLER_HEAD_WIDTH, csgo_state, tiny_controlnet, tiny_unet, write_csgo_file
 
@@ -143,6 +146,11 @@ def test_wrong_shapes_and_unreadable_files_fail(tmp_path, models):
     (tmp_path / "junk.bin").write_bytes(b"not a torch file")
     with pytest.raises(CSGOWeightsError, match="junk.bin': not a readable torch file"):
         load_csgo(tmp_path / "junk.bin", unet, controlnet)
+    torch.save({"ip_adapter": Fraction(1, 3)}, tmp_path / "objects.bin")  # refused by weights_only, in our words
+    with pytest.raises(CSGOWeightsError) as refused:
+        load_csgo(tmp_path / "objects.bin", unet, controlnet)
+    said = load_failure(pickle.UnpicklingError())
+    assert str(refused.value).endswith(f"objects.bin': not a readable torch file ({said})")
     with pytest.raises(CSGOWeightsError, match="does not exist"):
         load_csgo(tmp_path / "absent.bin", unet, controlnet)
 

@@ -1,6 +1,8 @@
 """CSD: the backbone is CLIP's image tower, the released checkpoint layout loads, errors are clear."""
 
 import argparse
+import pickle
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from artnvg_core.metrics.csd import (
     csd_scores,
     load_csd,
 )
+from artnvg_core.tensor_files import load_failure
 
 # OpenAI CLIP ViTs have 64-wide heads; the loader infers heads = width // 64.
 TINY = CSDConfig(image_size=28, patch_size=7, width=128, layers=2, heads=2, embed_dim=16)
@@ -122,6 +125,11 @@ def test_loader_errors_name_the_file_and_the_problem(reference, tmp_path, monkey
     garbage.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="garbage.bin: not a loadable CSD checkpoint"):
         load_csd(garbage)
+    torch.save({"model_state_dict": Fraction(1, 3)}, tmp_path / "objects.bin")  # refused by weights_only, in our words
+    with pytest.raises(ValueError) as refused:
+        load_csd(tmp_path / "objects.bin")
+    said = load_failure(pickle.UnpicklingError())
+    assert str(refused.value) == f"{tmp_path / 'objects.bin'}: not a loadable CSD checkpoint ({said})"
     _, state = reference
     partial = {k: v for k, v in state.items() if ".resblocks.1.mlp" not in k}
     torch.save(partial, tmp_path / "partial.pt")

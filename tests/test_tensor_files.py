@@ -4,6 +4,7 @@ malformed files refused by name."""
 
 import json
 import struct
+from fractions import Fraction
 
 import pytest
 import torch
@@ -13,6 +14,7 @@ import artnvg_core.tensor_files as tensor_files
 from artnvg_core.tensor_files import (
     READERS,
     STAGING_BYTES,
+    load_failure,
     read_by_readers,
     read_tensors,
     reader_spans,
@@ -56,6 +58,20 @@ def test_torch_save_files_are_read_too(tmp_path):
     torch.save(_tensors(), path)
     read = read_tensors(path, dtype=torch.bfloat16)
     assert read["ids"].dtype == torch.int64 and torch.equal(read["weight"], _tensors()["weight"].bfloat16())
+
+
+
+def test_a_load_failure_is_said_in_the_projects_words_when_weights_only_refuses(tmp_path):
+    torch.save({"note": Fraction(1, 3)}, tmp_path / "objects.pt")
+    with pytest.raises(Exception) as refused:  # torch's text: the pickle's names, and advice to run its code
+        torch.load(tmp_path / "objects.pt", weights_only=True)
+    assert "weights_only" in str(refused.value) and "Fraction" in str(refused.value)
+    said = load_failure(refused.value)
+    assert "could run code" in said and "weights_only" not in said and "Fraction" not in said
+    (tmp_path / "short.pt").write_bytes(b"PK\x03\x04")
+    with pytest.raises(Exception) as broken:
+        torch.load(tmp_path / "short.pt", weights_only=True)
+    assert load_failure(broken.value) == f"{type(broken.value).__name__}: {broken.value}"  # any other: as it is
 
 
 @pytest.mark.parametrize("chunk", [1, 3, 8, 50, 1 << 20])

@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from ..statedict import listed_keys, parameters_on_meta, state_dict_mismatch
-from ..tensor_files import read_tensors, read_torch_file
+from ..tensor_files import load_failure, read_tensors, read_torch_file
 from .csgo import (
     CONTROLNET_ROUTES,
     UNET_ROUTES,
@@ -72,7 +72,8 @@ def read_csgo_file(path: str | Path, device: str | torch.device = "cpu") -> dict
         try:
             groups = read_torch_file(path, device)
         except Exception as error:  # unpickling errors have many types
-            raise CSGOWeightsError(f"CSGO weights '{path}': not a readable torch file ({error})") from error
+            raise CSGOWeightsError(
+                f"CSGO weights '{path}': not a readable torch file ({load_failure(error)})") from error
     if not isinstance(groups, dict):
         raise CSGOWeightsError(f"CSGO weights '{path}': expected a dict of key groups {list(REQUIRED_GROUPS)}")
     missing = [g for g in REQUIRED_GROUPS if g not in groups]

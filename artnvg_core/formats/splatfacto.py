@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import re
 from pathlib import Path
 
 import torch
 
 from ..scene import SH_C0, GaussianScene, validate_scene
+from ..tensor_files import load_failure
 from .bounded import require_stored_zip
 from .common import require_file
 
@@ -52,12 +52,8 @@ def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
     require_stored_zip(path)
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as error:  # weights_only's refusal; torch's text advises weights_only=False
-        raise ValueError(f"{path}: not a loadable torch checkpoint: not a pickle of tensors and plain data (a corrupt "
-                         "file, another format, or Python objects, which are not loaded: loading them could run "
-                         "code)") from error
     except Exception as error:  # torch.load raises many types on corrupt or foreign files
-        raise ValueError(f"{path}: not a loadable torch checkpoint ({type(error).__name__}: {error})") from error
+        raise ValueError(f"{path}: not a loadable torch checkpoint ({load_failure(error)})") from error
     pipeline = checkpoint.get("pipeline") if isinstance(checkpoint, dict) else None
     if not isinstance(pipeline, dict):
         raise ValueError(f"{path}: expected a nerfstudio checkpoint, a dict with a 'pipeline' state dict")

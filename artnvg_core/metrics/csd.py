@@ -31,6 +31,7 @@ from torch import nn
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import ModelSource, locate
 from ..statedict import state_dict_mismatch
+from ..tensor_files import load_failure
 
 CSD_WEIGHTS = ModelSource("CSD style descriptor weights (ViT-L/14)", "tomg-group-umd/CSD-ViT-L", "pytorch_model.bin")
 _STYLE_HEAD = "last_layer_style"
@@ -137,7 +138,7 @@ def _read_state(path: Path) -> dict:
         with torch.serialization.safe_globals(allowed):
             checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # skips optimizer states
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError) as error:
-        raise ValueError(f"{path}: not a loadable CSD checkpoint ({type(error).__name__}: {error})") from error
+        raise ValueError(f"{path}: not a loadable CSD checkpoint ({load_failure(error)})") from error
     if isinstance(checkpoint, dict) and isinstance(checkpoint.get("model_state_dict"), dict):
         checkpoint = checkpoint["model_state_dict"]
     if not isinstance(checkpoint, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
