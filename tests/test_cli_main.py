@@ -55,6 +55,16 @@ def test_tiny_scale_renders_one_pixel_views(tmp_path):
     assert load_image(next((tmp_path / "r").glob("*.png"))).shape == (1, 1, 3)
 
 
+@pytest.mark.parametrize("cameras", [True, False])
+def test_render_names_a_view_given_twice_before_loading(tmp_path, capsys, cameras):
+    scene = _small_scene(tmp_path)
+    given = ["--cameras", str(DemoInputs().cameras)] if cameras else ["--orbit-views", "4"]
+    assert main(["render", str(scene), *given, "--out", str(tmp_path / "r"), "--views", "1,0,1"]) == 2
+    captured = capsys.readouterr()
+    assert "error: --views: view 1 is given twice in '1,0,1'; give each view once" in captured.err, captured.err
+    assert "loading" not in captured.out and not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize("command", ["render", "stylize"])
 def test_outputs_checked_before_loading(tmp_path, capsys, command):
     demo = DemoInputs()
