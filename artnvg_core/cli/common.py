@@ -202,22 +202,23 @@ def is_out_of_memory(error: BaseException) -> bool:
 MAX_STYLE_ASPECT = 32
 
 
-def check_style_image(path: str | os.PathLike, option: str = "--style") -> tuple[int, int]:
-    """(width, height) of the style image at ``path`` from its header, before any work: ValueError naming
-    ``option`` and ``path`` for a file that is missing, not a regular file or not an image, one over the
-    pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`), or one longer than :data:`MAX_STYLE_ASPECT`
-    times its width."""
-    from ..fileio import image_size
+def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.Tensor:
+    """The style image at ``path`` as [H, W, 3] float32 in [0, 1], read before any other work (a scene's load,
+    a model's): ValueError naming ``option`` and ``path`` for a file that is missing, not a regular file or
+    not an image, one over the pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`) or longer than
+    :data:`MAX_STYLE_ASPECT` times its width (both from its header, before it is decoded), or one that does
+    not decode (a truncated or corrupt file)."""
+    from ..fileio import image_size, load_image
 
     try:
         width, height = image_size(path)
+        if max(width, height) > MAX_STYLE_ASPECT * min(width, height):
+            raise ValueError(f"{path}: image size: {width}x{height} pixels; a style image may be at most "
+                             f"{MAX_STYLE_ASPECT} times as long as it is wide (its features are matched at the "
+                             "renders' size); crop it")
+        return load_image(path)
     except ValueError as error:
         raise ValueError(f"{option}: {error}") from None
-    if max(width, height) > MAX_STYLE_ASPECT * min(width, height):
-        raise ValueError(f"{option}: {path}: image size: {width}x{height} pixels; a style image may be at most "
-                         f"{MAX_STYLE_ASPECT} times as long as it is wide (its features are matched at the "
-                         "renders' size); crop it")
-    return width, height
 
 
 SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .ckpt"
