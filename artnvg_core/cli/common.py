@@ -196,27 +196,13 @@ def is_out_of_memory(error: BaseException) -> bool:
         isinstance(error, RuntimeError) and "can't allocate memory" in str(error))
 
 
-# A style image may be at most this many times as long as it is wide: the finetune sizes it to the long
-# side of the renders its VGG sees (128 px for the bundled demo), and its relu3 features, two 2x poolings
-# down, need it 4 px across there.
-MAX_STYLE_ASPECT = 32
-
-
 def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.Tensor:
-    """The style image at ``path`` as [H, W, 3] float32 in [0, 1], read before any other work (a scene's load,
-    a model's): ValueError naming ``option`` and ``path`` for a file that is missing, not a regular file or
-    not an image, one over the pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`) or longer than
-    :data:`MAX_STYLE_ASPECT` times its width (both from its header, before it is decoded), or one that does
-    not decode (a truncated or corrupt file)."""
-    from ..fileio import image_size, load_image
+    """:func:`artnvg_core.style_image.read_style_image` (the image checked and decoded before any other work: a
+    scene's load, a model's), its ValueError naming ``option``."""
+    from ..style_image import read_style_image as read
 
     try:
-        width, height = image_size(path)
-        if max(width, height) > MAX_STYLE_ASPECT * min(width, height):
-            raise ValueError(f"{path}: image size: {width}x{height} pixels; a style image may be at most "
-                             f"{MAX_STYLE_ASPECT} times as long as it is wide (its features are matched at the "
-                             "renders' size); crop it")
-        return load_image(path)
+        return read(path)
     except ValueError as error:
         raise ValueError(f"{option}: {error}") from None
 
