@@ -38,6 +38,7 @@ from .stylize import add_stylize_arguments
 def cmd_render(args: argparse.Namespace) -> None:
     from ..cameras import load_cameras
     from ..fileio import check_output_folder, check_output_name, refuse_overwrites, save_png, sweep_temporaries
+    from ..formats import check_scene_path
     from ..raster import render
     from ..raster.views import check_render_plan
 
@@ -55,6 +56,7 @@ def cmd_render(args: argparse.Namespace) -> None:
             check_output_name(out_dir / f"{name}.png", f"--out (the PNG of view {index})")
         return cameras
 
+    check_scene_path(args.scene)
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
     cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder

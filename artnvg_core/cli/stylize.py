@@ -46,7 +46,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     # every check that needs no model comes before the diffusion libraries are imported (seconds)
     from ..cameras import load_cameras
     from ..fileio import check_output_file, refuse_overwrites
-    from ..formats import check_geometry_writable, writable_scene_path
+    from ..formats import check_geometry_writable, check_scene_path, writable_scene_path
     from ..stylize import DemoInputs, sheet_path
 
     given = [args.scene, args.style]
@@ -69,6 +69,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
     style = read_style_image(args.style)  # decoded now: a truncated file is named before the scene loads
+    check_scene_path(args.scene)  # e.g. a folder: named before the models load
     check_region_arguments(args, cameras_required=False)
     if args.lora and (diffusion_free or args.stylizer == "nnfm"):
         raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
