@@ -216,7 +216,7 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
     from ..formats import SPZ_AXES, SPZ_VERSIONS
 
     parser.add_argument("--drop-invalid", action="store_true",
-                        help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
+                        help="drop Gaussians with non-finite values or zero quaternions from the scene (with a "
                         "warning) instead of refusing the file")
     parser.add_argument("--spz-axes", choices=SPZ_AXES, default="auto",
                         help=f"axes of a .spz scene{written} that names none of its own: ply, the PLY's (x right, "
