@@ -54,6 +54,13 @@ def output_directory() -> Path:
     return Path(folder_paths.get_output_directory()) if folder_paths else Path.cwd() / "output"
 
 
+def load_image_path(name: str) -> Path:
+    """The file ComfyUI's Load Image reads for its value ``name`` ("sub/a.png", or one annotated as in
+    "a.png [output]"); ``./input/name`` without ComfyUI."""
+    folder_paths = comfy_module("folder_paths")
+    return Path(folder_paths.get_annotated_filepath(name)) if folder_paths else input_directory() / name
+
+
 def readable_folders() -> list[Path]:
     """The folders a node may read from: ComfyUI's input and output folders and every model folder
     (``models/`` and each registered folder, extra_model_paths.yaml's included); without ComfyUI, ``./input``

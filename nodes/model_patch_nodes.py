@@ -30,6 +30,7 @@ from .comfy_patches import (
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CSGO
+from .prompt_checks import HIDDEN, check_result
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -194,8 +195,14 @@ class ApplyCSGO(ArtNVGNode):
             "cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
     }
 
+    HIDDEN = HIDDEN
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, files=None):
+        return check_result(files)  # a style image Load Image feeds in, refused before the graph runs (check_images)
+
     def apply(self, model, control_net, csgo, clip_vision, style_image, style_scale, content_scale,
-              content_routing=SamplerSettings.content_routing):
+              content_routing=SamplerSettings.content_routing, files=None):
         node = self.DISPLAY_NAME
         with node_input(node, "style_image"):  # before any work
             check_style_size(style_image.shape[2], style_image.shape[1])

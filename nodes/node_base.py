@@ -10,12 +10,16 @@ shown as plain text (:func:`plain_text`), as the editor shows it.
 Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names the node and the
 input in the error; a loader's file input is declared, found and checked by an
 :class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values to the
-declared ranges and choices before anything runs (``prompt_checks``).
+declared ranges and choices before anything runs (``prompt_checks``), and
+:meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+
+from artnvg_core.style_image import check_style_size
 
 from .node_types import CATEGORY, IMAGE
 
@@ -70,6 +74,21 @@ class ArtNVGNode:
             if value < options.get("min", -math.inf) or value > options.get("max", math.inf):
                 return (f"{cls.DISPLAY_NAME}: input '{name}': {value} is outside {options.get('min', '-inf')} to "
                         f"{options.get('max', 'inf')}")
+        return None
+
+    @classmethod
+    def check_images(cls, image_size: Callable[[str], tuple[int, int] | None]) -> str | None:
+        """The message naming the first style image input (declared as :data:`STYLE_IMAGE_INPUT`) whose size
+        ``image_size(input name)`` ((width, height), known before the graph runs where a Load Image feeds the
+        input, else None) breaks :func:`artnvg_core.style_image.check_style_size`, else None. A node with such an
+        input checks it again when it runs (an IMAGE's size is known then)."""
+        for name, entry in {**cls.REQUIRED, **cls.OPTIONAL}.items():
+            size = image_size(name) if entry is STYLE_IMAGE_INPUT else None
+            try:
+                if size is not None:
+                    check_style_size(*size)
+            except ValueError as error:
+                return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
         return None
 
     @classmethod

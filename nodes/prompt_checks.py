@@ -8,13 +8,15 @@ And it repeats a ``VALIDATE_INPUTS`` message once per input that function declar
 So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
 class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values within their
 declared ranges and choices) or ``check_files(**inputs) -> str | None`` (the loaders), it runs those
-checks on the node's values; a message is kept under (prompt id, node id). When any node fails, the
+checks on the node's values, and ``check_images`` on the size of each image a stock Load Image feeds it
+(every node of the pack: a style image's shape); a message is kept under (prompt id, node id). When any node fails, the
 prompt's execution targets become the outputs that depend on a failing node, so validation fails as a
 whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and lists their
 messages (for a value out of range, ComfyUI's own); nothing runs. (Without this, a Finetune Gaussians
 with iterations -1 failed validation while every output not fed by it ran.)
-The loaders' ``VALIDATE_INPUTS`` declare only the hidden input :data:`CHECK_INPUT` (the node id, so
-ComfyUI shows the message once) and return the kept message (:func:`check_result`). Their file lists
+The loaders' ``VALIDATE_INPUTS`` (and those of the nodes with a style image input) declare only the hidden
+input :data:`CHECK_INPUT` (the node id, so ComfyUI shows the message once) and return the kept message
+(:func:`check_result`). Their file lists
 are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
 itself: the check's message says more (where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
@@ -26,11 +28,15 @@ as failing too, so that a graph missing a model file runs not at all either.
 
 from __future__ import annotations
 
+import functools
 import uuid
 from collections import OrderedDict
 from collections.abc import Mapping
 
-from .comfy_bridge import comfy_module, model_file_path
+from artnvg_core.fileio import image_size
+
+from .comfy_bridge import comfy_module, load_image_path, model_file_path
+from .input_files import outside_folders
 
 CHECK_INPUT = "files"  # the loaders' hidden input: ComfyUI's UNIQUE_ID (the node id)
 HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}
@@ -58,9 +64,29 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
     return seen
 
 
+def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, int] | None:
+    """(width, height) of the image a stock Load Image feeds input ``input_name`` of ``node`` (its IMAGE, output
+    0), from its file's header: the size it will pass (or, for a photo that EXIF rotates, that size turned).
+    None for another source, or for a file outside ComfyUI's folders or that does not read (Load Image answers
+    for those)."""
+    link = node.get("inputs", {}).get(input_name)
+    source = prompt.get(str(link[0])) if isinstance(link, list) and len(link) == 2 and link[1] == 0 else None
+    if not isinstance(source, dict) or source.get("class_type") != "LoadImage":
+        return None
+    name = source.get("inputs", {}).get("image")
+    file = load_image_path(name) if isinstance(name, str) else None
+    if file is None or outside_folders(file):
+        return None
+    try:
+        return image_size(file)
+    except ValueError:
+        return None
+
+
 def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
-    """Node id -> message of every node whose class's ``check_values`` or ``check_files`` finds a problem with
-    its values, and of every model loader whose file is not in its folder."""
+    """Node id -> message of every node whose class's ``check_values``, ``check_files`` or ``check_images``
+    finds a problem with its values or the images Load Image nodes feed it, and of every model loader whose
+    file is not in its folder."""
     failures = {}
     for node_id, node in prompt.items():
         if not isinstance(node, dict):
@@ -72,11 +98,13 @@ def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
                 failures[str(node_id)] = f"'{values.get(name)}' is not in the '{folder}' model folder"
             continue
         cls = classes.get(node.get("class_type"))
+        message = None
         for check in (getattr(cls, "check_values", None), getattr(cls, "check_files", None)):
-            message = check(**values) if check is not None else None
-            if message:
-                failures[str(node_id)] = message
-                break
+            message = message or (check(**values) if check is not None else None)
+        if not message and hasattr(cls, "check_images"):
+            message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
+        if message:
+            failures[str(node_id)] = message
     return failures
 
 

@@ -120,3 +120,33 @@ def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monke
     assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
     request = check_prompt({"prompt": prompt}, CLASSES)
     assert request["partial_execution_targets"] == ["3"]
+
+
+def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tmp_path, monkeypatch):
+    """The rule Apply CSGO and Finetune Gaussians apply when they run (artnvg_core.style_image), applied to the
+    file of a stock Load Image linked straight to their style_image: the graph is refused before any work."""
+    from PIL import Image
+
+    from nodes import NODE_CLASS_MAPPINGS
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "input").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    for folder in ("input", "elsewhere"):
+        Image.new("RGB", (20000, 2)).save(tmp_path / folder / "line.png")
+    Image.new("RGB", (64, 48)).save(tmp_path / "input" / "fine.png")
+    classes = {**NODE_CLASS_MAPPINGS, "LoadImage": Step, "Output": Output}
+    prompt = {"1": {"class_type": "LoadImage", "inputs": {"image": "line.png"}},
+              "2": {"class_type": "ArtNVGFinetuneGaussians", "inputs": {"style_image": ["1", 0], "iterations": 5}},
+              "3": {"class_type": "ArtNVGApplyCSGO", "inputs": {"style_image": ["1", 0]}},
+              "4": {"class_type": "Output", "inputs": {"scene": ["2", 0]}}, "5": {"class_type": "Output", "inputs": {}}}
+    rule = "image size: 20000x2 pixels; a style image may be at most 32 times as long as it is wide"
+    failures = failed_checks(prompt, classes)
+    assert sorted(failures) == ["2", "3"] and failures["2"].startswith(f"Finetune Gaussians: input 'style_image': {rule}")
+    assert failures["3"].startswith(f"Apply CSGO: input 'style_image': {rule}")
+    assert check_prompt({"prompt": prompt}, classes)["partial_execution_targets"] == ["4"]
+    for image in ("fine.png", "missing.png", "../elsewhere/line.png"):  # the last two: Load Image's to refuse
+        prompt["1"]["inputs"]["image"] = image
+        assert failed_checks(prompt, classes) == {}, image
+    prompt["1"] = {"class_type": "Step", "inputs": {"image": "line.png"}}  # another node's IMAGE: checked as it runs
+    assert failed_checks(prompt, classes) == {}

@@ -283,11 +283,19 @@ def test_a_folder_as_the_scene_file_fails_validation_naming_it_as_a_folder(comfy
             "compressed PLY)") in error["details"], error
 
 
-def test_a_style_image_the_command_line_refuses_stops_finetune_gaussians_at_its_start(comfy_server):
+def test_a_style_image_the_command_line_refuses_is_refused_before_or_as_finetune_gaussians_starts(comfy_server):
+    """Straight from Load Image: the prompt is refused before anything runs; through another node (its size
+    known only as the graph runs): Finetune Gaussians stops at its start. Without either check the run succeeded."""
     from PIL import Image
 
     Image.new("RGB", (20000, 2), (200, 30, 30)).save(comfy_server.input_dir / comfy_server.test_folder / "line.png")
-    entry, _ = _run(comfy_server, _workflow(comfy_server, f"Style image.image={comfy_server.test_folder}/line.png"))
-    summary = queue.run_summary(entry)
-    assert summary["status"] == "error" and ("Finetune Gaussians: input 'style_image': image size: 20000x2 pixels; a "
-                                             "style image may be at most 32 times as long as it is wide") in summary["error"]
+    workflow = _workflow(comfy_server, f"Style image.image={comfy_server.test_folder}/line.png")
+    rule = "image size: 20000x2 pixels; a style image may be at most 32 times as long as it is wide"
+    with pytest.raises(queue.RejectedError) as rejected:
+        queue.queue_prompt(comfy_server.url, workflow)
+    (error,) = rejected.value.details["node_errors"][FINETUNE]["errors"]
+    assert f"Finetune Gaussians: input 'style_image': {rule}" in error["details"], error
+    workflow["99"] = {"class_type": "ImageInvert", "inputs": {"image": workflow[FINETUNE]["inputs"]["style_image"]}}
+    workflow[FINETUNE]["inputs"]["style_image"] = ["99", 0]
+    summary = queue.run_summary(_run(comfy_server, workflow)[0])
+    assert summary["status"] == "error" and f"Finetune Gaussians: input 'style_image': {rule}" in summary["error"]
