@@ -5,6 +5,7 @@ from __future__ import annotations
 from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
 from artnvg_core.presets import PRESETS
+from artnvg_core.style_image import check_style_size
 
 from .comfy_bridge import (
     autograd_enabled,
@@ -102,6 +103,8 @@ class FinetuneGaussians(ArtNVGNode):
                  content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side,
                  color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
                  nnfm_search=_DEFAULTS.nnfm_search, selection=None):
+        with node_input(self.DISPLAY_NAME, "style_image"):  # before any work
+            check_style_size(style_image.shape[2], style_image.shape[1])
         with node_input(self.DISPLAY_NAME), autograd_enabled():
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,

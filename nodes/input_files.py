@@ -92,9 +92,10 @@ def file_signature(path: Path) -> str:
 class InputFile:
     """A loader's two inputs: list input ``name`` (what ``listing`` returns when ComfyUI asks) and text input
     ``path``. ``what`` names the file in errors (e.g. "scene file"); ``exists`` tells whether a chosen path
-    can be loaded; ``watched`` gives the file whose changes make the node run again (default: the chosen one);
-    ``read`` the files loading it reads (a folder's files; default: the chosen one), each of which must lie
-    inside ComfyUI's folders (module docstring)."""
+    is there to load; ``validate`` (optional) is the library's check of one that is, a ValueError saying why
+    it cannot be loaded (a folder given for a file); ``watched`` gives the file whose changes make the node
+    run again (default: the chosen one); ``read`` the files loading it reads (a folder's files; default: the
+    chosen one), each of which must lie inside ComfyUI's folders (module docstring)."""
 
     name: str
     what: str
@@ -104,6 +105,7 @@ class InputFile:
     exists: Callable[[Path], bool] = Path.is_file
     watched: Callable[[Path], Path] | None = None
     read: Callable[[Path], list[Path]] = lambda file: [file]
+    validate: Callable[[Path], object] | None = None
 
     def list_input(self) -> tuple:
         """The declaration of input ``name``, with the files listed now: a COMBO, whose value ComfyUI leaves
@@ -144,10 +146,18 @@ class InputFile:
         if refusal:
             return refusal
         file, input_name = self.resolve(listed, path)
+        advice = (f"Put it into ComfyUI's input folder ({input_directory()}) and pick it in '{self.name}', or type "
+                  "its path into 'path' (the shipped workflows' demo files come back into the input folder when "
+                  "ComfyUI restarts)")
+        if not (listed.strip() or path.strip()):  # else the input folder itself would be the chosen one
+            return f"{node}: input '{self.name}': no {self.what} chosen. {advice}"
         if not self.exists(file):
-            return (f"{node}: input '{input_name}': {self.what} not found: {file}. Put it into ComfyUI's input "
-                    f"folder ({input_directory()}) and pick it in '{self.name}', or type its path into 'path' "
-                    f"(the shipped workflows' demo files come back into the input folder when ComfyUI restarts)")
+            return f"{node}: input '{input_name}': {self.what} not found: {file}. {advice}"
+        if self.validate is not None:
+            try:
+                self.validate(file)
+            except ValueError as error:
+                return f"{node}: input '{input_name}': {error}"
         return True
 
     def signature(self, listed: str, path: str) -> str:

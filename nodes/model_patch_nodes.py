@@ -16,6 +16,7 @@ from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS, CSGOProjections, releas
 from artnvg_core.diffusion.csgo_weights import CSGOFile, read_csgo
 from artnvg_core.diffusion.settings import NV_LEVELS, SamplerSettings
 from artnvg_core.statedict import listed_keys, state_dict_mismatch
+from artnvg_core.style_image import check_style_size
 
 from .comfy_bridge import comfy_module, model_file_path, model_files, model_folder_paths
 from .comfy_patches import (
@@ -196,6 +197,8 @@ class ApplyCSGO(ArtNVGNode):
     def apply(self, model, control_net, csgo, clip_vision, style_image, style_scale, content_scale,
               content_routing=SamplerSettings.content_routing):
         node = self.DISPLAY_NAME
+        with node_input(node, "style_image"):  # before any work
+            check_style_size(style_image.shape[2], style_image.shape[1])
         model_base = comfy_module("comfy.model_base")
         if model_base is not None and not isinstance(model.model, model_base.SDXL):
             raise NodeInputError(f"{node}: input 'model': a {type(model.model).__name__} checkpoint; CSGO needs SDXL "

@@ -6,7 +6,15 @@ import re
 from pathlib import Path
 
 from artnvg_core.fileio import check_output_folder, check_output_name
-from artnvg_core.formats import SAVE_SUFFIXES, SCENE_SUFFIXES, SPZ_AXES, SPZ_VERSIONS, load_scene, save_scene
+from artnvg_core.formats import (
+    SAVE_SUFFIXES,
+    SCENE_SUFFIXES,
+    SPZ_AXES,
+    SPZ_VERSIONS,
+    check_scene_path,
+    load_scene,
+    save_scene,
+)
 
 from .comfy_bridge import output_directory
 from .input_files import InputFile, list_input_files
@@ -24,6 +32,8 @@ SCENE_FILE = InputFile(
     tooltip="A .ply, .splat, .spz, .ksplat or .ckpt file in ComfyUI's input folder (subfolders included).",
     path_tooltip=("Scene file path; when not blank it is used instead of scene_file. "
                   "Relative paths start at the input folder."),
+    exists=Path.exists,  # a folder is there, and check_scene_path names it as one
+    validate=check_scene_path,
 )
 
 

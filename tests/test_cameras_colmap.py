@@ -183,3 +183,30 @@ def test_colmap_binary_counts_beyond_the_file_are_refused_before_any_record(tmp_
     with pytest.raises(ValueError, match=r"images\.bin: the header says 1,099,511,627,776 images; the file's \d+ bytes "
                        r"left hold at most \d, and a model may have 1,000,000"):
         load_colmap(folder)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_an_id_given_twice_is_refused_naming_both_places(tmp_path, binary):
+    """A model that gives one image id (or camera id) twice is refused, not read with both images (or the last
+    camera)."""
+    quats, trans = random_capture(3, seed=5)
+    images = colmap_images(quats, trans)  # ids 3, 2, 1: image lines 3, 5, 7 of images.txt
+    images[2] = (images[0][0], *images[2][1:])
+    pinhole = ("PINHOLE", 64, 48, [50.0] * 4)
+    folder = write_colmap(tmp_path / "images", {1: pinhole}, images, binary)
+    places = ("image record 0", "image record 2") if binary else ("line 3", "line 7")
+    with pytest.raises(ValueError, match=rf"images\.{'bin' if binary else 'txt'}: image id 3 is given twice, at "
+                                         rf"{places[0]} and at {places[1]}; give each its own id$"):
+        load_colmap(folder)
+
+    folder = write_colmap(tmp_path / "cameras", {1: pinhole, 2: pinhole}, colmap_images(quats, trans), binary)
+    if binary:  # the second record (after the count and the first record's 56 bytes) given id 1
+        data = bytearray((folder / "cameras.bin").read_bytes())
+        data[64:68] = (1).to_bytes(4, "little")
+        (folder / "cameras.bin").write_bytes(bytes(data))
+    else:
+        (folder / "cameras.txt").write_text((folder / "cameras.txt").read_text().replace("\n2 PINHOLE", "\n1 PINHOLE"))
+    places = ("camera record 0", "camera record 1") if binary else ("line 3", "line 4")
+    with pytest.raises(ValueError, match=rf"cameras\.{'bin' if binary else 'txt'}: camera id 1 is given twice, at "
+                                         rf"{places[0]} and at {places[1]}; give each its own id$"):
+        load_colmap(folder)

@@ -22,3 +22,9 @@ def test_indices_as_written_and_blank_is_every_view():
 def test_bad_entries_are_named(text, count, message):
     with pytest.raises(ValueError, match=message):
         parse_views(text, count, "--views")
+
+
+def test_a_view_given_twice_is_named_where_each_view_is_one_file():
+    assert parse_views("0,0", 3) == [0, 0]
+    with pytest.raises(ValueError, match=r"^--views: view 2 is given twice in '2, 0,2'; give each view once$"):
+        parse_views("2, 0,2", 3, "--views", distinct=True)

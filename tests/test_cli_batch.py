@@ -67,6 +67,15 @@ def test_a_bad_job_carries_its_error_and_the_others_stay(tmp_path):
         assert jobs[number - 1].out is None and jobs[number - 1].argv == ()
 
 
+def test_a_json_job_giving_one_key_twice_is_refused_naming_file_job_and_key(tmp_path):
+    """json.loads keeps the last of a key given twice; the job is refused instead, as iters and Iters are."""
+    (tmp_path / "jobs.json").write_text('[{"scene": "in.ply", "style": "s.jpg", "out": "a.ply"},\n'
+                                        ' {"scene": "in.ply", "iters": 5, "style": "s.jpg", "out": "b.ply", "iters": 9}]')
+    good, twice = load_jobs(tmp_path / "jobs.json", stylize_options())
+    assert good.error is None and good.argv == ("in.ply", "--style=s.jpg", "--out=a.ply")
+    assert twice.error == "jobs.json job 2: 'iters' is given twice; give it once" and twice.argv == ()
+
+
 def test_jobs_writing_over_their_inputs_or_each_others_outputs_are_refused_before_work(tmp_path):
     """a.ply and a.spz share a.contact.png: the second job is refused, so a resumed batch can tell the
     first job's completion by its own outputs; so is a job whose out or contact sheet is one of its inputs

@@ -24,6 +24,11 @@ def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
         load_scene(tmp_path / "scene.obj")
     with pytest.raises(ValueError, match=r"missing\.ckpt: scene file not found; expected \.ply"):
         load_scene(tmp_path / "missing.ckpt")
+    for folder in (tmp_path / "capture", tmp_path / "capture.ply"):  # a folder with any name is named as one
+        folder.mkdir()
+        with pytest.raises(ValueError, match=rf"^{folder}: scene file is a folder, not a regular file; expected \.ply "
+                                             r"\(INRIA 3DGS or compressed PLY\), \.splat, \.spz, \.ksplat or \.ckpt"):
+            load_scene(folder)
     with pytest.raises(ValueError, match=r"scene\.ckpt: cannot write scene file type '\.ckpt'; expected one of"):
         save_scene(scene, tmp_path / "scene.ckpt")
 

@@ -1,12 +1,12 @@
-"""Sample Group's and Load CSGO's checks of their inputs, made before any ComfyUI model is touched (the
-sampling itself runs in the real ComfyUI: tests/integration/test_native_path.py)."""
+"""Sample Group's, Load CSGO's and Apply CSGO's checks of their inputs, made before any ComfyUI model is touched
+(the sampling itself runs in the real ComfyUI: tests/integration/test_native_path.py)."""
 
 import pytest
 import torch
 
 from artnvg_core.grouping import ViewGroup, ViewGroups
 from nodes.diffusion_nodes import SampleGroup
-from nodes.model_patch_nodes import LoadCSGO
+from nodes.model_patch_nodes import ApplyCSGO, LoadCSGO
 from nodes.node_errors import NodeInputError
 
 GROUPS = ViewGroups((ViewGroup((0, 1)), ViewGroup((2,))), 3)
@@ -32,3 +32,10 @@ def test_load_csgo_says_where_the_file_belongs_and_where_to_get_it():
                                              r"model folder .*; get it from https://huggingface.co/InstantX/CSGO: "
                                              r"`hf download InstantX/CSGO csgo_4_32.bin`, saved as models/csgo/csgo_4_32.bin$"):
         LoadCSGO().load("csgo_4_32.bin")
+
+
+def test_apply_csgo_refuses_a_style_image_the_command_line_refuses_before_touching_a_model():
+    """The rule of artnvg_core.style_image, as stylize --style applies it; no model is given: none is read."""
+    with pytest.raises(NodeInputError, match=r"^Apply CSGO: input 'style_image': image size: 20000x2 pixels; a style "
+                                             "image may be at most 32 times as long as it is wide"):
+        ApplyCSGO().apply(None, None, None, None, torch.rand(1, 2, 20000, 3), 0.6, 1.0)

@@ -41,7 +41,25 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     assert scene_file.check("Load", "a.ply", "sub/b.ply").startswith(
         f"Load: input 'path': scene file not found: {input_folder / 'sub' / 'b.ply'}. ")
     (input_folder / "folder.ply").mkdir()
-    assert "not found" in scene_file.check("Load", "folder.ply", "")  # a folder is no scene file
+    assert "not found" in scene_file.check("Load", "folder.ply", "")  # no validate: a folder is not there to load
+    assert scene_file.check("Load", "", " ").startswith("Load: input 'scene_file': no scene file chosen. Put it into")
+
+
+def test_a_folder_chosen_as_the_scene_file_is_named_as_a_folder_with_the_formats_read(input_folder):
+    """Load Gaussian Scene before the graph runs and as it runs: the library's words (was: 'scene file not found')."""
+    from nodes.scene_nodes import LoadGaussianScene
+
+    (input_folder / "capture.ply").mkdir()
+    (input_folder / "capture").mkdir()
+    for listed, path, name, folder in [("capture.ply", "", "scene_file", input_folder / "capture.ply"),
+                                       ("x.ply", "capture", "path", input_folder / "capture")]:
+        message = (f"Load Gaussian Scene: input '{name}': {folder}: scene file is a folder, not a regular file; "
+                   "expected .ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio "
+                   "splatfacto checkpoint)")
+        assert LoadGaussianScene.check_files(scene_file=listed, path=path) == message
+        with pytest.raises(NodeInputError) as refused:
+            LoadGaussianScene().load(listed, path)
+        assert str(refused.value) == message
 
 
 @pytest.fixture

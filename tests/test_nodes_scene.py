@@ -179,6 +179,15 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
              optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)
 
 
+def test_finetune_node_refuses_a_style_image_the_command_line_refuses_before_any_work():
+    """The rule of artnvg_core.style_image, as stylize --style applies it; no scene is given: none is touched."""
+    with pytest.raises(NodeInputError, match=r"^Finetune Gaussians: input 'style_image': image size: 2x20000 pixels; "
+                                             "a style image may be at most 32 times as long as it is wide"):
+        call(FinetuneGaussians, scene=None, cameras=None, style_image=torch.rand(1, 20000, 2, 3), iterations=1,
+             optimize="appearance", l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0, content_weight=0.5,
+             tv_weight=0.1, seed=0)
+
+
 def test_finetune_node_preview_preset_is_the_cores_preview(small_bear, bear, monkeypatch):
     """preset "preview" replaces iterations, views per step and the cameras' size by the preview preset's
     (PRESETS["preview"], shortened here): the same scene as the core's finetune with those settings."""

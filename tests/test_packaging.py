@@ -1,11 +1,14 @@
 """The install files agree: requirements.txt (ComfyUI Manager, the Comfy registry) lists
 pyproject.toml's dependencies less torch, and constraints.txt pins every direct requirement at a
-version that pyproject.toml's ranges admit."""
+version that pyproject.toml's ranges admit; pyproject.toml's registry metadata follows the Comfy
+Registry's specification (docs.comfy.org/registry/specifications)."""
 
+import re
 from pathlib import Path
 
 import pytest
 from packaging.requirements import Requirement
+from packaging.specifiers import SpecifierSet
 from packaging.utils import canonicalize_name
 from packaging.version import Version
 
@@ -20,8 +23,12 @@ def _lines(name: str) -> list[str]:
     return [line for line in lines if line]
 
 
+def _pyproject() -> dict:
+    return tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
 def _project() -> dict:
-    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    return _pyproject()["project"]
 
 
 def test_requirements_txt_is_pyprojects_dependencies_less_torch():
@@ -44,3 +51,18 @@ def test_constraints_pin_every_direct_requirement_inside_its_range():
     for requirement in direct:
         assert canonicalize_name(requirement.name) in pins, f"constraints.txt does not pin {requirement.name}"
         assert requirement.specifier.contains(pins[canonicalize_name(requirement.name)], prereleases=True), requirement
+
+
+def test_registry_metadata_follows_the_comfy_registry_specification():
+    """The node id, a three-part version, the repository, the publisher, ComfyUI versions that admit the one
+    .ci/run tests with, and one OS classifier, no accelerator one (the pack runs on the CPU too)."""
+    pyproject = _pyproject()
+    project, comfy = pyproject["project"], pyproject["tool"]["comfy"]
+    name = project["name"]
+    assert len(name) < 100 and re.fullmatch(r"[A-Za-z](?:[-_.]?[A-Za-z0-9])*", name) and "comfyui" not in name.lower()
+    assert re.fullmatch(r"\d+\.\d+\.\d+", project["version"])
+    assert project["urls"]["Repository"].startswith("https://github.com/")
+    assert comfy["PublisherId"] and comfy["DisplayName"]
+    (tested,) = re.findall(r"ComfyUI-(\d+\.\d+\.\d+)\.tar\.gz", (REPO / ".ci" / "run").read_text())
+    assert SpecifierSet(comfy["requires-comfyui"]).contains(tested)
+    assert project["classifiers"] == ["Operating System :: OS Independent"]

@@ -1,6 +1,6 @@
 """The shareable workflows (UI and API format) and the queueing script, without ComfyUI.
 
-Checks that workflows/ (the folder ComfyUI's template browser reads) holds only UI workflows,
+Checks that example_workflows/ (the folder ComfyUI's template browser reads) holds only UI workflows,
 each with its thumbnail and a Note describing it, laid out without overlapping nodes; that every
 workflow references only existing node types, that links connect matching types, that widget
 values fit the inputs, and that each API file (workflows_api/) describes the same graph as its UI file. The stock ComfyUI nodes used are described in STOCK_NODES;
@@ -22,7 +22,10 @@ from nodes import NODE_CLASS_MAPPINGS
 from nodes.demo_inputs import DEMO_STYLE, demo_files
 
 REPO = Path(__file__).resolve().parents[1]
-WORKFLOWS = REPO / "workflows"
+# the folders ComfyUI (0.3.64) serves a pack's templates from; it logs a request to rename any other to
+# example_workflows, the one ComfyUI's and the Comfy Registry's docs name
+TEMPLATE_FOLDERS = ("example_workflows", "example", "examples", "workflow", "workflows")
+WORKFLOWS = REPO / "example_workflows"
 API_WORKFLOWS = REPO / "workflows_api"
 FRONTEND_ONLY = {"Note", "MarkdownNote"}  # editor-side nodes: not in the API prompt
 TITLE_HEIGHT = 30  # the editor draws a node's title bar above its pos
@@ -171,6 +174,10 @@ def test_each_workflow_comes_in_both_formats_and_the_template_folder_holds_ui_wo
     assert all("nodes" in json.loads(p.read_text()) for p in UI_FILES)  # the browser opens only UI workflows
     assert sorted(p.name for p in WORKFLOWS.iterdir()) == sorted(
         name for p in UI_FILES for name in (p.name, f"{p.stem}.jpg"))
+
+
+def test_the_templates_are_in_example_workflows_alone():
+    assert [name for name in TEMPLATE_FOLDERS if (REPO / name).exists()] == ["example_workflows"]
 
 
 @pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.stem)

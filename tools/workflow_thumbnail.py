@@ -1,6 +1,6 @@
 """Make a template thumbnail for ComfyUI's template browser from a real run of a shipped workflow.
 
-    python tools/workflow_thumbnail.py workflows/NAME.jpg --before CONTENT.png [--after STYLIZED.png] --style STYLE.jpg
+    python tools/workflow_thumbnail.py example_workflows/NAME.jpg --before CONTENT.png [--after STYLIZED.png] --style STYLE.jpg
 
 The card is SIZE x SIZE pixels: the content render on the left half and the stylized render on the
 right half (without ``--after``, the content render alone), the style image inset in the lower

@@ -61,6 +61,16 @@ class _ColmapImage:
     camera_id: int
     name: str
     record: int = 0  # its position in the file (errors name it, not its name)
+    image_id: int = 0
+
+
+def _check_new_id(places: dict[int, str], path: Path, what: str, id_: int, place: str) -> None:
+    """Keep ``place`` (e.g. "line 7") in ``places`` as where ``what`` ``id_`` (e.g. "image id" 3) is given; a
+    ValueError naming the file, the id and both places when it was given before (which the reader would
+    otherwise keep one of, silently)."""
+    earlier = places.setdefault(id_, place)
+    if earlier != place:
+        raise ValueError(f"{path}: {what} {id_} is given twice, at {earlier} and at {place}; give each its own id")
 
 
 def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
@@ -142,9 +152,10 @@ class _BinaryReader:
 def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
     with _BinaryReader(path) as reader:
         (count,) = reader.unpack("Q", "the camera count")
-        cameras = {}
+        cameras, places = {}, {}
         for index in reader.records(count, struct.calcsize("<IiQQ") + 3 * 8, "cameras"):
             camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
+            _check_new_id(places, path, "camera id", camera_id, f"camera record {index}")
             if model_id not in _COLMAP_MODELS:
                 raise ValueError(f"{path}: camera {camera_id}: unknown camera model id {model_id}")
             model, num_params = _COLMAP_MODELS[model_id]
@@ -157,13 +168,14 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
 def _read_images_bin(path: Path) -> list[_ColmapImage]:
     with _BinaryReader(path) as reader:
         (count,) = reader.unpack("Q", "the image count")
-        images = []
+        images, places = [], {}
         for index in reader.records(count, struct.calcsize("<I7dI") + 1 + 8, "images"):
             image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
+            _check_new_id(places, path, "image id", image_id, f"image record {index}")
             name = reader.c_string(f"the name of image {image_id}")
             (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
             reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
-            images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index))
+            images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index, image_id))
         reader.end(count, "images")
         return images
 
@@ -195,7 +207,7 @@ def _text_line_error(path: Path, number: int, expected: str, line: str) -> Value
 
 def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
     expected = "CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."
-    cameras = {}
+    cameras, places = {}, {}
     for number, line in _text_records(path):
         if not line:
             continue
@@ -214,6 +226,7 @@ def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
             params = tuple(float(p) for p in fields[4:])
         except ValueError:
             raise _text_line_error(path, number, expected, line) from None
+        _check_new_id(places, path, "camera id", camera_id, f"line {number}")
         cameras[camera_id] = _ColmapCamera(model, width, height, params)
     return cameras
 
@@ -224,12 +237,12 @@ def _image_line(line: str) -> _ColmapImage | None:
     if len(fields) != 10:
         return None
     try:
-        int(fields[0])
+        image_id = int(fields[0])
         numbers = [float(f) for f in fields[1:8]]
         camera_id = int(fields[8])
     except ValueError:
         return None
-    return _ColmapImage(tuple(numbers[:4]), tuple(numbers[4:]), camera_id, fields[9])
+    return _ColmapImage(tuple(numbers[:4]), tuple(numbers[4:]), camera_id, fields[9], image_id=image_id)
 
 
 def _is_points_line(line: str) -> bool:
@@ -251,7 +264,7 @@ def _read_images_txt(path: Path) -> list[_ColmapImage]:
     line straight after an image line) are read too. Anything else is an error naming the line."""
     expected = "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
     records = _text_records(path)
-    images = []
+    images, places = [], {}
     index = 0
     while index < len(records):
         number, line = records[index]
@@ -261,6 +274,7 @@ def _read_images_txt(path: Path) -> list[_ColmapImage]:
         image = _image_line(line)
         if image is None:
             raise _text_line_error(path, number, expected, line)
+        _check_new_id(places, path, "image id", image.image_id, f"line {number}")
         image.record = len(images)
         images.append(image)
         if index < len(records) and (not records[index][1] or _is_points_line(records[index][1])):
@@ -308,7 +322,7 @@ def load_colmap(path) -> CameraSet:
     ``images/`` folder one or two levels above the model folder (else None).
 
     Raises ValueError for a missing model, malformed or truncated files,
-    unsupported models, unknown camera ids or mixed image sizes.
+    unsupported models, unknown or repeated camera or image ids, or mixed image sizes.
     """
     path = Path(path)
     found = find_colmap_model(path)

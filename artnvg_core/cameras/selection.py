@@ -2,17 +2,18 @@
 ``--views`` and the nodes' view inputs.
 
 Grammar: view indices in file order, separated by commas (or semicolons), e.g. ``0, 5, 9``; each in
-``0..count-1``; repeats and any order are kept as written. Blank text (or None, or separators
-alone) means every view.
+``0..count-1``; repeats (unless refused: a view rendered to a file of its own) and any order are kept as
+written. Blank text (or None, or separators alone) means every view.
 """
 
 from __future__ import annotations
 
 
-def parse_views(text: str | None, count: int, what: str | None = None) -> list[int]:
+def parse_views(text: str | None, count: int, what: str | None = None, *, distinct: bool = False) -> list[int]:
     """Indices from ``text`` (the module's grammar) for a set of ``count`` views: every view when blank.
 
-    Raises ValueError naming the offending entry, after ``what:`` (an option's name) when given.
+    Raises ValueError naming the offending entry, after ``what:`` (an option's name) when given; with
+    ``distinct``, also naming a view given twice.
     """
     where = f"{what}: " if what else ""
     indices = []
@@ -27,5 +28,7 @@ def parse_views(text: str | None, count: int, what: str | None = None) -> list[i
                              f"in {text!r}") from None
         if not 0 <= index < count:
             raise ValueError(f"{where}view index {index} is out of range for {count} cameras (0..{count - 1})")
+        if distinct and index in indices:
+            raise ValueError(f"{where}view {index} is given twice in {text!r}; give each view once")
         indices.append(index)
     return indices or list(range(count))

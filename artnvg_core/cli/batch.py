@@ -83,8 +83,19 @@ class JobResult:
     peak_gib: float | None = None
 
 
+class JsonObject(dict):
+    """A JSON object as :func:`read_jobs` reads it: a dict, and ``twice``, the first key it gives more than
+    once (None when none), which a dict alone would hide (it keeps the last value)."""
+
+    def __init__(self, pairs: list[tuple[str, object]]):
+        super().__init__(pairs)
+        keys = [key for key, _ in pairs]
+        self.twice = next((key for index, key in enumerate(keys) if key in keys[:index]), None)
+
+
 def read_jobs(path: str | os.PathLike) -> list:
-    """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell).
+    """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell; JSON:
+    :class:`JsonObject`).
 
     ValueError naming the file when it cannot be read (missing, a folder, not UTF-8) or is not a JSON list
     or a CSV table with a header; an entry that is not an object is returned as it is (its job fails alone)."""
@@ -110,13 +121,13 @@ def read_jobs(path: str | os.PathLike) -> list:
         entries = rows
     else:
         try:
-            entries = json.loads(text)
+            entries = json.loads(text, object_pairs_hook=JsonObject)
         except json.JSONDecodeError as error:
             raise ValueError(f"{path}: not valid JSON ({error}); expected a list of jobs, e.g. "
                              '[{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}], or a .csv file') from None
         if not isinstance(entries, list):
             raise ValueError(f"{path}: expected a JSON list of jobs (objects of stylize options), "
-                             f"got a {type(entries).__name__}")
+                             f"got a {'dict' if isinstance(entries, dict) else type(entries).__name__}")
     if not entries:
         raise ValueError(f"{path}: no jobs")
     return entries
@@ -125,9 +136,11 @@ def read_jobs(path: str | os.PathLike) -> list:
 def job_arguments(entry, options: dict[str, argparse.Action], label: str) -> list[str]:
     """``stylize``'s command-line arguments for one entry of JOBS (``options``: stylize's actions by option
     string). ValueError starting with ``label`` for an unknown option, one the batch decides, one named twice
-    (``iters`` and ``Iters``), a bad flag value or a missing ``out``."""
+    (``iters`` twice, or ``iters`` and ``Iters``), a bad flag value or a missing ``out``."""
     if not isinstance(entry, dict):
         raise ValueError(f"{label}: expected an object of stylize options, got {json.dumps(entry)[:80]}")
+    if getattr(entry, "twice", None) is not None:  # a dict keeps one of its values: refused, not chosen for the user
+        raise ValueError(f"{label}: '{entry.twice}' is given twice; give it once")
     names = [str(key).strip().lower().replace("_", "-") for key in entry]
     repeated = [f"'{key}'" for key, name in zip(entry, names) if names.count(name) > 1]
     if repeated:

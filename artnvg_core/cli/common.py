@@ -196,28 +196,15 @@ def is_out_of_memory(error: BaseException) -> bool:
         isinstance(error, RuntimeError) and "can't allocate memory" in str(error))
 
 
-# A style image may be at most this many times as long as it is wide: the finetune sizes it to the long
-# side of the renders its VGG sees (128 px for the bundled demo), and its relu3 features, two 2x poolings
-# down, need it 4 px across there.
-MAX_STYLE_ASPECT = 32
-
-
-def check_style_image(path: str | os.PathLike, option: str = "--style") -> tuple[int, int]:
-    """(width, height) of the style image at ``path`` from its header, before any work: ValueError naming
-    ``option`` and ``path`` for a file that is missing, not a regular file or not an image, one over the
-    pixel budget (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`), or one longer than :data:`MAX_STYLE_ASPECT`
-    times its width."""
-    from ..fileio import image_size
+def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.Tensor:
+    """:func:`artnvg_core.style_image.read_style_image` (the image checked and decoded before any other work: a
+    scene's load, a model's), its ValueError naming ``option``."""
+    from ..style_image import read_style_image as read
 
     try:
-        width, height = image_size(path)
+        return read(path)
     except ValueError as error:
         raise ValueError(f"{option}: {error}") from None
-    if max(width, height) > MAX_STYLE_ASPECT * min(width, height):
-        raise ValueError(f"{option}: {path}: image size: {width}x{height} pixels; a style image may be at most "
-                         f"{MAX_STYLE_ASPECT} times as long as it is wide (its features are matched at the "
-                         "renders' size); crop it")
-    return width, height
 
 
 SCENE_FILES = ".ply (INRIA or compressed), .splat, .spz, .ksplat or splatfacto .ckpt"
@@ -229,7 +216,7 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
     from ..formats import SPZ_AXES, SPZ_VERSIONS
 
     parser.add_argument("--drop-invalid", action="store_true",
-                        help="drop Gaussians with non-finite values or zero rotations from the scene (with a "
+                        help="drop Gaussians with non-finite values or zero quaternions from the scene (with a "
                         "warning) instead of refusing the file")
     parser.add_argument("--spz-axes", choices=SPZ_AXES, default="auto",
                         help=f"axes of a .spz scene{written} that names none of its own: ply, the PLY's (x right, "

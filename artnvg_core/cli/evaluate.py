@@ -43,6 +43,7 @@ from .common import (
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, load_image, resize_image, write_atomically, written_together
+from ..formats import check_scene_path
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
 from ..raster.views import render_views
@@ -251,6 +252,9 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     files = output_files(args.out)
     if args.long_step < 1:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
+    for scene in (args.original, args.stylized):  # e.g. a folder: named before the first scene loads and renders
+        if scene:
+            check_scene_path(scene)
     all_cameras = load_cameras(args.cameras) if args.cameras else None
     style = load_image(args.style)
     original_scene = load_scene_verbose(args.original, device, cameras=all_cameras)

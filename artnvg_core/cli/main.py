@@ -38,6 +38,7 @@ from .stylize import add_stylize_arguments
 def cmd_render(args: argparse.Namespace) -> None:
     from ..cameras import load_cameras
     from ..fileio import check_output_folder, check_output_name, refuse_overwrites, save_png, sweep_temporaries
+    from ..formats import check_scene_path
     from ..raster import render
     from ..raster.views import check_render_plan
 
@@ -49,18 +50,20 @@ def cmd_render(args: argparse.Namespace) -> None:
                          "it (PNGs of the same views are replaced)")
 
     def chosen(cameras):
-        cameras = cameras.subset(parse_views(args.views, len(cameras), "--views")).scaled(args.scale)
+        cameras = cameras.subset(parse_views(args.views, len(cameras), "--views", distinct=True)).scaled(args.scale)
         check_render_plan(len(cameras), cameras.width, cameras.height, kept=1, what="--scale")
         for index, name in enumerate(cameras.names):
             check_output_name(out_dir / f"{name}.png", f"--out (the PNG of view {index})")
         return cameras
 
+    check_scene_path(args.scene)
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
     cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
-    if cameras is None:  # the views made from the scene: their size checked before it loads
+    if cameras is None:  # the views made from the scene: their choice and size checked before it loads
+        parse_views(args.views, args.orbit_views, "--views", distinct=True)
         width, height = (max(1, round(side * args.scale)) for side in args.orbit_size)
         check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,

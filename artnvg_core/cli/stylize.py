@@ -27,7 +27,6 @@ from .common import (
     ProgressBar,
     add_camera_arguments,
     add_scene_file_options,
-    check_style_image,
     integer_at_least,
     load_scene_verbose,
     orbit_from_args,
@@ -35,6 +34,7 @@ from .common import (
     parse_devices,
     positive_number,
     prepare_rasterizer,
+    read_style_image,
     unit_interval,
 )
 from .region import add_region_arguments, check_region_arguments, selection_from_args
@@ -45,8 +45,8 @@ SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that re
 def cmd_stylize(args: argparse.Namespace) -> None:
     # every check that needs no model comes before the diffusion libraries are imported (seconds)
     from ..cameras import load_cameras
-    from ..fileio import check_output_file, load_image, refuse_overwrites
-    from ..formats import check_geometry_writable, writable_scene_path
+    from ..fileio import check_output_file, refuse_overwrites
+    from ..formats import check_geometry_writable, check_scene_path, writable_scene_path
     from ..stylize import DemoInputs, sheet_path
 
     given = [args.scene, args.style]
@@ -68,7 +68,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     sheet = check_output_file(sheet_path(out), "--out (its contact sheet)")
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])
-    check_style_image(args.style)
+    style = read_style_image(args.style)  # decoded now: a truncated file is named before the scene loads
+    check_scene_path(args.scene)  # e.g. a folder: named before the models load
     check_region_arguments(args, cameras_required=False)
     if args.lora and (diffusion_free or args.stylizer == "nnfm"):
         raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
@@ -102,7 +103,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                          f"{out.suffix} cannot hold it: choose .ply") from None
     cameras = capture_cameras if capture_cameras is not None else orbit_from_args(args, scene)
     cameras = cameras.scaled(scale)
-    style = load_image(args.style)
     selection = selection_from_args(args, scene, cameras)
 
     from ..diffusion.loader import DiffusionModelsUnavailable

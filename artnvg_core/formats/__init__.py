@@ -44,20 +44,29 @@ def _check_option(name: str, value, allowed: tuple) -> None:
         raise ValueError(f"{name}: expected one of {', '.join(map(str, allowed))}, got {value!r}")
 
 
-def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
-               cameras: CameraSet | None = None) -> GaussianScene:
-    """Read a Gaussian scene, the reader chosen by the file's extension (any case). ``spz_axes``: the axes
-    of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that puts the scene in
-    front of ``cameras`` when given, else the PLY's axes, as most writers store them; :mod:`.spz`)."""
+def check_scene_path(path: str | os.PathLike) -> Path:
+    """``path`` as a scene file :func:`load_scene` reads, checked before any work: ValueError naming it, and
+    the formats read, when it is missing, a folder or another file that is not a regular one, or of a type
+    no reader knows (by its extension, any case)."""
     path = Path(path)
-    reader = READERS.get(path.suffix.lower())
-    _check_option("spz_axes", spz_axes, SPZ_AXES)
-    if reader is None:
-        raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
     try:
         require_regular_file(path, "scene file")
     except ValueError as error:
         raise ValueError(f"{error}; expected {_DESCRIBED}") from None
+    if path.suffix.lower() not in READERS:
+        raise ValueError(f"{path}: unsupported scene file type {path.suffix!r}; expected {_DESCRIBED}")
+    return path
+
+
+def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
+               cameras: CameraSet | None = None) -> GaussianScene:
+    """Read a Gaussian scene, the reader chosen by the file's extension (any case; :func:`check_scene_path`).
+    ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
+    puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
+    :mod:`.spz`)."""
+    _check_option("spz_axes", spz_axes, SPZ_AXES)
+    path = check_scene_path(path)
+    reader = READERS[path.suffix.lower()]
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras)
     return reader(path, drop_invalid=drop_invalid)

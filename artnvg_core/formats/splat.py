@@ -79,8 +79,7 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     if bad.any() and not drop_invalid:
         problem = "have a scale that is not a positive finite number"
         raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; {DROP_INVALID_HINT}")
-    rotation = records["rotation"].astype(np.float64) - 128
-    rotation[~rotation.any(1)] = np.nan  # a zero quaternion is invalid, reported by validation
+    rotation = records["rotation"].astype(np.float64) - 128  # all 128: the zero quaternion, refused by validation
     with np.errstate(divide="ignore", invalid="ignore"):
         log_scales = np.log(scales)
     sh, opacity_logits = colour_and_opacity(records["rgba"])

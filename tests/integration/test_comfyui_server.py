@@ -272,3 +272,22 @@ def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_s
     summary = queue.run_summary(entry)
     assert summary["status"] == "error"
     assert "Load Gaussian Scene: input 'scene_file'" in summary["error"] and str(broken) in summary["error"]
+
+
+def test_a_folder_as_the_scene_file_fails_validation_naming_it_as_a_folder(comfy_server):
+    with pytest.raises(queue.RejectedError) as rejected:
+        queue.queue_prompt(comfy_server.url, _workflow(comfy_server, f"Load Gaussian Scene.path={comfy_server.test_folder}"))
+    (error,) = rejected.value.details["node_errors"]["1"]["errors"]
+    folder = comfy_server.input_dir / comfy_server.test_folder
+    assert (f"input 'path': {folder}: scene file is a folder, not a regular file; expected .ply (INRIA 3DGS or "
+            "compressed PLY)") in error["details"], error
+
+
+def test_a_style_image_the_command_line_refuses_stops_finetune_gaussians_at_its_start(comfy_server):
+    from PIL import Image
+
+    Image.new("RGB", (20000, 2), (200, 30, 30)).save(comfy_server.input_dir / comfy_server.test_folder / "line.png")
+    entry, _ = _run(comfy_server, _workflow(comfy_server, f"Style image.image={comfy_server.test_folder}/line.png"))
+    summary = queue.run_summary(entry)
+    assert summary["status"] == "error" and ("Finetune Gaussians: input 'style_image': image size: 20000x2 pixels; a "
+                                             "style image may be at most 32 times as long as it is wide") in summary["error"]

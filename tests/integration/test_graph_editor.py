@@ -21,11 +21,9 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from test_workflows import api_twin
+from test_workflows import UI_FILES, api_twin
 from ws_client import WebSocket
 
-REPO = Path(__file__).resolve().parents[2]
-UI_WORKFLOWS = sorted((REPO / "workflows").glob("*.json"))
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 UNTIL = """
@@ -200,7 +198,7 @@ def _declared_inputs_only(prompt: dict, server) -> dict:
             for node_id, node in prompt.items()}
 
 
-@pytest.mark.parametrize("path", UI_WORKFLOWS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.stem)
 def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots, path):
     workflow = json.loads(path.read_text())
     _close_dialogs(editor)
@@ -269,13 +267,13 @@ OPEN_CARD = """
 def test_template_browser_shows_each_workflow_with_thumbnail_and_description_and_opens_it(
         editor, comfy_server, screenshots):
     served = _json(f"{comfy_server.url}/workflow_templates")
-    assert sorted(served[comfy_server.pack]) == [p.stem for p in UI_WORKFLOWS]  # the API twins are not cards
-    for path in UI_WORKFLOWS:
+    assert sorted(served[comfy_server.pack]) == [p.stem for p in UI_FILES]  # the API twins are not cards
+    for path in UI_FILES:
         with urllib.request.urlopen(f"{comfy_server.url}/api/workflow_templates/{comfy_server.pack}/{path.stem}.jpg",
                                     timeout=10) as response:
             assert response.headers["Content-Type"] == "image/jpeg" and response.read()[:2] == b"\xff\xd8"
     _close_dialogs(editor)
-    names = [p.stem for p in UI_WORKFLOWS]
+    names = [p.stem for p in UI_FILES]
     browsed = editor.evaluate(BROWSE % (UNTIL, json.dumps(comfy_server.pack), json.dumps(names)))
     _screenshot(editor, screenshots / "template_browser.png")
     assert "cards" in browsed, f"no '{comfy_server.pack}' category in the template browser: {browsed}"
@@ -284,7 +282,7 @@ def test_template_browser_shows_each_workflow_with_thumbnail_and_description_and
     for card in cards:
         assert card["name"] in card["text"] or card["name"].replace("_", " ") in card["text"]  # name or description
         assert card["thumbnails"] and all(width > 0 for width in card["thumbnails"]), card["name"]
-    for path in UI_WORKFLOWS:
+    for path in UI_FILES:
         if editor.evaluate("!document.querySelector('[data-testid^=\"template-workflow-\"]')"):
             editor.evaluate(BROWSE % (UNTIL, json.dumps(comfy_server.pack), json.dumps(names)))
         types = sorted(n["type"] for n in json.loads(path.read_text())["nodes"])
@@ -314,7 +312,7 @@ def _history_count(server) -> int:
 
 
 def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file(editor, comfy_server, screenshots):
-    full = next(p for p in UI_WORKFLOWS if "full_method" in p.stem)
+    full = next(p for p in UI_FILES if "full_method" in p.stem)
     workflow = json.loads(full.read_text())
     files = [m["name"] for m in workflow["models"]]
     runs = _history_count(comfy_server)
@@ -344,7 +342,7 @@ def test_quick_start_runs_from_the_editor_on_a_fresh_install(editor, comfy_serve
     and the file Save Gaussian Scene wrote stays in view after the run (Preview Any: a UI output), and
     reaches Preview 3D with the camera that frames the scene's bulk."""
     assert "ArtNVG: put the demo inputs of the shipped workflows into" in comfy_server.log.read_text()
-    quick = next(p for p in UI_WORKFLOWS if "quick_start" in p.stem)
+    quick = next(p for p in UI_FILES if "quick_start" in p.stem)
     workflow = json.loads(quick.read_text())
     save, shown_by, preview = (next(n["id"] for n in workflow["nodes"] if n["type"] == kind)
                                for kind in ("ArtNVGSaveGaussianScene", "PreviewAny", "Preview3D"))

@@ -1,0 +1,27 @@
+"""stylize's checks of its style image, made before the scene loads (its runs: tests/test_cli_main.py)."""
+
+import re
+
+import pytest
+
+from artnvg_core.stylize import DemoInputs
+from tests.test_cli_main import _small_scene, _stylize
+
+
+@pytest.mark.parametrize("name, message", [
+    ("line.png", r"image size: 80000x1 pixels; a style image may be at most 32 times as long as it is wide \(its "
+     r"features are matched at the renders' size\); crop it"),
+    ("cut.jpg", r"not a readable image \(image file is truncated \(\d+ bytes not processed\)\)")])
+def test_a_style_image_too_long_for_its_width_or_truncated_is_refused_before_loading(tmp_path, capsys, name, message):
+    """80000x1 pixels (318 bytes) once passed every check and asked 10.8 GB for the contact sheet after the work; a
+    truncated JPEG, whose header reads, was found only after the scene loaded."""
+    from PIL import Image
+
+    if name == "line.png":
+        Image.new("RGB", (80000, 1), (200, 30, 30)).save(tmp_path / name)
+    else:
+        (tmp_path / name).write_bytes(DemoInputs().style.read_bytes()[:5000])
+    assert _stylize(_small_scene(tmp_path), tmp_path / name, tmp_path / "out.ply") == 2
+    captured = capsys.readouterr()
+    assert re.fullmatch(re.escape(f"error: --style: {tmp_path / name}: ") + message + "\n", captured.err), captured
+    assert "loading" not in captured.out
