@@ -1,7 +1,7 @@
 """Rasterizer benchmark: time, memory and accuracy of each backend.
 
     python bench/raster.py [--device cpu|cuda] [--sizes 512,1024] [--counts 100000,1000000]
-                           [--stages 1000000] [--first-use]
+                           [--stages 1000000] [--first-use] [--rounds 20]
 
 Speed: forward and forward+backward time per frame (median of 5 after 1 warm-up,
 synchronised on CUDA) and peak CUDA memory, on random scenes viewed from an orbit, for the
@@ -11,6 +11,9 @@ Accuracy: each backend against the float64 brute-force evaluator (tests/raster_r
 on a small random scene, max abs error and PSNR of the images.
 ``--stages N``: where the triton backend's time goes for N Gaussians at the largest size (the
 fused projection + colours against the reference ones, tile lists, compositing; each timed alone).
+``--rounds N``: the Triton paths against gsplat fused (CUDA, forward+backward, the largest size), alternating
+N rounds (each a median of 5 after 1 warm-up, the paths' order rotating): the run-to-run spread of a frame of a
+few milliseconds is larger than the gaps between the paths, so the ratio is taken within each round.
 ``--first-use``: each step of the first Triton render (forward+backward: projection, tile lists,
 compositing, backward kernels) in a fresh process with an empty Triton cache, then of the second (CUDA).
 """
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import statistics
 import sys
 from pathlib import Path
 
@@ -41,6 +45,42 @@ def backends_for(device: torch.device) -> list[str]:
     return ["torch", "triton"] + (["gsplat"] if gsplat_available() else [])
 
 
+def render_paths(scene, camera, backends):
+    """{path name: render closure (a scene -> rgb [1, H, W, 3])}: ``backends`` through ``render()``, triton as the
+    finetune renders, gsplat fused where installed (CUDA)."""
+    paths = {name: (lambda s, name=name: render(s, camera, backend=name).rgb) for name in backends}
+    if "triton" in paths:
+        paths["triton, as the finetune renders"] = finetune_render(scene, camera)
+    if camera.world_to_cam.device.type == "cuda" and gsplat_available():
+        paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
+    return paths
+
+
+def paired_rows(device, size, counts, rounds):
+    """Forward+backward ms of the Triton paths and gsplat fused, alternating ``rounds`` rounds (each path a median
+    of 5 after 1 warm-up per round, the order rotating): per path the median, min and max over the rounds, and its
+    ratio to fused within each round (median, max, and the rounds it was at or under fused)."""
+    rows = []
+    for count in counts:
+        scene = random_scene(count, device=device)
+        trainable = GaussianScene(**{k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()})
+        paths = render_paths(scene, orbit_cameras(1, size).to(device), ["triton"])
+        if "gsplat fused" not in paths:
+            raise SystemExit("--rounds compares with gsplat fused: it needs CUDA and gsplat")
+        names = list(paths)
+        times = {name: [] for name in names}
+        for r in range(rounds):
+            for name in names[r % len(names):] + names[:r % len(names)]:
+                times[name].append(timed(lambda: paths[name](trainable).sum().backward(), device, repeats=5, warmup=1))
+        for name in names:
+            ratios = [t / f for t, f in zip(times[name], times["gsplat fused"])]
+            rows.append([name, f"{count:,}", f"{size}x{size}", rounds, statistics.median(times[name]) * 1e3,
+                         min(times[name]) * 1e3, max(times[name]) * 1e3, statistics.median(ratios), max(ratios),
+                         f"{sum(x <= 1 for x in ratios)}/{rounds}"])
+            print(rows[-1], flush=True)
+    return rows
+
+
 def speed_rows(device, sizes, counts):
     rows = []
     for count in counts:
@@ -49,11 +89,7 @@ def speed_rows(device, sizes, counts):
         trainable = GaussianScene(**params)
         for size in sizes:
             camera = orbit_cameras(1, size).to(device)
-            paths = {name: (lambda s, name=name: render(s, camera, backend=name).rgb) for name in backends_for(device)}
-            if "triton" in paths:
-                paths["triton, as the finetune renders"] = finetune_render(scene, camera)
-            if device.type == "cuda" and gsplat_available():
-                paths["gsplat fused"] = lambda s: fused_render(s, camera)[0]
+            paths = render_paths(scene, camera, backends_for(device))
             for backend, run in paths.items():
                 def forward(run=run):
                     with torch.no_grad():
@@ -197,6 +233,8 @@ def main() -> None:
     parser.add_argument("--counts", default="100000,1000000")
     parser.add_argument("--stages", type=int, default=0, help="Gaussians of the stage breakdown (0: none)")
     parser.add_argument("--first-use", action="store_true", help="time the first Triton render (CUDA)")
+    parser.add_argument("--rounds", type=int, default=0,
+                        help="alternate the Triton paths and gsplat fused this many rounds (CUDA; 0: not)")
     args = parser.parse_args()
     device = torch.device(args.device)
     sizes = [int(s) for s in args.sizes.split(",")]
@@ -206,12 +244,17 @@ def main() -> None:
     accuracy = accuracy_rows(device)
     stages = stage_rows(device, args.stages, max(sizes)) if args.stages else []
     speed = speed_rows(device, sizes, counts) if counts else []
+    paired = paired_rows(device, max(sizes), counts, args.rounds) if args.rounds else []
     print_table("Rasterizer accuracy against the float64 brute-force evaluator",
                 ["backend", "device", "Gaussians", "size", "max abs error", "PSNR dB"], accuracy, command)
     if speed:
         print_table("Rasterizer speed per frame",
                     ["backend", "device", "Gaussians", "size", "forward ms", "fwd+bwd ms", "peak GiB fwd",
                      "peak GiB fwd+bwd"], speed, command)
+    if paired:
+        print_table(f"Forward+backward, {args.rounds} alternating rounds",
+                    ["path", "Gaussians", "size", "rounds", "median ms", "min ms", "max ms", "ratio to fused (median)",
+                     "ratio (max)", "rounds at or under fused"], paired, command)
     if stages:
         print_table("Triton backend: time per stage (each timed alone)",
                     ["stage", "Gaussians", "size", "forward ms", "fwd+bwd ms"], stages, command)
