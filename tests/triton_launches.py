@@ -1,8 +1,9 @@
-"""Triton launches as a compilation sees them: what Triton specializes a kernel on (for the interpreter's
-kernels, which take the same arguments as compiled ones), and the launches a test makes, recorded."""
+"""Triton launches as a compilation sees them: what Triton specializes a kernel on (interpreted in Triton's CPU
+interpreter or compiled for a GPU: the same arguments either way), and the launches a test makes, recorded."""
 
 import torch
 from triton.runtime.interpreter import InterpretedFunction
+from triton.runtime.jit import JITFunction
 
 
 def _argument(value, specialize: bool):
@@ -20,9 +21,16 @@ def _argument(value, specialize: bool):
     raise TypeError(f"no specialization known for {value!r}")
 
 
-def specialization(kernel: InterpretedFunction, args: tuple, kwargs: dict) -> tuple:
+def _unspecialized(kernel: InterpretedFunction | JITFunction) -> set[str]:
+    """The names of the arguments ``kernel`` is told not to specialize on (``do_not_specialize``: names or
+    positions)."""
+    given = kernel.kwargs.get("do_not_specialize") if isinstance(kernel, InterpretedFunction) else kernel.do_not_specialize
+    return {kernel.arg_names[n] if isinstance(n, int) else n for n in given or ()}
+
+
+def specialization(kernel: InterpretedFunction | JITFunction, args: tuple, kwargs: dict) -> tuple:
     """What Triton compiles ``kernel`` launched with ``args`` and ``kwargs`` (constants, warps) for."""
-    unspecialized = set(kernel.kwargs.get("do_not_specialize") or ())
+    unspecialized = _unspecialized(kernel)
     arguments = tuple(_argument(value, name not in unspecialized) for name, value in zip(kernel.arg_names, args))
     assert len(args) == len([name for name in kernel.arg_names if name not in kwargs]), "every argument given"
     return f"{kernel.fn.__module__}.{kernel.fn.__name__}", arguments, tuple(sorted(kwargs.items()))
@@ -33,14 +41,20 @@ def warmed(warmups) -> set:
     return {specialization(w.kernel, w.args, w.kwargs) for w in warmups}
 
 
-def record_launches(monkeypatch) -> set:
-    """The specializations of every Triton launch made from now on (in the test), filled as they are made."""
-    launched = set()
-    run = InterpretedFunction.run
-
+def _recording(run, launched: set):
+    """``run`` (a kernel class's launch) that first adds each launch's specialization to ``launched``."""
     def recording(self, *args, grid, warmup, **kwargs):
-        launched.add(specialization(self, args, kwargs))
+        if not warmup:
+            launched.add(specialization(self, args, kwargs))
         return run(self, *args, grid=grid, warmup=warmup, **kwargs)
 
-    monkeypatch.setattr(InterpretedFunction, "run", recording)
+    return recording
+
+
+def record_launches(monkeypatch) -> set:
+    """The specializations of every Triton launch made from now on (in the test; interpreted or compiled, not
+    the warm-ups' compilations), filled as they are made."""
+    launched = set()
+    for kind in (InterpretedFunction, JITFunction):
+        monkeypatch.setattr(kind, "run", _recording(kind.run, launched))
     return launched
