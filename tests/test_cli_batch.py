@@ -14,6 +14,7 @@ from artnvg_core.cli.batch import Job, expected_work, load_jobs, output_complete
 from artnvg_core.formats import load_scene, save_scene
 from artnvg_core.presets import PRESETS
 from artnvg_core.stylize import DemoInputs, sheet_path
+from child_process import child_env
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import write_model_files
 from ray_workers import TINY_FAST
@@ -193,7 +194,7 @@ def test_sigterm_stops_a_batch_as_ctrl_c_does(tmp_path):
 
     jobs = _write_jobs(tmp_path / "jobs.json", [{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}])
     result = subprocess.run([sys.executable, "-c", SIGTERM_DURING_A_BATCH, str(jobs)], capture_output=True, text=True,
-                            timeout=120, env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(Path(__file__).parents[1]))
+                            timeout=120, env=child_env(), cwd=str(Path(__file__).parents[1]))
     assert result.returncode == 143, (result.returncode, result.stderr[-2000:])
     assert "summary: 0 done, 1 cancelled" in result.stdout and "Traceback" not in result.stderr
 

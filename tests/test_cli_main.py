@@ -8,6 +8,7 @@ from artnvg_core.cli.main import main
 from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene, write_ply
 from artnvg_core.stylize import DemoInputs
+from child_process import child_env
 
 
 def test_render_reports_loading_and_each_view(tmp_path, capsys):
@@ -338,7 +339,7 @@ def test_stylize_refuses_a_bad_out_before_importing_the_diffusion_libraries(tmp_
             f"'--out', {str(tmp_path / 'out.txt')!r}]); "
             "print(status, sorted(m for m in ('diffusers', 'transformers') if m in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+                            env=child_env(), cwd=str(DemoInputs().scene.parents[2]))
     assert result.stdout.split("\n")[0] == "2 []" and "cannot write scene file type '.txt'" in result.stderr
 
 
@@ -357,7 +358,7 @@ def test_stylize_keeps_peft_out_of_a_process_without_a_lora(tmp_path):
             f"main({stylize}], whole_process=True); import diffusers.utils.import_utils as u; "
             "print(u.is_peft_available(), importlib.util.find_spec('peft'))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+                            env=child_env(), cwd=str(DemoInputs().scene.parents[2]))
     assert result.stdout.split("\n")[:2] == ["True", "False None"]
 
 
@@ -371,7 +372,7 @@ def test_the_process_ends_with_its_exit_handlers_run_and_streams_flushed(tmp_pat
             f"atexit.register(lambda: pathlib.Path({str(tmp_path / 'ran')!r}).write_text('yes')); "
             "sys.stdout.write('no newline, not flushed'); sys.stderr.write('err'); exit_without_teardown(3)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            env={"OMP_NUM_THREADS": "1", "PATH": ""}, cwd=str(DemoInputs().scene.parents[2]))
+                            env=child_env(), cwd=str(DemoInputs().scene.parents[2]))
     assert result.returncode == 3 and result.stdout == "no newline, not flushed" and result.stderr == "err"
     assert (tmp_path / "ran").read_text() == "yes"
 

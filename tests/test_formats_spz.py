@@ -19,6 +19,7 @@ import zstandard
 from artnvg_core.formats import spz
 from artnvg_core.formats.spz import read_spz, write_spz
 from artnvg_core.raster.sh import sh_to_color
+from child_process import child_env
 from tests.test_formats_splat import assert_only_value_errors, plain_scene, quat_error
 
 FLIP = torch.tensor([1.0, -1, -1])  # RDF <-> RUB
@@ -283,7 +284,7 @@ def test_a_decompression_bomb_is_refused_quickly_in_little_memory(tmp_path, vers
     assert path.stat().st_size < 2.2e6
     root = Path(__file__).resolve().parents[1]
     result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
-                            text=True, check=True, env={"OMP_NUM_THREADS": "1", "PATH": ""})
+                            text=True, check=True, env=child_env())
     report = json.loads(result.stdout)
     assert report["message"] is not None and re.search(expected, report["message"]), report
     assert report["seconds"] < 2 and report["peak"] < 2**30 and report["growth"] < 2**26, report
@@ -306,7 +307,7 @@ def test_a_header_count_beyond_the_inflation_cap_is_refused_before_inflating(tmp
     size = path.stat().st_size
     root = Path(__file__).resolve().parents[1]
     result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
-                            text=True, check=True, env={"OMP_NUM_THREADS": "1", "PATH": ""})
+                            text=True, check=True, env=child_env())
     report = json.loads(result.stdout)
     expected = (rf"claims\.spz: numPoints: {count} Gaussians of SH degree 0: needs {20 * count:,} bytes inflated "
                 rf"from a {size:,}-byte file, more than the cap of 64x the file's size \({max(64 * size, 2**24):,} bytes\)")
