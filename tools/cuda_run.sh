@@ -33,11 +33,11 @@ timeout 300 python3 -m artnvg_core render artnvg_core/demo/bear.ply --cameras ar
 echo "first render (Triton's JIT compilation included): exit $?, $(( $(date +%s) - start )) s" | tee -a "$OUT/first_render.txt"
 grep -E "gsplat|triton|rendering|\[1/1\]" "$OUT/first_render.txt"
 
-timeout 240 python3 -m pytest -p no:cacheprovider -q -rA tests/test_raster_triton.py > "$OUT/triton_tests.txt" 2>&1
+timeout 240 python3 -m pytest -p no:cacheprovider -rA tests/test_raster_triton.py > "$OUT/triton_tests.txt" 2>&1
 echo "triton tests (compiled on the GPU): exit $?"
 grep -E "passed|failed" "$OUT/triton_tests.txt" | tail -3
 
-timeout 240 python3 -m pytest -m cuda -p no:cacheprovider -q -rA --junitxml="$OUT/cuda_tests.xml" tests \
+timeout 240 python3 -m pytest -m cuda -p no:cacheprovider -rA --junitxml="$OUT/cuda_tests.xml" tests \
     > "$OUT/cuda_tests.txt" 2>&1
 echo "cuda tests: exit $?"
 grep -E "^(PASSED|FAILED|ERROR|SKIPPED)|passed|failed" "$OUT/cuda_tests.txt" | tail -40
