@@ -17,7 +17,7 @@ declared ranges and choices before anything runs (``prompt_checks``), and
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from artnvg_core.style_image import check_style_size
 
@@ -56,9 +56,10 @@ class ArtNVGNode:
         cls.DESCRIPTION = plain_text(vars(cls).get("DESCRIPTION") or cls.__doc__ or "")
 
     @classmethod
-    def check_values(cls, **values) -> str | None:
-        """The message naming the first of ``values`` (input name -> a prompt's value; links left out) outside
-        its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, else None."""
+    def _value_problems(cls, values: dict) -> Iterator[tuple[str, bool]]:
+        """(message, whether ComfyUI's own validation reports it too) for each of ``values`` (input name -> a
+        prompt's value; links left out) outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
+        or choices."""
         declared = {**cls.REQUIRED, **cls.OPTIONAL}
         for name, value in values.items():
             entry = declared.get(name)
@@ -66,15 +67,28 @@ class ArtNVGNode:
                 continue
             kind, options = (*entry, {})[:2]
             if isinstance(kind, (list, tuple)) and value not in kind:  # choices, as a list or a tuple
-                return f"{cls.DISPLAY_NAME}: input '{name}': expected one of {list(kind)}, got {value!r}"
+                yield f"{cls.DISPLAY_NAME}: input '{name}': expected one of {list(kind)}, got {value!r}", True
+                continue
             if kind not in ("INT", "FLOAT") or isinstance(value, bool) or not isinstance(value, (int, float)):
                 continue
-            if not math.isfinite(value):
-                return f"{cls.DISPLAY_NAME}: input '{name}': expected a finite number, got {value}"
-            if value < options.get("min", -math.inf) or value > options.get("max", math.inf):
-                return (f"{cls.DISPLAY_NAME}: input '{name}': {value} is outside {options.get('min', '-inf')} to "
-                        f"{options.get('max', 'inf')}")
-        return None
+            outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
+            if not math.isfinite(value):  # ComfyUI cannot make an INT of one; a FLOAT NaN passes its comparisons
+                yield f"{cls.DISPLAY_NAME}: input '{name}': expected a finite number, got {value}", kind == "INT" or outside
+            elif outside:
+                yield (f"{cls.DISPLAY_NAME}: input '{name}': {value} is outside {options.get('min', '-inf')} to "
+                       f"{options.get('max', 'inf')}", True)
+
+    @classmethod
+    def check_values(cls, **values) -> str | None:
+        """The message naming the first of ``values`` (input name -> a prompt's value; links left out) outside
+        its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, else None."""
+        return next((message for message, _ in cls._value_problems(values)), None)
+
+    @classmethod
+    def unreported_value(cls, **values) -> str | None:
+        """As :meth:`check_values`, for the values ComfyUI's own validation lets through (NaN; it reports the
+        others itself, so a message of ours would repeat its own)."""
+        return next((message for message, reported in cls._value_problems(values) if not reported), None)
 
     @classmethod
     def check_images(cls, image_size: Callable[[str], tuple[int, int] | None]) -> str | None:
@@ -84,9 +98,10 @@ class ArtNVGNode:
         input checks it again when it runs (an IMAGE's size is known then)."""
         for name, entry in {**cls.REQUIRED, **cls.OPTIONAL}.items():
             size = image_size(name) if entry is STYLE_IMAGE_INPUT else None
+            if size is None:
+                continue
             try:
-                if size is not None:
-                    check_style_size(*size)
+                check_style_size(*size)
             except ValueError as error:
                 return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
         return None

@@ -9,16 +9,17 @@ So the pack registers :func:`check_prompt` as an on-prompt handler. For each nod
 class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values within their
 declared ranges and choices) or ``check_files(**inputs) -> str | None`` (the loaders), it runs those
 checks on the node's values, and ``check_images`` on the size of each image a stock Load Image feeds it
-(every node of the pack: a style image's shape); a message is kept under (prompt id, node id). When any node fails, the
-prompt's execution targets become the outputs that depend on a failing node, so validation fails as a
-whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and lists their
-messages (for a value out of range, ComfyUI's own); nothing runs. (Without this, a Finetune Gaussians
-with iterations -1 failed validation while every output not fed by it ran.)
-The loaders' ``VALIDATE_INPUTS`` (and those of the nodes with a style image input) declare only the hidden
+(every node of the pack: a style image's shape); a message is kept under (prompt id, node id). When any
+node fails, the prompt's execution targets become the outputs that depend on a failing node, so
+validation fails as a whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and
+lists their messages; nothing runs. (Without this, a Finetune Gaussians with iterations -1 failed
+validation while every output not fed by it ran.) A problem ComfyUI reports itself (a value out of its
+range or choices) is not kept: its message would come twice.
+The ``VALIDATE_INPUTS`` of the loaders and of the nodes with a style image input declare only the hidden
 input :data:`CHECK_INPUT` (the node id, so ComfyUI shows the message once) and return the kept message
-(:func:`check_result`). Their file lists
-are declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value
-itself: the check's message says more (where the file belongs, where to get it).
+(:func:`check_result`). The loaders' file lists are declared as ``("COMBO", {"options": ...})``, which
+ComfyUI does not compare with the value itself: the check's message says more (where the file belongs,
+where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
 
 The model loaders (ComfyUI's own and Load CSGO, :data:`MODEL_LOADERS`) list their folder's files, and
@@ -83,11 +84,10 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
         return None
 
 
-def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
-    """Node id -> message of every node whose class's ``check_values``, ``check_files`` or ``check_images``
-    finds a problem with its values or the images Load Image nodes feed it, and of every model loader whose
-    file is not in its folder."""
-    failures = {}
+def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, str | None]]:
+    """Node id -> (its problem, as :func:`failed_checks` names it; what its ``VALIDATE_INPUTS`` answers with:
+    None where ComfyUI's own validation reports that problem itself, a value out of range or choices)."""
+    checked = {}
     for node_id, node in prompt.items():
         if not isinstance(node, dict):
             continue
@@ -95,17 +95,26 @@ def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
         if node.get("class_type") in MODEL_LOADERS:
             name, folder = MODEL_LOADERS[node["class_type"]]
             if model_file_path(folder, str(values.get(name, ""))) is None:
-                failures[str(node_id)] = f"'{values.get(name)}' is not in the '{folder}' model folder"
+                checked[str(node_id)] = (f"'{values.get(name)}' is not in the '{folder}' model folder", None)
             continue
         cls = classes.get(node.get("class_type"))
-        message = None
-        for check in (getattr(cls, "check_values", None), getattr(cls, "check_files", None)):
-            message = message or (check(**values) if check is not None else None)
+        message = cls.check_values(**values) if hasattr(cls, "check_values") else None
+        if message:
+            checked[str(node_id)] = (message, cls.unreported_value(**values))
+            continue
+        message = cls.check_files(**values) if hasattr(cls, "check_files") else None
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
         if message:
-            failures[str(node_id)] = message
-    return failures
+            checked[str(node_id)] = (message, message)
+    return checked
+
+
+def failed_checks(prompt: dict, classes: Mapping[str, type]) -> dict[str, str]:
+    """Node id -> message of every node whose class's ``check_values``, ``check_files`` or ``check_images``
+    finds a problem with its values or the images Load Image nodes feed it, and of every model loader whose
+    file is not in its folder."""
+    return {node_id: message for node_id, (message, _) in _checked(prompt, classes).items()}
 
 
 def check_prompt(request: dict, classes: Mapping[str, type]) -> dict:
@@ -115,18 +124,18 @@ def check_prompt(request: dict, classes: Mapping[str, type]) -> dict:
     prompt = request.get("prompt")
     if not isinstance(prompt, dict):
         return request
-    failures = failed_checks(prompt, classes)
-    if not failures:
+    checked = _checked(prompt, classes)
+    if not checked:
         return request
     prompt_id = request.setdefault("prompt_id", str(uuid.uuid4()))
-    _results[str(prompt_id)] = failures
+    _results[str(prompt_id)] = {node_id: shown for node_id, (_, shown) in checked.items() if shown}
     while len(_results) > _KEPT_PROMPTS:
         _results.popitem(last=False)
     outputs = [node_id for node_id, node in prompt.items()
                if getattr(classes.get(node.get("class_type")), "OUTPUT_NODE", False) is True]
     targets = request.get("partial_execution_targets")
     chosen = outputs if targets is None else [node_id for node_id in outputs if node_id in targets]
-    blocked = [node_id for node_id in chosen if _upstream(prompt, node_id) & set(failures)]
+    blocked = [node_id for node_id in chosen if _upstream(prompt, node_id) & set(checked)]
     if blocked:
         request["partial_execution_targets"] = blocked
     return request

@@ -148,6 +148,9 @@ def test_input_errors_name_the_problem(inputs, tmp_path):
         camera_path(cameras, [0], "interp", 10, 1.0)
     with pytest.raises(ValueError, match="--frames: need at least 2"):
         camera_path(cameras, [0, 1], "orbit", 1, 1.0)
+    with pytest.raises(ValueError, match=r"--views: view 1 is given twice in '0,1,1'"):  # it would count twice
+        _evaluate(inputs, tmp_path / "twice" / "report.json", "--stylized", str(inputs["original"]),
+                  "--views", "0,1,1")
 
 
 def test_orbit_error_names_only_cli_options(inputs):

@@ -109,6 +109,26 @@ def test_values_outside_a_nodes_declared_ranges_block_every_output_it_feeds():
         "Finetune Gaussians: input 'optimize': expected one of ['appearance', 'all'], got 'everything'")
 
 
+def test_validation_repeats_no_problem_comfyui_reports_itself(executing):
+    """A value out of its range or choices: ComfyUI's own message alone (the node's VALIDATE_INPUTS answers True;
+    its outputs are blocked all the same). A FLOAT NaN, which ComfyUI's comparisons let through: the pack's."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    finetune = {"class_type": "ArtNVGFinetuneGaussians", "inputs": {"iterations": -1}}
+    prompt = {"1": finetune, "2": {"class_type": "Output", "inputs": {"scene": ["1", 0]}},
+              "3": {"class_type": "Output", "inputs": {}}}
+    for values, shown in [({"iterations": -1}, True), ({"optimize": "everything"}, True),
+                          ({"iterations": float("nan")}, True),  # ComfyUI's int() refuses it
+                          ({"l1_weight": float("inf")}, True),  # over its max
+                          ({"l1_weight": float("nan")}, "Finetune Gaussians: input 'l1_weight': expected a finite "
+                                                        "number, got nan")]:
+        finetune["inputs"] = values
+        request = check_prompt({"prompt": prompt}, classes)
+        executing["prompt"] = request["prompt_id"]
+        assert request["partial_execution_targets"] == ["2"] and check_result("1") == shown, values
+
+
 def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):
     """ComfyUI's own loaders (and Load CSGO) are checked by folder: ComfyUI names the file itself."""
     monkeypatch.setattr(prompt_checks, "model_file_path",

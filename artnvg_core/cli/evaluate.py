@@ -259,7 +259,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     style = load_image(args.style)
     original_scene = load_scene_verbose(args.original, device, cameras=all_cameras)
     all_cameras = orbit_from_args(args, original_scene) if all_cameras is None else all_cameras
-    indices = parse_views(args.views, len(all_cameras), "--views")
+    indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)  # a repeat would count twice
     cameras = all_cameras.subset(indices).scaled(args.scale)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks

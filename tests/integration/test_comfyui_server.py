@@ -234,11 +234,13 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     assert listed == existing.replace(f"'path': {str(outside)!r}", f"'scene_file': {climbing!r}")
 
 
-@pytest.mark.parametrize("override, node, expected", [
-    ("Finetune Gaussians.iterations=-1", FINETUNE, "iterations"),
-    ("Save Gaussian Scene.filename_prefix=artnvg/" + "s" * 225, "7", "is 235 bytes long; it may have at most 226"),
+@pytest.mark.parametrize("override, node, expected, kind", [
+    ("Finetune Gaussians.iterations=-1", FINETUNE, "iterations", "value_smaller_than_min"),  # ComfyUI's, once
+    ("Save Gaussian Scene.filename_prefix=artnvg/" + "s" * 225, "7", "is 235 bytes long; it may have at most 226",
+     "custom_validation_failed"),
 ])
-def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected):
+def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected,
+                                                                            kind):
     before = sorted(comfy_server.output_dir.rglob("*"))
     request = urllib.request.Request(comfy_server.url + "/prompt", headers={"Content-Type": "application/json"},
                                      data=json.dumps({"prompt": _workflow(comfy_server, override)}).encode())
@@ -246,7 +248,7 @@ def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy
         urllib.request.urlopen(request, timeout=60)
     assert rejected.value.code == 400
     errors = json.loads(rejected.value.read())["node_errors"]
-    assert expected in json.dumps(errors[node]), errors
+    assert expected in json.dumps(errors[node]) and [e["type"] for e in errors[node]["errors"]] == [kind], errors
     assert set(errors) <= {node, "7", "9"}  # the outputs it feeds, reported; no other output ran either
     assert sorted(comfy_server.output_dir.rglob("*")) == before
 
