@@ -134,6 +134,9 @@ def test_nerfstudio_rejects_invalid_json_and_bad_dataparser_file(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(ValueError, match=r"broken\.json: not valid JSON"):
         load_nerfstudio(bad)
+    bad.write_text('{"fl_x": 50, "frames": [{"file_path": "a.png", "file_path": "b.png"}]}')
+    with pytest.raises(ValueError, match=r"broken\.json: key 'file_path' is given twice in one object"):
+        load_nerfstudio(bad)  # a dict would keep b.png silently
     quats, trans = random_capture(2)
     path = write_transforms(tmp_path / "transforms.json", quats, trans)
     dp_path = write_json(tmp_path / "dp.json", {"transform": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "scale": 1.0})

@@ -27,13 +27,28 @@ _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 
 
+class _RepeatedKey(ValueError):
+    """A key given twice in one JSON object (the key)."""
+
+
+def _object_once(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object's ``pairs`` as a dict; :class:`_RepeatedKey` for a key given twice, of which a dict would
+    keep the last value silently."""
+    data = dict(pairs)
+    if len(data) < len(pairs):
+        raise _RepeatedKey(next(key for index, (key, _) in enumerate(pairs) if key in dict(pairs[:index])))
+    return data
+
+
 def _read_json_object(path: Path) -> dict:
     """The JSON object in ``path``. Every number is read as a float: one beyond float range (1e400, 10**400)
-    becomes infinite and is refused by the field that holds it. Nesting deeper than Python's parser goes
-    (a transforms.json nests five levels) is a ValueError."""
+    becomes infinite and is refused by the field that holds it. A key given twice in one object, and nesting
+    deeper than Python's parser goes (a transforms.json nests five levels), are ValueErrors."""
     text = read_text(path)
     try:
-        data = json.loads(text, parse_int=float)
+        data = json.loads(text, parse_int=float, object_pairs_hook=_object_once)
+    except _RepeatedKey as error:
+        raise ValueError(f"{path}: key {error.args[0]!r} is given twice in one object; give it once") from None
     except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON (line {error.lineno}, column {error.colno}: {error.msg})") from None
     except RecursionError:
