@@ -64,8 +64,7 @@ class LoadGaussianScene(ArtNVGNode):
     @classmethod
     def check_files(cls, scene_file="", path="", **_other_inputs) -> str | None:
         """The message when the chosen file is missing (``prompt_checks``), else None."""
-        result = SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
-        return None if result is True else result
+        return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
 
     @classmethod
     def VALIDATE_INPUTS(cls, files=None):
