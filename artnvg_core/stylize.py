@@ -182,7 +182,8 @@ def stylize_diffusion(
 ) -> tuple[GaussianScene, torch.Tensor]:
     """The ArtNVG pipeline: render content views, stylize them group by group with SDXL + CSGO + Tile
     ControlNet and neighbouring-view attention, then finetune the scene toward them. The model files are
-    read in a background thread while the content views render (a load that fails ends the renders); the
+    read, and the diffusion libraries imported, in a background thread while the content views render (a
+    load that fails ends the renders); the
     models stay loaded for the next call with the same files and options (:func:`load_models_for`;
     :func:`prefetch_models` starts that load earlier).
 
@@ -232,10 +233,6 @@ def stylize_diffusion(
         The stylized scene, and the stylized views float32 [K, H, W, 3] in [0, 1] of the K
         views used, in camera order (every view without key views).
     """
-    from .diffusion.compile_cache import save_compile_cache
-    from .diffusion.conditioning import prepare_conditioning
-    from .diffusion.model_cache import forget_models
-    from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
     from .grouping import group_views
     from .key_views import select_key_views
     from .presets import get_preset
@@ -267,6 +264,12 @@ def stylize_diffusion(
                 loading.result()  # raises the load's error
             raise
         models = None if loading is None else loading.result()
+    # the diffusion modules (diffusers, transformers: seconds) only now: a load imports them beside the renders
+    from .diffusion.compile_cache import save_compile_cache
+    from .diffusion.conditioning import prepare_conditioning
+    from .diffusion.model_cache import forget_models
+    from .diffusion.stylize import DEFAULT_NEGATIVE_PROMPT, DEFAULT_PROMPT, stylize_groups
+
     groups = group_views(cameras, group_size, multiple=group_multiple)
     common = dict(seed=config.seed, progress=sampling_progress, should_stop=should_stop)
     if spread:

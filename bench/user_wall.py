@@ -21,11 +21,11 @@ it could is printed).
 
 Each process's wall time (launch to exit, seen from here) is split into parts by timers a small
 wrapper puts around the command's own calls before it runs the command (``artnvg_core`` is
-unchanged): start (Python and the command's imports), scene (loading the scene file), imports (the
-diffusion stage's modules: diffusers, transformers; waited for where a background load imports them),
-models (loading the model files, in a background thread beside the scene and the content views: not
-part of the sum), content (rendering the content views; a first run compiles the rasterizer's forward
-kernels there), wait (the rest of the diffusion stage: waiting for the models, grouping), sampling
+unchanged): start (Python and the command's imports), scene (loading the scene file), content (rendering
+the content views; a first run compiles the rasterizer's forward kernels there), imports (the diffusion
+stage's modules: diffusers, transformers, after the content views; what is left of a background load's
+imports), models (loading the model files, in a background thread beside the scene, the imports and the
+content views: not part of the sum), wait (the rest of the diffusion stage: waiting for the models, grouping), sampling
 (conditioning and the groups), finetune (a first run compiles the backward kernels there), save (scene
 file and contact sheet) and the rest (argument checks, choosing views, exit). A second table splits
 sampling, the GPU waited for at each end of a part: conditioning (text and style encoders), each group's
@@ -50,7 +50,7 @@ from common import print_table
 from model_files import write_model_files, write_random_lora
 
 REPO = Path(__file__).resolve().parents[1]
-PARTS = ("start", "scene", "imports", "models", "content", "wait", "sampling", "finetune", "save")
+PARTS = ("start", "scene", "content", "imports", "models", "wait", "sampling", "finetune", "save")
 OVERLAPPING = ("models",)  # read in the background beside the scene and the content views: not in the sum
 SAMPLING = ("conditioning", "group", "decoding")  # parts of sampling, the GPU waited for at both ends
 
@@ -90,24 +90,27 @@ def timed(module, name, part, split=False):
     setattr(module, name, wrapper)
 
 timed(command, "load_scene_verbose", "scene")
-def split_sampling(stylize):
-    # stylize, its diffusion modules imported first (timed) and sampling's parts timed
+def imports_after(render_views):
+    # the content views, then the diffusion stage's modules, as stylize_diffusion imports them after the
+    # content views (timed: what is left of a background load's imports), sampling's parts timed
     def wrapper(*args, **kwargs):
-        start = time.time()
-        import artnvg_core.diffusion.conditioning as conditioning
-        import artnvg_core.diffusion.sampler as sampler
-        import artnvg_core.diffusion.stylize as groups
-        parts["imports"] = time.time() - start
-        timed(conditioning, "prepare_conditioning", "conditioning", split=True)
-        timed(groups, "stylize_owned_views", "group", split=True)
-        timed(sampler, "_decode", "decoding", split=True)
-        return stylize(*args, **kwargs)
+        views = render_views(*args, **kwargs)
+        if "imports" not in parts:
+            start = time.time()
+            import artnvg_core.diffusion.conditioning as conditioning
+            import artnvg_core.diffusion.sampler as sampler
+            import artnvg_core.diffusion.stylize as groups
+            parts["imports"] = time.time() - start
+            timed(conditioning, "prepare_conditioning", "conditioning", split=True)
+            timed(groups, "stylize_owned_views", "group", split=True)
+            timed(sampler, "_decode", "decoding", split=True)
+        return views
     return wrapper
 
-core.stylize_diffusion = split_sampling(core.stylize_diffusion)
 timed(core, "stylize_diffusion", "diffusion")
 timed(core, "load_models_for", "models")
 timed(core, "render_views", "content")
+core.render_views = imports_after(core.render_views)
 timed(core, "finetune", "finetune")
 timed(core, "save_result", "save")
 parts["start"] = time.time() - launched

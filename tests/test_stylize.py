@@ -88,6 +88,44 @@ def test_the_models_load_while_the_content_views_render_and_a_prefetch_is_used(t
         assert loads == [paths], prefetch
 
 
+def test_the_diffusion_libraries_are_imported_beside_the_content_renders_not_before():
+    """A process's first stylize_diffusion imports diffusers and transformers (seconds) only after its content
+    views: the background load imports them meanwhile (here a stand-in load that imports nothing)."""
+    import subprocess
+    import sys
+
+    from child_process import child_env
+
+    code = """
+import sys
+from artnvg_core import stylize
+from artnvg_core.cameras import load_cameras
+from artnvg_core.diffusion.model_files import ModelFiles
+from artnvg_core.fileio import load_image
+from artnvg_core.finetune import FinetuneConfig
+from artnvg_core.formats import read_ply
+
+class Rendered(Exception):
+    pass
+
+def render_views(*args, **kwargs):
+    print(sorted(name for name in ("diffusers", "transformers") if name in sys.modules))
+    raise Rendered
+
+stylize.render_views = render_views
+stylize._models_loader = lambda *args: lambda device, **kwargs: None
+demo = stylize.DemoInputs()
+cameras = load_cameras(demo.cameras).subset(range(2))
+try:
+    stylize.stylize_diffusion(read_ply(demo.scene), cameras, load_image(demo.style),
+                              FinetuneConfig(iterations=1, backend="torch"), ModelFiles())
+except Rendered:
+    pass
+"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=child_env())
+    assert result.stdout == "[]\n", result.stdout + result.stderr
+
+
 def test_two_devices_spread_the_groups_over_ray_workers_with_the_same_result(tmp_path, monkeypatch, ray_local):
     scene, cameras, style, paths, config = _small_inputs(tmp_path, monkeypatch)
     result, views = stylize_diffusion(scene, cameras, style, config, paths, group_size=2)
