@@ -43,8 +43,7 @@ class LoadCameras(ArtNVGNode):
     @classmethod
     def check_files(cls, camera_source="", path="", **_other_inputs) -> str | None:
         """The message when the chosen file or folder is missing (``prompt_checks``), else None."""
-        result = CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
-        return None if result is True else result
+        return CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
 
     @classmethod
     def IS_CHANGED(cls, camera_source, path="", node_id=None):

@@ -143,8 +143,9 @@ class InputFile:
             raise NodeInputError(refusal)
         return self.resolve(listed, path)
 
-    def check(self, node: str, listed: str, path: str) -> bool | str:
-        """True, or the message naming ``node``, the input and the path, and saying what to do."""
+    def check(self, node: str, listed: str, path: str) -> str | None:
+        """A loader's ``check_files`` answer (``prompt_checks``): the message naming ``node``, the input and the
+        path, and saying what to do, else None."""
         refusal = self._refusal(node, listed, path)
         if refusal:
             return refusal
@@ -165,7 +166,7 @@ class InputFile:
                 self.validate(file)
             except ValueError as error:
                 return f"{node}: input '{input_name}': {error}"
-        return True
+        return None
 
     def signature(self, listed: str, path: str) -> str:
         """A loader's ``IS_CHANGED`` answer: :func:`file_signature` of the watched file (the chosen one by default)."""

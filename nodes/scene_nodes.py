@@ -61,8 +61,7 @@ class LoadGaussianScene(ArtNVGNode):
     @classmethod
     def check_files(cls, scene_file="", path="", **_other_inputs) -> str | None:
         """The message when the chosen file is missing (``prompt_checks``), else None."""
-        result = SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
-        return None if result is True else result
+        return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
 
     @classmethod
     def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):

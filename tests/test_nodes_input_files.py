@@ -33,7 +33,7 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     (input_folder / "a.ply").write_bytes(b"")
     assert scene_file.resolve("a.ply", "  ") == (input_folder / "a.ply", "scene_file")
     assert scene_file.resolve("a.ply", "sub/b.ply") == (input_folder / "sub" / "b.ply", "path")
-    assert scene_file.check("Load", "a.ply", "") is True
+    assert scene_file.check("Load", "a.ply", "") is None
     missing = input_folder / "gone.ply"
     message = scene_file.check("Load", "gone.ply", "")
     assert message.startswith(f"Load: input 'scene_file': scene file not found: {missing}. ")
@@ -113,21 +113,21 @@ def test_files_inside_comfyuis_folders_are_read_and_the_setting_opens_every_path
     (output / "saved.ply").write_bytes(b"ply\n")
     (input_folder / "saved.ply").symlink_to(output / "saved.ply")  # a link between ComfyUI's own folders
     assert SCENE_FILE.readable("Load", "saved.ply", "") == (input_folder / "saved.ply", "scene_file")
-    assert SCENE_FILE.check("Load", "", "../output/saved.ply") is True
+    assert SCENE_FILE.check("Load", "", "../output/saved.ply") is None
     capture = input_folder / "capture"
     capture.mkdir()
     (capture / "transforms.json").symlink_to(elsewhere / "capture" / "transforms.json")  # a file of the folder leads out
     assert "is outside ComfyUI's input" in _refusal(CAMERA_SOURCE, "capture")
     monkeypatch.setenv(ANY_PATH_SETTING, "1")
-    assert SCENE_FILE.check("Load", "", str(elsewhere / "secret.ply")) is True
-    assert CAMERA_SOURCE.check("Load", "capture", "") is True
+    assert SCENE_FILE.check("Load", "", str(elsewhere / "secret.ply")) is None
+    assert CAMERA_SOURCE.check("Load", "capture", "") is None
     assert SCENE_FILE.check("Load", "", str(elsewhere / "missing.ply")).startswith("Load: input 'path': scene file not found")
 
 
 def test_a_capture_folder_is_watched_through_its_transforms_json(input_folder):
     capture = input_folder / "capture"
     capture.mkdir()
-    assert CAMERA_SOURCE.check("Load Cameras", "capture", "") is True  # folders count for cameras
+    assert CAMERA_SOURCE.check("Load Cameras", "capture", "") is None  # folders count for cameras
     _touch(capture / "transforms.json", b"{}", 10**18)
     first = CAMERA_SOURCE.signature("capture", "")
     _touch(capture / "image.png", b"more bytes", 2 * 10**18)  # the folder changes, the cameras do not

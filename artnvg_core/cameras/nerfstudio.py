@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from ..json_objects import JsonObject
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
     PERSPECTIVE_MODELS,
@@ -27,16 +28,12 @@ _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 
 
-class _RepeatedKey(ValueError):
-    """A key given twice in one JSON object (the key)."""
-
-
-def _object_once(pairs: list[tuple[str, object]]) -> dict:
-    """A JSON object's ``pairs`` as a dict; :class:`_RepeatedKey` for a key given twice, of which a dict would
-    keep the last value silently."""
-    data = dict(pairs)
-    if len(data) < len(pairs):
-        raise _RepeatedKey(next(key for index, (key, _) in enumerate(pairs) if key in dict(pairs[:index])))
+def _object_once(path: Path, pairs: list[tuple[str, object]]) -> JsonObject:
+    """A JSON object of ``path`` (json's ``object_pairs_hook``); ValueError naming a key it gives twice, of which
+    a dict would keep the last value silently."""
+    data = JsonObject(pairs)
+    if data.twice is not None:
+        raise ValueError(f"{path}: key {data.twice!r} is given twice in one object; give it once")
     return data
 
 
@@ -46,9 +43,7 @@ def _read_json_object(path: Path) -> dict:
     deeper than Python's parser goes (a transforms.json nests five levels), are ValueErrors."""
     text = read_text(path)
     try:
-        data = json.loads(text, parse_int=float, object_pairs_hook=_object_once)
-    except _RepeatedKey as error:
-        raise ValueError(f"{path}: key {error.args[0]!r} is given twice in one object; give it once") from None
+        data = json.loads(text, parse_int=float, object_pairs_hook=partial(_object_once, path))
     except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON (line {error.lineno}, column {error.colno}: {error.msg})") from None
     except RecursionError:
@@ -216,8 +211,8 @@ def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.T
     defaults = {key: meta.get(key) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model")}
     rows = []
     for frame in frames:
-        model = frame.get("camera_model", defaults["camera_model"]) if type(frame) is dict else None
-        if type(frame) is not dict or model not in (None, *PERSPECTIVE_MODELS):
+        model = frame.get("camera_model", defaults["camera_model"]) if isinstance(frame, dict) else None
+        if not isinstance(frame, dict) or model not in (None, *PERSPECTIVE_MODELS):
             break  # named frame by frame below
         w, h, fx, fy, cx, cy = (frame.get(key, defaults[key]) for key in ("w", "h", "fl_x", "fl_y", "cx", "cy"))
         rows.append((w, h, fx, fy, w / 2 if cx is None and type(w) is float else cx,

@@ -44,6 +44,7 @@ import torch
 
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..diffusion.settings import guided_steps
+from ..json_objects import JsonObject
 from ..presets import PRESETS
 from ..progress import Cancelled, StopFn
 from .common import parse_devices, terminate_as_interrupt
@@ -83,19 +84,9 @@ class JobResult:
     peak_gib: float | None = None
 
 
-class JsonObject(dict):
-    """A JSON object as :func:`read_jobs` reads it: a dict, and ``twice``, the first key it gives more than
-    once (None when none), which a dict alone would hide (it keeps the last value)."""
-
-    def __init__(self, pairs: list[tuple[str, object]]):
-        super().__init__(pairs)
-        keys = [key for key, _ in pairs]
-        self.twice = next((key for index, key in enumerate(keys) if key in keys[:index]), None)
-
-
 def read_jobs(path: str | os.PathLike) -> list:
     """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell; JSON:
-    :class:`JsonObject`).
+    :class:`JsonObject`, whose ``twice`` :func:`job_arguments` refuses).
 
     ValueError naming the file when it cannot be read (missing, a folder, not UTF-8) or is not a JSON list
     or a CSV table with a header; an entry that is not an object is returned as it is (its job fails alone)."""
