@@ -75,9 +75,9 @@ class ArtNVGNode:
         """(message, whether ComfyUI's own validation reports it too) for each of ``values`` (input name -> a
         prompt's value; links left out) that ComfyUI cannot convert to its declared type, or that lies, once
         converted (:func:`comfyui_value`), outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
-        or choices, or is not text where a COMBO (a loader's file list, which the loader checks) takes it.
-        ComfyUI checks the range and choices of every declared input (:meth:`VALIDATE_INPUTS` names none of
-        them), but not a FLOAT's NaN nor a COMBO's value."""
+        or choices, or is not text where a COMBO (a loader's file list, which the loader checks) takes it, or is
+        text where a BOOLEAN takes true or false. ComfyUI checks the range and choices of every declared input
+        (:meth:`VALIDATE_INPUTS` names none of them), but not a FLOAT's NaN, a COMBO's value nor a BOOLEAN's."""
         declared = _declared({**cls.REQUIRED, **cls.OPTIONAL})
         for name, given in values.items():
             if name not in declared:  # hidden inputs, and undeclared ones (ComfyUI drops those)
@@ -95,6 +95,9 @@ class ArtNVGNode:
             elif kind == "COMBO":
                 if not isinstance(value, str):
                     yield f"{where}: expected a file name, got {value!r}", False
+            elif kind == "BOOLEAN":
+                if isinstance(comfyui_value(None, given), str):  # bool("false") is True
+                    yield f"{where}: expected true or false, got {given!r}", False
             elif kind in ("INT", "FLOAT"):
                 outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
                 if not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
@@ -117,14 +120,15 @@ class ArtNVGNode:
     @classmethod
     def check_values(cls, **values) -> str | None:
         """The message naming the first of ``values`` (input name -> a prompt's value; links left out) not of
-        its declared type, outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, or
-        not text where a COMBO takes it (:meth:`_value_problems`), else None."""
+        its declared type, outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, not
+        text where a COMBO takes it or text where a BOOLEAN does (:meth:`_value_problems`), else None."""
         return next((message for message, _ in cls._value_problems(values)), None)
 
     @classmethod
     def unreported_value(cls, **values) -> str | None:
         """As :meth:`check_values`, for the values ComfyUI's own validation lets through (a FLOAT NaN, a COMBO's
-        value that is not text; it reports the others itself, so a message of ours would repeat its own)."""
+        value that is not text, a BOOLEAN's that is; it reports the others itself, so a message of ours would
+        repeat its own)."""
         return next((message for message, reported in cls._value_problems(values) if not reported), None)
 
     @classmethod

@@ -260,6 +260,18 @@ def test_a_file_list_given_no_text_or_a_path_in_any_spelling_is_the_loaders_to_r
     assert shown.startswith(f"Load Gaussian Scene: input 'path': scene file not found: {tmp_path / 'input' / '7'}. ")
 
 
+@pytest.mark.parametrize("text", ["false", {"__value__": "False"}, "true", ""])
+def test_every_boolean_input_refuses_text_which_comfyui_reads_as_its_truth(executing, text):
+    """ComfyUI makes a BOOLEAN with bool(): "false" was True. JSON's true and false (and 0, 1) pass."""
+    booleans = _inputs_of_type("BOOLEAN")
+    assert ("ArtNVGRenderCameraPath", "loop") in {(t, n) for t, _, n, _ in booleans}
+    for node_type, cls, name, _ in booleans:
+        shown, message, targets = _validated(node_type, {name: text}, executing)
+        assert shown == message == f"{cls.DISPLAY_NAME}: input '{name}': expected true or false, got {text!r}", name
+        assert targets == ["2"], name
+        assert all(cls.check_values(**{name: value}) is None for value in (True, False, 0, 1, {"__value__": True}))
+
+
 def test_malformed_nodes_leave_the_checks_of_the_others_whole(executing):
     """ComfyUI refuses a node whose inputs are not an object itself; the pack's handler, which crashed on one (and
     ComfyUI then let every value through unchecked), still blocks the outputs of a NaN elsewhere."""
