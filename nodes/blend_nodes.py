@@ -51,7 +51,7 @@ class BlendStylization(ArtNVGNode):
     }
 
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,
-              preview_strengths="0, 0.25, 0.5, 0.75, 1"):
+              preview_strengths="0, 0.25, 0.5, 0.75, 1", node_id=None):
         with node_input(self.DISPLAY_NAME, "preview_strengths"):
             strengths = parse_strengths(preview_strengths)
         with node_input(self.DISPLAY_NAME, "view"):

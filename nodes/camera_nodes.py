@@ -12,7 +12,6 @@ from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, GROUPS, SCENE
-from .prompt_checks import HIDDEN, check_result
 
 COLMAP_MARKERS = ("cameras.bin", "cameras.txt")
 
@@ -41,22 +40,16 @@ class LoadCameras(ArtNVGNode):
     REQUIRED = {"camera_source": CAMERA_SOURCE.list_input}
     OPTIONAL = {"path": CAMERA_SOURCE.path_input}
 
-    HIDDEN = HIDDEN
-
     @classmethod
     def check_files(cls, camera_source="", path="", **_other_inputs) -> str | None:
         """The message when the chosen file or folder is missing (``prompt_checks``), else None."""
         return CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
 
     @classmethod
-    def VALIDATE_INPUTS(cls, files=None):
-        return check_result(files)
-
-    @classmethod
-    def IS_CHANGED(cls, camera_source, path="", files=None):
+    def IS_CHANGED(cls, camera_source, path="", node_id=None):
         return CAMERA_SOURCE.signature(camera_source, path)
 
-    def load(self, camera_source, path="", files=None):
+    def load(self, camera_source, path="", node_id=None):
         source, input_name = CAMERA_SOURCE.readable(self.DISPLAY_NAME, camera_source, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_cameras(source),)
@@ -97,7 +90,7 @@ class CamerasAroundScene(ArtNVGNode):
             "1: the main subject just fills the view; larger shows more of the surroundings.")}),
     }
 
-    def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor):
+    def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor, node_id=None):
         with node_input(self.DISPLAY_NAME, "up"):
             direction = _numbers(up, "auto, an axis such as -y, or three numbers") if "," in up else up
         with node_input(self.DISPLAY_NAME, "elevations"):
@@ -123,6 +116,6 @@ class GroupNeighbouringViews(ArtNVGNode):
             "Extra views each group borrows from its neighbours as shared context.")}),
     }
 
-    def group(self, cameras, group_size, context):
+    def group(self, cameras, group_size, context, node_id=None):
         with node_input(self.DISPLAY_NAME, "cameras"):
             return (group_views(cameras, group_size, context=context),)

@@ -33,6 +33,7 @@ from .node_errors import NodeInputError, node_input
 from .node_types import GROUPS, IMAGE
 
 SAMPLERS, SCHEDULERS = ("ddim",), ("ddim_uniform",)  # ComfyUI's lists replace these inside ComfyUI
+SEEDS = 2**64  # the seeds torch.manual_seed takes (ComfyUI's noise): 0 to 2^64 - 1
 
 
 def _names(kind: str, fallback: tuple) -> tuple:
@@ -67,7 +68,8 @@ class SampleGroup(ArtNVGNode):
     """Stylize the content views group by group (or one chosen group) with ComfyUI's sampling.
 
     Returns the stylized IMAGE batch in view order: every view, or the chosen group's views. Group g is
-    sampled with seed + g, so one group alone matches its part of a full run. The views are sampled at the
+    sampled with seed + g (past the largest seed, 2^64 - 1, counting on from 0), so one group alone matches its
+    part of a full run. The views are sampled at the
     working size (resolution, size_rule) and returned at their own size.
     """
 
@@ -85,7 +87,7 @@ class SampleGroup(ArtNVGNode):
         "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
         "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
             "-1: every group; otherwise only this group (0-based).")}),
-        "seed": ("INT", {"default": 0, "min": 0, "max": 0xFFFFFFFFFFFFFFFF, "control_after_generate": True}),
+        "seed": ("INT", {"default": 0, "min": 0, "max": SEEDS - 1, "control_after_generate": True}),
         "steps": ("INT", {"default": SamplerSettings.steps, "min": 1, "max": 10000}),
         "cfg": ("FLOAT", {"default": SamplerSettings.guidance_scale, "min": 0.0, "max": 100.0, "step": 0.1}),
         "sampler_name": lambda: (_names("SAMPLERS", SAMPLERS), {"default": "ddim"}),
@@ -109,7 +111,8 @@ class SampleGroup(ArtNVGNode):
 
     @cancellable
     def sample(self, model, positive, negative, vae, control_net, content_views, groups, group_index, seed, steps,
-               cfg, sampler_name, scheduler, denoise, control_scale, resolution, size_rule, cfg_until=1.0):
+               cfg, sampler_name, scheduler, denoise, control_scale, resolution, size_rule, cfg_until=1.0,
+               node_id=None):
         node = self.DISPLAY_NAME
         if len(content_views) != groups.num_views:
             raise NodeInputError(f"{node}: input 'content_views': {len(content_views)} views but the groups cover "
@@ -140,8 +143,8 @@ class SampleGroup(ArtNVGNode):
             group = groups[index]
             owned = self._sample_views(model, positive, negative, vae, control_net, images[list(group.all_views)],
                                        None if groups.centers is None else [groups.centers[v] for v in group.all_views],
-                                       size, seed + index, steps, cfg, cfg_until, sampler_name, scheduler, denoise,
-                                       control_scale, step)
+                                       size, (seed + index) % SEEDS, steps, cfg, cfg_until, sampler_name, scheduler,
+                                       denoise, control_scale, step)
             output[list(group.views)] = resize_images(owned[: len(group.views)], height, width)
         if group_index >= 0:
             output = output[list(groups[group_index].views)]

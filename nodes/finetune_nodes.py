@@ -21,7 +21,6 @@ from .cpu_threads import cpu_threads
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
-from .prompt_checks import HIDDEN, check_result
 
 _DEFAULTS = FinetuneConfig()
 _PREVIEW = PRESETS["preview"]
@@ -99,17 +98,11 @@ class FinetuneGaussians(ArtNVGNode):
             "the others stay exactly as they are.")}),
     }
 
-    HIDDEN = HIDDEN
-
-    @classmethod
-    def VALIDATE_INPUTS(cls, files=None):
-        return check_result(files)  # a style image Load Image feeds in, refused before the graph runs (check_images)
-
     @cancellable
     def finetune(self, scene, cameras, style_image, iterations, optimize, l1_weight, ssim_weight, nnfm_weight,
                  content_weight, tv_weight, seed, stylized_views=None, nnfm_max_side=_DEFAULTS.nnfm_max_side,
                  color_transfer=_DEFAULTS.color_transfer, preset="custom", views_per_step=_DEFAULTS.views_per_step,
-                 nnfm_search=_DEFAULTS.nnfm_search, selection=None, files=None):
+                 nnfm_search=_DEFAULTS.nnfm_search, selection=None, node_id=None):
         with node_input(self.DISPLAY_NAME, "style_image"):  # before any work
             check_style_size(style_image.shape[2], style_image.shape[1])
         with node_input(self.DISPLAY_NAME), autograd_enabled():

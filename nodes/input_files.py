@@ -67,7 +67,10 @@ def outside_folders(path: Path) -> bool:
     user has not allowed any path). Looks at names only: the answer says nothing of what exists there."""
     if any_path_allowed():
         return False
-    resolved = Path(os.path.realpath(path))
+    try:
+        resolved = Path(os.path.realpath(path))
+    except ValueError:  # a NUL character: no folder holds such a name
+        return True
     return not any(resolved.is_relative_to(os.path.realpath(folder)) for folder in readable_folders())
 
 
@@ -152,7 +155,11 @@ class InputFile:
                   "ComfyUI restarts)")
         if not (listed.strip() or path.strip()):  # else the input folder itself would be the chosen one
             return f"{node}: input '{self.name}': no {self.what} chosen. {advice}"
-        if not self.exists(file):
+        try:
+            found = self.exists(file)
+        except OSError as error:  # a name too long for the file system, a folder this process may not enter
+            return f"{node}: input '{input_name}': cannot look for {file}: {error.strerror}"
+        if not found:
             return f"{node}: input '{input_name}': {self.what} not found: {file}. {advice}"
         if self.validate is not None:
             try:

@@ -30,7 +30,6 @@ from .comfy_patches import (
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CSGO
-from .prompt_checks import HIDDEN, check_result
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
@@ -93,7 +92,7 @@ class NVAttentionPatch(ArtNVGNode):
             "Pool the other views' keys/values by this factor per side (1: exact).")}),
     }
 
-    def patch(self, model, enabled, levels="all", nearest_views=0, kv_downsample=1):
+    def patch(self, model, enabled, levels="all", nearest_views=0, kv_downsample=1, node_id=None):
         if not enabled:
             return (model,)
         unet = diffusion_unet(self.DISPLAY_NAME, model)
@@ -116,7 +115,7 @@ class LoadCSGO(ArtNVGNode):
     REQUIRED = {"csgo_name": lambda: (model_files(CSGO_FOLDER), {"tooltip": (
         f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_URL}).")})}
 
-    def load(self, csgo_name):
+    def load(self, csgo_name, node_id=None):
         path = model_file_path(CSGO_FOLDER, csgo_name)
         if path is None:
             folders = ", ".join(model_folder_paths(CSGO_FOLDER)) or f"ComfyUI's models/{CSGO_FOLDER}"
@@ -195,14 +194,8 @@ class ApplyCSGO(ArtNVGNode):
             "cross-attention, as the papers describe (needs the CSGO file's content entries).")}),
     }
 
-    HIDDEN = HIDDEN
-
-    @classmethod
-    def VALIDATE_INPUTS(cls, files=None):
-        return check_result(files)  # a style image Load Image feeds in, refused before the graph runs (check_images)
-
     def apply(self, model, control_net, csgo, clip_vision, style_image, style_scale, content_scale,
-              content_routing=SamplerSettings.content_routing, files=None):
+              content_routing=SamplerSettings.content_routing, node_id=None):
         node = self.DISPLAY_NAME
         with node_input(node, "style_image"):  # before any work
             check_style_size(style_image.shape[2], style_image.shape[1])

@@ -9,21 +9,26 @@ shown as plain text (:func:`plain_text`), as the editor shows it.
 
 Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names the node and the
 input in the error; a loader's file input is declared, found and checked by an
-:class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values to the
-declared ranges and choices before anything runs (``prompt_checks``), and
-:meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it.
+:class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values, as ComfyUI
+will pass them (:func:`comfyui_value`), to the declared types, ranges and choices before anything runs
+(``prompt_checks``), and :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it.
+Every node answers ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS`` and the
+hidden input :data:`~.prompt_checks.CHECK_INPUT`, which each node's function takes last, unused).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterator
 
 from artnvg_core.style_image import check_style_size
 
 from .node_types import CATEGORY, IMAGE
+from .prompt_checks import CHECK_INPUT, check_result
 
 STYLE_IMAGE_INPUT = (IMAGE, {"tooltip": "The style reference (first image of the batch)."})
+REFUSED = (TypeError, ValueError, OverflowError)  # what comfyui_value raises for a value ComfyUI refuses itself
 
 
 def plain_text(doc: str) -> str:
@@ -43,13 +48,23 @@ def _declared(inputs: dict) -> dict:
     return declared
 
 
+def comfyui_value(kind, value):
+    """``value`` as ComfyUI 0.3.64's validation passes it to an input of type ``kind``: a ``{"__value__": v}``
+    unwrapped, then made an int, float, str or bool for INT, FLOAT, STRING, BOOLEAN (so ``"nan"`` is a FLOAT NaN,
+    ``"-1"`` the INT -1). Raises one of :data:`REFUSED` where ComfyUI refuses the value itself."""
+    if isinstance(value, dict) and "__value__" in value:
+        value = value["__value__"]
+    convert = {"INT": int, "FLOAT": float, "STRING": str, "BOOLEAN": bool}.get(kind) if isinstance(kind, str) else None
+    return value if convert is None else convert(value)
+
+
 class ArtNVGNode:
     """Base of the pack's nodes (module docstring): the menu category, the description, the inputs."""
 
     CATEGORY = CATEGORY
     REQUIRED: dict = {}
     OPTIONAL: dict = {}
-    HIDDEN: dict = {}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
+    HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -58,37 +73,69 @@ class ArtNVGNode:
     @classmethod
     def _value_problems(cls, values: dict) -> Iterator[tuple[str, bool]]:
         """(message, whether ComfyUI's own validation reports it too) for each of ``values`` (input name -> a
-        prompt's value; links left out) outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
-        or choices."""
-        declared = {**cls.REQUIRED, **cls.OPTIONAL}
-        for name, value in values.items():
-            entry = declared.get(name)
-            if entry is None or callable(entry):  # hidden inputs; file lists, which the loaders check
+        prompt's value; links left out) that ComfyUI cannot convert to its declared type, or that lies, once
+        converted (:func:`comfyui_value`), outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
+        or choices, or is not text where a COMBO (a loader's file list, which the loader checks) takes it, or is
+        text where a BOOLEAN takes true or false. ComfyUI checks the range and choices of every declared input
+        (:meth:`VALIDATE_INPUTS` names none of them), but not a FLOAT's NaN, a COMBO's value nor a BOOLEAN's."""
+        declared = _declared({**cls.REQUIRED, **cls.OPTIONAL})
+        for name, given in values.items():
+            if name not in declared:  # hidden inputs, and undeclared ones (ComfyUI drops those)
                 continue
-            kind, options = (*entry, {})[:2]
-            if isinstance(kind, (list, tuple)) and value not in kind:  # choices, as a list or a tuple
-                yield f"{cls.DISPLAY_NAME}: input '{name}': expected one of {list(kind)}, got {value!r}", True
+            kind, options = (*declared[name], {})[:2]
+            where = f"{cls.DISPLAY_NAME}: input '{name}'"
+            try:
+                value = comfyui_value(kind, given)
+            except REFUSED:
+                yield f"{where}: expected a value of type {kind}, got {given!r}", True
                 continue
-            if kind not in ("INT", "FLOAT") or isinstance(value, bool) or not isinstance(value, (int, float)):
-                continue
-            outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
-            if not math.isfinite(value):  # ComfyUI cannot make an INT of one; a FLOAT NaN passes its comparisons
-                yield f"{cls.DISPLAY_NAME}: input '{name}': expected a finite number, got {value}", kind == "INT" or outside
-            elif outside:
-                yield (f"{cls.DISPLAY_NAME}: input '{name}': {value} is outside {options.get('min', '-inf')} to "
-                       f"{options.get('max', 'inf')}", True)
+            if isinstance(kind, list):
+                if value not in kind:
+                    yield f"{where}: expected one of {kind}, got {value!r}", True
+            elif kind == "COMBO":
+                if not isinstance(value, str):
+                    yield f"{where}: expected a file name, got {value!r}", False
+            elif kind == "BOOLEAN":
+                if isinstance(comfyui_value(None, given), str):  # bool("false") is True
+                    yield f"{where}: expected true or false, got {given!r}", False
+            elif kind in ("INT", "FLOAT"):
+                outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
+                if not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
+                    yield f"{where}: expected a finite number, got {value}", outside
+                elif outside:
+                    low, high = options.get("min", "-inf"), options.get("max", "inf")
+                    yield f"{where}: {value} is outside {low} to {high}", True
+
+    @classmethod
+    def passed_values(cls, values: dict) -> dict:
+        """``values`` (input name -> a prompt's value; links left out) as ComfyUI passes them to the node
+        (:func:`comfyui_value`); those it cannot convert, and hidden inputs, as given."""
+        declared = _declared({**cls.REQUIRED, **cls.OPTIONAL})
+        passed = dict(values)
+        for name in values.keys() & declared.keys():
+            with contextlib.suppress(*REFUSED):
+                passed[name] = comfyui_value(declared[name][0], values[name])
+        return passed
 
     @classmethod
     def check_values(cls, **values) -> str | None:
-        """The message naming the first of ``values`` (input name -> a prompt's value; links left out) outside
-        its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, else None."""
+        """The message naming the first of ``values`` (input name -> a prompt's value; links left out) not of
+        its declared type, outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite) or choices, not
+        text where a COMBO takes it or text where a BOOLEAN does (:meth:`_value_problems`), else None."""
         return next((message for message, _ in cls._value_problems(values)), None)
 
     @classmethod
     def unreported_value(cls, **values) -> str | None:
-        """As :meth:`check_values`, for the values ComfyUI's own validation lets through (NaN; it reports the
-        others itself, so a message of ours would repeat its own)."""
+        """As :meth:`check_values`, for the values ComfyUI's own validation lets through (a FLOAT NaN, a COMBO's
+        value that is not text, a BOOLEAN's that is; it reports the others itself, so a message of ours would
+        repeat its own)."""
         return next((message for message, reported in cls._value_problems(values) if not reported), None)
+
+    @classmethod
+    def VALIDATE_INPUTS(cls, node_id=None):
+        """ComfyUI's validation of the node ``node_id`` (its hidden input :data:`~.prompt_checks.CHECK_INPUT`):
+        what the pack's checks of the whole prompt kept for it (:func:`~.prompt_checks.check_result`), else True."""
+        return check_result(node_id)
 
     @classmethod
     def check_images(cls, image_size: Callable[[str], tuple[int, int] | None]) -> str | None:

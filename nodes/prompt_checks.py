@@ -6,20 +6,22 @@ missing file used to stop only the outputs downstream of it while the rest ran a
 And it repeats a ``VALIDATE_INPUTS`` message once per input that function declares.
 
 So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
-class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values within their
-declared ranges and choices) or ``check_files(**inputs) -> str | None`` (the loaders), it runs those
-checks on the node's values, and ``check_images`` on the size of each image a stock Load Image feeds it
-(every node of the pack: a style image's shape); a message is kept under (prompt id, node id). When any
-node fails, the prompt's execution targets become the outputs that depend on a failing node, so
-validation fails as a whole: ComfyUI refuses the prompt (HTTP 400) and the editor outlines the nodes and
-lists their messages; nothing runs. (Without this, a Finetune Gaussians with iterations -1 failed
-validation while every output not fed by it ran.) A problem ComfyUI reports itself (a value out of its
-range or choices) is not kept: its message would come twice.
-The ``VALIDATE_INPUTS`` of the loaders and of the nodes with a style image input declare only the hidden
-input :data:`CHECK_INPUT` (the node id, so ComfyUI shows the message once) and return the kept message
-(:func:`check_result`). The loaders' file lists are declared as ``("COMBO", {"options": ...})``, which
-ComfyUI does not compare with the value itself: the check's message says more (where the file belongs,
-where to get it).
+class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values of their declared
+types, within their declared ranges and choices, read as ComfyUI will pass them: ``"nan"`` and
+``{"__value__": NaN}`` are a FLOAT NaN) or ``check_files(**inputs) -> str | None`` (the loaders, given
+the values as ComfyUI passes them), it runs those checks on the node's values, and ``check_images`` on the
+size of each image a stock Load Image feeds it (every node of the pack: a style image's shape); a message
+is kept under (prompt id, node id). When any node fails, the prompt's execution targets become the outputs
+that depend on a failing node, so validation fails as a whole: ComfyUI refuses the prompt (HTTP 400) and
+the editor outlines the nodes and lists their messages; nothing runs. (Without this, a Finetune Gaussians
+with iterations -1 failed validation while every output not fed by it ran.) A problem ComfyUI reports
+itself (a value out of its range or choices, or one it cannot convert) is not kept: its message would
+come twice.
+Every node of the pack answers ComfyUI's validation with the kept message (``ArtNVGNode.VALIDATE_INPUTS``,
+:func:`check_result`), through the hidden input :data:`CHECK_INPUT` alone (the node id, so ComfyUI shows
+the message once and still checks every other input's range and choices). The loaders' file lists are
+declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value itself: the
+check's message says more (where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
 
 The model loaders (ComfyUI's own and Load CSGO, :data:`MODEL_LOADERS`) list their folder's files, and
@@ -39,8 +41,7 @@ from artnvg_core.fileio import image_size
 from .comfy_bridge import comfy_module, load_image_path, model_file_path
 from .input_files import outside_folders
 
-CHECK_INPUT = "files"  # the loaders' hidden input: ComfyUI's UNIQUE_ID (the node id)
-HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}
+CHECK_INPUT = "node_id"  # every node's hidden input: ComfyUI's UNIQUE_ID
 MODEL_LOADERS = {  # node type -> (its file input, its model folder)
     "CheckpointLoaderSimple": ("ckpt_name", "checkpoints"),
     "LoraLoader": ("lora_name", "loras"),
@@ -52,6 +53,13 @@ _KEPT_PROMPTS = 32
 _results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
 
 
+def _inputs(node) -> dict:
+    """A prompt node's inputs (input name -> value or ``[node id, slot]`` link); {} for a malformed node, which
+    ComfyUI refuses itself."""
+    inputs = node.get("inputs") if isinstance(node, dict) else None
+    return inputs if isinstance(inputs, dict) else {}
+
+
 def _upstream(prompt: dict, node_id: str) -> set[str]:
     """``node_id`` and every node it reads from, directly or not (links are ``[node id, slot]`` inputs)."""
     seen, stack = set(), [node_id]
@@ -60,7 +68,7 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
         if current in seen or current not in prompt:
             continue
         seen.add(current)
-        stack.extend(str(value[0]) for value in prompt[current].get("inputs", {}).values()
+        stack.extend(str(value[0]) for value in _inputs(prompt[current]).values()
                      if isinstance(value, list) and len(value) == 2)
     return seen
 
@@ -70,11 +78,11 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
     0), from its file's header: the size it will pass (or, for a photo that EXIF rotates, that size turned).
     None for another source, or for a file outside ComfyUI's folders or that does not read (Load Image answers
     for those)."""
-    link = node.get("inputs", {}).get(input_name)
+    link = _inputs(node).get(input_name)
     source = prompt.get(str(link[0])) if isinstance(link, list) and len(link) == 2 and link[1] == 0 else None
     if not isinstance(source, dict) or source.get("class_type") != "LoadImage":
         return None
-    name = source.get("inputs", {}).get("image")
+    name = _inputs(source).get("image")
     file = load_image_path(name) if isinstance(name, str) else None
     if file is None or outside_folders(file):
         return None
@@ -86,12 +94,13 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
 
 def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, str | None]]:
     """Node id -> (its problem, as :func:`failed_checks` names it; what its ``VALIDATE_INPUTS`` answers with:
-    None where ComfyUI's own validation reports that problem itself, a value out of range or choices)."""
+    None where ComfyUI's own validation reports that problem itself: a value out of range or choices, or one it
+    cannot convert)."""
     checked = {}
     for node_id, node in prompt.items():
         if not isinstance(node, dict):
             continue
-        values = {name: value for name, value in node.get("inputs", {}).items() if not isinstance(value, list)}
+        values = {name: value for name, value in _inputs(node).items() if not isinstance(value, list)}
         if node.get("class_type") in MODEL_LOADERS:
             name, folder = MODEL_LOADERS[node["class_type"]]
             if model_file_path(folder, str(values.get(name, ""))) is None:
@@ -102,7 +111,8 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         if message:
             checked[str(node_id)] = (message, cls.unreported_value(**values))
             continue
-        message = cls.check_files(**values) if hasattr(cls, "check_files") else None
+        passed = cls.passed_values(values) if hasattr(cls, "passed_values") else values  # as ComfyUI passes them
+        message = cls.check_files(**passed) if hasattr(cls, "check_files") else None
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
         if message:
@@ -126,13 +136,14 @@ def check_prompt(request: dict, classes: Mapping[str, type]) -> dict:
         return request
     checked = _checked(prompt, classes)
     if not checked:
+        _results.pop(str(request.get("prompt_id")), None)  # a prompt id given again: nothing of its last post
         return request
     prompt_id = request.setdefault("prompt_id", str(uuid.uuid4()))
     _results[str(prompt_id)] = {node_id: shown for node_id, (_, shown) in checked.items() if shown}
     while len(_results) > _KEPT_PROMPTS:
         _results.popitem(last=False)
-    outputs = [node_id for node_id, node in prompt.items()
-               if getattr(classes.get(node.get("class_type")), "OUTPUT_NODE", False) is True]
+    outputs = [node_id for node_id, node in prompt.items() if isinstance(node, dict)
+               and getattr(classes.get(node.get("class_type")), "OUTPUT_NODE", False) is True]
     targets = request.get("partial_execution_targets")
     chosen = outputs if targets is None else [node_id for node_id in outputs if node_id in targets]
     blocked = [node_id for node_id in chosen if _upstream(prompt, node_id) & set(checked)]

@@ -67,7 +67,7 @@ class RenderViews(ArtNVGNode):
     }
 
     @cancellable
-    def render(self, scene, cameras, scale, stride, views, key_views=0):
+    def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
         with node_input(self.DISPLAY_NAME, "views"):
             listed = parse_views(views, len(cameras))
             chosen = cameras.subset(listed if views.strip() else listed[::stride])
@@ -106,7 +106,7 @@ class RenderCameraPath(ArtNVGNode):
     }
 
     @cancellable
-    def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop):
+    def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop, node_id=None):
         if path not in PATH_KINDS:
             raise NodeInputError(f"{self.DISPLAY_NAME}: input 'path': expected one of {PATH_KINDS}, got {path!r}")
         if path == "orbit":

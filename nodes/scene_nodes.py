@@ -22,7 +22,6 @@ from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, SCENE
 from .preview3d import preview_camera
-from .prompt_checks import HIDDEN, check_result
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, MODEL_3D, file3d, file3d_link_type
 
 SCENE_FILE = InputFile(
@@ -59,22 +58,16 @@ class LoadGaussianScene(ArtNVGNode):
             "Optional: the capture's cameras; with spz_axes auto they decide the axes of a .spz that names none.")}),
     }
 
-    HIDDEN = HIDDEN
-
     @classmethod
     def check_files(cls, scene_file="", path="", **_other_inputs) -> str | None:
         """The message when the chosen file is missing (``prompt_checks``), else None."""
         return SCENE_FILE.check(cls.DISPLAY_NAME, scene_file, path)
 
     @classmethod
-    def VALIDATE_INPUTS(cls, files=None):
-        return check_result(files)
-
-    @classmethod
-    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, files=None):
+    def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):
         return SCENE_FILE.signature(scene_file, path)
 
-    def load(self, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, files=None):
+    def load(self, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):
         file, input_name = SCENE_FILE.readable(self.DISPLAY_NAME, scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
             return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras),)
@@ -142,8 +135,6 @@ class SaveGaussianScene(ArtNVGNode):
             "rotations stored a little coarser.")}),
     }
 
-    HIDDEN = HIDDEN
-
     @classmethod
     def check_files(cls, filename_prefix="", format="ply", **_other_inputs) -> str | None:
         """The message when the file this node would write cannot be (``prompt_checks``: refused before the
@@ -154,11 +145,7 @@ class SaveGaussianScene(ArtNVGNode):
             return f"{cls.DISPLAY_NAME}: input 'filename_prefix': {error}"
         return None
 
-    @classmethod
-    def VALIDATE_INPUTS(cls, files=None):
-        return check_result(files)
-
-    def save(self, scene, filename_prefix, format="ply", spz_version="3", files=None):
+    def save(self, scene, filename_prefix, format="ply", spz_version="3", node_id=None):
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")

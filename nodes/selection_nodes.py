@@ -42,7 +42,7 @@ class SelectGaussians(ArtNVGNode):
     }
 
     @cancellable
-    def select(self, scene, mode, bounds, cameras=None, mask=None, views="0"):
+    def select(self, scene, mode, bounds, cameras=None, mask=None, views="0", node_id=None):
         with node_input(self.DISPLAY_NAME, "mode"):
             if mode not in MODES:
                 raise ValueError(f"expected one of {MODES}, got {mode!r}")

@@ -27,7 +27,7 @@ class SceneToSplat(ArtNVGNode):
     DESCRIPTION = __doc__ + _AVAILABILITY
     REQUIRED = {"scene": (SCENE,)}
 
-    def convert(self, scene):
+    def convert(self, scene, node_id=None):
         _require_core_type(self.DISPLAY_NAME)
         return (scene_to_splat(scene),)
 
@@ -44,7 +44,7 @@ class SplatToScene(ArtNVGNode):
     DESCRIPTION = __doc__ + _AVAILABILITY
     REQUIRED = {"splat": (SPLAT,)}
 
-    def convert(self, splat):
+    def convert(self, splat, node_id=None):
         _require_core_type(self.DISPLAY_NAME)
         with node_input(self.DISPLAY_NAME):
             return (splat_to_scene(splat, source="input 'splat'"),)

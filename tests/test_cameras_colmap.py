@@ -186,6 +186,20 @@ def test_colmap_binary_counts_beyond_the_file_are_refused_before_any_record(tmp_
 
 
 @pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("second", ["view_02.png", "./view_02.png", "sub/../view_02.png"])
+def test_colmap_one_image_named_twice_is_refused_naming_both_records_and_the_image(tmp_path, binary, second):
+    """Two records (their own ids) of one image, compared as paths with . and .. folded: two poses for one
+    image contradict each other."""
+    quats, trans = random_capture(3, seed=5)
+    images = colmap_images(quats, trans)  # view_02.png, view_01.png, view_00.png
+    images[2] = (*images[2][:4], second, images[2][5])
+    folder = write_colmap(tmp_path / "model", {1: ("PINHOLE", 64, 48, [50.0] * 4)}, images, binary)
+    with pytest.raises(ValueError, match=rf"images\.{'bin' if binary else 'txt'}: image record 0's NAME and image "
+                                         r"record 2's NAME both name the image view_02\.png; "):
+        load_colmap(folder)
+
+
+@pytest.mark.parametrize("binary", [False, True])
 def test_colmap_an_id_given_twice_is_refused_naming_both_places(tmp_path, binary):
     """A model that gives one image id (or camera id) twice is refused, not read with both images (or the last
     camera)."""

@@ -1,6 +1,7 @@
 """nerfstudio transforms.json: OpenGL -> OpenCV, intrinsics, dataparser transforms, errors naming file and key."""
 
 import json
+import re
 
 import pytest
 import torch
@@ -174,6 +175,25 @@ def test_hostile_json_is_refused_by_name_before_or_while_reading(tmp_path, monke
     with pytest.raises(ValueError, match=r"transforms\.json: [\d,]+ bytes, more than the [\d,]+ a camera file may "
                        r"have .*; not read"):
         load_nerfstudio(path)
+
+
+@pytest.mark.parametrize("second", ["images/view_00.png", "./images/view_00.png", "images//view_00.png",
+                                    "images/../images/view_00.png", "{folder}/images/view_00.png"])
+def test_two_frames_of_one_image_are_refused_naming_both_fields_and_the_image(tmp_path, second):
+    """Two poses for one image contradict each other: refused, with the paths compared as the loader joins them
+    to the file's folder (nothing is read from the disk: the images do not exist)."""
+    quats, trans = random_capture(4)
+    path = write_transforms(tmp_path / "transforms.json", quats, trans)
+    data = json.loads(path.read_text())
+    data["frames"][3]["file_path"] = second.format(folder=tmp_path)
+    write_json(path, data)
+    image = tmp_path / "images" / "view_00.png"
+    with pytest.raises(ValueError, match=rf"transforms\.json: frames\[0\]\.file_path and frames\[3\]\.file_path both "
+                                         rf"name the image {re.escape(str(image))}; "):
+        load_nerfstudio(path)
+    data["frames"][3]["file_path"] = "other/view_00.png"  # another folder: another image
+    write_json(path, data)
+    assert load_nerfstudio(path).image_paths[3] == tmp_path / "other" / "view_00.png"
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -1,6 +1,8 @@
 """Sample Group's, Load CSGO's and Apply CSGO's checks of their inputs, made before any ComfyUI model is touched
 (the sampling itself runs in the real ComfyUI: tests/integration/test_native_path.py)."""
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 
@@ -39,3 +41,24 @@ def test_apply_csgo_refuses_a_style_image_the_command_line_refuses_before_touchi
     with pytest.raises(NodeInputError, match=r"^Apply CSGO: input 'style_image': image size: 20000x2 pixels; a style "
                                              "image may be at most 32 times as long as it is wide"):
         ApplyCSGO().apply(None, None, None, None, torch.rand(1, 2, 20000, 3), 0.6, 1.0)
+
+
+def test_sample_group_seeds_past_the_largest_count_on_from_zero(monkeypatch):
+    """Group g uses seed + g, which ComfyUI's noise (torch.manual_seed) takes only below 2^64: at the largest seed
+    the second group failed after the first had been sampled."""
+    seeds = []
+
+    def sample_views(*args):  # as SampleGroup._sample_views, its noise as ComfyUI's prepare_noise seeds it
+        views, size, seed = args[5], args[7], args[8]
+        torch.manual_seed(seed)
+        seeds.append(seed)
+        return torch.zeros(len(views), *size, 3)
+
+    monkeypatch.setattr("nodes.diffusion_nodes.diffusion_unet", lambda node, model: SimpleNamespace(channel_mult=(1,)))
+    monkeypatch.setattr("nodes.diffusion_nodes.controlnet_model", lambda node, control_net: None)
+    monkeypatch.setattr("nodes.diffusion_nodes._nv_patch", lambda model: None)
+    monkeypatch.setattr(SampleGroup, "_sample_views", staticmethod(sample_views))
+    largest = SampleGroup.INPUT_TYPES()["required"]["seed"][1]["max"]
+    (images,) = SampleGroup().sample(None, [], [], SimpleNamespace(downscale_ratio=8), None, torch.rand(3, 8, 8, 3),
+                                     GROUPS, -1, largest, 1, 1.0, "ddim", "ddim_uniform", 1.0, 1.0, 64, "long_side")
+    assert seeds == [2**64 - 1, 0] and images.shape == (3, 8, 8, 3)

@@ -96,6 +96,17 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     assert "is outside ComfyUI's input" in _refusal(CAMERA_SOURCE, "capture")
 
 
+def test_names_no_file_system_takes_are_refused_naming_the_input(input_folder):
+    """A NUL character (no folder holds such a name: refused as outside them, before the graph runs and as the
+    loader runs) and a name too long to look up: the loader's message, not the operating system's exception
+    (which crashed the prompt check, so ComfyUI skipped it, and the node as it ran)."""
+    assert _refusal(SCENE_FILE, "", "a\x00b.ply").startswith(
+        "Load: input 'path': 'a\\x00b.ply' is outside ComfyUI's input, output and model folders")
+    assert _refusal(CAMERA_SOURCE, "capture\x00").startswith("Load: input 'camera_source': 'capture\\x00' is outside")
+    long = "x" * 300 + ".ply"
+    assert SCENE_FILE.check("Load", "", long).startswith(f"Load: input 'path': cannot look for {input_folder / long}: ")
+
+
 def test_files_inside_comfyuis_folders_are_read_and_the_setting_opens_every_path(input_folder, elsewhere, monkeypatch):
     output = input_folder.parent / "output"
     output.mkdir()
@@ -138,12 +149,14 @@ def test_inputs_are_data_and_choices_are_listed_when_asked(input_folder):
         DESCRIPTION = "Own words."
         OPTIONAL = {"flag": ("BOOLEAN", {"default": False})}
 
-    assert Loader.INPUT_TYPES() == {"required": {"file": ([], {}), "count": ("INT", {"default": 1})}}
+    hidden = {"node_id": "UNIQUE_ID"}  # every node's: its id, for its VALIDATE_INPUTS (nodes/prompt_checks.py)
+    assert Loader.INPUT_TYPES() == {"required": {"file": ([], {}), "count": ("INT", {"default": 1})}, "hidden": hidden}
     (input_folder / "new.ply").write_bytes(b"")
     assert Loader.INPUT_TYPES()["required"]["file"] == (["new.ply"], {})
     assert (Loader.CATEGORY, Loader.DESCRIPTION) == ("ArtNVG", "Loads things.")
     assert Described.DESCRIPTION == "Own words."
-    assert Described.INPUT_TYPES() == {"required": {}, "optional": {"flag": ("BOOLEAN", {"default": False})}}
+    assert Described.INPUT_TYPES() == {"required": {}, "optional": {"flag": ("BOOLEAN", {"default": False})},
+                                       "hidden": hidden}
 
 
 def test_descriptions_are_plain_text_paragraphs():

@@ -103,7 +103,8 @@ def test_values_outside_a_nodes_declared_ranges_block_every_output_it_feeds():
     finetune["inputs"]["iterations"], prompt["3"]["inputs"]["format"] = 10, "spz"
     assert failed_checks(prompt, classes) == {}
     finetune["inputs"]["iterations"] = float("nan")
-    assert failed_checks(prompt, classes)["1"] == "Finetune Gaussians: input 'iterations': expected a finite number, got nan"
+    assert failed_checks(prompt, classes)["1"] == (
+        "Finetune Gaussians: input 'iterations': expected a value of type INT, got nan")  # ComfyUI's int() refuses it
     finetune["inputs"]["iterations"], finetune["inputs"]["optimize"] = 10, "everything"  # choices declared as a tuple
     assert failed_checks(prompt, classes)["1"] == (
         "Finetune Gaussians: input 'optimize': expected one of ['appearance', 'all'], got 'everything'")
@@ -170,3 +171,125 @@ def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tm
         assert failed_checks(prompt, classes) == {}, image
     prompt["1"] = {"class_type": "Step", "inputs": {"image": "line.png"}}  # another node's IMAGE: checked as it runs
     assert failed_checks(prompt, classes) == {}
+
+
+def _inputs_of_type(kind: str) -> list[tuple[str, type, str, dict]]:
+    """(node type, class, input name, options) of every input of type ``kind`` of every node of the pack."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    found = []
+    for node_type, cls in NODE_CLASS_MAPPINGS.items():
+        types = cls.INPUT_TYPES()
+        for name, entry in {**types["required"], **types.get("optional", {})}.items():
+            if entry[0] == kind:
+                found.append((node_type, cls, name, (*entry, {})[1]))
+    return found
+
+
+def _validated(node_type: str, inputs: dict, executing) -> tuple:
+    """Node 1 of ``node_type`` with ``inputs`` feeding output 2, beside output 3, posted: (what node 1's
+    VALIDATE_INPUTS answers, its message in failed_checks, the targets left to run)."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": node_type, "inputs": inputs}, "2": {"class_type": "Output", "inputs": {"x": ["1", 0]}},
+              "3": {"class_type": "Output", "inputs": {}}}
+    request = check_prompt({"prompt": prompt}, classes)
+    executing["prompt"] = request.get("prompt_id")
+    return (classes[node_type].VALIDATE_INPUTS(node_id="1"), failed_checks(prompt, classes).get("1"),
+            request.get("partial_execution_targets"))
+
+
+@pytest.mark.parametrize("nan", [float("nan"), "nan", "-NaN", {"__value__": float("nan")}])  # all NaN to ComfyUI
+def test_every_float_input_of_every_node_refuses_nan_at_validation_naming_node_and_input(executing, nan):
+    """ComfyUI's min/max comparisons let a NaN through; Blend Stylization refused it only as it ran, Sample Group's
+    cfg not at all."""
+    floats = _inputs_of_type("FLOAT")
+    assert {("ArtNVGBlendStylization", "strength"), ("ArtNVGSampleGroup", "cfg")} <= {(t, n) for t, _, n, _ in floats}
+    for node_type, cls, name, _ in floats:
+        shown, message, targets = _validated(node_type, {name: nan}, executing)
+        assert shown == message == f"{cls.DISPLAY_NAME}: input '{name}': expected a finite number, got nan", name
+        assert targets == ["2"], name  # output 3 does not run either
+
+
+@pytest.mark.parametrize("kind, value", [
+    ("FLOAT", float("inf")), ("FLOAT", "-Infinity"), ("FLOAT", "1e999"), ("FLOAT", {"__value__": float("-inf")}),
+    ("INT", 2**64), ("INT", -(2**63)), ("INT", "18446744073709551616"), ("INT", "-99999"),  # text ComfyUI reads
+    ("INT", float("inf")), ("INT", "nan"), ("INT", "ten"), ("INT", None),  # values ComfyUI cannot make an INT of
+])
+def test_every_number_input_refuses_what_comfyui_reports_itself_once_and_blocks_every_output(executing, kind, value):
+    """Out of the declared range (every number input declares min and max, so ComfyUI compares), or not a number:
+    ComfyUI's own message alone (VALIDATE_INPUTS answers True), every output still blocked. Text such as "-99999"
+    escaped the pack's checks: the outputs it did not feed ran."""
+    for node_type, cls, name, options in _inputs_of_type(kind):
+        assert {"min", "max"} <= set(options), name
+        shown, message, targets = _validated(node_type, {name: value}, executing)
+        assert shown is True and message.startswith(f"{cls.DISPLAY_NAME}: input '{name}': "), name
+        assert targets == ["2"], name
+
+
+def test_values_in_every_spelling_comfyui_reads_pass_unchanged_when_valid():
+    """Every declared default, as given, as text and wrapped as the editor wraps a list value: no problem found."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    for cls in NODE_CLASS_MAPPINGS.values():
+        types = cls.INPUT_TYPES()
+        for name, entry in {**types["required"], **types.get("optional", {})}.items():
+            default = (*entry, {})[1].get("default")
+            spellings = [default, {"__value__": default}] + ([str(default)] if entry[0] in ("INT", "FLOAT") else [])
+            for value in spellings if default is not None else []:
+                assert cls.check_values(**{name: value}) is None, (cls.DISPLAY_NAME, name, value)
+                assert cls.passed_values({name: value})[name] == default
+
+
+def test_a_file_list_given_no_text_or_a_path_in_any_spelling_is_the_loaders_to_refuse(executing, tmp_path, monkeypatch):
+    """A COMBO (a loader's file list), which ComfyUI neither converts nor compares, given a number: the pack's
+    message (it crashed the prompt check, which ComfyUI then skipped, and the node as it ran). A path as ComfyUI
+    passes it: {"__value__": ...} unwrapped, a number made text (the check crashed on both)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "input").mkdir()
+    for node_type, cls, name, _ in _inputs_of_type("COMBO"):
+        for value in (5, None, {"a": 1}):
+            shown, message, targets = _validated(node_type, {name: value}, executing)
+            assert shown == message == f"{cls.DISPLAY_NAME}: input '{name}': expected a file name, got {value!r}"
+            assert targets == ["2"]
+    shown, _, _ = _validated("ArtNVGLoadGaussianScene", {"scene_file": "", "path": {"__value__": "/etc/passwd"}},
+                             executing)
+    assert shown.startswith("Load Gaussian Scene: input 'path': '/etc/passwd' is outside ComfyUI's input, output")
+    shown, _, _ = _validated("ArtNVGLoadGaussianScene", {"scene_file": "", "path": 7}, executing)
+    assert shown.startswith(f"Load Gaussian Scene: input 'path': scene file not found: {tmp_path / 'input' / '7'}. ")
+
+
+@pytest.mark.parametrize("text", ["false", {"__value__": "False"}, "true", ""])
+def test_every_boolean_input_refuses_text_which_comfyui_reads_as_its_truth(executing, text):
+    """ComfyUI makes a BOOLEAN with bool(): "false" was True. JSON's true and false (and 0, 1) pass."""
+    booleans = _inputs_of_type("BOOLEAN")
+    assert ("ArtNVGRenderCameraPath", "loop") in {(t, n) for t, _, n, _ in booleans}
+    for node_type, cls, name, _ in booleans:
+        shown, message, targets = _validated(node_type, {name: text}, executing)
+        assert shown == message == f"{cls.DISPLAY_NAME}: input '{name}': expected true or false, got {text!r}", name
+        assert targets == ["2"], name
+        assert all(cls.check_values(**{name: value}) is None for value in (True, False, 0, 1, {"__value__": True}))
+
+
+def test_malformed_nodes_leave_the_checks_of_the_others_whole(executing):
+    """ComfyUI refuses a node whose inputs are not an object itself; the pack's handler, which crashed on one (and
+    ComfyUI then let every value through unchecked), still blocks the outputs of a NaN elsewhere."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": "ArtNVGBlendStylization", "inputs": {"strength": float("nan")}},
+              "2": {"class_type": "Output", "inputs": {"x": ["1", 0]}}, "3": {"class_type": "Output", "inputs": None},
+              "4": {"class_type": "ArtNVGRenderViews", "inputs": ["x"]}, "5": "not a node",
+              "6": {"class_type": "Output", "inputs": {"x": ["5", 0], "y": ["4", 0]}}}
+    request = check_prompt({"prompt": prompt}, classes)
+    assert request["partial_execution_targets"] == ["2"] and list(failed_checks(prompt, classes)) == ["1"]
+
+
+def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
+    """A client that sets its own prompt id and posts again after mending a value: the message kept from the
+    first post refused the mended prompt."""
+    check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": "again"}, CLASSES)
+    check_prompt({"prompt": _prompt("there", "there"), "prompt_id": "again"}, CLASSES)
+    executing["prompt"] = "again"
+    assert check_result("1") is True

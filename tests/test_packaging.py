@@ -55,7 +55,8 @@ def test_constraints_pin_every_direct_requirement_inside_its_range():
 
 def test_registry_metadata_follows_the_comfy_registry_specification():
     """The node id, a three-part version, the repository, the publisher, ComfyUI versions that admit the one
-    .ci/run tests with, and one OS classifier, no accelerator one (the pack runs on the CPU too)."""
+    .ci/run tests with, one OS classifier, no accelerator one (the pack runs on the CPU too), and the licence
+    as an SPDX id (PEP 639; the registry reads it as the licence's text) with its text in LICENSE."""
     pyproject = _pyproject()
     project, comfy = pyproject["project"], pyproject["tool"]["comfy"]
     name = project["name"]
@@ -66,3 +67,5 @@ def test_registry_metadata_follows_the_comfy_registry_specification():
     (tested,) = re.findall(r"ComfyUI-(\d+\.\d+\.\d+)\.tar\.gz", (REPO / ".ci" / "run").read_text())
     assert SpecifierSet(comfy["requires-comfyui"]).contains(tested)
     assert project["classifiers"] == ["Operating System :: OS Independent"]
+    assert project["license"] == "Apache-2.0" and project["license-files"] == ["LICENSE"]
+    assert (REPO / "LICENSE").read_text().split()[:4] == ["Apache", "License", "Version", "2.0,"]

@@ -14,6 +14,7 @@ from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
     PERSPECTIVE_MODELS,
     check_camera_value,
+    check_distinct_images,
     check_text_size,
     loaded_camera_set,
     pinhole_matrix,
@@ -322,7 +323,8 @@ def load_colmap(path) -> CameraSet:
     ``images/`` folder one or two levels above the model folder (else None).
 
     Raises ValueError for a missing model, malformed or truncated files,
-    unsupported models, unknown or repeated camera or image ids, or mixed image sizes.
+    unsupported models, unknown or repeated camera or image ids, an image named
+    twice (:func:`~.common.check_distinct_images`), or mixed image sizes.
     """
     path = Path(path)
     found = find_colmap_model(path)
@@ -339,6 +341,7 @@ def load_colmap(path) -> CameraSet:
         cameras, images = _read_cameras_txt(cameras_file), _read_images_txt(images_file)
     if not images:
         raise ValueError(f"{images_file}: the model has no registered images")
+    check_distinct_images([image.name for image in images], lambda index: f"image record {index}'s NAME", images_file)
 
     images.sort(key=lambda image: image.name)
     poses, intrinsics = [], []

@@ -69,6 +69,20 @@ def view_names(files: list[str], source: Path) -> list[str]:
     return names
 
 
+def check_distinct_images(files: list[str], field: Callable[[int], str], source: Path, folder: str = "") -> None:
+    """ValueError naming ``source``, the fields ``field(i)`` and ``field(j)`` and the image when views ``i < j``
+    name one image: ``files`` are their image paths, relative to ``folder`` or absolute, compared joined to it
+    with ``.`` and ``..`` folded (``images/a.png`` is ``./images/a.png``) and nothing read from the disk. A view
+    is one image seen from one pose: a second pose for it contradicts the first."""
+    first = {}
+    for index, file in enumerate(files):
+        image = os.path.normpath(os.path.join(folder, file))
+        earlier = first.setdefault(image, index)
+        if earlier != index:
+            raise ValueError(f"{source}: {field(earlier)} and {field(index)} both name the image {image}; "
+                             "an image is one view, seen from one pose: list it once")
+
+
 def pinhole_matrix(fx: float, fy: float, cx: float, cy: float) -> list[list[float]]:
     """K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels) as nested lists."""
     return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]

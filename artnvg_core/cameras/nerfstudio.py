@@ -15,6 +15,7 @@ from .common import (
     PERSPECTIVE_MODELS,
     MAX_CAMERA_VALUE,
     check_camera_value,
+    check_distinct_images,
     loaded_camera_set,
     read_text,
     view_names,
@@ -250,7 +251,8 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     relative to this file's frame (its ``applied_transform`` undone).
 
     Raises ValueError naming the file, frame and key for missing or malformed
-    entries, non-rigid matrices, unsupported camera models or mixed image sizes.
+    entries, non-rigid matrices, unsupported camera models, mixed image sizes
+    or two frames of one image (:func:`~.common.check_distinct_images`).
     """
     path = Path(path)
     meta = _read_json_object(path)
@@ -265,6 +267,7 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     names = [frame.get("file_path", meta.get("file_path")) for frame in frames]
     if not all(type(name) is str and name for name in names):
         _check_frames(path, meta, frames)
+    check_distinct_images(names, lambda index: f"frames[{index}].file_path", path, folder=str(path.parent))
     image_paths = [path.parent / name for name in names]
     poses = []
     for index, frame in enumerate(frames):

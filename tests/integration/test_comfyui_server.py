@@ -238,6 +238,10 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     ("Finetune Gaussians.iterations=-1", FINETUNE, "iterations", "value_smaller_than_min"),  # ComfyUI's, once
     ("Save Gaussian Scene.filename_prefix=artnvg/" + "s" * 225, "7", "is 235 bytes long; it may have at most 226",
      "custom_validation_failed"),
+    # NaN passes ComfyUI's comparisons: the pack's check, on a node feeding one output (9) of five
+    ("Render Camera Path.scale=NaN", "8", "Render Camera Path: input 'scale': expected a finite number, got nan",
+     "custom_validation_failed"),
+    ('Render Camera Path.num_frames="0"', "8", "num_frames", "value_smaller_than_min"),  # text ComfyUI makes an INT
 ])
 def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected,
                                                                             kind):

@@ -27,7 +27,7 @@ def test_comfyuis_parser_reads_the_registry_metadata_as_written(comfy_checkout):
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
     project, comfy = pyproject["project"], pyproject["tool"]["comfy"]
     assert (read["project"]["name"], read["project"]["version"]) == (project["name"], project["version"])
-    assert read["project"]["license"]["text"] == project["license"]["text"]
+    assert read["project"]["license"]["text"] == project["license"]
     assert read["project"]["urls"]["repository"] == project["urls"]["Repository"]
     assert read["project"]["supported_os"] == [c.removeprefix("Operating System :: ") for c in project["classifiers"]]
     assert read["project"]["supported_accelerators"] == []
