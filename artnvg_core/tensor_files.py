@@ -17,6 +17,7 @@ files into the page cache.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -29,6 +30,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import torch
+
+from .json_objects import JsonObject
 
 SAFETENSORS_DTYPES = {
     "F64": torch.float64, "F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16,
@@ -149,9 +152,20 @@ def _cast(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return tensor.to(dtype) if tensor.is_floating_point() else tensor
 
 
+def _header_object(path: Path, pairs: list[tuple[str, object]]) -> JsonObject:
+    """An object of the safetensors header of ``path`` (json's ``object_pairs_hook``); ValueError naming a key it
+    gives twice (a broken or hostile file: a dict would keep the last entry of a tensor silently)."""
+    data = JsonObject(pairs)
+    if data.twice is not None:
+        raise ValueError(f"weights '{path}': key '{data.twice}' is given twice in one object of the safetensors "
+                         "header (a broken or tampered file)")
+    return data
+
+
 def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, list[int], int, int]]]:
     """(byte offset of the data, {name: (dtype, shape, begin, end)}) of a ``.safetensors`` file, offsets
-    relative to the data; checked against the file's size and each tensor's byte count."""
+    relative to the data; checked against the file's size and each tensor's byte count, and for keys given
+    twice."""
     size = path.stat().st_size
     with open(path, "rb") as stream:
         head = stream.read(8)
@@ -159,7 +173,7 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
         if not 0 < length <= min(MAX_HEADER_BYTES, size - 8):
             raise ValueError(f"weights '{path}': not a safetensors file (header length {length}, file {size} bytes)")
         try:
-            header = json.loads(stream.read(length))
+            header = json.loads(stream.read(length), object_pairs_hook=functools.partial(_header_object, path))
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
             raise ValueError(f"weights '{path}': safetensors header is not JSON ({error})") from None
     if not isinstance(header, dict):

@@ -49,6 +49,7 @@ class BlendStylization(ArtNVGNode):
         "preview_strengths": ("STRING", {"default": "0, 0.25, 0.5, 0.75, 1", "tooltip": (
             "Strengths shown side by side in the preview, comma-separated.")}),
     }
+    TEXT_CHECKS = {"preview_strengths": parse_strengths}
 
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,
               preview_strengths="0, 0.25, 0.5, 0.75, 1", node_id=None):
@@ -57,7 +58,7 @@ class BlendStylization(ArtNVGNode):
         with node_input(self.DISPLAY_NAME, "view"):
             if cameras is not None and view >= len(cameras):
                 raise ValueError(f"the cameras have {len(cameras)} views (0 to {len(cameras) - 1}), got {view}")
-        with node_input(self.DISPLAY_NAME, "stylized"):
+        with node_input(self.DISPLAY_NAME):  # blend's messages name what they refuse: the two scenes, selection...
             result = blend(original, stylized, strength, selection)
             camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])
             device = compute_device()

@@ -11,24 +11,31 @@ Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names 
 input in the error; a loader's file input is declared, found and checked by an
 :class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values, as ComfyUI
 will pass them (:func:`comfyui_value`), to the declared types, ranges and choices before anything runs
-(``prompt_checks``), and :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it.
-Every node answers ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS`` and the
-hidden input :data:`~.prompt_checks.CHECK_INPUT`, which each node's function takes last, unused).
+(``prompt_checks``; a text input also to what the node's ``TEXT_CHECKS`` read from it), and
+:meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
+ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS`` and the hidden input
+:data:`~.prompt_checks.CHECK_INPUT`, which each node's function takes last, unused). When a node runs, its
+function first holds what it is given to the same checks and to the Python type its declared type stands
+for (:meth:`ArtNVGNode.run_problem`): a value through a link meets no prompt check.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
 import math
 from collections.abc import Callable, Iterator
 
+import torch
+
 from artnvg_core.style_image import check_style_size
 
-from .node_types import CATEGORY, IMAGE
-from .prompt_checks import CHECK_INPUT, check_result
+from .node_errors import NodeInputError
+from .node_types import CATEGORY, IMAGE, RUN_TYPES
+from .prompt_checks import CHECK_INPUT, REFUSED, check_result, comfyui_value
 
 STYLE_IMAGE_INPUT = (IMAGE, {"tooltip": "The style reference (first image of the batch)."})
-REFUSED = (TypeError, ValueError, OverflowError)  # what comfyui_value raises for a value ComfyUI refuses itself
 
 
 def plain_text(doc: str) -> str:
@@ -48,14 +55,37 @@ def _declared(inputs: dict) -> dict:
     return declared
 
 
-def comfyui_value(kind, value):
-    """``value`` as ComfyUI 0.3.64's validation passes it to an input of type ``kind``: a ``{"__value__": v}``
-    unwrapped, then made an int, float, str or bool for INT, FLOAT, STRING, BOOLEAN (so ``"nan"`` is a FLOAT NaN,
-    ``"-1"`` the INT -1). Raises one of :data:`REFUSED` where ComfyUI refuses the value itself."""
-    if isinstance(value, dict) and "__value__" in value:
-        value = value["__value__"]
-    convert = {"INT": int, "FLOAT": float, "STRING": str, "BOOLEAN": bool}.get(kind) if isinstance(kind, str) else None
-    return value if convert is None else convert(value)
+def _type_name(cls: type) -> str:
+    """``cls`` as a message names it: its module and name (builtins without the module)."""
+    return cls.__qualname__ if cls.__module__ == "builtins" else f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _run_type_problem(kind, value) -> str | None:
+    """What is wrong with ``value`` given to an input of type ``kind`` when the node runs: not an instance of the
+    Python type :data:`~.node_types.RUN_TYPES` names for ``kind``, or a tensor of another rank; None when right,
+    or when ``kind`` has no entry there (ComfyUI's MODEL, VAE...)."""
+    expected = RUN_TYPES.get(kind) if isinstance(kind, str) else None
+    if expected is None or isinstance(value, expected.cls) and (not expected.ranks or value.ndim in expected.ranks):
+        return None
+    ranks = f" of {' or '.join(map(str, expected.ranks))} dimensions {expected.layout}" if expected.ranks else ""
+    got = f"a tensor of shape {list(value.shape)}" if isinstance(value, torch.Tensor) else _type_name(type(value))
+    return f"expected {kind}, {_type_name(expected.cls)}{ranks}; got {got}"
+
+
+def _checking_inputs(function: Callable) -> Callable:
+    """A node's ``FUNCTION`` that first refuses its inputs with :meth:`ArtNVGNode.run_problem`'s message (a
+    :class:`~.node_errors.NodeInputError`), then does its work."""
+    signature = inspect.signature(function)
+
+    @functools.wraps(function)
+    def run(self, *args, **kwargs):
+        inputs = signature.bind(self, *args, **kwargs).arguments
+        problem = type(self).run_problem(inputs)
+        if problem:
+            raise NodeInputError(problem)
+        return function(self, *args, **kwargs)
+
+    return run
 
 
 class ArtNVGNode:
@@ -65,10 +95,15 @@ class ArtNVGNode:
     REQUIRED: dict = {}
     OPTIONAL: dict = {}
     HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
+    TEXT_CHECKS: dict = {}  # STRING input name -> the function (text) -> anything the node reads it with when it
+    # runs, raising ValueError for text it refuses: checked with the prompt's values, before the graph runs
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         cls.DESCRIPTION = plain_text(vars(cls).get("DESCRIPTION") or cls.__doc__ or "")
+        function = vars(cls).get(getattr(cls, "FUNCTION", None))
+        if function is not None:
+            setattr(cls, cls.FUNCTION, _checking_inputs(function))
 
     @classmethod
     def _value_problems(cls, values: dict) -> Iterator[tuple[str, bool]]:
@@ -76,9 +111,11 @@ class ArtNVGNode:
         prompt's value; links left out) that ComfyUI cannot convert to its declared type, or that lies, once
         converted (:func:`comfyui_value`), outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
         or choices, or is not text where a COMBO (a loader's file list, which the loader checks) takes it, or is
-        text where a BOOLEAN takes true or false. ComfyUI checks the range and choices of every declared input
-        (:meth:`VALIDATE_INPUTS` names none of them), but not a FLOAT's NaN, a COMBO's value nor a BOOLEAN's."""
-        declared = _declared({**cls.REQUIRED, **cls.OPTIONAL})
+        text where a BOOLEAN takes true or false, or is text that the node's ``TEXT_CHECKS`` refuse. ComfyUI checks
+        the range and choices of every declared input (:meth:`VALIDATE_INPUTS` names none of them), but not a
+        FLOAT's NaN, a COMBO's value, a BOOLEAN's nor what a text means."""
+        inputs = {**cls.REQUIRED, **cls.OPTIONAL}
+        declared = _declared({name: entry for name, entry in inputs.items() if name in values})
         for name, given in values.items():
             if name not in declared:  # hidden inputs, and undeclared ones (ComfyUI drops those)
                 continue
@@ -98,6 +135,11 @@ class ArtNVGNode:
             elif kind == "BOOLEAN":
                 if isinstance(comfyui_value(None, given), str):  # bool("false") is True
                     yield f"{where}: expected true or false, got {given!r}", False
+            elif kind == "STRING" and name in cls.TEXT_CHECKS:
+                try:
+                    cls.TEXT_CHECKS[name](value)
+                except ValueError as error:
+                    yield f"{where}: {error}", False
             elif kind in ("INT", "FLOAT"):
                 outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
                 if not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
@@ -130,6 +172,23 @@ class ArtNVGNode:
         value that is not text, a BOOLEAN's that is; it reports the others itself, so a message of ours would
         repeat its own)."""
         return next((message for message, reported in cls._value_problems(values) if not reported), None)
+
+    @classmethod
+    def run_problem(cls, inputs: dict) -> str | None:
+        """When the node runs, before any work: the message naming the first of ``inputs`` (input name -> the value
+        given; an optional input given None counts as unconnected) that is not what its declared type holds
+        (:data:`~.node_types.RUN_TYPES`: another pack's output of type ``*`` passes ComfyUI's link check), or
+        that :meth:`check_values` refuses (a value through a link meets no prompt check), else None. Inputs declared
+        by a function (a loader's file list, ComfyUI's samplers) are left to the node, whose message says more."""
+        declared = _declared({name: entry for name, entry in {**cls.REQUIRED, **cls.OPTIONAL}.items()
+                              if name in inputs and not callable(entry)})
+        given = {name: value for name, value in inputs.items()
+                 if name in declared and not (value is None and name in cls.OPTIONAL)}
+        for name, value in given.items():
+            problem = _run_type_problem(declared[name][0], value)
+            if problem:
+                return f"{cls.DISPLAY_NAME}: input '{name}': {problem}"
+        return cls.check_values(**given)
 
     @classmethod
     def VALIDATE_INPUTS(cls, node_id=None):

@@ -49,8 +49,19 @@ MODEL_LOADERS = {  # node type -> (its file input, its model folder)
     "CLIPVisionLoader": ("clip_name", "clip_vision"),
     "ArtNVGLoadCSGO": ("csgo_name", "csgo"),
 }
+REFUSED = (TypeError, ValueError, OverflowError)  # what comfyui_value raises for a value ComfyUI refuses itself
 _KEPT_PROMPTS = 32
 _results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
+
+
+def comfyui_value(kind, value):
+    """``value`` as ComfyUI 0.3.64's validation passes it to an input of type ``kind``: a ``{"__value__": v}``
+    unwrapped, then made an int, float, str or bool for INT, FLOAT, STRING, BOOLEAN (so ``"nan"`` is a FLOAT NaN,
+    ``"-1"`` the INT -1). Raises one of :data:`REFUSED` where ComfyUI refuses the value itself."""
+    if isinstance(value, dict) and "__value__" in value:
+        value = value["__value__"]
+    convert = {"INT": int, "FLOAT": float, "STRING": str, "BOOLEAN": bool}.get(kind) if isinstance(kind, str) else None
+    return value if convert is None else convert(value)
 
 
 def _inputs(node) -> dict:
@@ -103,8 +114,9 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         values = {name: value for name, value in _inputs(node).items() if not isinstance(value, list)}
         if node.get("class_type") in MODEL_LOADERS:
             name, folder = MODEL_LOADERS[node["class_type"]]
-            if model_file_path(folder, str(values.get(name, ""))) is None:
-                checked[str(node_id)] = (f"'{values.get(name)}' is not in the '{folder}' model folder", None)
+            file = comfyui_value(None, values.get(name, ""))  # as ComfyUI passes it: {"__value__": name} unwrapped
+            if model_file_path(folder, str(file)) is None:
+                checked[str(node_id)] = (f"'{file}' is not in the '{folder}' model folder", None)
             continue
         cls = classes.get(node.get("class_type"))
         message = cls.check_values(**values) if hasattr(cls, "check_values") else None

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
-from artnvg_core.cameras.selection import parse_views
+from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.key_views import select_key_views
 from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
@@ -58,18 +60,20 @@ class RenderViews(ArtNVGNode):
         "stride": ("INT", {"default": 1, "min": 1, "max": 10000, "tooltip": (
             "Use every stride-th camera (0, stride, 2*stride, ...) when views is blank.")}),
         "views": ("STRING", {"default": "", "tooltip": (
-            "Comma-separated camera indices in file order (e.g. 0,5,9); blank: every view, thinned by stride.")}),
+            "Comma-separated camera indices in file order (e.g. 0,5,9), each once; blank: every view, thinned by "
+            "stride.")}),
     }
     OPTIONAL = {
         "key_views": ("INT", {"default": 0, "min": 0, "max": 10000, "tooltip": (
             "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
+    TEXT_CHECKS = {"views": functools.partial(listed_views, distinct=True)}  # as render --views: each view once
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
         with node_input(self.DISPLAY_NAME, "views"):
-            listed = parse_views(views, len(cameras))
+            listed = parse_views(views, len(cameras), distinct=True)
             chosen = cameras.subset(listed if views.strip() else listed[::stride])
         with node_input(self.DISPLAY_NAME, "key_views"):
             chosen = chosen.subset(select_key_views(chosen, key_views))

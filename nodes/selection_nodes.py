@@ -11,7 +11,7 @@ from .comfy_bridge import autograd_enabled, cancellable, compute_device, prepare
 from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import node_input
-from .node_types import CAMERAS, SCENE, SELECTION
+from .node_types import CAMERAS, MASK, SCENE, SELECTION
 
 MODES = ("box", "sphere", "mask")
 
@@ -36,7 +36,7 @@ class SelectGaussians(ArtNVGNode):
     }
     OPTIONAL = {
         "cameras": (CAMERAS, {"tooltip": "mask: the cameras of the views the masks were painted on."}),
-        "mask": ("MASK", {"tooltip": "mask: painted pixels (1) of one or more views, e.g. Load Image's mask."}),
+        "mask": (MASK, {"tooltip": "mask: painted pixels (1) of one or more views, e.g. Load Image's mask."}),
         "views": ("STRING", {"default": "0", "tooltip": (
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }

@@ -2,7 +2,7 @@
 
 import pytest
 
-from artnvg_core.cameras.selection import parse_views
+from artnvg_core.cameras.selection import listed_views, parse_views
 
 
 def test_indices_as_written_and_blank_is_every_view():
@@ -28,3 +28,13 @@ def test_a_view_given_twice_is_named_where_each_view_is_one_file():
     assert parse_views("0,0", 3) == [0, 0]
     with pytest.raises(ValueError, match=r"^--views: view 2 is given twice in '2, 0,2'; give each view once$"):
         parse_views("2, 0,2", 3, "--views", distinct=True)
+
+
+def test_the_checks_that_need_no_camera_count_run_before_the_cameras_are_known():
+    """A node's view text is checked before the graph runs (nodes' TEXT_CHECKS), with the rule --views applies."""
+    assert listed_views(" 9;2 ,", None) == [9, 2] and listed_views("", "views") == []
+    for text, message in [("0,x", r"^views: expected comma-separated view indices"),
+                          ("3,-1", r"^views: view index -1 is out of range: views count from 0$"),
+                          ("4,1,4", r"^views: view 4 is given twice in '4,1,4'; give each view once$")]:
+        with pytest.raises(ValueError, match=message):
+            listed_views(text, "views", distinct=True)

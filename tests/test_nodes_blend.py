@@ -60,5 +60,18 @@ def test_blend_node_bad_inputs_name_the_input(demo, inputs, message):
 
 def test_blend_node_refuses_scenes_that_do_not_correspond(demo):
     original, stylized, _ = demo
-    with pytest.raises(NodeInputError, match="Blend Stylization.*stylized.*cannot blend"):
+    with pytest.raises(NodeInputError, match="^Blend Stylization: cannot blend original and stylized: original has"):
         call(BlendStylization, original=original, stylized=stylized.select(slice(1, None)), strength=0.5)
+
+
+@pytest.mark.parametrize("inputs, message", [
+    ({"strength": float("nan")}, "input 'strength': expected a finite number, got nan"),
+    ({"strength": 1.5}, "input 'strength': 1.5 is outside 0.0 to 1.0"),
+    ({"selection": torch.ones(3, dtype=torch.bool)}, "blend: selection must be a boolean mask of the scene's 2,000"),
+])
+def test_blend_node_called_directly_names_the_input_at_fault(demo, inputs, message):
+    """Called from Python, or given a value through a link, which no prompt check sees: the message named input
+    'stylized' whatever was wrong."""
+    original, stylized, _ = demo
+    with pytest.raises(NodeInputError, match=f"^Blend Stylization: {message}"):
+        call(BlendStylization, **{"original": original, "stylized": stylized, "strength": 0.5, **inputs})

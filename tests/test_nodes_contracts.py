@@ -8,10 +8,13 @@ position, so input names and order are pinned here: changing them breaks users' 
 
 import importlib.util
 import inspect
+import re
 import sys
 from pathlib import Path
+from unittest import mock
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
@@ -184,3 +187,43 @@ def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_th
         if combos:
             checked = set(inspect.signature(node.check_files).parameters)
             assert combos <= checked and "_other_inputs" in checked, name
+
+
+def _stand_in(kind, options: dict):
+    """A value the run-time check lets through for an input of ``kind``: a mock of its run type or a tensor of its
+    rank (nodes/node_types.py RUN_TYPES), its default or first choice, a file name, else an object (a MODEL...)."""
+    from nodes.node_types import RUN_TYPES
+
+    expected = RUN_TYPES.get(kind) if isinstance(kind, str) else None
+    if expected is not None:
+        return torch.zeros((1,) * expected.ranks[0]) if expected.ranks else mock.Mock(spec=expected.cls)
+    choice = next(iter(kind), "") if isinstance(kind, list) else "" if kind == "COMBO" else object()
+    return options.get("default", choice)
+
+
+def test_every_node_refuses_an_input_not_of_its_declared_type_before_any_work():
+    """Another pack's output declared as type * passes ComfyUI's link check: a node was given, say, a string for its
+    scene and failed deep inside with an AttributeError. Each custom-typed input (and IMAGE, MASK) is checked when
+    the node runs, by the base class, from the declared types."""
+    from nodes import NODE_CLASS_MAPPINGS
+    from nodes.node_errors import NodeInputError
+    from nodes.node_types import RUN_TYPES
+
+    checked = set()
+    for node in NODE_CLASS_MAPPINGS.values():
+        types = node.INPUT_TYPES()
+        declared = {**types["required"], **types.get("optional", {})}
+        fine = {name: _stand_in(*(*entry, {})[:2]) for name, entry in types["required"].items()}
+        for name, (kind, *_) in declared.items():
+            if not isinstance(kind, str) or kind not in RUN_TYPES:
+                continue
+            checked.add(kind)
+            expected = RUN_TYPES[kind]
+            wrong = [({"scene": 1}, "dict")] + ([(None, "NoneType")] if name in types["required"] else [])
+            if expected.ranks:
+                wrong.append((torch.zeros(2, 1, 1, 1, 1), "a tensor of shape [2, 1, 1, 1, 1]"))
+            for value, got in wrong:
+                start = re.escape(f"{node.DISPLAY_NAME}: input '{name}': expected {kind}, ")
+                with pytest.raises(NodeInputError, match=f"^{start}.*{expected.cls.__name__}.*; got {re.escape(got)}$"):
+                    getattr(node(), node.FUNCTION)(**{**fine, name: value})
+    assert checked == set(RUN_TYPES)  # every run type is some node's input

@@ -2,10 +2,12 @@
 (the sampling itself runs in the real ComfyUI: tests/integration/test_native_path.py)."""
 
 from types import SimpleNamespace
+from unittest import mock
 
 import pytest
 import torch
 
+from artnvg_core.diffusion.csgo_weights import CSGOFile
 from artnvg_core.grouping import ViewGroup, ViewGroups
 from nodes.diffusion_nodes import SampleGroup
 from nodes.model_patch_nodes import ApplyCSGO, LoadCSGO
@@ -37,10 +39,11 @@ def test_load_csgo_says_where_the_file_belongs_and_where_to_get_it():
 
 
 def test_apply_csgo_refuses_a_style_image_the_command_line_refuses_before_touching_a_model():
-    """The rule of artnvg_core.style_image, as stylize --style applies it; no model is given: none is read."""
+    """The rule of artnvg_core.style_image, as stylize --style applies it; no model is given (a mock CSGO file): none
+    is read."""
     with pytest.raises(NodeInputError, match=r"^Apply CSGO: input 'style_image': image size: 20000x2 pixels; a style "
                                              "image may be at most 32 times as long as it is wide"):
-        ApplyCSGO().apply(None, None, None, None, torch.rand(1, 2, 20000, 3), 0.6, 1.0)
+        ApplyCSGO().apply(None, None, mock.Mock(spec=CSGOFile), None, torch.rand(1, 2, 20000, 3), 0.6, 1.0)
 
 
 def test_sample_group_seeds_past_the_largest_count_on_from_zero(monkeypatch):

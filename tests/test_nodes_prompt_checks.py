@@ -141,6 +141,10 @@ def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monke
     assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
     request = check_prompt({"prompt": prompt}, CLASSES)
     assert request["partial_execution_targets"] == ["3"]
+    # a name as the editor wraps a list value, which ComfyUI unwraps: the check read the wrapper
+    prompt["1"]["inputs"]["ckpt_name"] = {"__value__": "sdxl.safetensors"}
+    prompt["2"]["inputs"]["csgo_name"] = {"__value__": "csgo_4_32.bin"}
+    assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
 
 
 def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tmp_path, monkeypatch):
@@ -293,3 +297,19 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
     check_prompt({"prompt": _prompt("there", "there"), "prompt_id": "again"}, CLASSES)
     executing["prompt"] = "again"
     assert check_result("1") is True
+
+
+@pytest.mark.parametrize("node_type, inputs, message", [
+    ("ArtNVGRenderViews", {"views": "3, 0,3"}, "Render Views: input 'views': view 3 is given twice in '3, 0,3'; give "
+                                                "each view once"),  # as render --views and evaluate --views
+    ("ArtNVGRenderViews", {"views": "-2"}, "Render Views: input 'views': view index -2 is out of range: views count "
+                                           "from 0"),
+    ("ArtNVGBlendStylization", {"preview_strengths": "0, 2"}, "Blend Stylization: input 'preview_strengths': expected "
+                                                             "comma-separated numbers from 0 to 1"),
+])
+def test_text_a_node_would_refuse_when_it_runs_is_refused_at_validation(executing, node_type, inputs, message):
+    """A node's TEXT_CHECKS: the parser it reads the text with, run before the graph runs (the camera count is not
+    known then: an index past the last view is refused when the node runs)."""
+    shown, failed, targets = _validated(node_type, inputs, executing)
+    assert shown == failed and shown.startswith(message) and targets == ["2"]
+    assert _validated("ArtNVGRenderViews", {"views": "0, 2; 1"}, executing)[1] is None

@@ -8,16 +8,18 @@ input and output folders are ``./input`` and ``./output`` of the working directo
 import gzip
 import shutil
 import struct
+from unittest import mock
 
 import pytest
 import torch
 
-from artnvg_core.cameras import interpolate_path, load_cameras, orbit_path
+from artnvg_core.cameras import CameraSet, interpolate_path, load_cameras, orbit_path
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.grouping import group_views
 from artnvg_core.key_views import select_key_views
 from artnvg_core.raster import render
 from artnvg_core.formats import load_scene, read_ply, save_scene
+from artnvg_core.scene import GaussianScene
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError
@@ -120,7 +122,7 @@ def test_render_views_matches_the_core_renderer(small_bear, bear):
 
 
 def test_render_views_rejects_bad_view_lists(small_bear, bear):
-    for views, problem in (("0, 96", "out of range"), ("0, x", "'x'")):
+    for views, problem in (("0, 96", "out of range"), ("0, x", "'x'"), ("5, 0, 5", "view 5 is given twice")):
         with pytest.raises(NodeInputError, match=f"Render Views: input 'views': .*{problem}"):
             call(RenderViews, scene=small_bear, cameras=bear["cameras"], scale=SCALE, stride=1, views=views)
 
@@ -180,10 +182,10 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
 
 
 def test_finetune_node_refuses_a_style_image_the_command_line_refuses_before_any_work():
-    """The rule of artnvg_core.style_image, as stylize --style applies it; no scene is given: none is touched."""
+    """The rule of artnvg_core.style_image, as stylize --style applies it; no scene is given (mocks): none is touched."""
     with pytest.raises(NodeInputError, match=r"^Finetune Gaussians: input 'style_image': image size: 2x20000 pixels; "
                                              "a style image may be at most 32 times as long as it is wide"):
-        call(FinetuneGaussians, scene=None, cameras=None, style_image=torch.rand(1, 20000, 2, 3), iterations=1,
+        call(FinetuneGaussians, scene=mock.Mock(spec=GaussianScene), cameras=mock.Mock(spec=CameraSet), style_image=torch.rand(1, 20000, 2, 3), iterations=1,
              optimize="appearance", l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0, content_weight=0.5,
              tv_weight=0.1, seed=0)
 

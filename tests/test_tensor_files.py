@@ -142,6 +142,19 @@ def test_malformed_files_are_refused_naming_the_file(tmp_path, header, data, mes
         read_tensors(path)
 
 
+@pytest.mark.parametrize("header", [
+    b'{"x": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}, "x": {"dtype": "F32", "shape": [1], '
+    b'"data_offsets": [0, 4]}}',  # json.loads kept the second 'x' silently
+    b'{"x": {"dtype": "F32", "shape": [2], "shape": [1], "data_offsets": [0, 8]}}',
+], ids=["a tensor twice", "a field twice"])
+def test_a_key_given_twice_in_the_header_is_refused_naming_the_file_and_the_key(tmp_path, header):
+    path = tmp_path / "twice.safetensors"
+    _write_raw(path, header, b"\0" * 8)
+    key = "x" if header.count(b'"x"') == 2 else "shape"
+    with pytest.raises(ValueError, match=f"^weights '.*twice.safetensors': key '{key}' is given twice"):
+        read_tensors(path)
+
+
 def test_read_ahead_asks_the_kernel_for_each_whole_file_and_skips_what_it_cannot_open(tmp_path, monkeypatch):
     import os
 

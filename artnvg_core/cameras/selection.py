@@ -9,14 +9,15 @@ written. Blank text (or None, or separators alone) means every view.
 from __future__ import annotations
 
 
-def parse_views(text: str | None, count: int, what: str | None = None, *, distinct: bool = False) -> list[int]:
-    """Indices from ``text`` (the module's grammar) for a set of ``count`` views: every view when blank.
+def listed_views(text: str | None, what: str | None = None, *, distinct: bool = False) -> list[int]:
+    """The indices written in ``text`` (the module's grammar), as written; [] when blank. The checks that need
+    no camera count, so that a view list can be checked before the cameras are known.
 
-    Raises ValueError naming the offending entry, after ``what:`` (an option's name) when given; with
-    ``distinct``, also naming a view given twice.
+    Raises ValueError naming the offending entry (not an index, or negative), after ``what:`` (an option's
+    name) when given; with ``distinct``, also naming a view given twice.
     """
     where = f"{what}: " if what else ""
-    indices = []
+    indices, seen = [], set()
     for part in (text or "").replace(";", ",").split(","):
         part = part.strip()
         if not part:
@@ -26,9 +27,23 @@ def parse_views(text: str | None, count: int, what: str | None = None, *, distin
         except ValueError:
             raise ValueError(f"{where}expected comma-separated view indices such as 0,5,9, got {part!r} "
                              f"in {text!r}") from None
-        if not 0 <= index < count:
-            raise ValueError(f"{where}view index {index} is out of range for {count} cameras (0..{count - 1})")
-        if distinct and index in indices:
+        if index < 0:
+            raise ValueError(f"{where}view index {index} is out of range: views count from 0")
+        if distinct and index in seen:
             raise ValueError(f"{where}view {index} is given twice in {text!r}; give each view once")
         indices.append(index)
+        seen.add(index)
+    return indices
+
+
+def parse_views(text: str | None, count: int, what: str | None = None, *, distinct: bool = False) -> list[int]:
+    """Indices from ``text`` (the module's grammar) for a set of ``count`` views: every view when blank.
+
+    Raises ValueError as :func:`listed_views` does, and naming an index past the last view.
+    """
+    indices = listed_views(text, what, distinct=distinct)
+    for index in indices:
+        if index >= count:
+            where = f"{what}: " if what else ""
+            raise ValueError(f"{where}view index {index} is out of range for {count} cameras (0..{count - 1})")
     return indices or list(range(count))

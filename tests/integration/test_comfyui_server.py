@@ -242,6 +242,9 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     ("Render Camera Path.scale=NaN", "8", "Render Camera Path: input 'scale': expected a finite number, got nan",
      "custom_validation_failed"),
     ('Render Camera Path.num_frames="0"', "8", "num_frames", "value_smaller_than_min"),  # text ComfyUI makes an INT
+    # a view given twice, which render --views refuses: the pack's check of the text, before the cameras are known
+    ("Render Views.views=1,1", "4", "Render Views: input 'views': view 1 is given twice in '1,1'; give each view once",
+     "custom_validation_failed"),
 ])
 def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected,
                                                                             kind):
