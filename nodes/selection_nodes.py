@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from artnvg_core.cameras.selection import parse_views
+from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.selection import parse_region, select_by_masks, select_region
 
 from .comfy_bridge import autograd_enabled, cancellable, compute_device, prepare_rasterizer, progress_text, trainable_copy
@@ -40,6 +40,7 @@ class SelectGaussians(ArtNVGNode):
         "views": ("STRING", {"default": "0", "tooltip": (
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }
+    TEXT_CHECKS = {"views": listed_views}  # a view may hold several masks
 
     @cancellable
     def select(self, scene, mode, bounds, cameras=None, mask=None, views="0", node_id=None):
@@ -55,7 +56,7 @@ class SelectGaussians(ArtNVGNode):
                     raise ValueError("mode mask needs cameras and mask connected")
             masks = mask if mask.ndim == 3 else mask[None]
             with node_input(self.DISPLAY_NAME, "views"):
-                indices = parse_views(views, len(cameras), "views")
+                indices = parse_views(views, len(cameras))
                 if len(indices) != len(masks):
                     raise ValueError(f"{len(masks)} masks but {len(indices)} views ({views!r}): give one view per mask")
             device = compute_device()
