@@ -23,6 +23,7 @@ import torch
 from .cameras import CameraSet
 from .raster import render
 from .scene import GaussianScene
+from .selection import check_selection
 
 # A finetune moves means by a small fraction of the scene's size; reordered or unrelated Gaussians
 # typically lie a sizeable part of it apart.
@@ -72,9 +73,7 @@ def _weights(strength: float, selection: torch.Tensor | None, count: int, device
         raise ValueError(f"blend: strength must be a number from 0 to 1, got {strength!r}")
     if selection is None:
         return float(strength)
-    if selection.dtype != torch.bool or tuple(selection.shape) != (count,):
-        raise ValueError(f"blend: selection must be a boolean mask of the scene's {count:,} Gaussians, got "
-                         f"{selection.dtype} {tuple(selection.shape)}")
+    check_selection(selection, count, "blend")
     return selection.to(device, torch.float32) * strength
 
 

@@ -115,12 +115,17 @@ def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tenso
     return (total > 0) & (weighted >= MASK_SHARE * total)
 
 
+def check_selection(selection: torch.Tensor, count: int, caller: str) -> None:
+    """ValueError naming ``caller`` unless ``selection`` is a boolean mask [count], one entry per Gaussian."""
+    if selection.dtype != torch.bool or tuple(selection.shape) != (count,):
+        raise ValueError(f"{caller}: selection must be a boolean mask of the scene's {count:,} Gaussians, got "
+                         f"{selection.dtype} {tuple(selection.shape)}")
+
+
 def coverage(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, backend: str = "auto") -> torch.Tensor:
     """[C, H, W] in [0, 1]: per pixel of each view, the selected Gaussians' share of its colour (their summed
     compositing weights), from a render in which they are white and the others black, one view at a time."""
-    if selection.dtype != torch.bool or tuple(selection.shape) != (len(scene),):
-        raise ValueError(f"coverage: selection must be a boolean mask of the scene's {len(scene):,} Gaussians, "
-                         f"got {selection.dtype} {tuple(selection.shape)}")
+    check_selection(selection, len(scene), "coverage")
     dc = ((selection.to(scene.means) - 0.5) / SH_C0)[:, None, None].expand(-1, 1, 3)
     flat = dataclasses.replace(scene.map(torch.Tensor.detach), sh=dc.contiguous())
     cameras = cameras.to(scene.device)

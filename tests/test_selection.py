@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from artnvg_core.scene import SH_C0, GaussianScene
-from artnvg_core.selection import Box, Sphere, coverage, gaussian_weights, parse_region, select_by_masks, select_region
+from artnvg_core.selection import Box, Sphere, check_selection, coverage, gaussian_weights, parse_region, select_by_masks, select_region
 
 from raster_reference import brute_force_render
 from raster_scenes import make_cameras
@@ -143,3 +143,10 @@ def test_bad_masks_and_selections_are_refused():
         select_by_masks(scene, cameras, torch.ones(1, HEIGHT, WIDTH))
     with pytest.raises(ValueError, match="boolean mask of the scene's 24 Gaussians"):
         coverage(scene, torch.ones(3, dtype=torch.bool), cameras)
+
+
+@pytest.mark.parametrize("selection", [torch.ones(24), torch.ones(23, dtype=torch.bool), torch.ones(24, 1, dtype=torch.bool)])
+def test_a_selection_that_is_not_one_boolean_per_gaussian_is_refused_naming_its_caller(selection):
+    check_selection(torch.ones(24, dtype=torch.bool), 24, "blend")
+    with pytest.raises(ValueError, match=r"^finetune: selection must be a boolean mask of the scene's 24 Gaussians, got"):
+        check_selection(selection, 24, "finetune")

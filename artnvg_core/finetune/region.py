@@ -16,7 +16,7 @@ import torch
 
 from ..cameras import CameraSet
 from ..scene import GaussianScene
-from ..selection import coverage
+from ..selection import check_selection, coverage
 from .color_transfer import ColorTransform, recolor_scene
 
 _log = logging.getLogger(__name__)
@@ -53,9 +53,7 @@ def region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraS
                   backend: str) -> tuple[CameraSet, torch.Tensor | None, torch.Tensor]:
     """The views where ``selection`` covers at least a pixel's worth, their stylized views (when given) and
     their coverage [C', H, W]; ValueError for a selection of the wrong size or one no view sees."""
-    if selection.dtype != torch.bool or tuple(selection.shape) != (len(scene),):
-        raise ValueError(f"finetune: selection must be a boolean mask of the scene's {len(scene):,} Gaussians, got "
-                         f"{selection.dtype} {tuple(selection.shape)}")
+    check_selection(selection, len(scene), "finetune")
     weights = coverage(scene, selection, cameras, backend)
     seen = (weights.flatten(1).sum(1) >= 1).nonzero()[:, 0].tolist()
     if not seen:
