@@ -87,10 +87,14 @@ class SampleGroup(ArtNVGNode):
         "groups": (GROUPS, {"tooltip": "Groups of the same cameras (from Group Neighbouring Views)."}),
         "group_index": ("INT", {"default": -1, "min": -1, "max": 9999, "tooltip": (
             "-1: every group; otherwise only this group (0-based).")}),
-        "seed": ("INT", {"default": 0, "min": 0, "max": SEEDS - 1, "control_after_generate": True}),
-        "steps": ("INT", {"default": SamplerSettings.steps, "min": 1, "max": 10000}),
-        "cfg": ("FLOAT", {"default": SamplerSettings.guidance_scale, "min": 0.0, "max": 100.0, "step": 0.1}),
-        "sampler_name": lambda: (_names("SAMPLERS", SAMPLERS), {"default": "ddim"}),
+        "seed": ("INT", {"default": 0, "min": 0, "max": SEEDS - 1, "control_after_generate": True, "tooltip": (
+            "Noise seed, drawn as KSampler draws it; group g uses seed + g.")}),
+        "steps": ("INT", {"default": SamplerSettings.steps, "min": 1, "max": 10000, "tooltip": (
+            "Denoising steps per group (50 as in CSGO's inference script; fewer with a few-step LoRA).")}),
+        "cfg": ("FLOAT", {"default": SamplerSettings.guidance_scale, "min": 0.0, "max": 100.0, "step": 0.1, "tooltip": (
+            "Classifier-free guidance scale, as KSampler's cfg (10 as in CSGO's inference script).")}),
+        "sampler_name": lambda: (_names("SAMPLERS", SAMPLERS), {"default": "ddim", "tooltip": (
+            "ComfyUI's sampler, as KSampler's (ddim with ddim_uniform: the paper's).")}),
         "scheduler": lambda: (_names("SCHEDULERS", SCHEDULERS), {"default": "ddim_uniform", "tooltip": (
             "ddim with ddim_uniform: the paper's DDIM (the timesteps of diffusers' DDIM for SDXL).")}),
         "denoise": ("FLOAT", {"default": 1.0, "min": 0.0, "max": 1.0, "step": 0.01, "tooltip": (

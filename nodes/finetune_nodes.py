@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, finetune
+from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, check_stylized_views, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
 from artnvg_core.presets import PRESETS
 from artnvg_core.style_image import check_style_size
@@ -62,7 +62,9 @@ class FinetuneGaussians(ArtNVGNode):
     RETURN_NAMES = ("scene",)
     REQUIRED = {
         "scene": (SCENE,),
-        "cameras": (CAMERAS, {"tooltip": "Training views, rendered at their own size (e.g. from Render Views)."}),
+        "cameras": (CAMERAS, {"tooltip": (
+            "Training views, rendered at their own size (e.g. from Render Views); with stylized_views, the cameras "
+            "those views were made from (the Render Views that gave Sample Group its content views).")}),
         "style_image": STYLE_IMAGE_INPUT,
         "iterations": ("INT", {"default": _DEFAULTS.iterations, "min": 0, "max": 100000, "tooltip": (
             "Optimisation steps, one random view each (the paper uses 1,000).")}),
@@ -105,6 +107,9 @@ class FinetuneGaussians(ArtNVGNode):
                  nnfm_search=_DEFAULTS.nnfm_search, selection=None, node_id=None):
         with node_input(self.DISPLAY_NAME, "style_image"):  # before any work
             check_style_size(style_image.shape[2], style_image.shape[1])
+        if stylized_views is not None:
+            with node_input(self.DISPLAY_NAME, "stylized_views"):
+                check_stylized_views(stylized_views, len(cameras))
         with node_input(self.DISPLAY_NAME), autograd_enabled():
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,

@@ -30,7 +30,9 @@ class SelectGaussians(ArtNVGNode):
     RETURN_NAMES = ("selection",)
     REQUIRED = {
         "scene": (SCENE,),
-        "mode": (MODES, {"default": "box"}),
+        "mode": (MODES, {"default": "box", "tooltip": (
+            "box or sphere: the Gaussians whose centre lies inside bounds; mask: those the painted pixels of mask "
+            "see (connect cameras and mask).")}),
         "bounds": ("STRING", {"default": "-1, -1, -1, 1, 1, 1", "tooltip": (
             "box: XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX; sphere: X, Y, Z, R; in the scene's units (unused for mask).")}),
     }

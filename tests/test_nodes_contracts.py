@@ -113,7 +113,9 @@ def test_public_inputs_and_outputs_are_pinned(pack):
 
 
 def _check_widget(where: str, kind, options: dict) -> None:
+    """A widget (a value typed or picked on the node) has a default within its range and a tooltip."""
     default = options.get("default")
+    assert isinstance(options.get("tooltip"), str) and options["tooltip"].strip(), f"{where}: no tooltip"
     if kind == "COMBO":
         kind = options["options"]
     if isinstance(kind, (list, tuple)):

@@ -20,6 +20,7 @@ from artnvg_core.key_views import select_key_views
 from artnvg_core.raster import render
 from artnvg_core.formats import load_scene, read_ply, save_scene
 from artnvg_core.scene import GaussianScene
+from artnvg_core.stylize import DemoInputs
 from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError
@@ -176,9 +177,20 @@ def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, be
     expected = finetune(small_bear, cameras, style[0],
                         config=FinetuneConfig(iterations=1, optimize="appearance", seed=3, color_transfer=False, **weights))
     assert _same_scene(plain, expected)
-    with pytest.raises(NodeInputError, match="Finetune Gaussians: .*stylized"):
-        call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
-             optimize="appearance", seed=0, stylized_views=stylized[:1], **weights)
+
+
+def test_finetune_node_names_stylized_views_of_other_cameras_before_any_work():
+    """Stylized views made from other cameras than those connected (say Load Cameras' every view, where Sample
+    Group was given a Render Views of some of them) are refused naming the input and the two counts; no scene
+    is given (a mock): none is touched."""
+    scene = mock.Mock(spec=GaussianScene)
+    with pytest.raises(NodeInputError, match=r"^Finetune Gaussians: input 'stylized_views': got \(1, 64, 64, 3\) "
+                                             r"for 2 cameras; expected \[2, H, W, 3\], one view per camera"):
+        call(FinetuneGaussians, scene=scene, cameras=load_cameras(DemoInputs().cameras).subset([0, 12]),
+             style_image=torch.rand(1, 8, 8, 3),
+             iterations=1, optimize="appearance", l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0,
+             content_weight=0.5, tv_weight=0.1, seed=0, stylized_views=torch.rand(1, 64, 64, 3))
+    assert not scene.mock_calls
 
 
 def test_finetune_node_refuses_a_style_image_the_command_line_refuses_before_any_work():

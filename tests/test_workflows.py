@@ -340,6 +340,28 @@ def test_full_workflow_declares_its_four_model_files_for_the_missing_models_dial
                for m in ui["models"])
 
 
+def test_full_workflow_note_says_how_to_get_each_file_the_editor_does_not_download():
+    """The missing models dialog of ComfyUI 0.3.64's frontend (1.27.10) downloads only .safetensors and .sft
+    files; for any other (CSGO's .bin) it shows "Only allowed suffixes are ..." instead: the note gives the
+    command that fetches it into its folder."""
+    ui = json.loads(next(WORKFLOWS.glob("ArtNVG_3_*.json")).read_text())
+    (note,) = [n["widgets_values"][0] for n in ui["nodes"] if n["type"] == "Note"]
+    by_hand = [m for m in ui["models"] if not m["name"].endswith((".safetensors", ".sft"))]
+    assert by_hand
+    for model in by_hand:
+        repository = model["url"].removeprefix("https://huggingface.co/").split("/resolve/")[0]
+        assert f"hf download {repository} {model['name']} --local-dir ComfyUI/models/{model['directory']}" in note
+
+
+@pytest.mark.parametrize("path", API_FILES, ids=lambda p: p.stem)
+def test_workflows_read_spz_files_by_the_loaders_default_axes(path):
+    """Templates are for the user's own scenes: Load Gaussian Scene's spz_axes stays at its default (auto: the axes
+    that put a .spz in front of its cameras), not one convention that turns another tool's .spz upside down."""
+    default = NODE_CLASS_MAPPINGS["ArtNVGLoadGaussianScene"].INPUT_TYPES()["optional"]["spz_axes"][1]["default"]
+    loaders = [n for n in json.loads(path.read_text()).values() if n["class_type"] == "ArtNVGLoadGaussianScene"]
+    assert loaders and all(n["inputs"]["spz_axes"] == default for n in loaders)
+
+
 # --------------------------------------------------------------------------- queue script
 
 

@@ -4,6 +4,6 @@ that writes finite values only (:mod:`.finite_steps`) and ARF's colour transfer 
 It renders through :class:`~artnvg_core.raster.step_renderer.StepRenderer` and knows no backend's internals."""
 
 from .config import OPTIMIZE_CHOICES, FinetuneConfig
-from .loop import camera_extent, compile_kernels, finetune
+from .loop import camera_extent, check_stylized_views, compile_kernels, finetune
 
-__all__ = ["OPTIMIZE_CHOICES", "FinetuneConfig", "camera_extent", "compile_kernels", "finetune"]
+__all__ = ["OPTIMIZE_CHOICES", "FinetuneConfig", "camera_extent", "check_stylized_views", "compile_kernels", "finetune"]

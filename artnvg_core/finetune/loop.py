@@ -204,6 +204,14 @@ def finetune(
                          selection)
 
 
+def check_stylized_views(stylized: torch.Tensor, count: int) -> None:
+    """ValueError (naming the shape, not the input: the caller names it) unless ``stylized`` is [count, H, W, 3]:
+    one view per camera of ``count``, in the cameras' order."""
+    if stylized.ndim != 4 or stylized.shape[0] != count or stylized.shape[-1] != 3:
+        raise ValueError(f"got {tuple(stylized.shape)} for {count} cameras; expected [{count}, H, W, 3], one view per "
+                         "camera in the cameras' order (give the cameras the views were rendered from)")
+
+
 def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tensor, stylized: torch.Tensor | None,
               config: FinetuneConfig, progress: ProgressFn | None, should_stop: StopFn | None,
               render_progress: ProgressFn | None, selection: torch.Tensor | None) -> GaussianScene:
@@ -217,10 +225,10 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     device = scene.device
     cameras = cameras.to(device)
     if stylized is not None:
-        if stylized.ndim != 4 or stylized.shape[0] != len(cameras) or stylized.shape[-1] != 3:
-            raise ValueError(
-                f"finetune: stylized must be [{len(cameras)}, H, W, 3] (one view per camera), got {tuple(stylized.shape)}"
-            )
+        try:
+            check_stylized_views(stylized, len(cameras))
+        except ValueError as error:
+            raise ValueError(f"finetune: stylized: {error}") from None
         stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
     weights = None
     if selection is not None:
