@@ -199,6 +199,18 @@ def test_missing_property_is_named(tmp_path, missing):
         read_ply(path)
 
 
+def test_point_cloud_is_named_as_one_not_as_a_scene_missing_properties(tmp_path):
+    """A capture's sparse points (nerfstudio's sparse_pc.ply: x y z and colours), picked for the scene: the
+    message says what the file is and what to pick instead."""
+    path = tmp_path / "sparse_pc.ply"
+    path.write_text("\n".join(["ply", "format ascii 1.0", "element vertex 2", *(f"property float {n}" for n in "xyz"),
+                               *(f"property uchar {c}" for c in ("red", "green", "blue")), "end_header",
+                               "0 0 0 10 20 30", "1 2 3 40 50 60"]) + "\n")
+    with pytest.raises(ValueError, match=r"sparse_pc\.ply: a point cloud or mesh, not a Gaussian scene: .* "
+                                         r"expected a trained 3DGS scene"):
+        read_ply(path)
+
+
 def test_f_rest_count_that_is_no_sh_degree_is_rejected(tmp_path):
     path = tmp_path / "rest10.ply"
     write_reference_ply(path, random_scene(3, 1))

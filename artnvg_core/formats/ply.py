@@ -129,6 +129,12 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
     num_rest = _sh_rest_count(path, data.dtype.names or ())
     layout = _ply_layout(num_rest)
     del layout["normals"]
+    gaussian_properties = {name for key in ("sh_dc", "opacity_logits", "log_scales", "quats") for name in layout[key]}
+    if not gaussian_properties & set(data.dtype.names or ()):
+        raise ValueError(f"{path}: a point cloud or mesh, not a Gaussian scene: its vertices have none of a Gaussian's "
+                         "properties (f_dc_*, opacity, scale_*, rot_*); expected a trained 3DGS scene (e.g. 3DGS's "
+                         "point_cloud/iteration_30000/point_cloud.ply or nerfstudio's ns-export gaussian-splat), not "
+                         "a capture's points (COLMAP's or nerfstudio's sparse_pc.ply)")
     columns = {key: _ply_columns(path, data, names) for key, names in layout.items()}
     n, coeffs_per_channel = len(data), num_rest // 3
     sh_rest = columns["sh_rest"].reshape(n, 3, coeffs_per_channel).transpose(1, 2)
