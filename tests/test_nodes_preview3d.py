@@ -38,3 +38,13 @@ def test_the_camera_frames_the_bulk_whatever_the_stray_gaussians():
     assert (_vector(alone["target"]) - target).norm() < 0.1
     assert abs(float((_vector(alone["position"]) - _vector(alone["target"])).norm())
                - float((position - target).norm())) < 0.1 * float((position - target).norm())
+
+
+def test_aiming_at_a_scene_without_ground_asks_nothing_of_the_user(caplog):
+    """Saving a scene computes Preview 3D's camera; an up direction guessed there (a scene without a ground:
+    a standing blob) is the preview's business, so nothing is logged: "pass up=" is for nodes that place views
+    (artnvg_core.orbit.orbit_cameras logs it), and Save Gaussian Scene has no such input."""
+    standing = torch.randn(2000, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.5, 0.45, 1.0])
+    with caplog.at_level("INFO"):
+        preview_camera(_scene(standing))
+    assert not caplog.records

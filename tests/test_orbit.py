@@ -24,6 +24,19 @@ def blob(means, seed=0):
                          torch.zeros(n), 0.3 * torch.randn(n, 1, 3, generator=g))
 
 
+def test_views_around_a_scene_without_ground_say_their_up_is_a_guess(caplog):
+    """No ground plane (a standing blob): the views' up is the core's long axis, a guess the log names with
+    what to do about it."""
+    standing = blob(torch.randn(2000, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.5, 0.45, 1.0]))
+    with caplog.at_level("WARNING"):
+        orbit_cameras(standing, 4, width=16, height=16, around="full")
+    assert any("up axis guessed" in r.getMessage() and "pass up=" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        orbit_cameras(standing, 4, width=16, height=16, around="full", up="+z")
+    assert not [r for r in caplog.records if "up axis guessed" in r.getMessage()]
+
+
 @pytest.mark.parametrize("name", ["bear", "face", "garden"])
 def test_shared_scene_views_see_the_scene_and_up_matches_the_capture(shared_data, name):
     folder = shared_data / "scenes" / name

@@ -13,9 +13,9 @@
   quantile. When the smallest extent is under 0.6 of the middle one the scene is
   ground-dominated: up is the ground's normal, pointing to where the mass has its
   long tail (things rise from the ground). Otherwise (objects, portraits) up is a
-  guess, logged as such: the longest axis of the dense core (the weighted 30 %
-  nearest the centre), pointing to its narrower end (a head above shoulders).
-  Pass ``up`` explicitly to override.
+  guess (``up_source`` "long axis", which the callers that place views log): the longest
+  axis of the dense core (the weighted 30 % nearest the centre), pointing to its narrower
+  end (a head above shoulders). Pass ``up`` explicitly to override.
 
 World units and axes are the scene's. All maths runs in float64 on the CPU. Views
 placed around the frame are built in :mod:`artnvg_core.orbit`, which renders probe views.
@@ -23,14 +23,12 @@ placed around the frame are built in :mod:`artnvg_core.orbit`, which renders pro
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import torch
 
 from ..scene import GaussianScene
 
-_log = logging.getLogger(__name__)
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 _BOUNDS_QUANTILE = 0.9  # the Gaussians whose principal axes give the up direction
@@ -120,8 +118,6 @@ def _detect_up(means, weights, distances) -> tuple[torch.Tensor, str]:
     heights = centred @ axis
     spread = (centred - heights[:, None] * axis).pow(2).sum(1)  # squared distance from the axis
     narrowing = (weights[core] * heights * (spread - spread.mean())).sum()  # < 0 when narrower along +axis
-    _log.warning("up axis guessed from the long axis of the scene's core (no ground plane found); "
-                 "pass up= (e.g. '-y') if the views come out tilted")
     return (axis if narrowing <= 0 else -axis), "long axis"
 
 
