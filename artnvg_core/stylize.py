@@ -76,14 +76,16 @@ def stylize_nnfm(
     config: FinetuneConfig,
     *,
     progress: ProgressFn | None = None,
+    render_progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
     selection: torch.Tensor | None = None,
 ) -> GaussianScene:
     """ARF's diffusion-free stylizer: :func:`finetune` with no stylized views (ARF's colour transfer,
     then NNFM + content; ``config.color_transfer`` switches the colour transfer); with a ``selection``
-    ([N] bool), of those Gaussians alone (:mod:`artnvg_core.finetune.loop`)."""
-    return finetune(scene, cameras, style_image, config=config, progress=progress, should_stop=should_stop,
-                    selection=selection)
+    ([N] bool), of those Gaussians alone (:mod:`artnvg_core.finetune.loop`). ``progress`` follows the
+    steps, ``render_progress`` the renders of every view before and after them."""
+    return finetune(scene, cameras, style_image, config=config, progress=progress, render_progress=render_progress,
+                    should_stop=should_stop, selection=selection)
 
 
 def choose_stylizer(requested: str, files: ModelFiles) -> tuple[str, str]:

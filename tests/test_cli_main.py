@@ -495,3 +495,18 @@ def test_orbit_options_are_checked_by_the_parser_naming_the_option(capsys, comma
     with pytest.raises(SystemExit) as exit_:
         main([command, "scene.ply", option, value])
     assert exit_.value.code == 2 and f"error: argument {option}: {expected}" in capsys.readouterr().err
+
+
+def test_ctrl_c_during_a_progress_bar_prints_its_line_below_the_bar(tmp_path, capsys, monkeypatch):
+    """The bar is closed first: the message once followed the bar on its line, and the bar was drawn again
+    below it when the process ended."""
+    import artnvg_core.stylize
+
+    def interrupted(scene, cameras, style, config, progress, **kwargs):
+        progress(1, 10, {})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(artnvg_core.stylize, "stylize_nnfm", interrupted)
+    assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.ply") == 130
+    err = capsys.readouterr().err
+    assert re.search(r"finetune: +10%.*\| 1/10 \[.*\]\ninterrupted: stopped; no file was left half-written\n$", err), err

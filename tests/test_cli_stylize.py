@@ -25,3 +25,12 @@ def test_a_style_image_too_long_for_its_width_or_truncated_is_refused_before_loa
     captured = capsys.readouterr()
     assert re.fullmatch(re.escape(f"error: --style: {tmp_path / name}: ") + message + "\n", captured.err), captured
     assert "loading" not in captured.out
+
+
+def test_the_nnfm_stylizers_renders_before_and_after_the_steps_show_progress(tmp_path, capsys):
+    """Its colour transfer renders every view before the steps and after them: at full size, minutes (185
+    views of the garden on a CPU) that once passed with nothing on screen."""
+    assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.ply") == 0
+    err = capsys.readouterr().err
+    for stage in ("setup", "final"):
+        assert re.search(rf"render views \({stage}\): 100%\|.*\| 24/24 \[.*it/s\]", err), err

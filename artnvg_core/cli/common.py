@@ -133,24 +133,47 @@ def terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
+_drawn: list[ProgressBar] = []  # those whose bar is on screen and not yet closed
+
+
+def close_progress_bars() -> None:
+    """Close every bar still on screen (a command stopped or failed mid-step), so that the message printed
+    next starts on a line of its own and no bar is drawn again below it."""
+    while _drawn:
+        _drawn[-1].close()
+
+
 class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it.
-    ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G)."""
+    ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G). Callbacks whose
+    ``info["stage"]`` changes (the finetune's renders before and after its steps) start a new bar,
+    described as ``DESCRIPTION (STAGE)``."""
 
     def __init__(self, description: str, unit: str = "it"):
         self.description = description
         self.unit = unit
         self.bar = None
+        self.stage = None
 
     def __call__(self, step: int, total: int, info: dict) -> None:
         from tqdm import tqdm
 
-        if self.bar is None:
-            self.bar = tqdm(total=total, desc=self.description, unit=self.unit, unit_scale=self.unit == "B",
-                            dynamic_ncols=True)
+        stage = info.get("stage")
+        if self.bar is None or stage != self.stage:
+            self.close()
+            self.stage = stage
+            self.bar = tqdm(total=total, desc=self.description if stage is None else f"{self.description} ({stage})",
+                            unit=self.unit, unit_scale=self.unit == "B", dynamic_ncols=True)
+            _drawn.append(self)
         self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
         self.bar.update(step - self.bar.n)
         if step >= total:
+            self.close()
+
+    def close(self) -> None:
+        """Close the bar on screen, if any."""
+        if self in _drawn:
+            _drawn.remove(self)
             self.bar.close()
 
 

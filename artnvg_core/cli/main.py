@@ -23,6 +23,7 @@ from .common import (
     SCENE_FILES,
     add_camera_arguments,
     add_scene_file_options,
+    close_progress_bars,
     is_out_of_memory,
     load_scene_verbose,
     orbit_from_args,
@@ -142,7 +143,10 @@ def main(argv: list[str] | None = None, *, whole_process: bool = False) -> int:
     terminated: list[int] = []
     try:
         with terminate_as_interrupt() as terminated:
-            status = args.run(args)
+            try:
+                status = args.run(args)
+            finally:  # a bar left mid-line would glue the message below to it, and be drawn again after it
+                close_progress_bars()
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: every file is written whole or not at all, so no traceback
         print(f"{'terminated' if terminated else 'interrupted'}: stopped; no file was left half-written",
               file=sys.stderr)

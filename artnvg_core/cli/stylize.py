@@ -144,7 +144,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
-                              should_stop=args.should_stop, selection=selection)
+                              render_progress=ProgressBar("render views"), should_stop=args.should_stop,
+                              selection=selection)
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version)
