@@ -28,6 +28,8 @@ def test_load_cameras_dispatch(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match=r"empty: not a supported camera source.*transforms\.json.*cameras\.bin"):
         load_cameras(tmp_path / "empty")
+    with pytest.raises(ValueError, match=r"^\S*ns/transfroms\.json: camera file or folder not found$"):  # a typo
+        load_cameras(tmp_path / "ns" / "transfroms.json")
 
 
 def test_views_sharing_an_image_stem_get_distinct_names(tmp_path):

@@ -62,10 +62,10 @@ def test_colmap_finds_sparse_0_and_images(tmp_path):
     write_colmap(tmp_path / "sparse" / "0", model, colmap_images(quats, trans), binary=True)
     (tmp_path / "images").mkdir()
     (tmp_path / "images" / "view_01.png").write_bytes(b"")
-    for source in (tmp_path, tmp_path / "sparse" / "0"):
+    for source in (tmp_path, tmp_path / "sparse", tmp_path / "sparse" / "0"):  # sparse: COLMAP's folder of models
         cameras = load_colmap(source)
         assert cameras.image_paths == [None, tmp_path / "images" / "view_01.png", None]
-    assert_same_cameras(load_cameras(tmp_path), load_colmap(tmp_path / "sparse" / "0"), atol=0)
+        assert_same_cameras(load_cameras(source), cameras, atol=0)
 
 
 def test_colmap_errors_name_file_and_field(tmp_path):

@@ -39,8 +39,10 @@ __all__ = [
 def camera_files(path) -> list[Path]:
     """The files :func:`load_cameras` reads for ``path``: a ``.json`` file itself, a folder's
     ``transforms.json`` (preferred when a folder holds both), or the ``cameras`` and ``images`` files of
-    the COLMAP model in the folder, its ``sparse/0`` or ``sparse``. A ValueError naming ``path`` otherwise."""
+    the COLMAP model in the folder, its ``sparse/0``, ``sparse`` or ``0``. A ValueError naming ``path`` otherwise."""
     path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: camera file or folder not found")
     if path.is_file() and path.suffix.lower() == ".json":
         return [path]
     if path.is_dir() and (path / "transforms.json").is_file():
@@ -52,7 +54,7 @@ def camera_files(path) -> list[Path]:
     raise ValueError(
         f"{path}: not a supported camera source; expected a nerfstudio .json file (e.g. transforms.json), "
         "a folder containing transforms.json, or a COLMAP model folder (cameras.bin + images.bin or "
-        "cameras.txt + images.txt, directly or in sparse/0)"
+        "cameras.txt + images.txt, directly or in sparse/0 or 0)"
     )
 
 

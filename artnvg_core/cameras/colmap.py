@@ -75,8 +75,9 @@ def _check_new_id(places: dict[int, str], path: Path, what: str, id_: int, place
 
 
 def find_colmap_model(folder: Path) -> tuple[Path, str] | None:
-    """(model folder, '.bin' or '.txt') of the COLMAP model in ``folder``, ``folder/sparse/0`` or ``folder/sparse``."""
-    for candidate in (folder, folder / "sparse" / "0", folder / "sparse"):
+    """(model folder, '.bin' or '.txt') of the COLMAP model in ``folder``, ``folder/sparse/0``, ``folder/sparse``
+    or ``folder/0`` (``folder`` is a ``sparse`` folder of numbered models, of which COLMAP's first is ``0``)."""
+    for candidate in (folder, folder / "sparse" / "0", folder / "sparse", folder / "0"):
         for ext in (".bin", ".txt"):
             if (candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file():
                 return candidate, ext
@@ -315,7 +316,7 @@ def load_colmap(path) -> CameraSet:
 
     ``path`` is the model folder (``cameras`` + ``images`` as ``.bin`` or
     ``.txt``; binary preferred when both exist) or a folder holding it as
-    ``sparse/0`` or ``sparse``. Supported camera models: SIMPLE_PINHOLE,
+    ``sparse/0``, ``sparse`` or ``0``. Supported camera models: SIMPLE_PINHOLE,
     PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, their radial/tangential
     distortion ignored. COLMAP poses are already OpenCV world-to-camera.
     ``names`` are the image name stems; COLMAP does not store the image
@@ -331,7 +332,7 @@ def load_colmap(path) -> CameraSet:
     if found is None:
         raise ValueError(
             f"{path}: no COLMAP model found; expected cameras.bin + images.bin or cameras.txt + images.txt "
-            "in this folder or in its sparse/0 or sparse subfolder"
+            "in this folder or in its sparse/0, sparse or 0 subfolder"
         )
     model_dir, ext = found
     cameras_file, images_file = model_dir / f"cameras{ext}", model_dir / f"images{ext}"
