@@ -510,3 +510,16 @@ def test_ctrl_c_during_a_progress_bar_prints_its_line_below_the_bar(tmp_path, ca
     assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.ply") == 130
     err = capsys.readouterr().err
     assert re.search(r"finetune: +10%.*\| 1/10 \[.*\]\ninterrupted: stopped; no file was left half-written\n$", err), err
+
+
+@pytest.mark.parametrize("stylizer", ["nnfm", "auto"])
+def test_a_devices_typo_is_refused_before_any_work_whichever_stylizer_runs(tmp_path, capsys, stylizer):
+    """'--devices cuda0' once went unread when the NNFM stylizer ran (and was read after the scene and the
+    models loaded when diffusion did)."""
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+                 str(tmp_path / "out.ply"), "--stylizer", stylizer, "--devices", "cuda0", "--iters", "1",
+                 "--scale", "0.05", "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == "error: --devices: 'cuda0' is not a device (expected e.g. cuda:0,cuda:1)\n"
+    assert "loading" not in captured.out and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]

@@ -71,6 +71,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     style = read_style_image(args.style)  # decoded now: a truncated file is named before the scene loads
     check_scene_path(args.scene)  # e.g. a folder: named before the models load
     check_region_arguments(args, cameras_required=False)
+    devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
     if args.lora and (diffusion_free or args.stylizer == "nnfm"):
         raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
                          f"{args.preset} with --stylizer {args.stylizer})")
@@ -131,7 +132,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           preset=args.preset,
                                           content_routing=args.content_routing, sampler_changes=changes,
                                           key_views=key_views,
-                                          devices=parse_devices(args.devices), ray_address=args.ray_address,
+                                          devices=devices, ray_address=args.ray_address,
                                           group_multiple=args.group_multiple, compile_blocks=args.compile,
                                           loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
