@@ -17,6 +17,7 @@ from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
 from artnvg_core.cli.evaluate import (
     add_evaluate_arguments,
     camera_path,
+    format_table,
     load_view_images,
     render_views,
 )
@@ -207,3 +208,15 @@ def test_a_failing_evaluate_writes_none_of_its_outputs(inputs, tmp_path, monkeyp
     assert _cli(inputs, "--out", str(out), "--views", "0,1", "--frames", "2", "--long-step", "1") == 2
     assert "No space left on device" in capsys.readouterr().err
     assert sorted(p.name for p in out.parent.iterdir()) == ["r.json"] and out.read_text() == "earlier report"
+
+
+def test_the_table_keeps_a_skipped_metrics_reason_apart_from_its_value():
+    """'warp step 7   skippedneeds more than 7 views' was printed for an evaluation of fewer views."""
+    short = {"step": 1, "rmse": 0.067, "mae": 0.0479, "coverage": 0.5583}
+    long = {"step": 7, "skipped": "needs more than 7 views"}
+    warp = {key: {"short": short, "long": long} for key in ("stylized", "floor")}
+    report = {"metrics": {"cfsd": {"resolution": [128, 128], "mean": 0.0411}, "warp": warp,
+                          "csd": {"skipped": "no --csd given"}, "clip_dc": {"skipped": "no --clip given"}}}
+    rows = format_table(report).splitlines()
+    assert any(re.fullmatch("warp step 7 +skipped  needs more than 7 views", row) for row in rows), rows
+    assert len({len(row) for row in rows[:5]}) == 1  # the other columns as aligned as before

@@ -180,7 +180,7 @@ def _row(name: str, value, floor="") -> str:
     def text(x):
         return x if isinstance(x, str) else "n/a" if x is None else f"{x:.4f}"
 
-    return f"{name:<34}{text(value):>12}{text(floor):>18}"
+    return f"{name:<34}{text(value):>12}  {text(floor):>16}"  # two spaces at least: a long reason stays apart
 
 
 def format_table(report: dict) -> str:
