@@ -8,7 +8,16 @@ from artnvg_core.cameras.framing import scene_frame
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.selection import parse_region, select_by_masks, select_region
 
-from .comfy_bridge import autograd_enabled, cancellable, compute_device, prepare_rasterizer, progress_text, trainable_copy
+from .comfy_bridge import (
+    autograd_enabled,
+    cancellable,
+    compute_device,
+    interrupt_requested,
+    prepare_rasterizer,
+    progress_bar,
+    progress_text,
+    trainable_copy,
+)
 from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import node_input
@@ -80,7 +89,8 @@ class SelectGaussians(ArtNVGNode):
             with node_input(self.DISPLAY_NAME, "mask"), autograd_enabled(), cpu_threads(device):
                 # the Gaussians' weights are read from a render's gradient
                 selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),
-                                            masks.clone().to(device)).cpu()
+                                            masks.clone().to(device), progress=progress_bar(),
+                                            should_stop=interrupt_requested).cpu()
         count = int(selection.sum())
         progress_text(f"selected {count:,} of {len(scene):,} Gaussians")
         with node_input(self.DISPLAY_NAME, "bounds" if mode != "mask" else "mask"):
