@@ -23,6 +23,7 @@ import torch
 
 from .cameras import CameraSet
 from .fileio import resize_image
+from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import SH_C0, GaussianScene
 
@@ -85,33 +86,41 @@ def select_region(scene: GaussianScene, region: Region) -> torch.Tensor:
     return region.contains(scene.means.detach())
 
 
-def gaussian_weights(scene: GaussianScene, cameras: CameraSet, pixel_weights: torch.Tensor,
-                     backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+def gaussian_weights(scene: GaussianScene, cameras: CameraSet, pixel_weights: torch.Tensor, backend: str = "auto",
+                     progress: ProgressFn | None = None,
+                     should_stop: StopFn | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Each Gaussian's compositing weight (alpha times transmittance) summed over the pixels of ``cameras``:
     ``(weighted [N], total [N])``, the sum with each pixel counted ``pixel_weights [C, H, W]`` times, and with
     every pixel counted once. Read from the gradient of a render of flat colours (colour is linear in the
-    DC coefficient, the weight its factor), one view at a time."""
+    DC coefficient, the weight its factor), one view at a time: ``progress(views done, C, {})`` after each, and
+    :class:`~artnvg_core.progress.Cancelled` as soon as ``should_stop()`` says so (checked within each render)."""
     weighted = scene.means.new_zeros(len(scene), dtype=torch.float64)
     total = torch.zeros_like(weighted)
     geometry = scene.map(torch.Tensor.detach)
     for view in range(len(cameras)):
         dc = scene.means.new_zeros(len(scene), 1, 3, requires_grad=True)  # colour 0.5: no clamp
         with torch.enable_grad():
-            rgb = render(dataclasses.replace(geometry, sh=dc), cameras.subset([view]), backend=backend).rgb[0]
+            rgb = render(dataclasses.replace(geometry, sh=dc), cameras.subset([view]), backend=backend,
+                         should_stop=should_stop).rgb[0]
             (rgb[..., 0] * pixel_weights[view].to(rgb) + rgb[..., 1]).sum().backward()
         weighted += dc.grad[:, 0, 0].double() / SH_C0
         total += dc.grad[:, 0, 1].double() / SH_C0
+        if progress is not None:
+            progress(view + 1, len(cameras), {})
     return weighted, total
 
 
-def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tensor, backend: str = "auto",
+                    progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> torch.Tensor:
     """[N] bool: the Gaussians that the painted pixels of ``masks [C, H', W']`` (in [0, 1], 1 painted; one per
-    view of ``cameras``, resized to the cameras' size) see (module docstring)."""
+    view of ``cameras``, resized to the cameras' size) see (module docstring); ``progress`` and ``should_stop``
+    as :func:`gaussian_weights` takes them."""
     if masks.ndim != 3 or masks.shape[0] != len(cameras):
         raise ValueError(f"select_by_masks: expected one mask [H, W] per view ({len(cameras)}), "
                          f"got shape {tuple(masks.shape)}")
     masks = resize_image(masks[..., None].float(), cameras.height, cameras.width)[..., 0].clamp(0, 1)
-    weighted, total = gaussian_weights(scene, cameras.to(scene.device), masks.to(scene.device), backend)
+    weighted, total = gaussian_weights(scene, cameras.to(scene.device), masks.to(scene.device), backend, progress,
+                                       should_stop)
     return (total > 0) & (weighted >= MASK_SHARE * total)
 
 

@@ -4,16 +4,39 @@ from __future__ import annotations
 
 import torch
 
+from artnvg_core.cameras.framing import scene_frame
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.selection import parse_region, select_by_masks, select_region
 
-from .comfy_bridge import autograd_enabled, cancellable, compute_device, prepare_rasterizer, progress_text, trainable_copy
+from .comfy_bridge import (
+    autograd_enabled,
+    cancellable,
+    compute_device,
+    interrupt_requested,
+    prepare_rasterizer,
+    progress_bar,
+    progress_text,
+    trainable_copy,
+)
 from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, MASK, SCENE, SELECTION
 
 MODES = ("box", "sphere", "mask")
+
+
+def _where_to_look(scene, mode: str, masks: torch.Tensor | None) -> str:
+    """What to change when a selection is empty: for a box or sphere, where the scene's middle is (the subject
+    sphere of :func:`~artnvg_core.cameras.framing.scene_frame`, as sphere bounds); for masks, whether any pixel
+    is painted."""
+    if mode == "mask":
+        if not bool((masks > 0).any()):
+            return "the mask has no painted pixel: paint the region in Load Image's mask editor"
+        return "its painted pixels see no Gaussian: paint over the scene where the views show it"
+    frame = scene_frame(scene)
+    sphere = ", ".join(f"{value:.3g}" for value in (*frame.center.tolist(), frame.radius))
+    return f"the middle of the scene (the bulk of its Gaussians) is the sphere {sphere} (X, Y, Z, R)"
 
 
 class SelectGaussians(ArtNVGNode):
@@ -66,10 +89,11 @@ class SelectGaussians(ArtNVGNode):
             with node_input(self.DISPLAY_NAME, "mask"), autograd_enabled(), cpu_threads(device):
                 # the Gaussians' weights are read from a render's gradient
                 selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),
-                                            masks.clone().to(device)).cpu()
+                                            masks.clone().to(device), progress=progress_bar(),
+                                            should_stop=interrupt_requested).cpu()
         count = int(selection.sum())
         progress_text(f"selected {count:,} of {len(scene):,} Gaussians")
         with node_input(self.DISPLAY_NAME, "bounds" if mode != "mask" else "mask"):
             if count == 0:
-                raise ValueError("selects no Gaussian of the scene")
+                raise ValueError(f"selects no Gaussian of the scene; {_where_to_look(scene, mode, masks=mask)}")
         return (selection.to(torch.bool),)

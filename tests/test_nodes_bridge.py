@@ -20,6 +20,7 @@ from nodes.model_patch_nodes import CSGO_FOLDER, LoadCSGO
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.render_nodes import RenderViews
 from nodes.scene_nodes import LoadGaussianScene
+from nodes.selection_nodes import SelectGaussians
 
 
 class InterruptProcessingException(Exception):
@@ -206,6 +207,20 @@ def test_render_views_reports_progress_and_stops(comfy):
     comfy.interrupted = True
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         RenderViews().render(scene, cameras, 1.0, 1, "")
+
+
+def test_select_gaussians_by_masks_reports_progress_and_stops(comfy):
+    """Each masked view is a render with its gradient (seconds per view at a capture's size on a CPU): the bar
+    moves per view and Cancel stops it."""
+    scene, cameras = _tiny_scene(), _tiny_cameras(3)
+    masks = torch.ones(3, 16, 16)
+    with torch.inference_mode():
+        (selection,) = SelectGaussians().select(scene, "mask", "", cameras=cameras, mask=masks, views="0, 1, 2")
+    assert selection.any()
+    assert comfy.bars == [[(1, 3), (2, 3), (3, 3)]]
+    comfy.interrupted = True
+    with pytest.raises(InterruptProcessingException), torch.inference_mode():
+        SelectGaussians().select(scene, "mask", "", cameras=cameras, mask=masks, views="0, 1, 2")
 
 
 def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):

@@ -1,6 +1,8 @@
 """Select Gaussians, and Finetune Gaussians given its selection, called as ComfyUI calls them, against the
 library calls they adapt."""
 
+import re
+
 import pytest
 import torch
 
@@ -46,6 +48,33 @@ def test_select_node_box_sphere_and_mask_give_the_library_selections(demo):
 def test_select_node_bad_inputs_name_the_input(demo, inputs, message):
     with pytest.raises(NodeInputError, match=message):
         call(SelectGaussians, scene=demo[0], **inputs)
+
+
+@pytest.mark.parametrize("mode, bounds", [("sphere", "100, 100, 100, 1"), ("box", "50, 50, 50, 60, 60, 60")])
+def test_select_node_that_selects_nothing_says_where_the_scene_is(demo, mode, bounds):
+    """An empty box or sphere names the sphere that holds the middle of the scene, and that sphere, typed in as
+    bounds, selects the bulk of it."""
+    expected = (r"^Select Gaussians: input 'bounds': selects no Gaussian of the scene; the middle of the scene "
+                r"\(the bulk of its Gaussians\) is the sphere (.+) \(X, Y, Z, R\)$")
+    with pytest.raises(NodeInputError, match=expected) as refused:
+        call(SelectGaussians, scene=demo[0], mode=mode, bounds=bounds)
+    sphere = re.match(expected, str(refused.value)).group(1)
+    (selection,) = call(SelectGaussians, scene=demo[0], mode="sphere", bounds=sphere)
+    assert selection.float().mean() > 0.3
+
+
+def test_select_node_says_why_a_mask_selects_nothing(demo):
+    """Load Image's MASK of an image without alpha (nothing painted) is told apart from paint that misses the scene."""
+    original, cameras = demo
+    for mask, why in [(torch.zeros(1, 64, 64), "the mask has no painted pixel: paint the region in Load Image's mask"),
+                      (None, "its painted pixels see no Gaussian")]:
+        if mask is None:  # paint on a view turned away from every Gaussian
+            cameras = cameras.subset([0])
+            cameras.world_to_cam[:, :3, 3] += torch.tensor([0.0, 0.0, -1e4])
+            mask = torch.ones(1, cameras.height, cameras.width)
+        with pytest.raises(NodeInputError, match=f"^Select Gaussians: input 'mask': selects no Gaussian of the scene; "
+                                                 f"{why}"):
+            call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras, mask=mask, views="0")
 
 
 def test_select_node_needs_one_view_per_mask(demo):
