@@ -131,13 +131,19 @@ def check_selection(selection: torch.Tensor, count: int, caller: str) -> None:
                          f"{selection.dtype} {tuple(selection.shape)}")
 
 
-def coverage(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, backend: str = "auto") -> torch.Tensor:
+def coverage(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, backend: str = "auto",
+             progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> torch.Tensor:
     """[C, H, W] in [0, 1]: per pixel of each view, the selected Gaussians' share of its colour (their summed
-    compositing weights), from a render in which they are white and the others black, one view at a time."""
+    compositing weights), from a render in which they are white and the others black, one view at a time;
+    ``progress`` and ``should_stop`` as :func:`gaussian_weights` takes them."""
     check_selection(selection, len(scene), "coverage")
     dc = ((selection.to(scene.means) - 0.5) / SH_C0)[:, None, None].expand(-1, 1, 3)
     flat = dataclasses.replace(scene.map(torch.Tensor.detach), sh=dc.contiguous())
     cameras = cameras.to(scene.device)
+    views = []
     with torch.no_grad():
-        views = [render(flat, cameras.subset([view]), backend=backend).rgb[0, ..., 0] for view in range(len(cameras))]
+        for view in range(len(cameras)):
+            views.append(render(flat, cameras.subset([view]), backend=backend, should_stop=should_stop).rgb[0, ..., 0])
+            if progress is not None:
+                progress(view + 1, len(cameras), {})
     return torch.stack(views).clamp(0, 1)

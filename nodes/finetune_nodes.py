@@ -25,13 +25,14 @@ from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
 _DEFAULTS = FinetuneConfig()
 _PREVIEW = PRESETS["preview"]
 PRESET_CHOICES = ("custom", "preview")
-STAGES = {"setup": "rendering the {} views before finetuning", "steps": "finetuning: {} steps",
+STAGES = {"region": "measuring what the selection covers in the {} views",
+          "setup": "rendering the {} views before finetuning", "steps": "finetuning: {} steps",
           "final": "rendering the {} finetuned views for the colour match"}
 
 
 def staged_progress():
     """A core ``ProgressFn`` for the node's bar that also names each stage under the node when it starts
-    (``info["stage"]``: setup, final, else the steps); None without ComfyUI."""
+    (``info["stage"]``: region, setup, final, else the steps); None without ComfyUI."""
     report = progress_bar()
     if report is None:
         return None

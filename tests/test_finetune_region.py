@@ -108,3 +108,21 @@ def test_bad_selections_are_refused(demo):
     far[scene.means[:, 2].argmin()] = True  # one Gaussian, out of every view's sight
     with pytest.raises(ValueError, match="cover no pixel of any of the 4 views"):
         finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=far)
+
+
+def test_the_regions_coverage_renders_report_progress_and_stop_when_asked(demo):
+    """The coverage of every view, rendered before anything else, once passed silently (minutes for the bear's
+    96 views at full size on a CPU) and could not be stopped: ComfyUI's Cancel waited for it."""
+    from artnvg_core.progress import Cancelled
+
+    scene, cameras, style, selection = demo
+    reports = []
+    finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=selection,
+             render_progress=lambda done, total, info: reports.append((info["stage"], done, total)))
+    assert reports[:4] == [("region", view, 4) for view in (1, 2, 3, 4)]
+    assert {stage for stage, _, _ in reports} == {"region", "setup", "final"}
+    asked = []
+    with pytest.raises(Cancelled):
+        finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=selection,
+                 render_progress=lambda done, total, info: asked.append(info["stage"]), should_stop=lambda: bool(asked))
+    assert asked == ["region"]

@@ -285,3 +285,14 @@ def test_loader_change_signature_follows_the_file(comfy):
     scene_file.write_bytes(b"longer")
     assert LoadGaussianScene.IS_CHANGED("scene.ply") != first
     assert LoadGaussianScene.IS_CHANGED("missing.ply") == ""
+
+
+def test_finetune_of_a_selection_names_its_coverage_pass_under_the_node(comfy):
+    """The selection's coverage, one render a view before the others, moves the bar and is named."""
+    with torch.inference_mode():
+        scene, cameras = _tiny_scene(), _tiny_cameras(2)
+        selection = torch.ones(len(scene), dtype=torch.bool)
+        FinetuneGaussians().finetune(scene, cameras, torch.rand(1, 24, 24, 3), 1, "appearance", 0.8, 0.2, 1.0, 0.5,
+                                     0.0, 0, selection=selection)
+    assert comfy.bars == [[(1, 2), (2, 2), (2, 2), (1, 1), (2, 2)]]
+    assert comfy.texts[0] == ("Finetune Gaussians: measuring what the selection covers in the 2 views", "7")

@@ -136,13 +136,18 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
                          "cameras and the scene share one coordinate frame")
 
 
+def _staged(report: ProgressFn | None, stage: str) -> ProgressFn | None:
+    """``report`` with ``info`` ``{"stage": stage}``."""
+    return None if report is None else lambda done, total, info: report(done, total, {"stage": stage})
+
+
 def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
                   report: ProgressFn | None, should_stop: StopFn | None) -> torch.Tensor:
     """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], :data:`~artnvg_core.raster.views.RENDER_CHUNK`
     views a render call (a call launches the same kernels for one view as for several), reporting the views
     done after each."""
-    progress = None if report is None else lambda done, total, info: report(done, total, {"stage": stage})
-    return render_views(scene, cameras, backend=config.backend, progress=progress, should_stop=should_stop).rgb
+    return render_views(scene, cameras, backend=config.backend, progress=_staged(report, stage),
+                        should_stop=should_stop).rgb
 
 
 def compile_kernels(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, targets: bool) -> None:
@@ -187,8 +192,9 @@ def finetune(
         should_stop(): checked before every step; when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
     render_progress(done, views, info): called after each render call (a few views) of the renders of
-        every camera before the steps (``info["stage"] == "setup"``: colour transfer, content term) and
-        after them (``"final"``: colour transfer), which ``should_stop`` can also end.
+        every camera before the steps (``info["stage"]``: ``"region"``, a selection's coverage; ``"setup"``:
+        colour transfer, content term) and after them (``"final"``: colour transfer), which ``should_stop``
+        can also end.
     selection: optional [N] bool on the scene's device: finetune these Gaussians only, for the pixels they
         cover (module docstring).
     No step writes a non-finite value (:mod:`artnvg_core.finetune.finite_steps`): a step with a
@@ -233,7 +239,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     weights = None
     if selection is not None:
         selection = selection.to(device)
-        cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend)
+        cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend,
+                                                  _staged(render_progress, "region"), should_stop)
     compile_kernels(scene, cameras, config, stylized is not None)  # beside the VGG and the style's features
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)

@@ -15,6 +15,7 @@ import logging
 import torch
 
 from ..cameras import CameraSet
+from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
 from ..selection import check_selection, coverage
 from .color_transfer import ColorTransform, recolor_scene
@@ -50,11 +51,13 @@ def region_pixels(images: torch.Tensor, weights: torch.Tensor | None) -> torch.T
 
 
 def region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, stylized: torch.Tensor | None,
-                  backend: str) -> tuple[CameraSet, torch.Tensor | None, torch.Tensor]:
+                  backend: str, progress: ProgressFn | None = None, should_stop: StopFn | None = None
+                  ) -> tuple[CameraSet, torch.Tensor | None, torch.Tensor]:
     """The views where ``selection`` covers at least a pixel's worth, their stylized views (when given) and
-    their coverage [C', H, W]; ValueError for a selection of the wrong size or one no view sees."""
+    their coverage [C', H, W] (:func:`coverage`, which ``progress`` and ``should_stop`` follow); ValueError for a
+    selection of the wrong size or one no view sees."""
     check_selection(selection, len(scene), "finetune")
-    weights = coverage(scene, selection, cameras, backend)
+    weights = coverage(scene, selection, cameras, backend, progress, should_stop)
     seen = (weights.flatten(1).sum(1) >= 1).nonzero()[:, 0].tolist()
     if not seen:
         raise ValueError(f"finetune: the {int(selection.sum()):,} selected Gaussians cover no pixel of any of the "
