@@ -57,3 +57,13 @@ def test_a_mask_on_an_unknown_view_is_refused(tmp_path, capsys):
                  "--cameras", str(DemoInputs().cameras), "--region-mask", f"frame_9:{_mask(tmp_path)}",
                  "--out", str(tmp_path / "o.ply")]) == 2
     assert "'frame_9' is neither a view index below 24 nor a view name" in capsys.readouterr().err
+
+
+def test_a_missing_mask_is_named_before_any_scene_loads(tmp_path, capsys):
+    _scenes(tmp_path)
+    missing = tmp_path / "mask_40.png"
+    assert main(["blend", str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "1",
+                 "--cameras", str(DemoInputs().cameras), "--region-mask", f"0:{missing}",
+                 "--out", str(tmp_path / "o.ply")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"error: {missing}: --region-mask image not found\n" and "loading" not in captured.out

@@ -40,8 +40,9 @@ def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
 
 
 def check_region_arguments(args: argparse.Namespace, cameras_required: bool = True) -> None:
-    """Checks that need no file: the region's syntax, one kind of region, masks only with ``--cameras`` where
-    ``cameras_required`` (stylize's views orbiting the scene can carry masks too)."""
+    """Checks made before any scene loads: the region's syntax, one kind of region, masks only with ``--cameras``
+    where ``cameras_required`` (stylize's views orbiting the scene can carry masks too), mask files that exist."""
+    from ..fileio import require_regular_file
     from ..selection import parse_region
 
     if args.region and args.region_mask:
@@ -50,6 +51,10 @@ def check_region_arguments(args: argparse.Namespace, cameras_required: bool = Tr
         parse_region(args.region)
     if args.region_mask and cameras_required and not args.cameras:
         raise ValueError("--region-mask needs --cameras: the views its masks were painted on")
+    for text in args.region_mask:
+        view, sep, path = text.partition(":")
+        if sep and path:  # the form itself is checked with the cameras (parse_region_mask)
+            require_regular_file(path, "--region-mask image")
 
 
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
