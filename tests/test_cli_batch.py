@@ -350,3 +350,14 @@ def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, po
     results = pool.run(jobs)  # the workers go on: the cancelled jobs run now
     assert [r.status for r in results] == ["done", "skipped", "done", "failed", "failed"], results
     assert _same_output(jobs[0].out, references[1]) and _same_output(jobs[2].out, references[3])
+
+
+def test_batch_help_prints_its_description_without_markup(capsys):
+    """'--help' once showed the module docstring's ``name`` quotes and :func:`name` cross-references."""
+    from artnvg_core.cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["batch", "--help"])
+    out = capsys.readouterr().out
+    assert "python -m artnvg_core batch JOBS: many stylize jobs" in out and "Jobs start longest first, so" in out
+    assert "``" not in out and ":func:" not in out and "(artnvg_core." not in out

@@ -32,6 +32,7 @@ import functools
 import io
 import json
 import os
+import re
 import sys
 import threading
 import time
@@ -470,11 +471,18 @@ def stylize_options() -> dict[str, argparse.Action]:
     return {string: action for action in stylize_parser()._actions for string in action.option_strings}
 
 
+def plain_text(docstring: str) -> str:
+    """``docstring`` as ``--help`` prints it: without its cross-references (a space, then ``(:func:`name`)``) and
+    its markup."""
+    text = re.sub(r"\s\(:\w+:`[^`]+`\)", "", docstring)
+    return re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")
+
+
 def add_batch_command(commands) -> None:
     """Register ``batch`` with the command line's subparsers; its jobs take stylize's options."""
     options = stylize_options()
     p = commands.add_parser("batch", help="run many stylize jobs (a JSON or CSV list) over GPUs or a Ray cluster",
-                            description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                            description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("jobs", help="JSON list of jobs or CSV table; each job holds stylize's options by name")
     p.add_argument("--devices", help="GPUs of this machine sharing the jobs, e.g. cuda:0,cuda:1 (default: every "
                    "visible GPU, else one CPU worker; cpu,cpu: two CPU workers)")
