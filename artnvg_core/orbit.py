@@ -174,7 +174,7 @@ def orbit_cameras(
     frame = scene_frame(scene, up=up, quantile=quantile)
     if frame.up_source == "long axis":
         _log.warning("up axis guessed from the long axis of the scene's core (no ground plane found); "
-                     "pass up= (e.g. '-y') if the views come out tilted")
+                     "pass up= (e.g. '-y'; on the command line --up=-y) if the views come out tilted")
     focal = width / 2 / math.tan(math.radians(fov_deg) / 2)
     half_fov = min(math.atan(width / 2 / focal), math.atan(height / 2 / focal))
     distance = distance_factor * frame.radius / math.sin(half_fov)

@@ -30,7 +30,8 @@ def test_views_around_a_scene_without_ground_say_their_up_is_a_guess(caplog):
     standing = blob(torch.randn(2000, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.5, 0.45, 1.0]))
     with caplog.at_level("WARNING"):
         orbit_cameras(standing, 4, width=16, height=16, around="full")
-    assert any("up axis guessed" in r.getMessage() and "pass up=" in r.getMessage() for r in caplog.records)
+    assert any("up axis guessed" in r.getMessage() and "pass up=" in r.getMessage()
+               and "on the command line --up=-y" in r.getMessage() for r in caplog.records)  # its option, as written
     caplog.clear()
     with caplog.at_level("WARNING"):
         orbit_cameras(standing, 4, width=16, height=16, around="full", up="+z")
