@@ -266,12 +266,8 @@ def test_gsplat_kernel_build_is_announced_under_the_running_node(comfy, monkeypa
 
 
 def test_render_and_finetune_nodes_prepare_the_rasterizer_first(comfy, monkeypatch):
-    import nodes.finetune_nodes
-    import nodes.render_nodes
-
     prepared = []
-    for module in (nodes.render_nodes, nodes.finetune_nodes):
-        monkeypatch.setattr(module, "prepare_rasterizer", prepared.append)
+    monkeypatch.setattr(comfy_bridge, "prepare_rasterizer", prepared.append)
     with torch.inference_mode():
         RenderViews().render(_tiny_scene(), _tiny_cameras(1), 1.0, 1, "")
         FinetuneGaussians().finetune(_tiny_scene(), _tiny_cameras(1), torch.rand(1, 8, 8, 3), 1, "appearance",
