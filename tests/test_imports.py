@@ -25,7 +25,7 @@ FLOORS = (
      "artnvg_core.json_objects"),  # the data and the plumbing
     ("artnvg_core.cameras", "artnvg_core.cluster", "artnvg_core.losses", "artnvg_core.preview"),
     ("artnvg_core.formats", "artnvg_core.activated", "artnvg_core.raster", "artnvg_core.grouping",
-     "artnvg_core.key_views"),
+     "artnvg_core.balanced_kmeans", "artnvg_core.key_views"),
     ("artnvg_core.orbit", "artnvg_core.selection", "artnvg_core.blend", "artnvg_core.diffusion"),
     ("artnvg_core.finetune", "artnvg_core.presets"),  # the two stages' settings and the finetune
     ("artnvg_core.metrics", "artnvg_core.stylize"),  # the measures and the whole job

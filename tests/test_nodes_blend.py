@@ -29,7 +29,7 @@ def demo():
 
 
 def test_blend_node_gives_the_library_blend_and_a_strip_of_previews(demo, monkeypatch):
-    monkeypatch.setattr("nodes.blend_nodes.compute_device", lambda: torch.device("cpu"))  # where the renders below run
+    monkeypatch.setattr("nodes.comfy_bridge.compute_device", lambda: torch.device("cpu"))  # where the renders below run
     original, stylized, cameras = demo
     selection = select_region(original, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)))
     scene, preview = call(BlendStylization, original=original, stylized=stylized, strength=0.3, selection=selection,

@@ -93,7 +93,7 @@ def test_select_node_needs_one_view_per_mask(demo):
 
 def test_finetune_node_trains_the_selection_alone(demo, monkeypatch):
     # on the library call's device: a GPU's sums differ in the last bits, which Adam's first steps magnify
-    monkeypatch.setattr("nodes.finetune_nodes.compute_device", lambda: torch.device("cpu"))
+    monkeypatch.setattr("nodes.comfy_bridge.compute_device", lambda: torch.device("cpu"))
     scene, cameras = demo
     (selection,) = call(SelectGaussians, scene=scene, mode="box", bounds="-1, -1, -1, 1, 1, 1")
     style = load_image(DemoInputs().style)[None]
