@@ -29,15 +29,19 @@ STAGES = {"region": "measuring what the selection covers in the {} views",
 
 
 def staged_progress():
-    """A core ``ProgressFn`` for the node's bar that also names each stage under the node when it starts
+    """A core ``ProgressFn`` for the node's bar that also names each stage under the node at its first report
     (``info["stage"]``: region, setup, final, else the steps); None without ComfyUI."""
     report = progress_bar()
     if report is None:
         return None
+    shown = None
 
     def staged(step: int, total: int, info: dict) -> None:
-        if step == 1:
-            progress_text(f"Finetune Gaussians: {STAGES[info.get('stage', 'steps')].format(total)}")
+        nonlocal shown
+        stage = info.get("stage", "steps")
+        if stage != shown:
+            shown = stage
+            progress_text(f"Finetune Gaussians: {STAGES[stage].format(total)}")
         report(step, total, info)
 
     return staged
