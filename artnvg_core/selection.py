@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from .cameras import CameraSet
-from .fileio import resize_image
+from .images import resize_image
 from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import SH_C0, GaussianScene

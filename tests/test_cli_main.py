@@ -5,8 +5,8 @@ import re
 import pytest
 
 from artnvg_core.cli.main import main
-from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.images import load_image
 from artnvg_core.stylize import DemoInputs
 from child_process import child_env
 
@@ -468,12 +468,12 @@ def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, 
 
 
 def test_ctrl_c_while_saving_stops_without_a_traceback(tmp_path, capsys, monkeypatch):
-    import artnvg_core.fileio as fileio
+    import artnvg_core.images as images
 
     def interrupted(image, path):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fileio, "save_png", interrupted)
+    monkeypatch.setattr(images, "save_png", interrupted)
     assert main(["render", str(_small_scene(tmp_path)), "--cameras", str(DemoInputs().cameras), "--out",
                  str(tmp_path / "out"), "--views", "0", "--scale", "0.1", "--device", "cpu"]) == 130
     captured = capsys.readouterr()

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, camera_extent, compile_kernels, finetune
+from artnvg_core.images import load_image
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.progress import Cancelled

@@ -5,10 +5,10 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.finetune.step_loss import StepLoss
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import mean_cov_distance
 from artnvg_core.raster import render

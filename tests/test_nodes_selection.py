@@ -8,8 +8,8 @@ import torch
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.finetune import FinetuneConfig, finetune
-from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene
+from artnvg_core.images import load_image
 from artnvg_core.selection import Box, select_by_masks, select_region
 from artnvg_core.stylize import DemoInputs
 from nodes.finetune_nodes import FinetuneGaussians
