@@ -1,7 +1,5 @@
 """Atomic file writing (one file, or a group that appears whole or not at all), checks of output
-paths before long work, and image I/O in ComfyUI's IMAGE convention.
-
-Images are float32 in [0, 1], [H, W, 3] (one) or [B, H, W, 3] (a batch).
+paths before long work, and of input files before they are read (:func:`require_regular_file`).
 """
 
 from __future__ import annotations
@@ -12,14 +10,9 @@ import re
 import stat
 import tempfile
 import uuid
-import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO, Callable
-
-import numpy as np
-import torch
-from PIL import Image
 
 
 def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
@@ -238,109 +231,3 @@ def require_regular_file(path: str | os.PathLike, what: str) -> Path:
         kind = "folder" if stat.S_ISDIR(mode) else "FIFO (named pipe)" if stat.S_ISFIFO(mode) else "special file"
         raise ValueError(f"{path}: {what} is a {kind}, not a regular file")
     return path
-
-
-# Pixels an image may have, read from its header before it is decoded (8000 x 8000). Decoding peaks
-# near 18 bytes a pixel (the decoded bytes, then float32 RGB): about 1.2 GB at the cap.
-MAX_IMAGE_PIXELS = 64_000_000
-
-
-def _open_image(path: Path) -> Image.Image:
-    """Pillow's lazy ``Image.open`` of a regular file: the header only; an image of more than
-    MAX_IMAGE_PIXELS pixels is refused here, before it is decoded."""
-    require_regular_file(path, "image file")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # refused below, with the size
-            image = Image.open(path)
-    except Image.DecompressionBombError as error:
-        raise ValueError(f"{path}: image too large to decode ({error}); downsize it first") from error
-    if image.width * image.height > MAX_IMAGE_PIXELS:
-        image.close()
-        raise ValueError(f"{path}: image size: {image.width}x{image.height} pixels, more than the "
-                         f"{MAX_IMAGE_PIXELS:,} pixels (e.g. 8000x8000) decoded at most; downsize it first")
-    return image
-
-
-def image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """(width, height) of an image file from its header, without decoding it; ValueError naming ``path``
-    for a file that is missing, not a regular file, not an image, or over MAX_IMAGE_PIXELS."""
-    path = Path(path)
-    try:
-        with _open_image(path) as image:
-            return image.size
-    except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
-        raise ValueError(f"{path}: not a readable image ({error})") from error
-
-
-def _single_channel(image: Image.Image, path: Path) -> np.ndarray:
-    """[H, W] float32 in [0, 1] of a 16-bit, 32-bit integer or float greyscale image.
-
-    16-bit values are divided by 65535; 32-bit integers by 65535 when all fit 16 bits (Pillow
-    reads some 16-bit files so), else by 2^31 - 1; floats are kept when within [0, 1], else
-    rescaled from their minimum..maximum. Non-finite floats are an error.
-    """
-    array = np.asarray(image)
-    if image.mode == "F":
-        if not np.isfinite(array).all():
-            raise ValueError(f"{path}: float image has NaN or infinite pixels")
-        low, high = float(array.min()), float(array.max())
-        if low >= 0 and high <= 1:
-            return array.astype(np.float32)
-        return ((array - low) / (high - low) if high > low else np.zeros_like(array)).astype(np.float32)
-    scale = 65535.0 if image.mode.startswith("I;16") or array.max() <= 65535 else 2.0**31 - 1
-    return (np.clip(array.astype(np.float64), 0, None) / scale).astype(np.float32)
-
-
-def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch.Tensor:
-    """Read an image file as [H, W, 3] float32 RGB in [0, 1].
-
-    Any bit depth: 8-bit images of any mode (greyscale, palette, RGBA with its alpha dropped,
-    CMYK) are divided by 255; 16-bit, 32-bit integer and float greyscale images (16-bit PNG,
-    float TIFF) are scaled as :func:`_single_channel` says. Greyscale becomes three equal
-    channels. A file that is not a regular file (a FIFO), or an image over MAX_IMAGE_PIXELS, is refused
-    before it is read or decoded.
-    ``max_side`` downsizes (Lanczos, aspect kept) so the longer side is at most that.
-    """
-    path = Path(path)
-    try:
-        with _open_image(path) as image:
-            size = image.size
-            if max_side is not None and max(size) > max_side:
-                scale = max_side / max(size)
-                size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
-            if image.mode in ("F", "I") or image.mode.startswith("I;16"):
-                grey = Image.fromarray(_single_channel(image, path), mode="F")
-                grey = np.clip(np.asarray(grey.resize(size, Image.LANCZOS) if size != image.size else grey), 0, 1)
-                array = np.repeat(grey[..., None], 3, axis=-1)
-            else:
-                rgb = image.convert("RGB")
-                rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
-                return torch.from_numpy(np.array(rgb)).float().div_(255)  # bytes, then one float32 copy
-    except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
-        raise ValueError(f"{path}: not a readable image ({error})") from error
-    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """[H, W, 3] float image -> uint8 array, clamped to [0, 1] and rounded."""
-    return (image.detach().float().clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-
-
-def save_png(image: torch.Tensor, path: str | os.PathLike) -> None:
-    """Write a [H, W, 3] float image in [0, 1] as PNG, atomically (zlib level 1: lossless like any level; the
-    default level 6 took 1.6 s of a 13 s first look for one contact sheet, BENCHMARKS.md, First look)."""
-    pil = Image.fromarray(to_uint8(image))
-    write_atomically(path, lambda stream: pil.save(stream, format="PNG", compress_level=1))
-
-
-def resize_image(image: torch.Tensor, height: int, width: int, *, mode: str = "bilinear") -> torch.Tensor:
-    """Resize [H, W, 3] or [B, H, W, 3] (``mode`` "bilinear" or "bicubic", antialiased when
-    shrinking, clamped to [0, 1]); an image already of that size is returned as it is."""
-    if image.shape[-3:-1] == (height, width):
-        return image
-    batch = image if image.ndim == 4 else image[None]
-    out = torch.nn.functional.interpolate(
-        batch.permute(0, 3, 1, 2), size=(height, width), mode=mode, align_corners=False, antialias=True
-    ).clamp(0, 1).permute(0, 2, 3, 1)
-    return out if image.ndim == 4 else out[0]

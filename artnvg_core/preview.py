@@ -10,7 +10,8 @@ import os
 import torch
 from PIL import Image
 
-from .fileio import resize_image, save_png, to_uint8, write_atomically
+from .fileio import write_atomically
+from .images import resize_image, save_png, to_uint8
 
 GAP = 4  # white pixels between the tiles of a strip
 

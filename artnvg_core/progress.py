@@ -1,8 +1,10 @@
 """Progress reporting and cancellation shared by long-running core functions.
 
 A long function takes ``progress: ProgressFn | None`` and ``should_stop: StopFn | None``.
-It calls ``progress(step, total, info)`` after each unit of work and raises
-:class:`Cancelled` as soon as ``should_stop()`` returns True, before writing anything.
+It calls ``progress(step, total, info)`` after each unit of work (and ``progress(0, total, info)`` as the
+work starts where a unit takes seconds, such as a render call: a bar then shows from the start, not once the
+first unit is done) and raises :class:`Cancelled` as soon as ``should_stop()`` returns True, before writing
+anything.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from .cameras import CameraSet
-from .fileio import resize_image
+from .images import resize_image
 from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import SH_C0, GaussianScene
@@ -92,11 +92,14 @@ def gaussian_weights(scene: GaussianScene, cameras: CameraSet, pixel_weights: to
     """Each Gaussian's compositing weight (alpha times transmittance) summed over the pixels of ``cameras``:
     ``(weighted [N], total [N])``, the sum with each pixel counted ``pixel_weights [C, H, W]`` times, and with
     every pixel counted once. Read from the gradient of a render of flat colours (colour is linear in the
-    DC coefficient, the weight its factor), one view at a time: ``progress(views done, C, {})`` after each, and
+    DC coefficient, the weight its factor), one view at a time: ``progress(views done, C, {})`` as it starts (0)
+    and after each, and
     :class:`~artnvg_core.progress.Cancelled` as soon as ``should_stop()`` says so (checked within each render)."""
     weighted = scene.means.new_zeros(len(scene), dtype=torch.float64)
     total = torch.zeros_like(weighted)
     geometry = scene.map(torch.Tensor.detach)
+    if progress is not None:
+        progress(0, len(cameras), {})
     for view in range(len(cameras)):
         dc = scene.means.new_zeros(len(scene), 1, 3, requires_grad=True)  # colour 0.5: no clamp
         with torch.enable_grad():
@@ -141,6 +144,8 @@ def coverage(scene: GaussianScene, selection: torch.Tensor, cameras: CameraSet, 
     flat = dataclasses.replace(scene.map(torch.Tensor.detach), sh=dc.contiguous())
     cameras = cameras.to(scene.device)
     views = []
+    if progress is not None:
+        progress(0, len(cameras), {})
     with torch.no_grad():
         for view in range(len(cameras)):
             views.append(render(flat, cameras.subset([view]), backend=backend, should_stop=should_stop).rgb[0, ..., 0])

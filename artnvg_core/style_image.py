@@ -12,7 +12,7 @@ import os
 
 import torch
 
-from .fileio import image_size, load_image
+from .images import image_size, load_image
 
 MAX_STYLE_ASPECT = 32
 
@@ -28,7 +28,7 @@ def check_style_size(width: int, height: int) -> None:
 def read_style_image(path: str | os.PathLike) -> torch.Tensor:
     """The style image at ``path`` as [H, W, 3] float32 in [0, 1]; ValueError naming ``path`` for a file that
     is missing, not a regular file or not an image, one over the pixel budget
-    (:data:`artnvg_core.fileio.MAX_IMAGE_PIXELS`) or refused by :func:`check_style_size` (both from its
+    (:data:`artnvg_core.images.MAX_IMAGE_PIXELS`) or refused by :func:`check_style_size` (both from its
     header, before it is decoded), or one that does not decode (a truncated or corrupt file)."""
     width, height = image_size(path)
     try:

@@ -25,8 +25,9 @@ from .cameras import CameraSet
 from .diffusion.loader import indexed_device, load_models_for
 from .diffusion.lora import LoRA
 from .diffusion.model_files import ModelFiles, check_model_files, missing_model, weight_files
-from .fileio import save_png, written_together
+from .fileio import written_together
 from .finetune import FinetuneConfig, compile_kernels, finetune
+from .images import save_png
 from .preview import comparison_strip, evenly_spaced
 from .progress import Cancelled, ProgressFn, StopFn
 from .raster.views import render_views

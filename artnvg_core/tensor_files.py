@@ -164,8 +164,9 @@ def _header_object(path: Path, pairs: list[tuple[str, object]]) -> JsonObject:
 
 def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, list[int], int, int]]]:
     """(byte offset of the data, {name: (dtype, shape, begin, end)}) of a ``.safetensors`` file, offsets
-    relative to the data; checked against the file's size and each tensor's byte count, and for keys given
-    twice."""
+    relative to the data; checked as the safetensors library checks them (each tensor's byte count, the
+    tensors' data one after another covering the file's data exactly, ``__metadata__`` strings), and for
+    keys given twice."""
     size = path.stat().st_size
     with open(path, "rb") as stream:
         head = stream.read(8)
@@ -176,22 +177,37 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
             header = json.loads(stream.read(length), object_pairs_hook=functools.partial(_header_object, path))
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
             raise ValueError(f"weights '{path}': safetensors header is not JSON ({error})") from None
+        except RecursionError:
+            raise ValueError(f"weights '{path}': safetensors header is not JSON (it nests too deeply)") from None
     if not isinstance(header, dict):
         raise ValueError(f"weights '{path}': safetensors header is not a JSON object")
     start, entries = 8 + length, {}
     for name, info in header.items():
         if name == "__metadata__":
+            if not isinstance(info, dict) or not all(isinstance(value, str) for value in info.values()):
+                raise ValueError(f"weights '{path}': '__metadata__' of the safetensors header is not an object of "
+                                 "strings")
             continue
         try:
-            dtype, shape, (begin, end) = SAFETENSORS_DTYPES[info["dtype"]], list(info["shape"]), info["data_offsets"]
+            dtype, shape, (begin, end) = SAFETENSORS_DTYPES[info["dtype"]], info["shape"], info["data_offsets"]
             nbytes = math.prod(shape) * dtype.itemsize
-            valid = all(isinstance(n, int) and n >= 0 for n in (*shape, begin, end))
+            valid = (type(shape) is list and type(info["data_offsets"]) is list  # of ints: JSON true is no size
+                     and all(type(n) is int and n >= 0 for n in (*shape, begin, end)))
         except (KeyError, TypeError, ValueError):
             valid = False
         if not valid or end - begin != nbytes or start + end > size:
             raise ValueError(f"weights '{path}': tensor '{name}' has a bad entry in the safetensors header "
                              f"(dtype, shape and data_offsets within the file's {size} bytes expected)")
         entries[name] = (dtype, shape, begin, end)
+    covered = 0
+    for name, (_, _, begin, end) in sorted(entries.items(), key=lambda item: item[1][2:]):
+        if begin != covered:
+            raise ValueError(f"weights '{path}': tensor '{name}' starts at byte {begin} of the data, not {covered} "
+                             "where the tensors before it end (tensors overlap, or bytes between them belong to none)")
+        covered = end
+    if start + covered != size:
+        raise ValueError(f"weights '{path}': the tensors' data ends at byte {covered}, the file's at {size - start} "
+                         "(bytes that belong to no tensor)")
     return start, entries
 
 

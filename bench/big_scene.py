@@ -29,9 +29,9 @@ import torch
 from common import print_table
 
 from artnvg_core.orbit import orbit_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import load_scene, save_scene
+from artnvg_core.images import load_image
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 from artnvg_core.stylize import DemoInputs

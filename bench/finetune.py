@@ -61,10 +61,10 @@ from common import orbit_cameras, print_table, random_scene, synchronize, timed
 
 import artnvg_core.finetune.loop as finetune_module
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image, resize_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.finetune.finite_steps import FiniteAdam
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image, resize_image
 from artnvg_core.losses import (
     SEARCH_PRECISIONS,
     VGG_PRECISIONS,

@@ -36,9 +36,9 @@ import torch
 from common import print_table, synchronize, timed_call
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image
 from artnvg_core.losses import NNFMLoss, load_vgg, nearest_style_indices, normalize_features, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.raster import prepare_backend

@@ -32,9 +32,9 @@ from bench.common import print_table, timed  # noqa: E402
 from bench.diffusion import POOLED_DIM, build_models, run_step, step_inputs, write_json  # noqa: E402
 
 from artnvg_core.cameras import load_cameras  # noqa: E402
-from artnvg_core.fileio import load_image  # noqa: E402
 from artnvg_core.finetune import FinetuneConfig, finetune  # noqa: E402
 from artnvg_core.formats import read_ply  # noqa: E402
+from artnvg_core.images import load_image  # noqa: E402
 from artnvg_core.losses import ssim  # noqa: E402
 from artnvg_core.stylize import DemoInputs  # noqa: E402
 

@@ -27,9 +27,9 @@ import torch
 from common import print_table, warp_rmse
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image, resize_image, save_png
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import load_scene
+from artnvg_core.images import load_image, resize_image, save_png
 from artnvg_core.metrics import cfsd_scores
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.raster.views import render_views

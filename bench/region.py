@@ -28,9 +28,9 @@ import torch
 from common import print_table, random_scene  # puts the repository on sys.path
 from artnvg_core.blend import blend
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import load_scene
+from artnvg_core.images import load_image, save_png
 from artnvg_core.metrics.color import mean_cov_distance
 from artnvg_core.preview import side_by_side
 from artnvg_core.raster.views import render_views

@@ -6,8 +6,7 @@ from artnvg_core.blend import blend, render_strengths
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
-from .comfy_bridge import compute_device, prepare_rasterizer
-from .cpu_threads import cpu_threads
+from .comfy_bridge import render_device
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
@@ -61,9 +60,7 @@ class BlendStylization(ArtNVGNode):
         with node_input(self.DISPLAY_NAME):  # blend's messages name what they refuse: the two scenes, selection...
             result = blend(original, stylized, strength, selection)
             camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])
-            device = compute_device()
-            prepare_rasterizer(device)
-            with cpu_threads(device):
+            with render_device() as device:
                 previews = render_strengths(original.to(device), stylized.to(device), camera, strengths,
                                             None if selection is None else selection.to(device))
         return result, side_by_side(previews)[None]

@@ -17,6 +17,7 @@ import functools
 import importlib
 import logging
 import os
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
@@ -27,6 +28,8 @@ from artnvg_core.devices import best_device
 from artnvg_core.progress import Cancelled, ProgressFn
 from artnvg_core.raster import prepare_backend
 from artnvg_core.tensor_tree import map_tensors
+
+from .cpu_threads import cpu_threads
 
 _log = logging.getLogger("artnvg")
 
@@ -206,6 +209,17 @@ def prepare_rasterizer(device: torch.device) -> None:
     """Load the rasterizer that renders on ``device`` before a node's first render: gsplat's
     first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced by :func:`progress_text` first."""
     prepare_backend(device, announce=progress_text)
+
+
+@contextmanager
+def render_device() -> Iterator[torch.device]:
+    """ComfyUI's device (:func:`compute_device`) for a node that renders, as the block's value: its rasterizer
+    loaded first (:func:`prepare_rasterizer`), and torch's CPU threads set for the machine's load within the
+    block (:func:`~nodes.cpu_threads.cpu_threads`)."""
+    device = compute_device()
+    prepare_rasterizer(device)
+    with cpu_threads(device):
+        yield device
 
 
 def interrupt_requested() -> bool:

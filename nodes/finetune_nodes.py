@@ -10,14 +10,12 @@ from artnvg_core.style_image import check_style_size
 from .comfy_bridge import (
     autograd_enabled,
     cancellable,
-    compute_device,
     interrupt_requested,
-    prepare_rasterizer,
     progress_bar,
     progress_text,
+    render_device,
     trainable_copy,
 )
-from .cpu_threads import cpu_threads
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
@@ -31,15 +29,19 @@ STAGES = {"region": "measuring what the selection covers in the {} views",
 
 
 def staged_progress():
-    """A core ``ProgressFn`` for the node's bar that also names each stage under the node when it starts
+    """A core ``ProgressFn`` for the node's bar that also names each stage under the node at its first report
     (``info["stage"]``: region, setup, final, else the steps); None without ComfyUI."""
     report = progress_bar()
     if report is None:
         return None
+    shown = None
 
     def staged(step: int, total: int, info: dict) -> None:
-        if step == 1:
-            progress_text(f"Finetune Gaussians: {STAGES[info.get('stage', 'steps')].format(total)}")
+        nonlocal shown
+        stage = info.get("stage", "steps")
+        if stage != shown:
+            shown = stage
+            progress_text(f"Finetune Gaussians: {STAGES[stage].format(total)}")
         report(step, total, info)
 
     return staged
@@ -121,10 +123,8 @@ class FinetuneGaussians(ArtNVGNode):
             if preset == "preview":
                 chosen = PRESETS["preview"]
                 cameras, config = cameras.scaled(chosen.scale), chosen.finetune_config(config)
-            device = compute_device()
-            prepare_rasterizer(device)
             report = staged_progress()
-            with cpu_threads(device):
+            with render_device() as device:
                 result = finetune(
                     trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
                     stylized=None if stylized_views is None else stylized_views.clone(), config=config,

@@ -36,7 +36,7 @@ import uuid
 from collections import OrderedDict
 from collections.abc import Mapping
 
-from artnvg_core.fileio import image_size
+from artnvg_core.images import image_size
 
 from .comfy_bridge import comfy_module, load_image_path, model_file_path
 from .input_files import outside_folders

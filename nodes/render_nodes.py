@@ -12,8 +12,7 @@ from artnvg_core.key_views import select_key_views
 from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
 
-from .comfy_bridge import cancellable, compute_device, interrupt_requested, prepare_rasterizer, progress_bar
-from .cpu_threads import cpu_threads
+from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
@@ -31,9 +30,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
     Renders one view at a time on ComfyUI's device, updating the progress bar and
     stopping (core ``Cancelled``) when the user cancels, inside a view as between views.
     """
-    device = compute_device()
-    prepare_rasterizer(device)
-    with cpu_threads(device):
+    with render_device() as device:
         return render_views(scene.to(device), cameras.to(device), chunk=1, cpu=True, progress=progress_bar(),
                             should_stop=interrupt_requested).rgb
 

@@ -11,14 +11,12 @@ from artnvg_core.selection import parse_region, select_by_masks, select_region
 from .comfy_bridge import (
     autograd_enabled,
     cancellable,
-    compute_device,
     interrupt_requested,
-    prepare_rasterizer,
     progress_bar,
     progress_text,
+    render_device,
     trainable_copy,
 )
-from .cpu_threads import cpu_threads
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, MASK, SCENE, SELECTION
@@ -84,9 +82,7 @@ class SelectGaussians(ArtNVGNode):
                 indices = parse_views(views, len(cameras))
                 if len(indices) != len(masks):
                     raise ValueError(f"{len(masks)} masks but {len(indices)} views ({views!r}): give one view per mask")
-            device = compute_device()
-            prepare_rasterizer(device)
-            with node_input(self.DISPLAY_NAME, "mask"), autograd_enabled(), cpu_threads(device):
+            with render_device() as device, node_input(self.DISPLAY_NAME, "mask"), autograd_enabled():
                 # the Gaussians' weights are read from a render's gradient
                 selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),
                                             masks.clone().to(device), progress=progress_bar(),

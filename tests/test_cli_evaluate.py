@@ -10,9 +10,9 @@ from PIL import Image
 
 from artnvg_core.cli.main import main
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image, save_png
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.images import load_image, save_png
 from artnvg_core.metrics.csd import CSDConfig, CSDStyleEncoder
 from artnvg_core.cli.evaluate import (
     add_evaluate_arguments,

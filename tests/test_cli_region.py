@@ -6,8 +6,8 @@ import torch
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.cli.main import main
-from artnvg_core.fileio import save_png
 from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.images import save_png
 from artnvg_core.stylize import DemoInputs
 
 

@@ -60,7 +60,7 @@ def test_check_images_rejects_bad_batches():
 def test_clip_preprocess_matches_clip_image_processor():
     """Same recipe as CLIPImageProcessor, which CSGO runs (PIL bicubic on uint8): on a photo the torch
     bicubic differs by 0.3/255 on average and at most 3.1/255 (the figures in clip_preprocess's docstring)."""
-    from artnvg_core.fileio import load_image
+    from artnvg_core.images import load_image
     from artnvg_core.stylize import DemoInputs
 
     photo = load_image(DemoInputs().style)[None]  # 203x256

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, camera_extent, compile_kernels, finetune
+from artnvg_core.images import load_image
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import color_distances
 from artnvg_core.progress import Cancelled
@@ -359,15 +359,15 @@ def test_the_contact_sheet_is_bounded_whatever_the_cameras_and_the_style_image(d
 
 def test_renders_before_and_after_the_steps_report_each_render_call(demo):
     """Without stylized views (colour transfer on) every view is rendered before and after the steps,
-    RENDER_CHUNK views a call, the views done reported after each call."""
+    RENDER_CHUNK views a call, the views done reported as the first call starts and after each call."""
     scene, cameras, style = demo
     count = RENDER_CHUNK + 2
     seen = []
     finetune(scene, cameras.subset([view % len(cameras) for view in range(count)]), style,
              config=FinetuneConfig(iterations=1), render_progress=lambda done, views, info: seen.append(
                  (done, views, info["stage"])))
-    assert seen == [(RENDER_CHUNK, count, "setup"), (count, count, "setup"), (RENDER_CHUNK, count, "final"),
-                    (count, count, "final")]
+    assert seen == [(0, count, "setup"), (RENDER_CHUNK, count, "setup"), (count, count, "setup"),
+                    (0, count, "final"), (RENDER_CHUNK, count, "final"), (count, count, "final")]
 
 
 @pytest.mark.parametrize("renderer, fused", [("triton", None), ("torch", False), ("gsplat", False)])

@@ -5,10 +5,10 @@ import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.finetune.step_loss import StepLoss
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image
 from artnvg_core.losses import NNFMLoss, load_vgg, style_image_features
 from artnvg_core.metrics.color import mean_cov_distance
 from artnvg_core.raster import render
@@ -119,7 +119,7 @@ def test_the_regions_coverage_renders_report_progress_and_stop_when_asked(demo):
     reports = []
     finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=selection,
              render_progress=lambda done, total, info: reports.append((info["stage"], done, total)))
-    assert reports[:4] == [("region", view, 4) for view in (1, 2, 3, 4)]
+    assert reports[:5] == [("region", view, 4) for view in (0, 1, 2, 3, 4)]
     assert {stage for stage, _, _ in reports} == {"region", "setup", "final"}
     asked = []
     with pytest.raises(Cancelled):

@@ -161,9 +161,9 @@ def test_graphed_finetune_equals_the_eager_one():
     import torch._dynamo  # noqa: F401
 
     from artnvg_core.cameras import load_cameras
-    from artnvg_core.fileio import load_image
     from artnvg_core.finetune import finetune
     from artnvg_core.formats import read_ply
+    from artnvg_core.images import load_image
     from artnvg_core.stylize import DemoInputs
 
     demo = DemoInputs()
@@ -196,10 +196,10 @@ def test_no_graph_under_the_cuda_malloc_async_allocator():
     script = """
 import torch
 from artnvg_core.cameras import load_cameras
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig, finetune
 from artnvg_core.formats import read_ply
 from artnvg_core.finetune.step_loss import can_graph
+from artnvg_core.images import load_image
 from artnvg_core.stylize import DemoInputs
 assert torch.cuda.get_allocator_backend() == "cudaMallocAsync" and not can_graph(torch.device("cuda"))
 demo = DemoInputs()

@@ -2,6 +2,8 @@
 
 import gzip
 import io
+import struct
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -45,3 +47,23 @@ def test_read_at_most_stops_at_the_limit_or_the_end():
     stream = gzip.GzipFile(fileobj=io.BytesIO(gzip.compress(b"abcdef" * 1000)))
     assert read_at_most(stream, 4) == b"abcd"
     assert read_at_most(stream, 10**9) == (b"abcdef" * 1000)[4:]
+
+
+def test_a_zip_that_zipfile_cannot_read_is_refused_naming_the_file(tmp_path):
+    """Found by fuzzing splatfacto checkpoints: zipfile's own errors (BadZipFile, NotImplementedError, a
+    UnicodeDecodeError naming no file) escaped from the check of the records."""
+    path = tmp_path / "archive.ckpt"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("\u00e9/data.pkl", b"data")
+    good = path.read_bytes()
+    central = good.index(b"PK\x01\x02")  # the central directory's record: version needed to extract at +6
+    end = good.rindex(b"PK\x05\x06")  # the end record, after which a zip64 locator naming 2 disks
+    bounded.require_stored_zip(path)
+    for corrupt in (good[:central] + b"PK\x01\x03" + good[central + 4:],
+                    good[:end] + struct.pack("<4sIQI", b"PK\x06\x07", 0, 0, 2) + good[end:],
+                    good.replace("\u00e9".encode(), b"\xff\xfe"),
+                    good[:central + 6] + b"\xff" + good[central + 7:]):
+        path.write_bytes(corrupt)
+        with pytest.raises(ValueError, match=r"archive\.ckpt: not a readable zip archive \(.+\); the file is "
+                                             "truncated or corrupt"):
+            bounded.require_stored_zip(path)

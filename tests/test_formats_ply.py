@@ -371,6 +371,19 @@ def test_corrupt_headers_raise_value_error(tmp_path, fmt, old, new):
         read_ply(path)
 
 
+def test_an_element_without_properties_or_declared_twice_is_refused(tmp_path):
+    """Found by fuzzing: an 'element vertex N' line alone, or repeated, made a vertex element without
+    properties, whose rows of no bytes numpy refused with a message naming no file."""
+    path = tmp_path / "elements.ply"
+    write_reference_ply(path, random_scene(3, 1), "binary_little_endian")
+    repeated = path.read_bytes().replace(b"end_header\n", b"element vertex 3\nend_header\n", 1)
+    alone = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n"
+    for data, problem in ((alone, "declares no properties"), (repeated, "is declared twice")):
+        path.write_bytes(data)
+        with pytest.raises(ValueError, match=rf"elements\.ply: not a readable PLY file \(element 'vertex' {problem}\)"):
+            read_ply(path)
+
+
 @pytest.mark.parametrize("fmt", FORMATS)
 @pytest.mark.parametrize("declared", [1, 2])
 def test_header_count_smaller_than_the_data_is_an_error(tmp_path, fmt, declared):

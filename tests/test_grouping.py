@@ -189,43 +189,6 @@ def test_coincident_camera_centres(copies):
     assert all(len(g.context) == 2 and not set(g.context) & set(g.views) for g in groups)
 
 
-def _balanced_partitions(items: list[int], sizes: list[int]):
-    """Every partition of ``items`` into groups of the multiset ``sizes``, each once."""
-    if not sizes:
-        yield []
-        return
-    for size in sorted(set(sizes)):
-        rest_sizes = list(sizes)
-        rest_sizes.remove(size)
-        for others in itertools.combinations(items[1:], size - 1):
-            group = (items[0], *others)
-            rest = [i for i in items if i not in group]
-            for partition in _balanced_partitions(rest, rest_sizes):
-                yield [group, *partition]
-
-
-@pytest.mark.parametrize(("count", "group_size"), [(7, 2), (8, 4), (9, 3), (10, 4)])
-def test_matches_brute_force_optimum_on_small_sets(count, group_size):
-    sizes = balanced_group_sizes(count, group_size)
-    for seed in range(3):
-        centres = np.random.default_rng(100 + seed).normal(size=(count, 3))
-        optimum = min(_within_sse(centres, p) for p in _balanced_partitions(list(range(count)), sizes))
-        groups = group_views(torch.from_numpy(centres), group_size)
-        assert _within_sse(centres, groups.as_lists()) == pytest.approx(optimum, rel=1e-9)
-
-
-@pytest.mark.parametrize("blob_sizes", [[15] * 6, [14, 15, 14, 15, 14, 15]])
-def test_recovers_well_separated_clusters(blob_sizes):
-    rng = np.random.default_rng(3)
-    anchors = rng.normal(size=(len(blob_sizes), 3)) * 100
-    blobs = np.repeat(np.arange(len(blob_sizes)), blob_sizes)
-    centres = anchors[blobs] + rng.uniform(-1, 1, size=(len(blobs), 3))
-    order = rng.permutation(len(blobs))  # unordered input
-    groups = group_views(torch.from_numpy(centres[order]), 15)
-    expected = {frozenset(np.flatnonzero(blobs[order] == b).tolist()) for b in range(len(blob_sizes))}
-    assert {frozenset(g.views) for g in groups} == expected
-
-
 @pytest.mark.parametrize(("scale", "offset"), [(1e-4, (1000.0, -2000.0, 500.0)), (1e3, (0.0, 0.0, 0.0))])
 def test_scale_and_offset_do_not_change_the_grouping_quality(scale, offset):
     """Forward-facing rig moved far away and shrunk to a fraction of a millimetre, or blown up."""

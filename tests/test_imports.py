@@ -19,13 +19,13 @@ PACKAGES = ("artnvg_core", "nodes")
 # The floors of the house (docs/design.md, "Layout"), ground first: a module imports only from its own floor
 # or below. A room is a top-level module or package of artnvg_core (its modules with it), or the node pack.
 FLOORS = (
-    ("artnvg_core", "artnvg_core.scene", "artnvg_core.fileio", "artnvg_core.statedict", "artnvg_core.progress",
-     "artnvg_core.devices", "artnvg_core.tensor_tree", "artnvg_core.tensor_files",
+    ("artnvg_core", "artnvg_core.scene", "artnvg_core.fileio", "artnvg_core.images", "artnvg_core.statedict",
+     "artnvg_core.progress", "artnvg_core.devices", "artnvg_core.tensor_tree", "artnvg_core.tensor_files",
      "artnvg_core.background", "artnvg_core.triton_runtime", "artnvg_core.style_image",
      "artnvg_core.json_objects"),  # the data and the plumbing
     ("artnvg_core.cameras", "artnvg_core.cluster", "artnvg_core.losses", "artnvg_core.preview"),
     ("artnvg_core.formats", "artnvg_core.activated", "artnvg_core.raster", "artnvg_core.grouping",
-     "artnvg_core.key_views"),
+     "artnvg_core.balanced_kmeans", "artnvg_core.key_views"),
     ("artnvg_core.orbit", "artnvg_core.selection", "artnvg_core.blend", "artnvg_core.diffusion"),
     ("artnvg_core.finetune", "artnvg_core.presets"),  # the two stages' settings and the finetune
     ("artnvg_core.metrics", "artnvg_core.stylize"),  # the measures and the whole job

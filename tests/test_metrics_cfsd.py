@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from artnvg_core.fileio import load_image, resize_image
+from artnvg_core.images import load_image, resize_image
 from artnvg_core.metrics import cfsd as cfsd_module
 from artnvg_core.metrics.cfsd import cfsd_scores as cfsd
 

@@ -8,18 +8,14 @@ import torch
 
 from artnvg_core.cameras import load_cameras
 from artnvg_core.finetune import FinetuneConfig, finetune
-from artnvg_core.fileio import load_image
 from artnvg_core.formats import load_scene
+from artnvg_core.images import load_image
 from artnvg_core.selection import Box, select_by_masks, select_region
 from artnvg_core.stylize import DemoInputs
+from node_calls import call
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError
 from nodes.selection_nodes import SelectGaussians
-
-
-def call(node_class, **inputs):
-    with torch.inference_mode():
-        return getattr(node_class(), node_class.FUNCTION)(**inputs)
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +89,7 @@ def test_select_node_needs_one_view_per_mask(demo):
 
 def test_finetune_node_trains_the_selection_alone(demo, monkeypatch):
     # on the library call's device: a GPU's sums differ in the last bits, which Adam's first steps magnify
-    monkeypatch.setattr("nodes.finetune_nodes.compute_device", lambda: torch.device("cpu"))
+    monkeypatch.setattr("nodes.comfy_bridge.compute_device", lambda: torch.device("cpu"))
     scene, cameras = demo
     (selection,) = call(SelectGaussians, scene=scene, mode="box", bounds="-1, -1, -1, 1, 1, 1")
     style = load_image(DemoInputs().style)[None]

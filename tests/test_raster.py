@@ -280,8 +280,8 @@ def test_bad_arguments_rejected():
 def test_bear_scene_reproduces_held_out_photos(shared_data):
     """The fitted bear scene at full resolution matches its held-out photos (every 8th view)."""
     from artnvg_core.cameras import load_cameras
-    from artnvg_core.fileio import load_image
     from artnvg_core.formats import read_ply
+    from artnvg_core.images import load_image
 
     bear = shared_data / "scenes" / "bear"
     scene = read_ply(bear / "scene.ply")

@@ -73,9 +73,9 @@ def test_a_finetune_with_an_extreme_gaussian_loses_nothing(backend, caplog):
     on the Triton backend (the default on CUDA)."""
     pytest.importorskip(backend)
     from artnvg_core.cameras import load_cameras
-    from artnvg_core.fileio import load_image
     from artnvg_core.finetune import FinetuneConfig, finetune
     from artnvg_core.formats import load_scene
+    from artnvg_core.images import load_image
     from artnvg_core.stylize import DemoInputs
 
     demo = DemoInputs()

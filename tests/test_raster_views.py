@@ -22,7 +22,7 @@ def test_chunks_give_each_view_as_rendered_alone(chunk):
         assert torch.equal(out.rgb[view], alone.rgb[0].clamp(0, 1))
         assert torch.equal(out.alpha[view], alone.alpha[0]) and torch.equal(out.depth[view], alone.depth[0])
     assert out.rgb.max() <= 1 and out.rgb.min() >= 0 and not out.rgb.requires_grad
-    done = list(range(chunk, len(cameras), chunk)) + [len(cameras)]
+    done = [0] + list(range(chunk, len(cameras), chunk)) + [len(cameras)]  # 0: a bar shows as the first chunk starts
     assert calls == [(n, len(cameras), {}) for n in done]
 
 

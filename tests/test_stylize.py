@@ -9,9 +9,9 @@ from artnvg_core.cameras import load_cameras
 from artnvg_core.diffusion import compile_cache, speed
 from artnvg_core.diffusion.sampler import SamplerSettings
 from artnvg_core.diffusion.speed import SpeedOptions
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image
 from artnvg_core.presets import PRESETS, Preset
 from artnvg_core.diffusion.model_files import ModelFiles
 from artnvg_core.stylize import DemoInputs, stylize_diffusion
@@ -101,9 +101,9 @@ import sys
 from artnvg_core import stylize
 from artnvg_core.cameras import load_cameras
 from artnvg_core.diffusion.model_files import ModelFiles
-from artnvg_core.fileio import load_image
 from artnvg_core.finetune import FinetuneConfig
 from artnvg_core.formats import read_ply
+from artnvg_core.images import load_image
 
 class Rendered(Exception):
     pass

@@ -131,6 +131,18 @@ def _write_raw(path, header: bytes, data: bytes = b"") -> None:
     (json.dumps({"x": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
     (json.dumps({"x": {"dtype": "Q9", "shape": [2], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
     (json.dumps({"x": {"dtype": "F32", "shape": [-2], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
+    # found by fuzzing: headers our check passed and the safetensors library refused with its own error type
+    (json.dumps({"x": {"dtype": "F32", "shape": [True], "data_offsets": [0, 4]}}).encode(), b"\0" * 4, "tensor 'x'"),
+    (json.dumps({"x": {"dtype": "F32", "shape": {}, "data_offsets": [0, 4]}}).encode(), b"\0" * 4, "tensor 'x'"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]},
+                 "y": {"dtype": "F32", "shape": [1], "data_offsets": [4, 8]}}).encode(), b"\0" * 8,
+     r"tensor 'y' starts at byte 4 of the data, not 8"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [1], "data_offsets": [4, 8]}}).encode(), b"\0" * 8,
+     r"tensor 'x' starts at byte 4 of the data, not 0"),
+    (json.dumps({"x": {"dtype": "F32", "shape": [1], "data_offsets": [0, 4]}}).encode(), b"\0" * 8,
+     r"the tensors' data ends at byte 4, the file's at 8"),
+    (json.dumps({"__metadata__": {"format": 1}}).encode(), b"", "'__metadata__' .* not an object of strings"),
+    (b'{"x": ' + b"[" * 100_000, b"", r"header is not JSON \(it nests too deeply\)"),
 ])
 def test_malformed_files_are_refused_naming_the_file(tmp_path, header, data, message):
     path = tmp_path / "bad.safetensors"

@@ -158,7 +158,8 @@ class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it.
     ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G). Callbacks whose
     ``info["stage"]`` changes (the finetune's renders before and after its steps) start a new bar,
-    described as ``DESCRIPTION (STAGE)``."""
+    described as ``DESCRIPTION (STAGE)``. A bar starts at its first callback's step: its rate counts the work
+    done after that (a first callback at the end shows none, where it once divided the work by no time)."""
 
     def __init__(self, description: str, unit: str = "it"):
         self.description = description
@@ -173,8 +174,9 @@ class ProgressBar:
         if self.bar is None or stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=total, desc=self.description if stage is None else f"{self.description} ({stage})",
-                            unit=self.unit, unit_scale=self.unit == "B", dynamic_ncols=True)
+            description = self.description if stage is None else f"{self.description} ({stage})"
+            self.bar = tqdm(total=total, initial=step, desc=description, unit=self.unit,
+                            unit_scale=self.unit == "B", dynamic_ncols=True)
             _drawn.append(self)
         self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
         self.bar.update(step - self.bar.n)

@@ -42,8 +42,9 @@ from .common import (
 )
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
-from ..fileio import check_output_file, load_image, resize_image, write_atomically, written_together
+from ..fileio import check_output_file, write_atomically, written_together
 from ..formats import check_scene_path
+from ..images import load_image, resize_image
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
 from ..raster.views import render_views

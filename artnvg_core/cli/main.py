@@ -38,8 +38,9 @@ from .stylize import add_stylize_arguments
 
 def cmd_render(args: argparse.Namespace) -> None:
     from ..cameras import load_cameras
-    from ..fileio import check_output_folder, check_output_name, refuse_overwrites, save_png, sweep_temporaries
+    from ..fileio import check_output_folder, check_output_name, refuse_overwrites, sweep_temporaries
     from ..formats import check_scene_path
+    from ..images import save_png
     from ..raster import render
     from ..raster.views import check_render_plan
 

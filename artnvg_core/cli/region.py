@@ -59,7 +59,8 @@ def check_region_arguments(args: argparse.Namespace, cameras_required: bool = Tr
 
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
     """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither), printing its size."""
-    from ..fileio import load_image, require_regular_file, resize_image
+    from ..fileio import require_regular_file
+    from ..images import load_image, resize_image
     from ..selection import parse_region, select_by_masks, select_region
 
     if args.region:

@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from ..fileio import resize_image
+from ..images import resize_image
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)

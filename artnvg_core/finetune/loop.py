@@ -38,7 +38,7 @@ import logging
 import torch
 
 from ..cameras import CameraSet, scene_frame
-from ..fileio import resize_image
+from ..images import resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop
 from ..raster import choose_backend, triton_warmups

@@ -62,16 +62,21 @@ def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trai
 def require_stored_zip(path: Path) -> None:
     """A zip file (e.g. a ``torch.save`` checkpoint) whose records are all stored uncompressed within
     the file; ValueError naming the first record that is compressed or reaches past the file's end.
-    Files that are not zip archives pass (they hold no compressed streams)."""
-    if not zipfile.is_zipfile(path):
-        return
+    Files that are not zip archives pass (they hold no compressed streams); one whose directory zipfile
+    cannot read is a ValueError naming it."""
     size = path.stat().st_size
-    with zipfile.ZipFile(path) as archive:
-        for record in archive.infolist():
-            if record.compress_type != zipfile.ZIP_STORED:
-                raise ValueError(f"{path}: record {record.filename!r} is compressed ({record.file_size} bytes "
-                                 f"from {record.compress_size}); torch.save stores records uncompressed, so "
-                                 "this file was made otherwise and is refused rather than inflated")
-            if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
-                raise ValueError(f"{path}: record {record.filename!r} claims {record.file_size} bytes, more than "
-                                 "the file holds (truncated or corrupt)")
+    try:
+        if not zipfile.is_zipfile(path):
+            return
+        with zipfile.ZipFile(path) as archive:
+            records = archive.infolist()
+    except (zipfile.BadZipFile, NotImplementedError, UnicodeDecodeError, EOFError, OSError) as error:
+        raise ValueError(f"{path}: not a readable zip archive ({error}); the file is truncated or corrupt") from error
+    for record in records:
+        if record.compress_type != zipfile.ZIP_STORED:
+            raise ValueError(f"{path}: record {record.filename!r} is compressed ({record.file_size} bytes "
+                             f"from {record.compress_size}); torch.save stores records uncompressed, so "
+                             "this file was made otherwise and is refused rather than inflated")
+        if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
+            raise ValueError(f"{path}: record {record.filename!r} claims {record.file_size} bytes, more than "
+                             "the file holds (truncated or corrupt)")

@@ -110,7 +110,12 @@ def _header(path: Path, stream: BinaryIO) -> tuple[str, list[PlyElement]]:
         else:
             raise ValueError(f"{path}: not a readable PLY file (header line {number} is not a PLY header line "
                              "of this version)")
+    names = [element.name for element in elements]
     for element in elements:
+        if names.count(element.name) > 1:
+            raise ValueError(f"{path}: not a readable PLY file (element '{element.name}' is declared twice)")
+        if not element.properties:
+            raise ValueError(f"{path}: not a readable PLY file (element '{element.name}' declares no properties)")
         if len(set(element.property_names)) != len(element.properties):
             raise ValueError(f"{path}: not a readable PLY file (element '{element.name}' declares a property twice)")
     if fmt is None:

@@ -44,12 +44,14 @@ def render_views(scene: GaussianScene, cameras: CameraSet, *, chunk: int = RENDE
     Returns rgb [C, H, W, 3] clamped to [0, 1], alpha [C, H, W, 1] and, with ``depth``, depth
     [C, H, W, 1] (else None), on the scene's device, or on the CPU with ``cpu`` (each chunk moved
     there as it is done, so the device holds one chunk). Calls ``progress(views done, C, {})``
-    after each chunk and raises :class:`~artnvg_core.progress.Cancelled` as soon as ``should_stop()`` says
+    as it starts (0) and after each chunk and raises :class:`~artnvg_core.progress.Cancelled` as soon as ``should_stop()`` says
     so (checked inside each view, as :func:`~artnvg_core.raster.render` does).
     """
     if chunk < 1:
         raise ValueError(f"render_views: chunk must be >= 1, got {chunk}")
     parts = []
+    if progress is not None:
+        progress(0, len(cameras), {})
     for start in range(0, len(cameras), chunk):
         views = range(start, min(start + chunk, len(cameras)))
         out = render(scene, cameras.subset(views), return_depth=depth, backend=backend, should_stop=should_stop)

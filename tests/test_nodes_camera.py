@@ -1,12 +1,15 @@
-"""Cameras Around Scene: the node against the core's orbit_cameras, and its text inputs."""
+"""Load Cameras, Cameras Around Scene and Group Neighbouring Views, called as ComfyUI calls them: cameras from the
+input folder or a path, the core's orbit_cameras and its text inputs, the core's view groups."""
 
 import re
 
 import pytest
 import torch
 
+from artnvg_core.grouping import group_views
 from artnvg_core.orbit import orbit_cameras
-from nodes.camera_nodes import CamerasAroundScene
+from node_calls import bear, call, comfy_dirs  # noqa: F401  (fixtures)
+from nodes.camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from nodes.node_errors import NodeInputError
 from tests.test_activated import random_scene
 
@@ -52,3 +55,22 @@ def test_bad_text_through_a_link_is_refused_as_the_node_runs_naming_node_and_inp
     (name,) = inputs
     with pytest.raises(NodeInputError, match="^" + re.escape(f"Cameras Around Scene: input '{name}': {message}")):
         place(random_scene(n=50, degree=0), **inputs)
+
+
+def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
+    listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"]
+    assert listed[1]["options"] == ["bear/transforms.json"]
+    (from_list,) = call(LoadCameras, camera_source="bear/transforms.json")
+    (from_folder,) = call(LoadCameras, camera_source="", path=str(comfy_dirs / "input" / "bear"))
+    for cameras in (from_list, from_folder):
+        assert torch.equal(cameras.world_to_cam, bear["cameras"].world_to_cam)
+        assert cameras.names == bear["cameras"].names
+    assert "camera_source" in LoadCameras.check_files(camera_source="bear/missing.json")
+    assert LoadCameras.check_files(camera_source="", path=str(comfy_dirs / "input" / "bear")) is None
+    assert "is outside ComfyUI's input" in LoadCameras.check_files(camera_source="", path=str(bear["folder"]))
+
+
+def test_group_neighbouring_views_matches_the_core(bear):
+    (groups,) = call(GroupNeighbouringViews, cameras=bear["cameras"], group_size=15, context=2)
+    expected = group_views(bear["cameras"], 15, context=2)
+    assert groups == expected and len(groups) == 7

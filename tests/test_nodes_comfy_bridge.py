@@ -203,7 +203,7 @@ def test_render_views_reports_progress_and_stops(comfy):
     with torch.inference_mode():
         images, _ = RenderViews().render(scene, cameras, 1.0, 1, "")
     assert images.shape == (3, 16, 16, 3)
-    assert comfy.bars == [[(1, 3), (2, 3), (3, 3)]]
+    assert comfy.bars == [[(0, 3), (1, 3), (2, 3), (3, 3)]]  # the bar shows as the first view starts
     comfy.interrupted = True
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         RenderViews().render(scene, cameras, 1.0, 1, "")
@@ -217,7 +217,7 @@ def test_select_gaussians_by_masks_reports_progress_and_stops(comfy):
     with torch.inference_mode():
         (selection,) = SelectGaussians().select(scene, "mask", "", cameras=cameras, mask=masks, views="0, 1, 2")
     assert selection.any()
-    assert comfy.bars == [[(1, 3), (2, 3), (3, 3)]]
+    assert comfy.bars == [[(0, 3), (1, 3), (2, 3), (3, 3)]]
     comfy.interrupted = True
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         SelectGaussians().select(scene, "mask", "", cameras=cameras, mask=masks, views="0, 1, 2")
@@ -232,9 +232,12 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
         (result,) = node.finetune(scene, cameras, style, 2, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
     assert not torch.equal(result.sh, scene.sh)
     assert torch.equal(result.means, scene.means)  # appearance only
-    # one bar, three stages: the 2 views rendered before (colour transfer, one render call), the 2 steps,
-    # the 2 views after
-    assert comfy.bars == [[(2, 2), (1, 2), (2, 2), (2, 2)]]
+    # one bar, three stages, each named under the node as it starts: the 2 views rendered before (colour
+    # transfer, one render call: the bar shows as it starts), the 2 steps, the 2 views after
+    assert comfy.bars == [[(0, 2), (2, 2), (1, 2), (2, 2), (0, 2), (2, 2)]]
+    assert [text for text, _ in comfy.texts] == ["Finetune Gaussians: rendering the 2 views before finetuning",
+                                                 "Finetune Gaussians: finetuning: 2 steps",
+                                                 "Finetune Gaussians: rendering the 2 finetuned views for the colour match"]
 
     def interrupt_after_first_step(step, total, info):
         comfy.interrupted = True
@@ -263,12 +266,8 @@ def test_gsplat_kernel_build_is_announced_under_the_running_node(comfy, monkeypa
 
 
 def test_render_and_finetune_nodes_prepare_the_rasterizer_first(comfy, monkeypatch):
-    import nodes.finetune_nodes
-    import nodes.render_nodes
-
     prepared = []
-    for module in (nodes.render_nodes, nodes.finetune_nodes):
-        monkeypatch.setattr(module, "prepare_rasterizer", prepared.append)
+    monkeypatch.setattr(comfy_bridge, "prepare_rasterizer", prepared.append)
     with torch.inference_mode():
         RenderViews().render(_tiny_scene(), _tiny_cameras(1), 1.0, 1, "")
         FinetuneGaussians().finetune(_tiny_scene(), _tiny_cameras(1), torch.rand(1, 8, 8, 3), 1, "appearance",
@@ -294,5 +293,5 @@ def test_finetune_of_a_selection_names_its_coverage_pass_under_the_node(comfy):
         selection = torch.ones(len(scene), dtype=torch.bool)
         FinetuneGaussians().finetune(scene, cameras, torch.rand(1, 24, 24, 3), 1, "appearance", 0.8, 0.2, 1.0, 0.5,
                                      0.0, 0, selection=selection)
-    assert comfy.bars == [[(1, 2), (2, 2), (2, 2), (1, 1), (2, 2)]]
+    assert comfy.bars == [[(0, 2), (1, 2), (2, 2), (0, 2), (2, 2), (1, 1), (0, 2), (2, 2)]]
     assert comfy.texts[0] == ("Finetune Gaussians: measuring what the selection covers in the 2 views", "7")
