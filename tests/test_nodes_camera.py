@@ -1,6 +1,8 @@
 """Load Cameras, Cameras Around Scene and Group Neighbouring Views, called as ComfyUI calls them: cameras from the
 input folder or a path, the core's orbit_cameras and its text inputs, the core's view groups."""
 
+import re
+
 import pytest
 import torch
 
@@ -29,15 +31,29 @@ def test_node_places_the_cores_orbit(up, core_up):
     assert (cameras.width, cameras.height, len(cameras)) == (64, 48, 7)
 
 
-@pytest.mark.parametrize("inputs, message", [
-    ({"up": "1, 2"}, r"up: expected 3 finite numbers"),
-    ({"up": "1, x, 2"}, r"input 'up': expected auto, an axis such as -y, or three numbers"),
-    ({"up": "sideways"}, r"up: expected 'auto', one of"),
-    ({"elevations": "10, high"}, r"input 'elevations': expected comma-separated angles"),
-    ({"elevations": "95"}, r"elevations_deg must be angles in \(-90, 90\)"),
-])
-def test_bad_text_inputs_name_the_input(inputs, message):
-    with pytest.raises(NodeInputError, match=r"^Cameras Around Scene: .*" + message):
+BAD_TEXT = [  # (inputs, the message after "Cameras Around Scene: input '<name>': ")
+    ({"up": "1, 2"}, "expected 3 finite numbers, not all zero, got '1, 2'"),
+    ({"up": "1, x, 2"}, "expected 'auto', one of +x, -x, +y, -y, +z, -z or 3 comma-separated numbers"),
+    ({"up": "sideways"}, "expected 'auto', one of +x, -x, +y, -y, +z, -z or 3 comma-separated numbers"),
+    ({"elevations": "10, high"}, "expected comma-separated angles in degrees such as 10, 30, got ' high'"),
+    ({"elevations": "10, 95"}, "95 degrees is not an elevation in (-90, 90)"),
+    ({"elevations": " , "}, "expected at least one angle in degrees"),
+]
+
+
+@pytest.mark.parametrize("inputs, message", BAD_TEXT)
+def test_bad_text_is_refused_at_validation_naming_node_and_input(inputs, message):
+    """ComfyUI's validation (the pack's prompt check) refuses it before anything runs; it used to pass, and
+    orbit_cameras refused it only as the node ran, under its own name."""
+    (name,) = inputs
+    values = {"count": 60, "up": "auto", "elevations": "10, 30"} | inputs
+    assert CamerasAroundScene.check_values(**values).startswith(f"Cameras Around Scene: input '{name}': {message}")
+
+
+@pytest.mark.parametrize("inputs, message", BAD_TEXT)
+def test_bad_text_through_a_link_is_refused_as_the_node_runs_naming_node_and_input(inputs, message):
+    (name,) = inputs
+    with pytest.raises(NodeInputError, match="^" + re.escape(f"Cameras Around Scene: input '{name}': {message}")):
         place(random_scene(n=50, degree=0), **inputs)
 
 

@@ -56,6 +56,10 @@ def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
     with pytest.raises(NodeInputError, match="Render Camera Path: input 'key_views': .*at least 2"):
         call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([5]), path="interpolate", scale=SCALE,
              num_frames=60, key_views="", frames_per_segment=2, loop=False)
+    # a key view twice (through a link, as the node runs): a zero-length segment; loop returns to the first
+    with pytest.raises(NodeInputError, match="^Render Camera Path: input 'key_views': view 30 is given twice"):
+        call(RenderCameraPath, scene=small_bear, cameras=cameras, path="interpolate", scale=SCALE, num_frames=60,
+             key_views="0, 30, 30", frames_per_segment=2, loop=False)
 
 
 def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):

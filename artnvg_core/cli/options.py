@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..cameras.camera_set import MAX_IMAGE_SIDE
+from ..cameras.framing import parse_up
 from ..devices import device_for
 
 if TYPE_CHECKING:
@@ -82,6 +83,16 @@ def field_of_view(text: str) -> float:
     return value
 
 
+def up_direction(text: str) -> str:
+    """argparse type of ``--up``: the text as :func:`~artnvg_core.cameras.parse_up` reads it (auto, an axis such as
+    -y, or 3 comma-separated numbers), as given."""
+    try:
+        parse_up(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def image_size(text: str) -> tuple[int, int]:
     """argparse type of ``--orbit-size``: WIDTHxHEIGHT or N (NxN) in pixels, each 1 to the largest view side
     -> (width, height)."""
@@ -130,16 +141,15 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
-    from ..cameras import UP_AXES
-
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
                         "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
     orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
     orbit.add_argument("--orbit-views", type=integer_at_least(1), default=60,
                        help="number of views (default 60: four groups of 15)")
     orbit.add_argument("--fov", type=field_of_view, default=50.0, help="horizontal field of view in degrees (default 50)")
-    orbit.add_argument("--up", default="auto", choices=("auto", *UP_AXES),
-                       help="the scene's up axis, e.g. --up=-y (default auto: detected; COLMAP scenes are often -y)")
+    orbit.add_argument("--up", default="auto", type=up_direction,
+                       help="the world direction shown up in every view: auto (default: detected), an axis such as "
+                       "--up=-y (COLMAP scenes are often -y) or 3 comma-separated numbers such as --up=0,-1,0")
     orbit.add_argument("--orbit-size", type=image_size, default="512",
                        help="image size WIDTHxHEIGHT or N for NxN (default 512)")
     orbit.add_argument("--orbit-around", default="auto", choices=("auto", "full"),

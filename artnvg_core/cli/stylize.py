@@ -133,8 +133,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           group_multiple=args.group_multiple, compile_blocks=args.compile,
                                           loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
-                                          progress=ProgressBar("finetune"), should_stop=args.should_stop,
-                                          selection=selection)
+                                          progress=ProgressBar("finetune"), render_progress=ProgressBar("views"),
+                                          should_stop=args.should_stop, selection=selection)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
@@ -142,11 +142,11 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
-                              render_progress=ProgressBar("render views"), should_stop=args.should_stop,
+                              render_progress=ProgressBar("views"), should_stop=args.should_stop,
                               selection=selection)
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
-                        spz_version=args.spz_version)
+                        spz_version=args.spz_version, progress=ProgressBar("contact sheet"))
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
