@@ -8,7 +8,7 @@ probe views find the side from which floaters and the background the cameras saw
 the subject). The probes render, so this module sits above :mod:`artnvg_core.raster`, outside
 :mod:`artnvg_core.cameras`. World units and axes are the scene's; cameras follow the OpenCV
 convention of :mod:`artnvg_core.cameras`. All pose maths runs in float64 on the CPU; the probes
-render in float32.
+render in float32. :func:`parse_elevations` reads the rings' elevations from text (the node's input).
 """
 
 from __future__ import annotations
@@ -30,6 +30,29 @@ _PROBE_AZIMUTHS = 24  # probe views per ring when looking for the side the captu
 _PROBE_PIXELS = 24  # their size, square
 _BLOCKED = 0.75  # a probe view with more of it covered by foreground than this is blocked
 _MIN_GAP_DEG = 90.0  # blocked azimuths spanning at least this: a one-sided capture
+
+
+def parse_elevations(elevations, what: str | None = None) -> list[float]:
+    """Ring elevations in degrees from ``elevations``: numbers, or comma-separated text of them ("10, 30", the
+    node's elevations input); at least one, each in (-90, 90).
+
+    Raises ValueError naming the offending entry, after ``what:`` (a field's name) when given.
+    """
+    where = f"{what}: " if what else ""
+    parts = [part for part in elevations.split(",") if part.strip()] if isinstance(elevations, str) else elevations
+    angles = []
+    for part in parts:
+        try:
+            angle = float(part)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}expected comma-separated angles in degrees such as 10, 30, got {part!r} "
+                             f"in {elevations!r}") from None
+        if not -90 < angle < 90:
+            raise ValueError(f"{where}{angle:g} degrees is not an elevation in (-90, 90), in {elevations!r}")
+        angles.append(angle)
+    if not angles:
+        raise ValueError(f"{where}expected at least one angle in degrees, got {elevations!r}")
+    return angles
 
 
 def _ring_counts(count: int, elevations: list[float]) -> list[int]:
@@ -143,9 +166,9 @@ def orbit_cameras(
         vertical one follows from ``height / width``; principal point at the image centre.
     width, height: image size in pixels.
     up: "auto" / None (detected), an axis name such as "-y" (:data:`UP_AXES`) or a
-        3-vector: the world direction that appears up in every view.
+        3-vector (:func:`~artnvg_core.cameras.parse_up`): the world direction that appears up in every view.
     elevations_deg: one ring per angle above the horizontal plane through the centre,
-        each in (-90, 90); views are shared out by ring circumference, each ring evenly
+        each in (-90, 90), as :func:`parse_elevations` takes them; views are shared out by ring circumference, each ring evenly
         spaced in azimuth and offset by half a step from the previous ring.
     quantile: weight fraction of the subject sphere (:func:`scene_frame`).
     distance_factor: the cameras sit ``distance_factor * radius / sin(half fov)`` from
@@ -162,11 +185,9 @@ def orbit_cameras(
         raise ValueError(f"orbit_cameras: fov_deg must be in (0, 180), got {fov_deg!r}")
     if not (distance_factor > 0 and math.isfinite(distance_factor)):
         raise ValueError(f"orbit_cameras: distance_factor must be a positive number, got {distance_factor!r}")
-    elevations = [float(e) for e in elevations_deg]
+    elevations = parse_elevations(elevations_deg, "orbit_cameras: elevations_deg")
     if around not in AROUND:
         raise ValueError(f"orbit_cameras: around must be one of {AROUND}, got {around!r}")
-    if not elevations or not all(-90 < e < 90 for e in elevations):
-        raise ValueError(f"orbit_cameras: elevations_deg must be angles in (-90, 90), got {elevations_deg!r}")
     width, height = int(width), int(height)
     if width < 1 or height < 1:
         raise ValueError(f"orbit_cameras: image size must be positive, got {width}x{height}")

@@ -47,7 +47,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from artnvg_core.cli.batch import BatchPool, BatchWorker, load_jobs, stylize_options  # noqa: E402
+from artnvg_core.cli.batch import BatchPool, BatchWorker  # noqa: E402
+from artnvg_core.cli.batch_jobs import load_jobs, stylize_options  # noqa: E402
 from artnvg_core.cameras import load_cameras  # noqa: E402
 from artnvg_core.cluster import WorkerPool, Workers, ray_session  # noqa: E402
 from artnvg_core.diffusion.executor import GroupExecutor  # noqa: E402

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from artnvg_core.cameras import camera_files, load_cameras
-from artnvg_core.orbit import orbit_cameras
+from artnvg_core.cameras import camera_files, load_cameras, parse_up
+from artnvg_core.orbit import orbit_cameras, parse_elevations
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
 from .input_files import InputFile, list_input_files
@@ -55,14 +55,6 @@ class LoadCameras(ArtNVGNode):
             return (load_cameras(source),)
 
 
-def _numbers(text: str, what: str) -> list[float]:
-    """Comma-separated numbers from ``text``; ValueError naming ``what`` otherwise."""
-    try:
-        return [float(part) for part in text.split(",") if part.strip()]
-    except ValueError as error:
-        raise ValueError(f"expected {what}, got {text!r}") from error
-
-
 class CamerasAroundScene(ArtNVGNode):
     """Cameras for a scene that came without any: views on rings around the scene's centre, all looking at
     it, at the distance where its main subject fills the view. For Render Views, Finetune and the rest
@@ -89,15 +81,12 @@ class CamerasAroundScene(ArtNVGNode):
         "distance_factor": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 100.0, "step": 0.05, "tooltip": (
             "1: the main subject just fills the view; larger shows more of the surroundings.")}),
     }
+    TEXT_CHECKS = {"up": parse_up, "elevations": parse_elevations}  # as orbit_cameras reads them
 
     def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor, node_id=None):
-        with node_input(self.DISPLAY_NAME, "up"):
-            direction = _numbers(up, "auto, an axis such as -y, or three numbers") if "," in up else up
-        with node_input(self.DISPLAY_NAME, "elevations"):
-            angles = _numbers(elevations, "comma-separated angles in degrees")
         with node_input(self.DISPLAY_NAME):
-            return (orbit_cameras(scene, count, fov_deg=fov_deg, width=width, height=height, up=direction,
-                                  elevations_deg=angles, distance_factor=distance_factor),)
+            return (orbit_cameras(scene, count, fov_deg=fov_deg, width=width, height=height, up=up,
+                                  elevations_deg=elevations, distance_factor=distance_factor),)
 
 
 class GroupNeighbouringViews(ArtNVGNode):

@@ -17,6 +17,9 @@ from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
 
+# a view list's text check when each view may come once: as render --views (a file per view) and evaluate --views,
+# whose path passes through its views (a key view twice would make a zero-length segment; loop returns to the first)
+EACH_VIEW_ONCE = functools.partial(listed_views, distinct=True)
 SCALE_INPUT = ("FLOAT", {"default": 0.5, "min": 0.01, "max": 4.0, "step": 0.005, "tooltip": (
     "Resolution factor applied to the cameras' image size (0.5 renders 512x512 views at 256x256).")})
 
@@ -65,7 +68,7 @@ class RenderViews(ArtNVGNode):
             "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
-    TEXT_CHECKS = {"views": functools.partial(listed_views, distinct=True)}  # as render --views: each view once
+    TEXT_CHECKS = {"views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -99,12 +102,13 @@ class RenderCameraPath(ArtNVGNode):
         "scale": SCALE_INPUT,
         "num_frames": ("INT", {"default": 60, "min": 1, "max": 10000, "tooltip": "Frames of the orbit."}),
         "key_views": ("STRING", {"default": "", "tooltip": (
-            "interpolate: comma-separated camera indices the path passes through, in order (at least two); "
-            "blank: every view.")}),
+            "interpolate: comma-separated camera indices the path passes through, in order, each once (at least "
+            "two; turn loop on to return to the first); blank: every view.")}),
         "frames_per_segment": ("INT", {"default": 30, "min": 1, "max": 10000, "tooltip": (
             "interpolate: frames between consecutive key views.")}),
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
+    TEXT_CHECKS = {"key_views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop, node_id=None):
@@ -116,6 +120,6 @@ class RenderCameraPath(ArtNVGNode):
         else:
             with node_input(self.DISPLAY_NAME, "key_views"):
                 path_cameras = interpolate_path(
-                    cameras, parse_views(key_views, len(cameras)), frames_per_segment, loop=loop
+                    cameras, parse_views(key_views, len(cameras), distinct=True), frames_per_segment, loop=loop
                 )
         return render_scaled(self.DISPLAY_NAME, scene, path_cameras, scale)

@@ -37,6 +37,7 @@ def test_up_override_and_names():
     assert parse_up("auto") is None and parse_up(None) is None
     assert parse_up("-y").tolist() == [0.0, -1.0, 0.0] and parse_up("z").tolist() == [0.0, 0.0, 1.0]
     assert torch.allclose(parse_up([0, 3, 4]), torch.tensor([0, 0.6, 0.8], dtype=torch.float64))
-    for bad in ("up", "+w", [0, 0, 0], [1, float("nan"), 0], [1, 2]):
-        with pytest.raises(ValueError, match="up"):
-            parse_up(bad)
+    assert torch.allclose(parse_up(" 0, 3,4 "), parse_up([0, 3, 4]))  # text, as --up and the node's input take it
+    for bad in ("up", "+w", "0, x, 1", "1, 2", "nan, 0, 1", [0, 0, 0], [1, float("nan"), 0], [1, 2]):
+        with pytest.raises(ValueError, match="^up: expected"):
+            parse_up(bad, "up")

@@ -116,7 +116,8 @@ def test_a_scene_refused_by_its_writer_is_named_by_the_users_path(tmp_path, caps
     out = tmp_path / "s" / "stylized.ply"
     assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
                  "--stylizer", "nnfm", "--scale", "0.05", "--device", "cpu"]) == 2
-    assert capsys.readouterr().err == f"error: {out}: not written: the scene contains no Gaussians\n"
+    err = capsys.readouterr().err  # after the contact sheet's bars
+    assert err.endswith(f"]\nerror: {out}: not written: the scene contains no Gaussians\n"), err
     assert list(out.parent.iterdir()) == []
 
 
@@ -488,6 +489,9 @@ def test_ctrl_c_while_saving_stops_without_a_traceback(tmp_path, capsys, monkeyp
     ("--fov", "nan", "expected degrees between 0 and 180 (both excluded), got 'nan'"),
     ("--orbit-size", "100000", "expected WIDTHxHEIGHT or N, each 1 to 16384 pixels, e.g. 512x384, got '100000'"),
     ("--orbit-size", "0x3", "expected WIDTHxHEIGHT or N, each 1 to 16384 pixels, e.g. 512x384, got '0x3'"),
+    ("--up", "side", "expected 'auto', one of +x, -x, +y, -y, +z, -z or 3 comma-separated numbers such as 0, -1, 0, "
+     "got 'side'"),  # parse_up, which reads the node's up input too
+    ("--up", "0,0", "expected 3 finite numbers, not all zero, got '0,0'"),
 ])
 def test_orbit_options_are_checked_by_the_parser_naming_the_option(capsys, command, option, value, expected):
     """The views built around a scene without cameras: bad values are refused by name before the scene loads

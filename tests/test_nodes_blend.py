@@ -11,13 +11,9 @@ from artnvg_core.formats import load_scene
 from artnvg_core.raster import render
 from artnvg_core.selection import Box, select_region
 from artnvg_core.stylize import DemoInputs
+from node_calls import call, same_scene
 from nodes.blend_nodes import BlendStylization
 from nodes.node_errors import NodeInputError
-
-
-def call(node_class, **inputs):
-    with torch.inference_mode():
-        return getattr(node_class(), node_class.FUNCTION)(**inputs)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +31,7 @@ def test_blend_node_gives_the_library_blend_and_a_strip_of_previews(demo, monkey
     scene, preview = call(BlendStylization, original=original, stylized=stylized, strength=0.3, selection=selection,
                           cameras=cameras, view=2, preview_strengths="0, 1")
     expected = blend(original, stylized, 0.3, selection)
-    assert all(torch.equal(a, b) for a, b in zip(scene.tensors().values(), expected.tensors().values()))
+    assert same_scene(scene, expected)
     size = cameras.width
     assert preview.shape == (1, cameras.height, 2 * size + 4, 3)
     with torch.no_grad():

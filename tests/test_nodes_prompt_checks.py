@@ -306,6 +306,14 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
                                            "from 0"),
     ("ArtNVGBlendStylization", {"preview_strengths": "0, 2"}, "Blend Stylization: input 'preview_strengths': expected "
                                                              "comma-separated numbers from 0 to 1"),
+
+    # a key view twice: a zero-length segment of the path (loop returns to the first); as evaluate --views
+    ("ArtNVGRenderCameraPath", {"key_views": "0, 5, 5"}, "Render Camera Path: input 'key_views': view 5 is given "
+                                                         "twice in '0, 5, 5'; give each view once"),
+    ("ArtNVGCamerasAroundScene", {"elevations": "10, 95"}, "Cameras Around Scene: input 'elevations': 95 degrees is "
+                                                           "not an elevation in (-90, 90)"),  # once only as it ran
+    ("ArtNVGCamerasAroundScene", {"up": "0, 0, 0"}, "Cameras Around Scene: input 'up': expected 3 finite numbers, "
+                                                    "not all zero"),
 ])
 def test_text_a_node_would_refuse_when_it_runs_is_refused_at_validation(executing, node_type, inputs, message):
     """A node's TEXT_CHECKS: the parser it reads the text with, run before the graph runs (the camera count is not

@@ -1,69 +1,16 @@
-"""Scene, camera, render, grouping, finetune and save nodes on the shared bear scene, small settings.
-
-Each node is called the way ComfyUI calls it (under ``torch.inference_mode()``) and its
-output is compared with the direct ``artnvg_core`` call it adapts. Without ComfyUI the
-input and output folders are ``./input`` and ``./output`` of the working directory.
-"""
+"""Load Gaussian Scene and Save Gaussian Scene on the shared bear scene, called as ComfyUI calls them: the
+input folder's files or a path, every format written and read back, names checked before the graph runs."""
 
 import gzip
-import shutil
 import struct
-from unittest import mock
 
 import pytest
 import torch
 
-from artnvg_core.cameras import CameraSet, interpolate_path, load_cameras, orbit_path
-from artnvg_core.finetune import FinetuneConfig, finetune
-from artnvg_core.grouping import group_views
-from artnvg_core.key_views import select_key_views
-from artnvg_core.raster import render
-from artnvg_core.formats import load_scene, read_ply, save_scene
-from artnvg_core.scene import GaussianScene
-from artnvg_core.stylize import DemoInputs
-from nodes.camera_nodes import GroupNeighbouringViews, LoadCameras
-from nodes.finetune_nodes import FinetuneGaussians
+from artnvg_core.formats import read_ply, save_scene
+from node_calls import bear, call, comfy_dirs, same_scene, small_bear  # noqa: F401  (fixtures)
 from nodes.node_errors import NodeInputError
-from nodes.render_nodes import RenderCameraPath, RenderViews
 from nodes.scene_nodes import LoadGaussianScene, SaveGaussianScene
-
-SCALE = 0.125  # 512 x 512 views -> 64 x 64
-
-
-def call(node_class, **inputs):
-    """Run a node's function as ComfyUI does."""
-    with torch.inference_mode():
-        return getattr(node_class(), node_class.FUNCTION)(**inputs)
-
-
-def _same_scene(a, b) -> bool:
-    return all(torch.equal(x, y) for x, y in zip(a.tensors().values(), b.tensors().values()))
-
-
-@pytest.fixture(scope="module")
-def bear(shared_data):
-    folder = shared_data / "scenes" / "bear"
-    return {"folder": folder, "scene": load_scene(folder / "scene.ply"), "cameras": load_cameras(folder)}
-
-
-@pytest.fixture(scope="module")
-def small_bear(bear):
-    """Every 25th Gaussian of the bear (4,000): renders stay fast on a CPU."""
-    scene = bear["scene"]
-    return scene.select(torch.arange(0, len(scene), 25))
-
-
-@pytest.fixture
-def comfy_dirs(tmp_path, monkeypatch, bear):
-    """A working directory whose input folder holds the bear capture (as ComfyUI users lay it out; copies, since
-    a link that leads out of ComfyUI's folders is not read)."""
-    monkeypatch.chdir(tmp_path)
-    capture = tmp_path / "input" / "bear"
-    capture.mkdir(parents=True)
-    for name in ("scene.ply", "transforms.json"):
-        shutil.copyfile(bear["folder"] / name, capture / name)
-    return tmp_path
-
 
 def test_load_scene_from_input_folder_or_path(comfy_dirs, bear, monkeypatch):
     listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"]
@@ -71,11 +18,11 @@ def test_load_scene_from_input_folder_or_path(comfy_dirs, bear, monkeypatch):
     assert LoadGaussianScene.check_files(scene_file="bear/scene.ply", drop_invalid=True) is None
     (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")
     (from_path,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "input" / "bear" / "scene.ply"))
-    assert _same_scene(from_list, bear["scene"]) and _same_scene(from_path, bear["scene"])
+    assert same_scene(from_list, bear["scene"]) and same_scene(from_path, bear["scene"])
     outside = str(bear["folder"] / "scene.ply")
     assert "is outside ComfyUI's input" in LoadGaussianScene.check_files(scene_file="", path=outside)
     monkeypatch.setenv("ARTNVG_READ_ANY_PATH", "1")  # the setting that opens every path
-    assert _same_scene(call(LoadGaussianScene, scene_file="", path=outside)[0], bear["scene"])
+    assert same_scene(call(LoadGaussianScene, scene_file="", path=outside)[0], bear["scene"])
 
 
 def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
@@ -90,145 +37,13 @@ def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
         call(LoadGaussianScene, scene_file="broken.ply")
 
 
-def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
-    listed = LoadCameras.INPUT_TYPES()["required"]["camera_source"]
-    assert listed[1]["options"] == ["bear/transforms.json"]
-    (from_list,) = call(LoadCameras, camera_source="bear/transforms.json")
-    (from_folder,) = call(LoadCameras, camera_source="", path=str(comfy_dirs / "input" / "bear"))
-    for cameras in (from_list, from_folder):
-        assert torch.equal(cameras.world_to_cam, bear["cameras"].world_to_cam)
-        assert cameras.names == bear["cameras"].names
-    assert "camera_source" in LoadCameras.check_files(camera_source="bear/missing.json")
-    assert LoadCameras.check_files(camera_source="", path=str(comfy_dirs / "input" / "bear")) is None
-    assert "is outside ComfyUI's input" in LoadCameras.check_files(camera_source="", path=str(bear["folder"]))
-
-
-def test_render_views_matches_the_core_renderer(small_bear, bear):
-    cameras = bear["cameras"]
-    images, used = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=1, views="0, 60")
-    expected_cameras = cameras.subset([0, 60]).scaled(SCALE)
-    expected = render(small_bear, expected_cameras).rgb.clamp(0, 1)
-    assert images.shape == (2, 64, 64, 3) and images.dtype == torch.float32
-    assert torch.equal(images, expected)
-    assert torch.equal(used.intrinsics, expected_cameras.intrinsics) and used.names == expected_cameras.names
-    images_by_stride, used_by_stride = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=60,
-                                            views="")
-    assert used_by_stride.names == used.names and torch.equal(images_by_stride, images)
-    key_images, keys = call(RenderViews, scene=small_bear, cameras=cameras, scale=SCALE, stride=2, views="",
-                            key_views=3)
-    expected_cameras = cameras.subset(range(0, len(cameras), 2))
-    expected_cameras = expected_cameras.subset(select_key_views(expected_cameras, 3)).scaled(SCALE)
-    assert keys.names == expected_cameras.names and len(set(keys.names)) == 3
-    assert torch.equal(key_images, render(small_bear, expected_cameras).rgb.clamp(0, 1))
-
-
-def test_render_views_rejects_bad_view_lists(small_bear, bear):
-    for views, problem in (("0, 96", "out of range"), ("0, x", "'x'"), ("5, 0, 5", "view 5 is given twice")):
-        with pytest.raises(NodeInputError, match=f"Render Views: input 'views': .*{problem}"):
-            call(RenderViews, scene=small_bear, cameras=bear["cameras"], scale=SCALE, stride=1, views=views)
-
-
-def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
-    cameras = bear["cameras"]
-    frames, path = call(RenderCameraPath, scene=small_bear, cameras=cameras, path="orbit", scale=SCALE,
-                        num_frames=2, key_views="", frames_per_segment=30, loop=False)
-    expected_path = orbit_path(cameras, 2).scaled(SCALE)
-    assert torch.allclose(path.world_to_cam, expected_path.world_to_cam)
-    assert torch.equal(frames, render(small_bear, expected_path).rgb.clamp(0, 1))
-
-    frames, path = call(RenderCameraPath, scene=small_bear, cameras=cameras, path="interpolate", scale=SCALE,
-                        num_frames=60, key_views="0,30", frames_per_segment=2, loop=False)
-    expected_path = interpolate_path(cameras, [0, 30], 2).scaled(SCALE)
-    assert frames.shape == (3, 64, 64, 3) and torch.allclose(path.world_to_cam, expected_path.world_to_cam)
-    # blank key_views: through every view (the view-list grammar), here both views of a two-view set
-    blank_frames, blank_path = call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([0, 30]),
-                                    path="interpolate", scale=SCALE, num_frames=60, key_views="",
-                                    frames_per_segment=2, loop=False)
-    assert torch.equal(blank_frames, frames) and torch.equal(blank_path.world_to_cam, path.world_to_cam)
-    with pytest.raises(NodeInputError, match="Render Camera Path: input 'key_views': .*at least 2"):
-        call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([5]), path="interpolate", scale=SCALE,
-             num_frames=60, key_views="", frames_per_segment=2, loop=False)
-
-
-def test_group_neighbouring_views_matches_the_core(bear):
-    (groups,) = call(GroupNeighbouringViews, cameras=bear["cameras"], group_size=15, context=2)
-    expected = group_views(bear["cameras"], 15, context=2)
-    assert groups == expected and len(groups) == 7
-
-
-def test_finetune_node_matches_the_core_and_checks_stylized_views(small_bear, bear):
-    cameras = bear["cameras"].subset([0, 48]).scaled(SCALE)
-    style = torch.rand(1, 32, 40, 3, generator=torch.Generator().manual_seed(0))
-    stylized = torch.rand(2, 64, 64, 3, generator=torch.Generator().manual_seed(1))
-    weights = {"l1_weight": 0.8, "ssim_weight": 0.2, "nnfm_weight": 1.0, "content_weight": 0.5, "tv_weight": 0.1}
-    (result,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=2,
-                     optimize="appearance", seed=3, stylized_views=stylized, **weights)
-    expected = finetune(small_bear, cameras, style[0], stylized=stylized,
-                        config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, **weights))
-    assert _same_scene(result, expected)
-    assert not torch.equal(result.sh, small_bear.sh)
-    (full,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=2,
-                   optimize="appearance", seed=3, stylized_views=stylized, nnfm_max_side=0, **weights)
-    expected = finetune(small_bear, cameras, style[0], stylized=stylized,
-                        config=FinetuneConfig(iterations=2, optimize="appearance", seed=3, nnfm_max_side=None, **weights))
-    assert _same_scene(full, expected)
-    (plain,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
-                    optimize="appearance", seed=3, color_transfer=False, **weights)
-    expected = finetune(small_bear, cameras, style[0],
-                        config=FinetuneConfig(iterations=1, optimize="appearance", seed=3, color_transfer=False, **weights))
-    assert _same_scene(plain, expected)
-
-
-def test_finetune_node_names_stylized_views_of_other_cameras_before_any_work():
-    """Stylized views made from other cameras than those connected (say Load Cameras' every view, where Sample
-    Group was given a Render Views of some of them) are refused naming the input and the two counts; no scene
-    is given (a mock): none is touched."""
-    scene = mock.Mock(spec=GaussianScene)
-    with pytest.raises(NodeInputError, match=r"^Finetune Gaussians: input 'stylized_views': got \(1, 64, 64, 3\) "
-                                             r"for 2 cameras; expected \[2, H, W, 3\], one view per camera"):
-        call(FinetuneGaussians, scene=scene, cameras=load_cameras(DemoInputs().cameras).subset([0, 12]),
-             style_image=torch.rand(1, 8, 8, 3),
-             iterations=1, optimize="appearance", l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0,
-             content_weight=0.5, tv_weight=0.1, seed=0, stylized_views=torch.rand(1, 64, 64, 3))
-    assert not scene.mock_calls
-
-
-def test_finetune_node_refuses_a_style_image_the_command_line_refuses_before_any_work():
-    """The rule of artnvg_core.style_image, as stylize --style applies it; no scene is given (mocks): none is touched."""
-    with pytest.raises(NodeInputError, match=r"^Finetune Gaussians: input 'style_image': image size: 2x20000 pixels; "
-                                             "a style image may be at most 32 times as long as it is wide"):
-        call(FinetuneGaussians, scene=mock.Mock(spec=GaussianScene), cameras=mock.Mock(spec=CameraSet), style_image=torch.rand(1, 20000, 2, 3), iterations=1,
-             optimize="appearance", l1_weight=0.8, ssim_weight=0.2, nnfm_weight=1.0, content_weight=0.5,
-             tv_weight=0.1, seed=0)
-
-
-def test_finetune_node_preview_preset_is_the_cores_preview(small_bear, bear, monkeypatch):
-    """preset "preview" replaces iterations, views per step and the cameras' size by the preview preset's
-    (PRESETS["preview"], shortened here): the same scene as the core's finetune with those settings."""
-    import dataclasses
-
-    from artnvg_core.presets import PRESETS
-
-    preview = dataclasses.replace(PRESETS["preview"], finetune_iterations=3)
-    monkeypatch.setitem(PRESETS, "preview", preview)
-    cameras = bear["cameras"].subset([0, 24, 48, 72]).scaled(SCALE)
-    style = torch.rand(1, 32, 40, 3, generator=torch.Generator().manual_seed(0))
-    weights = {"l1_weight": 0.8, "ssim_weight": 0.2, "nnfm_weight": 1.0, "content_weight": 0.5, "tv_weight": 0.1}
-    (result,) = call(FinetuneGaussians, scene=small_bear, cameras=cameras, style_image=style, iterations=1,
-                     optimize="appearance", seed=3, preset="preview", nnfm_search="fp32", **weights)
-    config = FinetuneConfig(iterations=preview.finetune_iterations, views_per_step=preview.views_per_step,
-                            optimize="appearance", seed=3, nnfm_search="fp32", **weights)
-    expected = finetune(small_bear, cameras.scaled(preview.scale), style[0], config=config)
-    assert _same_scene(result, expected)
-
-
 def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, small_bear):
     saved = [call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized") for _ in range(2)]
     assert [s["ui"]["scenes"][0]["filename"] for s in saved] == ["stylized_00001.ply", "stylized_00002.ply"]
     assert saved[0]["ui"]["scenes"][0]["subfolder"] == "artnvg" and saved[0]["ui"]["scenes"][0]["type"] == "output"
     folder = comfy_dirs / "output" / "artnvg"
     assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
-    assert _same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
+    assert same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
     size = (folder / "stylized_00002.ply").stat().st_size
     assert saved[1]["ui"]["text"] == [f"wrote output/artnvg/stylized_00002.ply ({size / 1e6:.1f} MB, "
                                       f"{len(small_bear):,} Gaussians)"]
@@ -289,17 +104,6 @@ def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_run
     assert SaveGaussianScene.check_files(filename_prefix="../escape").startswith(
         "Save Gaussian Scene: input 'filename_prefix': '../escape' must name a file inside the output folder")
     assert not (comfy_dirs / "output" / "artnvg").exists()  # nothing made by a check
-
-
-def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):
-    import artnvg_core.raster.views as views
-
-    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
-    monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
-    with pytest.raises(NodeInputError, match=r"Render Camera Path: input 'scale': 60 views at scale 4\.0: 60 views of "
-                       r"2048x2048 pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):
-        call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
-             key_views="", frames_per_segment=30, loop=False)
 
 
 def test_save_scene_refuses_a_prefix_whose_folder_is_a_file_before_the_graph_runs(comfy_dirs, small_bear):

@@ -12,14 +12,10 @@ from artnvg_core.formats import load_scene
 from artnvg_core.images import load_image
 from artnvg_core.selection import Box, select_by_masks, select_region
 from artnvg_core.stylize import DemoInputs
+from node_calls import call
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.node_errors import NodeInputError
 from nodes.selection_nodes import SelectGaussians
-
-
-def call(node_class, **inputs):
-    with torch.inference_mode():
-        return getattr(node_class(), node_class.FUNCTION)(**inputs)
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from artnvg_core.cameras import load_cameras, scene_frame
 from artnvg_core.cameras.framing import horizontal_axes
 from artnvg_core.cli.main import main
 from artnvg_core.formats import load_scene, save_scene
-from artnvg_core.orbit import orbit_cameras
+from artnvg_core.orbit import orbit_cameras, parse_elevations
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 from artnvg_core.preview import evenly_spaced
@@ -140,6 +140,15 @@ def test_counts_rings_size_and_fov():
     assert elevations == [-20, 0, 45]
 
 
+def test_elevations_from_text_or_numbers():
+    assert parse_elevations(" 10, -30.5,, ") == parse_elevations((10, -30.5)) == [10.0, -30.5]
+    for bad, message in [("10, high", "expected comma-separated angles in degrees such as 10, 30, got ' high'"),
+                         ("10; 30", "expected comma-separated angles"), ((0, 90), "90 degrees is not an elevation in"),
+                         ("nan", "nan degrees is not an elevation in"), (" , ", "expected at least one angle"), ((), "")]:
+        with pytest.raises(ValueError, match="^elevations: " + message):
+            parse_elevations(bad, "elevations")
+
+
 def test_bad_scenes_raise_instead_of_nan_cameras():
     empty = blob(torch.zeros(0, 3))
     with pytest.raises(ValueError, match="no Gaussians"):
@@ -152,7 +161,8 @@ def test_bad_scenes_raise_instead_of_nan_cameras():
         orbit_cameras(point)
     some_nan = blob(torch.cat([torch.full((5, 3), float("nan")), torch.randn(50, 3)]))
     assert torch.isfinite(orbit_cameras(some_nan, 4).world_to_cam).all()
-    for kwargs in ({"count": 0}, {"fov_deg": 180}, {"elevations_deg": (90,)}, {"distance_factor": 0},
+    for kwargs in ({"count": 0}, {"fov_deg": 180}, {"elevations_deg": (90,)}, {"elevations_deg": "10, x"},
+                   {"distance_factor": 0},
                    {"around": "half"}):
         with pytest.raises(ValueError, match="orbit_cameras"):
             orbit_cameras(some_nan, **kwargs)

@@ -48,22 +48,34 @@ class SceneFrame:
     up_source: str
 
 
-def parse_up(up) -> torch.Tensor | None:
-    """A unit float64 [3] vector from ``up``: None or "auto" (-> None: detect it),
-    an axis name in :data:`UP_AXES`, or 3 finite numbers not all zero."""
+def parse_up(up, what: str | None = None) -> torch.Tensor | None:
+    """A unit float64 [3] vector from ``up``: None or "auto" (-> None: detect it), an axis name in
+    :data:`UP_AXES` (the sign may be left out: "z" is "+z"), 3 finite numbers not all zero, or those
+    numbers as comma-separated text ("0, -1, 0"), the command line's ``--up`` and the node's up input.
+
+    Raises ValueError saying what was expected, after ``what:`` (a field's name) when given.
+    """
+    where = f"{what}: " if what else ""
+    expected = f"expected 'auto', one of {', '.join(UP_AXES)} or 3 comma-separated numbers such as 0, -1, 0"
     if up is None or (isinstance(up, str) and up.strip().lower() == "auto"):
         return None
-    if isinstance(up, str):
+    numbers = up
+    if isinstance(up, str) and "," in up:
+        try:
+            numbers = [float(part) for part in up.split(",")]
+        except ValueError:
+            raise ValueError(f"{where}{expected}, got {up!r}") from None
+    elif isinstance(up, str):
         name = up.strip().lower()
         name = name if name[:1] in "+-" else "+" + name
         if name not in UP_AXES:
-            raise ValueError(f"up: expected 'auto', one of {', '.join(UP_AXES)} or 3 numbers, got {up!r}")
+            raise ValueError(f"{where}{expected}, got {up!r}")
         vector = torch.zeros(3, dtype=torch.float64)
         vector["xyz".index(name[1])] = 1.0 if name[0] == "+" else -1.0
         return vector
-    vector = torch.as_tensor(up, dtype=torch.float64).detach().cpu()
+    vector = torch.as_tensor(numbers, dtype=torch.float64).detach().cpu()
     if tuple(vector.shape) != (3,) or not torch.isfinite(vector).all() or vector.norm() == 0:
-        raise ValueError(f"up: expected 3 finite numbers, not all zero, got {up!r}")
+        raise ValueError(f"{where}expected 3 finite numbers, not all zero, got {up!r}")
     return vector / vector.norm()
 
 
@@ -130,7 +142,7 @@ def scene_frame(scene: GaussianScene, *, up=None, quantile: float = 0.5) -> Scen
     """
     if not 0 < quantile <= 1:
         raise ValueError(f"scene_frame: quantile must be in (0, 1], got {quantile!r}")
-    given_up = parse_up(up)
+    given_up = parse_up(up, "up")
     if len(scene) == 0:
         raise ValueError("scene: it contains no Gaussians; cannot place cameras around it")
     means, weights = _gaussian_weights(scene)

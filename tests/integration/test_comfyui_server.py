@@ -245,19 +245,45 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     # a view given twice, which render --views refuses: the pack's check of the text, before the cameras are known
     ("Render Views.views=1,1", "4", "Render Views: input 'views': view 1 is given twice in '1,1'; give each view once",
      "custom_validation_failed"),
+    # a key view twice: a zero-length segment of the path (loop returns to the first), as evaluate --views refuses
+    ("Render Camera Path.key_views=0,1,1", "8", "Render Camera Path: input 'key_views': view 1 is given twice in "
+     "'0,1,1'; give each view once", "custom_validation_failed"),
 ])
 def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected,
                                                                             kind):
-    before = sorted(comfy_server.output_dir.rglob("*"))
-    request = urllib.request.Request(comfy_server.url + "/prompt", headers={"Content-Type": "application/json"},
-                                     data=json.dumps({"prompt": _workflow(comfy_server, override)}).encode())
-    with pytest.raises(urllib.error.HTTPError) as rejected:  # HTTP 400: refused whole (not 200 with node_errors)
-        urllib.request.urlopen(request, timeout=60)
-    assert rejected.value.code == 400
-    errors = json.loads(rejected.value.read())["node_errors"]
+    errors = _refused_before_any_work(comfy_server, _workflow(comfy_server, override))
     assert expected in json.dumps(errors[node]) and [e["type"] for e in errors[node]["errors"]] == [kind], errors
     assert set(errors) <= {node, "7", "9"}  # the outputs it feeds, reported; no other output ran either
-    assert sorted(comfy_server.output_dir.rglob("*")) == before
+
+
+def _refused_before_any_work(server, workflow: dict) -> dict:
+    """The node errors ComfyUI refuses ``workflow`` with, whole (HTTP 400, not 200 with node errors), having written
+    nothing."""
+    before = sorted(server.output_dir.rglob("*"))
+    request = urllib.request.Request(server.url + "/prompt", headers={"Content-Type": "application/json"},
+                                     data=json.dumps({"prompt": workflow}).encode())
+    with pytest.raises(urllib.error.HTTPError) as rejected:
+        urllib.request.urlopen(request, timeout=60)
+    assert rejected.value.code == 400
+    assert sorted(server.output_dir.rglob("*")) == before
+    return json.loads(rejected.value.read())["node_errors"]
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("Cameras Around Scene.elevations=10, 95", "input 'elevations': 95 degrees is not an elevation in (-90, 90)"),
+    ("Cameras Around Scene.up=sideways", "input 'up': expected 'auto', one of +x, -x, +y, -y, +z, -z or 3 comma-"
+     "separated numbers such as 0, -1, 0, got 'sideways'"),
+])
+def test_cameras_around_scene_refuses_bad_text_before_anything_runs(comfy_server, override, expected):
+    """The text was read only as the node ran, and its error named orbit_cameras, not the node's input."""
+    workflow = queue.load_api_workflow(CAMERA_FREE_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/scene.ply",
+                       f"Style image.image={comfy_server.test_folder}/style.jpg", override):
+        queue.apply_override(workflow, assignment)
+    errors = _refused_before_any_work(comfy_server, workflow)
+    cameras = queue.find_node(workflow, "Cameras Around Scene")
+    (error,) = errors[cameras]["errors"]
+    assert error["type"] == "custom_validation_failed" and f"Cameras Around Scene: {expected}" in error["details"]
 
 
 @pytest.mark.parametrize("input_name, value", [
