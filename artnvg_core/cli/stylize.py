@@ -22,19 +22,16 @@ from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
 from ..progress import check_stop
-from .common import (
+from .common import ProgressBar, load_scene_verbose, prepare_rasterizer, read_style_image
+from .options import (
     SCENE_FILES,
-    ProgressBar,
     add_camera_arguments,
     add_scene_file_options,
     integer_at_least,
-    load_scene_verbose,
     orbit_from_args,
     parse_device,
     parse_devices,
     positive_number,
-    prepare_rasterizer,
-    read_style_image,
     unit_interval,
 )
 from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
