@@ -16,6 +16,8 @@ from PIL import Image
 
 from .fileio import require_regular_file, write_atomically
 
+_PILLOW_ERRORS = (OSError, SyntaxError, ValueError)  # what Pillow raises for unreadable or corrupt files
+
 # Pixels an image may have, read from its header before it is decoded (8000 x 8000). Decoding peaks
 # near 18 bytes a pixel (the decoded bytes, then float32 RGB): about 1.2 GB at the cap.
 MAX_IMAGE_PIXELS = 64_000_000
@@ -31,6 +33,8 @@ def _open_image(path: Path) -> Image.Image:
             image = Image.open(path)
     except Image.DecompressionBombError as error:
         raise ValueError(f"{path}: image too large to decode ({error}); downsize it first") from error
+    except _PILLOW_ERRORS as error:
+        raise ValueError(f"{path}: not a readable image ({error})") from error
     if image.width * image.height > MAX_IMAGE_PIXELS:
         image.close()
         raise ValueError(f"{path}: image size: {image.width}x{image.height} pixels, more than the "
@@ -41,12 +45,8 @@ def _open_image(path: Path) -> Image.Image:
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file from its header, without decoding it; ValueError naming ``path``
     for a file that is missing, not a regular file, not an image, or over MAX_IMAGE_PIXELS."""
-    path = Path(path)
-    try:
-        with _open_image(path) as image:
-            return image.size
-    except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
-        raise ValueError(f"{path}: not a readable image ({error})") from error
+    with _open_image(Path(path)) as image:
+        return image.size
 
 
 def _single_channel(image: Image.Image, path: Path) -> np.ndarray:
@@ -63,7 +63,12 @@ def _single_channel(image: Image.Image, path: Path) -> np.ndarray:
         low, high = float(array.min()), float(array.max())
         if low >= 0 and high <= 1:
             return array.astype(np.float32)
-        return ((array - low) / (high - low) if high > low else np.zeros_like(array)).astype(np.float32)
+        if high == low:
+            return np.zeros_like(array, dtype=np.float32)
+        scaled = array.astype(np.float64)  # in float32, high - low overflows for pixels from -3e38 to 3e38
+        scaled -= low
+        scaled /= high - low
+        return scaled.astype(np.float32)
     scale = 65535.0 if image.mode.startswith("I;16") or array.max() <= 65535 else 2.0**31 - 1
     return (np.clip(array.astype(np.float64), 0, None) / scale).astype(np.float32)
 
@@ -79,22 +84,23 @@ def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch
     ``max_side`` downsizes (Lanczos, aspect kept) so the longer side is at most that.
     """
     path = Path(path)
-    try:
-        with _open_image(path) as image:
-            size = image.size
-            if max_side is not None and max(size) > max_side:
-                scale = max_side / max(size)
-                size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
-            if image.mode in ("F", "I") or image.mode.startswith("I;16"):
-                grey = Image.fromarray(_single_channel(image, path), mode="F")
-                grey = np.clip(np.asarray(grey.resize(size, Image.LANCZOS) if size != image.size else grey), 0, 1)
-                array = np.repeat(grey[..., None], 3, axis=-1)
-            else:
-                rgb = image.convert("RGB")
-                rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
-                return torch.from_numpy(np.array(rgb)).float().div_(255)  # bytes, then one float32 copy
-    except (OSError, SyntaxError) as error:  # PIL's errors for unreadable or corrupt files
-        raise ValueError(f"{path}: not a readable image ({error})") from error
+    with _open_image(path) as image:
+        try:
+            image.load()  # decoded here, where a corrupt file's errors are named
+        except _PILLOW_ERRORS as error:
+            raise ValueError(f"{path}: not a readable image ({error})") from error
+        size = image.size
+        if max_side is not None and max(size) > max_side:
+            scale = max_side / max(size)
+            size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
+        if image.mode in ("F", "I") or image.mode.startswith("I;16"):
+            grey = Image.fromarray(_single_channel(image, path), mode="F")
+            grey = np.clip(np.asarray(grey.resize(size, Image.LANCZOS) if size != image.size else grey), 0, 1)
+            array = np.repeat(grey[..., None], 3, axis=-1)
+        else:
+            rgb = image.convert("RGB")
+            rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
+            return torch.from_numpy(np.array(rgb)).float().div_(255)  # bytes, then one float32 copy
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
 
 

@@ -19,6 +19,12 @@ class Cancelled(RuntimeError):
     """Raised when a caller's stop check asked a long-running function to stop."""
 
 
+def staged(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
+    """``progress`` with ``info["stage"]`` set to ``stage``: one callback following a function's parts in turn
+    (a command-line bar or a node's text names each)."""
+    return None if progress is None else lambda step, total, info: progress(step, total, {**info, "stage": stage})
+
+
 def check_stop(should_stop: StopFn | None) -> None:
     """Raise :class:`Cancelled` if ``should_stop`` says so."""
     if should_stop is not None and should_stop():

@@ -29,7 +29,7 @@ from .fileio import written_together
 from .finetune import FinetuneConfig, compile_kernels, finetune
 from .images import save_png
 from .preview import comparison_strip, evenly_spaced
-from .progress import Cancelled, ProgressFn, StopFn
+from .progress import Cancelled, ProgressFn, StopFn, staged
 from .raster.views import render_views
 from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
@@ -58,15 +58,17 @@ SHEET_VIEW_SIDE = 1024  # longest side of a view on the contact sheet, in pixels
 
 
 def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                  views: int = 4, backend: str = "auto") -> torch.Tensor:
+                  views: int = 4, backend: str = "auto", progress: ProgressFn | None = None) -> torch.Tensor:
     """Original vs stylized renders of ``views`` evenly spaced cameras, plus the style image; views larger
     than :data:`SHEET_VIEW_SIDE` on their long side are rendered shrunk to it, so the sheet's size is
-    bounded whatever the cameras and the style image (:func:`~artnvg_core.preview.comparison_strip`)."""
+    bounded whatever the cameras and the style image (:func:`~artnvg_core.preview.comparison_strip`).
+    ``progress`` follows the renders (:func:`~artnvg_core.raster.views.render_views`; ``info["stage"]``:
+    ``"original"``, then ``"stylized"``)."""
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    before = render_views(original, subset, backend=backend).rgb
-    after = render_views(stylized, subset, backend=backend).rgb
+    before = render_views(original, subset, backend=backend, progress=staged(progress, "original")).rgb
+    after = render_views(stylized, subset, backend=backend, progress=staged(progress, "stylized")).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -180,6 +182,7 @@ def stylize_diffusion(
     loading_progress: ProgressFn | None = None,
     sampling_progress: ProgressFn | None = None,
     progress: ProgressFn | None = None,
+    render_progress: ProgressFn | None = None,
     should_stop: StopFn | None = None,
     selection: torch.Tensor | None = None,
 ) -> tuple[GaussianScene, torch.Tensor]:
@@ -226,6 +229,9 @@ def stylize_diffusion(
             loading and once when all are (one device; the workers of several load their own).
         sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
         progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
+        render_progress (`ProgressFn` or None, defaults to None): follows the renders of every view: the content
+            views' (``info["stage"]``: ``"content"``, as they start and after each render call) and, with a
+            ``selection``, the finetune's (:func:`~artnvg_core.finetune.finetune`).
         should_stop (`StopFn` or None, defaults to None): polled between steps; True raises
             :class:`~artnvg_core.progress.Cancelled` before anything is returned.
         selection (`torch.Tensor` or None, defaults to None): [N] bool: finetune only these Gaussians, the
@@ -261,6 +267,7 @@ def stylize_diffusion(
 
         try:  # a failed load is reported at once, not after every view has rendered
             content = render_views(scene, cameras, backend=config.backend, cpu=True,
+                                   progress=staged(render_progress, "content"),
                                    should_stop=lambda: load_failed() or (should_stop is not None and should_stop())).rgb
         except Cancelled:
             if load_failed():
@@ -288,18 +295,19 @@ def stylize_diffusion(
         if compile_blocks:
             save_compile_cache(device)
     result = finetune(scene, cameras, style_image, stylized=views, config=config, progress=progress,
-                      should_stop=should_stop, selection=selection)
+                      render_progress=render_progress, should_stop=should_stop, selection=selection)
     return result, views
 
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3) -> Path:
+                out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3,
+                progress: ProgressFn | None = None) -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
     :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
-    neither and nothing on disk changes.
+    neither and nothing on disk changes. ``progress`` follows the sheet's renders (:func:`contact_sheet`).
     Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
-    sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend)
+    sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend, progress=progress)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
         save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version)
         save_png(sheet, sheet_file)

@@ -24,13 +24,15 @@ _DEFAULTS = FinetuneConfig()
 _PREVIEW = PRESETS["preview"]
 PRESET_CHOICES = ("custom", "preview")
 STAGES = {"region": "measuring what the selection covers in the {} views",
-          "setup": "rendering the {} views before finetuning", "steps": "finetuning: {} steps",
+          "setup": "rendering the {} views before finetuning",
+          "features": "computing the VGG features of the {} views for the content term",
+          "steps": "finetuning: {} steps",
           "final": "rendering the {} finetuned views for the colour match"}
 
 
 def staged_progress():
     """A core ``ProgressFn`` for the node's bar that also names each stage under the node at its first report
-    (``info["stage"]``: region, setup, final, else the steps); None without ComfyUI."""
+    (``info["stage"]``: region, setup, features, final, else the steps); None without ComfyUI."""
     report = progress_bar()
     if report is None:
         return None

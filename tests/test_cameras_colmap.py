@@ -68,6 +68,18 @@ def test_colmap_finds_sparse_0_and_images(tmp_path):
         assert_same_cameras(load_cameras(source), cameras, atol=0)
 
 
+@pytest.mark.parametrize("binary", [False, True])
+def test_an_image_name_too_long_for_the_file_system_is_a_view_without_its_image(tmp_path, binary):
+    """Found by fuzzing: looking for an image of a name over the file system's limit raised OSError
+    (ENAMETOOLONG) from Path.is_file; such an image is not there."""
+    quats, trans = random_capture(2, seed=7)
+    images = colmap_images(quats, trans)
+    images[0] = (*images[0][:4], "x" * 300 + ".png", images[0][5])
+    write_colmap(tmp_path / "sparse" / "0", {1: ("PINHOLE", 64, 48, MODEL_PARAMS["PINHOLE"])}, images, binary)
+    (tmp_path / "images").mkdir()
+    assert load_colmap(tmp_path).image_paths == [None, None]
+
+
 def test_colmap_errors_name_file_and_field(tmp_path):
     quats, trans = random_capture(3, seed=8)
     images = colmap_images(quats, trans, camera_ids=[1, 2, 1])

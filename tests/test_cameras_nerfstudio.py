@@ -114,6 +114,10 @@ def test_dataparser_transform_maps_points_consistently(tmp_path, applied_transfo
             lambda d: d["frames"][0]["transform_matrix"][3].__setitem__(0, 1.0),
             r"frame 0: 'transform_matrix'.*bottom row",
         ),
+        (  # found by fuzzing: torch.tensor read an empty string as an empty list, giving matrices [C, 4, 4, 0]
+            lambda d: d["frames"][0]["transform_matrix"][0].__setitem__(0, ""),
+            r"frame 0: 'transform_matrix': expected a 3x4 or 4x4 matrix of numbers, got something else",
+        ),
         (lambda d: d["frames"][0].update(file_path=None), r"frame 0: 'file_path'"),
         (lambda d: d.update(fl_y="55"), r"frame 0: 'fl_y': expected a number, got a string"),
         (lambda d: d.update(camera_model="OPENCV_FISHEYE"), r"'camera_model'.*OPENCV_FISHEYE"),
@@ -203,6 +207,9 @@ def test_two_frames_of_one_image_are_refused_naming_both_fields_and_the_image(tm
      r"float range, got -inf"),
     (lambda text: text.replace('"fl_x": 50.0', '"fl_x": 1e300'), r"frame 0: 'fl_x': expected a finite number "
      r"within \+-1e\+09, got 1e\+300"),
+    # found by fuzzing: an image size beyond float range met int() before the range check
+    (lambda text: text.replace('"w": 64', '"w": 1e400'), r"frame 0: 'w': expected a finite number within float "
+     r"range, got inf"),
 ])
 def test_numbers_beyond_range_are_refused_naming_file_frame_and_field(tmp_path, edit, message):
     path = write_transforms(tmp_path / "transforms.json", *random_capture(2))

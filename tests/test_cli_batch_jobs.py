@@ -110,6 +110,9 @@ FOLDER = object()  # a jobs path that is a folder
     ("jobs.json", b'\xff\xfe[{"out": "a.ply"}]', "not UTF-8 text"),
     ("jobs.csv", b"scene,out\na\xe9.ply,a.ply\n", "not UTF-8 text"),
     ("jobs.json", FOLDER, "cannot read the jobs file"),
+    # found by fuzzing: RecursionError and csv.Error escaped
+    ("jobs.json", "[" * 100_000, r"not valid JSON \(it nests too deeply\)"),
+    ("jobs.csv", "scene,out\n" + "a" * 200_000 + ",a.ply\n", r"not a readable CSV table \(field larger than field limit"),
 ])
 def test_a_jobs_file_that_cannot_be_read_names_itself(tmp_path, name, text, message):
     if text is FOLDER:

@@ -116,7 +116,8 @@ def test_a_scene_refused_by_its_writer_is_named_by_the_users_path(tmp_path, caps
     out = tmp_path / "s" / "stylized.ply"
     assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out", str(out),
                  "--stylizer", "nnfm", "--scale", "0.05", "--device", "cpu"]) == 2
-    assert capsys.readouterr().err == f"error: {out}: not written: the scene contains no Gaussians\n"
+    err = capsys.readouterr().err  # after the contact sheet's bars
+    assert err.endswith(f"]\nerror: {out}: not written: the scene contains no Gaussians\n"), err
     assert list(out.parent.iterdir()) == []
 
 

@@ -1,6 +1,7 @@
 """The command line's regions (--region, --region-mask) for stylize and blend."""
 
 import dataclasses
+import re
 
 import torch
 
@@ -34,7 +35,9 @@ def test_blend_with_a_mask_changes_what_the_painted_pixels_see(tmp_path, capsys)
     assert main(["blend", str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "1",
                  "--cameras", str(DemoInputs().cameras), "--region-mask", f"{name}:{_mask(tmp_path)}",
                  "--out", str(out)]) == 0
-    assert "Gaussians selected" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "Gaussians selected" in captured.out
+    assert re.search(r"region masks: 100%\|.*\| 1/1 \[.*\]", captured.err), captured.err  # seconds a view
     changed = (load_scene(out).sh != original.sh).flatten(1).any(1)
     assert 0 < changed.sum() < len(original)
 

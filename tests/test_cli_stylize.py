@@ -27,10 +27,13 @@ def test_a_style_image_too_long_for_its_width_or_truncated_is_refused_before_loa
     assert "loading" not in captured.out
 
 
-def test_the_nnfm_stylizers_renders_before_and_after_the_steps_show_progress(tmp_path, capsys):
+def test_the_nnfm_stylizers_work_on_every_view_and_the_contact_sheet_show_progress(tmp_path, capsys):
     """Its colour transfer renders every view before the steps and after them: at full size, minutes (185
-    views of the garden on a CPU) that once passed with nothing on screen."""
+    views of the garden on a CPU) that once passed with nothing on screen; so did the content term's VGG
+    features of every view and the contact sheet's renders (seconds each)."""
     assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.ply") == 0
     err = capsys.readouterr().err
-    for stage in ("setup", "final"):
-        assert re.search(rf"render views \({stage}\): 100%\|.*\| 24/24 \[.*it/s\]", err), err
+    for bar in ("views (setup)", "views (features)", "views (final)"):
+        assert re.search(rf"{re.escape(bar)}: 100%\|.*\| 24/24 \[.*it/s\]", err), err
+    for bar in ("contact sheet (original)", "contact sheet (stylized)"):
+        assert re.search(rf"{re.escape(bar)}: 100%\|.*\| 4/4 \[.*it/s\]", err), err

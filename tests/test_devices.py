@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from artnvg_core.cli.common import parse_device
+from artnvg_core.cli.options import parse_device
 from artnvg_core.devices import DEVICE_CHOICES, best_device, device_for
 from nodes.comfy_bridge import compute_device
 

@@ -366,7 +366,8 @@ def test_renders_before_and_after_the_steps_report_each_render_call(demo):
     finetune(scene, cameras.subset([view % len(cameras) for view in range(count)]), style,
              config=FinetuneConfig(iterations=1), render_progress=lambda done, views, info: seen.append(
                  (done, views, info["stage"])))
-    assert seen == [(0, count, "setup"), (RENDER_CHUNK, count, "setup"), (count, count, "setup"),
+    features = [(done, count, "features") for done in range(count + 1)]  # the content term's, a view at a time
+    assert seen == [(0, count, "setup"), (RENDER_CHUNK, count, "setup"), (count, count, "setup"), *features,
                     (0, count, "final"), (RENDER_CHUNK, count, "final"), (count, count, "final")]
 
 

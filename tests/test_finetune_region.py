@@ -120,7 +120,7 @@ def test_the_regions_coverage_renders_report_progress_and_stop_when_asked(demo):
     finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=selection,
              render_progress=lambda done, total, info: reports.append((info["stage"], done, total)))
     assert reports[:5] == [("region", view, 4) for view in (0, 1, 2, 3, 4)]
-    assert {stage for stage, _, _ in reports} == {"region", "setup", "final"}
+    assert {stage for stage, _, _ in reports} == {"region", "setup", "features", "final"}
     asked = []
     with pytest.raises(Cancelled):
         finetune(scene, cameras, style, config=FinetuneConfig(iterations=1), selection=selection,

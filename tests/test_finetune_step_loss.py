@@ -94,6 +94,20 @@ def test_content_reference_kept_when_it_fits_and_the_same_either_way(monkeypatch
     torch.testing.assert_close(terms[loss_fn.names.index("content")].double(), expected.detach(), rtol=2e-5, atol=0)
 
 
+def test_the_content_features_of_every_view_report_progress_and_stop_when_asked():
+    """Their first pass, a VGG of every view before the steps (seconds at a capture's size), once passed with no
+    bar and could not be stopped."""
+    from artnvg_core.progress import Cancelled
+
+    style, _, originals, _, _ = inputs()
+    config = FinetuneConfig(nnfm_search="fp32", tv_weight=0, content_weight=0.4)
+    nnfm, reports = step_loss(config, style, None, None).nnfm, []
+    StepLoss(config, load_vgg("vgg19"), nnfm, None, originals, progress=lambda *report: reports.append(report))
+    assert reports == [(done, VIEWS, {}) for done in range(VIEWS + 1)]
+    with pytest.raises(Cancelled):
+        StepLoss(config, load_vgg("vgg19"), nnfm, None, originals, should_stop=lambda: True)
+
+
 def test_weights_leave_out_their_terms():
     style, stylized, originals, image, views = inputs()
     only_nnfm = step_loss(FinetuneConfig(tv_weight=0), style, None, None)

@@ -40,6 +40,27 @@ def test_float_tiff_kept_in_unit_range_else_rescaled(tmp_path):
         load_image(tmp_path / "nan.tif")
 
 
+def test_float_tiff_spanning_more_than_float32_is_rescaled_to_finite_values(tmp_path):
+    """Found by fuzzing: finite pixels from -3e38 to 3e38 were rescaled in float32, whose max - min
+    overflowed, and came out NaN."""
+    Image.fromarray(np.array([[-3e38, 3e38], [0, 1.5e38]], np.float32)).save(tmp_path / "extreme.tif")
+    np.testing.assert_allclose(load_image(tmp_path / "extreme.tif").numpy()[..., 0], [[0, 1], [0.5, 0.75]], atol=1e-6)
+
+
+def test_corrupt_files_pillow_refuses_with_value_errors_are_named(tmp_path):
+    """Found by fuzzing: Pillow raises ValueError, not only OSError, for some corrupt files, on opening them
+    (a truncated PNG header) or decoding them (a TIFF of 0 rows per strip): they escaped naming no file."""
+    (tmp_path / "ihdr.png").write_bytes(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", bytes(10)) + _png_chunk(b"IEND", b""))
+    Image.fromarray(np.zeros((4, 4), np.float32)).save(tmp_path / "strips.tif")
+    data = (tmp_path / "strips.tif").read_bytes()
+    rows_per_strip = data.index(struct.pack("<HHI", 278, 4, 1)) + 8  # the tag's LONG value
+    (tmp_path / "strips.tif").write_bytes(data[:rows_per_strip] + bytes(4) + data[rows_per_strip + 4:])
+    for name, reads in (("ihdr.png", (image_size, load_image)), ("strips.tif", (load_image,))):
+        for read in reads:
+            with pytest.raises(ValueError, match=rf"{name}: not a readable image \(.+\)"):
+                read(tmp_path / name)
+
+
 @pytest.mark.parametrize("mode", ["L", "P", "RGBA", "LA", "1", "CMYK", "RGB"])
 def test_8_bit_modes_match_pillows_rgb(tmp_path, mode):
     rng = np.random.default_rng(1)
@@ -60,13 +81,14 @@ def test_max_side_on_a_16_bit_image_stays_in_unit_range(tmp_path):
     assert image.shape == (20, 30, 3) and image.min() >= 0 and image.max() <= 1
 
 
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
 def _png_header_only(path, width, height):
     """A PNG whose header declares width x height (no pixel data): enough for Image.open."""
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IEND", b""))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", header) + _png_chunk(b"IEND", b""))
 
 
 @pytest.mark.parametrize("width, height", [(40000, 40000), (10000, 9000), (2**31 - 1, 2)])

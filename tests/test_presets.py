@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from artnvg_core.cli.main import build_parser
-from artnvg_core.cli.common import parse_devices
+from artnvg_core.cli.options import parse_devices
 from artnvg_core.diffusion.sampler import SCHEDULERS
 from artnvg_core.diffusion.settings import SCHEDULER_NAMES, SamplerSettings
 from artnvg_core.presets import PRESETS, get_preset

@@ -88,6 +88,29 @@ def test_the_models_load_while_the_content_views_render_and_a_prefetch_is_used(t
         assert loads == [paths], prefetch
 
 
+def test_the_content_renders_report_progress(monkeypatch):
+    """The content views, rendered before sampling (seconds to minutes at a capture's size), once showed no bar."""
+    from artnvg_core import stylize
+
+    class Rendered(Exception):
+        pass
+
+    def rendered(*args, **kwargs):
+        render_views(*args, **kwargs)
+        raise Rendered
+
+    render_views, reports = stylize.render_views, []
+    monkeypatch.setattr(stylize, "render_views", rendered)
+    monkeypatch.setattr(stylize, "_models_loader", lambda *args: lambda device, **kwargs: None)
+    demo = DemoInputs()
+    cameras = load_cameras(demo.cameras).subset(range(2))
+    with pytest.raises(Rendered):
+        stylize_diffusion(read_ply(demo.scene), cameras.scaled(32 / cameras.width), load_image(demo.style),
+                          FinetuneConfig(iterations=1, backend="torch"), ModelFiles(),
+                          render_progress=lambda *report: reports.append(report))
+    assert reports == [(0, 2, {"stage": "content"}), (2, 2, {"stage": "content"})]
+
+
 def test_the_diffusion_libraries_are_imported_beside_the_content_renders_not_before():
     """A process's first stylize_diffusion imports diffusers and transformers (seconds) only after its content
     views: the background load imports them meanwhile (here a stand-in load that imports nothing)."""

@@ -305,8 +305,10 @@ def _colmap_intrinsics(camera: _ColmapCamera, where: str) -> list[list[float]]:
 
 
 def _image_file(model_dir: Path, name: str) -> Path | None:
+    """The image ``name`` in an ``images`` folder one or two levels above the model, else None (also for a name
+    the file system refuses, e.g. one too long: ``os.path.isfile`` says False where ``Path.is_file`` raised)."""
     for images_dir in (model_dir.parent / "images", model_dir.parent.parent / "images"):
-        if (images_dir / name).is_file():
+        if os.path.isfile(images_dir / name):
             return images_dir / name
     return None
 

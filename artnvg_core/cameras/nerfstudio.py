@@ -94,13 +94,15 @@ def _matrices(rows: list[list[list]], where) -> torch.Tensor:
     """[C, 4, 4] float64 of the :func:`_matrix_rows` of C matrices; ValueError naming ``where(index)`` of the
     first that holds something other than numbers."""
     try:
-        return torch.tensor(rows, dtype=torch.float64)
+        matrices = torch.tensor(rows, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError):
-        for index, matrix in enumerate(rows):
-            if any(isinstance(number, (str, list, dict)) or number is None for row in matrix for number in row):
-                raise ValueError(f"{where(index)}: expected a 3x4 or 4x4 matrix of numbers, got "
-                                 "something else among them") from None
-        raise
+        matrices = None
+    if matrices is not None and matrices.ndim == 3:  # torch reads an empty string as an empty list: [C, 4, 4, 0]
+        return matrices
+    for index, matrix in enumerate(rows):
+        if any(isinstance(number, (str, list, dict)) or number is None for row in matrix for number in row):
+            raise ValueError(f"{where(index)}: expected a 3x4 or 4x4 matrix of numbers, got something else among them")
+    raise AssertionError("_matrices found nothing but numbers in matrices torch refused")
 
 
 def _check_affine(matrices: torch.Tensor, where) -> None:
@@ -222,8 +224,8 @@ def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.T
         if all(type(v) is float for row in rows for v in row):
             table = torch.tensor(rows, dtype=torch.float64)
             width, height = table[0, :2].tolist()
-            sizes_ok = ((table[:, 0] == width) & (table[:, 1] == height)).all() and width == int(width) and \
-                height == int(height) and 0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE
+            sizes_ok = ((table[:, 0] == width) & (table[:, 1] == height)).all() and 0 < width <= MAX_IMAGE_SIDE and \
+                0 < height <= MAX_IMAGE_SIDE and width == int(width) and height == int(height)
             if sizes_ok and (table[:, 2:4] > 0).all() and (table[:, 2:].abs() <= MAX_CAMERA_VALUE).all():
                 k = torch.zeros(len(rows), 3, 3, dtype=torch.float64)
                 k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2] = table[:, 2:].unbind(1)

@@ -43,7 +43,8 @@ import torch
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
-from .common import parse_devices, terminate_as_interrupt
+from .common import terminate_as_interrupt
+from .options import parse_devices
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
 STOP_SECONDS = 30.0  # how long stopped jobs may take to unwind before their workers are killed

@@ -56,11 +56,14 @@ def read_jobs(path: str | os.PathLike) -> list:
         raise ValueError(f"{path}: cannot read the jobs file ({error.strerror or error})") from None
     if path.suffix.lower() == ".csv":
         reader = csv.DictReader(io.StringIO(text))
-        header = reader.fieldnames or []
+        try:
+            header = reader.fieldnames or []
+            rows = list(reader)
+        except csv.Error as error:  # e.g. a cell over csv's field size limit
+            raise ValueError(f"{path}: not a readable CSV table ({error})") from None
         repeated = next((name for name in header if header.count(name) > 1), None)
         if repeated is not None:  # a dict keeps one of its cells: refused, not chosen for the user
             raise ValueError(f"{path}: the header names '{repeated}' twice")
-        rows = list(reader)
         for number, row in enumerate(rows, 1):
             if None in row:
                 raise ValueError(f"{path}: row {number + 1} has more cells than the header has names")
@@ -68,8 +71,9 @@ def read_jobs(path: str | os.PathLike) -> list:
     else:
         try:
             entries = json.loads(text, object_pairs_hook=JsonObject)
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{path}: not valid JSON ({error}); expected a list of jobs, e.g. "
+        except (json.JSONDecodeError, RecursionError) as error:
+            why = "it nests too deeply" if isinstance(error, RecursionError) else error
+            raise ValueError(f"{path}: not valid JSON ({why}); expected a list of jobs, e.g. "
                              '[{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}], or a .csv file') from None
         if not isinstance(entries, list):
             raise ValueError(f"{path}: expected a JSON list of jobs (objects of stylize options), "

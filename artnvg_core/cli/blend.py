@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import SCENE_FILES, add_scene_file_options, load_scene_verbose, unit_interval
+from .common import load_scene_verbose
+from .options import SCENE_FILES, add_scene_file_options, unit_interval
 from .region import add_region_arguments, check_region_arguments, selection_from_args
 
 

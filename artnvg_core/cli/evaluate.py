@@ -29,17 +29,6 @@ import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
 from ..cameras.selection import parse_views
-from .common import (
-    SCENE_FILES,
-    ProgressBar,
-    add_camera_arguments,
-    fraction,
-    load_scene_verbose,
-    orbit_from_args,
-    parse_device,
-    positive_number,
-    prepare_rasterizer,
-)
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, write_atomically, written_together
@@ -52,6 +41,8 @@ from ..metrics.cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
 from ..metrics.clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
 from ..metrics.csd import CSD_WEIGHTS, csd_scores, load_csd
 from ..metrics.warp import warp_consistency
+from .common import ProgressBar, load_scene_verbose, prepare_rasterizer
+from .options import SCENE_FILES, add_camera_arguments, fraction, orbit_from_args, parse_device, positive_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
 STRIP_VIEWS = 6

@@ -20,19 +20,21 @@ from ..diffusion.lora import keep_peft_out
 from .batch import add_batch_command
 from .blend import add_blend_command
 from .common import (
-    SCENE_FILES,
-    add_camera_arguments,
-    add_scene_file_options,
     close_progress_bars,
     is_out_of_memory,
     load_scene_verbose,
-    orbit_from_args,
-    parse_device,
-    positive_number,
     prepare_rasterizer,
     terminate_as_interrupt,
 )
 from .evaluate import add_evaluate_arguments
+from .options import (
+    SCENE_FILES,
+    add_camera_arguments,
+    add_scene_file_options,
+    orbit_from_args,
+    parse_device,
+    positive_number,
+)
 from .stylize import add_stylize_arguments
 
 

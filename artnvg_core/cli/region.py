@@ -58,10 +58,12 @@ def check_region_arguments(args: argparse.Namespace, cameras_required: bool = Tr
 
 
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
-    """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither), printing its size."""
+    """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither; the masked views' renders
+    under a bar), printing its size."""
     from ..fileio import require_regular_file
     from ..images import load_image, resize_image
     from ..selection import parse_region, select_by_masks, select_region
+    from .common import ProgressBar
 
     if args.region:
         selection = select_region(scene, parse_region(args.region))
@@ -76,7 +78,8 @@ def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras:
                                  f"({cameras.width}x{cameras.height})")
             views.append(view)
             masks.append(resize_image(mask, cameras.height, cameras.width)[..., 0])
-        selection = select_by_masks(scene, cameras.subset(views), torch.stack(masks))
+        selection = select_by_masks(scene, cameras.subset(views), torch.stack(masks),
+                                    progress=ProgressBar("region masks"))
     else:
         return None
     count = int(selection.sum())

@@ -22,19 +22,16 @@ from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
 from ..progress import check_stop
-from .common import (
+from .common import ProgressBar, load_scene_verbose, prepare_rasterizer, read_style_image
+from .options import (
     SCENE_FILES,
-    ProgressBar,
     add_camera_arguments,
     add_scene_file_options,
     integer_at_least,
-    load_scene_verbose,
     orbit_from_args,
     parse_device,
     parse_devices,
     positive_number,
-    prepare_rasterizer,
-    read_style_image,
     unit_interval,
 )
 from .region import add_region_arguments, check_region_arguments, selection_from_args
@@ -136,8 +133,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           group_multiple=args.group_multiple, compile_blocks=args.compile,
                                           loading_progress=None if prefetched else ProgressBar("models", "B"),
                                           sampling_progress=ProgressBar("diffusion"),
-                                          progress=ProgressBar("finetune"), should_stop=args.should_stop,
-                                          selection=selection)
+                                          progress=ProgressBar("finetune"), render_progress=ProgressBar("views"),
+                                          should_stop=args.should_stop, selection=selection)
         except DiffusionModelsUnavailable as error:
             if args.stylizer != "auto":
                 raise
@@ -145,11 +142,11 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
-                              render_progress=ProgressBar("render views"), should_stop=args.should_stop,
+                              render_progress=ProgressBar("views"), should_stop=args.should_stop,
                               selection=selection)
     check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
-                        spz_version=args.spz_version)
+                        spz_version=args.spz_version, progress=ProgressBar("contact sheet"))
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 

@@ -40,7 +40,7 @@ import torch
 from ..cameras import CameraSet, scene_frame
 from ..images import resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
-from ..progress import ProgressFn, StopFn, check_stop
+from ..progress import ProgressFn, StopFn, check_stop, staged
 from ..raster import choose_backend, triton_warmups
 from ..raster.step_renderer import StepRenderer
 from ..raster.views import render_views
@@ -136,17 +136,12 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
                          "cameras and the scene share one coordinate frame")
 
 
-def _staged(report: ProgressFn | None, stage: str) -> ProgressFn | None:
-    """``report`` with ``info`` ``{"stage": stage}``."""
-    return None if report is None else lambda done, total, info: report(done, total, {"stage": stage})
-
-
 def _render_views(scene: GaussianScene, cameras: CameraSet, config: FinetuneConfig, stage: str,
                   report: ProgressFn | None, should_stop: StopFn | None) -> torch.Tensor:
     """Every view of ``cameras`` [C, H, W, 3] clamped to [0, 1], :data:`~artnvg_core.raster.views.RENDER_CHUNK`
     views a render call (a call launches the same kernels for one view as for several), reporting the views
     done after each."""
-    return render_views(scene, cameras, backend=config.backend, progress=_staged(report, stage),
+    return render_views(scene, cameras, backend=config.backend, progress=staged(report, stage),
                         should_stop=should_stop).rgb
 
 
@@ -191,10 +186,11 @@ def finetune(
         holds the loss terms as floats (reading them waits for the device, so not every step).
         should_stop(): checked before every step; when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
-    render_progress(done, views, info): called after each render call (a few views) of the renders of
-        every camera before the steps (``info["stage"]``: ``"region"``, a selection's coverage; ``"setup"``:
-        colour transfer, content term) and after them (``"final"``: colour transfer), which ``should_stop``
-        can also end.
+    render_progress(done, views, info): follows the work on every view before the steps (``info["stage"]``:
+        ``"region"``, a selection's coverage; ``"setup"``: the renders for the colour transfer and the content
+        term; ``"features"``: the content term's VGG features of those renders) and after them (``"final"``:
+        the renders for the colour transfer), as each starts and after each render call (a few views) or
+        view's features; ``should_stop`` can also end them.
     selection: optional [N] bool on the scene's device: finetune these Gaussians only, for the pixels they
         cover (module docstring).
     No step writes a non-finite value (:mod:`artnvg_core.finetune.finite_steps`): a step with a
@@ -240,7 +236,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     if selection is not None:
         selection = selection.to(device)
         cameras, stylized, weights = region_views(scene, selection, cameras, stylized, config.backend,
-                                                  _staged(render_progress, "region"), should_stop)
+                                                  staged(render_progress, "region"), should_stop)
     compile_kernels(scene, cameras, config, stylized is not None)  # beside the VGG and the style's features
 
     vgg = load_vgg(config.vgg, config.vgg_weights, device)
@@ -260,7 +256,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         if config.content_weight > 0:
             originals = vgg_input(content, config)
         del content
-    step_loss = StepLoss(config, vgg, nnfm, stylized, originals, weights)
+    step_loss = StepLoss(config, vgg, nnfm, stylized, originals, weights, staged(render_progress, "features"),
+                         should_stop)
     names = step_loss.names
     worth_graphing = config.iterations >= GRAPH_MIN_ITERATIONS if config.cuda_graph is None else config.cuda_graph
     if worth_graphing and can_graph(device):

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..losses import NNFMLoss, VGGFeatures, features_autocast, shrink_to_max_side, ssim
+from ..progress import ProgressFn, StopFn, check_stop
 from .config import FinetuneConfig
 
 # (loss [], terms [T]) of a step's renders; the terms are detached, named by StepLoss.names
@@ -85,20 +86,30 @@ class ContentReference:
     [V, 3, h, w]: every view as the VGG sees it. The features of all V views are computed once (a view at a
     time, as a step of one view computes its render's, so that an unchanged render matches exactly) and kept
     when they fit in :func:`_cache_budget` (``cached``); else those of the step's views are computed every
-    step: the same values either way.
+    step: the same values either way. ``progress(views done, V, {})`` follows that first pass (as it starts, after
+    each view, and V once done) and ``should_stop`` is checked before each view.
     ``reference(views [B]) -> ({layer: [B, C, h', w'] float32}, {layer: [] their mean square})``.
     """
 
-    def __init__(self, features: Callable[[torch.Tensor], dict[str, torch.Tensor]], originals: torch.Tensor):
+    def __init__(self, features: Callable[[torch.Tensor], dict[str, torch.Tensor]], originals: torch.Tensor,
+                 progress: ProgressFn | None = None, should_stop: StopFn | None = None):
         self.features, self.originals = features, originals
+        report, count = progress or (lambda *args: None), len(originals)
         with torch.no_grad():
+            report(0, count, {})
+            check_stop(should_stop)
             first = features(originals[:1])
             per_view = sum(v.numel() * v.element_size() for v in first.values())
-            self.cached = per_view * len(originals) <= _cache_budget(originals.device)
+            self.cached = per_view * count <= _cache_budget(originals.device)
             if self.cached:
-                views = [first] + [features(originals[i:i + 1]) for i in range(1, len(originals))]
+                views = [first]
+                for i in range(1, count):
+                    report(i, count, {})
+                    check_stop(should_stop)
+                    views.append(features(originals[i:i + 1]))
                 self.store = {k: torch.cat([view[k] for view in views]) for k in first}
                 self.power = {k: v.float().square().flatten(1).mean(1) for k, v in self.store.items()}
+            report(count, count, {})
 
     def __call__(self, views: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         if self.cached:
@@ -118,13 +129,17 @@ class StepLoss:
     originals: [C, 3, h, w] original views as the VGG sees them (:func:`vgg_input`) for the content term,
         or None.
     weights: [C, H, W] per-pixel weights >= 0 in camera order (module docstring), or None.
+    progress, should_stop: follow and can end the content term's first pass over ``originals``
+        (:class:`ContentReference`).
     ``names``: the terms computed, in the order of the returned ``terms``.
     """
 
     def __init__(self, config: FinetuneConfig, vgg: VGGFeatures, nnfm: NNFMLoss, stylized: torch.Tensor | None,
-                 originals: torch.Tensor | None, weights: torch.Tensor | None = None):
+                 originals: torch.Tensor | None, weights: torch.Tensor | None = None,
+                 progress: ProgressFn | None = None, should_stop: StopFn | None = None):
         self.config, self.vgg, self.nnfm, self.stylized, self.weights = config, vgg, nnfm, stylized, weights
-        self.content_reference = None if originals is None else ContentReference(self._features, originals)
+        self.content_reference = (None if originals is None
+                                  else ContentReference(self._features, originals, progress, should_stop))
         names = ("l1", "ssim") if stylized is not None else ()
         names += ("nnfm",) if config.nnfm_weight > 0 else ()
         names += ("content",) if originals is not None else ()
