@@ -313,6 +313,17 @@ def test_vae_single_file_needs_its_config(tmp_path):
     assert loaded.dtype == torch.float32 and _same_weights(loaded, vae)
 
 
+@pytest.mark.parametrize("text, problem", [("{not json", "not readable JSON"), ("[1, 2]", "a JSON list, not an object")])
+def test_a_broken_config_beside_a_single_file_is_refused_naming_it(tmp_path, text, problem):
+    """Found probing the model files: json's own error ('Expecting property name ...') named no file, and a
+    config that is no JSON object went to diffusers as a Hub repository's name (a download attempt)."""
+    (tmp_path / "model.safetensors").write_bytes(b"")
+    (tmp_path / "config.json").write_text(text)
+    for load in (load_vae, load_controlnet, load_image_encoder):
+        with pytest.raises(ValueError, match=rf"config\.json: the model's config is {problem}"):
+            load(tmp_path / "model.safetensors")
+
+
 def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
     folder, base = sdxl_folder
     controlnet = tiny_controlnet(base.unet)

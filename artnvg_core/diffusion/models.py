@@ -114,8 +114,18 @@ def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dty
 
 
 def _config_beside(path: Path) -> dict | None:
+    """The JSON object in the ``config.json`` beside the weight file ``path``, None when there is none;
+    ValueError naming it when it is not one (diffusers would take a list or a string for a Hub repository)."""
     config = path.parent / "config.json"
-    return json.loads(config.read_text()) if config.is_file() else None
+    if not config.is_file():
+        return None
+    try:
+        data = json.loads(config.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise ValueError(f"{config}: the model's config is not readable JSON ({error})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{config}: the model's config is a JSON {type(data).__name__}, not an object")
+    return data
 
 
 def _weights_variant(folder: Path) -> str | None:
