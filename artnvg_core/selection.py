@@ -113,14 +113,31 @@ def gaussian_weights(scene: GaussianScene, cameras: CameraSet, pixel_weights: to
     return weighted, total
 
 
+def check_mask_size(mask_width: int, mask_height: int, view_width: int, view_height: int, what: str) -> None:
+    """ValueError naming ``what`` (the mask's file or input), its size and the view's unless a mask of
+    ``mask_width`` x ``mask_height`` pixels has the aspect of its view's ``view_width`` x ``view_height`` within a
+    pixel's rounding: some aspect gives both sizes with each side rounded to whole pixels (a mask painted on a
+    render of the view at another scale), and the mask is resized to the view; another would be stretched."""
+    def aspects(width: int, height: int) -> tuple[float, float]:  # those whose sides round to width x height
+        return (width - 0.5) / (height + 0.5), (width + 0.5) / (height - 0.5)
+
+    mask_low, mask_high = aspects(mask_width, mask_height)
+    view_low, view_high = aspects(view_width, view_height)
+    if mask_low > view_high or view_low > mask_high:
+        raise ValueError(f"{what}: {mask_width}x{mask_height} pixels, not the aspect of its view's "
+                         f"{view_width}x{view_height} (it would be stretched); paint the mask on a render of the view, "
+                         "at any scale")
+
+
 def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tensor, backend: str = "auto",
                     progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> torch.Tensor:
     """[N] bool: the Gaussians that the painted pixels of ``masks [C, H', W']`` (in [0, 1], 1 painted; one per
-    view of ``cameras``, resized to the cameras' size) see (module docstring); ``progress`` and ``should_stop``
-    as :func:`gaussian_weights` takes them."""
+    view of ``cameras``, of their aspect (:func:`check_mask_size`) and resized to their size) see (module
+    docstring); ``progress`` and ``should_stop`` as :func:`gaussian_weights` takes them."""
     if masks.ndim != 3 or masks.shape[0] != len(cameras):
         raise ValueError(f"select_by_masks: expected one mask [H, W] per view ({len(cameras)}), "
                          f"got shape {tuple(masks.shape)}")
+    check_mask_size(masks.shape[2], masks.shape[1], cameras.width, cameras.height, "select_by_masks: masks")
     masks = resize_image(masks[..., None].float(), cameras.height, cameras.width)[..., 0].clamp(0, 1)
     weighted, total = gaussian_weights(scene, cameras.to(scene.device), masks.to(scene.device), backend, progress,
                                        should_stop)

@@ -16,7 +16,8 @@ will pass them (:func:`comfyui_value`), to the declared types, ranges and choice
 ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS`` and the hidden input
 :data:`~.prompt_checks.CHECK_INPUT`, which each node's function takes last, unused). When a node runs, its
 function first holds what it is given to the same checks and to the Python type its declared type stands
-for (:meth:`ArtNVGNode.run_problem`): a value through a link meets no prompt check.
+for, a number made its declared type's (:meth:`ArtNVGNode.run_inputs`): a value through a link meets no prompt
+check.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import contextlib
 import functools
 import inspect
 import math
+import numbers
 from collections.abc import Callable, Iterator
 
 import torch
@@ -60,11 +62,25 @@ def _type_name(cls: type) -> str:
     return cls.__qualname__ if cls.__module__ == "builtins" else f"{cls.__module__}.{cls.__qualname__}"
 
 
+def _number_problem(kind: str, value) -> str | None:
+    """What is wrong with the number ``value`` (a :class:`numbers.Real`: Python's, numpy's) for an input of type
+    ``kind`` (INT or FLOAT) that converting it as ComfyUI does (``int()``, ``float()``) would hide: a bool (``True``
+    is 1), or for an INT a fraction (``int(2.5)`` is 2); else None."""
+    if isinstance(value, bool):
+        return f"expected a number, got {value}"
+    if kind == "INT" and not isinstance(value, numbers.Integral) and not float(value).is_integer():
+        return f"expected a whole number, got {value}"
+    return None
+
+
 def _run_type_problem(kind, value) -> str | None:
     """What is wrong with ``value`` given to an input of type ``kind`` when the node runs: not an instance of the
-    Python type :data:`~.node_types.RUN_TYPES` names for ``kind``, or a tensor of another rank; None when right,
-    or when ``kind`` has no entry there (ComfyUI's MODEL, VAE...)."""
+    Python type :data:`~.node_types.RUN_TYPES` names for ``kind`` (for INT and FLOAT, either number that
+    :func:`_number_problem` keeps), or a tensor of another rank; None when right, or when ``kind`` has no entry
+    there (ComfyUI's MODEL, VAE...)."""
     expected = RUN_TYPES.get(kind) if isinstance(kind, str) else None
+    if kind in ("INT", "FLOAT") and isinstance(value, numbers.Real):  # numpy's numbers too
+        return _number_problem(kind, value)
     if expected is None or isinstance(value, expected.cls) and (not expected.ranks or value.ndim in expected.ranks):
         return None
     ranks = f" of {' or '.join(map(str, expected.ranks))} dimensions {expected.layout}" if expected.ranks else ""
@@ -73,17 +89,15 @@ def _run_type_problem(kind, value) -> str | None:
 
 
 def _checking_inputs(function: Callable) -> Callable:
-    """A node's ``FUNCTION`` that first refuses its inputs with :meth:`ArtNVGNode.run_problem`'s message (a
-    :class:`~.node_errors.NodeInputError`), then does its work."""
+    """A node's ``FUNCTION`` that first takes its inputs through :meth:`ArtNVGNode.run_inputs` (which refuses them
+    with a :class:`~.node_errors.NodeInputError`), then does its work."""
     signature = inspect.signature(function)
 
     @functools.wraps(function)
     def run(self, *args, **kwargs):
-        inputs = signature.bind(self, *args, **kwargs).arguments
-        problem = type(self).run_problem(inputs)
-        if problem:
-            raise NodeInputError(problem)
-        return function(self, *args, **kwargs)
+        inputs = signature.bind(self, *args, **kwargs)
+        inputs.arguments.update(type(self).run_inputs(inputs.arguments))
+        return function(*inputs.args, **inputs.kwargs)
 
     return run
 
@@ -142,7 +156,11 @@ class ArtNVGNode:
                     yield f"{where}: {error}", False
             elif kind in ("INT", "FLOAT"):
                 outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
-                if not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
+                raw = comfyui_value(None, given)  # a number, or text ComfyUI converted
+                number = _number_problem(kind, raw) if isinstance(raw, numbers.Real) else None
+                if number:  # ComfyUI converts it: int(2.5) is 2
+                    yield f"{where}: {number}", False
+                elif not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
                     yield f"{where}: expected a finite number, got {value}", outside
                 elif outside:
                     low, high = options.get("min", "-inf"), options.get("max", "inf")
@@ -174,12 +192,14 @@ class ArtNVGNode:
         return next((message for message, reported in cls._value_problems(values) if not reported), None)
 
     @classmethod
-    def run_problem(cls, inputs: dict) -> str | None:
-        """When the node runs, before any work: the message naming the first of ``inputs`` (input name -> the value
-        given; an optional input given None counts as unconnected) that is not what its declared type holds
-        (:data:`~.node_types.RUN_TYPES`: another pack's output of type ``*`` passes ComfyUI's link check), or
-        that :meth:`check_values` refuses (a value through a link meets no prompt check), else None. Inputs declared
-        by a function (a loader's file list, ComfyUI's samplers) are left to the node, whose message says more."""
+    def run_inputs(cls, inputs: dict) -> dict:
+        """When the node runs, before any work: ``inputs`` (input name -> the value given; an optional input given
+        None counts as unconnected) as the node takes them, numbers as their declared type's (an INT's 3.0 as 3, a
+        FLOAT's 1 as 1.0, as ComfyUI converts a prompt's). Raises :class:`~.node_errors.NodeInputError` naming the
+        first input that is not what its declared type holds (:data:`~.node_types.RUN_TYPES`: another pack's output
+        of type ``*`` passes ComfyUI's link check, and ComfyUI passes it as it is: 2.5 to an INT), or that
+        :meth:`check_values` refuses (a value through a link meets no prompt check). Inputs declared by a function
+        (a loader's file list, ComfyUI's samplers) are left to the node, whose message says more."""
         declared = _declared({name: entry for name, entry in {**cls.REQUIRED, **cls.OPTIONAL}.items()
                               if name in inputs and not callable(entry)})
         given = {name: value for name, value in inputs.items()
@@ -187,8 +207,12 @@ class ArtNVGNode:
         for name, value in given.items():
             problem = _run_type_problem(declared[name][0], value)
             if problem:
-                return f"{cls.DISPLAY_NAME}: input '{name}': {problem}"
-        return cls.check_values(**given)
+                raise NodeInputError(f"{cls.DISPLAY_NAME}: input '{name}': {problem}")
+        problem = cls.check_values(**given)
+        if problem:
+            raise NodeInputError(problem)
+        return {name: RUN_TYPES[declared[name][0]].cls(value) for name, value in given.items()
+                if declared[name][0] in ("INT", "FLOAT")}
 
     @classmethod
     def VALIDATE_INPUTS(cls, node_id=None):

@@ -41,4 +41,8 @@ RUN_TYPES = {  # input type -> RunType; types not listed (MODEL, VAE, ...) are C
     SELECTION: RunType(torch.Tensor, (1,), "[N]"),
     IMAGE: RunType(torch.Tensor, (4,), "[B, H, W, C]"),
     MASK: RunType(torch.Tensor, (2, 3), "[B, H, W] or [H, W]"),
+    "INT": RunType(int),  # or a whole float (3.0), given as an int; never a bool (node_base)
+    "FLOAT": RunType(float),  # or an int, given as a float; never a bool
+    "STRING": RunType(str),
+    "BOOLEAN": RunType(bool),
 }

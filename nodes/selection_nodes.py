@@ -59,7 +59,7 @@ class SelectGaussians(ArtNVGNode):
     }
     OPTIONAL = {
         "cameras": (CAMERAS, {"tooltip": "mask: the cameras of the views the masks were painted on."}),
-        "mask": (MASK, {"tooltip": "mask: painted pixels (1) of one or more views, e.g. Load Image's mask."}),
+        "mask": (MASK, {"tooltip": "mask: painted pixels (1) of one or more views, e.g. Load Image's mask; of the views' aspect, at any size."}),
         "views": ("STRING", {"default": "0", "tooltip": (
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }

@@ -3,6 +3,7 @@
 import dataclasses
 import re
 
+import pytest
 import torch
 
 from artnvg_core.cameras import load_cameras
@@ -60,6 +61,23 @@ def test_a_mask_on_an_unknown_view_is_refused(tmp_path, capsys):
                  "--cameras", str(DemoInputs().cameras), "--region-mask", f"frame_9:{_mask(tmp_path)}",
                  "--out", str(tmp_path / "o.ply")]) == 2
     assert "'frame_9' is neither a view index below 24 nor a view name" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["stylize", "blend"])
+def test_a_mask_of_another_aspect_than_its_view_is_refused_before_any_scene_loads(tmp_path, capsys, command):
+    """It was stretched to the view (within 2% silently; else refused after the scene loaded)."""
+    _scenes(tmp_path)
+    save_png(torch.ones(32, 64, 3), tmp_path / "wide.png")
+    inputs = ([str(tmp_path / "original.ply"), "--style", str(DemoInputs().style), "--scale", "0.5"]
+              if command == "stylize" else [str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "1"])
+    assert main([command, *inputs, "--cameras", str(DemoInputs().cameras), "--region-mask",
+                 f"3:{tmp_path / 'wide.png'}", "--out", str(tmp_path / "out.ply")]) == 2
+    captured = capsys.readouterr()
+    view = "256x256" if command == "stylize" else "512x512"
+    assert captured.err == (f"error: --region-mask 3:{tmp_path / 'wide.png'}: 64x32 pixels, not the aspect of its "
+                            f"view's {view} (it would be stretched); paint the mask on a render of the view, at any "
+                            "scale\n")
+    assert "loading" not in captured.out
 
 
 def test_a_missing_mask_is_named_before_any_scene_loads(tmp_path, capsys):

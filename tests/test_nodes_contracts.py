@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from unittest import mock
 
+import numpy
 import pytest
 import torch
 
@@ -192,15 +193,16 @@ def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_th
 
 
 def _stand_in(kind, options: dict):
-    """A value the run-time check lets through for an input of ``kind``: a mock of its run type or a tensor of its
-    rank (nodes/node_types.py RUN_TYPES), its default or first choice, a file name, else an object (a MODEL...)."""
+    """A value the run-time check lets through for an input of ``kind``: its default, a mock of its run type or a
+    tensor of its rank (nodes/node_types.py RUN_TYPES), its first choice, a file name, else an object (a MODEL...)."""
     from nodes.node_types import RUN_TYPES
 
     expected = RUN_TYPES.get(kind) if isinstance(kind, str) else None
+    if "default" in options:
+        return options["default"]
     if expected is not None:
         return torch.zeros((1,) * expected.ranks[0]) if expected.ranks else mock.Mock(spec=expected.cls)
-    choice = next(iter(kind), "") if isinstance(kind, list) else "" if kind == "COMBO" else object()
-    return options.get("default", choice)
+    return next(iter(kind), "") if isinstance(kind, list) else "" if kind == "COMBO" else object()
 
 
 def test_every_node_refuses_an_input_not_of_its_declared_type_before_any_work():
@@ -229,3 +231,34 @@ def test_every_node_refuses_an_input_not_of_its_declared_type_before_any_work():
                 with pytest.raises(NodeInputError, match=f"^{start}.*{expected.cls.__name__}.*; got {re.escape(got)}$"):
                     getattr(node(), node.FUNCTION)(**{**fine, name: value})
     assert checked == set(RUN_TYPES)  # every run type is some node's input
+
+
+def test_a_number_through_a_link_is_taken_as_comfyui_converts_a_prompts_but_never_loses_a_fraction():
+    """Another pack's output of type * may give an INT input a float: ComfyUI passes it as it is, and the node's int()
+    made 2.5 a silent 2. A whole float (3.0) is taken as ComfyUI takes a prompt's value (int(3.0)), a fraction or a
+    bool is refused naming the node and input, when the node runs and, for a prompt's value (which ComfyUI itself
+    would make 2), before anything runs."""
+    from nodes.camera_nodes import CamerasAroundScene
+    from nodes.node_errors import NodeInputError
+    from tests.test_activated import random_scene
+
+    def place(**changes):
+        values = dict(count=3, fov_deg=40.0, width=16, height=16, up="+z", elevations="10", distance_factor=1.0)
+        return CamerasAroundScene().place(random_scene(n=50, degree=0), **(values | changes))[0]
+
+    cameras = place(count=3.0, width=numpy.float32(16), fov_deg=40, distance_factor=1)
+    assert len(cameras) == 3 and (cameras.width, type(cameras.width)) == (16, int)
+    assert torch.equal(cameras.world_to_cam, place().world_to_cam)
+    for name, value, problem in [("count", 2.5, "expected a whole number, got 2.5"),
+                                 ("width", float("nan"), "expected a whole number, got nan"),
+                                 ("count", numpy.float64(2.5), "expected a whole number, got 2.5"),
+                                 ("count", True, "expected a number, got True"),
+                                 ("fov_deg", False, "expected a number, got False"),
+                                 ("count", "3", "expected INT, int; got str")]:
+        with pytest.raises(NodeInputError, match=f"^Cameras Around Scene: input '{name}': {problem}$"):
+            place(**{name: value})
+    assert CamerasAroundScene.check_values(count=3.0, width="16") is None  # ComfyUI makes them 3 and 16 itself
+    refused = "Cameras Around Scene: input 'count': expected a whole number, got 2.5"
+    assert CamerasAroundScene.check_values(count=2.5) == CamerasAroundScene.unreported_value(count=2.5) == refused
+    assert CamerasAroundScene.unreported_value(count={"__value__": True}) == (
+        "Cameras Around Scene: input 'count': expected a number, got True")

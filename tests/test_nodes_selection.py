@@ -87,6 +87,15 @@ def test_select_node_needs_one_view_per_mask(demo):
     assert SelectGaussians.check_values(views="3, x").startswith("Select Gaussians: input 'views': expected comma")
 
 
+def test_select_node_refuses_a_mask_of_another_aspect_than_its_view(demo):
+    """It was stretched to the view."""
+    original, cameras = demo
+    with pytest.raises(NodeInputError, match=r"^Select Gaussians: input 'mask': select_by_masks: masks: 64x32 pixels, "
+                                             r"not the aspect of its view's 64x64 \(it would be stretched\)"):
+        call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras, mask=torch.ones(1, 32, 64),
+             views="0")
+
+
 def test_finetune_node_trains_the_selection_alone(demo, monkeypatch):
     # on the library call's device: a GPU's sums differ in the last bits, which Adam's first steps magnify
     monkeypatch.setattr("nodes.comfy_bridge.compute_device", lambda: torch.device("cpu"))

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from artnvg_core.scene import SH_C0, GaussianScene
-from artnvg_core.selection import Box, Sphere, check_selection, coverage, gaussian_weights, parse_region, select_by_masks, select_region
+from artnvg_core.selection import Box, Sphere, check_mask_size, check_selection, coverage, gaussian_weights, parse_region, select_by_masks, select_region
 
 from raster_reference import brute_force_render
 from raster_scenes import make_cameras
@@ -143,6 +143,22 @@ def test_bad_masks_and_selections_are_refused():
         select_by_masks(scene, cameras, torch.ones(1, HEIGHT, WIDTH))
     with pytest.raises(ValueError, match="boolean mask of the scene's 24 Gaussians"):
         coverage(scene, torch.ones(3, dtype=torch.bool), cameras)
+
+
+def test_a_mask_is_resized_to_its_view_only_at_its_aspect_within_a_pixels_rounding():
+    """A mask of another aspect was once stretched to its view without a word."""
+    generator = np.random.default_rng(0)
+    for aspect, mask_height, view_height in generator.uniform((0.2, 1, 1), (5, 3000, 3000), (20000, 3)):
+        if min(aspect * mask_height, aspect * view_height) >= 1:  # any two renders of one aspect at any scales pass
+            check_mask_size(round(aspect * mask_height), round(mask_height), round(aspect * view_height),
+                            round(view_height), "mask")
+    check_mask_size(1297, 840, 648, 420, "mask")  # a capture's photo, for its views at half size
+    for mask, view in [((1000, 510), (1000, 500)), ((640, 480), (1920, 1080)), ((2000, 1004), (1000, 500))]:
+        with pytest.raises(ValueError, match=rf"^mask.png: {mask[0]}x{mask[1]} pixels, not the aspect of its view's "
+                                             rf"{view[0]}x{view[1]} \(it would be stretched\)"):
+            check_mask_size(*mask, *view, "mask.png")
+    with pytest.raises(ValueError, match=rf"^select_by_masks: masks: {WIDTH}x{HEIGHT // 2} pixels, not the aspect"):
+        select_by_masks(_scene(), _cameras(), torch.ones(2, HEIGHT // 2, WIDTH))
 
 
 @pytest.mark.parametrize("selection", [torch.ones(24), torch.ones(23, dtype=torch.bool), torch.ones(24, 1, dtype=torch.bool)])

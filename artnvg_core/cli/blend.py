@@ -8,7 +8,7 @@ import time
 
 from .common import load_scene_verbose
 from .options import SCENE_FILES, add_scene_file_options, unit_interval
-from .region import add_region_arguments, check_region_arguments, selection_from_args
+from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
 
 
 def cmd_blend(args: argparse.Namespace) -> None:
@@ -23,6 +23,8 @@ def cmd_blend(args: argparse.Namespace) -> None:
     refuse_overwrites([("--out", out)], [("ORIGINAL", args.original), ("STYLIZED", args.stylized)])
     check_region_arguments(args)
     cameras = load_cameras(args.cameras) if args.cameras else None
+    if cameras is not None:
+        check_region_masks(args, cameras)
     device = torch.device("cpu")
     original, stylized = (load_scene_verbose(path, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                              cameras=cameras) for path in (args.original, args.stylized))

@@ -23,7 +23,7 @@ def add_region_arguments(parser: argparse.ArgumentParser, what: str) -> None:
     group.add_argument("--region-mask", action="append", default=[], metavar="VIEW:MASK.png",
                        help=f"{what} only the Gaussians that a mask's white pixels see; VIEW: the view (index in "
                        "file order, or image name) the mask was painted on, e.g. on a `render` output of the same "
-                       "cameras (resized to the view); repeat for several views")
+                       "cameras (of the view's aspect, resized to it); repeat for several views")
 
 
 def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
@@ -57,6 +57,17 @@ def check_region_arguments(args: argparse.Namespace, cameras_required: bool = Tr
             require_regular_file(path, "--region-mask image")
 
 
+def check_region_masks(args: argparse.Namespace, cameras: CameraSet) -> None:
+    """Before any work: each ``--region-mask``'s view among ``cameras`` and its image's size (from its header)
+    against the views' (:func:`~artnvg_core.selection.check_mask_size`)."""
+    from ..images import image_size
+    from ..selection import check_mask_size
+
+    for text in args.region_mask:
+        _, path = parse_region_mask(text, cameras)
+        check_mask_size(*image_size(path), cameras.width, cameras.height, f"--region-mask {text}")
+
+
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
     """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither; the masked views' renders
     under a bar), printing its size."""
@@ -68,14 +79,11 @@ def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras:
     if args.region:
         selection = select_region(scene, parse_region(args.region))
     elif args.region_mask:
+        check_region_masks(args, cameras)  # views built around the scene are known only now
         views, masks = [], []
         for text in args.region_mask:
             view, path = parse_region_mask(text, cameras)
             mask = load_image(require_regular_file(path, "--region-mask image")).mean(-1, keepdim=True)
-            height, width = mask.shape[:2]
-            if abs(width * cameras.height - height * cameras.width) > 0.02 * height * cameras.width:
-                raise ValueError(f"--region-mask {text}: {width}x{height} pixels, not the aspect of the views "
-                                 f"({cameras.width}x{cameras.height})")
             views.append(view)
             masks.append(resize_image(mask, cameras.height, cameras.width)[..., 0])
         selection = select_by_masks(scene, cameras.subset(views), torch.stack(masks),

@@ -34,7 +34,7 @@ from .options import (
     positive_number,
     unit_interval,
 )
-from .region import add_region_arguments, check_region_arguments, selection_from_args
+from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
 
 SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that replace the preset's SamplerSettings
 
@@ -74,6 +74,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                          f"{args.preset} with --stylizer {args.stylizer})")
     for lora in args.lora:
         check_lora(lora)
+    capture_cameras = load_cameras(args.cameras) if args.cameras else None
+    if capture_cameras is not None:  # before the models and the scene load
+        check_region_masks(args, capture_cameras.scaled(scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)
@@ -91,7 +94,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         prefetch_models(files, device, preset=args.preset, compile_blocks=args.compile, loras=args.lora,
                         progress=ProgressBar("models", "B"))
 
-    capture_cameras = load_cameras(args.cameras) if args.cameras else None
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                cameras=capture_cameras)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work

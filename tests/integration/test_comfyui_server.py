@@ -248,6 +248,9 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     # a key view twice: a zero-length segment of the path (loop returns to the first), as evaluate --views refuses
     ("Render Camera Path.key_views=0,1,1", "8", "Render Camera Path: input 'key_views': view 1 is given twice in "
      "'0,1,1'; give each view once", "custom_validation_failed"),
+    # ComfyUI makes an INT's 2.5 a silent 2 (int()); the pack refuses it, as it does one through a link
+    ("Render Camera Path.num_frames=2.5", "8", "Render Camera Path: input 'num_frames': expected a whole number, got "
+     "2.5", "custom_validation_failed"),
 ])
 def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy_server, override, node, expected,
                                                                             kind):
