@@ -172,3 +172,15 @@ def test_bucket_lengths_are_checked_against_the_count_before_any_array_of_their_
         finally:
             tracemalloc.stop()
         assert peak < 2**20, peak
+
+
+def test_bucket_centres_of_another_size_than_three_floats_are_refused(tmp_path):
+    """Found by fuzzing: a bucketStorageSizeBytes of 0 with a large bucketCount made the read of the bucket
+    centres (3 float32 each, as SplatBuffer.js reads them) run past the file: numpy's error named no file."""
+    data = bytearray(_level_1_file([1]))
+    struct.pack_into("<I", data, 4096 + 12, 1000)  # bucketCount
+    struct.pack_into("<H", data, 4096 + 20, 0)  # bucketStorageSizeBytes
+    path = tmp_path / "centres.ksplat"
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=r"centres\.ksplat: section 0: bucketStorageSizeBytes: 0, expected 12"):
+        read_ksplat(path)

@@ -52,6 +52,7 @@ _SECTION = struct.Struct("<IIIIfHxxIIIIH")
 _SH_VALUES = {0: 0, 1: 9, 2: 24}  # stored SH values per Gaussian by degree
 _DEFAULT_SCALE_RANGE = {0: 1, 1: 32767, 2: 32767}
 _DEFAULT_SH_RANGE = 1.5
+_BUCKET_BYTES = 12  # a bucket's centre at levels 1-2: 3 x float32
 
 
 def _record(level: int, degree: int) -> np.dtype:
@@ -128,6 +129,9 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
         rows = np.frombuffer(data, record, count, offset + meta + bucket_bytes * buckets)
         means = rows["center"].astype(np.float64)
         if level > 0:
+            if buckets and bucket_bytes != _BUCKET_BYTES:
+                raise ValueError(f"{path}: section {s}: bucketStorageSizeBytes: {bucket_bytes}, expected "
+                                 f"{_BUCKET_BYTES} (a bucket's centre, 3 float32)")
             section = {"full": full, "bucket_size": bucket_size,
                        "lengths": np.frombuffer(data, "<u4", partial, offset).astype(np.int64)}
             centres = np.frombuffer(data, "<f4", 3 * buckets, offset + meta).reshape(-1, 3).astype(np.float64)
