@@ -1,5 +1,6 @@
-"""Strict state-dict matching with readable errors, and building modules without random weights
-for a state dict to fill: shared by every weight loader."""
+"""Strict state-dict matching with readable errors (:func:`assign_strict` gives a module a state dict's
+tensors, every key checked), and building modules without random weights for a state dict to fill: shared
+by every weight loader."""
 
 from __future__ import annotations
 
@@ -31,14 +32,33 @@ def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str
     return text + (f", {len(wrong)} wrong shapes {wrong[:LISTED_KEYS]}" if wrong else "")
 
 
+def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: str) -> None:
+    """Make ``state``'s tensors ``model``'s (``load_state_dict(assign=True)``: no copy); every key must match
+    in name and shape, else ValueError starting with ``what`` and listing the missing, unexpected and
+    mis-shaped keys. Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
+    files) are ignored: the model computes them itself, and they follow the state's tensors to their device."""
+    expected = model.state_dict()
+    recomputed = {name for name, _ in model.named_buffers()} - set(expected)
+    state = {k: v for k, v in state.items() if k not in recomputed}
+    mismatch = state_dict_mismatch(expected, state)
+    if mismatch:
+        raise ValueError(f"{what} do not fit {type(model).__name__}: {mismatch}")
+    model.load_state_dict(state, assign=True)
+    device = next(iter(state.values())).device if state else None
+    for name in recomputed:
+        owner, _, buffer = name.rpartition(".")
+        module = model.get_submodule(owner)
+        module._buffers[buffer] = module._buffers[buffer].to(device)
+
+
 @contextmanager
 def parameters_on_meta() -> Iterator[None]:
     """Modules built inside this context get their parameters on the meta device: no memory and no
     random initialisation, for weights a file is about to replace (the :data:`UNINITIALISED` layers skip
     their ``reset_parameters``, which would only run on meta tensors). Buffers stay real (a model's
-    computed buffers, e.g. CLIP's position ids, keep their values). Fill them with
-    ``load_state_dict(state, assign=True)`` (as :func:`artnvg_core.diffusion.models.load_state_dict_strict`
-    does), which takes the state's tensors. The patches are the process's while the block runs."""
+    computed buffers, e.g. CLIP's position ids, keep their values). Fill them with :func:`assign_strict`
+    (``load_state_dict(state, assign=True)``), which takes the state's tensors. The patches are the process's
+    while the block runs."""
     register = torch.nn.Module.register_parameter
     resets = {layer: layer.__dict__["reset_parameters"] for layer in UNINITIALISED}
 

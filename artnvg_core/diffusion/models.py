@@ -42,7 +42,7 @@ from transformers import (
 )
 
 from ..progress import ProgressFn, StopFn, check_stop
-from ..statedict import parameters_on_meta, state_dict_mismatch
+from ..statedict import assign_strict, parameters_on_meta
 from ..tensor_files import read_tensors
 from .architectures import VIT_BIGG_IMAGE_ENCODER_CONFIG, controlnet_config_from_unet, transformers_config_kwargs
 from .csgo import CSGOProjections
@@ -102,27 +102,8 @@ def load_state_dict_strict(model: torch.nn.Module, path: Path, device: str | tor
     """Load the weight file at ``path`` into ``model`` (built in :func:`parameters_on_meta` or not), its
     tensors read straight onto ``device`` (:func:`~artnvg_core.tensor_files.read_tensors`; floating ones in
     ``dtype`` when given, else the file's); every key must match in name and shape
-    (:func:`assign_strict`)."""
+    (:func:`~artnvg_core.statedict.assign_strict`)."""
     assign_strict(model, read_tensors(path, device, dtype), f"weights '{path}'")
-
-
-def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: str) -> None:
-    """Make ``state``'s tensors ``model``'s (``load_state_dict(assign=True)``: no copy); every key must match
-    in name and shape, else ValueError starting with ``what`` and listing the missing, unexpected and
-    mis-shaped keys. Entries for the model's non-persistent buffers (e.g. CLIP ``position_ids`` in older
-    files) are ignored: the model computes them itself, and they follow the state's tensors to their device."""
-    expected = model.state_dict()
-    recomputed = {name for name, _ in model.named_buffers()} - set(expected)
-    state = {k: v for k, v in state.items() if k not in recomputed}
-    mismatch = state_dict_mismatch(expected, state)
-    if mismatch:
-        raise ValueError(f"{what} do not fit {type(model).__name__}: {mismatch}")
-    model.load_state_dict(state, assign=True)
-    device = next(iter(state.values())).device if state else None
-    for name in recomputed:
-        owner, _, buffer = name.rpartition(".")
-        module = model.get_submodule(owner)
-        module._buffers[buffer] = module._buffers[buffer].to(device)
 
 
 def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dtype) -> torch.nn.Module:
