@@ -18,6 +18,12 @@ def listed_keys(keys: list[str]) -> str:
     return f"[{', '.join(sorted(keys)[:LISTED_KEYS])}{f', ... ({more} more)' if more > 0 else ''}]"
 
 
+def is_state_dict(value) -> bool:
+    """True for a dict of names (str) to tensors, what ``torch.load`` of a weights file should give; a loader
+    refuses anything else (a list, a key that is no string, a value that is no tensor), naming the file."""
+    return isinstance(value, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in value.items())
+
+
 def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor]) -> str | None:
     """None when ``state`` has exactly the keys of ``expected``, each with the same shape;
     otherwise a message counting and listing the missing, unexpected and mis-shaped keys."""

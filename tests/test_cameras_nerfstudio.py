@@ -152,6 +152,17 @@ def test_nerfstudio_rejects_invalid_json_and_bad_dataparser_file(tmp_path):
         load_nerfstudio(path, dataparser_transforms=dp_path)
 
 
+def test_a_dataparser_translation_putting_cameras_beyond_range_is_named(tmp_path):
+    """Found by fuzzing: a dataparser_transforms.json translation beyond float32 was blamed on the
+    transforms.json's frame ('pose: values beyond float32's range'), not on the file that held it."""
+    path = write_transforms(tmp_path / "transforms.json", *random_capture(2))
+    dp_path = write_json(tmp_path / "dp.json", {"transform": [[1, 0, 0, 1e308], [0, 1, 0, 0], [0, 0, 1, 0]],
+                                                "scale": 1.0})
+    with pytest.raises(ValueError, match=r"dp\.json: 'transform' and 'scale' put frame 0 of .*transforms\.json at "
+                                         r"x: expected a finite number within \+-1e\+09"):
+        load_nerfstudio(path, dataparser_transforms=dp_path)
+
+
 def test_missing_or_unreadable_files_are_value_errors_naming_them(tmp_path):
     quats, trans = random_capture(2)
     path = write_transforms(tmp_path / "transforms.json", quats, trans)
@@ -229,6 +240,7 @@ def test_camera_positions_beyond_range_are_refused_at_load_naming_the_frame(tmp_
         load_nerfstudio(path)
     data["frames"][2]["transform_matrix"][1][3] = 2.0
     write_json(path, data)
-    with pytest.raises(ValueError, match=r"frame 0: pose: values beyond float32's range"):
+    with pytest.raises(ValueError, match=r"dataparser_transforms\.json: 'transform' and 'scale' put frame 0 of "
+                       r".*transforms\.json at x: expected a finite number within \+-1e\+09, got 3\.\d+e\+299"):
         load_nerfstudio(path, dataparser_transforms=write_json(
             tmp_path / "dataparser_transforms.json", {"transform": torch.eye(4)[:3].tolist(), "scale": 1e300}))

@@ -1,6 +1,7 @@
 """The extension dispatch of load_scene / save_scene, and the writers' shared refusals."""
 
 import os
+import re
 
 import pytest
 import torch
@@ -60,6 +61,27 @@ def test_float64_beyond_float32_is_refused_not_written_as_inf(tmp_path):
     with pytest.raises(ValueError, match=r"huge\.ply: not written: sh: 1 of 3 .*non-finite"):
         save_scene(scene, tmp_path / "huge.ply")
     assert torch.isfinite(scene.sh).all()
+
+
+def test_a_scene_whose_content_is_not_its_extensions_format_says_what_it_starts_with(tmp_path):
+    """A .splat renamed .ply was reported as a PLY header with no end_header in its first MiB."""
+    scene = random_scene(8, 0).select(slice(3, None))  # rows 0-2 exceed the .splat's and the .spz's ranges
+    for suffix in (".splat", ".spz", ".ply"):
+        save_scene(scene, tmp_path / f"scene{suffix}")
+    (tmp_path / "scene.splat").rename(tmp_path / "splat.ply")
+    (tmp_path / "scene.spz").rename(tmp_path / "spz.ply")
+    (tmp_path / "scene.ply").rename(tmp_path / "ply.spz")
+    (tmp_path / "empty.ply").write_bytes(b"")
+    for name, message in [
+            ("splat.ply", r"not a \.ply file \(it starts with bytes ([0-9a-f]{2} ){7}[0-9a-f]{2}, no format's signature; a "
+                          r"headerless antimatter15 \.splat or a \.ksplat cannot be recognized by its content: if it is "
+                          r"one, rename it \.splat or \.ksplat\)"),
+            ("spz.ply", r"not a \.ply file \(it starts with bytes 1f 8b .*: a gzip stream, as an SPZ file of version 1-3\); "
+                        r"rename it \.spz"),
+            ("ply.spz", r"not a \.spz file \(it starts with bytes 70 6c 79 0a .*: a PLY header\); rename it \.ply"),
+            ("empty.ply", r"not a \.ply file \(it is empty, no format's signature;")]:
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(tmp_path / name))}: {message}"):
+            load_scene(tmp_path / name)
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")

@@ -237,6 +237,18 @@ def test_unreadable_weights_file_is_a_value_error_naming_it(tmp_path, name):
         VGGFeatures("vgg16", path)
 
 
+@pytest.mark.parametrize("edit", [lambda state: state.update({1: torch.zeros(1)}),
+                                  lambda state: state.update({"features.0.weight": [0.0]})], ids=["int key", "list"])
+def test_a_torch_file_that_is_no_state_dict_is_refused_naming_it(tmp_path, edit):
+    """Found probing weight files with hostile pickles: a key other than a string ('int' object has no attribute
+    'startswith') or a value other than a tensor ('list' object has no attribute 'shape') escaped as AttributeError."""
+    state = random_vgg16_state()
+    edit(state)
+    torch.save(state, tmp_path / "odd.pth")
+    with pytest.raises(ValueError, match=r"odd\.pth: not a state dict \(a mapping of names to tensors\)"):
+        VGGFeatures("vgg16", tmp_path / "odd.pth")
+
+
 @pytest.mark.parametrize("size", [(1, 1), (2, 2), (3, 3), (2, 300), (300, 1), (4, 4)])
 def test_images_smaller_than_the_pools_are_enlarged_first(size):
     """relu3_1 lies after 2 max-pools, so needs 4 px a side: smaller sides are enlarged (bilinear)."""

@@ -106,6 +106,17 @@ def test_loader_errors_name_what_is_missing(tmp_path, monkeypatch):
         load_clip_image_encoder(tmp_path)
 
 
+@pytest.mark.parametrize("content", [[torch.zeros(1)], {"vision_model.x": torch.zeros(1), 5: torch.zeros(1)}],
+                         ids=["list", "int key"])
+def test_a_torch_file_that_is_no_state_dict_is_refused_naming_it(clip_folder, tmp_path, content):
+    """Found probing weight files with hostile pickles: a list ('list' object has no attribute 'items') or a key
+    other than a string escaped as AttributeError."""
+    (tmp_path / "config.json").write_text((clip_folder / "config.json").read_text())
+    torch.save(content, tmp_path / "pytorch_model.bin")
+    with pytest.raises(ValueError, match=r"pytorch_model\.bin: not a state dict \(a mapping of names to tensors\)"):
+        load_clip_image_encoder(tmp_path)
+
+
 def test_loader_rejects_weights_of_another_shape(clip_folder, tmp_path):
     import shutil
 

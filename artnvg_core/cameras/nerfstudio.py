@@ -235,6 +235,15 @@ def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.T
     raise AssertionError("_check_frames found nothing wrong with frames the bulk check refused")
 
 
+def _check_positions(cam_to_world: torch.Tensor, where) -> None:
+    """ValueError naming ``where(index, axis)`` ("x", "y" or "z") of the first camera of ``cam_to_world``
+    [C, 4, 4] whose position lies beyond :data:`MAX_CAMERA_VALUE` (or is not finite)."""
+    far = (~(cam_to_world[:, :3, 3].abs() <= MAX_CAMERA_VALUE)).nonzero()
+    if len(far):
+        index, axis = far[0].tolist()
+        check_camera_value(cam_to_world[index, axis, 3].item(), where(index, "xyz"[axis]))
+
+
 def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     """Cameras of a nerfstudio ``transforms.json``, in file order.
 
@@ -282,16 +291,15 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
     cam_to_world = _matrices(poses, matrix_of)
     _check_affine(cam_to_world, matrix_of)
     check_rotation(cam_to_world[:, :3, :3], matrix_of)
-    far = (cam_to_world[:, :3, 3].abs() > MAX_CAMERA_VALUE).nonzero()
-    if len(far):
-        index, axis = far[0].tolist()
-        check_camera_value(cam_to_world[index, axis, 3].item(),
-                           f"{matrix_of(index)}: the camera position's {'xyz'[axis]}")
+    _check_positions(cam_to_world, lambda index, axis: f"{matrix_of(index)}: the camera position's {axis}")
     cam_to_world = cam_to_world @ _FLIP_YZ
     if dataparser_transforms is not None:
-        transform, scale = _dataparser_rigid_transform(Path(dataparser_transforms), meta, path)
+        dataparser = Path(dataparser_transforms)
+        transform, scale = _dataparser_rigid_transform(dataparser, meta, path)
         cam_to_world = transform @ cam_to_world
         cam_to_world[:, :3, 3] *= scale
+        _check_positions(cam_to_world, lambda index, axis: f"{dataparser}: 'transform' and 'scale' put frame {index} "
+                                                           f"of {path} at {axis}")
     world_to_cam = rigid_inverse(cam_to_world)
     return loaded_camera_set(world_to_cam, intrinsics, width, height, view_names(names, path), image_paths,
                              lambda index: f"{path}: frame {index}")

@@ -36,6 +36,11 @@ SCENE_SUFFIXES = tuple(READERS)
 SPZ_AXES = spz.AXES
 SPZ_VERSIONS = spz.WRITTEN_VERSIONS
 SAVE_SUFFIXES = tuple(WRITERS)
+# The first bytes that tell a format whatever a file's extension: (signature, extension, what starts so). A
+# .splat (headerless), a .ksplat (a small version number) and a .ckpt (a zip archive or a pickle) have none.
+SIGNATURES = ((b"ply", ".ply", "a PLY header"),
+              (b"\x1f\x8b", ".spz", "a gzip stream, as an SPZ file of version 1-3"),
+              (b"NGSP", ".spz", "'NGSP', as an SPZ file of version 4"))
 _DESCRIBED = ".ply (INRIA 3DGS or compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)"
 
 
@@ -58,14 +63,35 @@ def check_scene_path(path: str | os.PathLike) -> Path:
     return path
 
 
+def check_scene_content(path: Path) -> None:
+    """ValueError naming ``path`` when its extension's format starts with a signature (:data:`SIGNATURES`; a PLY,
+    an SPZ) and the file does not: it says what the file starts with, and the extension to give it where that is
+    another format's signature."""
+    suffix = path.suffix.lower()
+    if not any(extension == suffix for _, extension, _ in SIGNATURES):
+        return
+    with open(path, "rb") as stream:
+        head = stream.read(8)
+    found = next(((extension, what) for signature, extension, what in SIGNATURES if head.startswith(signature)), None)
+    if found is not None and found[0] == suffix:
+        return
+    start = f"it starts with bytes {head.hex(' ')}" if head else "it is empty"
+    if found is not None:
+        raise ValueError(f"{path}: not a {suffix} file ({start}: {found[1]}); rename it {found[0]}")
+    raise ValueError(f"{path}: not a {suffix} file ({start}, no format's signature; a headerless antimatter15 .splat "
+                     "or a .ksplat cannot be recognized by its content: if it is one, rename it .splat or .ksplat)")
+
+
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
                cameras: CameraSet | None = None) -> GaussianScene:
-    """Read a Gaussian scene, the reader chosen by the file's extension (any case; :func:`check_scene_path`).
+    """Read a Gaussian scene, the reader chosen by the file's extension (any case; :func:`check_scene_path`),
+    whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
     puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
     :mod:`.spz`)."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
+    check_scene_content(path)
     reader = READERS[path.suffix.lower()]
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras)

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import MissingModelError, ModelSource, locate
+from ..statedict import is_state_dict
 
 CLIP_VIT_L = ModelSource("CLIP ViT-L/14 image encoder (transformers folder with config.json)",
                          "openai/clip-vit-large-patch14")
@@ -61,6 +62,8 @@ def _vision_state(folder: Path) -> dict[str, torch.Tensor]:
             state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # safetensors / pickle raise many types on corrupt files
         raise ValueError(f"{path}: not a readable weights file ({type(error).__name__}: {error})") from error
+    if not is_state_dict(state):
+        raise ValueError(f"{path}: not a state dict (a mapping of names to tensors)")
     return {key: value for key, value in state.items() if key.startswith(_VISION_PREFIXES)}
 
 

@@ -30,7 +30,7 @@ from torch import nn
 
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import ModelSource, locate
-from ..statedict import state_dict_mismatch
+from ..statedict import is_state_dict, state_dict_mismatch
 from ..tensor_files import load_failure
 
 CSD_WEIGHTS = ModelSource("CSD style descriptor weights (ViT-L/14)", "tomg-group-umd/CSD-ViT-L", "pytorch_model.bin")
@@ -141,8 +141,7 @@ def _read_state(path: Path) -> dict:
         raise ValueError(f"{path}: not a loadable CSD checkpoint ({load_failure(error)})") from error
     if isinstance(checkpoint, dict) and isinstance(checkpoint.get("model_state_dict"), dict):
         checkpoint = checkpoint["model_state_dict"]
-    if not isinstance(checkpoint, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
-                                                   for k, v in checkpoint.items()):
+    if not is_state_dict(checkpoint):
         raise ValueError(f"{path}: expected a state dict (names to tensors) or a dict with 'model_state_dict'")
     return checkpoint
 
