@@ -32,6 +32,7 @@ from pathlib import Path
 import torch
 
 from .json_objects import JsonObject
+from .statedict import is_state_dict
 
 SAFETENSORS_DTYPES = {
     "F64": torch.float64, "F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16,
@@ -47,11 +48,12 @@ def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
                  dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
     """The tensors of the ``.safetensors`` or ``torch.save`` file at ``path``, on ``device``; floating-point
     tensors converted to ``dtype`` there when given (others keep theirs). A malformed ``.safetensors``
-    header is a ValueError naming the file and what is wrong."""
+    header, a ``torch.save`` file that torch cannot load or that holds anything but names to tensors, is a
+    ValueError naming the file and what is wrong."""
     path, device = Path(path), torch.device(device)
     tensors = _taken_early(path, device)
     if tensors is None:
-        tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else read_torch_file(path, device)
+        tensors = read_safetensors(path, device) if path.suffix == ".safetensors" else _read_state_dict(path, device)
     return tensors if dtype is None else {k: _cast(v, dtype) for k, v in tensors.items()}
 
 
@@ -136,6 +138,18 @@ def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu")
     return torch.load(path, map_location=device, weights_only=True,
                       mmap=device.type != "cpu" and zipfile.is_zipfile(path))
 
+
+
+def _read_state_dict(path: Path, device: torch.device) -> dict[str, torch.Tensor]:
+    """:func:`read_torch_file` of a weights file: ValueError naming ``path`` when torch cannot load it or it
+    holds anything but names to tensors."""
+    try:
+        state = read_torch_file(path, device)
+    except Exception as error:  # torch.load raises many types on corrupt or foreign files
+        raise ValueError(f"weights '{path}': not a readable torch file ({load_failure(error)})") from error
+    if not is_state_dict(state):
+        raise ValueError(f"weights '{path}': not a state dict (a mapping of names to tensors)")
+    return state
 
 
 def load_failure(error: Exception) -> str:

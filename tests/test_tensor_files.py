@@ -61,6 +61,21 @@ def test_torch_save_files_are_read_too(tmp_path):
 
 
 
+@pytest.mark.parametrize("content", [b"PK\x03\x04", b"\x80\x02garbage", [torch.zeros(1)], {1: torch.zeros(1)}],
+                         ids=["truncated zip", "garbage pickle", "a list", "an int key"])
+def test_a_torch_file_that_is_no_readable_state_dict_is_refused_naming_it(tmp_path, content):
+    """Found by fuzzing weight files: torch.load's own errors (RuntimeError, UnpicklingError, EOFError, a
+    UnicodeDecodeError naming no file ...) escaped read_tensors, and a pickle of something other than names to
+    tensors went on to the loaders."""
+    path = tmp_path / "model.bin"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save(content, path)
+    with pytest.raises(ValueError, match=r"weights '.*model\.bin': not a (readable torch file \(.+\)|state dict)"):
+        read_tensors(path)
+
+
 def test_a_load_failure_is_said_in_the_projects_words_when_weights_only_refuses(tmp_path):
     torch.save({"note": Fraction(1, 3)}, tmp_path / "objects.pt")
     with pytest.raises(Exception) as refused:  # torch's text: the pickle's names, and advice to run its code
