@@ -14,6 +14,8 @@ views of a group are the latent batch: every chunk of the batch holds all of the
   :class:`ControlNetCall` as its model's ``forward`` (ComfyUI hands it the options as an extra condition)
   and :class:`ControlNetAttention` in place of each patched attention module: object patches of the
   ControlNet's own ModelPatcher, applied while it is loaded (:func:`patch_controlnet`).
+* :func:`diffusion_unet` and :func:`controlnet_model`: the UNet of a MODEL and the control model of a
+  CONTROL_NET that the patches go on, checked (a NodeInputError naming the node's input otherwise).
 * :class:`OneSampleAtATime` (low VRAM): a transformer block's feed-forward run one sample at a time, an
   object patch of the UNet's or the ControlNet's ModelPatcher (:func:`feed_forward_one_sample_at_a_time`).
 
@@ -32,6 +34,8 @@ import torch.nn.functional as F
 from artnvg_core.diffusion.attention_math import decoupled_attention, neighbour_view_attention
 from artnvg_core.diffusion.csgo import ImageTokens
 from artnvg_core.grouping import nearest_views
+
+from .node_errors import NodeInputError
 
 VIEW_CENTERS = "artnvg_view_centers"  # transformer_options key: camera centres [N, 3] of the batch's views
 CONTENT_TOKENS = "artnvg_content_tokens"  # transformer_options key: ImageTokens [N, Q, D] of the views
@@ -172,6 +176,27 @@ def _diffusers_block(block: str, number: int, per_level: int) -> str:
         return f"down_blocks.{level}.attentions.{index}"
     level, index = divmod(number, per_level + 1)
     return f"up_blocks.{level}.attentions.{index}"
+
+
+def diffusion_unet(node: str, model) -> torch.nn.Module:
+    """The UNet of ComfyUI MODEL ``model`` (SD 1.x/2.x/SDXL: input, middle and output blocks); NodeInputError
+    naming input 'model' for any other architecture."""
+    unet = model.get_model_object("diffusion_model")
+    if not all(hasattr(unet, name) for name in ("input_blocks", "middle_block", "output_blocks", "num_res_blocks")):
+        raise NodeInputError(f"{node}: input 'model': a {type(unet).__name__} model; expected a UNet checkpoint "
+                             "(SDXL for the ArtNVG method) from Load Checkpoint")
+    return unet
+
+
+def controlnet_model(node: str, control_net) -> torch.nn.Module:
+    """The control model of ComfyUI CONTROL_NET ``control_net`` (a ControlNet with a hint encoder, as Load
+    ControlNet Model gives); NodeInputError naming input 'control_net' for anything else (a T2I-Adapter, a
+    Control-LoRA, another type)."""
+    control_model = getattr(control_net, "control_model", None)
+    if control_model is None or not hasattr(control_model, "input_hint_block"):
+        raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
+                             "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
+    return control_model
 
 
 def transformer_layers(model: torch.nn.Module) -> list[TransformerLayer]:

@@ -23,11 +23,12 @@ from .comfy_patches import (
     CSGO_STATE,
     VIEW_CENTERS,
     NeighbourViewPatch,
+    controlnet_model,
+    diffusion_unet,
     feed_forward_one_sample_at_a_time,
     patch_controlnet,
     transformer_layers,
 )
-from .model_patch_nodes import controlnet_model, diffusion_unet
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import GROUPS, IMAGE

@@ -24,6 +24,8 @@ from .comfy_patches import (
     CSGOState,
     ImageTokenPatch,
     NeighbourViewPatch,
+    controlnet_model,
+    diffusion_unet,
     patch_controlnet,
     transformer_layers,
 )
@@ -41,27 +43,6 @@ IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter: `hf download h94/IP
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
 _log = logging.getLogger("artnvg")
-
-
-def diffusion_unet(node: str, model) -> torch.nn.Module:
-    """The UNet of ComfyUI MODEL ``model`` (SD 1.x/2.x/SDXL: input, middle and output blocks); NodeInputError
-    naming input 'model' for any other architecture."""
-    unet = model.get_model_object("diffusion_model")
-    if not all(hasattr(unet, name) for name in ("input_blocks", "middle_block", "output_blocks", "num_res_blocks")):
-        raise NodeInputError(f"{node}: input 'model': a {type(unet).__name__} model; expected a UNet checkpoint "
-                             "(SDXL for the ArtNVG method) from Load Checkpoint")
-    return unet
-
-
-def controlnet_model(node: str, control_net) -> torch.nn.Module:
-    """The control model of ComfyUI CONTROL_NET ``control_net`` (a ControlNet with a hint encoder, as Load
-    ControlNet Model gives); NodeInputError naming input 'control_net' for anything else (a T2I-Adapter, a
-    Control-LoRA, another type)."""
-    control_model = getattr(control_net, "control_model", None)
-    if control_model is None or not hasattr(control_model, "input_hint_block"):
-        raise NodeInputError(f"{node}: input 'control_net': a {type(control_model or control_net).__name__}; "
-                             "expected an SDXL ControlNet (the TTPlanet tile ControlNet) from Load ControlNet Model")
-    return control_model
 
 
 class NVAttentionPatch(ArtNVGNode):

@@ -87,13 +87,26 @@ def test_outputs_checked_before_loading(tmp_path, capsys, command):
     (tmp_path / "taken.contact.png").mkdir()
     cases = [("", "the output (path|folder) is empty"), (tmp_path / "file" / "x.ply", "file is a file, not a folder")]
     cases += [(tmp_path / "file", "exists and is not a folder")] if command == "render" else [
-        (tmp_path, "is a folder"), (tmp_path / "taken.ply", r"\(its contact sheet\): .* is a folder")]
+        (tmp_path, "a scene file name is wanted"), (tmp_path / "taken.ply", r"\(its contact sheet\): .* is a folder")]
     style = ["--style", str(demo.style)] if command == "stylize" else []
     for out, message in cases:
         code = main([command, str(demo.scene), "--cameras", str(demo.cameras), *style, "--out", str(out), "--device", "cpu"])
         captured = capsys.readouterr()
         assert code == 2 and re.search("error: --out.*" + message, captured.err) and "loading" not in captured.out, captured
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken.contact.png"]
+
+
+@pytest.mark.parametrize("command", ["stylize", "blend"])
+def test_a_folder_given_as_out_is_told_a_scene_file_name_is_wanted(tmp_path, capsys, command):
+    """'--out o2/' once said "cannot write scene file type ''"."""
+    demo = DemoInputs()
+    inputs = ["--style", str(demo.style)] if command == "stylize" else [str(demo.scene), "--strength", "1"]
+    assert main([command, str(demo.scene), *inputs, "--out", f"{tmp_path / 'o2'}/"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == (f"error: --out: {tmp_path / 'o2'}/: a scene file name is wanted, ending in one of .ply, "
+                            f".spz, .splat, .ksplat (e.g. {tmp_path / 'o2.ply'}, or {tmp_path / 'o2' / 'NAME.ply'} in "
+                            f"folder {tmp_path / 'o2'})\n")
+    assert "loading" not in captured.out and list(tmp_path.iterdir()) == []
 
 
 def test_a_scene_type_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys):

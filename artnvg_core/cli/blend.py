@@ -19,7 +19,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     from ..fileio import check_output_file, refuse_overwrites
     from ..formats import save_scene, writable_scene_path
 
-    out = writable_scene_path(check_output_file(args.out, "--out"), "--out")
+    out = check_output_file(writable_scene_path(args.out, "--out"), "--out")  # the extension first: "out/" is named as no file name
     refuse_overwrites([("--out", out)], [("ORIGINAL", args.original), ("STYLIZED", args.stylized)])
     check_region_arguments(args)
     cameras = load_cameras(args.cameras) if args.cameras else None

@@ -61,7 +61,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         raise ValueError(f"--preset {args.preset} runs without diffusion: use --stylizer nnfm (or auto), or "
                          "another preset")
     scale = args.scale if args.scale is not None else (preset.scale if diffusion_free else 0.25 if demo else 1.0)
-    out = writable_scene_path(check_output_file(args.out, "--out"), "--out")
+    out = check_output_file(writable_scene_path(args.out, "--out"), "--out")  # the extension first: "out/" is named as no file name
     sheet = check_output_file(sheet_path(out), "--out (its contact sheet)")
     refuse_overwrites([("--out", out), ("--out's contact sheet", sheet)],
                       [("SCENE", args.scene), ("--style", args.style), ("--cameras", args.cameras)])

@@ -100,10 +100,16 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
 
 def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> Path:
     """``path`` when its extension (any case) names a format :func:`save_scene` writes, checked before
-    any work; otherwise a ValueError naming ``path`` (after ``option``, e.g. ``--out``, when given)."""
+    any work; otherwise a ValueError naming ``path`` (after ``option``, e.g. ``--out``, when given) and the
+    extensions written (a path without one, such as a folder's, is told that a file name is wanted)."""
+    where = f"{option + ': ' if option else ''}{os.fspath(path) or 'the output path is empty'}"
     path = Path(path)
+    if not path.suffix:  # a folder ("out/" reads as "out") or a name without its extension
+        example = f"{path.with_suffix('.ply')}, or {path / 'NAME.ply'} in folder {path}" if path.name else "out.ply"
+        raise ValueError(f"{where}: a scene file name is wanted, ending in one of {', '.join(SAVE_SUFFIXES)} "
+                         f"(e.g. {example})")
     if path.suffix.lower() not in WRITERS:
-        raise ValueError(f"{option + ': ' if option else ''}{path}: cannot write scene file type {path.suffix!r}; "
+        raise ValueError(f"{where}: cannot write scene file type {path.suffix!r}; "
                          f"expected one of {', '.join(SAVE_SUFFIXES)}")
     return path
 
