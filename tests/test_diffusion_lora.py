@@ -98,6 +98,20 @@ def test_a_file_that_is_not_a_lora_is_refused_naming_it(tmp_path, sdxl):
             load_sdxl(folder, dtype=torch.float32, loras=(LoRA(path),))
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_a_lora_holding_non_finite_values_is_refused_naming_the_tensor(tmp_path, value):
+    """Found probing LoRA files: a NaN or an infinity in a LoRA was fused into the weights silently (every image
+    of the run would have come out NaN)."""
+    pytest.importorskip("peft")
+    path = tmp_path / "nan.safetensors"
+    up = torch.zeros(4, 2)
+    up[1, 1] = value
+    save_file({"lora_unet_x.lora_down.weight": torch.zeros(2, 4), "lora_unet_x.lora_up.weight": up,
+               "lora_unet_x.alpha": torch.tensor(2.0)}, str(path))
+    with pytest.raises(LoRAError, match=f"LoRA '{path}': tensor 'lora_unet_x.lora_up.weight' holds NaN or infinite"):
+        check_lora(LoRA(path))
+
+
 def test_a_kohya_lora_adds_strength_times_its_delta_and_loras_stack(tmp_path, sdxl):
     folder, base, kohya, state = sdxl
     deltas = kohya_lora_deltas(base, state)

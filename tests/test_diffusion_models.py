@@ -324,6 +324,20 @@ def test_a_broken_config_beside_a_single_file_is_refused_naming_it(tmp_path, tex
             load(tmp_path / "model.safetensors")
 
 
+def test_a_broken_config_of_an_sdxl_folder_is_refused_naming_it_before_any_model_loads(tmp_path):
+    """Found probing the model files: a model_index.json that is no JSON object was read after the four models
+    had loaded (an empty component folder failed first, in transformers), and json's errors named no file."""
+    from artnvg_core.diffusion.model_files import SDXL_COMPONENTS
+
+    for name in SDXL_COMPONENTS:
+        (tmp_path / name).mkdir()
+    (tmp_path / "vae" / "config.json").write_text("{}")
+    (tmp_path / "scheduler" / "scheduler_config.json").write_text("{}")
+    (tmp_path / "model_index.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"model_index\.json: the model's config is a JSON list, not an object"):
+        load_sdxl(tmp_path)
+
+
 def test_load_everything_and_attach_csgo(tmp_path, sdxl_folder):
     folder, base = sdxl_folder
     controlnet = tiny_controlnet(base.unet)

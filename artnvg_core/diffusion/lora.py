@@ -58,8 +58,9 @@ def parse_lora(text: str) -> LoRA:
 
 def check_lora(lora: LoRA) -> None:
     """LoRAError naming the file unless it is a readable ``.safetensors`` whose every tensor is a LoRA's
-    (its name holds 'lora' or is an alpha), and unless PEFT, which applies it, is installed (the optional
-    ``lora`` extra); reads the header only."""
+    (its name holds 'lora' or is an alpha) and finite (a NaN fused into the weights makes every image NaN),
+    and unless PEFT, which applies it, is installed (the optional ``lora`` extra); reads each tensor once,
+    one at a time."""
     from safetensors import SafetensorError, safe_open
 
     where = f"LoRA '{lora.path}'"
@@ -73,12 +74,20 @@ def check_lora(lora: LoRA) -> None:
     try:
         with safe_open(os.fspath(lora.path), framework="pt") as file:
             names = list(file.keys())
+            foreign = [name for name in names if "lora" not in name.lower() and not name.endswith("alpha")]
+            if not names or foreign:
+                raise LoRAError(f"{where}: not a LoRA (tensors without 'lora' in their names, e.g. "
+                                f"{foreign[:3] if foreign else 'none at all'})")
+            not_finite = next((name for name in names if not _finite(file.get_tensor(name))), None)
     except (SafetensorError, OSError) as error:
         raise LoRAError(f"{where}: not a readable .safetensors file ({error})") from None
-    foreign = [name for name in names if "lora" not in name.lower() and not name.endswith("alpha")]
-    if not names or foreign:
-        raise LoRAError(f"{where}: not a LoRA (tensors without 'lora' in their names, e.g. "
-                         f"{foreign[:3] if foreign else 'none at all'})")
+    if not_finite is not None:
+        raise LoRAError(f"{where}: tensor '{not_finite}' holds NaN or infinite values")
+
+
+def _finite(tensor) -> bool:
+    """False for a floating-point tensor holding NaN or an infinity."""
+    return not tensor.is_floating_point() or bool(tensor.isfinite().all())
 
 
 def keep_peft_out() -> None:

@@ -113,12 +113,9 @@ def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dty
     return torch.nn.Module.to(model, device=device, dtype=dtype).eval()
 
 
-def _config_beside(path: Path) -> dict | None:
-    """The JSON object in the ``config.json`` beside the weight file ``path``, None when there is none;
-    ValueError naming it when it is not one (diffusers would take a list or a string for a Hub repository)."""
-    config = path.parent / "config.json"
-    if not config.is_file():
-        return None
+def _json_config(config: Path) -> dict:
+    """The JSON object in the config file ``config``; ValueError naming it when it is not one (diffusers would
+    take a list or a string for a Hub repository's name)."""
     try:
         data = json.loads(config.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
@@ -126,6 +123,12 @@ def _config_beside(path: Path) -> dict | None:
     if not isinstance(data, dict):
         raise ValueError(f"{config}: the model's config is a JSON {type(data).__name__}, not an object")
     return data
+
+
+def _config_beside(path: Path) -> dict | None:
+    """:func:`_json_config` of the ``config.json`` beside the weight file ``path``, None when there is none."""
+    config = path.parent / "config.json"
+    return _json_config(config) if config.is_file() else None
 
 
 def _weights_variant(folder: Path) -> str | None:
@@ -243,13 +246,12 @@ def load_sdxl(
     check_sdxl(path, config_dir)
     configs = contextlib.nullcontext(path) if path.is_dir() else _config_folder(config_dir)
     with configs as folder, sdxl_loading_notices_silenced():
-        vae_config = json.loads((folder / "vae" / "config.json").read_text())
+        vae_config, scheduler_config, index = (_json_config(folder / name) for name in (
+            "vae/config.json", "scheduler/scheduler_config.json", "model_index.json"))  # before any model loads
         vae_dtype = _vae_dtype(vae_config.get("force_upcast", True), dtype)
         models = (_sdxl_models_from_folder(path, dtype, vae_dtype, device) if path.is_dir()
                   else _sdxl_models_from_file(path, folder, dtype, vae_dtype, device))
         tokenizers = {name: CLIPTokenizer.from_pretrained(folder / name) for name in ("tokenizer", "tokenizer_2")}
-        scheduler_config = json.loads((folder / "scheduler" / "scheduler_config.json").read_text())
-        index = json.loads((folder / "model_index.json").read_text())
     base = SDXLBase(**models, **tokenizers, scheduler_config=scheduler_config,
                     force_zeros_for_empty_prompt=bool(index.get("force_zeros_for_empty_prompt", True)))
     fuse_loras(base, loras)
