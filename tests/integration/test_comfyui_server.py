@@ -141,8 +141,10 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
         comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm"))
     summary = queue.run_summary(entry)
     assert summary["status"] == "success", summary["error"]
-    progress = _finetune_progress(messages)  # 2 views rendered before the steps (one call), 3 steps, the 2 again
-    assert progress == [(2, 2), (1, 3), (2, 3), (3, 3), (2, 2)], progress
+    # 2 views rendered before the steps (one call, the bar shown as it starts), their content features, 3 steps,
+    # the 2 views again
+    progress = _finetune_progress(messages)
+    assert progress == [(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (0, 2), (2, 2)], progress
     saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
     assert len(saved) == 1 and saved[0]["type"] == "output"
     path = comfy_server.output_dir / saved[0]["file"]
