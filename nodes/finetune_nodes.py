@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from artnvg_core.counted import counted
 from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, check_stylized_views, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
 from artnvg_core.presets import PRESETS
@@ -23,11 +24,11 @@ from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
 _DEFAULTS = FinetuneConfig()
 _PREVIEW = PRESETS["preview"]
 PRESET_CHOICES = ("custom", "preview")
-STAGES = {"region": "measuring what the selection covers in the {} views",
-          "setup": "rendering the {} views before finetuning",
-          "features": "computing the VGG features of the {} views for the content term",
-          "steps": "finetuning: {} steps",
-          "final": "rendering the {} finetuned views for the colour match"}
+STAGES = {"region": "measuring what the selection covers in the {views}",
+          "setup": "rendering the {views} before finetuning",
+          "features": "computing the VGG features of the {views} for the content term",
+          "steps": "finetuning: {steps}",
+          "final": "rendering the {finetuned} for the colour match"}
 
 
 def staged_progress():
@@ -43,7 +44,9 @@ def staged_progress():
         stage = info.get("stage", "steps")
         if stage != shown:
             shown = stage
-            progress_text(f"Finetune Gaussians: {STAGES[stage].format(total)}")
+            counts = {"views": counted(total, "view"), "steps": counted(total, "step"),
+                      "finetuned": counted(total, "finetuned view")}
+            progress_text(f"Finetune Gaussians: {STAGES[stage].format(**counts)}")
         report(step, total, info)
 
     return staged

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from artnvg_core.counted import counted
 from artnvg_core.fileio import check_output_folder, check_output_name
 from artnvg_core.formats import (
     SAVE_SUFFIXES,
@@ -97,7 +98,7 @@ def _next_free_path(filename_prefix: str, suffix: str) -> Path:
 
 def saved_text(name: str, size: int, gaussians: int) -> str:
     """What Save Gaussian Scene shows under itself: the file (inside the output folder), its size, its Gaussians."""
-    return f"wrote output/{name} ({size / 1e6:.1f} MB, {gaussians:,} Gaussians)"
+    return f"wrote output/{name} ({size / 1e6:.1f} MB, {counted(gaussians, 'Gaussian')})"
 
 
 SPZ_VERSION_CHOICES = [str(v) for v in sorted(SPZ_VERSIONS, reverse=True)]  # "3", the default, first

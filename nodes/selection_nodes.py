@@ -6,6 +6,7 @@ import torch
 
 from artnvg_core.cameras.framing import scene_frame
 from artnvg_core.cameras.selection import listed_views, parse_views
+from artnvg_core.counted import counted
 from artnvg_core.selection import parse_region, select_by_masks, select_region
 
 from .comfy_bridge import (
@@ -88,7 +89,7 @@ class SelectGaussians(ArtNVGNode):
                                             masks.clone().to(device), progress=progress_bar(),
                                             should_stop=interrupt_requested).cpu()
         count = int(selection.sum())
-        progress_text(f"selected {count:,} of {len(scene):,} Gaussians")
+        progress_text(f"selected {count:,} of {counted(len(scene), 'Gaussian')}")
         with node_input(self.DISPLAY_NAME, "bounds" if mode != "mask" else "mask"):
             if count == 0:
                 raise ValueError(f"selects no Gaussian of the scene; {_where_to_look(scene, mode, masks=mask)}")

@@ -24,6 +24,9 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     views = [line for line in lines if line.startswith("[")]
     assert [line.split("]")[0] + "]" for line in views] == ["[1/3]", "[2/3]", "[3/3]"]
     assert len(list((tmp_path / "out").glob("*.png"))) == 3
+    assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path / "one"), "--views", "0",
+                 "--scale", "0.1", "--device", "cpu"]) == 0
+    assert capsys.readouterr().out.splitlines()[2].startswith("rendering 1 view at ")  # was "1 views"
 
 
 def _small_scene(tmp_path):

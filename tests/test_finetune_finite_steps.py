@@ -121,7 +121,7 @@ def test_a_non_finite_loss_or_a_skipped_step_changes_nothing(fused, caplog):
         adam.summary()
     assert [r.message for r in caplog.records] == [
         "test: step 2: the loss is not finite (l1 nan, tv 0.5); the step is skipped",
-        "test: 1 steps skipped for a non-finite loss (first at step 2)"]
+        "test: 1 step skipped for a non-finite loss (first at step 2)"]
 
 
 def test_the_warmups_are_the_launches_of_the_fused_step(monkeypatch):

@@ -328,7 +328,7 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
     assert messages[0] == ("finetune: step 1: 2 Gaussians have non-finite (or >= 1e+18) gradients (3, 7); "
                            "they keep their last finite values this step")
     assert messages[1].startswith("finetune: step 2: the loss is not finite (nnfm nan, content nan")
-    assert messages[2:] == ["finetune: 1 steps skipped for a non-finite loss (first at step 2)",
+    assert messages[2:] == ["finetune: 1 step skipped for a non-finite loss (first at step 2)",
                             "finetune: 3 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (3, 7)"]
     for name, value in result.tensors().items():
         assert torch.isfinite(value).all(), name

@@ -298,3 +298,4 @@ def test_finetune_of_a_selection_names_its_coverage_pass_under_the_node(comfy):
                                      0.0, 0, selection=selection)
     assert comfy.bars == [[(0, 2), (1, 2), (2, 2), (0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (1, 1), (0, 2), (2, 2)]]
     assert comfy.texts[0] == ("Finetune Gaussians: measuring what the selection covers in the 2 views", "7")
+    assert ("Finetune Gaussians: finetuning: 1 step", "7") in comfy.texts  # was "1 steps"

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
 from .common import terminate_as_interrupt
@@ -234,7 +235,8 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     # the terminate handler goes in after Ray's (ray.init sets one that exits mid-call, with a C stack)
     with ray_session(devices, args.ray_address, needed_by="batch") as workers, terminate_as_interrupt() as terminated:
         place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
-        print(f"batch: {len(jobs)} jobs on {workers.count} {workers.kind} workers{place}", flush=True)
+        print(f"batch: {counted(len(jobs), 'job')} on {counted(workers.count, f'{workers.kind} worker')}{place}",
+              flush=True)
         bar = tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True)
 
         def report(kind: str, job: Job, detail) -> None:

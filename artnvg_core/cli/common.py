@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ..counted import counted
+
 if TYPE_CHECKING:
     from ..cameras import CameraSet
     from ..scene import GaussianScene
@@ -117,7 +119,7 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
         if is_out_of_memory(error):
             error.advice = f"{path} needs more memory to load than is free on {device}"
         raise
-    print(f"loaded {len(scene):,} Gaussians (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
+    print(f"loaded {counted(len(scene), 'Gaussian')} (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
           flush=True)
     return scene
 

@@ -29,6 +29,7 @@ import torch
 
 from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
 from ..cameras.selection import parse_views
+from ..counted import counted
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
@@ -143,7 +144,7 @@ def _warp_entry(stylized: torch.Tensor, original: RenderOutput, cameras: CameraS
     for label, step in (("short", 1), ("long", args.long_step)):
         for key, images in (("stylized", stylized), ("floor", original.rgb)):
             if step >= len(cameras):
-                entry[key][label] = {"step": step, "skipped": f"needs more than {step} views"}
+                entry[key][label] = {"step": step, "skipped": f"needs more than {counted(step, 'view')}"}
                 continue
             result = warp_consistency(images, original.depth, original.alpha, cameras, step=step, **settings,
                                       progress=ProgressBar(f"warp step {step} ({key})")).to_dict()
@@ -261,7 +262,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, scoring)
     csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, scoring)
     prepare_rasterizer(device)
-    print(f"evaluating {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
+    print(f"evaluating {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height} on {device}")
 
     original = render_views(original_scene, cameras, depth=True, progress=ProgressBar("render original views"))
     if path is not None:
@@ -269,11 +270,11 @@ def run_evaluate(args: argparse.Namespace) -> dict:
         stylized = render_views(stylized_scene, cameras, progress=ProgressBar("render stylized views")).rgb
         frames = (render_views(original_scene, path, progress=ProgressBar("render original path")).rgb,
                   render_views(stylized_scene, path, progress=ProgressBar("render stylized path")).rgb)
-        sequence = f"{args.path} path, {len(path)} frames"
+        sequence = f"{args.path} path, {counted(len(path), 'frame')}"
     else:  # 2D stylized views: the views themselves are the sequence
         stylized = load_view_images(Path(args.stylized_images), cameras).to(device)
         frames = (original.rgb, stylized)
-        sequence = f"evaluated views, {len(cameras)} frames"
+        sequence = f"evaluated views, {counted(len(cameras), 'frame')}"
     original = RenderOutput(original.rgb.to(scoring), original.alpha.to(scoring), original.depth.to(scoring))
     stylized, frames = stylized.to(scoring), tuple(frame.to(scoring) for frame in frames)
 

@@ -15,6 +15,7 @@ from typing import NoReturn
 import torch
 
 from ..cameras.selection import parse_views
+from ..counted import counted
 from ..devices import DEVICE_CHOICES
 from ..diffusion.lora import keep_peft_out
 from .batch import add_batch_command
@@ -77,7 +78,7 @@ def cmd_render(args: argparse.Namespace) -> None:
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
     out_dir.mkdir(parents=True, exist_ok=True)
     prepare_rasterizer(device, args.backend)
-    print(f"rendering {len(cameras)} views at {cameras.width}x{cameras.height} on {device}")
+    print(f"rendering {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height} on {device}")
     for i in range(len(cameras)):
         view = cameras.subset([i])
         start = time.perf_counter()

@@ -12,6 +12,7 @@ import torch
 
 from ..cameras.camera_set import MAX_IMAGE_SIDE
 from ..cameras.framing import parse_up
+from ..counted import counted
 from ..devices import device_for
 
 if TYPE_CHECKING:
@@ -164,6 +165,6 @@ def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet
     width, height = args.orbit_size
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
                             around=args.orbit_around)
-    print(f"no --cameras: {len(cameras)} views orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
+    print(f"no --cameras: {counted(len(cameras), 'view')} orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
           flush=True)
     return cameras

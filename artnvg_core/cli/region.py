@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from ..counted import counted
+
 if TYPE_CHECKING:
     from ..cameras import CameraSet
     from ..scene import GaussianScene
@@ -93,5 +95,5 @@ def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras:
     count = int(selection.sum())
     if count == 0:
         raise ValueError(f"--region{'-mask' if args.region_mask else ''}: selects no Gaussian of the scene")
-    print(f"region: {count:,} of {len(scene):,} Gaussians selected", flush=True)
+    print(f"region: {count:,} of {counted(len(scene), 'Gaussian')} selected", flush=True)
     return selection

@@ -13,6 +13,7 @@ import time
 
 import torch
 
+from ..counted import counted
 from ..devices import DEVICE_CHOICES
 from ..diffusion.csgo import CONTENT_ROUTINGS
 from ..diffusion.lora import LoRAError, check_lora, parse_lora
@@ -119,10 +120,10 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     changes = {name: getattr(args, name) for name in SAMPLER_OPTIONS if getattr(args, name) is not None}
     key_views = preset.key_views if args.key_views is None else args.key_views
     described = (f"; preset {args.preset}: {preset.summary}" + "".join(f"; {k} {v}" for k, v in changes.items())
-                 + (f"; {key_views} key views" if key_views else ""))
+                 + (f"; {counted(key_views, 'key view')}" if key_views else ""))
     print(f"stylizer: {stylizer} ({reason})" + (described if stylizer == "diffusion" else ""))
-    print(f"{len(scene):,} Gaussians, {len(cameras)} views at {cameras.width}x{cameras.height}, "
-          f"{config.iterations} iterations on {device}")
+    print(f"{counted(len(scene), 'Gaussian')}, {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height}, "
+          f"{counted(config.iterations, 'iteration')} on {device}")
     prepare_rasterizer(device)
     start = time.perf_counter()
     if stylizer == "diffusion":
@@ -141,7 +142,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
             if args.stylizer != "auto":
                 raise
             stylizer, config = "nnfm", finetune_config("nnfm")
-            print(f"stylizer: nnfm (auto: falling back, {error}); {config.iterations} iterations")
+            print(f"stylizer: nnfm (auto: falling back, {error}); {counted(config.iterations, 'iteration')}")
     if stylizer == "nnfm":
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
                               render_progress=ProgressBar("views"), should_stop=args.should_stop,

@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from ..counted import counted
 from ..statedict import listed_keys, parameters_on_meta, state_dict_mismatch
 from ..tensor_files import load_failure, read_tensors, read_torch_file
 from .csgo import (
@@ -114,7 +115,7 @@ def _fill(
         for key, param in known.items():
             param.copy_(source[key])
     if ignored:
-        _log.warning("CSGO weights '%s', group '%s': ignored %d keys no layer reads %s", path, group, len(ignored),
+        _log.warning("CSGO weights '%s', group '%s': ignored %s no layer reads %s", path, group, counted(len(ignored), "key"),
                      listed_keys(ignored))
     return ignored
 

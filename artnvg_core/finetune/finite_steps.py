@@ -32,6 +32,7 @@ import logging
 
 import torch
 
+from ..counted import counted
 from ..devices import triton_available
 
 _log = logging.getLogger(__name__)
@@ -184,8 +185,9 @@ class FiniteAdam:
         self.report()
         skipped, held = int(self.skipped_steps), int(self.held_steps)
         if skipped:
-            _log.warning("%s: %d steps skipped for a non-finite loss (first at step %d)", self.label, skipped,
+            _log.warning("%s: %s skipped for a non-finite loss (first at step %d)", self.label, counted(skipped, "step"),
                          int(self.first_skipped))
         if held:
-            _log.warning("%s: %d steps held back Gaussians with non-finite gradients, %d Gaussians in all (%s)",
-                         self.label, held, int(self._logged.sum()), _listed(self._logged.nonzero()[:, 0]))
+            _log.warning("%s: %s held back Gaussians with non-finite gradients, %s in all (%s)", self.label,
+                         counted(held, "step"), counted(int(self._logged.sum()), "Gaussian"),
+                         _listed(self._logged.nonzero()[:, 0]))
