@@ -194,6 +194,18 @@ def test_outputs_checked_before_any_work(inputs, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken_strip.png"]
 
 
+def test_an_output_that_is_one_of_its_inputs_is_refused_before_any_work(inputs, tmp_path, capsys):
+    """Found probing the writers: the strip written beside --out (NAME_strip.png) could be the style image,
+    which evaluate wrote over at its end."""
+    style = tmp_path / "out_strip.png"
+    style.write_bytes(inputs["style"].read_bytes())
+    assert _cli(inputs, "--style", str(style), "--out", str(tmp_path / "out.json")) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"--out's strip: .*out_strip\.png is the same file as --style", err) and "loading" not in err, err
+    assert style.read_bytes() == inputs["style"].read_bytes() and sorted(p.name for p in tmp_path.iterdir()) == [
+        "out_strip.png"]
+
+
 def test_a_failing_evaluate_writes_none_of_its_outputs(inputs, tmp_path, monkeypatch, capsys):
     from artnvg_core.cli import evaluate as report
 

@@ -32,7 +32,7 @@ from ..cameras.selection import parse_views
 from ..counted import counted
 from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
-from ..fileio import check_output_file, write_atomically, written_together
+from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
 from ..images import load_image, resize_image
 from ..preview import evenly_spaced, save_gif, save_strip
@@ -243,6 +243,9 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     """Run the ``evaluate`` command (see the module docstring); returns the report dict."""
     device = parse_device(args.device)
     files = output_files(args.out)
+    refuse_overwrites([("--out", files["report"]), ("--out's strip", files["strip"]), ("--out's preview", files["preview"])],
+                      [(option, getattr(args, option[2:])) for option in ("--original", "--stylized", "--cameras",
+                                                                           "--style", "--csd", "--vgg")])
     if args.long_step < 1:
         raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
     for scene in (args.original, args.stylized):  # e.g. a folder: named before the first scene loads and renders
