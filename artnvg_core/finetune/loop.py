@@ -181,8 +181,9 @@ def finetune(
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
     stylized: optional [C, H', W', 3] stylized views in camera order, resized to
         the camera size when they differ; None runs the NNFM-only stylizer.
-    progress(step, total, info): called after every step with the step's view (``view``, or ``views``
-        with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
+    progress(step, total, info): called with step 0 and ``info`` {} as the steps start (a step takes seconds
+        at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
+        (``view``, or ``views`` with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
         holds the loss terms as floats (reading them waits for the device, so not every step).
         should_stop(): checked before every step; when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
@@ -272,6 +273,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     schedule_on_device = schedule.to(device)
     blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
+    if progress is not None and config.iterations:
+        progress(0, config.iterations, {})
     step = 1
     while step <= config.iterations:
         check_stop(should_stop)
