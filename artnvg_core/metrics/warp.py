@@ -119,13 +119,15 @@ def warp_consistency(
 
     depth, alpha [C, H, W, 1]: the original scene rendered at ``cameras`` (C views of the
     images' size). Raises ValueError on mismatched shapes or a step with no pair.
-    ``progress(done, total, {})`` is called after each pair.
+    ``progress(done, total, {})`` is called as the pairs start (0) and after each pair.
     """
     _check_inputs(images, depth, alpha, cameras, step, alpha_threshold, depth_tolerance)
     cameras = cameras.to(images.device)
     squared = absolute = 0.0
     covisible = total = 0
     pairs = [(i, i + int(step)) for i in range(images.shape[0] - int(step))]
+    if progress is not None:
+        progress(0, len(pairs), {})
     for done, (i, j) in enumerate(pairs, 1):
         uv, z = reproject(depth[j, ..., 0], cameras.world_to_cam[j], cameras.intrinsics[j],
                           cameras.world_to_cam[i], cameras.intrinsics[i])
