@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..counted import counted
+from .speed import cudnn_attention_first
 
 Neighbours = tuple[tuple[int, ...], ...]
 
@@ -56,13 +57,15 @@ def merge_heads(x: torch.Tensor) -> torch.Tensor:
 def attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int, scale: float | None = None,
            query_chunk: int | None = None) -> torch.Tensor:
     """Multi-head SDPA of [B, Lq, heads*D] queries over [B, Lk, heads*D] keys/values -> [B, Lq, heads*D],
-    optionally in chunks of ``query_chunk`` queries (bounds the score matrix of backends that build it)."""
+    optionally in chunks of ``query_chunk`` queries (bounds the score matrix of backends that build it); on a
+    GPU cuDNN's kernel first (:func:`.speed.cudnn_attention_first`)."""
     q, k, v = (split_heads(t, heads) for t in (q, k, v))
-    if query_chunk is None or q.shape[2] <= query_chunk:
-        out = F.scaled_dot_product_attention(q, k, v, scale=scale)
-    else:
-        out = torch.cat([F.scaled_dot_product_attention(part, k, v, scale=scale)
-                         for part in q.split(query_chunk, dim=2)], dim=2)
+    with cudnn_attention_first(q.device):
+        if query_chunk is None or q.shape[2] <= query_chunk:
+            out = F.scaled_dot_product_attention(q, k, v, scale=scale)
+        else:
+            out = torch.cat([F.scaled_dot_product_attention(part, k, v, scale=scale)
+                             for part in q.split(query_chunk, dim=2)], dim=2)
     return merge_heads(out)
 
 

@@ -4,6 +4,8 @@
   processors included) runs on one named PyTorch backend: ``"flash"``, ``"cudnn"``,
   ``"efficient"``, ``"math"``, or ``"auto"`` (PyTorch's own choice). The sampler enters it
   around the denoising loop (:attr:`SamplerSettings.attention_backend`).
+* :func:`cudnn_attention_first` — a context in which attention on a GPU tries cuDNN's kernel first
+  among the backends enabled; ArtNVG's attention maths runs every call in it.
 * :class:`SpeedOptions` / :func:`apply_speedups` — one-off transformations of the UNet and
   the ControlNet, applied in place after loading:
 
@@ -34,6 +36,7 @@ any parameter value.
 from __future__ import annotations
 
 import contextlib
+import inspect
 from dataclasses import dataclass
 
 import torch
@@ -67,6 +70,27 @@ def sdpa_backend(name: str) -> contextlib.AbstractContextManager:
     """
     backend = SDPA_BACKENDS[check_sdpa_backend(name, "sdpa_backend: name")]
     return contextlib.nullcontext() if backend is None else sdpa_kernel(backend)
+
+
+CUDNN_FIRST = (SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH)
+_ENABLED = {SDPBackend.CUDNN_ATTENTION: torch.backends.cuda.cudnn_sdp_enabled,
+            SDPBackend.FLASH_ATTENTION: torch.backends.cuda.flash_sdp_enabled,
+            SDPBackend.EFFICIENT_ATTENTION: torch.backends.cuda.mem_efficient_sdp_enabled,
+            SDPBackend.MATH: torch.backends.cuda.math_sdp_enabled}
+_ORDERS = "set_priority" in inspect.signature(sdpa_kernel).parameters
+
+
+def cudnn_attention_first(device: torch.device) -> contextlib.AbstractContextManager:
+    """On a CUDA ``device``, a context in which scaled-dot-product attention tries the backends enabled now
+    (an :func:`sdpa_backend` restriction holds) in the order :data:`CUDNN_FIRST`; elsewhere, or where PyTorch's
+    ``sdpa_kernel`` takes no ``set_priority``, nothing. PyTorch's own order depends on the process: in a ComfyUI server, whose attention
+    sets an order around each of its calls, a balanced group's NV attention ran on flash attention, 16.9 s
+    of GPU time on an H200 against 11.4 s on cuDNN's kernel (BENCHMARKS.md, "ComfyUI's native path"); the
+    same order as ComfyUI's own attention, so the pack's patches run as fast in ComfyUI as the library."""
+    if device.type != "cuda" or not _ORDERS:
+        return contextlib.nullcontext()
+    enabled = [backend for backend in CUDNN_FIRST if _ENABLED[backend]()]
+    return sdpa_kernel(enabled, set_priority=True) if enabled else contextlib.nullcontext()
 
 
 @dataclass(frozen=True)
