@@ -58,17 +58,21 @@ SHEET_VIEW_SIDE = 1024  # longest side of a view on the contact sheet, in pixels
 
 
 def contact_sheet(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
-                  views: int = 4, backend: str = "auto", progress: ProgressFn | None = None) -> torch.Tensor:
+                  views: int = 4, backend: str = "auto", progress: ProgressFn | None = None,
+                  should_stop: StopFn | None = None) -> torch.Tensor:
     """Original vs stylized renders of ``views`` evenly spaced cameras, plus the style image; views larger
     than :data:`SHEET_VIEW_SIDE` on their long side are rendered shrunk to it, so the sheet's size is
     bounded whatever the cameras and the style image (:func:`~artnvg_core.preview.comparison_strip`).
     ``progress`` follows the renders (:func:`~artnvg_core.raster.views.render_views`; ``info["stage"]``:
-    ``"original"``, then ``"stylized"``)."""
+    ``"original"``, then ``"stylized"``); a ``should_stop()`` that says so raises
+    :class:`~artnvg_core.progress.Cancelled` between and within them."""
     subset = cameras.subset(evenly_spaced(len(cameras), views))
     longest = max(subset.width, subset.height)
     subset = subset.scaled(SHEET_VIEW_SIDE / longest) if longest > SHEET_VIEW_SIDE else subset
-    before = render_views(original, subset, backend=backend, progress=staged(progress, "original")).rgb
-    after = render_views(stylized, subset, backend=backend, progress=staged(progress, "stylized")).rgb
+    before = render_views(original, subset, backend=backend, progress=staged(progress, "original"),
+                          should_stop=should_stop).rgb
+    after = render_views(stylized, subset, backend=backend, progress=staged(progress, "stylized"),
+                         should_stop=should_stop).rgb
     return comparison_strip(before, after, style_image)
 
 
@@ -302,13 +306,14 @@ def stylize_diffusion(
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                 out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3,
-                progress: ProgressFn | None = None) -> Path:
+                progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
     :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
-    neither and nothing on disk changes. ``progress`` follows the sheet's renders (:func:`contact_sheet`).
-    Returns the sheet's path."""
+    neither and nothing on disk changes. ``progress`` follows the sheet's renders and ``should_stop`` may end
+    them (:func:`contact_sheet`): a stop writes nothing. Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
-    sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend, progress=progress)
+    sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend, progress=progress,
+                          should_stop=should_stop)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
         save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version)
         save_png(sheet, sheet_file)

@@ -130,6 +130,7 @@ def main() -> None:
     parser.add_argument("--cameras", type=Path, required=True)
     parser.add_argument("--preset", choices=DIFFUSION_PRESETS, default="balanced")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--paths", default="diffusers,native", help="which paths, in this order")
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--top", type=int, default=15, help="operations listed per profile table")
     args = parser.parse_args()
@@ -141,9 +142,10 @@ def main() -> None:
     members, centers = group_members(images, group_views(cameras, 15), 0)
     rows, totals = [], {}
     # the diffusers path first, done before ComfyUI is imported (its import sets PyTorch's global switches)
-    for name, sampler in (("diffusers", lambda: diffusers_sampler(files, args.preset, members, centers, device)),
-                          ("native", lambda: native_sampler(args.comfyui, files, args.preset, members, centers))):
-        run = sampler()
+    samplers = {"diffusers": lambda: diffusers_sampler(files, args.preset, members, centers, device),
+                "native": lambda: native_sampler(args.comfyui, files, args.preset, members, centers)}
+    for name in args.paths.split(","):
+        run = samplers[name]()
         seconds, totals[name] = timed_runs(run, device, args.repeats, args.profile)
         rows.append([name, *seconds])
         print(rows[-1], flush=True)
@@ -154,7 +156,7 @@ def main() -> None:
     title = (f"One group of {len(members)} views, {args.preset} ({torch.cuda.get_device_name(device)}; seconds, "
              "decoding included)")
     print_table(title, ["path", *(f"run {i + 1}" for i in range(args.repeats))], rows, command)
-    if args.profile:
+    if args.profile and len(totals) == 2:
         for column, what in ((1, "self GPU"), (0, "self CPU")):
             print_table(f"Where the native path spends more than the diffusers path: {what} ms",
                         ["operation", "native", "diffusers", "calls"],
@@ -162,7 +164,11 @@ def main() -> None:
             print_table(f"Where the diffusers path spends more than the native path: {what} ms",
                         ["operation", "diffusers", "native", "calls"],
                         differences(totals["diffusers"], totals["native"], column, args.top), command)
+    if args.profile:
         for name, total in totals.items():
+            ranked = sorted(total.items(), key=lambda item: -item[1][1])[: args.top]
+            print_table(f"{name}: the operations with the most self GPU time (ms)", ["operation", "self GPU", "calls"],
+                        [[op[:90], gpu, calls] for op, (_, gpu, calls) in ranked], command)
             print(f"{name}: self GPU {sum(v[1] for v in total.values()):.0f} ms, "
                   f"self CPU {sum(v[0] for v in total.values()):.0f} ms")
 

@@ -63,8 +63,9 @@ def test_sigterm_stops_a_batch_as_ctrl_c_does(tmp_path):
 @pytest.mark.parametrize("where", ["finetune", "loading"])
 def test_a_stop_whose_exception_is_lost_or_wrapped_still_cancels_the_job(tmp_path, monkeypatch, where):
     """The worker's stop raises Cancelled in the job's thread; when that exception never arrives (a
-    finaliser running just then swallows it) the stylize's own stop check ends the job, and when a loader
-    wraps it in its own error the job is still cancelled, not failed. Either way nothing is written."""
+    finaliser running just then swallows it, here as the finetune returns) the stylize's own stop checks
+    end the job (the contact sheet's renders), and when a loader wraps it in its own error the job is still
+    cancelled, not failed. Either way nothing is written."""
     import artnvg_core.stylize as core
     from artnvg_core.cli import stylize as command
     from artnvg_core.cli.batch import BatchWorker
@@ -73,8 +74,9 @@ def test_a_stop_whose_exception_is_lost_or_wrapped_still_cancels_the_job(tmp_pat
     worker = BatchWorker(Workers("cpu", 1))
     if where == "finetune":
         def finetune_as_the_stop_arrives(*args, **kwargs):
+            result = real_finetune(*args, **kwargs)
             worker.stopped.add("run")  # the stop, its exception lost
-            return real_finetune(*args, **kwargs)
+            return result
 
         real_finetune = core.stylize_nnfm
         monkeypatch.setattr(core, "stylize_nnfm", finetune_as_the_stop_arrives)

@@ -1,6 +1,7 @@
 """The command line's own output: progress while loading and rendering (evaluate: tests/test_cli_evaluate.py)."""
 
 import re
+import sys
 
 import pytest
 
@@ -552,3 +553,18 @@ def test_a_bar_first_told_of_its_work_at_the_end_shows_no_rate(capsys):
     ProgressBar("render views")(8, 8, {})
     err = capsys.readouterr().err
     assert re.search(r"render views: 100%\|.*\| 8/8 \[00:00<\?, \?it/s\]", err), err
+
+
+def test_a_bar_reporting_after_the_bars_were_closed_draws_nothing(capsys):
+    """close_progress_bars runs before a command's error or interrupt message is printed; a background
+    thread's bar (the diffusion models' load) reporting after it once drew its bar below the message."""
+    from artnvg_core.cli.common import ProgressBar, close_progress_bars
+
+    views, models = ProgressBar("views"), ProgressBar("models", "B")
+    views(1, 4, {})
+    close_progress_bars()
+    print("error: the message", file=sys.stderr)
+    models(0, 2**20, {"loading": "SDXL"})
+    views(2, 4, {"stage": "content"})
+    err = capsys.readouterr().err
+    assert re.search(r"views: +25%.*\| 1/4 \[.*\]\nerror: the message\n$", err), err

@@ -1,6 +1,6 @@
 """transformers' torchvision fallback notice is silenced where diffusers' SDXL pipeline is imported,
-diffusers' empty float32 notice where SDXL is loaded, and nothing else is
-(artnvg_core.diffusion.quiet_notices)."""
+diffusers' empty float32 notice where SDXL is loaded, the libraries' progress bars while the models load,
+and nothing else is (artnvg_core.diffusion.quiet_notices)."""
 
 import logging
 import subprocess
@@ -14,6 +14,7 @@ from artnvg_core.diffusion.models import load_sdxl
 from artnvg_core.diffusion.quiet_notices import (
     FLOAT32_LOGGER,
     NOTICE_LOGGER,
+    library_progress_bars_hidden,
     sdxl_loading_notices_silenced,
     torchvision_fallback_notice_silenced,
 )
@@ -88,3 +89,21 @@ def test_loading_sdxl_in_another_dtype_shows_no_notice(tmp_path):
         logger.removeHandler(records)
     assert base.unet.dtype == torch.bfloat16
     assert not records.messages and not [str(w.message) for w in shown], (records.messages, shown)
+
+
+def test_the_libraries_progress_bars_are_hidden_within_the_block_only():
+    """Switched on again after it; one the user switched off stays off. (Their absence from a stylize's
+    terminal: tests/test_stylize.py.)"""
+    from diffusers.utils import logging as diffusers_logging
+    from transformers.utils import logging as transformers_logging
+
+    with library_progress_bars_hidden():
+        assert not transformers_logging.is_progress_bar_enabled() and not diffusers_logging.is_progress_bar_enabled()
+    assert transformers_logging.is_progress_bar_enabled() and diffusers_logging.is_progress_bar_enabled()
+    diffusers_logging.disable_progress_bar()
+    try:
+        with library_progress_bars_hidden():
+            pass
+        assert transformers_logging.is_progress_bar_enabled() and not diffusers_logging.is_progress_bar_enabled()
+    finally:
+        diffusers_logging.enable_progress_bar()

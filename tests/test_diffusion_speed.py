@@ -22,9 +22,11 @@ from artnvg_core.diffusion.sampler import SamplerSettings, stylize_group
 from artnvg_core.diffusion.speed import (
     BLOCK_RECOMPILE_LIMIT,
     REPEATED_BLOCKS,
+    CUDNN_FIRST,
     SpeedOptions,
     apply_speedups,
     compile_repeated_blocks,
+    cudnn_attention_first,
     sdpa_backend,
 )
 from diffusion_tiny import CROSS_DIM, TEXT_WIDTH
@@ -262,3 +264,57 @@ def test_bad_speed_options_raise():
         SpeedOptions(compile="default", cache_hint_embedding=True)
     with pytest.raises(ValueError, match="compile_dynamic"):
         SpeedOptions(compile_dynamic=True)
+
+
+def _backends_now() -> tuple[list[int], list[bool]]:
+    """PyTorch's SDPA priority order and whether cuDNN, flash, efficient and math attention are enabled."""
+    flags = [torch.backends.cuda.cudnn_sdp_enabled(), torch.backends.cuda.flash_sdp_enabled(),
+             torch.backends.cuda.mem_efficient_sdp_enabled(), torch.backends.cuda.math_sdp_enabled()]
+    return torch._C._get_sdp_priority_order(), flags
+
+
+def test_cudnn_attention_first_orders_the_enabled_backends_and_restores():
+    before = _backends_now()
+    with cudnn_attention_first(torch.device("cuda")):
+        order, flags = _backends_now()
+        assert order[:4] == [int(backend) for backend in CUDNN_FIRST]
+        assert order[0] == int(torch.nn.attention.SDPBackend.CUDNN_ATTENTION)
+        assert flags == before[1]
+    with sdpa_backend("flash"), cudnn_attention_first(torch.device("cuda")):  # a restriction holds
+        assert _backends_now()[1] == [False, True, False, False]
+    with cudnn_attention_first(torch.device("cpu")):
+        assert _backends_now() == before
+    assert _backends_now() == before
+
+
+def test_attention_maths_runs_in_cudnn_first_order(monkeypatch):
+    """attend (NV attention, the decoupled cross-attention) enters the order for its tensors' device."""
+    from artnvg_core.diffusion import attention_math
+
+    devices = []
+    monkeypatch.setattr(attention_math, "cudnn_attention_first",
+                        lambda device: devices.append(device) or cudnn_attention_first(device))
+    q = torch.randn(4, 6, 8)
+    attention_math.neighbour_view_attention(q, q, q, heads=2, views=2)
+    assert devices == [q.device]
+
+
+@pytest.mark.cuda
+def test_nv_attention_runs_on_cudnn_after_another_order_was_set():
+    """As in a ComfyUI process: an order with flash attention first set and left by other code; the NV
+    attention still runs on cuDNN's kernel (where this GPU has it)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    from artnvg_core.diffusion.attention_math import neighbour_view_attention
+
+    if torch.cuda.get_device_capability() < (8, 0):
+        pytest.skip("cuDNN's attention needs compute capability 8.0 or later")
+    q = torch.randn(8, 1024, 640, device="cuda", dtype=torch.float16)
+    with sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH,
+                      SDPBackend.CUDNN_ATTENTION], set_priority=True):
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as profile:
+            neighbour_view_attention(q, q, q, heads=10, views=4)
+            torch.cuda.synchronize()
+    kernels = [event.key for event in profile.key_averages()]
+    assert any("cudnn" in name.lower() for name in kernels), kernels
+    assert not any("flash_fwd" in name for name in kernels), kernels

@@ -139,6 +139,21 @@ def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
     assert load_image(sheet).shape[0] == 2 * cameras.height + 4
 
 
+def test_a_stop_between_the_contact_sheets_renders_writes_nothing(demo, tmp_path):
+    """The sheet's renders are stoppable as the finetune's are: a stop asked after the original views
+    rendered ends the stylized ones, and neither output is written."""
+    scene, cameras, style = demo
+    stages = []
+
+    def progress(step, total, info):
+        stages.append(info["stage"])
+
+    with pytest.raises(Cancelled):
+        save_result(scene, scene, cameras, style, tmp_path / "result.ply", progress=progress,
+                    should_stop=lambda: "stylized" in stages)
+    assert stages[0] == "original" and stages.count("stylized") == 1 and list(tmp_path.iterdir()) == []
+
+
 def test_save_result_refuses_a_scene_type_before_rendering_the_sheet(demo, tmp_path, monkeypatch):
     import artnvg_core.stylize
 

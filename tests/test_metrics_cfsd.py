@@ -71,6 +71,13 @@ def test_batch_gives_per_image_values(content):
     assert batch[1].item() == pytest.approx(cfsd(content, shuffled).item(), rel=1e-5)
 
 
+def test_progress_reports_as_the_images_start_and_after_each(content):
+    """0 first: evaluate's CFSD bar shows from the start, as every other bar does."""
+    calls = []
+    cfsd(torch.cat([content, content]), torch.cat([content, content]), progress=lambda *call: calls.append(call))
+    assert calls == [(0, 2, {}), (1, 2, {}), (2, 2, {})]
+
+
 def test_grows_with_resolution(content):
     # The sum over positions makes the value resolution-dependent (hence reported with it).
     small, large = resize_image(content, 48, 48), resize_image(content, 192, 192)

@@ -97,8 +97,9 @@ def test_occluded_and_transparent_pixels_are_masked(plane):
 
 def test_long_range_step_and_input_checks(plane):
     cameras, images, depth, alpha = plane
-    result = warp_consistency(images, depth, alpha, cameras, step=2)
-    assert result.pairs == [(0, 2)] and result.step == 2
+    calls = []  # 0 first: evaluate's warp bars show from the start, as every other bar does
+    result = warp_consistency(images, depth, alpha, cameras, step=2, progress=lambda *call: calls.append(call))
+    assert result.pairs == [(0, 2)] and result.step == 2 and calls == [(0, 1, {}), (1, 1, {})]
     with pytest.raises(ValueError, match="step"):
         warp_consistency(images, depth, alpha, cameras, step=3)
     with pytest.raises(ValueError, match="depth"):

@@ -1,6 +1,7 @@
 """The diffusion pipeline (stylize_diffusion) on tiny model files: presets and devices are wired through."""
 
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -279,3 +280,74 @@ def test_command_line_sampler_options_and_key_views_replace_the_preset(tmp_path,
     with pytest.raises(ValueError, match="sampler_changes names no SamplerSettings field: \\['stpes'\\]"):
         stylize_diffusion(read_ply(demo.scene), load_cameras(demo.cameras), load_image(demo.style),
                           FinetuneConfig(iterations=0), ModelFiles(**files), sampler_changes={"stpes": 3})
+
+
+def _terminal(text: str) -> list[str]:
+    """The lines a terminal shows once ``text`` is written to it: "\\r" goes back to the line's start, "\\n" to
+    the next line's start (as a terminal's output does), ESC[A up a line; characters overwrite."""
+    lines, row, column = [""], 0, 0
+    for token in re.split(r"(\r|\n|\x1b\[A)", text):
+        if token in ("\r", "\n"):
+            row, column = row + (token == "\n"), 0
+            lines += [""] * (row + 1 - len(lines))
+        elif token == "\x1b[A":
+            row -= 1
+            assert row >= 0, "moved above the first line"
+        else:
+            line = lines[row].ljust(column)
+            lines[row], column = line[:column] + token + line[column + len(token):], column + len(token)
+    return [line.rstrip() for line in lines]
+
+
+def test_the_models_bar_and_the_content_views_bar_each_keep_a_line(tmp_path, monkeypatch, capsys):
+    """stylize --stylizer diffusion loads the models in a background thread (the 'models' bar) while the
+    content views render (the 'views (content)' bar); here the models' bar starts below the views' and
+    ends after it. The terminal then shows each bar's last state on a line of its own, nothing else: the
+    views' bar once ended with a newline into the models' line (its stale copy left on screen), and
+    transformers' 'Loading weights' bars of the text encoders ended over the views' line."""
+    import threading
+
+    from artnvg_core import stylize
+    from artnvg_core.cli import main as cli
+    from artnvg_core.diffusion import stylize as diffusion_stylize
+
+    views_drawn, models_drawn, views_done = threading.Event(), threading.Event(), threading.Event()
+    real_prefetch, real_render_views = stylize.prefetch_models, stylize.render_views
+
+    def prefetch(files, device, progress=None, **options):
+        def reported(step, total, info):
+            if step == 0:
+                views_drawn.wait(60)
+            progress(step, total, info)
+            models_drawn.set()
+            if info.get("loading") == "CSGO":
+                views_done.wait(60)
+
+        real_prefetch(files, device, progress=reported, **options)
+
+    def render_views(scene, cameras, progress=None, **options):
+        def reported(step, total, info):
+            progress(step, total, info)
+            if step == 0:
+                views_drawn.set()
+                models_drawn.wait(60)
+
+        views = real_render_views(scene, cameras, progress=reported, **options)
+        views_done.set()
+        return views
+
+    monkeypatch.setattr(stylize, "prefetch_models", prefetch)
+    monkeypatch.setattr(stylize, "render_views", render_views)
+    monkeypatch.setattr(diffusion_stylize, "stylize_groups", lambda models, images, *args, **kwargs: images)
+    monkeypatch.setattr(stylize, "finetune", lambda scene, *args, **kwargs: scene)
+    monkeypatch.setattr(stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
+    demo, files = DemoInputs(), write_model_files(tmp_path)
+    capsys.readouterr()  # the files' writers' bars
+    assert cli.main([
+        "stylize", str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
+        "--scale", "0.05", "--iters", "0", "--out", str(tmp_path / "out.ply"), "--stylizer", "diffusion",
+        *[f"--{name.replace('_', '-')}={path}" for name, path in files.items()]]) == 0
+    screen = _terminal(capsys.readouterr().err)
+    assert len(screen) == 3 and screen[2] == "", screen
+    assert re.fullmatch(r"views \(content\): 100%\|█+\| 24/24 \[[^\]]+\]", screen[0]), screen
+    assert re.fullmatch(r"models: 100%\|█+\| [\d.]+M/[\d.]+M \[[^\]]+\]", screen[1]), screen

@@ -43,13 +43,21 @@ def terminate_as_interrupt():
 
 
 _drawn: list[ProgressBar] = []  # those whose bar is on screen and not yet closed
+_closings = 0  # close_progress_bars calls so far: a ProgressBar made before the latest draws nothing more
 
 
 def close_progress_bars() -> None:
     """Close every bar still on screen (a command stopped or failed mid-step), so that the message printed
-    next starts on a line of its own and no bar is drawn again below it."""
-    while _drawn:
-        _drawn[-1].close()
+    next starts on a line of its own and no bar is drawn again below it, and silence every ProgressBar made so
+    far: a background thread's (the diffusion models' load) reporting later would draw its bar below the
+    message."""
+    from tqdm import tqdm
+
+    global _closings
+    with tqdm.get_lock():
+        _closings += 1
+        while _drawn:
+            _drawn[-1].close()
 
 
 class ProgressBar:
@@ -57,35 +65,51 @@ class ProgressBar:
     ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G). Callbacks whose
     ``info["stage"]`` changes (the finetune's renders before and after its steps) start a new bar,
     described as ``DESCRIPTION (STAGE)``. A bar starts at its first callback's step: its rate counts the work
-    done after that (a first callback at the end shows none, where it once divided the work by no time)."""
+    done after that (a first callback at the end shows none, where it once divided the work by no time).
+
+    Bars may run in several threads at once (the models loading in the background below the content views'
+    renders): each has a line of its own (tqdm's positions, drawn under tqdm's lock), and a bar that ends
+    leaves its last state above those still running (``tqdm.write``), not over whichever line the cursor is
+    on, as tqdm's own ``leave`` draws it."""
 
     def __init__(self, description: str, unit: str = "it"):
         self.description = description
         self.unit = unit
         self.bar = None
         self.stage = None
+        self.made_after = _closings
 
     def __call__(self, step: int, total: int, info: dict) -> None:
         from tqdm import tqdm
 
-        stage = info.get("stage")
-        if self.bar is None or stage != self.stage:
-            self.close()
-            self.stage = stage
-            description = self.description if stage is None else f"{self.description} ({stage})"
-            self.bar = tqdm(total=total, initial=step, desc=description, unit=self.unit,
-                            unit_scale=self.unit == "B", dynamic_ncols=True)
-            _drawn.append(self)
-        self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
-        self.bar.update(step - self.bar.n)
-        if step >= total:
-            self.close()
+        with tqdm.get_lock():
+            if self.made_after != _closings:
+                return
+            stage = info.get("stage")
+            if self.bar is None or stage != self.stage:
+                self.close()
+                self.stage = stage
+                description = self.description if stage is None else f"{self.description} ({stage})"
+                self.bar = tqdm(total=total, initial=step, desc=description, unit=self.unit,
+                                unit_scale=self.unit == "B", dynamic_ncols=True, leave=False)
+                _drawn.append(self)
+            self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
+            self.bar.update(step - self.bar.n)
+            if step >= total:
+                self.close()
 
     def close(self) -> None:
-        """Close the bar on screen, if any."""
-        if self in _drawn:
+        """Close the bar on screen, if any, leaving its last state (its rate over the whole run, as tqdm's
+        ``leave`` shows it) on a line above the bars still running."""
+        from tqdm import tqdm
+
+        with tqdm.get_lock():
+            if self not in _drawn:
+                return
             _drawn.remove(self)
-            self.bar.close()
+            last = self.bar.format_meter(**{**self.bar.format_dict, "rate": None})
+            self.bar.close()  # its line cleared; the cursor may be left mid-line, hence the "\r"
+            tqdm.write("\r" + last, file=self.bar.fp)
 
 
 def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:

@@ -22,7 +22,6 @@ from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
-from ..progress import check_stop
 from .common import ProgressBar, load_scene_verbose, prepare_rasterizer, read_style_image
 from .options import (
     SCENE_FILES,
@@ -147,9 +146,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         result = stylize_nnfm(scene, cameras, style.to(device), config, progress=ProgressBar("finetune"),
                               render_progress=ProgressBar("views"), should_stop=args.should_stop,
                               selection=selection)
-    check_stop(args.should_stop)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
-                        spz_version=args.spz_version, progress=ProgressBar("contact sheet"))
+                        spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
+                        should_stop=args.should_stop)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 

@@ -24,6 +24,9 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from ..counted import counted
+from .speed import cudnn_attention_first
+
 Neighbours = tuple[tuple[int, ...], ...]
 
 
@@ -34,7 +37,7 @@ def check_neighbours(neighbours: Neighbours, views: int, name: str = "neighbours
     if len(neighbours) != views or len(counts) != 1:
         raise ValueError(
             f"{name} must hold one row per view ({views}) of equal length, "
-            f"got {len(neighbours)} rows of lengths {sorted(counts)}"
+            f"got {counted(len(neighbours), 'row')} of lengths {sorted(counts)}"
         )
     for view, row in enumerate(neighbours):
         if len(set(row)) != len(row) or view in row or any(not 0 <= j < views for j in row):
@@ -54,13 +57,15 @@ def merge_heads(x: torch.Tensor) -> torch.Tensor:
 def attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int, scale: float | None = None,
            query_chunk: int | None = None) -> torch.Tensor:
     """Multi-head SDPA of [B, Lq, heads*D] queries over [B, Lk, heads*D] keys/values -> [B, Lq, heads*D],
-    optionally in chunks of ``query_chunk`` queries (bounds the score matrix of backends that build it)."""
+    optionally in chunks of ``query_chunk`` queries (bounds the score matrix of backends that build it); on a
+    GPU cuDNN's kernel first (:func:`.speed.cudnn_attention_first`)."""
     q, k, v = (split_heads(t, heads) for t in (q, k, v))
-    if query_chunk is None or q.shape[2] <= query_chunk:
-        out = F.scaled_dot_product_attention(q, k, v, scale=scale)
-    else:
-        out = torch.cat([F.scaled_dot_product_attention(part, k, v, scale=scale)
-                         for part in q.split(query_chunk, dim=2)], dim=2)
+    with cudnn_attention_first(q.device):
+        if query_chunk is None or q.shape[2] <= query_chunk:
+            out = F.scaled_dot_product_attention(q, k, v, scale=scale)
+        else:
+            out = torch.cat([F.scaled_dot_product_attention(part, k, v, scale=scale)
+                             for part in q.split(query_chunk, dim=2)], dim=2)
     return merge_heads(out)
 
 
@@ -70,7 +75,7 @@ def token_grid(latent_size: tuple[int, int], length: int) -> tuple[int, int]:
     factor = 2 ** round(math.log2(math.sqrt(height * width / length)))
     grid = (math.ceil(height / factor), math.ceil(width / factor))
     if grid[0] * grid[1] != length:
-        raise ValueError(f"latent_size {latent_size} does not fit a layer of {length} tokens")
+        raise ValueError(f"latent_size {latent_size} does not fit a layer of {counted(length, 'token')}")
     return grid
 
 

@@ -61,7 +61,7 @@ from .model_files import (
     locate,
     require_path,
 )
-from .quiet_notices import sdxl_loading_notices_silenced
+from .quiet_notices import library_progress_bars_hidden, sdxl_loading_notices_silenced
 from .sdxl_config import built_in_sdxl_config
 
 @dataclass
@@ -349,7 +349,8 @@ def load_diffusion_models(
     any is loaded, so a missing one fails fast.
     query_chunk_size: see :class:`artnvg_core.diffusion.attention.NeighbourViewSelfAttention`.
     progress(bytes loaded, bytes of all the files, {"loading": name}) is called as each model starts
-    loading, and once more, without "loading", when all are; should_stop() is checked before each model
+    loading, and once more, without "loading", when all are (the libraries' own bars hidden meanwhile:
+    :func:`~.quiet_notices.library_progress_bars_hidden`); should_stop() is checked before each model
     and raises :class:`~artnvg_core.progress.Cancelled`.
     """
     found = check_model_files(files, sdxl_config_dir=sdxl_config_dir, hf_cache_dir=hf_cache_dir)
@@ -365,7 +366,8 @@ def load_diffusion_models(
         check_stop(should_stop)
         if progress is not None:
             progress(done, total, {"loading": name})
-        model = load()
+        with library_progress_bars_hidden():
+            model = load()
         done += sizes[name]
         return model
 

@@ -17,6 +17,10 @@
   record for a LoRA it cannot load, which :func:`~artnvg_core.diffusion.lora.fuse_loras` raises itself,
   naming the file: both are dropped, as is PEFT's warning that a model holds several adapters (it does,
   by request, until they are fused).
+* Loading the models (:func:`library_progress_bars_hidden`): transformers draws a "Loading weights" bar for
+  each model its ``from_pretrained`` loads (SDXL's text encoders), diffusers one for sharded weights. The
+  loader follows the models itself (bytes of every file), often in a background thread beside the caller's
+  own bar (the content views' renders): theirs are hidden (each library's switch, restored after).
 
 Each drops its records from the one logger (or warning) that emits them; everything else is logged.
 """
@@ -74,3 +78,20 @@ def lora_loading_notices_silenced() -> Iterator[None]:
     with _dropped(LORA_LOGGERS[0], *LORA_TEXTS), _dropped(LORA_LOGGERS[1], *LORA_TEXTS), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=SEVERAL_ADAPTERS_WARNING, category=UserWarning)
         yield
+
+
+@contextmanager
+def library_progress_bars_hidden() -> Iterator[None]:
+    """Within the block, transformers' and diffusers' own progress bars are not drawn (in any thread: each
+    library has one switch); those that were on are switched on again after it."""
+    from diffusers.utils import logging as diffusers_logging
+    from transformers.utils import logging as transformers_logging
+
+    switched = [library for library in (transformers_logging, diffusers_logging) if library.is_progress_bar_enabled()]
+    for library in switched:
+        library.disable_progress_bar()
+    try:
+        yield
+    finally:
+        for library in switched:
+            library.enable_progress_bar()

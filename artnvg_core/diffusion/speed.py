@@ -4,6 +4,8 @@
   processors included) runs on one named PyTorch backend: ``"flash"``, ``"cudnn"``,
   ``"efficient"``, ``"math"``, or ``"auto"`` (PyTorch's own choice). The sampler enters it
   around the denoising loop (:attr:`SamplerSettings.attention_backend`).
+* :func:`cudnn_attention_first` — a context in which attention on a GPU tries cuDNN's kernel first
+  among the backends enabled; ArtNVG's attention maths runs every call in it.
 * :class:`SpeedOptions` / :func:`apply_speedups` — one-off transformations of the UNet and
   the ControlNet, applied in place after loading:
 
@@ -34,6 +36,7 @@ any parameter value.
 from __future__ import annotations
 
 import contextlib
+import inspect
 from dataclasses import dataclass
 
 import torch
@@ -67,6 +70,24 @@ def sdpa_backend(name: str) -> contextlib.AbstractContextManager:
     """
     backend = SDPA_BACKENDS[check_sdpa_backend(name, "sdpa_backend: name")]
     return contextlib.nullcontext() if backend is None else sdpa_kernel(backend)
+
+
+CUDNN_FIRST = (SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH)
+_ENABLED = ("cudnn_sdp_enabled", "flash_sdp_enabled", "mem_efficient_sdp_enabled", "math_sdp_enabled")  # as CUDNN_FIRST
+_ORDERS = "set_priority" in inspect.signature(sdpa_kernel).parameters
+
+
+def cudnn_attention_first(device: torch.device) -> contextlib.AbstractContextManager:
+    """On a CUDA ``device``, a context in which scaled-dot-product attention tries the backends enabled now
+    (an :func:`sdpa_backend` restriction holds) in the order :data:`CUDNN_FIRST`; elsewhere, or where
+    PyTorch's ``sdpa_kernel`` takes no ``set_priority``, nothing. PyTorch's own choice depends on what ran
+    before in the process: in a ComfyUI process (whose attention sets its own order, cuDNN first, around
+    each of its calls) a balanced group's NV attention ran on flash attention, 16.9 s of GPU time on an
+    H200 against 11.4 s on cuDNN's kernel (BENCHMARKS.md, "ComfyUI's native path")."""
+    if device.type != "cuda" or not _ORDERS:
+        return contextlib.nullcontext()
+    enabled = [backend for backend, name in zip(CUDNN_FIRST, _ENABLED) if getattr(torch.backends.cuda, name)()]
+    return sdpa_kernel(enabled, set_priority=True) if enabled else contextlib.nullcontext()
 
 
 @dataclass(frozen=True)

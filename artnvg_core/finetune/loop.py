@@ -38,6 +38,7 @@ import logging
 import torch
 
 from ..cameras import CameraSet, scene_frame
+from ..counted import counted
 from ..images import resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop, staged
@@ -132,7 +133,7 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
         _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
     warned.update(found)
     if len(warned) == len(cameras):
-        raise ValueError(f"finetune: none of the {len(cameras)} cameras sees any Gaussian; check that the "
+        raise ValueError(f"finetune: none of the {counted(len(cameras), 'camera')} sees any Gaussian; check that the "
                          "cameras and the scene share one coordinate frame")
 
 
@@ -211,8 +212,8 @@ def check_stylized_views(stylized: torch.Tensor, count: int) -> None:
     """ValueError (naming the shape, not the input: the caller names it) unless ``stylized`` is [count, H, W, 3]:
     one view per camera of ``count``, in the cameras' order."""
     if stylized.ndim != 4 or stylized.shape[0] != count or stylized.shape[-1] != 3:
-        raise ValueError(f"got {tuple(stylized.shape)} for {count} cameras; expected [{count}, H, W, 3], one view per "
-                         "camera in the cameras' order (give the cameras the views were rendered from)")
+        raise ValueError(f"got {tuple(stylized.shape)} for {counted(count, 'camera')}; expected [{count}, H, W, 3], "
+                         "one view per camera in the cameras' order (give the cameras the views were rendered from)")
 
 
 def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tensor, stylized: torch.Tensor | None,

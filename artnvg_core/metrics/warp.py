@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import CameraSet
+from ..counted import counted
 from ..progress import ProgressFn
 
 
@@ -98,9 +99,10 @@ def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int, alpha_thr
         if tuple(value.shape) != (count, *size, 1):
             raise ValueError(f"warp_consistency: {name} must be [{count}, {size[0]}, {size[1]}, 1], got {tuple(value.shape)}")
     if len(cameras) != count:
-        raise ValueError(f"warp_consistency: {count} images but {len(cameras)} cameras")
+        raise ValueError(f"warp_consistency: {counted(count, 'image')} but {counted(len(cameras), 'camera')}")
     if int(step) != step or not 1 <= step < count:
-        raise ValueError(f"warp_consistency: step must be an integer in 1..{count - 1} for {count} views, got {step!r}")
+        raise ValueError(f"warp_consistency: step must be an integer in 1..{count - 1} for "
+                         f"{counted(count, 'view')}, got {step!r}")
 
 
 @torch.no_grad()
@@ -119,13 +121,15 @@ def warp_consistency(
 
     depth, alpha [C, H, W, 1]: the original scene rendered at ``cameras`` (C views of the
     images' size). Raises ValueError on mismatched shapes or a step with no pair.
-    ``progress(done, total, {})`` is called after each pair.
+    ``progress(done, total, {})`` is called as the pairs start (0) and after each pair.
     """
     _check_inputs(images, depth, alpha, cameras, step, alpha_threshold, depth_tolerance)
     cameras = cameras.to(images.device)
     squared = absolute = 0.0
     covisible = total = 0
     pairs = [(i, i + int(step)) for i in range(images.shape[0] - int(step))]
+    if progress is not None:
+        progress(0, len(pairs), {})
     for done, (i, j) in enumerate(pairs, 1):
         uv, z = reproject(depth[j, ..., 0], cameras.world_to_cam[j], cameras.intrinsics[j],
                           cameras.world_to_cam[i], cameras.intrinsics[i])
