@@ -21,6 +21,7 @@ from collections.abc import Sequence
 import torch
 
 from .cameras import CameraSet
+from .counted import counted
 from .raster import render
 from .scene import GaussianScene
 from .selection import check_selection
@@ -45,8 +46,9 @@ def check_corresponding(original: GaussianScene, stylized: GaussianScene,
     first, second = names
     refusal = f"cannot blend {first} and {second}: "
     if len(original) != len(stylized):
-        raise ValueError(refusal + f"{first} has {len(original):,} Gaussians, {second} {len(stylized):,}; a blend "
-                         "mixes Gaussian i of one with Gaussian i of the other, so they must come from one finetune")
+        raise ValueError(refusal + f"{first} has {counted(len(original), 'Gaussian')}, {second} {len(stylized):,}; "
+                         "a blend mixes Gaussian i of one with Gaussian i of the other, so they must come from one "
+                         "finetune")
     if original.sh_degree != stylized.sh_degree:
         raise ValueError(refusal + f"SH degree {original.sh_degree} in {first}, {stylized.sh_degree} in {second} "
                          "(was one saved in a format that drops SH bands? use .ply or .spz)")

@@ -35,6 +35,7 @@ import torch
 
 from .balanced_kmeans import balanced_kmeans
 from .cameras import CameraSet
+from .counted import counted
 
 CamerasLike = CameraSet | torch.Tensor | np.ndarray  # a CameraSet, or its camera centres [C, 3]
 
@@ -78,13 +79,15 @@ class ViewGroups:
         if self.centers is not None:
             centers = _centers_array(np.asarray(self.centers, dtype=np.float64).reshape(-1, 3), "ViewGroups.centers")
             if len(centers) != self.num_views:
-                raise ValueError(f"ViewGroups.centers: {len(centers)} centres for {self.num_views} views")
+                raise ValueError(f"ViewGroups.centers: {counted(len(centers), 'centre')} for "
+                                 f"{counted(self.num_views, 'view')}")
             object.__setattr__(self, "centers", tuple(map(tuple, centers.tolist())))
         owner = [-1] * self.num_views
         for g, group in enumerate(self.groups):
             for v in group.views + group.context:
                 if not 0 <= v < self.num_views:
-                    raise ValueError(f"ViewGroups.groups[{g}]: view {v} out of range for {self.num_views} views")
+                    raise ValueError(f"ViewGroups.groups[{g}]: view {v} out of range for "
+                                     f"{counted(self.num_views, 'view')}")
             for v in group.views:
                 if owner[v] != -1:
                     raise ValueError(f"ViewGroups.groups[{g}].views: view {v} already owned by group {owner[v]}")
@@ -107,7 +110,8 @@ class ViewGroups:
     def group_of(self, view: int) -> int:
         """Index of the group that owns ``view``."""
         if not 0 <= view < self.num_views:
-            raise ValueError(f"ViewGroups.group_of: view {view} out of range for {self.num_views} views")
+            raise ValueError(f"ViewGroups.group_of: view {view} out of range for "
+                             f"{counted(self.num_views, 'view')}")
         return self._owner[view]
 
     def as_lists(self) -> list[list[int]]:
@@ -183,7 +187,8 @@ def group_cost(cameras: CamerasLike, groups: ViewGroups | Sequence[Sequence[int]
     for g, views in enumerate(index_lists):
         for v in views:
             if not 0 <= v < len(centers):
-                raise ValueError(f"group_cost: groups[{g}] has view {v}, out of range for {len(centers)} views")
+                raise ValueError(f"group_cost: groups[{g}] has view {v}, out of range for "
+                                 f"{counted(len(centers), 'view')}")
         pts = centers[views]
         dist = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
         total += float(np.triu(dist, k=1).sum())

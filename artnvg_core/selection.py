@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from .cameras import CameraSet
+from .counted import counted
 from .images import resize_image
 from .progress import ProgressFn, StopFn
 from .raster import render
@@ -147,7 +148,7 @@ def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tenso
 def check_selection(selection: torch.Tensor, count: int, caller: str) -> None:
     """ValueError naming ``caller`` unless ``selection`` is a boolean mask [count], one entry per Gaussian."""
     if selection.dtype != torch.bool or tuple(selection.shape) != (count,):
-        raise ValueError(f"{caller}: selection must be a boolean mask of the scene's {count:,} Gaussians, got "
+        raise ValueError(f"{caller}: selection must be a boolean mask of the scene's {counted(count, 'Gaussian')}, got "
                          f"{selection.dtype} {tuple(selection.shape)}")
 
 

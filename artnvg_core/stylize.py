@@ -232,7 +232,8 @@ def stylize_diffusion(
         loading_progress (`ProgressFn` or None, defaults to None): called in bytes as each model file starts
             loading and once when all are (one device; the workers of several load their own).
         sampling_progress (`ProgressFn` or None, defaults to None): called after each denoising step.
-        progress (`ProgressFn` or None, defaults to None): called after each finetune iteration.
+        progress (`ProgressFn` or None, defaults to None): called as the finetune's iterations start (0) and
+            after each.
         render_progress (`ProgressFn` or None, defaults to None): follows the renders of every view: the content
             views' (``info["stage"]``: ``"content"``, as they start and after each render call) and, with a
             ``selection``, the finetune's (:func:`~artnvg_core.finetune.finetune`).

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from .counted import counted
 from .json_objects import JsonObject
 from .statedict import is_state_dict
 
@@ -186,7 +187,8 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
         head = stream.read(8)
         length = struct.unpack("<Q", head)[0] if len(head) == 8 else -1
         if not 0 < length <= min(MAX_HEADER_BYTES, size - 8):
-            raise ValueError(f"weights '{path}': not a safetensors file (header length {length}, file {size} bytes)")
+            raise ValueError(f"weights '{path}': not a safetensors file (header length {length}, file "
+                             f"{counted(size, 'byte')})")
         try:
             header = json.loads(stream.read(length), object_pairs_hook=functools.partial(_header_object, path))
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -211,7 +213,7 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
             valid = False
         if not valid or end - begin != nbytes or start + end > size:
             raise ValueError(f"weights '{path}': tensor '{name}' has a bad entry in the safetensors header "
-                             f"(dtype, shape and data_offsets within the file's {size} bytes expected)")
+                             f"(dtype, shape and data_offsets within the file's {counted(size, 'byte')} expected)")
         entries[name] = (dtype, shape, begin, end)
     covered = 0
     for name, (_, _, begin, end) in sorted(entries.items(), key=lambda item: item[1][2:]):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from artnvg_core.blend import blend, render_strengths
+from artnvg_core.counted import counted
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
@@ -56,7 +57,8 @@ class BlendStylization(ArtNVGNode):
             strengths = parse_strengths(preview_strengths)
         with node_input(self.DISPLAY_NAME, "view"):
             if cameras is not None and view >= len(cameras):
-                raise ValueError(f"the cameras have {len(cameras)} views (0 to {len(cameras) - 1}), got {view}")
+                raise ValueError(f"the cameras have {counted(len(cameras), 'view')} (0 to {len(cameras) - 1}), "
+                                 f"got {view}")
         with node_input(self.DISPLAY_NAME):  # blend's messages name what they refuse: the two scenes, selection...
             result = blend(original, stylized, strength, selection)
             camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from artnvg_core.counted import counted
 from artnvg_core.diffusion.images import check_images, resize_images, sampling_size
 from artnvg_core.diffusion.settings import SIZE_RULES, SamplerSettings, guided_steps
 from artnvg_core.progress import check_stop
@@ -120,10 +121,11 @@ class SampleGroup(ArtNVGNode):
                node_id=None):
         node = self.DISPLAY_NAME
         if len(content_views) != groups.num_views:
-            raise NodeInputError(f"{node}: input 'content_views': {len(content_views)} views but the groups cover "
-                                 f"{groups.num_views} cameras; render and group the same cameras")
+            raise NodeInputError(f"{node}: input 'content_views': {counted(len(content_views), 'view')} but the groups "
+                                 f"cover {counted(groups.num_views, 'camera')}; render and group the same cameras")
         if not -1 <= group_index < len(groups):
-            raise NodeInputError(f"{node}: input 'group_index': {group_index} is out of range for {len(groups)} groups")
+            raise NodeInputError(f"{node}: input 'group_index': {group_index} is out of range for "
+                                 f"{counted(len(groups), 'group')}")
         with node_input(node, "content_views"):
             images = check_images(content_views, "the views")
         unet = diffusion_unet(node, model)

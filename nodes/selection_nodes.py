@@ -82,7 +82,8 @@ class SelectGaussians(ArtNVGNode):
             with node_input(self.DISPLAY_NAME, "views"):
                 indices = parse_views(views, len(cameras))
                 if len(indices) != len(masks):
-                    raise ValueError(f"{len(masks)} masks but {len(indices)} views ({views!r}): give one view per mask")
+                    raise ValueError(f"{counted(len(masks), 'mask')} but {counted(len(indices), 'view')} ({views!r}): "
+                                     "give one view per mask")
             with render_device() as device, node_input(self.DISPLAY_NAME, "mask"), autograd_enabled():
                 # the Gaussians' weights are read from a render's gradient
                 selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),

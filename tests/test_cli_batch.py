@@ -4,6 +4,7 @@ the running jobs without leaving a file. (Its JOBS files: tests/test_cli_batch_j
 
 import json
 import os
+import re
 import signal
 from pathlib import Path
 
@@ -58,6 +59,30 @@ def test_sigterm_stops_a_batch_as_ctrl_c_does(tmp_path):
                             timeout=120, env=child_env(), cwd=str(Path(__file__).parents[1]))
     assert result.returncode == 143, (result.returncode, result.stderr[-2000:])
     assert "summary: 0 done, 1 cancelled" in result.stdout and "Traceback" not in result.stderr
+
+
+def test_a_batch_that_fails_closes_its_bar_before_the_error(tmp_path, monkeypatch, capsys):
+    """The error is printed on a line of its own, below the bar's last state; the bar was left open
+    (mid-line) when the jobs' run raised."""
+    import contextlib
+
+    from artnvg_core.cli import batch
+    from artnvg_core.cluster import Workers
+
+    class Pool:  # one job finished, then the run fails
+        def __init__(self, workers): pass
+        def __enter__(self): return self
+        def __exit__(self, *exc): pass
+        def run(self, jobs, redo=False, on_event=None):
+            on_event("finished", jobs[0], batch.JobResult(jobs[0], "skipped", "complete"))
+            raise OSError("the jobs' folder is gone")
+
+    monkeypatch.setattr(batch, "ray_session", lambda *args, **kwargs: contextlib.nullcontext(Workers("cpu", 1)))
+    monkeypatch.setattr(batch, "BatchPool", Pool)
+    entries = [{"scene": "a.ply", "style": "s.jpg", "out": f"out/{name}.ply"} for name in "ab"]
+    assert cli.main(["batch", str(write_jobs(tmp_path / "jobs.json", entries))]) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"batch: +50%.*\| 1/2 \[[^\]]+\] *\nerror: the jobs' folder is gone\n$", err), err
 
 
 @pytest.mark.parametrize("where", ["finetune", "loading"])

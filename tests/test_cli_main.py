@@ -568,3 +568,28 @@ def test_a_bar_reporting_after_the_bars_were_closed_draws_nothing(capsys):
     views(2, 4, {"stage": "content"})
     err = capsys.readouterr().err
     assert re.search(r"views: +25%.*\| 1/4 \[.*\]\nerror: the message\n$", err), err
+
+
+def test_a_line_printed_while_a_bar_is_drawn_gets_a_line_of_its_own(tmp_path, monkeypatch):
+    """stdout and stderr share the terminal: a status line printed while a bar is drawn (the scene loading
+    beside the diffusion models' load in a background thread) was glued to the end of the bar's line."""
+    import io
+
+    import artnvg_core.stylize
+    from tests.test_stylize import _terminal
+
+    def finetune_that_prints(scene, cameras, style, config, progress, **kwargs):
+        progress(1, 10, {})
+        print("a status line")
+        progress(10, 10, {})
+        return scene
+
+    monkeypatch.setattr(artnvg_core.stylize, "stylize_nnfm", finetune_that_prints)
+    monkeypatch.setattr(artnvg_core.stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
+    terminal = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", terminal)
+    monkeypatch.setattr(sys, "stderr", terminal)
+    assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.ply") == 0
+    screen = _terminal(terminal.getvalue())
+    at = screen.index("a status line")
+    assert re.fullmatch(r"finetune: 100%\|#+\| 10/10 \[[^\]]+\]", screen[at + 1]), screen  # ASCII: no Unicode in a StringIO

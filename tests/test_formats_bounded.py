@@ -33,10 +33,10 @@ def test_exactly_the_implied_size_and_one_byte_past_it_at_most(monkeypatch):
     where = Path("scene.spz")
     assert len(inflate_exactly(CountingReader(2500), 2500, where, "data")) == 2500
     endless = CountingReader(10**12)
-    with pytest.raises(ValueError, match=r"scene\.spz: data: the stream holds more than the 2500 bytes expected"):
+    with pytest.raises(ValueError, match=r"scene\.spz: data: the stream holds more than the 2,500 bytes expected"):
         inflate_exactly(endless, 2500, where, "data")
     assert endless.given == 2501
-    with pytest.raises(ValueError, match=r"scene\.spz: data: 2500 bytes expected, the stream ends after 2499"):
+    with pytest.raises(ValueError, match=r"scene\.spz: data: 2,500 bytes expected, the stream ends after 2,499"):
         inflate_exactly(CountingReader(2499), 2500, where, "data")
     trailing = CountingReader(10**12)
     assert len(inflate_exactly(trailing, 2500, where, "data", trailing_allowed=True)) == 2500

@@ -108,7 +108,7 @@ def test_corrupt_headers_name_the_field(tmp_path):
         (good[:20] + struct.pack("<H", 3) + good[22:], "compressionLevel: 3, expected 0, 1 or 2"),
         (good[:4] + struct.pack("<I", 9) + good[8:], "maxSectionCount: 9 section headers do not fit"),
         (good[:-1], r"section 0: its counts need \d+ bytes, the file holds \d+"),
-        (good + b"\0", "the file holds 1 bytes after its last section"),
+        (good + b"\0", "the file holds 1 byte after its last section"),
         (good[:4096 + 40] + struct.pack("<H", 3) + good[4096 + 42 :],
          "section 0: sphericalHarmonicsDegree: 3, expected 0, 1 or 2"),
         (good[:4096] + struct.pack("<I", 6) + good[4100:], "section 0: splatCount: 6, more than its maxSplatCount 5"),
@@ -158,7 +158,7 @@ def test_bucket_lengths_are_checked_against_the_count_before_any_array_of_their_
     path = tmp_path / "buckets.ksplat"
     path.write_bytes(_level_1_file([1]))
     assert len(read_ksplat(path)) == 1
-    cases = [([2**24], 0, r"lengths adding up to 16777216\) hold 16777216 Gaussians, not its splatCount 1"),
+    cases = [([2**24], 0, r"lengths adding up to 16777216\) hold 16,777,216 Gaussians, not its splatCount 1"),
              ([0], 0, r"hold 0 Gaussians, not its splatCount 1"),
              ([1], 1, r"fullBucketCount 1 \+ partiallyFilledBucketCount 1 is more than its bucketCount 1")]
     for lengths, full, message in cases:

@@ -518,7 +518,7 @@ def test_list_elements_are_skipped_by_their_byte_count_before_and_after_the_vert
     data = path.read_bytes()
     path.write_bytes(data + (b"1 0 0.5\n" if fmt == "ascii" else b"\0"))
     with pytest.raises(ValueError, match=r"mesh\.ply: the header's element counts \(polygon 4, vertex 5, face 3\) "
-                       r"disagree with the data size: the file holds (1 bytes more|13 data lines for 12 records)"):
+                       r"disagree with the data size: the file holds (1 byte more|13 data lines for 12 records)"):
         read_ply(path)
     path.write_bytes(data.replace(b"element polygon 4", b"element polygon 5"))
     with pytest.raises(ValueError, match=r"mesh\.ply: "):

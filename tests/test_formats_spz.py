@@ -309,7 +309,7 @@ def test_a_header_count_beyond_the_inflation_cap_is_refused_before_inflating(tmp
     result = subprocess.run([sys.executable, "-c", LOAD_AND_MEASURE, str(path)], cwd=root, capture_output=True,
                             text=True, check=True, env=child_env())
     report = json.loads(result.stdout)
-    expected = (rf"claims\.spz: numPoints: {count} Gaussians of SH degree 0: needs {20 * count:,} bytes inflated "
+    expected = (rf"claims\.spz: numPoints: {count:,} Gaussians of SH degree 0: needs {20 * count:,} bytes inflated "
                 rf"from a {size:,}-byte file, more than the cap of 64x the file's size \({max(64 * size, 2**24):,} bytes\)")
     assert report["message"] is not None and re.search(expected, report["message"]), report
     assert report["seconds"] < 2 and report["growth"] < 2**26, report
@@ -327,7 +327,7 @@ def test_the_inflation_cap_admits_real_scenes_and_states_its_bound(tmp_path, mon
     monkeypatch.setattr(bounded, "INFLATION_FLOOR", 0)
     monkeypatch.setattr(bounded, "MAX_INFLATION", 1)
     assert inflated > (tmp_path / "real.spz").stat().st_size
-    with pytest.raises(ValueError, match=r"real\.spz: numPoints: 3000 Gaussians of SH degree 3: needs .* cap of 1x"):
+    with pytest.raises(ValueError, match=r"real\.spz: numPoints: 3,000 Gaussians of SH degree 3: needs .* cap of 1x"):
         read_spz(tmp_path / "real.spz")
 
 

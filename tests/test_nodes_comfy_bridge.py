@@ -232,10 +232,9 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy):
         (result,) = node.finetune(scene, cameras, style, 2, "appearance", 0.8, 0.2, 1.0, 0.5, 0.0, 0)
     assert not torch.equal(result.sh, scene.sh)
     assert torch.equal(result.means, scene.means)  # appearance only
-    # one bar, four stages, each named under the node as it starts: the 2 views rendered before (colour
-    # transfer, one render call: the bar shows as it starts), their content features, the 2 steps, the 2
-    # views after
-    assert comfy.bars == [[(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (1, 2), (2, 2), (0, 2), (2, 2)]]
+    # one bar, four stages, each named under the node as it starts (0): the 2 views rendered before (colour
+    # transfer, one render call), their content features, the 2 steps, the 2 views after
+    assert comfy.bars == [[(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 2), (2, 2)]]
     assert [text for text, _ in comfy.texts] == ["Finetune Gaussians: rendering the 2 views before finetuning",
                                                  "Finetune Gaussians: computing the VGG features of the 2 views "
                                                  "for the content term",
@@ -296,6 +295,7 @@ def test_finetune_of_a_selection_names_its_coverage_pass_under_the_node(comfy):
         selection = torch.ones(len(scene), dtype=torch.bool)
         FinetuneGaussians().finetune(scene, cameras, torch.rand(1, 24, 24, 3), 1, "appearance", 0.8, 0.2, 1.0, 0.5,
                                      0.0, 0, selection=selection)
-    assert comfy.bars == [[(0, 2), (1, 2), (2, 2), (0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (1, 1), (0, 2), (2, 2)]]
+    assert comfy.bars == [[(0, 2), (1, 2), (2, 2), (0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 1), (1, 1), (0, 2),
+                           (2, 2)]]
     assert comfy.texts[0] == ("Finetune Gaussians: measuring what the selection covers in the 2 views", "7")
     assert ("Finetune Gaussians: finetuning: 1 step", "7") in comfy.texts  # was "1 steps"

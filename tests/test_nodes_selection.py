@@ -75,7 +75,7 @@ def test_select_node_says_why_a_mask_selects_nothing(demo):
 
 def test_select_node_needs_one_view_per_mask(demo):
     original, cameras = demo
-    with pytest.raises(NodeInputError, match="Select Gaussians.*views.*2 masks but 1 views"):
+    with pytest.raises(NodeInputError, match="Select Gaussians.*views.*2 masks but 1 view "):
         call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras,
              mask=torch.ones(2, cameras.height, cameras.width), views="0")
     for views, problem in [("0, 99", "view index 99 is out of range for 24 cameras"),  # named once (was 'views: ...')

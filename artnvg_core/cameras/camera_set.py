@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from ..counted import counted
 from .geometry import camera_centers
 
 MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
@@ -38,11 +39,12 @@ class CameraSet:
             raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
                              f"got {self.width}x{self.height}")
         if len(self.names) != c:
-            raise ValueError(f"CameraSet.names: expected {c} names, got {len(self.names)}")
+            raise ValueError(f"CameraSet.names: expected {counted(c, 'name')}, got {len(self.names)}")
         if not self.image_paths:
             self.image_paths = [None] * c
         if len(self.image_paths) != c:
-            raise ValueError(f"CameraSet.image_paths: expected {c} entries, got {len(self.image_paths)}")
+            raise ValueError(f"CameraSet.image_paths: expected {counted(c, 'entry', 'entries')}, "
+                             f"got {len(self.image_paths)}")
 
     def __len__(self) -> int:
         return self.world_to_cam.shape[0]
@@ -69,7 +71,7 @@ class CameraSet:
         idx = [int(i) for i in indices]
         for i in idx:
             if not -len(self) <= i < len(self):
-                raise ValueError(f"CameraSet.subset: view index {i} out of range for {len(self)} views")
+                raise ValueError(f"CameraSet.subset: view index {i} out of range for {counted(len(self), 'view')}")
         sel = torch.tensor(idx, dtype=torch.long) if on_device is None else on_device
         return replace(
             self,

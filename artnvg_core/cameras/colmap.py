@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from ..counted import counted
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
     PERSPECTIVE_MODELS,
@@ -111,15 +112,17 @@ class _BinaryReader:
         """``range(count)`` for ``count`` records of at least ``smallest`` bytes each; a ValueError, before any
         is read, when the bytes left cannot hold them or they are more than :data:`MAX_VIEWS`."""
         if count > MAX_VIEWS or count * smallest > self.left:
-            raise ValueError(f"{self.path}: the header says {count:,} {what}; the file's {self.left:,} bytes left "
-                             f"hold at most {self.left // smallest:,}, and a model may have {MAX_VIEWS:,}")
+            raise ValueError(f"{self.path}: the header says {counted(count, what)}; the file has "
+                             f"{counted(self.left, 'byte')} left, room for at most {self.left // smallest:,}, and a "
+                             f"model may have {MAX_VIEWS:,}")
         return range(count)
 
     def end(self, count: int, what: str) -> None:
         """ValueError unless every byte was read: the header's count of ``what`` covers every record."""
         if self.left:
-            raise ValueError(f"{self.path}: the header says {count:,} {what}, but {self.left:,} bytes follow the "
-                             "last of them (the count is wrong or the file is corrupt)")
+            raise ValueError(f"{self.path}: the header says {counted(count, what)}, but the file has "
+                             f"{counted(self.left, 'byte')} more after the last of them (the count is wrong or the "
+                             "file is corrupt)")
 
     def _truncated(self, what: str, at: int) -> ValueError:
         return ValueError(f"{self.path}: file ends inside {what} at byte {at} (truncated?)")
@@ -155,7 +158,7 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
     with _BinaryReader(path) as reader:
         (count,) = reader.unpack("Q", "the camera count")
         cameras, places = {}, {}
-        for index in reader.records(count, struct.calcsize("<IiQQ") + 3 * 8, "cameras"):
+        for index in reader.records(count, struct.calcsize("<IiQQ") + 3 * 8, "camera"):
             camera_id, model_id, width, height = reader.unpack("IiQQ", f"camera {index}")
             _check_new_id(places, path, "camera id", camera_id, f"camera record {index}")
             if model_id not in _COLMAP_MODELS:
@@ -163,7 +166,7 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
             model, num_params = _COLMAP_MODELS[model_id]
             params = reader.unpack(f"{num_params}d", f"the parameters of camera {camera_id}")
             cameras[camera_id] = _ColmapCamera(model, width, height, params)
-        reader.end(count, "cameras")
+        reader.end(count, "camera")
         return cameras
 
 
@@ -171,14 +174,14 @@ def _read_images_bin(path: Path) -> list[_ColmapImage]:
     with _BinaryReader(path) as reader:
         (count,) = reader.unpack("Q", "the image count")
         images, places = [], {}
-        for index in reader.records(count, struct.calcsize("<I7dI") + 1 + 8, "images"):
+        for index in reader.records(count, struct.calcsize("<I7dI") + 1 + 8, "image"):
             image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = reader.unpack("I7dI", f"image {index}")
             _check_new_id(places, path, "image id", image_id, f"image record {index}")
             name = reader.c_string(f"the name of image {image_id}")
             (num_points,) = reader.unpack("Q", f"the 2D point count of image {image_id}")
             reader.skip(num_points * struct.calcsize("<ddq"), f"the 2D points of image {image_id}")
             images.append(_ColmapImage((qw, qx, qy, qz), (tx, ty, tz), camera_id, name, index, image_id))
-        reader.end(count, "images")
+        reader.end(count, "image")
         return images
 
 
@@ -204,7 +207,8 @@ def _text_records(path: Path) -> list[tuple[int, str]]:
 
 def _text_line_error(path: Path, number: int, expected: str, line: str) -> ValueError:
     """The error of a line that is not what ``expected`` says (it tells how many fields it has, never what they say)."""
-    return ValueError(f"{path}: line {number}: expected {expected}, got a line of {len(line.split())} fields")
+    return ValueError(f"{path}: line {number}: expected {expected}, got a line of "
+                      f"{counted(len(line.split()), 'field')}")
 
 
 def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:

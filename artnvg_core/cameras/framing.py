@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..counted import counted
 from ..scene import GaussianScene
 
 
@@ -95,7 +96,7 @@ def _gaussian_weights(scene: GaussianScene) -> tuple[torch.Tensor, torch.Tensor]
     finite = torch.isfinite(means).all(1) & torch.isfinite(log_scales).all(1) & torch.isfinite(logits)
     if not finite.any():
         raise ValueError(
-            f"scene: none of its {len(scene)} Gaussians has a finite position, scale and opacity; "
+            f"scene: none of its {counted(len(scene), 'Gaussian')} has a finite position, scale and opacity; "
             "cannot place cameras around it"
         )
     means, log_scales, logits = means[finite], log_scales[finite], logits[finite]

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from ..counted import counted
 from ..json_objects import JsonObject
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
@@ -65,7 +66,7 @@ def _number(value, where: str) -> float:
 def _kind(value) -> str:
     """What ``value`` (from JSON) is, without quoting it: "a string", "a list of 3 items"..."""
     if isinstance(value, list):
-        return f"a list of {len(value)} items"
+        return f"a list of {counted(len(value), 'item')}"
     return {str: "a string", dict: "an object", bool: "true or false", type(None): "null"}.get(type(value), "a number")
 
 

@@ -8,6 +8,8 @@ written. Blank text (or None, or separators alone) means every view.
 
 from __future__ import annotations
 
+from ..counted import counted
+
 
 def listed_views(text: str | None, what: str | None = None, *, distinct: bool = False) -> list[int]:
     """The indices written in ``text`` (the module's grammar), as written; [] when blank. The checks that need
@@ -45,5 +47,6 @@ def parse_views(text: str | None, count: int, what: str | None = None, *, distin
     for index in indices:
         if index >= count:
             where = f"{what}: " if what else ""
-            raise ValueError(f"{where}view index {index} is out of range for {count} cameras (0..{count - 1})")
+            raise ValueError(f"{where}view index {index} is out of range for {counted(count, 'camera')} "
+                             f"(0..{count - 1})")
     return indices or list(range(count))

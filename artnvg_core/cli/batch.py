@@ -237,16 +237,14 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
         place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
         print(f"batch: {counted(len(jobs), 'job')} on {counted(workers.count, f'{workers.kind} worker')}{place}",
               flush=True)
-        bar = tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True)
+        # the bar is closed however the run ends, before main prints an error below it
+        with tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True) as bar, BatchPool(workers) as pool:
+            def report(kind: str, job: Job, detail) -> None:
+                if kind == "finished":
+                    bar.update(1)
+                    bar.write(_line(detail, len(jobs)), file=sys.stdout)
 
-        def report(kind: str, job: Job, detail) -> None:
-            if kind == "finished":
-                bar.update(1)
-                bar.write(_line(detail, len(jobs)), file=sys.stdout)
-
-        with BatchPool(workers) as pool:
             results = pool.run(jobs, redo=args.redo, on_event=report)
-        bar.close()
     counts = {status: sum(r.status == status for r in results) for status in STATUSES}
     print("summary: " + ", ".join(f"{counts[s]} {s}" for s in STATUSES if counts[s] or s == "done"))
     for result in results:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 import time
 from typing import TYPE_CHECKING
@@ -40,6 +41,18 @@ def terminate_as_interrupt():
         yield received
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def printed_above_bars():
+    """For the block, what is printed on stdout goes out line by line through ``tqdm.write`` (tqdm's
+    ``DummyTqdmFile``, its recipe for printing beside bars): a bar on screen is lifted out of the line's way and
+    drawn again below it. A status line printed while another thread's bar is drawn (the scene loading beside
+    the diffusion models' load) was glued to the end of the bar's line."""
+    from tqdm.contrib import DummyTqdmFile
+
+    with contextlib.redirect_stdout(DummyTqdmFile(sys.stdout)):
+        yield
 
 
 _drawn: list[ProgressBar] = []  # those whose bar is on screen and not yet closed

@@ -25,6 +25,7 @@ from .common import (
     is_out_of_memory,
     load_scene_verbose,
     prepare_rasterizer,
+    printed_above_bars,
     terminate_as_interrupt,
 )
 from .evaluate import add_evaluate_arguments
@@ -146,7 +147,7 @@ def main(argv: list[str] | None = None, *, whole_process: bool = False) -> int:
         keep_peft_out()
     terminated: list[int] = []
     try:
-        with terminate_as_interrupt() as terminated:
+        with terminate_as_interrupt() as terminated, printed_above_bars():
             try:
                 status = args.run(args)
             finally:  # a bar left mid-line would glue the message below to it, and be drawn again after it

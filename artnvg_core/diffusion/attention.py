@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..counted import counted
 from .attention_math import Neighbours, check_neighbours, decoupled_attention, neighbour_view_attention
 
 IMAGE_TOKEN_KINDS = ("content", "style")
@@ -207,7 +208,7 @@ class DecoupledCrossAttention(nn.Module):
         num_text = encoder_hidden_states.shape[1] - num_content - num_style
         if num_text < 1:
             raise ValueError(
-                f"DecoupledCrossAttention: context of {encoder_hidden_states.shape[1]} tokens cannot hold "
+                f"DecoupledCrossAttention: context of {counted(encoder_hidden_states.shape[1], 'token')} cannot hold "
                 f"{num_content} content + {num_style} style tokens and at least one text token"
             )
         text, content, style = encoder_hidden_states.split([num_text, num_content, num_style], dim=1)

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from ..counted import counted
 from .speed import cudnn_attention_first
 
 Neighbours = tuple[tuple[int, ...], ...]
@@ -36,7 +37,7 @@ def check_neighbours(neighbours: Neighbours, views: int, name: str = "neighbours
     if len(neighbours) != views or len(counts) != 1:
         raise ValueError(
             f"{name} must hold one row per view ({views}) of equal length, "
-            f"got {len(neighbours)} rows of lengths {sorted(counts)}"
+            f"got {counted(len(neighbours), 'row')} of lengths {sorted(counts)}"
         )
     for view, row in enumerate(neighbours):
         if len(set(row)) != len(row) or view in row or any(not 0 <= j < views for j in row):
@@ -74,7 +75,7 @@ def token_grid(latent_size: tuple[int, int], length: int) -> tuple[int, int]:
     factor = 2 ** round(math.log2(math.sqrt(height * width / length)))
     grid = (math.ceil(height / factor), math.ceil(width / factor))
     if grid[0] * grid[1] != length:
-        raise ValueError(f"latent_size {latent_size} does not fit a layer of {length} tokens")
+        raise ValueError(f"latent_size {latent_size} does not fit a layer of {counted(length, 'token')}")
     return grid
 
 

@@ -40,6 +40,7 @@ from diffusers import (
     UniPCMultistepScheduler,
 )
 
+from ..counted import counted
 from ..grouping import nearest_views
 from ..progress import ProgressFn, StopFn, check_stop
 from .attention import AttentionControl, attention_kwargs
@@ -111,7 +112,7 @@ def _initial_noise(
         noise = torch.randn((views, channels, *grid), generator=generator)
     else:
         if len(noise_seeds) != views:
-            raise ValueError(f"stylize_group: {len(noise_seeds)} noise_seeds for {views} views")
+            raise ValueError(f"stylize_group: {len(noise_seeds)} noise_seeds for {counted(views, 'view')}")
         noise = torch.cat([torch.randn((1, channels, *grid), generator=torch.Generator().manual_seed(int(s)))
                            for s in noise_seeds])
     return resample_noise(noise, (height, width))

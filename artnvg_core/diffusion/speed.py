@@ -73,23 +73,20 @@ def sdpa_backend(name: str) -> contextlib.AbstractContextManager:
 
 
 CUDNN_FIRST = (SDPBackend.CUDNN_ATTENTION, SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH)
-_ENABLED = {SDPBackend.CUDNN_ATTENTION: torch.backends.cuda.cudnn_sdp_enabled,
-            SDPBackend.FLASH_ATTENTION: torch.backends.cuda.flash_sdp_enabled,
-            SDPBackend.EFFICIENT_ATTENTION: torch.backends.cuda.mem_efficient_sdp_enabled,
-            SDPBackend.MATH: torch.backends.cuda.math_sdp_enabled}
+_ENABLED = ("cudnn_sdp_enabled", "flash_sdp_enabled", "mem_efficient_sdp_enabled", "math_sdp_enabled")  # as CUDNN_FIRST
 _ORDERS = "set_priority" in inspect.signature(sdpa_kernel).parameters
 
 
 def cudnn_attention_first(device: torch.device) -> contextlib.AbstractContextManager:
     """On a CUDA ``device``, a context in which scaled-dot-product attention tries the backends enabled now
-    (an :func:`sdpa_backend` restriction holds) in the order :data:`CUDNN_FIRST`; elsewhere, or where PyTorch's
-    ``sdpa_kernel`` takes no ``set_priority``, nothing. PyTorch's own order depends on the process: in a ComfyUI server, whose attention
-    sets an order around each of its calls, a balanced group's NV attention ran on flash attention, 16.9 s
-    of GPU time on an H200 against 11.4 s on cuDNN's kernel (BENCHMARKS.md, "ComfyUI's native path"); the
-    same order as ComfyUI's own attention, so the pack's patches run as fast in ComfyUI as the library."""
+    (an :func:`sdpa_backend` restriction holds) in the order :data:`CUDNN_FIRST`; elsewhere, or where
+    PyTorch's ``sdpa_kernel`` takes no ``set_priority``, nothing. PyTorch's own choice depends on what ran
+    before in the process: in a ComfyUI process (whose attention sets its own order, cuDNN first, around
+    each of its calls) a balanced group's NV attention ran on flash attention, 16.9 s of GPU time on an
+    H200 against 11.4 s on cuDNN's kernel (BENCHMARKS.md, "ComfyUI's native path")."""
     if device.type != "cuda" or not _ORDERS:
         return contextlib.nullcontext()
-    enabled = [backend for backend in CUDNN_FIRST if _ENABLED[backend]()]
+    enabled = [backend for backend, name in zip(CUDNN_FIRST, _ENABLED) if getattr(torch.backends.cuda, name)()]
     return sdpa_kernel(enabled, set_priority=True) if enabled else contextlib.nullcontext()
 
 

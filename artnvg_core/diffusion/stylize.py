@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import torch
 
 from ..cameras import CameraSet
+from ..counted import counted
 from ..grouping import DEFAULT_GROUP_SIZE, ViewGroups, group_views
 from ..progress import ProgressFn, StopFn
 from .conditioning import StyleConditioning, prepare_conditioning
@@ -47,7 +48,8 @@ def stylize_views(
     """
     images = check_images(content_images, "stylize_views: content_images")
     if len(images) != len(cameras.world_to_cam):
-        raise ValueError(f"stylize_views: {len(images)} content images but {len(cameras.world_to_cam)} cameras")
+        raise ValueError(f"stylize_views: {counted(len(images), 'content image')} but "
+                         f"{counted(len(cameras.world_to_cam), 'camera')}")
     groups = group_views(cameras, group_size, context=context_views)
     conditioning = prepare_conditioning(models, style_image, prompt, negative_prompt)
     return stylize_groups(models, images, groups, conditioning, settings, seed=seed, progress=progress,
@@ -108,7 +110,7 @@ def stylize_owned_views(
     ``noise_seeds`` when given, one per view of ``images``), its context views included; returns its owned
     views' stylized images [len(views), H, W, 3] in ``groups[index].views`` order."""
     if noise_seeds is not None and len(noise_seeds) != len(images):
-        raise ValueError(f"stylize_owned_views: {len(noise_seeds)} noise_seeds for {len(images)} views")
+        raise ValueError(f"stylize_owned_views: {len(noise_seeds)} noise_seeds for {counted(len(images), 'view')}")
     members, centers = group_members(images, groups, index)
     seeds = None if noise_seeds is None else [noise_seeds[v] for v in groups[index].all_views]
     result = stylize_group(models, members, conditioning, settings, seed=seed + index, noise_seeds=seeds,

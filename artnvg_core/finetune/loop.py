@@ -38,6 +38,7 @@ import logging
 import torch
 
 from ..cameras import CameraSet, scene_frame
+from ..counted import counted
 from ..images import resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop, staged
@@ -132,7 +133,7 @@ def _check_blind_views(blind: torch.Tensor, warned: set[int], cameras: CameraSet
         _log.warning("finetune: view %d (%s) sees no Gaussian; its steps are skipped", view, cameras.names[view])
     warned.update(found)
     if len(warned) == len(cameras):
-        raise ValueError(f"finetune: none of the {len(cameras)} cameras sees any Gaussian; check that the "
+        raise ValueError(f"finetune: none of the {counted(len(cameras), 'camera')} sees any Gaussian; check that the "
                          "cameras and the scene share one coordinate frame")
 
 
@@ -181,8 +182,9 @@ def finetune(
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
     stylized: optional [C, H', W', 3] stylized views in camera order, resized to
         the camera size when they differ; None runs the NNFM-only stylizer.
-    progress(step, total, info): called after every step with the step's view (``view``, or ``views``
-        with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
+    progress(step, total, info): called with step 0 and ``info`` {} as the steps start (a step takes seconds
+        at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
+        (``view``, or ``views`` with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
         holds the loss terms as floats (reading them waits for the device, so not every step).
         should_stop(): checked before every step; when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
@@ -210,8 +212,8 @@ def check_stylized_views(stylized: torch.Tensor, count: int) -> None:
     """ValueError (naming the shape, not the input: the caller names it) unless ``stylized`` is [count, H, W, 3]:
     one view per camera of ``count``, in the cameras' order."""
     if stylized.ndim != 4 or stylized.shape[0] != count or stylized.shape[-1] != 3:
-        raise ValueError(f"got {tuple(stylized.shape)} for {count} cameras; expected [{count}, H, W, 3], one view per "
-                         "camera in the cameras' order (give the cameras the views were rendered from)")
+        raise ValueError(f"got {tuple(stylized.shape)} for {counted(count, 'camera')}; expected [{count}, H, W, 3], "
+                         "one view per camera in the cameras' order (give the cameras the views were rendered from)")
 
 
 def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tensor, stylized: torch.Tensor | None,
@@ -272,6 +274,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     schedule_on_device = schedule.to(device)
     blind = torch.zeros(len(cameras), dtype=torch.int32, device=device)  # steps each view saw no Gaussian
     warned: set[int] = set()
+    if progress is not None and config.iterations:
+        progress(0, config.iterations, {})
     step = 1
     while step <= config.iterations:
         check_stop(should_stop)

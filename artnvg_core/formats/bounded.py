@@ -15,6 +15,8 @@ import zipfile
 from pathlib import Path
 from typing import BinaryIO
 
+from ..counted import counted
+
 CHUNK = 1 << 24  # bytes inflated per read
 # At most this many bytes inflated per byte of the file (files under INFLATION_FLOOR / MAX_INFLATION
 # bytes may inflate to INFLATION_FLOOR). Real SPZ scenes inflate 1.3x (SH degree 0) to 4.5x (degree 3
@@ -51,10 +53,10 @@ def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trai
     sooner or, unless ``trailing_allowed``, holds more (found by inflating one byte past ``size``)."""
     data = read_at_most(stream, size if trailing_allowed else size + 1)
     if len(data) < size:
-        raise ValueError(f"{path}: {field}: {size} bytes expected, the stream ends after {len(data)} "
+        raise ValueError(f"{path}: {field}: {counted(size, 'byte')} expected, the stream ends after {len(data):,} "
                          "(truncated, or the header's counts are wrong)")
     if len(data) > size:
-        raise ValueError(f"{path}: {field}: the stream holds more than the {size} bytes expected "
+        raise ValueError(f"{path}: {field}: the stream holds more than the {counted(size, 'byte')} expected "
                          "(refused without inflating the rest)")
     return data
 
@@ -74,9 +76,9 @@ def require_stored_zip(path: Path) -> None:
         raise ValueError(f"{path}: not a readable zip archive ({error}); the file is truncated or corrupt") from error
     for record in records:
         if record.compress_type != zipfile.ZIP_STORED:
-            raise ValueError(f"{path}: record {record.filename!r} is compressed ({record.file_size} bytes "
-                             f"from {record.compress_size}); torch.save stores records uncompressed, so "
+            raise ValueError(f"{path}: record {record.filename!r} is compressed ({counted(record.file_size, 'byte')} "
+                             f"from {record.compress_size:,}); torch.save stores records uncompressed, so "
                              "this file was made otherwise and is refused rather than inflated")
         if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
-            raise ValueError(f"{path}: record {record.filename!r} claims {record.file_size} bytes, more than "
+            raise ValueError(f"{path}: record {record.filename!r} claims {counted(record.file_size, 'byte')}, more than "
                              "the file holds (truncated or corrupt)")

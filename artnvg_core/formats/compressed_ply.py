@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from ..counted import counted
 from ..scene import SH_C0, GaussianScene, validate_scene
 from .common import opacity_logits_from_bytes
 from .ply_data import PlyData
@@ -90,7 +91,7 @@ def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = 
     chunks = (n + CHUNK_SIZE - 1) // CHUNK_SIZE
     if ply["chunk"].count != chunks:
         raise ValueError(f"{path}: element 'chunk': count {ply['chunk'].count}, expected {chunks} "
-                         f"(one per {CHUNK_SIZE} of the {n} vertices)")
+                         f"(one per {CHUNK_SIZE} of the {counted(n, 'vertex', 'vertices')})")
     if n == 0:
         raise ValueError(f"{path}: the scene contains no Gaussians")
     chunk_of = np.arange(n) // CHUNK_SIZE
@@ -106,8 +107,9 @@ def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = 
     if "sh" in ply:
         names = ply["sh"].property_names
         if len(names) not in (9, 24, 45) or ply["sh"].count != n:
-            raise ValueError(f"{path}: element 'sh': {len(names)} properties for {ply['sh'].count} rows, "
-                             f"expected 9, 24 or 45 f_rest_* for {n} rows")
+            raise ValueError(f"{path}: element 'sh': {counted(len(names), 'property', 'properties')} for "
+                             f"{counted(ply['sh'].count, 'row')}, expected 9, 24 or 45 f_rest_* for "
+                             f"{counted(n, 'row')}")
         coded = _columns(path, ply, "sh", [f"f_rest_{i}" for i in range(len(names))])
         value = np.where(coded == 0, 0.0, np.where(coded == 255, 1.0, (coded + 0.5) / 256))
         sh.append(((value - 0.5) * 8).reshape(n, 3, -1).transpose(0, 2, 1))  # channel-major, as INRIA's f_rest

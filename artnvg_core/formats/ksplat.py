@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from ..cameras.geometry import normalize_quats
+from ..counted import counted
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
 from .common import require_file, scene_to_write
@@ -91,7 +92,7 @@ def _bucket_of_each(path: Path, s: int, section: dict, count: int) -> np.ndarray
     if held != count:
         raise ValueError(f"{path}: section {s}: its buckets (fullBucketCount {section['full']}, bucketSize "
                          f"{section['bucket_size']}, {len(lengths)} partly filled of lengths adding up to "
-                         f"{int(lengths.sum())}) hold {held} Gaussians, not its splatCount {count}")
+                         f"{int(lengths.sum())}) hold {counted(held, 'Gaussian')}, not its splatCount {count}")
     index = np.arange(full) // max(section["bucket_size"], 1)
     partial = np.repeat(section["full"] + np.arange(len(lengths)), lengths)
     return np.concatenate([index, partial])
@@ -103,7 +104,7 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
     require_file(path)
     data = path.read_bytes()
     if len(data) < HEADER_BYTES:
-        raise ValueError(f"{path}: header: {len(data)} bytes, expected {HEADER_BYTES}")
+        raise ValueError(f"{path}: header: {counted(len(data), 'byte')}, expected {HEADER_BYTES}")
     major, minor, sections, _, _, _, level, *_, sh_min, sh_max = _HEADER.unpack_from(data)
     if (major, minor) < VERSION or major != VERSION[0]:
         raise ValueError(f"{path}: version: {major}.{minor} is not a supported .ksplat version (0.1 or later 0.x)")
@@ -124,7 +125,7 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
         meta = partial * 4
         storage = meta + bucket_bytes * buckets + record.itemsize * capacity
         if offset + storage > len(data):
-            raise ValueError(f"{path}: section {s}: its counts need {storage} bytes, the file holds "
+            raise ValueError(f"{path}: section {s}: its counts need {counted(storage, 'byte')}, the file holds "
                              f"{len(data) - offset} after its start (truncated, or the counts are wrong)")
         rows = np.frombuffer(data, record, count, offset + meta + bucket_bytes * buckets)
         means = rows["center"].astype(np.float64)
@@ -148,7 +149,7 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
                       sh, degree))
         offset += storage
     if offset != len(data):
-        raise ValueError(f"{path}: the file holds {len(data) - offset} bytes after its last section")
+        raise ValueError(f"{path}: the file holds {counted(len(data) - offset, 'byte')} after its last section")
     degree = min((p[5] for p in parts), default=0)
     if not parts or sum(len(p[0]) for p in parts) == 0:
         raise ValueError(f"{path}: the scene contains no Gaussians")

@@ -28,6 +28,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from ..counted import counted
 from ..fileio import write_atomically
 from ..scene import GaussianScene, logit, validate_scene
 from . import compressed_ply
@@ -84,7 +85,8 @@ def _sh_rest_count(path: Path, property_names: tuple[str, ...]) -> int:
     count = sum(1 for name in property_names if _REST_PROPERTY.fullmatch(name))
     if count not in _SH_DEGREE_FOR_REST_COUNT:
         raise ValueError(
-            f"{path}: f_rest_*: found {count} properties, expected 0, 9, 24 or 45 (SH degree 0 to 3)"
+            f"{path}: f_rest_*: found {counted(count, 'property', 'properties')}, expected 0, 9, 24 or 45 "
+            "(SH degree 0 to 3)"
         )
     return count
 

@@ -19,6 +19,8 @@ from typing import BinaryIO
 
 import numpy as np
 
+from ..counted import counted
+
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -198,14 +200,14 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
             element.data = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype).copy()
         offset += element.count * dtype.itemsize
     if offset != len(data):
-        raise _counts_error(path, elements, f"{len(data) - offset} bytes more than those records need")
+        raise _counts_error(path, elements, f"{counted(len(data) - offset, 'byte')} more than those records need")
 
 
 def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted: set[str]) -> None:
     lines = [line for line in stream.read().split(b"\n") if line.strip()]
     declared = sum(element.count for element in elements)
     if len(lines) != declared:
-        raise _counts_error(path, elements, f"{len(lines)} data lines for {declared} records")
+        raise _counts_error(path, elements, f"{counted(len(lines), 'data line')} for {counted(declared, 'record')}")
     start = 0
     for element in elements:
         rows = lines[start:start + element.count]

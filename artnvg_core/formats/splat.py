@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..cameras.geometry import normalize_quats
+from ..counted import counted
 from ..fileio import write_atomically
 from ..scene import DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
 from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
@@ -70,7 +71,7 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     size = path.stat().st_size
     if size == 0 or size % RECORD.itemsize:
         raise ValueError(
-            f"{path}: file size {size} bytes is not a positive multiple of the {RECORD.itemsize}-byte "
+            f"{path}: file size {counted(size, 'byte')} is not a positive multiple of the {RECORD.itemsize}-byte "
             ".splat record (empty or truncated file)"
         )
     records = np.fromfile(path, dtype=RECORD)

@@ -60,6 +60,7 @@ import torch
 
 from ..cameras.camera_set import CameraSet
 from ..cameras.geometry import normalize_quats
+from ..counted import counted
 from ..fileio import write_atomically
 from ..scene import GaussianScene, validate_scene
 from .bounded import inflate_exactly, read_at_most, require_inflatable
@@ -108,7 +109,8 @@ def _stored_system(path: Path, zone: bytes) -> int | None:
     while offset + 8 <= len(zone):
         kind, length = struct.unpack_from("<II", zone, offset)
         if offset + 8 + length > len(zone):
-            raise ValueError(f"{path}: extension record at byte {offset} runs past its zone ({length} bytes)")
+            raise ValueError(f"{path}: extension record at byte {offset} runs past its zone "
+                             f"({counted(length, 'byte')})")
         if kind == _COORDINATE_EXTENSION and length >= 4:
             return struct.unpack_from("<I", zone, offset + 8)[0] or RUB
         offset += 8 + length
@@ -142,13 +144,13 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | 
         with gzip.GzipFile(fileobj=io.BytesIO(raw)) as stream:
             head = read_at_most(stream, _LEGACY_HEADER.size)
             if len(head) < _LEGACY_HEADER.size:
-                raise ValueError(f"{path}: header: {len(head)} bytes, expected {_LEGACY_HEADER.size}")
+                raise ValueError(f"{path}: header: {counted(len(head), 'byte')}, expected {_LEGACY_HEADER.size}")
             magic, version, count, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(head)
             if magic != MAGIC:
                 raise ValueError(f"{path}: magic: {magic:#010x}, expected {MAGIC:#010x} ('NGSP')")
             _check_header(path, version, count, degree, range(1, LATEST_VERSION + 1))
             sizes = _array_sizes(count, degree, version)
-            field = f"numPoints: {count} Gaussians of SH degree {degree}"
+            field = f"numPoints: {counted(count, 'Gaussian')} of SH degree {degree}"
             require_inflatable(sum(sizes.values()), path, field)
             data = inflate_exactly(stream, sum(sizes.values()), path, field,
                                    trailing_allowed=bool(flags & FLAG_EXTENSIONS))
@@ -165,11 +167,11 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | 
 
 def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
     if len(raw) < _HEADER.size:
-        raise ValueError(f"{path}: header: {len(raw)} bytes, expected {_HEADER.size}")
+        raise ValueError(f"{path}: header: {counted(len(raw), 'byte')}, expected {_HEADER.size}")
     _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
     _check_header(path, version, count, degree, range(4, LATEST_VERSION + 1))
     sizes = {name: size for name, size in _array_sizes(count, degree, version).items() if size}
-    require_inflatable(sum(sizes.values()), path, f"numPoints: {count} Gaussians of SH degree {degree}")
+    require_inflatable(sum(sizes.values()), path, f"numPoints: {counted(count, 'Gaussian')} of SH degree {degree}")
     if streams != len(sizes):
         raise ValueError(f"{path}: numStreams: {streams}, expected {len(sizes)} for SH degree {degree}")
     body = toc + 16 * streams
@@ -184,10 +186,11 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None
     for index, (name, size) in enumerate(sizes.items()):
         compressed, uncompressed = struct.unpack_from("<QQ", raw, toc + 16 * index)
         if uncompressed != size:
-            raise ValueError(f"{path}: {name} stream: {uncompressed} bytes uncompressed, expected {size} "
-                             f"for {count} Gaussians")
+            raise ValueError(f"{path}: {name} stream: {counted(uncompressed, 'byte')} uncompressed, expected "
+                             f"{size} for {counted(count, 'Gaussian')}")
         if compressed > len(raw) - offset:
-            raise ValueError(f"{path}: {name} stream: runs {compressed - (len(raw) - offset)} bytes past the "
+            raise ValueError(f"{path}: {name} stream: runs "
+                             f"{counted(compressed - (len(raw) - offset), 'byte')} past the "
                              "end of the file (truncated)")
         reader = zstandard.ZstdDecompressor().stream_reader(raw[offset : offset + compressed])
         try:
@@ -196,7 +199,7 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None
             raise ValueError(f"{path}: {name} stream: not valid zstd data ({error})") from error
         offset += compressed
     if offset != len(raw):
-        raise ValueError(f"{path}: the file holds {len(raw) - offset} bytes after its last stream")
+        raise ValueError(f"{path}: the file holds {counted(len(raw) - offset, 'byte')} after its last stream")
     header = {"version": version, "count": count, "degree": degree, "bits": fractional_bits, "flags": flags}
     return header, arrays, system
 

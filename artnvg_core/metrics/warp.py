@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import CameraSet
+from ..counted import counted
 from ..progress import ProgressFn
 
 
@@ -98,9 +99,10 @@ def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int, alpha_thr
         if tuple(value.shape) != (count, *size, 1):
             raise ValueError(f"warp_consistency: {name} must be [{count}, {size[0]}, {size[1]}, 1], got {tuple(value.shape)}")
     if len(cameras) != count:
-        raise ValueError(f"warp_consistency: {count} images but {len(cameras)} cameras")
+        raise ValueError(f"warp_consistency: {counted(count, 'image')} but {counted(len(cameras), 'camera')}")
     if int(step) != step or not 1 <= step < count:
-        raise ValueError(f"warp_consistency: step must be an integer in 1..{count - 1} for {count} views, got {step!r}")
+        raise ValueError(f"warp_consistency: step must be an integer in 1..{count - 1} for "
+                         f"{counted(count, 'view')}, got {step!r}")
 
 
 @torch.no_grad()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from ..cameras import CameraSet
+from ..counted import counted
 from ..devices import available_memory
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
@@ -30,7 +31,8 @@ def check_render_plan(views: int, width: int, height: int, *, kept: int | None =
     available = available_memory()
     if available is not None and needed > available // 2:
         held = "all their images held at once" if kept == views else f"{kept} of their images held at once"
-        raise ValueError(f"{what}: {views} views of {width}x{height} pixels, {held}, need {needed / 2**30:.1f} GiB, "
+        raise ValueError(f"{what}: {counted(views, 'view')} of {width}x{height} pixels, {held}, "
+                         f"need {needed / 2**30:.1f} GiB, "
                          f"more than half the {available / 2**30:.1f} GiB of memory available now; render fewer "
                          "views or at a smaller scale")
 

@@ -141,10 +141,10 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
         comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm"))
     summary = queue.run_summary(entry)
     assert summary["status"] == "success", summary["error"]
-    # 2 views rendered before the steps (one call, the bar shown as it starts), their content features, 3 steps,
-    # the 2 views again
+    # 2 views rendered before the steps (one call), their content features, 3 steps, the 2 views again: each
+    # stage's bar shown as it starts (0)
     progress = _finetune_progress(messages)
-    assert progress == [(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (1, 3), (2, 3), (3, 3), (0, 2), (2, 2)], progress
+    assert progress == [(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3), (3, 3), (0, 2), (2, 2)], progress
     saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
     assert len(saved) == 1 and saved[0]["type"] == "output"
     path = comfy_server.output_dir / saved[0]["file"]
