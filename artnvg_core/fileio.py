@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import BinaryIO, Callable
 
 
-def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
-    """Call ``write`` on a temporary file beside ``path`` (:func:`temporary_path`), then rename it onto ``path``.
+def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None], *, overwrite: bool = True) -> None:
+    """Call ``write`` on a temporary file beside ``path`` (:func:`temporary_path`), then give the complete file
+    the name ``path``: renamed onto it, or with ``overwrite`` False only while no file holds the name
+    (:func:`publish_new`: FileExistsError naming ``path`` when one does, nothing of the existing file touched).
 
-    On any failure (or interruption) the temporary file is removed and
-    ``path`` is left untouched.
+    On any failure (or interruption) the temporary file is removed and ``path`` is left untouched.
     """
     path = Path(path)
     sweep_temporaries(path.parent)
@@ -27,12 +28,37 @@ def write_atomically(path: str | os.PathLike, write: Callable[[BinaryIO], None])
     try:
         with open(temporary, "xb") as stream:
             write(stream)
-        os.replace(temporary, path)
+        if overwrite:
+            os.replace(temporary, path)
+        else:
+            publish_new(temporary, path)
     except OSError as error:  # e.g. a full disk: named by the file being written, not the temporary one
-        temporary.unlink(missing_ok=True)
         raise _naming(error, {temporary: path}, path) from error
-    except BaseException:
+    finally:
         temporary.unlink(missing_ok=True)
+
+
+def publish_new(complete: Path, path: Path) -> None:
+    """Give the complete file ``complete`` the name ``path`` too, unless a file (or link) already holds it:
+    FileExistsError then, and nothing changes. Two writers that picked one free name thus never write over
+    each other: the one that comes second learns it and can pick another, and a reader of ``path`` sees no
+    file or the whole one, never a part. A hard link claims the name atomically (a rename would replace the
+    file there); the caller removes ``complete``. Where the file system has no hard links (FAT, exFAT, some
+    network shares) the name is claimed by creating it empty and exclusively (O_EXCL), then ``complete`` is
+    renamed onto it at once: there a reader may see it empty for that instant, never part of the file."""
+    try:
+        os.link(complete, path)
+        return
+    except FileExistsError:
+        raise
+    except OSError:  # no hard links here: claim the name empty, and fill it in one rename
+        pass
+    with open(path, "xb"):
+        pass
+    try:
+        os.replace(complete, path)
+    except BaseException:
+        path.unlink(missing_ok=True)
         raise
 
 

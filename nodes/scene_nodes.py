@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import itertools
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 from artnvg_core.counted import counted
@@ -87,13 +89,17 @@ def _prefix_target(filename_prefix: str, suffix: str) -> Path:
     return target
 
 
-def _next_free_path(filename_prefix: str, suffix: str) -> Path:
-    """``<output>/<prefix>_NNNNN<suffix>`` with the next unused counter; the prefix may name subfolders."""
+def _numbered_paths(filename_prefix: str, suffix: str) -> Iterator[Path]:
+    """``<output>/<prefix>_NNNNN<suffix>`` from the counter after the highest one there, upwards; the prefix
+    may name subfolders (made here). A name is only a candidate: the save claims it when its file is complete,
+    never over a file (:func:`~artnvg_core.fileio.publish_new`), and goes on to the next one when another writer
+    (a second ComfyUI sharing the folder) took it meanwhile."""
     target = _prefix_target(filename_prefix, suffix)
     target.parent.mkdir(parents=True, exist_ok=True)
     numbered = re.compile(re.escape(target.name) + r"_(\d{5,})" + re.escape(suffix))
     taken = [int(m.group(1)) for existing in target.parent.iterdir() if (m := numbered.fullmatch(existing.name))]
-    return target.parent / f"{target.name}_{max(taken, default=0) + 1:05d}{suffix}"
+    first = max(taken, default=0) + 1
+    return (target.parent / f"{target.name}_{number:05d}{suffix}" for number in itertools.count(first))
 
 
 def saved_text(name: str, size: int, gaussians: int) -> str:
@@ -154,12 +160,16 @@ class SaveGaussianScene(ArtNVGNode):
             if spz_version not in SPZ_VERSION_CHOICES:
                 raise ValueError(f"expected one of {SPZ_VERSION_CHOICES}, got {spz_version!r}")
         with node_input(self.DISPLAY_NAME, "filename_prefix"):
-            file = _next_free_path(filename_prefix, f".{format}")
-        try:
-            with node_input(self.DISPLAY_NAME, "scene"):
-                save_scene(scene, file, spz_version=int(spz_version))
-        except OSError as error:
-            raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
+            names = _numbered_paths(filename_prefix, f".{format}")
+        for file in names:
+            try:
+                with node_input(self.DISPLAY_NAME, "scene"):
+                    save_scene(scene, file, spz_version=int(spz_version), overwrite=False)
+                break
+            except FileExistsError:
+                continue  # taken while this file was written: the next number
+            except OSError as error:
+                raise NodeInputError(f"{self.DISPLAY_NAME}: cannot write {file}: {error}") from error
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))

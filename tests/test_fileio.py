@@ -154,3 +154,31 @@ def test_sigterm_while_writing_leaves_no_temporary(tmp_path):
     with pytest.raises(KeyboardInterrupt), terminate_as_interrupt() as received:
         write_atomically(tmp_path / "scene.ply", write)
     assert received == [signal.SIGTERM] and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("hard_links", [True, False], ids=["hard links", "no hard links (FAT)"])
+def test_a_new_file_never_goes_over_one_that_took_its_name_while_it_was_written(tmp_path, monkeypatch, hard_links):
+    """overwrite=False: a rival that writes the name while this file is written keeps its file, this one is
+    refused (FileExistsError naming the name) and leaves nothing behind; the name shows the whole file or none."""
+    if not hard_links:
+        def no_link(source, target, **_):
+            raise PermissionError(1, "Operation not permitted", source, None, target)
+        monkeypatch.setattr(os, "link", no_link)
+    target = tmp_path / "scene.ply"
+
+    def write_while_rival_writes(stream):
+        assert not target.exists()  # no placeholder, empty or partial, at the name while this file is written
+        stream.write(b"ours")
+        target.write_bytes(b"rival")
+
+    with pytest.raises(FileExistsError, match=r"scene\.ply") as refused:
+        write_atomically(target, write_while_rival_writes, overwrite=False)
+    assert refused.value.filename == str(target)
+    assert target.read_bytes() == b"rival" and list(tmp_path.iterdir()) == [target]
+    (tmp_path / "link.ply").symlink_to(tmp_path / "nowhere.ply")  # a dangling link holds its name too
+    with pytest.raises(FileExistsError):
+        write_atomically(tmp_path / "link.ply", lambda stream: stream.write(b"ours"), overwrite=False)
+    assert not (tmp_path / "nowhere.ply").exists()
+    write_atomically(tmp_path / "free.ply", lambda stream: stream.write(b"ours"), overwrite=False)
+    assert (tmp_path / "free.ply").read_bytes() == b"ours"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["free.ply", "link.ply", "scene.ply"]

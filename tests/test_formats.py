@@ -34,6 +34,18 @@ def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
         save_scene(scene, tmp_path / "scene.ckpt")
 
 
+@pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
+def test_every_writer_keeps_a_file_it_may_not_overwrite(tmp_path, suffix):
+    scene = random_scene(4, 0).select(slice(3, None))  # within every format's ranges
+    taken = tmp_path / f"scene{suffix}"
+    taken.write_bytes(b"another writer's")
+    with pytest.raises(FileExistsError, match=re.escape(str(taken))):
+        save_scene(scene, taken, overwrite=False)
+    assert taken.read_bytes() == b"another writer's" and list(tmp_path.iterdir()) == [taken]
+    save_scene(scene, tmp_path / f"new{suffix}", overwrite=False)
+    assert len(load_scene(tmp_path / f"new{suffix}")) == 1
+
+
 @pytest.mark.parametrize(("option", "value"), [("spz_version", 4), ("spz_version", "2"), ("spz_axes", "up")])
 def test_a_bad_spz_option_is_refused_by_name_before_writing(tmp_path, option, value):
     with pytest.raises(ValueError, match=rf"{option}: expected one of .*, got {value!r}"):

@@ -57,6 +57,29 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
+def test_save_scene_never_writes_over_a_file_another_process_saved_under_its_name(comfy_dirs, small_bear, monkeypatch):
+    """Two ComfyUI processes sharing the output folder pick the same next name: the one whose file is complete
+    second keeps the first one's file and takes the next number."""
+    import nodes.scene_nodes as scene_nodes
+
+    written = []
+
+    def rival_saves_first(scene, path, **options):  # the rival claims the name between the pick and the write
+        if not written:
+            path.write_bytes(b"rival")
+        written.append(path.name)
+        return save_scene(scene, path, **options)
+
+    monkeypatch.setattr(scene_nodes, "save_scene", rival_saves_first)
+    saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/stylized")
+    folder = comfy_dirs / "output" / "artnvg"
+    assert (folder / "stylized_00001.ply").read_bytes() == b"rival"
+    assert written == ["stylized_00001.ply", "stylized_00002.ply"]
+    assert saved["result"][0] == "artnvg/stylized_00002.ply" and saved["ui"]["scenes"][0]["filename"] == "stylized_00002.ply"
+    assert same_scene(read_ply(folder / "stylized_00002.ply"), small_bear)
+    assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
+
+
 def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear):
     """A .spz in RUB with no record: read upright with the capture's cameras connected (spz_axes auto), in
     the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way."""

@@ -126,14 +126,16 @@ def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> No
 
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto",
-               spz_version: int = 3) -> None:
+               spz_version: int = 3, overwrite: bool = True) -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
     a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them,
-    as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js)."""
+    as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js). With ``overwrite``
+    False never over an existing file: FileExistsError naming ``path`` when one holds it by the time the new
+    one is complete (:func:`~artnvg_core.fileio.write_atomically`)."""
     path = writable_scene_path(path)
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     _check_option("spz_version", spz_version, SPZ_VERSIONS)
     if path.suffix.lower() == ".spz":
-        write_spz(scene, path, axes=spz_axes, version=spz_version)
+        write_spz(scene, path, axes=spz_axes, version=spz_version, overwrite=overwrite)
     else:
-        WRITERS[path.suffix.lower()](scene, path)
+        WRITERS[path.suffix.lower()](scene, path, overwrite=overwrite)

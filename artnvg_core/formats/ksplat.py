@@ -172,8 +172,9 @@ def check_geometry(cpu: GaussianScene, path: Path) -> None:
     linear_scales(cpu, path, ".ksplat")
 
 
-def write_ksplat(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring).
+def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring); with ``overwrite`` False never
+    over an existing file (:func:`~artnvg_core.fileio.write_atomically`).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, log-scales
     outside [-87, 88].
@@ -196,4 +197,5 @@ def write_ksplat(scene: GaussianScene, path: str | os.PathLike) -> None:
     _HEADER.pack_into(header, 0, *VERSION, 1, 1, n, n, 0, 0.0, 0.0, 0.0, -_DEFAULT_SH_RANGE, _DEFAULT_SH_RANGE)
     section = bytearray(SECTION_HEADER_BYTES)
     _SECTION.pack_into(section, 0, n, n, 0, 0, 0.0, 0, 0, record.itemsize * n, 0, 0, degree)
-    write_atomically(path, lambda stream: stream.write(bytes(header) + bytes(section) + rows.tobytes()))
+    write_atomically(path, lambda stream: stream.write(bytes(header) + bytes(section) + rows.tobytes()),
+                     overwrite=overwrite)

@@ -180,8 +180,9 @@ def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
         np.savetxt(stream, table, fmt="%.9g")  # 9 significant digits identify every float32
 
 
-def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True) -> None:
-    """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically.
+def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True, overwrite: bool = True) -> None:
+    """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically; with ``overwrite`` False never over an existing
+    file (:func:`~artnvg_core.fileio.write_atomically`).
 
     Properties x y z nx ny nz (zeros) f_dc_* f_rest_* (channel-major) opacity
     scale_* rot_* (and a zero ``filter_3D`` when ``scene.antialiased``); binary
@@ -203,4 +204,4 @@ def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = T
         stream.write(header.encode("ascii"))
         _write_ply_body(stream, table, binary)
 
-    write_atomically(path, write)
+    write_atomically(path, write, overwrite=overwrite)

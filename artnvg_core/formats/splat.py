@@ -94,8 +94,9 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
 
 
-def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
-    """Write ``scene`` as a ``.splat`` file atomically (quantisation in the module docstring).
+def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+    """Write ``scene`` as a ``.splat`` file atomically (quantisation in the module docstring); with ``overwrite``
+    False never over an existing file (:func:`~artnvg_core.fileio.write_atomically`).
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, log-scales outside [-87, 88].
@@ -111,4 +112,4 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike) -> None:
     records["scale"] = scales
     records["rgba"] = rgba_bytes(cpu)
     records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
-    write_atomically(path, lambda stream: stream.write(records.tobytes()))
+    write_atomically(path, lambda stream: stream.write(records.tobytes()), overwrite=overwrite)

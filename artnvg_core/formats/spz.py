@@ -350,10 +350,12 @@ def _first_three(q: np.ndarray) -> np.ndarray:
     return to_bytes(q[:, :3] * 127.5 + 127.5)
 
 
-def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "auto", version: int = 3) -> None:
+def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "auto", version: int = 3,
+              overwrite: bool = True) -> None:
     """Write ``scene`` as an SPZ file of ``version`` 3 (or 2) atomically, in the PLY's axes with no
     coordinate-system record, as splat-transform, spz-js and Niantic's ply-to-spz write (``axes`` "auto" or
-    "ply"), or in RUB (``axes="rub"``); module docstring.
+    "ply"), or in RUB (``axes="rub"``); module docstring. With ``overwrite`` False never over an existing file
+    (:func:`~artnvg_core.fileio.write_atomically`).
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, a coordinate of magnitude 2^23 or more.
@@ -383,4 +385,5 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
         sh_bytes,
     ]
     payload = b"".join(a if isinstance(a, bytes) else np.ascontiguousarray(a).tobytes() for a in arrays)
-    write_atomically(path, lambda stream: stream.write(gzip.compress(payload, compresslevel=6, mtime=0)))
+    write_atomically(path, lambda stream: stream.write(gzip.compress(payload, compresslevel=6, mtime=0)),
+                     overwrite=overwrite)
