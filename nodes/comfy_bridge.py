@@ -195,10 +195,11 @@ def progress_bar() -> ProgressFn | None:
     return report
 
 
-def progress_text(message: str) -> None:
-    """Show ``message`` under the running node in ComfyUI's editor (its progress text) and in the
-    console log; without ComfyUI, in the log alone."""
-    _log.warning(message)
+def progress_text(message: str, node: str = "") -> None:
+    """Show ``message`` under the running node in ComfyUI's editor (its progress text) and in the console log,
+    there after ``node: `` (the node's display name, which the editor shows above the text already); without
+    ComfyUI, in the log alone."""
+    _log.warning(f"{node}: {message}" if node else message)
     server, execution = comfy_module("server"), comfy_module("comfy_execution.utils")
     context = execution.get_executing_context() if hasattr(execution, "get_executing_context") else None
     if server is not None and context is not None:

@@ -46,7 +46,7 @@ def staged_progress():
             shown = stage
             counts = {"views": counted(total, "view"), "steps": counted(total, "step"),
                       "finetuned": counted(total, "finetuned view")}
-            progress_text(f"Finetune Gaussians: {STAGES[stage].format(**counts)}")
+            progress_text(STAGES[stage].format(**counts), FinetuneGaussians.DISPLAY_NAME)
         report(step, total, info)
 
     return staged

@@ -103,7 +103,7 @@ class SelectGaussians(ArtNVGNode):
                                             masks.clone().to(device), progress=progress_bar(),
                                             should_stop=interrupt_requested).cpu()
         count = int(selection.sum())
-        progress_text(f"selected {count:,} of {counted(len(scene), 'Gaussian')}")
+        progress_text(f"selected {count:,} of {counted(len(scene), 'Gaussian')}", self.DISPLAY_NAME)
         with node_input(self.DISPLAY_NAME, "bounds" if mode != "mask" else "mask"):
             if count == 0:
                 raise ValueError(f"selects no Gaussian of the scene; {_where_to_look(scene, mode, masks=mask)}")

@@ -24,6 +24,9 @@ import pytest
 from test_workflows import UI_FILES, api_twin
 from ws_client import WebSocket
 
+from artnvg_core.counted import counted
+from nodes.finetune_nodes import STAGES
+
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 UNTIL = """
@@ -54,6 +57,7 @@ SHOWN_PROBLEMS = """
 INSPECT = """
 (async () => {
   %s
+  %s
   const workflow = %s;
   await app.loadGraphData(workflow, true, true, "artnvg-test");
   await new Promise((done) => setTimeout(done, 1000));
@@ -76,14 +80,19 @@ INSPECT = """
   for (const node of graph.serialize().nodes) widgets[node.id] = node.widgets_values || [];
   const dialogs = await %s;
   const prompt = await app.graphToPrompt();
-  const boxes = graph._nodes.map((n) => [n.id, n.getBounding()]);
-  const overlaps = [];
-  for (const [i, [a, r]] of boxes.entries())
-    for (const [b, q] of boxes.slice(i + 1))
-      if (Math.min(r[0] + r[2], q[0] + q[2]) > Math.max(r[0], q[0]) && Math.min(r[1] + r[3], q[1] + q[3]) > Math.max(r[1], q[1]))
-        overlaps.push([a, b]);
-  return {missing, problems, links: links.length, widgets, dialogs, output: prompt.output, overlaps};
+  return {missing, problems, links: links.length, widgets, dialogs, output: prompt.output, overlaps: overlaps()};
 })()
+"""
+OVERLAPS = """
+  // the pairs of node ids whose rectangles, as the editor draws them (title bars included), overlap
+  const overlaps = () => {
+    const boxes = app.graph._nodes.map((n) => [n.id, n.getBounding()]), found = [];
+    for (const [i, [a, r]] of boxes.entries())
+      for (const [b, q] of boxes.slice(i + 1))
+        if (Math.min(r[0] + r[2], q[0] + q[2]) > Math.max(r[0], q[0]) && Math.min(r[1] + r[3], q[1] + q[3]) > Math.max(r[1], q[1]))
+          found.push([a, b]);
+    return found;
+  };
 """
 
 
@@ -203,7 +212,7 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots
     workflow = json.loads(path.read_text())
     _close_dialogs(editor)
     first_event = len(editor.events)
-    report = editor.evaluate(INSPECT % (UNTIL, json.dumps(workflow), SHOWN_PROBLEMS))
+    report = editor.evaluate(INSPECT % (UNTIL, OVERLAPS, json.dumps(workflow), SHOWN_PROBLEMS))
     exceptions = [e for e in editor.events[first_event:] if e.get("method") == "Runtime.exceptionThrown"]
     image = _screenshot(editor, screenshots / f"{path.stem}.png")
 
@@ -221,6 +230,43 @@ def test_ui_workflow_loads_in_the_graph_editor(editor, comfy_server, screenshots
     api = json.loads(api_twin(path).read_text())
     assert _declared_inputs_only(report["output"], comfy_server) == api  # the editor's own API export
     assert image[:8] == b"\x89PNG\r\n\x1a\n" and len(image) > 20_000
+
+
+# node type -> the longest text it shows under itself as it runs (a capture of 1,000 views, 10 million Gaussians)
+RUNNING_TEXTS = {
+    "ArtNVGFinetuneGaussians": max((stage.format(views=counted(1000, "view"), steps=counted(100_000, "step"),
+                                                 finetuned=counted(1000, "finetuned view")) for stage in STAGES.values()),
+                                   key=len),
+    "ArtNVGSelectGaussians": f"selected {10**7:,} of {counted(10**7, 'Gaussian')}",
+}
+
+SHOW_RUNNING_TEXTS = """
+(async () => {
+  %s
+  await app.loadGraphData(%s, true, true, "artnvg-texts");
+  await new Promise((done) => setTimeout(done, 1000));
+  const texts = %s, api = window.comfyAPI?.api?.api || app.api;  // as the server sends them during a run
+  const shown = app.graph._nodes.filter((n) => n.type in texts);
+  app.canvas.draw(true, true);  // a node's rectangle is measured as it is drawn
+  const before = shown.map((n) => n.getBounding()[3]);
+  for (const node of shown) api.dispatchCustomEvent("progress_text", {nodeId: String(node.id), text: texts[node.type]});
+  await new Promise((done) => setTimeout(done, 1000));
+  app.canvas.draw(true, true);
+  return {grown: shown.filter((n, i) => n.getBounding()[3] > before[i]).length, overlaps: overlaps()};
+})()
+"""
+
+
+@pytest.mark.parametrize("path", UI_FILES, ids=lambda p: p.stem)
+def test_texts_nodes_show_as_they_run_leave_the_workflow_unoverlapped(editor, screenshots, path):
+    """Finetune and Select Gaussians show a text under themselves as they run, which makes them taller in the
+    editor (1.27.10: by a text box of 50 units, whatever the text); the shipped layouts leave them the room, so
+    that it covers no node below (the quick start's note lost its title under it)."""
+    _close_dialogs(editor)
+    report = editor.evaluate(SHOW_RUNNING_TEXTS % (OVERLAPS, path.read_text(), json.dumps(RUNNING_TEXTS)))
+    _screenshot(editor, screenshots / f"texts_{path.stem}.png")
+    assert report["overlaps"] == [], report
+    assert report["grown"] == sum(node["type"] in RUNNING_TEXTS for node in json.loads(path.read_text())["nodes"])
 
 
 BROWSE = """
