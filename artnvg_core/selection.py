@@ -3,7 +3,8 @@
 A selection is a boolean tensor [N] over a scene's Gaussians (True: selected). It is made
 
 - from a region of space (:func:`parse_region`: ``box:XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`` or ``sphere:X,Y,Z,R``
-  in the scene's world units and axes): the Gaussians whose centre lies inside (boundary included);
+  in the scene's world units and axes; :func:`parse_bounds`: the numbers alone, the kind given apart): the
+  Gaussians whose centre lies inside (boundary included);
 - from masks painted on rendered views (:func:`select_by_masks`): the Gaussians those pixels see, each
   Gaussian weighed by what it adds to every pixel's colour (its alpha times the transmittance in front
   of it, as the renderer composites); a Gaussian is selected when at least half of its weight over the
@@ -58,28 +59,43 @@ class Sphere:
 
 
 Region = Box | Sphere
+REGION_FIELDS = {"box": "XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX", "sphere": "X, Y, Z, R"}  # kind -> its numbers
 REGION_SYNTAX = "box:XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX or sphere:X,Y,Z,R"
+
+
+def parse_bounds(kind: str, text: str) -> Region:
+    """The :class:`Box` (``kind`` "box") or :class:`Sphere` ("sphere") of the comma-separated numbers ``text``
+    (:data:`REGION_FIELDS`, in the scene's units); ValueError saying what a ``kind`` takes, naming no input (the
+    caller names it)."""
+    fields = REGION_FIELDS[kind]
+    count = fields.count(",") + 1
+    try:
+        numbers = [float(part) for part in text.split(",")]
+    except ValueError:
+        numbers = []
+    if len(numbers) != count or not all(map(math.isfinite, numbers)):
+        raise ValueError(f"a {kind} takes {count} finite numbers, {fields}, comma-separated in the scene's units; "
+                         f"got {text!r}")
+    if kind == "box":
+        low, high = tuple(numbers[:3]), tuple(numbers[3:])
+        if any(a > b for a, b in zip(low, high)):
+            raise ValueError(f"the box's minimum corner {low} must not exceed its maximum {high}")
+        return Box(low, high)
+    if numbers[3] <= 0:
+        raise ValueError(f"the sphere's radius must be > 0, got {numbers[3]:g}")
+    return Sphere(tuple(numbers[:3]), numbers[3])
 
 
 def parse_region(text: str, option: str = "--region") -> Region:
     """A :class:`Box` or :class:`Sphere` from ``box:...`` / ``sphere:...`` text (module docstring); ValueError
     naming ``option`` for anything else."""
     kind, _, values = text.strip().partition(":")
-    counts = {"box": 6, "sphere": 4}
-    try:
-        numbers = [float(part) for part in values.split(",")]
-    except ValueError:
-        numbers = []
-    if kind not in counts or len(numbers) != counts[kind] or not all(map(math.isfinite, numbers)):
+    if kind not in REGION_FIELDS:
         raise ValueError(f"{option}: expected {REGION_SYNTAX} (finite numbers in the scene's units), got {text!r}")
-    if kind == "box":
-        low, high = tuple(numbers[:3]), tuple(numbers[3:])
-        if any(a > b for a, b in zip(low, high)):
-            raise ValueError(f"{option}: the box's minimum corner {low} must not exceed its maximum {high}")
-        return Box(low, high)
-    if numbers[3] <= 0:
-        raise ValueError(f"{option}: the sphere's radius must be > 0, got {numbers[3]:g}")
-    return Sphere(tuple(numbers[:3]), numbers[3])
+    try:
+        return parse_bounds(kind, values)
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
 
 
 def select_region(scene: GaussianScene, region: Region) -> torch.Tensor:

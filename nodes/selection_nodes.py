@@ -7,7 +7,7 @@ import torch
 from artnvg_core.cameras.framing import scene_frame
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.counted import counted
-from artnvg_core.selection import parse_region, select_by_masks, select_region
+from artnvg_core.selection import parse_bounds, select_by_masks, select_region
 
 from .comfy_bridge import (
     autograd_enabled,
@@ -66,6 +66,19 @@ class SelectGaussians(ArtNVGNode):
     }
     TEXT_CHECKS = {"views": listed_views}  # a view may hold several masks
 
+    @classmethod
+    def _value_problems(cls, values: dict):
+        """The base's problems, then bounds that its mode, box or sphere, cannot read (checked with the prompt's
+        values too, as a text check, though it reads the mode)."""
+        yield from super()._value_problems(values)
+        passed = cls.passed_values(values)
+        mode, bounds = passed.get("mode"), passed.get("bounds")
+        if mode in ("box", "sphere") and isinstance(bounds, str):
+            try:
+                parse_bounds(mode, bounds)
+            except ValueError as error:
+                yield f"{cls.DISPLAY_NAME}: input 'bounds': {error}", False
+
     @cancellable
     def select(self, scene, mode, bounds, cameras=None, mask=None, views="0", node_id=None):
         with node_input(self.DISPLAY_NAME, "mode"):
@@ -73,7 +86,7 @@ class SelectGaussians(ArtNVGNode):
                 raise ValueError(f"expected one of {MODES}, got {mode!r}")
         if mode != "mask":
             with node_input(self.DISPLAY_NAME, "bounds"):
-                selection = select_region(scene, parse_region(f"{mode}:{bounds.replace(' ', '')}", "bounds"))
+                selection = select_region(scene, parse_bounds(mode, bounds))
         else:
             with node_input(self.DISPLAY_NAME, "mask"):
                 if cameras is None or mask is None:

@@ -37,13 +37,28 @@ def test_select_node_box_sphere_and_mask_give_the_library_selections(demo):
 
 
 @pytest.mark.parametrize("inputs, message", [
-    ({"mode": "box", "bounds": "1, 2, 3"}, "Select Gaussians.*bounds.*expected box:XMIN"),
+    ({"mode": "box", "bounds": "1, 2, 3"}, "^Select Gaussians: input 'bounds': a box takes 6 finite numbers"),
     ({"mode": "sphere", "bounds": "100, 100, 100, 1"}, "Select Gaussians.*bounds.*selects no Gaussian"),
     ({"mode": "mask", "bounds": ""}, "Select Gaussians.*mask.*needs cameras and mask"),
 ])
 def test_select_node_bad_inputs_name_the_input(demo, inputs, message):
     with pytest.raises(NodeInputError, match=message):
         call(SelectGaussians, scene=demo[0], **inputs)
+
+
+def test_select_node_bounds_are_checked_for_their_mode_before_the_graph_runs():
+    """The prompt's values are checked before anything runs (the editor shows it before Render Views renders),
+    saying what the node's mode takes in the node's own terms: the numbers alone, no 'sphere:' the artist never
+    typed."""
+    assert SelectGaussians.check_values(mode="sphere", bounds="0.8, 0.2, -1.1") == (
+        "Select Gaussians: input 'bounds': a sphere takes 4 finite numbers, X, Y, Z, R, comma-separated in the "
+        "scene's units; got '0.8, 0.2, -1.1'")
+    assert SelectGaussians.unreported_value(mode="box", bounds="0, 0, 0, 1, 1") is not None  # ComfyUI shows ours
+    assert "minimum corner" in SelectGaussians.check_values(mode="box", bounds="1, 0, 0, 0, 1, 1")
+    assert "radius must be > 0" in SelectGaussians.check_values(mode={"__value__": "sphere"}, bounds="0, 0, 0, 0")
+    for fine in ({"mode": "sphere", "bounds": " 0.8, 0.2, -1.1, 1"}, {"mode": "box", "bounds": "-1,-1,-1,1,1,1"},
+                 {"mode": "mask", "bounds": ""}, {"bounds": "x"}):
+        assert SelectGaussians.check_values(**fine) is None, fine
 
 
 @pytest.mark.parametrize("mode, bounds", [("sphere", "100, 100, 100, 1"), ("box", "50, 50, 50, 60, 60, 60")])

@@ -126,9 +126,9 @@ def test_region_boundaries_are_inside():
 
 @pytest.mark.parametrize("text, message", [
     ("cube:0,0,0,1,1,1", "expected box:XMIN"),
-    ("box:0,0,0,1,1", "expected box:XMIN"),
-    ("sphere:0,0,0,x", "expected box:XMIN"),
-    ("box:0,0,0,1,nan,1", "expected box:XMIN"),
+    ("box:0,0,0,1,1", "a box takes 6 finite numbers, XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX, .*got '0,0,0,1,1'"),
+    ("sphere:0,0,0,x", "a sphere takes 4 finite numbers, X, Y, Z, R, .*got '0,0,0,x'"),
+    ("box:0,0,0,1,nan,1", "a box takes 6 finite numbers"),
     ("box:0,2,0,1,1,1", "minimum corner"),
     ("sphere:0,0,0,0", "radius must be > 0"),
 ])

@@ -425,12 +425,16 @@ def test_summary_of_success_error_and_interrupt(queue):
     assert queue.run_summary(done) == {"status": "success", "error": None, "outputs": [
         {"node": "7", "kind": "scenes", "file": "artnvg/nnfm_00001.ply", "type": "output"}]}
     failed = _history_entry("error", [["execution_error", {"node_id": "1", "node_type": "ArtNVGLoadGaussianScene",
-                                                          "exception_type": "NodeInputError",
+                                                          # as ComfyUI names a pack's class: its folder's path
+                                                          "exception_type": "/c/custom_nodes/artnvg-comfyui.nodes."
+                                                                            "node_errors.NodeInputError",
                                                           "exception_message": "scene file not found: x.ply"}]], {})
-    assert "node 1 (ArtNVGLoadGaussianScene): NodeInputError: scene file not found: x.ply" in \
-        queue.run_summary(failed)["error"]
-    stopped = _history_entry("error", [["execution_interrupted", {"node_id": "6"}]], {})
+    assert queue.run_summary(failed)["error"] == \
+        "node 1 (ArtNVGLoadGaussianScene): NodeInputError: scene file not found: x.ply"
+    stopped = _history_entry("error", [["execution_interrupted", {"node_id": "6",
+                                                                  "node_type": "ArtNVGFinetuneGaussians"}]], {})
     assert queue.run_summary(stopped)["status"] == "interrupted"
+    assert queue.summary_text(queue.run_summary(stopped)) == "interrupted: in node 6 (ArtNVGFinetuneGaussians)"
 
 
 def test_text_summary_is_one_line_per_node_and_kind(queue):
@@ -468,8 +472,11 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
         elif self.reject:
             self._answer(400, {"error": {"message": "Prompt outputs failed validation", "details": ""},
                                "node_errors": {"1": {"class_type": "ArtNVGLoadGaussianScene", "errors": [
-                                   {"message": "Custom validation failed for node",
-                                    "details": "scene_file - scene file not found: /in/x.ply"}]}}})
+                                   {"type": "custom_validation_failed", "message": "Custom validation failed for node",
+                                    "details": "node_id - Load Gaussian Scene: input 'scene_file': scene file not "
+                                               "found: /in/x.ply", "extra_info": {"input_name": "node_id"}},
+                                   {"type": "custom_validation_failed", "message": "Custom validation failed for node",
+                                    "details": "path - no such path", "extra_info": {"input_name": "path"}}]}}})
         else:
             self._answer(200, {"prompt_id": "abc", "number": 0, "node_errors": {}})
 
@@ -505,7 +512,11 @@ def test_main_queues_waits_and_reports(queue, fake_server, capsys):
 def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, capsys):
     _FakeServer.reject = True
     assert queue.main([str(NNFM_API), "--server", fake_server]) == 2
-    assert "scene_file - scene file not found: /in/x.ply" in capsys.readouterr().err
+    # the node's own message: not ComfyUI's 'Custom validation failed for node: node_id - ', which names the
+    # argument of the pack's check (a hidden input) as if it were an input
+    assert capsys.readouterr().err.splitlines()[-2:] == [
+        "node 1 (Load Gaussian Scene): Load Gaussian Scene: input 'scene_file': scene file not found: /in/x.ply",
+        "node 1 (Load Gaussian Scene), input 'path': no such path"]
     closed = http.server.HTTPServer(("127.0.0.1", 0), _FakeServer)
     address = f"http://127.0.0.1:{closed.server_address[1]}"
     closed.server_close()

@@ -183,11 +183,12 @@ def run_summary(entry: dict) -> dict:
     state = "success" if status.get("status_str") == "success" else "error"
     if "execution_interrupted" in messages:
         state = "interrupted"
-        error = f"interrupted in node {messages['execution_interrupted'].get('node_id')}"
+        data = messages["execution_interrupted"]
+        error = f"in node {data.get('node_id')} ({data.get('node_type')})"
     elif "execution_error" in messages:
         data = messages["execution_error"]
-        error = (f"node {data.get('node_id')} ({data.get('node_type')}): "
-                 f"{data.get('exception_type')}: {data.get('exception_message', '').strip()}")
+        kind = str(data.get("exception_type")).rpartition(".")[2]  # a pack's module path names its folder: left out
+        error = f"node {data.get('node_id')} ({data.get('node_type')}): {kind}: {data.get('exception_message', '').strip()}"
     outputs = []
     for node_id, node_outputs in (entry.get("outputs") or {}).items():
         for kind, items in node_outputs.items():
@@ -213,7 +214,10 @@ def summary_text(summary: dict) -> str:
 
 def rejection_text(details: dict, workflow: dict) -> str:
     """The server's validation errors, one line per node and input: ``node 6 (Finetune Gaussians), input
-    'iterations': Value smaller than min: iterations -1 < 1``."""
+    'iterations': Value smaller than min: iterations -1 < 1``. A node's own check (``custom_validation_failed``,
+    whose details ComfyUI prefixes with the name of its check's argument, ``NAME - ``) is given by its message
+    alone, the input named only where it is one of the node's inputs in ``workflow`` (a pack may check through
+    a hidden input)."""
     lines = []
     error = details.get("error")
     if isinstance(error, dict):
@@ -221,8 +225,13 @@ def rejection_text(details: dict, workflow: dict) -> str:
     for node_id, node in (details.get("node_errors") or {}).items():
         for item in node.get("errors", []):
             input_name = (item.get("extra_info") or {}).get("input_name")
+            text = f"{item.get('message')}: {item.get('details')}"
+            if item.get("type") == "custom_validation_failed":
+                text = str(item.get("details")).removeprefix(f"{input_name} - ")
+                if input_name not in workflow.get(node_id, {}).get("inputs", {}):
+                    input_name = None
             where = f", input '{input_name}'" if input_name else ""
-            lines.append(f"node {_node_name(workflow, node_id)}{where}: {item.get('message')}: {item.get('details')}")
+            lines.append(f"node {_node_name(workflow, node_id)}{where}: {text}")
     return "\n".join(lines) or json.dumps(details)
 
 
