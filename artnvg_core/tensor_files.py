@@ -47,10 +47,10 @@ READERS = 4  # threads reading parts of one file onto a GPU at once (page cache 
 
 def read_tensors(path: str | os.PathLike, device: str | torch.device = "cpu",
                  dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
-    """The tensors of the ``.safetensors`` or ``torch.save`` file at ``path``, on ``device``; floating-point
-    tensors converted to ``dtype`` there when given (others keep theirs). A malformed ``.safetensors``
-    header, a ``torch.save`` file that torch cannot load or that holds anything but names to tensors, is a
-    ValueError naming the file and what is wrong."""
+    """The tensors of the ``.safetensors`` or ``torch.save`` file at ``path`` (names to tensors, or a ``.ckpt``'s
+    ``{"state_dict": names to tensors, ...}``), on ``device``; floating-point tensors converted to ``dtype``
+    there when given (others keep theirs). A malformed ``.safetensors`` header, a ``torch.save`` file that
+    torch cannot load or that holds anything else, is a ValueError naming the file and what is wrong."""
     path, device = Path(path), torch.device(device)
     tensors = _taken_early(path, device)
     if tensors is None:
@@ -142,14 +142,19 @@ def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu")
 
 
 def _read_state_dict(path: Path, device: torch.device) -> dict[str, torch.Tensor]:
-    """:func:`read_torch_file` of a weights file: ValueError naming ``path`` when torch cannot load it or it
-    holds anything but names to tensors."""
+    """:func:`read_torch_file` of a weights file: names to tensors, or such a mapping under ``"state_dict"`` (a
+    PyTorch Lightning checkpoint, as the original Stability/CompVis ``.ckpt`` files and many fine-tunes are
+    saved; its other entries, such as ``global_step``, are left aside), as ComfyUI's ``load_torch_file`` reads
+    them. ValueError naming ``path`` when torch cannot load it or it holds anything else."""
     try:
         state = read_torch_file(path, device)
     except Exception as error:  # torch.load raises many types on corrupt or foreign files
         raise ValueError(f"weights '{path}': not a readable torch file ({load_failure(error)})") from error
+    if isinstance(state, dict) and not is_state_dict(state) and is_state_dict(state.get("state_dict")):
+        state = state["state_dict"]
     if not is_state_dict(state):
-        raise ValueError(f"weights '{path}': not a state dict (a mapping of names to tensors)")
+        raise ValueError(f"weights '{path}': not a state dict (a mapping of names to tensors, or one under "
+                         "'state_dict' as in a .ckpt checkpoint)")
     return state
 
 

@@ -138,6 +138,19 @@ def test_single_file_checkpoint_loads_offline_with_the_shipped_configs(tmp_path,
     assert loaded.scheduler_config["_class_name"] == "EulerDiscreteScheduler" and loaded.force_zeros_for_empty_prompt
 
 
+def test_a_ckpt_single_file_wrapped_as_lightning_saves_it_loads(tmp_path, monkeypatch):
+    """A .ckpt as the original Stability/CompVis files and many fine-tunes are saved, {"state_dict": ...} with a
+    training step beside it, loads as the .safetensors of the same weights does (as ComfyUI's loader reads it)."""
+    from safetensors.torch import load_file
+
+    original, checkpoint, _ = _tiny_single_file(tmp_path, monkeypatch)
+    wrapped = tmp_path / "sd_xl_base_1.0.ckpt"
+    torch.save({"state_dict": load_file(str(checkpoint)), "global_step": 0}, wrapped)
+    loaded = load_sdxl(wrapped, dtype=torch.float32)
+    for name in ("unet", "vae", "text_encoder", "text_encoder_2"):
+        assert _same_weights(getattr(loaded, name), getattr(original, name)), name
+
+
 def test_single_file_loads_bit_for_bit_as_diffusers_pipeline_loads_it(tmp_path, monkeypatch):
     """An fp16 checkpoint read straight to the device and converted there gives, in float16, the very
     tensors, dtypes and configs that diffusers' ``StableDiffusionXLPipeline.from_single_file`` gives

@@ -61,8 +61,19 @@ def test_torch_save_files_are_read_too(tmp_path):
 
 
 
-@pytest.mark.parametrize("content", [b"PK\x03\x04", b"\x80\x02garbage", [torch.zeros(1)], {1: torch.zeros(1)}],
-                         ids=["truncated zip", "garbage pickle", "a list", "an int key"])
+def test_a_ckpt_holding_its_state_dict_under_state_dict_is_read(tmp_path):
+    """PyTorch Lightning's layout, as the original Stability/CompVis .ckpt files are saved (and ComfyUI reads)."""
+    path = tmp_path / "model.ckpt"
+    torch.save({"state_dict": _tensors(), "global_step": 7, "epoch": 1}, path)
+    read = read_tensors(path)
+    assert read.keys() == _tensors().keys() and all(torch.equal(read[k], v) for k, v in _tensors().items())
+
+
+@pytest.mark.parametrize("content", [b"PK\x03\x04", b"\x80\x02garbage", [torch.zeros(1)], {1: torch.zeros(1)},
+                                     {"state_dict": {"w": 1}}, {"state_dict": [torch.zeros(1)]},
+                                     {"model": {"w": torch.zeros(1)}}],
+                         ids=["truncated zip", "garbage pickle", "a list", "an int key", "no tensors under state_dict",
+                              "a list under state_dict", "another wrapper"])
 def test_a_torch_file_that_is_no_readable_state_dict_is_refused_naming_it(tmp_path, content):
     """Found by fuzzing weight files: torch.load's own errors (RuntimeError, UnpicklingError, EOFError, a
     UnicodeDecodeError naming no file ...) escaped read_tensors, and a pickle of something other than names to

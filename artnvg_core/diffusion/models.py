@@ -1,7 +1,8 @@
 """Loading the diffusion models from explicit paths (or the Hugging Face cache), never downloading.
 
 * SDXL 1.0 base: a diffusers folder (``model_index.json`` + component subfolders), or a
-  single-file checkpoint (``.safetensors``/``.ckpt``, e.g. ``sd_xl_base_1.0.safetensors``).
+  single-file checkpoint (``.safetensors``/``.ckpt``, e.g. ``sd_xl_base_1.0.safetensors``; a ``.ckpt`` may hold
+  its tensors under ``state_dict``, as Lightning saves them: :func:`~artnvg_core.tensor_files.read_tensors`).
   Its configs and tokenizers come with the package (:mod:`.sdxl_config`), so it loads with no
   network; ``config_dir`` may name another diffusers-format SDXL folder (its weights are not read).
 * VAE override (e.g. madebyollin/sdxl-vae-fp16-fix): a diffusers folder or one ``.safetensors``
