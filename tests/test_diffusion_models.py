@@ -22,7 +22,6 @@ from artnvg_core.diffusion.models import (
     load_vae,
 )
 from artnvg_core.progress import Cancelled
-from artnvg_core.statedict import parameters_on_meta
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import (
     csgo_state,
