@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from artnvg_core.counted import counted
 from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, check_stylized_views, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
@@ -128,7 +130,7 @@ class FinetuneGaussians(ArtNVGNode):
             if preset == "preview":
                 chosen = PRESETS["preview"]
                 cameras, config = cameras.scaled(chosen.scale), chosen.finetune_config(config)
-            report = staged_progress()
+            report, start = staged_progress(), time.monotonic()
             with render_device() as device:
                 result = finetune(
                     trainable_copy(scene).to(device), trainable_copy(cameras), style_image[:1].clone(),
@@ -136,4 +138,7 @@ class FinetuneGaussians(ArtNVGNode):
                     progress=report, render_progress=report, should_stop=interrupt_requested,
                     selection=None if selection is None else selection.clone().to(device),
                 )
+        # in place of the last stage's name, which would stand under the node as if it were still at work
+        progress_text(f"finished {counted(config.iterations, 'step')} in {time.monotonic() - start:.1f} s",
+                      self.DISPLAY_NAME)
         return (result.to("cpu"),)

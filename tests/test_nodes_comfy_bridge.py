@@ -6,6 +6,7 @@ ComfyUI's modules are replaced by small fakes with the same names and call signa
 the real server is exercised by tests/integration/.
 """
 
+import re
 import sys
 import types
 
@@ -16,6 +17,7 @@ from artnvg_core.cameras import CameraSet
 from artnvg_core.progress import Cancelled
 from artnvg_core.scene import GaussianScene
 from nodes import comfy_bridge
+from nodes.blend_nodes import BlendStylization
 from nodes.model_patch_nodes import CSGO_FOLDER, LoadCSGO
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.render_nodes import RenderViews
@@ -209,6 +211,17 @@ def test_render_views_reports_progress_and_stops(comfy):
         RenderViews().render(scene, cameras, 1.0, 1, "")
 
 
+def test_blend_previews_report_progress_and_stop(comfy):
+    """One render a preview strength (seconds each at a capture's size on a CPU, every time the dial moves)."""
+    scene, cameras = _tiny_scene(), _tiny_cameras(2)
+    with torch.inference_mode():
+        BlendStylization().blend(scene, scene, 0.5, cameras=cameras, preview_strengths="0, 0.5, 1")
+    assert comfy.bars == [[(0, 3), (1, 3), (2, 3), (3, 3)]]
+    comfy.interrupted = True
+    with pytest.raises(InterruptProcessingException), torch.inference_mode():
+        BlendStylization().blend(scene, scene, 0.5, cameras=cameras, preview_strengths="0, 0.5, 1")
+
+
 def test_select_gaussians_by_masks_reports_progress_and_stops(comfy):
     """Each masked view is a render with its gradient (seconds per view at a capture's size on a CPU): the bar
     moves per view and Cancel stops it."""
@@ -241,8 +254,10 @@ def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy, caplo
     # the console's log names the node
     texts = ["rendering the 2 views before finetuning", "computing the VGG features of the 2 views for the content "
              "term", "finetuning: 2 steps", "rendering the 2 finetuned views for the colour match"]
-    assert [text for text, _ in comfy.texts] == texts
-    assert [r.message for r in caplog.records] == [f"Finetune Gaussians: {text}" for text in texts]
+    assert [text for text, _ in comfy.texts[:-1]] == texts
+    # the last stage's name does not stay under the node once it has finished
+    assert re.fullmatch(r"finished 2 steps in \d+\.\d s", comfy.texts[-1][0]), comfy.texts[-1]
+    assert [r.message for r in caplog.records] == [f"Finetune Gaussians: {text}" for text, _ in comfy.texts]
 
     def interrupt_after_first_step(step, total, info):
         comfy.interrupted = True

@@ -423,7 +423,12 @@ def test_summary_of_success_error_and_interrupt(queue):
     done = _history_entry("success", [["execution_success", {}]],
                           {"7": {"scenes": [{"filename": "nnfm_00001.ply", "subfolder": "artnvg", "type": "output"}]}})
     assert queue.run_summary(done) == {"status": "success", "error": None, "outputs": [
-        {"node": "7", "kind": "scenes", "file": "artnvg/nnfm_00001.ply", "type": "output"}]}
+        {"node": "7", "title": None, "kind": "scenes", "file": "artnvg/nnfm_00001.ply", "type": "output"}]}
+    # the nodes' titles, from the prompt ComfyUI's history keeps (number, id, prompt, extra data, outputs)
+    titled = {**done, "prompt": [0, "abc", {"7": {"class_type": "ArtNVGSaveGaussianScene", "inputs": {},
+                                                  "_meta": {"title": "Save Gaussian Scene"}}}, {}, ["7"]]}
+    assert queue.summary_text(queue.run_summary(titled)).splitlines()[1] == \
+        "  node 7 (Save Gaussian Scene) scenes: artnvg/nnfm_00001.ply [output]"
     failed = _history_entry("error", [["execution_error", {"node_id": "1", "node_type": "ArtNVGLoadGaussianScene",
                                                           # as ComfyUI names a pack's class: its folder's path
                                                           "exception_type": "/c/custom_nodes/artnvg-comfyui.nodes."
@@ -435,6 +440,8 @@ def test_summary_of_success_error_and_interrupt(queue):
                                                                   "node_type": "ArtNVGFinetuneGaussians"}]], {})
     assert queue.run_summary(stopped)["status"] == "interrupted"
     assert queue.summary_text(queue.run_summary(stopped)) == "interrupted: in node 6 (ArtNVGFinetuneGaussians)"
+    stopped["prompt"] = [0, "abc", {"6": {"class_type": "ArtNVGFinetuneGaussians", "_meta": {"title": "Finetune"}}}]
+    assert queue.run_summary(stopped)["error"] == "in node 6 (Finetune)"
 
 
 def test_text_summary_is_one_line_per_node_and_kind(queue):

@@ -172,11 +172,25 @@ def wait_for(server: str, prompt_id: str, timeout: float, poll: float = 0.5) -> 
 # --------------------------------------------------------------------------- report
 
 
+def _run_nodes(entry: dict) -> dict:
+    """The nodes of the prompt a history entry keeps (``entry["prompt"]``: number, id, prompt, ...); {} without."""
+    prompt = entry.get("prompt")
+    nodes = prompt[2] if isinstance(prompt, list) and len(prompt) > 2 else None
+    return nodes if isinstance(nodes, dict) else {}
+
+
 def run_summary(entry: dict) -> dict:
     """``{"status": "success"|"error"|"interrupted", "error": str|None, "outputs": [...]}`` of a history entry.
 
-    Each output is ``{"node": id, "kind": "images"|"scenes"|..., "file": "subfolder/name", "type": "output"}``.
+    Each output is ``{"node": id, "title": "Save Gaussian Scene", "kind": "images"|"scenes"|..., "file":
+    "subfolder/name", "type": "output"}``; nodes are named by their titles in the prompt the entry keeps (else
+    their types).
     """
+    nodes = _run_nodes(entry)
+
+    def named(node_id, node_type=None) -> str:
+        return _node_name({str(node_id): nodes.get(str(node_id)) or {"class_type": node_type}}, str(node_id))
+
     status = entry.get("status") or {}
     messages = {event: data for event, data in status.get("messages", [])}
     error = None
@@ -184,18 +198,19 @@ def run_summary(entry: dict) -> dict:
     if "execution_interrupted" in messages:
         state = "interrupted"
         data = messages["execution_interrupted"]
-        error = f"in node {data.get('node_id')} ({data.get('node_type')})"
+        error = f"in node {named(data.get('node_id'), data.get('node_type'))}"
     elif "execution_error" in messages:
         data = messages["execution_error"]
         kind = str(data.get("exception_type")).rpartition(".")[2]  # a pack's module path names its folder: left out
-        error = f"node {data.get('node_id')} ({data.get('node_type')}): {kind}: {data.get('exception_message', '').strip()}"
+        error = f"node {named(data.get('node_id'), data.get('node_type'))}: {kind}: {data.get('exception_message', '').strip()}"
     outputs = []
     for node_id, node_outputs in (entry.get("outputs") or {}).items():
         for kind, items in node_outputs.items():
             for item in items if isinstance(items, list) else []:
                 if isinstance(item, dict) and "filename" in item:
                     name = "/".join(part for part in (item.get("subfolder", ""), item["filename"]) if part)
-                    outputs.append({"node": node_id, "kind": kind, "file": name, "type": item.get("type", "")})
+                    outputs.append({"node": node_id, "title": (nodes.get(node_id) or {}).get("_meta", {}).get("title"),
+                                    "kind": kind, "file": name, "type": item.get("type", "")})
     return {"status": state, "error": error, "outputs": outputs}
 
 
@@ -205,7 +220,8 @@ def summary_text(summary: dict) -> str:
     lines = [f"{summary['status']}" + (f": {summary['error']}" if summary["error"] else "")]
     groups: dict[tuple[str, str, str], list[str]] = {}
     for output in summary["outputs"]:
-        groups.setdefault((output["node"], output["kind"], output["type"]), []).append(output["file"])
+        node = output["node"] + (f" ({output['title']})" if output.get("title") else "")
+        groups.setdefault((node, output["kind"], output["type"]), []).append(output["file"])
     for (node, kind, place), files in groups.items():
         more = f" (+{len(files) - 1} more)" if len(files) > 1 else ""
         lines.append(f"  node {node} {kind}: {files[0]}{more} [{place}]")
