@@ -22,6 +22,7 @@ import torch
 
 from .cameras import CameraSet
 from .counted import counted
+from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import GaussianScene
 from .selection import check_selection
@@ -103,10 +104,19 @@ def blend(original: GaussianScene, stylized: GaussianScene, strength: float,
 
 
 def render_strengths(original: GaussianScene, stylized: GaussianScene, camera: CameraSet, strengths: Sequence[float],
-                     selection: torch.Tensor | None = None, backend: str = "auto") -> torch.Tensor:
+                     selection: torch.Tensor | None = None, backend: str = "auto", progress: ProgressFn | None = None,
+                     should_stop: StopFn | None = None) -> torch.Tensor:
     """[K, H, W, 3] in [0, 1]: the first view of ``camera`` rendered from the blend at each of the K ``strengths``
-    (a preview of the dial)."""
+    (a preview of the dial). Calls ``progress(renders done, K, {})`` as they start (0) and after each (a render
+    of a capture's view takes seconds on a CPU), and raises :class:`~artnvg_core.progress.Cancelled` as soon as
+    ``should_stop()`` says so (checked within each render)."""
     view = camera.subset([0]).to(original.device)
+    report = progress or (lambda *args: None)
+    report(0, len(strengths), {})
+    frames = []
     with torch.no_grad():
-        return torch.cat([render(blend(original, stylized, s, selection), view, backend=backend).rgb.clamp(0, 1)
-                          for s in strengths])
+        for strength in strengths:
+            frames.append(render(blend(original, stylized, strength, selection), view, backend=backend,
+                                 should_stop=should_stop).rgb.clamp(0, 1))
+            report(len(frames), len(strengths), {})
+    return torch.cat(frames)

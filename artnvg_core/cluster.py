@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .counted import counted
 from .progress import StopFn, check_stop
 
 RESTARTS = 1  # how often Ray restarts a worker actor whose process died
@@ -251,7 +252,7 @@ def dispatch(
             if on_start is not None:
                 on_start(tasks[task], actor)
         if not running and not probing:
-            raise RuntimeError(f"dispatch: every worker died; {len(queue)} tasks were left")
+            raise RuntimeError(f"dispatch: every worker died; {counted(len(queue), 'task')} left")
         ready, _ = ray.wait([*running, *probing], num_returns=1, timeout=POLL_SECONDS)
         for reference in ready:
             if reference in probing:

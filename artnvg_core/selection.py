@@ -86,16 +86,16 @@ def parse_bounds(kind: str, text: str) -> Region:
     return Sphere(tuple(numbers[:3]), numbers[3])
 
 
-def parse_region(text: str, option: str = "--region") -> Region:
-    """A :class:`Box` or :class:`Sphere` from ``box:...`` / ``sphere:...`` text (module docstring); ValueError
-    naming ``option`` for anything else."""
+def parse_region(text: str) -> Region:
+    """A :class:`Box` or :class:`Sphere` from ``box:...`` / ``sphere:...`` text (module docstring), the command
+    line's ``--region``; ValueError naming ``--region`` for anything else."""
     kind, _, values = text.strip().partition(":")
     if kind not in REGION_FIELDS:
-        raise ValueError(f"{option}: expected {REGION_SYNTAX} (finite numbers in the scene's units), got {text!r}")
+        raise ValueError(f"--region: expected {REGION_SYNTAX} (finite numbers in the scene's units), got {text!r}")
     try:
         return parse_bounds(kind, values)
     except ValueError as error:
-        raise ValueError(f"{option}: {error}") from None
+        raise ValueError(f"--region: {error}") from None
 
 
 def select_region(scene: GaussianScene, region: Region) -> torch.Tensor:

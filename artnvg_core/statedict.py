@@ -9,6 +9,8 @@ from contextlib import contextmanager
 
 import torch
 
+from .counted import counted
+
 LISTED_KEYS = 8  # keys shown per kind of mismatch
 
 
@@ -33,9 +35,9 @@ def state_dict_mismatch(expected: Mapping[str, torch.Tensor], state: Mapping[str
              if k in state and state[k].shape != v.shape]
     if not (missing or unexpected or wrong):
         return None
-    text = (f"{len(missing)} missing keys {listed_keys(missing)}, "
-            f"{len(unexpected)} unexpected keys {listed_keys(unexpected)}")
-    return text + (f", {len(wrong)} wrong shapes {wrong[:LISTED_KEYS]}" if wrong else "")
+    text = (f"{counted(len(missing), 'missing key')} {listed_keys(missing)}, "
+            f"{counted(len(unexpected), 'unexpected key')} {listed_keys(unexpected)}")
+    return text + (f", {counted(len(wrong), 'wrong shape')} {wrong[:LISTED_KEYS]}" if wrong else "")
 
 
 def assign_strict(model: torch.nn.Module, state: dict[str, torch.Tensor], what: str) -> None:

@@ -7,7 +7,7 @@ from artnvg_core.counted import counted
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
-from .comfy_bridge import render_device
+from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
 from .node_base import ArtNVGNode
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
@@ -51,6 +51,7 @@ class BlendStylization(ArtNVGNode):
     }
     TEXT_CHECKS = {"preview_strengths": parse_strengths}
 
+    @cancellable
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,
               preview_strengths="0, 0.25, 0.5, 0.75, 1", node_id=None):
         with node_input(self.DISPLAY_NAME, "preview_strengths"):
@@ -64,5 +65,6 @@ class BlendStylization(ArtNVGNode):
             camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])
             with render_device() as device:
                 previews = render_strengths(original.to(device), stylized.to(device), camera, strengths,
-                                            None if selection is None else selection.to(device))
+                                            None if selection is None else selection.to(device),
+                                            progress=progress_bar(), should_stop=interrupt_requested)
         return result, side_by_side(previews)[None]

@@ -5,9 +5,10 @@ import dataclasses
 import pytest
 import torch
 
-from artnvg_core.blend import blend, check_corresponding
+from artnvg_core.blend import blend, check_corresponding, render_strengths
 from artnvg_core.finetune.color_transfer import match_colors, recolor_scene
 from artnvg_core.metrics.color import mean_cov_distance
+from artnvg_core.progress import Cancelled
 from artnvg_core.raster import render
 from artnvg_core.scene import GaussianScene
 
@@ -125,3 +126,16 @@ def test_selection_of_another_scene_is_refused():
     original, stylized = _pair()
     with pytest.raises(ValueError, match="boolean mask of the scene's 90 Gaussians"):
         blend(original, stylized, 0.5, torch.ones(89, dtype=torch.bool))
+
+
+def test_the_strength_previews_report_each_render_and_stop_when_asked():
+    """A capture's view takes seconds to render on a CPU, one per strength: the bar shows from the start and moves
+    per render, and a stop request ends the previews."""
+    original, stylized = _pair()
+    reports = []
+    previews = render_strengths(original, stylized, _cameras(), [0, 0.5, 1], backend="torch",
+                                progress=lambda done, total, info: reports.append((done, total)))
+    assert reports == [(0, 3), (1, 3), (2, 3), (3, 3)]
+    torch.testing.assert_close(previews[2:], _render(stylized).rgb[:1].clamp(0, 1))
+    with pytest.raises(Cancelled):
+        render_strengths(original, stylized, _cameras(), [0, 1], backend="torch", should_stop=lambda: bool(reports))

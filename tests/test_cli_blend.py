@@ -93,7 +93,7 @@ def test_spz_version_2_is_written_on_request_and_reads_back_as_the_default_versi
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["--region", "box:1,2"], "--region: expected box:XMIN"),
+    (["--region", "box:1,2"], "--region: a box takes 6 finite numbers, XMIN, YMIN, ZMIN, XMAX, YMAX, ZMAX"),
     (["--region-mask", "0:mask.png"], "--region-mask needs --cameras"),
     (["--region", BOX, "--region-mask", "0:m.png", "--cameras", "t.json"], "--region or --region-mask, not both"),
 ])

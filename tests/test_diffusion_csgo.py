@@ -112,19 +112,19 @@ def _edit(state, group, old, new=None):
     [
         (
             lambda s: _edit(s, "ip_adapter", "13.to_k_ip.weight", "13.to_k_ip_renamed.weight"),
-            r"group 'ip_adapter': 1 missing keys \[13.to_k_ip.weight\]",
+            r"group 'ip_adapter': 1 missing key \[13.to_k_ip.weight\]",
         ),
         (
             lambda s: _edit(s, "style_image_proj", "layers.1.0.to_kv.weight"),
-            r"group 'style_image_proj': 1 missing keys \[layers.1.0.to_kv.weight\], 0 unexpected",
+            r"group 'style_image_proj': 1 missing key \[layers.1.0.to_kv.weight\], 0 unexpected",
         ),
         (
             lambda s: {**s, "content_image_proj": {**s["content_image_proj"], "extra": torch.zeros(1)}},
-            r"group 'content_image_proj': 0 missing keys \[\], 1 unexpected keys \[extra\]",  # strict as released
+            r"group 'content_image_proj': 0 missing keys \[\], 1 unexpected key \[extra\]",  # strict as released
         ),
         (
             lambda s: _edit(s, "controlnet_adapter_modules", "3.to_v_ip.weight", "2.to_v_ip.weight"),
-            r"group 'controlnet_adapter_modules': 1 missing keys \[3.to_v_ip.weight\]",
+            r"group 'controlnet_adapter_modules': 1 missing key \[3.to_v_ip.weight\]",
         ),
         (lambda s: {k: v for k, v in s.items() if k != "ip_adapter"}, r"key groups missing \['ip_adapter'\]"),
     ],
@@ -141,7 +141,7 @@ def test_wrong_shapes_and_unreadable_files_fail(tmp_path, models):
     unet, controlnet = models
     state = csgo_state(unet, controlnet)
     state["ip_adapter"]["1.to_k_ip.weight"] = torch.zeros(3, 3)
-    with pytest.raises(CSGOWeightsError, match=r"wrong shapes \['1.to_k_ip.weight \[3, 3\] != \[16, 16\]'\]"):
+    with pytest.raises(CSGOWeightsError, match=r"wrong shape \['1.to_k_ip.weight \[3, 3\] != \[16, 16\]'\]"):
         load_csgo(write_csgo_file(tmp_path / "shape.bin", state), unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
     (tmp_path / "junk.bin").write_bytes(b"not a torch file")
     with pytest.raises(CSGOWeightsError, match="junk.bin': not a readable torch file"):
@@ -213,9 +213,9 @@ def test_module_path_controlnet_group_also_loads_controlnet_weights(tmp_path, mo
     with caplog.at_level(logging.INFO, logger="artnvg_core.diffusion.csgo_weights"):
         load_csgo(write_csgo_file(tmp_path / "cn.bin", state), unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
     assert torch.equal(controlnet.conv_in.weight, weight)
-    assert "1 other ControlNet weights replaced" in caplog.records[-1].getMessage()
+    assert "1 other ControlNet weight replaced" in caplog.records[-1].getMessage()
     state["controlnet_adapter_modules"]["conv_in.weight"] = torch.zeros(1)
-    with pytest.raises(CSGOWeightsError, match=r"'controlnet_adapter_modules': .*wrong shapes \['conv_in.weight \[1\]"):
+    with pytest.raises(CSGOWeightsError, match=r"'controlnet_adapter_modules': .*wrong shape \['conv_in.weight \[1\]"):
         load_csgo(write_csgo_file(tmp_path / "cn.bin", state), unet, controlnet, dim_head=RESAMPLER_HEAD_WIDTH)
 
 

@@ -22,7 +22,6 @@ from artnvg_core.diffusion.models import (
     load_vae,
 )
 from artnvg_core.progress import Cancelled
-from artnvg_core.statedict import parameters_on_meta
 from diffusion_tiny import one_cpu_thread  # noqa: F401  (autouse fixture)
 from diffusion_tiny import (
     csgo_state,
@@ -243,8 +242,8 @@ def test_controlnet_folder_and_single_files(tmp_path):
     save_file(state, tmp_path / "renamed.safetensors")
     with pytest.raises(
         ValueError,
-        match=r"renamed.safetensors' do not fit ControlNetModel: 1 missing keys "
-        r"\[conv_in.weight\], 1 unexpected keys \[conv_in.weights\]",
+        match=r"renamed.safetensors' do not fit ControlNetModel: 1 missing key "
+        r"\[conv_in.weight\], 1 unexpected key \[conv_in.weights\]",
     ):
         load_controlnet(tmp_path / "renamed.safetensors", unet_config=dict(base.unet.config))
 

@@ -245,7 +245,7 @@ def test_a_torch_file_that_is_no_state_dict_is_refused_naming_it(tmp_path, edit)
     state = random_vgg16_state()
     edit(state)
     torch.save(state, tmp_path / "odd.pth")
-    with pytest.raises(ValueError, match=r"odd\.pth: not a state dict \(a mapping of names to tensors\)"):
+    with pytest.raises(ValueError, match=r"odd\.pth': not a state dict \(a mapping of names to tensors"):
         VGGFeatures("vgg16", tmp_path / "odd.pth")
 
 

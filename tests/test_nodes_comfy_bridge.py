@@ -17,6 +17,7 @@ from artnvg_core.cameras import CameraSet
 from artnvg_core.progress import Cancelled
 from artnvg_core.scene import GaussianScene
 from nodes import comfy_bridge
+from nodes.blend_nodes import BlendStylization
 from nodes.model_patch_nodes import CSGO_FOLDER, LoadCSGO
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.render_nodes import RenderViews
@@ -208,6 +209,17 @@ def test_render_views_reports_progress_and_stops(comfy):
     comfy.interrupted = True
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         RenderViews().render(scene, cameras, 1.0, 1, "")
+
+
+def test_blend_previews_report_progress_and_stop(comfy):
+    """One render a preview strength (seconds each at a capture's size on a CPU, every time the dial moves)."""
+    scene, cameras = _tiny_scene(), _tiny_cameras(2)
+    with torch.inference_mode():
+        BlendStylization().blend(scene, scene, 0.5, cameras=cameras, preview_strengths="0, 0.5, 1")
+    assert comfy.bars == [[(0, 3), (1, 3), (2, 3), (3, 3)]]
+    comfy.interrupted = True
+    with pytest.raises(InterruptProcessingException), torch.inference_mode():
+        BlendStylization().blend(scene, scene, 0.5, cameras=cameras, preview_strengths="0, 0.5, 1")
 
 
 def test_select_gaussians_by_masks_reports_progress_and_stops(comfy):

@@ -262,3 +262,24 @@ def test_a_number_through_a_link_is_taken_as_comfyui_converts_a_prompts_but_neve
     assert CamerasAroundScene.check_values(count=2.5) == CamerasAroundScene.unreported_value(count=2.5) == refused
     assert CamerasAroundScene.unreported_value(count={"__value__": True}) == (
         "Cameras Around Scene: input 'count': expected a number, got True")
+
+
+def test_numbers_reach_the_node_as_their_declared_types():
+    """What the node's function is given: an INT's whole float (3.0, numpy's too) as the int 3, a FLOAT's int as a
+    float, as ComfyUI converts a prompt's values; the node need not convert them itself."""
+    from nodes.node_base import ArtNVGNode
+
+    class Numbers(ArtNVGNode):
+        """Returns its numbers."""
+
+        DISPLAY_NAME = "Numbers"
+        FUNCTION = "run"
+        RETURN_TYPES = ()
+        REQUIRED = {"count": ("INT", {"default": 1}), "scale": ("FLOAT", {"default": 1.0})}
+
+        def run(self, count, scale, node_id=None):
+            return count, scale
+
+    for count, scale in [(3.0, 1), (numpy.float32(3), numpy.int64(1)), (3, 1.0)]:
+        given = Numbers().run(count, scale=scale)
+        assert given == (3, 1.0) and (type(given[0]), type(given[1])) == (int, float), (count, scale)

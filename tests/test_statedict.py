@@ -21,8 +21,8 @@ def test_assigned_weights_take_the_computed_buffers_to_their_device():
 def test_a_state_that_does_not_fit_is_refused_naming_it_and_its_keys():
     model = torch.nn.Linear(3, 2)
     state = {"weight": torch.zeros(2, 4), "extra": torch.zeros(1)}
-    with pytest.raises(ValueError, match=r"^weights 'w\.pt' do not fit Linear: 1 missing keys \[bias\], 1 unexpected "
-                       r"keys \[extra\], 1 wrong shapes \['weight \[2, 4\] != \[2, 3\]'\]$"):
+    with pytest.raises(ValueError, match=r"^weights 'w\.pt' do not fit Linear: 1 missing key \[bias\], 1 unexpected "
+                       r"key \[extra\], 1 wrong shape \['weight \[2, 4\] != \[2, 3\]'\]$"):
         assign_strict(model, state, "weights 'w.pt'")
     fitting = {"weight": torch.ones(2, 3), "bias": torch.ones(2)}
     assign_strict(model, fitting, "weights")

@@ -73,7 +73,6 @@ def check_region_masks(args: argparse.Namespace, cameras: CameraSet) -> None:
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
     """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither; the masked views' renders
     under a bar), printing its size."""
-    from ..fileio import require_regular_file
     from ..images import load_image, resize_image
     from ..selection import parse_region, select_by_masks, select_region
     from .common import ProgressBar
@@ -85,7 +84,7 @@ def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras:
         views, masks = [], []
         for text in args.region_mask:
             view, path = parse_region_mask(text, cameras)
-            mask = load_image(require_regular_file(path, "--region-mask image")).mean(-1, keepdim=True)
+            mask = load_image(path).mean(-1, keepdim=True)  # a regular file: check_region_arguments
             views.append(view)
             masks.append(resize_image(mask, cameras.height, cameras.width)[..., 0])
         selection = select_by_masks(scene, cameras.subset(views), torch.stack(masks),

