@@ -7,7 +7,7 @@ import torch
 from artnvg_core.cameras.framing import scene_frame
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.counted import counted
-from artnvg_core.selection import parse_bounds, select_by_masks, select_region
+from artnvg_core.selection import check_mask_size, parse_bounds, select_by_masks, select_region
 
 from .comfy_bridge import (
     autograd_enabled,
@@ -97,6 +97,8 @@ class SelectGaussians(ArtNVGNode):
                 if len(indices) != len(masks):
                     raise ValueError(f"{counted(len(masks), 'mask')} but {counted(len(indices), 'view')} ({views!r}): "
                                      "give one view per mask")
+            with node_input(self.DISPLAY_NAME, "mask"):  # before the rasterizer loads
+                check_mask_size(masks.shape[2], masks.shape[1], cameras.width, cameras.height, "the masks")
             with render_device() as device, node_input(self.DISPLAY_NAME, "mask"), autograd_enabled():
                 # the Gaussians' weights are read from a render's gradient
                 selection = select_by_masks(trainable_copy(scene).to(device), trainable_copy(cameras.subset(indices)),

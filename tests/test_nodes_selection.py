@@ -105,7 +105,7 @@ def test_select_node_needs_one_view_per_mask(demo):
 def test_select_node_refuses_a_mask_of_another_aspect_than_its_view(demo):
     """It was stretched to the view."""
     original, cameras = demo
-    with pytest.raises(NodeInputError, match=r"^Select Gaussians: input 'mask': select_by_masks: masks: 64x32 pixels, "
+    with pytest.raises(NodeInputError, match=r"^Select Gaussians: input 'mask': the masks: 64x32 pixels, "
                                              r"not the aspect of its view's 64x64 \(it would be stretched\)"):
         call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras, mask=torch.ones(1, 32, 64),
              views="0")
