@@ -17,8 +17,6 @@ files into the page cache.
 
 from __future__ import annotations
 
-import functools
-import json
 import math
 import os
 import pickle
@@ -32,7 +30,7 @@ from pathlib import Path
 import torch
 
 from .counted import counted
-from .json_objects import JsonObject
+from .json_objects import parse_json
 from .statedict import is_state_dict
 
 SAFETENSORS_DTYPES = {
@@ -172,16 +170,6 @@ def _cast(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return tensor.to(dtype) if tensor.is_floating_point() else tensor
 
 
-def _header_object(path: Path, pairs: list[tuple[str, object]]) -> JsonObject:
-    """An object of the safetensors header of ``path`` (json's ``object_pairs_hook``); ValueError naming a key it
-    gives twice (a broken or hostile file: a dict would keep the last entry of a tensor silently)."""
-    data = JsonObject(pairs)
-    if data.twice is not None:
-        raise ValueError(f"weights '{path}': key '{data.twice}' is given twice in one object of the safetensors "
-                         "header (a broken or tampered file)")
-    return data
-
-
 def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, list[int], int, int]]]:
     """(byte offset of the data, {name: (dtype, shape, begin, end)}) of a ``.safetensors`` file, offsets
     relative to the data; checked as the safetensors library checks them (each tensor's byte count, the
@@ -194,14 +182,7 @@ def safetensors_header(path: Path) -> tuple[int, dict[str, tuple[torch.dtype, li
         if not 0 < length <= min(MAX_HEADER_BYTES, size - 8):
             raise ValueError(f"weights '{path}': not a safetensors file (header length {length}, file "
                              f"{counted(size, 'byte')})")
-        try:
-            header = json.loads(stream.read(length), object_pairs_hook=functools.partial(_header_object, path))
-        except (UnicodeDecodeError, json.JSONDecodeError) as error:
-            raise ValueError(f"weights '{path}': safetensors header is not JSON ({error})") from None
-        except RecursionError:
-            raise ValueError(f"weights '{path}': safetensors header is not JSON (it nests too deeply)") from None
-    if not isinstance(header, dict):
-        raise ValueError(f"weights '{path}': safetensors header is not a JSON object")
+        header = parse_json(stream.read(length), f"weights '{path}': safetensors header")
     start, entries = 8 + length, {}
     for name, info in header.items():
         if name == "__metadata__":

@@ -182,7 +182,7 @@ def test_hostile_json_is_refused_by_name_before_or_while_reading(tmp_path, monke
 
     path = tmp_path / "transforms.json"
     path.write_text("[" * 100_000 + "]" * 100_000)  # nesting no parser recursion can follow
-    with pytest.raises(ValueError, match=r"transforms\.json: not a camera file: its JSON nests too deeply"):
+    with pytest.raises(ValueError, match=r"transforms\.json: not valid JSON \(it nests too deeply\)"):
         load_nerfstudio(path)
     quats, trans = random_capture(2)
     write_transforms(path, quats, trans)

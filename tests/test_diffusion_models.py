@@ -325,14 +325,14 @@ def test_vae_single_file_needs_its_config(tmp_path):
     assert loaded.dtype == torch.float32 and _same_weights(loaded, vae)
 
 
-@pytest.mark.parametrize("text, problem", [("{not json", "not readable JSON"), ("[1, 2]", "a JSON list, not an object")])
+@pytest.mark.parametrize("text, problem", [("{not json", "not valid JSON"), ("[1, 2]", "expected a JSON object, got a list")])
 def test_a_broken_config_beside_a_single_file_is_refused_naming_it(tmp_path, text, problem):
     """Found probing the model files: json's own error ('Expecting property name ...') named no file, and a
     config that is no JSON object went to diffusers as a Hub repository's name (a download attempt)."""
     (tmp_path / "model.safetensors").write_bytes(b"")
     (tmp_path / "config.json").write_text(text)
     for load in (load_vae, load_controlnet, load_image_encoder):
-        with pytest.raises(ValueError, match=rf"config\.json: the model's config is {problem}"):
+        with pytest.raises(ValueError, match=rf"config\.json: the model's config: {problem}"):
             load(tmp_path / "model.safetensors")
 
 
@@ -346,7 +346,7 @@ def test_a_broken_config_of_an_sdxl_folder_is_refused_naming_it_before_any_model
     (tmp_path / "vae" / "config.json").write_text("{}")
     (tmp_path / "scheduler" / "scheduler_config.json").write_text("{}")
     (tmp_path / "model_index.json").write_text("[1, 2]")
-    with pytest.raises(ValueError, match=r"model_index\.json: the model's config is a JSON list, not an object"):
+    with pytest.raises(ValueError, match=r"model_index\.json: the model's config: expected a JSON object, got a list"):
         load_sdxl(tmp_path)
 
 

@@ -151,8 +151,8 @@ def _write_raw(path, header: bytes, data: bytes = b"") -> None:
 
 @pytest.mark.parametrize("header, data, message", [
     (None, b"", "not a safetensors file"),
-    (b"{not json", b"", "header is not JSON"),
-    (b"[1, 2]", b"", "not a JSON object"),
+    (b"{not json", b"", "header: not valid JSON"),
+    (b"[1, 2]", b"", "header: expected a JSON object, got a list"),
     (json.dumps({"x": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}}).encode(), b"\0" * 4, "tensor 'x'"),
     (json.dumps({"x": {"dtype": "F32", "shape": [3], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
     (json.dumps({"x": {"dtype": "Q9", "shape": [2], "data_offsets": [0, 8]}}).encode(), b"\0" * 8, "tensor 'x'"),
@@ -168,7 +168,7 @@ def _write_raw(path, header: bytes, data: bytes = b"") -> None:
     (json.dumps({"x": {"dtype": "F32", "shape": [1], "data_offsets": [0, 4]}}).encode(), b"\0" * 8,
      r"the tensors' data ends at byte 4, the file's at 8"),
     (json.dumps({"__metadata__": {"format": 1}}).encode(), b"", "'__metadata__' .* not an object of strings"),
-    (b'{"x": ' + b"[" * 100_000, b"", r"header is not JSON \(it nests too deeply\)"),
+    (b'{"x": ' + b"[" * 100_000, b"", r"header: not valid JSON \(it nests too deeply\)"),
 ])
 def test_malformed_files_are_refused_naming_the_file(tmp_path, header, data, message):
     path = tmp_path / "bad.safetensors"
@@ -189,7 +189,7 @@ def test_a_key_given_twice_in_the_header_is_refused_naming_the_file_and_the_key(
     path = tmp_path / "twice.safetensors"
     _write_raw(path, header, b"\0" * 8)
     key = "x" if header.count(b'"x"') == 2 else "shape"
-    with pytest.raises(ValueError, match=f"^weights '.*twice.safetensors': key '{key}' is given twice"):
+    with pytest.raises(ValueError, match=f"^weights '.*twice.safetensors': safetensors header: key '{key}' is given twice"):
         read_tensors(path)
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from functools import partial
 from pathlib import Path
@@ -10,7 +9,7 @@ from pathlib import Path
 import torch
 
 from ..counted import counted
-from ..json_objects import JsonObject
+from ..json_objects import parse_json
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
     PERSPECTIVE_MODELS,
@@ -30,29 +29,10 @@ _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]]
 
 
-def _object_once(path: Path, pairs: list[tuple[str, object]]) -> JsonObject:
-    """A JSON object of ``path`` (json's ``object_pairs_hook``); ValueError naming a key it gives twice, of which
-    a dict would keep the last value silently."""
-    data = JsonObject(pairs)
-    if data.twice is not None:
-        raise ValueError(f"{path}: key {data.twice!r} is given twice in one object; give it once")
-    return data
-
-
 def _read_json_object(path: Path) -> dict:
-    """The JSON object in ``path``. Every number is read as a float: one beyond float range (1e400, 10**400)
-    becomes infinite and is refused by the field that holds it. A key given twice in one object, and nesting
-    deeper than Python's parser goes (a transforms.json nests five levels), are ValueErrors."""
-    text = read_text(path)
-    try:
-        data = json.loads(text, parse_int=float, object_pairs_hook=partial(_object_once, path))
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON (line {error.lineno}, column {error.colno}: {error.msg})") from None
-    except RecursionError:
-        raise ValueError(f"{path}: not a camera file: its JSON nests too deeply to read") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
-    return data
+    """The JSON object in ``path`` (:func:`~artnvg_core.json_objects.parse_json`): every number read as a float,
+    a key given twice in one object refused."""
+    return parse_json(read_text(path), str(path), parse_int=float)
 
 
 def _number(value, where: str) -> float:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..diffusion.settings import guided_steps
-from ..json_objects import JsonObject
+from ..json_objects import parse_json
 from ..presets import PRESETS
 from .stylize import add_stylize_arguments
 
@@ -41,7 +41,7 @@ class Job:
 
 def read_jobs(path: str | os.PathLike) -> list:
     """The entries of a JOBS file: dicts of option name -> value (CSV: strings, "" for an empty cell; JSON:
-    :class:`JsonObject`, whose ``twice`` :func:`job_arguments` refuses).
+    :class:`~artnvg_core.json_objects.JsonObject`, whose ``twice`` :func:`job_arguments` refuses).
 
     ValueError naming the file when it cannot be read (missing, a folder, not UTF-8) or is not a JSON list
     or a CSV table with a header; an entry that is not an object is returned as it is (its job fails alone)."""
@@ -69,12 +69,8 @@ def read_jobs(path: str | os.PathLike) -> list:
                 raise ValueError(f"{path}: row {number + 1} has more cells than the header has names")
         entries = rows
     else:
-        try:
-            entries = json.loads(text, object_pairs_hook=JsonObject)
-        except (json.JSONDecodeError, RecursionError) as error:
-            why = "it nests too deeply" if isinstance(error, RecursionError) else error
-            raise ValueError(f"{path}: not valid JSON ({why}); expected a list of jobs, e.g. "
-                             '[{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}], or a .csv file') from None
+        entries = parse_json(text, str(path), None, once=False, hint=(
+            '; expected a list of jobs, e.g. [{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}], or a .csv file'))
         if not isinstance(entries, list):
             raise ValueError(f"{path}: expected a JSON list of jobs (objects of stylize options), "
                              f"got a {'dict' if isinstance(entries, dict) else type(entries).__name__}")

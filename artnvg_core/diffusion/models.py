@@ -25,7 +25,6 @@ library's own ``from_pretrained``, then to the device.
 from __future__ import annotations
 
 import contextlib
-import json
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -42,6 +41,7 @@ from transformers import (
     CLIPVisionModelWithProjection,
 )
 
+from ..json_objects import parse_json
 from ..progress import ProgressFn, StopFn, check_stop
 from ..statedict import assign_strict, parameters_on_meta
 from ..tensor_files import read_tensors
@@ -115,15 +115,9 @@ def _placed(model: torch.nn.Module, device: str | torch.device, dtype: torch.dty
 
 
 def _json_config(config: Path) -> dict:
-    """The JSON object in the config file ``config``; ValueError naming it when it is not one (diffusers would
-    take a list or a string for a Hub repository's name)."""
-    try:
-        data = json.loads(config.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
-        raise ValueError(f"{config}: the model's config is not readable JSON ({error})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{config}: the model's config is a JSON {type(data).__name__}, not an object")
-    return data
+    """The JSON object in the config file ``config`` (diffusers would take a list or a string for a Hub
+    repository's name)."""
+    return parse_json(config.read_bytes(), f"{config}: the model's config")
 
 
 def _config_beside(path: Path) -> dict | None:
