@@ -159,7 +159,7 @@ def test_inputs_of_the_wrong_kind_are_named_before_sampling(outputs):
     assert errors["clip_vision"].startswith("Apply CSGO: input 'clip_vision': its features are 24 wide, CSGO's "
                                             "resamplers read 16: use ViT-bigG/14")
     assert errors["csgo"].startswith("Apply CSGO: input 'csgo': 'csgo.bin' does not fit this MODEL's cross-attention")
-    assert re.search(r"wrong shape \['\d+\.to_k_ip\.weight \[64, 15\] != \[64, 16\]'", errors["csgo"])
+    assert re.search(r"wrong shapes \['\d+\.to_k_ip\.weight \[64, 15\] != \[64, 16\]'", errors["csgo"])
 
 
 def test_sample_group_moves_comfyuis_progress_bar_and_stops_on_cancel(outputs):
