@@ -29,6 +29,7 @@ from pathlib import Path
 
 import torch
 
+from comfyui_native import COMFY_SAMPLERS
 from common import print_table, synchronize
 from first_group import differences, profiled_totals
 from model_files import write_model_files
@@ -47,7 +48,6 @@ from artnvg_core.raster.views import render_views  # noqa: E402
 from bench.diffusion import POOLED_DIM, random_conditioning  # noqa: E402
 
 TEXT_SHAPE, POOLED_SHAPE = (1, 77, 2048), (1, POOLED_DIM)  # SDXL's prompt embeddings
-COMFY_SAMPLERS = {"ddim": ("ddim", "ddim_uniform")}  # the library's scheduler -> ComfyUI's sampler, scheduler
 
 
 def native_models(comfy: Path, files: dict):
