@@ -7,6 +7,7 @@ Images are float32 in [0, 1], [H, W, 3] (one) or [B, H, W, 3] (a batch).
 from __future__ import annotations
 
 import os
+import struct
 import warnings
 from pathlib import Path
 
@@ -14,19 +15,58 @@ import numpy as np
 import torch
 from PIL import Image
 
+from .counted import counted
 from .fileio import require_regular_file, write_atomically
 
 _PILLOW_ERRORS = (OSError, SyntaxError, ValueError)  # what Pillow raises for unreadable or corrupt files
 
-# Pixels an image may have, read from its header before it is decoded (8000 x 8000). Decoding peaks
-# near 18 bytes a pixel (the decoded bytes, then float32 RGB): about 1.2 GB at the cap.
+# Pixels an image may have, read from its header before it is decoded (8000 x 8000). This is what bounds the
+# memory a small file can make a read take, as compressed data legitimately expands: a read peaks at 18 to 22
+# bytes a pixel (the decoded pixels, Pillow's bytes of them, float32 RGB), measured above the process's size
+# at the cap: 1.16 GB for an RGB JPEG of 376 KB, 1.22 GB for a 16-bit greyscale PNG of 124 KB or a float
+# TIFF, 1.40 GB for an RGBA PNG of 249 KB.
 MAX_IMAGE_PIXELS = 64_000_000
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_png_chunks(path: Path) -> None:
+    """Each chunk of a PNG, up to IEND, within the file: its length field checked against the bytes left
+    before Pillow reads it (Pillow reserves what an IDAT chunk declares, up to 4 GB for a 69-byte file);
+    ValueError naming the file, the chunk and its offset. Other files, and a PNG that ends between chunks,
+    are left to Pillow."""
+    with open(path, "rb") as stream:
+        if stream.read(len(_PNG_SIGNATURE)) != _PNG_SIGNATURE:
+            return
+        size = os.fstat(stream.fileno()).st_size
+        while len(header := stream.read(8)) == 8:
+            length, kind = struct.unpack(">I4s", header)
+            left = size - stream.tell() - 4  # the chunk's data, then a 4-byte checksum
+            if length > left:
+                raise ValueError(f"{path}: PNG chunk {kind.decode('latin-1')!r} at byte {stream.tell() - 8:,} "
+                                 f"declares {counted(length, 'byte')} of data, more than the "
+                                 f"{counted(max(left, 0), 'byte')} left in the file (a truncated or corrupt file)")
+            if kind == b"IEND":
+                return
+            stream.seek(length + 4, os.SEEK_CUR)
+
+
+def _check_data_offsets(image: Image.Image, path: Path) -> None:
+    """Every block of the image's data (a TIFF's strips or tiles, ...) starts within the file: Pillow reserves
+    the distance from one block to the next before reading it (2 GB for a TIFF of 204 bytes whose second strip
+    lay at byte 2**31); ValueError naming the file, the block and its offset."""
+    size = path.stat().st_size
+    for number, tile in enumerate(image.tile, start=1):
+        if tile.offset > size:
+            raise ValueError(f"{path}: {image.format} header: image data block {number} of {len(image.tile)} "
+                             f"starts at byte {tile.offset:,}, past the end of the file ({counted(size, 'byte')})")
 
 
 def _open_image(path: Path) -> Image.Image:
     """Pillow's lazy ``Image.open`` of a regular file: the header only; an image of more than
-    MAX_IMAGE_PIXELS pixels is refused here, before it is decoded."""
+    MAX_IMAGE_PIXELS pixels, or whose chunks or data blocks lie past the file's end, is refused here, before
+    it is decoded."""
     require_regular_file(path, "image file")
+    _check_png_chunks(path)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # refused below, with the size
@@ -35,10 +75,14 @@ def _open_image(path: Path) -> Image.Image:
         raise ValueError(f"{path}: image too large to decode ({error}); downsize it first") from error
     except _PILLOW_ERRORS as error:
         raise ValueError(f"{path}: not a readable image ({error})") from error
-    if image.width * image.height > MAX_IMAGE_PIXELS:
+    try:
+        if image.width * image.height > MAX_IMAGE_PIXELS:
+            raise ValueError(f"{path}: image size: {image.width}x{image.height} pixels, more than the "
+                             f"{MAX_IMAGE_PIXELS:,} pixels (e.g. 8000x8000) decoded at most; downsize it first")
+        _check_data_offsets(image, path)
+    except ValueError:
         image.close()
-        raise ValueError(f"{path}: image size: {image.width}x{image.height} pixels, more than the "
-                         f"{MAX_IMAGE_PIXELS:,} pixels (e.g. 8000x8000) decoded at most; downsize it first")
+        raise
     return image
 
 
@@ -98,9 +142,9 @@ def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch
             grey = np.clip(np.asarray(grey.resize(size, Image.LANCZOS) if size != image.size else grey), 0, 1)
             array = np.repeat(grey[..., None], 3, axis=-1)
         else:
-            rgb = image.convert("RGB")
+            rgb = image if image.mode == "RGB" else image.convert("RGB")
             rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
-            return torch.from_numpy(np.array(rgb)).float().div_(255)  # bytes, then one float32 copy
+            return torch.from_numpy(np.asarray(rgb, dtype=np.float32)).div_(255)  # Pillow's bytes, then float32
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
 
 

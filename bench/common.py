@@ -109,6 +109,11 @@ def orbit_cameras(count: int, size: int, distance: float = 3.0, fov_deg: float =
     return CameraSet(w2c.float(), k.clone(), size, size, [f"orbit_{i:03d}" for i in range(count)])
 
 
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """PSNR in dB between images ``a`` and ``b`` of values in [0, 1] (float64 mean; equal images: 300 dB)."""
+    return float(-10 * torch.log10((a - b).double().square().mean().clamp_min(1e-30)))
+
+
 def print_table(title: str, header: list[str], rows: list[list], command: str) -> None:
     """A Markdown table with the command that produced it."""
     print(f"\n### {title}\n\n`{command}`\n")

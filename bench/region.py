@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from common import print_table, random_scene  # puts the repository on sys.path
+from common import print_table, psnr, random_scene  # puts the repository on sys.path
 from artnvg_core.blend import blend
 from artnvg_core.cameras import load_cameras
 from artnvg_core.finetune import FinetuneConfig
@@ -64,10 +64,6 @@ def blend_table(count: int) -> None:
     print_table(f"Blend of {count:,} Gaussians (SH degree 3), CPU, {torch.get_num_threads()} torch threads",
                 ["scenes", "wall ms (median of 5)", "process CPU ms"], rows,
                 f"cd bench && python region.py --gaussians {count}")
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(-10 * torch.log10((a - b).double().square().mean().clamp_min(1e-30)))
 
 
 def region_table(args) -> None:

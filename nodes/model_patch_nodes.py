@@ -14,11 +14,12 @@ import torch
 
 from artnvg_core.diffusion.csgo import CONTENT_ROUTINGS, CSGOProjections, released_key_prefix
 from artnvg_core.diffusion.csgo_weights import CSGOFile, read_csgo
+from artnvg_core.diffusion.model_files import CSGO_WEIGHTS
 from artnvg_core.diffusion.settings import NV_LEVELS, SamplerSettings
 from artnvg_core.statedict import listed_keys, state_dict_mismatch
 from artnvg_core.style_image import check_style_size
 
-from .comfy_bridge import comfy_module, model_file_path, model_files, model_folder_paths
+from .comfy_bridge import comfy_module
 from .comfy_patches import (
     CSGO_STATE,
     CSGOState,
@@ -29,14 +30,16 @@ from .comfy_patches import (
     patch_controlnet,
     transformer_layers,
 )
+from .model_files import ModelFile
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CSGO
 
 CSGO_FOLDER = "csgo"
 CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
-CSGO_URL = ("https://huggingface.co/InstantX/CSGO: `hf download InstantX/CSGO csgo_4_32.bin`, saved as "
-            "models/csgo/csgo_4_32.bin")
+CSGO_FILE = ModelFile("csgo_name", CSGO_FOLDER, CSGO_WEIGHTS, tooltip=(
+    f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_WEIGHTS.url}: `{CSGO_WEIGHTS.download_command}`, saved as "
+    f"models/{CSGO_FOLDER}/csgo_4_32.bin)."))
 IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter: `hf download h94/IP-Adapter "
                      "sdxl_models/image_encoder/model.safetensors`, saved (renamed) as "
                      "models/clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")
@@ -93,15 +96,16 @@ class LoadCSGO(ArtNVGNode):
     FUNCTION = "load"
     RETURN_TYPES = (CSGO,)
     RETURN_NAMES = ("csgo",)
-    REQUIRED = {"csgo_name": lambda: (model_files(CSGO_FOLDER), {"tooltip": (
-        f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_URL}).")})}
+    REQUIRED = {"csgo_name": CSGO_FILE.list_input}
+    REPORTED_INPUT = "csgo_name"
+
+    @classmethod
+    def check_files(cls, csgo_name="", **_other_inputs) -> str | None:
+        """The message when the chosen file is not in the csgo folder (``prompt_checks``), else None."""
+        return CSGO_FILE.check(cls.DISPLAY_NAME, csgo_name)
 
     def load(self, csgo_name, node_id=None):
-        path = model_file_path(CSGO_FOLDER, csgo_name)
-        if path is None:
-            folders = ", ".join(model_folder_paths(CSGO_FOLDER)) or f"ComfyUI's models/{CSGO_FOLDER}"
-            raise NodeInputError(f"{self.DISPLAY_NAME}: input 'csgo_name': '{csgo_name}' is not in the "
-                                 f"'{CSGO_FOLDER}' model folder ({folders}); get it from {CSGO_URL}")
+        path = CSGO_FILE.path(self.DISPLAY_NAME, csgo_name)
         with node_input(self.DISPLAY_NAME, "csgo_name"):
             return (read_csgo(path),)
 

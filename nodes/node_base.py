@@ -13,8 +13,10 @@ input in the error; a loader's file input is declared, found and checked by an
 will pass them (:func:`comfyui_value`), to the declared types, ranges and choices before anything runs
 (``prompt_checks``; a text input also to what the node's ``TEXT_CHECKS`` read from it), and
 :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
-ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS`` and the hidden input
-:data:`~.prompt_checks.CHECK_INPUT`, which each node's function takes last, unused). When a node runs, its
+ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS``), which ComfyUI labels with the one
+input that function takes, ``REPORTED_INPUT``: the hidden input :data:`~.prompt_checks.CHECK_INPUT` (the node id,
+which each node's function takes last, unused: "node_id - ..."), or a model loader's file input ("csgo_name - ...",
+:mod:`.model_files`). When a node runs, its
 function first holds what it is given to the same checks and to the Python type its declared type stands
 for, a number made its declared type's (:meth:`ArtNVGNode.run_inputs`): a value through a link meets no prompt
 check.
@@ -88,6 +90,21 @@ def _run_type_problem(kind, value) -> str | None:
     return f"expected {kind}, {_type_name(expected.cls)}{ranks}; got {got}"
 
 
+def _validate_inputs(input_name: str) -> classmethod:
+    """A node's ``VALIDATE_INPUTS``: what the pack's checks of the whole prompt kept for the node ComfyUI is validating
+    (:func:`~.prompt_checks.check_result`), else True. ComfyUI reads the inputs it takes from its signature, made here
+    to name ``input_name`` alone: ComfyUI passes that input, labels a failure with its name (the details' "NAME - ",
+    ``extra_info.input_name``: the input the editor outlines), once, and skips its own range and choice checks of it."""
+
+    def validate(cls, **_input):
+        return check_result()
+
+    parameter = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    validate.__signature__ = inspect.Signature([inspect.Parameter("cls", parameter),
+                                                inspect.Parameter(input_name, parameter, default=None)])
+    return classmethod(validate)
+
+
 def _checking_inputs(function: Callable) -> Callable:
     """A node's ``FUNCTION`` that first takes its inputs through :meth:`ArtNVGNode.run_inputs` (which refuses them
     with a :class:`~.node_errors.NodeInputError`), then does its work."""
@@ -109,12 +126,17 @@ class ArtNVGNode:
     REQUIRED: dict = {}
     OPTIONAL: dict = {}
     HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
+    REPORTED_INPUT = CHECK_INPUT  # the input ComfyUI labels the node's validation message with (_validate_inputs):
+    # the hidden node id, or a model loader's file input, a COMBO whose value ComfyUI does not check (model_files)
+    VALIDATE_INPUTS = _validate_inputs(CHECK_INPUT)
     TEXT_CHECKS: dict = {}  # STRING input name -> the function (text) -> anything the node reads it with when it
     # runs, raising ValueError for text it refuses: checked with the prompt's values, before the graph runs
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         cls.DESCRIPTION = plain_text(vars(cls).get("DESCRIPTION") or cls.__doc__ or "")
+        if "REPORTED_INPUT" in vars(cls):
+            cls.VALIDATE_INPUTS = _validate_inputs(cls.REPORTED_INPUT)
         function = vars(cls).get(getattr(cls, "FUNCTION", None))
         if function is not None:
             setattr(cls, cls.FUNCTION, _checking_inputs(function))
@@ -213,12 +235,6 @@ class ArtNVGNode:
             raise NodeInputError(problem)
         return {name: RUN_TYPES[declared[name][0]].cls(value) for name, value in given.items()
                 if declared[name][0] in ("INT", "FLOAT")}
-
-    @classmethod
-    def VALIDATE_INPUTS(cls, node_id=None):
-        """ComfyUI's validation of the node ``node_id`` (its hidden input :data:`~.prompt_checks.CHECK_INPUT`):
-        what the pack's checks of the whole prompt kept for it (:func:`~.prompt_checks.check_result`), else True."""
-        return check_result(node_id)
 
     @classmethod
     def check_images(cls, image_size: Callable[[str], tuple[int, int] | None]) -> str | None:

@@ -18,15 +18,16 @@ with iterations -1 failed validation while every output not fed by it ran.) A pr
 itself (a value out of its range or choices, or one it cannot convert) is not kept: its message would
 come twice.
 Every node of the pack answers ComfyUI's validation with the kept message (``ArtNVGNode.VALIDATE_INPUTS``,
-:func:`check_result`), through the hidden input :data:`CHECK_INPUT` alone (the node id, so ComfyUI shows
-the message once and still checks every other input's range and choices). The loaders' file lists are
-declared as ``("COMBO", {"options": ...})``, which ComfyUI does not compare with the value itself: the
-check's message says more (where the file belongs, where to get it).
+:func:`check_result`), through one input alone (the hidden input :data:`CHECK_INPUT`, or a model loader's
+file input), so ComfyUI shows the message once and still checks every other input's range and choices. The
+loaders' file lists (input files, and model files: Load CSGO's) are declared as ``("COMBO", {"options": ...})``,
+which ComfyUI does not compare with the value itself: the check's message says more (the folders looked in,
+where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
 
-The model loaders (ComfyUI's own and Load CSGO, :data:`MODEL_LOADERS`) list their folder's files, and
-ComfyUI's own check names a file that is not there ("Value not in list"); the handler counts such a node
-as failing too, so that a graph missing a model file runs not at all either.
+ComfyUI's own model loaders (:data:`MODEL_LOADERS`) list their folder's files, and ComfyUI's own check
+names a file that is not there ("Value not in list"); the handler counts such a node as failing too, so
+that a graph missing a model file runs not at all either.
 """
 
 from __future__ import annotations
@@ -41,13 +42,12 @@ from artnvg_core.images import image_size
 from .comfy_bridge import comfy_module, load_image_path, model_file_path
 from .input_files import outside_folders
 
-CHECK_INPUT = "node_id"  # every node's hidden input: ComfyUI's UNIQUE_ID
-MODEL_LOADERS = {  # node type -> (its file input, its model folder)
+CHECK_INPUT = "node_id"  # every node's hidden input (ComfyUI's UNIQUE_ID), which its VALIDATE_INPUTS takes
+MODEL_LOADERS = {  # ComfyUI's node type -> (its file input, its model folder)
     "CheckpointLoaderSimple": ("ckpt_name", "checkpoints"),
     "LoraLoader": ("lora_name", "loras"),
     "ControlNetLoader": ("control_net_name", "controlnet"),
     "CLIPVisionLoader": ("clip_name", "clip_vision"),
-    "ArtNVGLoadCSGO": ("csgo_name", "csgo"),
 }
 REFUSED = (TypeError, ValueError, OverflowError)  # what comfyui_value raises for a value ComfyUI refuses itself
 _KEPT_PROMPTS = 32
@@ -164,14 +164,14 @@ def check_prompt(request: dict, classes: Mapping[str, type]) -> dict:
     return request
 
 
-def check_result(node_id: str) -> bool | str:
-    """A loader's ``VALIDATE_INPUTS`` answer: the message :func:`check_prompt` kept for ``node_id`` of the
-    prompt ComfyUI is validating, else True."""
+def check_result() -> bool | str:
+    """A node's ``VALIDATE_INPUTS`` answer: the message :func:`check_prompt` kept for the node of the prompt that
+    ComfyUI is validating (its executing context), else True."""
     execution = comfy_module("comfy_execution.utils")
     context = execution.get_executing_context() if hasattr(execution, "get_executing_context") else None
     if context is None:
         return True
-    return _results.get(str(context.prompt_id), {}).get(str(node_id), True)
+    return _results.get(str(context.prompt_id), {}).get(str(context.node_id), True)
 
 
 def register_prompt_check() -> None:

@@ -67,6 +67,24 @@ def test_fp16_request_keeps_an_overflowing_vae_in_float32(sdxl_folder):
     assert load_sdxl(folder, dtype=torch.bfloat16).vae.dtype == torch.bfloat16
 
 
+@pytest.mark.parametrize("capability, expected", [((8, 0), torch.bfloat16), ((9, 0), torch.bfloat16),
+                                                  ((7, 5), torch.float32)])
+def test_fp16_request_runs_an_overflowing_vae_in_bfloat16_where_the_gpu_computes_it(monkeypatch, capability,
+                                                                                    expected):
+    """As ComfyUI decodes SDXL: bfloat16 on CUDA GPUs of compute capability 8.0 and more, float32 on older ones
+    and on the CPU; a VAE that does not overflow (fp16-fix) and other requests keep the dtype asked for."""
+    from artnvg_core.diffusion.models import _vae_dtype
+
+    asked = []
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device: asked.append(device) or capability)
+    assert _vae_dtype(True, torch.float16, "cuda:1") == expected
+    assert asked == [torch.device("cuda:1")]
+    assert _vae_dtype(True, torch.float16, "cpu") == torch.float32
+    assert _vae_dtype(False, torch.float16, "cuda") == torch.float16
+    assert _vae_dtype(True, torch.float32, "cuda") == torch.float32
+    assert _vae_dtype(True, torch.bfloat16, "cuda") == torch.bfloat16
+
+
 def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):
     with pytest.raises(MissingModelError, match="looked for '.*missing_sdxl'.*`hf download "
                        "stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors`"):  # one file suffices

@@ -1,7 +1,9 @@
 """Image reading at any bit depth and size, checked before it is decoded."""
 
+import io
 import os
 import struct
+import tracemalloc
 import zlib
 
 import numpy as np
@@ -125,3 +127,53 @@ def test_a_fifo_or_folder_is_refused_without_reading(tmp_path):
                 read(tmp_path / name)
     with pytest.raises(ValueError, match=r"gone\.png: image file not found"):
         load_image(tmp_path / "gone.png")
+
+
+def _peak_traced_bytes(read, path, message: str) -> int:
+    """Peak bytes Python allocated (tracemalloc: Pillow's reads of the file are Python bytes) while ``read(path)``
+    raised a ValueError matching ``message``."""
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match=message):
+            read(path)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_a_png_chunk_longer_than_the_file_is_refused_before_pillow_reserves_its_length(tmp_path):
+    """A 69-byte PNG whose IDAT chunk declares 2 GB: Pillow read it as a valid 4x4 image and reserved the 2 GB on
+    the way (4 GB with a length of 2**32 - 16; on Windows that memory is committed); now refused from the chunk
+    table, naming the chunk, its offset and the bytes left, with no more memory than the file's."""
+    rows = b"".join(b"\0" + bytes(12) for _ in range(4))
+    header = struct.pack(">IIBBBBB", 4, 4, 8, 2, 0, 0, 0)
+    good = b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", zlib.compress(rows))
+    good += _png_chunk(b"IEND", b"")
+    (tmp_path / "good.png").write_bytes(good)
+    assert load_image(tmp_path / "good.png").shape == (4, 4, 3)
+    idat = good.index(b"IDAT") - 4
+    left = len(good) - idat - 12  # after IDAT's length, name and checksum
+    for length in (2**31 - 16, 2**32 - 16):
+        (tmp_path / "long.png").write_bytes(good[:idat] + struct.pack(">I", length) + good[idat + 4:])
+        for read in (load_image, image_size):
+            peak = _peak_traced_bytes(read, tmp_path / "long.png", rf"long\.png: PNG chunk 'IDAT' at byte 33 declares "
+                                      rf"{length:,} bytes of data, more than the {left} bytes left in the file")
+            assert peak < 2**20
+    (tmp_path / "cut.png").write_bytes(good[:-13])  # IDAT's checksum cut short: the file ends inside the chunk
+    _peak_traced_bytes(load_image, tmp_path / "cut.png", rf"cut\.png: PNG chunk 'IDAT' .* than the {left - 13} bytes left")
+
+
+def test_a_tiff_strip_past_the_files_end_is_refused_before_pillow_reserves_the_distance(tmp_path):
+    """A 204-byte TIFF of two strips, the second at byte 2**31: Pillow reserved the 2 GB between the strips before
+    reading the first; now refused from the header's offsets, naming the format, the block and the offset."""
+    stream = io.BytesIO()
+    Image.fromarray(np.full((4, 4, 3), 128, np.uint8)).save(stream, format="TIFF", tiffinfo={278: 2})
+    data = bytearray(stream.getvalue())
+    (ifd,) = struct.unpack_from("<I", data, 4)
+    entries = [struct.unpack_from("<HHII", data, ifd + 2 + 12 * i) for i in range(struct.unpack_from("<H", data, ifd)[0])]
+    (offsets,) = [value for tag, _, count, value in entries if tag == 273 and count == 2]  # StripOffsets, a LONG[2]
+    struct.pack_into("<I", data, offsets + 4, 2**31)
+    (tmp_path / "far.tif").write_bytes(data)
+    peak = _peak_traced_bytes(load_image, tmp_path / "far.tif", r"far\.tif: TIFF header: image data block 2 of 2 "
+                              rf"starts at byte 2,147,483,648, past the end of the file \({len(data)} bytes\)")
+    assert peak < 2**20

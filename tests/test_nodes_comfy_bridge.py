@@ -164,7 +164,7 @@ def test_folders_and_model_lists_come_from_comfyui(comfy):
     comfy_bridge.register_model_folder(CSGO_FOLDER, {".bin"})
     assert (root / "models" / CSGO_FOLDER).is_dir()  # registering creates it
     (root / "models" / CSGO_FOLDER / "csgo_4_32.bin").write_bytes(b"")
-    assert LoadCSGO.INPUT_TYPES()["required"]["csgo_name"][0] == ["csgo_4_32.bin"]
+    assert LoadCSGO.INPUT_TYPES()["required"]["csgo_name"][1]["options"] == ["csgo_4_32.bin"]
 
 
 def test_register_model_folder_keeps_user_paths(comfy):

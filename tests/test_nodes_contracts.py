@@ -159,9 +159,11 @@ def test_every_node_contract_is_valid_and_consistent(pack):
         parameters = inspect.signature(getattr(node, node.FUNCTION)).parameters
         hidden = list(node.INPUT_TYPES().get("hidden", {}))
         # every node answers ComfyUI's validation with the pack's checks of the prompt (nodes/prompt_checks.py),
-        # through its id alone: ComfyUI still holds every other input to its range and choices
+        # through one input, which labels the message: its id, or a model loader's file list (a COMBO, which ComfyUI
+        # does not check); ComfyUI still holds every other input to its range and choices
         assert node.INPUT_TYPES()["hidden"] == {"node_id": "UNIQUE_ID"}, name
-        assert list(inspect.signature(node.VALIDATE_INPUTS).parameters) == ["node_id"], name
+        assert list(inspect.signature(node.VALIDATE_INPUTS).parameters) == [node.REPORTED_INPUT], name
+        assert node.REPORTED_INPUT == "node_id" or node.INPUT_TYPES()["required"][node.REPORTED_INPUT][0] == "COMBO"
         assert list(parameters)[1:] == list(inputs) + hidden, name  # self, then every input in order, then hidden
         for hidden_name in hidden:
             assert parameters[hidden_name].default is None, (name, hidden_name)
@@ -176,7 +178,7 @@ def test_every_node_contract_is_valid_and_consistent(pack):
     assert {kind for kind in consumed if kind.startswith("ARTNVG_")} <= produced
 
 
-FILE_CHOICES = {"scene_file", "camera_source"}
+FILE_CHOICES = {"scene_file", "camera_source", "csgo_name"}
 
 
 def test_only_file_choices_escape_comfyuis_list_check_and_their_loaders_check_them(pack):

@@ -1,4 +1,4 @@
-"""Sample Group's, Load CSGO's and Apply CSGO's checks of their inputs, made before any ComfyUI model is touched
+"""Sample Group's and Apply CSGO's checks of their inputs, made before any ComfyUI model is touched
 (the sampling itself runs in the real ComfyUI: tests/integration/test_native_path.py)."""
 
 from types import SimpleNamespace
@@ -10,7 +10,7 @@ import torch
 from artnvg_core.diffusion.csgo_weights import CSGOFile
 from artnvg_core.grouping import ViewGroup, ViewGroups
 from nodes.diffusion_nodes import SampleGroup
-from nodes.model_patch_nodes import ApplyCSGO, LoadCSGO
+from nodes.model_patch_nodes import ApplyCSGO
 from nodes.node_errors import NodeInputError
 
 GROUPS = ViewGroups((ViewGroup((0, 1)), ViewGroup((2,))), 3)
@@ -29,13 +29,6 @@ def _sample(views: torch.Tensor, group_index: int = -1):
 def test_sample_group_names_the_bad_input(views, group_index, message):
     with pytest.raises(NodeInputError, match=f"^Sample Group: {message}"):
         _sample(views, group_index)
-
-
-def test_load_csgo_says_where_the_file_belongs_and_where_to_get_it():
-    with pytest.raises(NodeInputError, match=r"^Load CSGO: input 'csgo_name': 'csgo_4_32.bin' is not in the 'csgo' "
-                                             r"model folder .*; get it from https://huggingface.co/InstantX/CSGO: "
-                                             r"`hf download InstantX/CSGO csgo_4_32.bin`, saved as models/csgo/csgo_4_32.bin$"):
-        LoadCSGO().load("csgo_4_32.bin")
 
 
 def test_apply_csgo_refuses_a_style_image_the_command_line_refuses_before_touching_a_model():

@@ -58,11 +58,12 @@ def test_chosen_targets_are_kept_when_none_of_them_is_blocked():
 
 @pytest.fixture
 def executing(monkeypatch):
-    """A stand-in for ComfyUI's comfy_execution.utils whose executing context names ``context["prompt"]``."""
-    context = {"prompt": None}
+    """A stand-in for ComfyUI's comfy_execution.utils whose executing context names ``context["prompt"]`` and
+    ``context["node"]`` (the node ComfyUI validates)."""
+    context = {"prompt": None, "node": "1"}
     module = types.ModuleType("comfy_execution.utils")
-    module.get_executing_context = lambda: (None if context["prompt"] is None
-                                            else types.SimpleNamespace(prompt_id=context["prompt"], node_id="?"))
+    module.get_executing_context = lambda: (None if context["prompt"] is None else types.SimpleNamespace(
+        prompt_id=context["prompt"], node_id=context["node"], list_index=None))
     monkeypatch.setitem(sys.modules, "comfy_execution", types.ModuleType("comfy_execution"))
     monkeypatch.setitem(sys.modules, "comfy_execution.utils", module)
     return context
@@ -72,11 +73,15 @@ def test_validation_reads_the_message_of_its_own_prompt_and_node(executing):
     first = check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": "p1"}, CLASSES)
     check_prompt({"prompt": _prompt("there", "lost"), "prompt_id": "p2"}, CLASSES)
     assert first["prompt_id"] == "p1"
-    assert check_result("1") is True  # outside validation
+    assert check_result() is True  # outside validation
     executing["prompt"] = "p1"
-    assert check_result("1") == "Loader: 'gone' is missing" and check_result("4") is True
+    assert check_result() == "Loader: 'gone' is missing"
+    executing["node"] = "4"
+    assert check_result() is True
     executing["prompt"] = "p2"
-    assert check_result("1") is True and check_result("4") == "Loader: 'lost' is missing"
+    assert check_result() == "Loader: 'lost' is missing"
+    executing["node"] = "1"
+    assert check_result() is True
 
 
 def test_only_the_latest_prompts_are_remembered(executing):
@@ -84,7 +89,7 @@ def test_only_the_latest_prompts_are_remembered(executing):
         check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": f"q{number}"}, CLASSES)
     assert len(prompt_checks._results) == prompt_checks._KEPT_PROMPTS
     executing["prompt"] = "q0"
-    assert check_result("1") is True
+    assert check_result() is True
 
 
 def test_values_outside_a_nodes_declared_ranges_block_every_output_it_feeds():
@@ -127,24 +132,29 @@ def test_validation_repeats_no_problem_comfyui_reports_itself(executing):
         finetune["inputs"] = values
         request = check_prompt({"prompt": prompt}, classes)
         executing["prompt"] = request["prompt_id"]
-        assert request["partial_execution_targets"] == ["2"] and check_result("1") == shown, values
+        assert request["partial_execution_targets"] == ["2"] and check_result() == shown, values
 
 
 def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):
-    """ComfyUI's own loaders (and Load CSGO) are checked by folder: ComfyUI names the file itself."""
+    """ComfyUI's own loaders are checked by folder: ComfyUI names the file itself ("Value not in list"), so
+    their VALIDATE_INPUTS (none) has nothing to add; Load CSGO's file is its check_files' (test_nodes_model_files)."""
+    from nodes import NODE_CLASS_MAPPINGS
+
     monkeypatch.setattr(prompt_checks, "model_file_path",
                         lambda folder, name: f"/models/{folder}/{name}" if name == "sdxl.safetensors" else None)
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
     prompt = {"1": {"class_type": "CheckpointLoaderSimple", "inputs": {"ckpt_name": "sdxl.safetensors"}},
-              "2": {"class_type": "ArtNVGLoadCSGO", "inputs": {"csgo_name": "csgo_4_32.bin"}},
-              "3": {"class_type": "Output", "inputs": {"model": ["1", 0], "csgo": ["2", 0]}},
+              "2": {"class_type": "ControlNetLoader", "inputs": {"control_net_name": "tile.safetensors"}},
+              "3": {"class_type": "Output", "inputs": {"model": ["1", 0], "control_net": ["2", 0]}},
               "4": {"class_type": "Output", "inputs": {}}}
-    assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
-    request = check_prompt({"prompt": prompt}, CLASSES)
+    assert failed_checks(prompt, classes) == {"2": "'tile.safetensors' is not in the 'controlnet' model folder"}
+    request = check_prompt({"prompt": prompt}, classes)
     assert request["partial_execution_targets"] == ["3"]
+    assert prompt_checks._results[request["prompt_id"]] == {}  # ComfyUI's message alone
     # a name as the editor wraps a list value, which ComfyUI unwraps: the check read the wrapper
     prompt["1"]["inputs"]["ckpt_name"] = {"__value__": "sdxl.safetensors"}
-    prompt["2"]["inputs"]["csgo_name"] = {"__value__": "csgo_4_32.bin"}
-    assert failed_checks(prompt, CLASSES) == {"2": "'csgo_4_32.bin' is not in the 'csgo' model folder"}
+    prompt["2"]["inputs"]["control_net_name"] = {"__value__": "tile.safetensors"}
+    assert failed_checks(prompt, classes) == {"2": "'tile.safetensors' is not in the 'controlnet' model folder"}
 
 
 def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tmp_path, monkeypatch):
@@ -200,7 +210,7 @@ def _validated(node_type: str, inputs: dict, executing) -> tuple:
               "3": {"class_type": "Output", "inputs": {}}}
     request = check_prompt({"prompt": prompt}, classes)
     executing["prompt"] = request.get("prompt_id")
-    return (classes[node_type].VALIDATE_INPUTS(node_id="1"), failed_checks(prompt, classes).get("1"),
+    return (classes[node_type].VALIDATE_INPUTS(), failed_checks(prompt, classes).get("1"),
             request.get("partial_execution_targets"))
 
 
@@ -296,7 +306,7 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
     check_prompt({"prompt": _prompt("gone", "there"), "prompt_id": "again"}, CLASSES)
     check_prompt({"prompt": _prompt("there", "there"), "prompt_id": "again"}, CLASSES)
     executing["prompt"] = "again"
-    assert check_result("1") is True
+    assert check_result() is True
 
 
 @pytest.mark.parametrize("node_type, inputs, message", [

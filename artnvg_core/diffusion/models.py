@@ -6,8 +6,8 @@
   Its configs and tokenizers come with the package (:mod:`.sdxl_config`), so it loads with no
   network; ``config_dir`` may name another diffusers-format SDXL folder (its weights are not read).
 * VAE override (e.g. madebyollin/sdxl-vae-fp16-fix): a diffusers folder or one ``.safetensors``
-  with diffusers keys. fp16-safe decoding: a VAE whose config says ``force_upcast`` is kept
-  in float32 when float16 is requested.
+  with diffusers keys. fp16-safe decoding: a VAE whose config says ``force_upcast`` runs in bfloat16
+  when float16 is requested on a GPU that computes bfloat16 natively (as ComfyUI runs it), else in float32.
 * Tile ControlNet: a diffusers folder, or one ``.safetensors`` with diffusers keys (config from a
   ``config.json`` beside it, else the SDXL ControlNet architecture of the loaded UNet).
 * Image encoder: a transformers ``CLIPVisionModelWithProjection`` folder, or one ``.safetensors``
@@ -93,9 +93,16 @@ class DiffusionModels:
             raise ValueError("DiffusionModels: CSGO projections need an image_encoder to compute their tokens")
 
 
-def _vae_dtype(force_upcast: bool, dtype: torch.dtype) -> torch.dtype:
-    """float32 for a float16 request on a VAE that overflows in float16 (``force_upcast``), else ``dtype``."""
-    return torch.float32 if dtype == torch.float16 and force_upcast else dtype
+def _vae_dtype(force_upcast: bool, dtype: torch.dtype, device: str | torch.device) -> torch.dtype:
+    """The dtype of a VAE asked for in ``dtype`` on ``device``: ``dtype``, except for a float16 request on a VAE
+    that overflows in float16 (``force_upcast``, SDXL's own): bfloat16 (float32's range) on a CUDA GPU of compute
+    capability 8.0 or more, as ComfyUI decodes SDXL there (20 % faster than float32, BENCHMARKS.md "Whole runs"),
+    else float32."""
+    if dtype != torch.float16 or not force_upcast:
+        return dtype
+    device = torch.device(device)
+    native_bf16 = device.type == "cuda" and torch.cuda.get_device_capability(device) >= (8, 0)
+    return torch.bfloat16 if native_bf16 else torch.float32
 
 
 def load_state_dict_strict(model: torch.nn.Module, path: Path, device: str | torch.device = "cpu",
@@ -243,7 +250,7 @@ def load_sdxl(
     with configs as folder, sdxl_loading_notices_silenced():
         vae_config, scheduler_config, index = (_json_config(folder / name) for name in (
             "vae/config.json", "scheduler/scheduler_config.json", "model_index.json"))  # before any model loads
-        vae_dtype = _vae_dtype(vae_config.get("force_upcast", True), dtype)
+        vae_dtype = _vae_dtype(vae_config.get("force_upcast", True), dtype, device)
         models = (_sdxl_models_from_folder(path, dtype, vae_dtype, device) if path.is_dir()
                   else _sdxl_models_from_file(path, folder, dtype, vae_dtype, device))
         tokenizers = {name: CLIPTokenizer.from_pretrained(folder / name) for name in ("tokenizer", "tokenizer_2")}
@@ -270,8 +277,8 @@ def load_vae(
             raise MissingModelError(f"VAE weights '{path}': no config.json beside the file")
         with parameters_on_meta():
             vae = AutoencoderKL.from_config(config)
-        load_state_dict_strict(vae, path, device, _vae_dtype(vae.config.force_upcast, dtype))
-    return _placed(vae, device, _vae_dtype(vae.config.force_upcast, dtype))
+        load_state_dict_strict(vae, path, device, _vae_dtype(vae.config.force_upcast, dtype, device))
+    return _placed(vae, device, _vae_dtype(vae.config.force_upcast, dtype, device))
 
 
 def load_controlnet(

@@ -64,12 +64,14 @@ def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trai
 def require_stored_zip(path: Path) -> None:
     """A zip file (e.g. a ``torch.save`` checkpoint) whose records are all stored uncompressed within
     the file; ValueError naming the first record that is compressed or reaches past the file's end.
-    Files that are not zip archives pass (they hold no compressed streams); one whose directory zipfile
-    cannot read is a ValueError naming it."""
+    A file is a zip archive when it begins with a local file header (``PK\\x03\\x04``), as ``torch.load`` tells
+    one (not ``zipfile.is_zipfile``, whose answer for a damaged archive differs between Python versions); others
+    pass (they hold no compressed streams). An archive whose directory zipfile cannot read is a ValueError naming it."""
     size = path.stat().st_size
-    try:
-        if not zipfile.is_zipfile(path):
+    with open(path, "rb") as stream:
+        if stream.read(4) != b"PK\x03\x04":
             return
+    try:
         with zipfile.ZipFile(path) as archive:
             records = archive.infolist()
     except (zipfile.BadZipFile, NotImplementedError, UnicodeDecodeError, EOFError, OSError) as error:

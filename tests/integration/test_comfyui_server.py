@@ -304,6 +304,35 @@ def test_missing_scene_file_fails_validation_naming_the_file(comfy_server, input
     assert "Put it into ComfyUI's input folder" in error["details"]
 
 
+def _csgo_file_refusal(server, name: str) -> str:
+    """The details of the one error ComfyUI refuses Load CSGO with, given file ``name``, feeding Preview Any."""
+    prompt = {"1": {"class_type": "ArtNVGLoadCSGO", "inputs": {"csgo_name": name}},
+              "2": {"class_type": "PreviewAny", "inputs": {"source": ["1", 0]}}}
+    (error,) = _refused_before_any_work(server, prompt)["1"]["errors"]
+    assert error["type"] == "custom_validation_failed" and error["extra_info"]["input_name"] == "csgo_name", error
+    return error["details"]
+
+
+def test_a_missing_model_file_is_refused_naming_it_the_folder_looked_in_and_where_to_get_it(comfy_server):
+    """Load CSGO's file, missing from the start or deleted after the server listed it: ComfyUI's own answer was
+    "Value not in list: csgo_name: 'csgo_4_32.bin' not in []", naming neither the folder nor where to get the
+    file. The pack's message, once, labelled with the input (the editor outlines it)."""
+    folder = comfy_server.input_dir.parent / "models" / "csgo"  # the folder the pack registers
+    listed = f"artnvg_test_{uuid.uuid4().hex[:8]}.bin"
+    for name, deleted in (("csgo_4_32.bin", False), (listed, True)):
+        if deleted:
+            (folder / name).write_bytes(b"")
+            try:
+                assert name in json.dumps(_get(comfy_server, "/object_info/ArtNVGLoadCSGO"))
+            finally:
+                (folder / name).unlink()
+        details = _csgo_file_refusal(comfy_server, name)
+        assert details.startswith(f"csgo_name - Load CSGO: input 'csgo_name': '{name}' is not in the 'csgo' model "
+                                  f"folder (looked in {folder}; found "), details
+        assert ("from https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin (`hf download InstantX/CSGO "
+                f"csgo_4_32.bin`) and save it as {folder / name}") in details, details
+
+
 def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_server):
     broken = comfy_server.input_dir / comfy_server.test_folder / "broken.ply"
     broken.write_text("this is not a PLY file\n")

@@ -370,6 +370,11 @@ def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file(edit
     (text,) = [d for d in dialogs if "failed validation" in d or "Blocked last run" in d]
     for name in files:
         assert name in text, name
+    if "failed validation" in text:  # 1.27.10 lists each message: Load CSGO's names its folder and where to get it
+        folder = comfy_server.input_dir.parent / "models" / "csgo"
+        assert (f"csgo_name - Load CSGO: input 'csgo_name': 'csgo_4_32.bin' is not in the 'csgo' model folder (looked "
+                f"in {folder}; found ") in text, text
+        assert "(`hf download InstantX/CSGO csgo_4_32.bin`) and save it as " in text, text
     time.sleep(3)
     assert _history_count(comfy_server) == runs  # nothing queued, not even the content renders
     _close_dialogs(editor)
