@@ -370,8 +370,8 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
     with caplog.at_level("WARNING"):
         result = finetune(scene, cameras, style, config=config)
     messages = [r.message for r in caplog.records]
-    assert messages[0] == ("finetune: step 1: 2 Gaussians have non-finite (or >= 1e+18) gradients (3, 7); "
-                           "they keep their last finite values this step")
+    assert messages[0] == ("finetune: step 1: non-finite (or >= 1e+18) gradients in 2 Gaussians (3, 7), held at "
+                           "the last finite values this step")
     assert messages[1].startswith("finetune: step 2: the loss is not finite (nnfm nan, content nan")
     assert messages[2:] == ["finetune: 1 step skipped for a non-finite loss (first at step 2)",
                             "finetune: 3 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (3, 7)"]
