@@ -140,7 +140,8 @@ def _start_local(ray, workers: Workers, devices) -> None:
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     physical = visible.split(",") if visible else [str(i) for i in range(torch.cuda.device_count())]
     if max(indices) >= len(physical):
-        raise ValueError(f"--devices: cuda:{max(indices)} asked for, but {len(physical)} CUDA devices are visible")
+        raise ValueError(f"--devices: cuda:{max(indices)} asked for, but this process sees "
+                         f"{counted(len(physical), 'CUDA device')}")
     try:
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(physical[i] for i in indices)
         ray.init(num_gpus=len(indices), **_QUIET)

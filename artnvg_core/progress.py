@@ -4,12 +4,15 @@ A long function takes ``progress: ProgressFn | None`` and ``should_stop: StopFn 
 It calls ``progress(step, total, info)`` after each unit of work (and ``progress(0, total, info)`` as the
 work starts where a unit takes seconds, such as a render call: a bar then shows from the start, not once the
 first unit is done) and raises :class:`Cancelled` as soon as ``should_stop()`` returns True, before writing
-anything.
+anything. A unit that takes seconds asks within itself too, its backward pass included (:func:`stop_in_backward`).
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    import torch
 
 ProgressFn = Callable[[int, int, dict], None]
 StopFn = Callable[[], bool]
@@ -29,3 +32,12 @@ def check_stop(should_stop: StopFn | None) -> None:
     """Raise :class:`Cancelled` if ``should_stop`` says so."""
     if should_stop is not None and should_stop():
         raise Cancelled("stopped by request")
+
+
+def stop_in_backward(tensor: torch.Tensor, should_stop: StopFn | None) -> torch.Tensor:
+    """``tensor``, made to call :func:`check_stop` when a backward pass reaches it (before the work that
+    back-propagates through what made it): the :class:`Cancelled` ends that ``backward()``. Nothing changes
+    where ``should_stop`` is None or ``tensor`` has no gradient."""
+    if should_stop is not None and tensor.requires_grad:
+        tensor.register_hook(lambda grad: check_stop(should_stop))
+    return tensor

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .counted import counted
+
 _log = logging.getLogger(__name__)
 
 SH_C0 = 0.28209479177387814
@@ -129,10 +131,17 @@ _TENSOR_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # --------------------------------------------------------------------------- validation
 
 
+_SINGULAR_VERBS = {"have": "has", "lie": "lies", "are": "is"}  # the verbs describe_invalid's problems start with
+
+
 def describe_invalid(name: str, bad, problem: str) -> str:
     """``"{name}: K of N Gaussians {problem} (first at index i)"`` for a bad-mask ``bad`` [N] (a torch
-    or numpy bool array with a True entry): the one wording of a per-Gaussian error."""
-    return f"{name}: {int(bad.sum())} of {len(bad)} Gaussians {problem} (first at index {int(bad.nonzero()[0][0])})"
+    or numpy bool array with a True entry): the one wording of a per-Gaussian error. ``problem`` starts with
+    a verb of _SINGULAR_VERBS in the plural, made to agree with K: "1 of 4 Gaussians has a zero norm"."""
+    count = int(bad.sum())
+    verb, rest = problem.split(" ", 1)
+    verb = _SINGULAR_VERBS[verb] if count == 1 else verb
+    return f"{name}: {count:,} of {counted(len(bad), 'Gaussian')} {verb} {rest} (first at index {int(bad.nonzero()[0][0])})"
 
 
 def invalid_gaussians(scene: GaussianScene) -> list[tuple[str, str, torch.Tensor]]:
@@ -171,9 +180,11 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         reasons.append(f"{name}: {count} with {problem}")
     dropped = int(invalid.sum())
     if dropped == n:
-        raise ValueError(f"{source}: all {n} Gaussians are invalid ({'; '.join(reasons)})")
+        every = f"all {n:,} Gaussians are" if n > 1 else "its one Gaussian is"
+        raise ValueError(f"{source}: {every} invalid ({'; '.join(reasons)})")
     if dropped:
-        _log.warning("%s: dropped %d of %d invalid Gaussians (%s)", source, dropped, n, "; ".join(reasons))
+        _log.warning("%s: dropped %s of %s (%s)", source, counted(dropped, "invalid Gaussian"), f"{n:,}",
+                     "; ".join(reasons))
         scene = scene.select(~invalid)
     return scene, dropped
 

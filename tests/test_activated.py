@@ -79,9 +79,9 @@ def test_opacities_of_zero_and_one_get_finite_logits():
 @pytest.mark.parametrize("field, value, message", [
     ("sh", torch.zeros(4, 25, 3), "sh: 25 coefficients"),
     ("sh", torch.zeros(4, 5, 3), "sh: 5 coefficients"),
-    ("scales", torch.tensor([[1.0, 1, 1], [1, 0, 1], [1, 1, 1], [1, 1, 1]]), "scales: 1 of 4 Gaussians have a scale"),
+    ("scales", torch.tensor([[1.0, 1, 1], [1, 0, 1], [1, 1, 1], [1, 1, 1]]), "scales: 1 of 4 Gaussians has a scale"),
     ("opacities", torch.tensor([0.5, 1.5, 0.5, -0.1]), "opacities: 2 of 4 Gaussians lie outside [0, 1]"),
-    ("positions", torch.tensor([[0.0, 0, 0]] * 3 + [[float("nan"), 0, 0]]), "positions: 1 of 4 Gaussians have non-finite"),
+    ("positions", torch.tensor([[0.0, 0, 0]] * 3 + [[float("nan"), 0, 0]]), "positions: 1 of 4 Gaussians has non-finite"),
     ("rotations", torch.zeros(4, 4), "rotations: 4 of 4 Gaussians have a zero quaternion"),
     ("opacities", torch.zeros(4, 1), "opacities: expected shape (4,)"),
 ])

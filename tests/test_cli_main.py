@@ -235,8 +235,8 @@ def test_stylize_never_writes_over_its_inputs(tmp_path, capsys):
 
 
 def test_a_bad_lora_is_refused_naming_it_before_any_work(tmp_path, capsys):
-    """A strength that is not a number (by the parser), a missing file, and a LoRA given to a stylizer
-    without SDXL: each an error naming the option or file, before the scene is loaded."""
+    """A strength that is not a number (by the parser) and a missing file: each an error naming the option or
+    file, before the scene is loaded (a LoRA given to a stylizer without SDXL: the test below)."""
     demo, scene = DemoInputs(), _small_scene(tmp_path)
     common = ["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
               str(tmp_path / "out.ply"), "--device", "cpu"]
@@ -246,12 +246,10 @@ def test_a_bad_lora_is_refused_naming_it_before_any_work(tmp_path, capsys):
     assert ("error: argument --lora: 'style.safetensors:strong': strength 'strong' is not a number"
             in capsys.readouterr().err)
     missing = tmp_path / "missing.safetensors"
-    for extra, message in [(["--lora", f"{missing}:0.5"], f"error: LoRA '{missing}': no such file"),
-                           (["--lora", str(missing), "--stylizer", "nnfm"],
-                            "error: --lora: a LoRA changes SDXL, which only the diffusion stylizer runs")]:
-        assert main([*common, *extra]) == 2
+    for stylizer in ("auto", "nnfm"):
+        assert main([*common, "--lora", f"{missing}:0.5", "--stylizer", stylizer]) == 2
         captured = capsys.readouterr()
-        assert message in captured.err and "loading" not in captured.out, captured
+        assert f"error: LoRA '{missing}': no such file" in captured.err and "loading" not in captured.out, captured
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
 
 
@@ -545,6 +543,30 @@ def test_a_devices_typo_is_refused_before_any_work_whichever_stylizer_runs(tmp_p
     captured = capsys.readouterr()
     assert captured.err == "error: --devices: 'cuda0' is not a device (expected e.g. cuda:0,cuda:1)\n"
     assert "loading" not in captured.out and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
+@pytest.mark.parametrize("stylizer", ["nnfm", "auto"])
+def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_when_nnfm_would_run(tmp_path, capsys, stylizer):
+    """docs/scale_out.md's 'stylize ... --devices cuda:0,cuda:1', run where the model files are missing (auto:
+    NNFM), once ran NNFM's 1,000 iterations on the CPU (two hours at 512x512), the devices unread; --ray-address
+    and (with auto) --lora went unread the same way. Each is refused before the scene loads, saying why NNFM runs."""
+    import torch
+    from safetensors.torch import save_file
+
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    save_file({"unet.down.lora_A.weight": torch.zeros(2, 2)}, tmp_path / "style.safetensors")
+    reason = "requested" if stylizer == "nnfm" else "auto: diffusion models not found (SDXL 1.0 base"
+    for option, value, what in [("--devices", "cuda:0,cuda:1", "the devices share the diffusion stage's groups"),
+                                ("--ray-address", "auto", "the Ray cluster shares the diffusion stage's groups"),
+                                ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL")]:
+        assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+                     str(tmp_path / "out.ply"), "--stylizer", stylizer, "--sdxl", str(tmp_path / "no_sdxl"),
+                     option, value, "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
+        captured = capsys.readouterr()
+        assert captured.err.startswith(f"error: {option}: {what}, which only the diffusion stylizer runs; the NNFM "
+                                       f"stylizer would run here ({reason}"), captured.err
+        assert "loading" not in captured.out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply", "style.safetensors"]
 
 
 def test_a_bar_first_told_of_its_work_at_the_end_shows_no_rate(capsys):

@@ -31,6 +31,18 @@ def test_bad_devices_are_refused(devices, message):
         plan_workers(devices)
 
 
+@pytest.mark.parametrize("visible, message", [(0, "0 CUDA devices"), (1, "1 CUDA device")])
+def test_more_gpus_than_visible_are_refused_counting_those_seen(monkeypatch, visible, message):
+    """Once '1 CUDA devices are visible'."""
+    monkeypatch.setitem(sys.modules, "ray", type(sys)("ray"))
+    sys.modules["ray"].is_initialized = lambda: False
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: visible)
+    with pytest.raises(ValueError, match=rf"^--devices: cuda:1 asked for, but this process sees {message}$"):
+        with ray_session(["cuda:0", "cuda:1"]):
+            pass
+
+
 def test_without_ray_the_options_that_need_it_say_how_to_install_it(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     with pytest.raises(RayUnavailable, match=r'batch needs Ray, which is not installed: pip install "artnvg\[cluster\]"'):

@@ -93,8 +93,8 @@ def test_held_back_gaussians_keep_their_values_and_the_others_step_as_adam(poiso
         adam.report()
         adam.report()  # nothing new
     assert [r.message for r in caplog.records] == [
-        "test: step 2: 2 Gaussians have non-finite (or >= 1e+18) gradients (2, 4); they keep their last "
-        "finite values this step"]
+        "test: step 2: non-finite (or >= 1e+18) gradients in 2 Gaussians (2, 4), held at the last finite values "
+        "this step"]
 
 
 def test_a_non_finite_loss_or_a_skipped_step_changes_nothing(fused, caplog):

@@ -130,6 +130,36 @@ def test_cancelling_leaves_no_output(demo, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("where", ["render", "backward"])
+def test_a_stop_asked_inside_a_step_ends_that_step(demo, monkeypatch, where):
+    """A step takes seconds at 512 px on a CPU (BENCHMARKS.md): a stop asked inside it, in its render (before
+    the loss is computed) or once its loss is computed (in the backward pass), ends it there; step 1 is never
+    reported done."""
+    from artnvg_core.finetune import step_loss
+
+    scene, cameras, style = demo
+    steps, losses, stop, asked_in_steps = [], [], [], []
+
+    def should_stop():
+        if steps:  # the steps have started; the first ask is before step 1, the second inside its render
+            asked_in_steps.append(1)
+            if where == "render" and len(asked_in_steps) == 2:
+                stop.append(True)
+        return bool(stop)
+
+    def loss_of(*args, call=step_loss.StepLoss.__call__):
+        losses.append(call(*args))
+        if where == "backward":
+            stop.append(True)
+        return losses[-1]
+
+    monkeypatch.setattr(step_loss.StepLoss, "__call__", loss_of)
+    with pytest.raises(Cancelled):
+        finetune(scene, cameras, style, config=FinetuneConfig(iterations=3), should_stop=should_stop,
+                 progress=lambda step, total, info: steps.append(step))
+    assert steps == [0] and len(losses) == (where == "backward")
+
+
 def test_save_result_writes_ply_and_contact_sheet(demo, tmp_path):
     scene, cameras, style = demo
     out = tmp_path / "sub" / "result.ply"
@@ -340,8 +370,8 @@ def test_a_nan_gradient_or_loss_never_reaches_the_scene(demo, caplog, monkeypatc
     with caplog.at_level("WARNING"):
         result = finetune(scene, cameras, style, config=config)
     messages = [r.message for r in caplog.records]
-    assert messages[0] == ("finetune: step 1: 2 Gaussians have non-finite (or >= 1e+18) gradients (3, 7); "
-                           "they keep their last finite values this step")
+    assert messages[0] == ("finetune: step 1: non-finite (or >= 1e+18) gradients in 2 Gaussians (3, 7), held at "
+                           "the last finite values this step")
     assert messages[1].startswith("finetune: step 2: the loss is not finite (nnfm nan, content nan")
     assert messages[2:] == ["finetune: 1 step skipped for a non-finite loss (first at step 2)",
                             "finetune: 3 steps held back Gaussians with non-finite gradients, 2 Gaussians in all (3, 7)"]

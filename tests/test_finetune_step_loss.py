@@ -108,6 +108,25 @@ def test_the_content_features_of_every_view_report_progress_and_stop_when_asked(
         StepLoss(config, load_vgg("vgg19"), nnfm, None, originals, should_stop=lambda: True)
 
 
+def test_a_call_asks_to_stop_before_each_convolution_and_search_and_in_its_backward_pass():
+    """A call at 512 px takes seconds on a CPU: should_stop is asked within it (the VGG's 7 convolutions up to
+    relu3_3, NNFM's one chunk here) and when its backward pass reaches each convolution."""
+    from artnvg_core.progress import Cancelled
+
+    style, stylized, _, image, views = inputs()
+    config = FinetuneConfig(nnfm_search="fp32")
+    asked, stop = [], []
+    nnfm = step_loss(config, style, None, None).nnfm
+    loss_fn = StepLoss(config, load_vgg("vgg19"), nnfm, stylized, None, should_stop=lambda: asked.append(1) or bool(stop))
+    image.requires_grad_(True)
+    loss, _ = loss_fn(image, views)
+    assert len(asked) == 8
+    stop.append(True)
+    with pytest.raises(Cancelled):
+        loss.backward()
+    assert len(asked) == 9 and image.grad is None
+
+
 def test_weights_leave_out_their_terms():
     style, stylized, originals, image, views = inputs()
     only_nnfm = step_loss(FinetuneConfig(tv_weight=0), style, None, None)

@@ -61,7 +61,7 @@ def test_writers_refuse_invalid_scenes_before_writing(tmp_path, suffix, field, v
     getattr(scene, field)[4] = value
     path = tmp_path / f"bad{suffix}"
     problem = "a zero norm" if value == 0 else "non-finite values"
-    with pytest.raises(ValueError, match=rf"bad\{suffix}: not written: {field}: 1 of 6 Gaussians have {problem} "
+    with pytest.raises(ValueError, match=rf"bad\{suffix}: not written: {field}: 1 of 6 Gaussians has {problem} "
                                          r"\(first at index 4\)"):
         save_scene(scene, path)
     assert list(tmp_path.iterdir()) == []

@@ -183,7 +183,7 @@ def test_float64_overflowing_float32_is_rejected(tmp_path):
     scene.log_scales[3, 1] = 1e300
     path = tmp_path / "huge.ply"
     write_reference_ply(path, scene, float_type="f8")
-    message = r"huge\.ply: log_scales: 1 of 5 Gaussians have non-finite values \(first at index 3\)"
+    message = r"huge\.ply: log_scales: 1 of 5 Gaussians has non-finite values \(first at index 3\)"
     with pytest.raises(ValueError, match=message):
         read_ply(path)
 
@@ -297,7 +297,7 @@ def test_drop_invalid_removes_and_reports_exactly_the_bad_gaussians(tmp_path, ca
     with caplog.at_level("WARNING", logger="artnvg_core.scene"):
         loaded = read_ply(path, drop_invalid=True)
     assert_same_bits(loaded, scene.select(keep))
-    assert "some_bad.ply: dropped 3 of 10 invalid Gaussians" in caplog.text
+    assert "some_bad.ply: dropped 3 invalid Gaussians of 10" in caplog.text
     assert "means: 1 with non-finite values" in caplog.text and "quats: 1 with a zero norm" in caplog.text
 
     cleaned, dropped = validate_scene(scene, "memory", drop_invalid=True)

@@ -84,12 +84,12 @@ def test_bad_records_name_the_field(tmp_path):
     records["rotation"][2] = 128  # zero quaternion
     path = tmp_path / "bad.splat"
     path.write_bytes(records.tobytes())
-    with pytest.raises(ValueError, match=r"bad\.splat: scale: 1 of 3 Gaussians have a scale that is not a positive"):
+    with pytest.raises(ValueError, match=r"bad\.splat: scale: 1 of 3 Gaussians has a scale that is not a positive"):
         read_splat(path)
     assert len(read_splat(path, drop_invalid=True)) == 1
     records["scale"][1, 2] = 1
     path.write_bytes(records.tobytes())
-    with pytest.raises(ValueError, match=r"bad\.splat: quats: 1 of 3 Gaussians have a zero norm \(first at index 2\)"):
+    with pytest.raises(ValueError, match=r"bad\.splat: quats: 1 of 3 Gaussians has a zero norm \(first at index 2\)"):
         read_splat(path)  # named as what it is (was: as non-finite values)
     for size in (0, 31, 33, 95):
         path.write_bytes(records.tobytes()[:size] if size < 96 else b"")

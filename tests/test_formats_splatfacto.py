@@ -111,7 +111,7 @@ def test_splatfacto_invalid_values_are_rejected_or_dropped(tmp_path):
     params = splatfacto_params(6, 2)
     params["means"][3, 2] = float("nan")
     path = save_splatfacto(tmp_path / "nan.ckpt", params)
-    message = r"nan\.ckpt: means: 1 of 6 Gaussians have non-finite values \(first at index 3\)"
+    message = r"nan\.ckpt: means: 1 of 6 Gaussians has non-finite values \(first at index 3\)"
     with pytest.raises(ValueError, match=message):
         read_splatfacto_ckpt(path)
     scene = load_scene(path, drop_invalid=True)

@@ -2,6 +2,8 @@ import pytest
 import torch
 
 from artnvg_core.losses import NNFMLoss, load_vgg, nearest_style_indices, shrink_to_max_side, style_image_features
+from artnvg_core.losses.nnfm import default_chunk_elements
+from artnvg_core.progress import Cancelled
 
 GROUPS = (("a1", "a2"), ("b1",))
 
@@ -82,6 +84,31 @@ def test_chunked_matches_unchunked(budget):
     small = NNFMLoss(style_feats, GROUPS, max_chunk_elements=budget)(feats)
     large = NNFMLoss(style_feats, GROUPS, max_chunk_elements=10**9)(feats)
     assert small.item() == large.item()
+
+
+def test_the_search_asks_to_stop_before_each_chunk_of_rows():
+    """The search takes seconds at 512 px on a CPU: a stop ends it at the next chunk, in NNFMLoss's too."""
+    gen = torch.Generator().manual_seed(5)
+    render = torch.nn.functional.normalize(torch.randn(23, 6, generator=gen), dim=1)
+    style = torch.nn.functional.normalize(torch.randn(17, 6, generator=gen), dim=1)
+    asked = []
+    nearest_style_indices(render, style, 17 * 5, should_stop=lambda: asked.append(1) or False)
+    assert len(asked) == 5  # 23 rows, 5 a chunk
+    asked.clear()
+    with pytest.raises(Cancelled):
+        nearest_style_indices(render, style, 17 * 5, should_stop=lambda: asked.append(1) or len(asked) == 3)
+    assert len(asked) == 3
+    with pytest.raises(Cancelled):
+        NNFMLoss(random_feats(7, 1, (5, 4), (4, 2)), GROUPS)(random_feats(6, 2, (4, 4), (3, 3)), should_stop=lambda: True)
+
+
+def test_on_a_cpu_the_search_holds_2_to_the_23_similarities_a_chunk_unless_told():
+    """64x64 positions against 64x64 (2^24) in two chunks of rows, a stop asked before each; the 4x3 group in one."""
+    asked = []
+    NNFMLoss(random_feats(7, 1, (64, 64), (4, 3)), GROUPS)(random_feats(6, 1, (64, 64), (4, 3)),
+                                                           should_stop=lambda: asked.append(1) or False)
+    assert len(asked) == 3
+    assert default_chunk_elements(torch.device("cuda", 0)) == 2**26
 
 
 def test_zero_feature_vectors_give_finite_loss_and_gradient():

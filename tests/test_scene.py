@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from artnvg_core.scene import GaussianScene, validate_scene
+from artnvg_core.scene import GaussianScene, describe_invalid, validate_scene
 from tests.test_formats_ply import random_scene
 
 
@@ -34,3 +34,20 @@ def test_scene_with_no_valid_gaussians_is_an_error():
         validate_scene(scene, "memory", drop_invalid=True)
     with pytest.raises(ValueError, match="memory: the scene contains no Gaussians"):
         validate_scene(scene.select(torch.zeros(3, dtype=torch.bool)), "memory")
+
+
+def test_counts_in_the_messages_agree_with_one(caplog):
+    """Once '1 of 4 Gaussians have a zero norm', 'all 1 Gaussians are invalid' and 'dropped 1 of 40000 invalid
+    Gaussians' (as if all 40,000 were invalid)."""
+    bad = torch.tensor([False, True, False, False])
+    assert describe_invalid("quats", bad, "have a zero norm") == "quats: 1 of 4 Gaussians has a zero norm (first at index 1)"
+    assert describe_invalid("x", torch.ones(2, dtype=torch.bool), "lie outside") == "x: 2 of 2 Gaussians lie outside (first at index 0)"
+    one = random_scene(3, 0).select(slice(0, 1))
+    one.means[:] = float("nan")
+    with pytest.raises(ValueError, match=r"^memory: its one Gaussian is invalid \(means: 1 with non-finite values\)$"):
+        validate_scene(one, "memory", drop_invalid=True)
+    scene = random_scene(1200, 0)
+    scene.means[7] = float("nan")
+    with caplog.at_level("WARNING", logger="artnvg_core.scene"):
+        assert validate_scene(scene, "memory", drop_invalid=True)[1] == 1
+    assert "memory: dropped 1 invalid Gaussian of 1,200 (means: 1 with non-finite values)" in caplog.text

@@ -151,8 +151,9 @@ def scene_frame(scene: GaussianScene, *, up=None, quantile: float = 0.5) -> Scen
     distances = (means - center).norm(dim=1)
     scale = float(distances.max())
     if not scale > 1e-9 * (1 + float(center.abs().max())):
+        which = f"all {len(means):,} finite Gaussians sit" if len(means) > 1 else "its one finite Gaussian sits"
         raise ValueError(
-            f"scene: all {len(means)} finite Gaussians sit at one point {center.tolist()}; "
+            f"scene: {which} at one point {center.tolist()}; "
             "it has no extent to place cameras around"
         )
     radius = _weighted_quantile(distances, weights, quantile)

@@ -154,7 +154,7 @@ def _warp_entry(stylized: torch.Tensor, original: RenderOutput, cameras: CameraS
 
 
 def _csd_entry(model, weights: str, style: torch.Tensor, stylized: torch.Tensor, original: torch.Tensor) -> dict:
-    print(f"CSD of {len(stylized)} stylized and {len(original)} original views", flush=True)
+    print(f"CSD of {len(stylized)} stylized and {counted(len(original), 'original view')}", flush=True)
     scores, baseline = csd_scores(model, style, stylized), csd_scores(model, style, original)
     return {"mean": scores.mean().item(), "per_view": scores.tolist(), "original_mean": baseline.mean().item(),
             "weights": weights, "input_size": model.config.image_size}

@@ -69,9 +69,6 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     check_scene_path(args.scene)  # e.g. a folder: named before the models load
     check_region_arguments(args, cameras_required=False)
     devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
-    if args.lora and (diffusion_free or args.stylizer == "nnfm"):
-        raise ValueError(f"--lora: a LoRA changes SDXL, which only the diffusion stylizer runs (not --preset "
-                         f"{args.preset} with --stylizer {args.stylizer})")
     for lora in args.lora:
         check_lora(lora)
     capture_cameras = load_cameras(args.cameras) if args.cameras else None
@@ -88,6 +85,14 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
+    if stylizer == "nnfm":  # what only the diffusion stylizer reads would go unread: refused before any work
+        for option, given, what in (("--lora", args.lora, "a LoRA changes SDXL"),
+                                    ("--devices", args.devices, "the devices share the diffusion stage's groups"),
+                                    ("--ray-address", args.ray_address, "the Ray cluster shares the diffusion "
+                                     "stage's groups")):
+            if given:
+                raise ValueError(f"{option}: {what}, which only the diffusion stylizer runs; the NNFM stylizer "
+                                 f"would run here ({reason})")
     prefetched = stylizer == "diffusion" and not args.devices and not args.ray_address  # read as the scene loads
     if prefetched:
         print("loading the diffusion models (SDXL, Tile ControlNet, image encoder, CSGO)", flush=True)

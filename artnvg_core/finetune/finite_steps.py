@@ -168,8 +168,8 @@ class FiniteAdam:
         messages = []
         for step in first_held[new].unique().tolist():
             held = (new & (first_held == step)).nonzero()[:, 0]
-            messages.append((step, "%s: step %d: %d Gaussians have non-finite (or >= %.0e) gradients (%s); they keep "
-                             "their last finite values this step", (len(held), GRAD_LIMIT, _listed(held))))
+            messages.append((step, "%s: step %d: non-finite (or >= %.0e) gradients in %s (%s), held at the last "
+                             "finite values this step", (GRAD_LIMIT, counted(len(held), "Gaussian"), _listed(held))))
         self._logged |= new
         first_skipped = int(self.first_skipped)
         if first_skipped and not self._skip_logged:

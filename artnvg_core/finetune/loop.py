@@ -186,7 +186,8 @@ def finetune(
         at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
         (``view``, or ``views`` with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
         holds the loss terms as floats (reading them waits for the device, so not every step).
-        should_stop(): checked before every step; when it returns True,
+        should_stop(): checked before every step and within it (the render, the VGG's convolutions, NNFM's
+        search and the backward pass through them); when it returns True,
         :class:`~artnvg_core.progress.Cancelled` is raised.
     render_progress(done, views, info): follows the work on every view before the steps (``info["stage"]``:
         ``"region"``, a selection's coverage; ``"setup"``: the renders for the colour transfer and the content
@@ -264,7 +265,8 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     worth_graphing = config.iterations >= GRAPH_MIN_ITERATIONS if config.cuda_graph is None else config.cuda_graph
     if worth_graphing and can_graph(device):
         step_loss = graphed(step_loss, (config.views_per_step, cameras.height, cameras.width, 3), device)
-    renderer = StepRenderer(scene, cameras, config.backend)  # checks the inputs: a bad scene fails before any step
+    # checks the inputs: a bad scene fails before any step
+    renderer = StepRenderer(scene, cameras, config.backend, should_stop)
     frozen = None if selection is None else scene.select(~selection)
     params = _parameters(scene if selection is None else scene.select(selection), config)
     adam = _optimizer(params, scene, cameras, config, stylized is not None, renderer.backend == "triton")

@@ -64,5 +64,6 @@ def region_views(scene: GaussianScene, selection: torch.Tensor, cameras: CameraS
         raise ValueError(f"finetune: no pixel of any of the {counted(len(cameras), 'view')} sees the "
                          f"{counted(int(selection.sum()), 'selected Gaussian')}")
     if len(seen) < len(cameras):
-        _log.info("finetune: %d of %d views see the selection; the others are left out", len(seen), len(cameras))
+        _log.info("finetune: %d of %s the selection; the others are left out", len(seen),
+                  counted(len(cameras), "view") + (" sees" if len(seen) == 1 else " see"))
     return cameras.subset(seen), None if stylized is None else stylized[seen], weights[seen]

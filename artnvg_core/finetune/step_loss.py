@@ -130,7 +130,9 @@ class StepLoss:
         or None.
     weights: [C, H, W] per-pixel weights >= 0 in camera order (module docstring), or None.
     progress, should_stop: follow and can end the content term's first pass over ``originals``
-        (:class:`ContentReference`).
+        (:class:`ContentReference`); ``should_stop`` is also asked within each call, in the VGG's convolutions
+        and NNFM's search and in their backward pass (:class:`~artnvg_core.progress.Cancelled`; a call at 512 px
+        takes seconds on a CPU).
     ``names``: the terms computed, in the order of the returned ``terms``.
     """
 
@@ -138,6 +140,7 @@ class StepLoss:
                  originals: torch.Tensor | None, weights: torch.Tensor | None = None,
                  progress: ProgressFn | None = None, should_stop: StopFn | None = None):
         self.config, self.vgg, self.nnfm, self.stylized, self.weights = config, vgg, nnfm, stylized, weights
+        self.should_stop = should_stop
         self.content_reference = (None if originals is None
                                   else ContentReference(self._features, originals, progress, should_stop))
         names = ("l1", "ssim") if stylized is not None else ()
@@ -149,7 +152,7 @@ class StepLoss:
     def _features(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
         """The layers' features of ``images [B, 3, h, w]`` in ``config.vgg_precision`` (bfloat16 for bf16)."""
         with features_autocast(self.config.vgg_precision, images.device):
-            return self.vgg(images, self.config.nnfm_layers)
+            return self.vgg(images, self.config.nnfm_layers, self.should_stop)
 
     def _content(self, feats: dict[str, torch.Tensor], views: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
         """ARF's content term: the features' MSE from the original views', relative to their mean square."""
@@ -175,7 +178,7 @@ class StepLoss:
         needs_features = config.nnfm_weight > 0 or self.content_reference is not None
         feats = self._features(vgg_input(image, config)) if needs_features else None
         if config.nnfm_weight > 0:
-            terms.append(config.nnfm_weight * self.nnfm(feats, weights))
+            terms.append(config.nnfm_weight * self.nnfm(feats, weights, self.should_stop))
         if self.content_reference is not None:
             terms.append(config.content_weight * self._content(feats, views, weights))
         if "tv" in self.names:
@@ -209,7 +212,9 @@ def graphed(step_loss: StepLoss, image_shape: tuple[int, ...], device: torch.dev
     """``step_loss`` for renders of ``image_shape`` ([B, H, W, 3]), recorded as CUDA graphs on ``device``
     (forward and backward; after three eager warm-up calls on view 0). The returned tensors, and the gradient
     the backward gives the image, are the graphs' own buffers, overwritten by the next call: read them (or
-    queue their use) before it."""
+    queue their use) before it. A replay runs no Python: ``step_loss`` no longer asks its ``should_stop``
+    (a CUDA step takes milliseconds; the caller asks between steps)."""
+    step_loss.should_stop = None
     image = torch.zeros(image_shape, device=device, requires_grad=True)
     views = torch.zeros(image_shape[0], dtype=torch.long, device=device)
     return _Graphed(step_loss, torch.cuda.make_graphed_callables(step_loss, (image, views)))

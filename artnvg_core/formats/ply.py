@@ -98,7 +98,8 @@ def _fold_filter_3d(path: Path, scene: GaussianScene, filter_3d: torch.Tensor) -
     bad = ~(torch.isfinite(f) & (f >= 0))
     if bad.any():
         raise ValueError(
-            f"{path}: {_FILTER_3D}: {int(bad.sum())} of {len(f)} values are not finite numbers >= 0 "
+            f"{path}: {_FILTER_3D}: {int(bad.sum()):,} of {counted(len(f), 'value')} "
+            f"{'is not a finite number' if int(bad.sum()) == 1 else 'are not finite numbers'} >= 0 "
             f"(first at index {int(bad.nonzero()[0, 0])})"
         )
     s2 = torch.exp(2 * scene.log_scales.double())

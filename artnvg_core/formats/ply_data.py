@@ -189,8 +189,9 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
         left = len(data) - offset
         smallest = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in element.properties)
         if element.count * smallest > left:
-            raise ValueError(f"{path}: element '{element.name}': {element.count:,} rows need at least "
-                             f"{element.count * smallest:,} bytes, but the file has {left:,} left (truncated, or "
+            rows = counted(element.count, "row") + (" needs" if element.count == 1 else " need")
+            raise ValueError(f"{path}: element '{element.name}': {rows} at least "
+                             f"{counted(element.count * smallest, 'byte')}, but the file has {left:,} left (truncated, or "
                              "the header's counts are wrong)")
         if any(p.is_list for p in element.properties):
             offset += _list_element_bytes(path, element, data[offset:], order)

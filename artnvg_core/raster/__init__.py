@@ -185,8 +185,9 @@ def render(
         after another, so that they do not wait for their tile intersection counts (ignored by the other
         backends); the caller checks it after each render for one that overflowed and must be redone
         (:class:`.step_renderer.StepRenderer` does so).
-    should_stop: asked before each view and, on the reference backend, between its batches of tiles; raises
-        :class:`~artnvg_core.progress.Cancelled` when it says so (a huge view stops within a second or so).
+    should_stop: asked before each view and, on the reference backend, between its batches of tiles, in the
+        backward pass of a render with gradients too; raises :class:`~artnvg_core.progress.Cancelled` when it says
+        so (a huge view stops within a second or so).
 
     Semantics are gsplat's "classic" mode: EWA projection with a 0.3 px^2
     low-pass (``scene.blur_px2``; with ``scene.antialiased`` the opacity is

@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 
 from ..cameras import CameraSet
+from ..progress import StopFn
 from ..scene import GaussianScene
 from . import RenderOutput, check_render_inputs, choose_backend, render
 
@@ -22,10 +23,13 @@ class StepRenderer:
     tile lists get room from earlier counts (:class:`.triton_tiles.ListCapacity`) instead of waiting for
     their own; a render that outgrew that room is incomplete: :meth:`render` says so on the device, so that the
     step can be skipped there, and :meth:`redo`, asked once the step is queued, says on the host that the
-    step must be taken again (with room grown)."""
+    step must be taken again (with room grown). ``should_stop`` is asked within each render, its backward pass
+    included, as :func:`~artnvg_core.raster.render` asks it."""
 
-    def __init__(self, scene: GaussianScene, cameras: CameraSet, backend: str = "auto"):
+    def __init__(self, scene: GaussianScene, cameras: CameraSet, backend: str = "auto",
+                 should_stop: StopFn | None = None):
         self.backend = choose_backend(backend, scene.device, scene.means.dtype)
+        self.should_stop = should_stop
         check_render_inputs(scene, cameras)
         self.cameras = cameras.to(scene.device)
         self._capacity = self._list_capacity()
@@ -45,7 +49,7 @@ class StepRenderer:
         Returns the :class:`~artnvg_core.raster.RenderOutput` and whether it is incomplete (a device bool
         scalar; None where a render cannot be)."""
         out = render(scene, self.cameras.subset(views, views_on_device), backend=self.backend, checked=True,
-                     list_capacity=self._capacity)
+                     list_capacity=self._capacity, should_stop=self.should_stop)
         return out, None if self._capacity is None else self._capacity.take_overflow()
 
     def redo(self) -> bool:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ..progress import StopFn, check_stop
+from ..progress import StopFn, check_stop, stop_in_backward
 from .projection import ALPHA_MIN, Projection
 
 TILE = 8
@@ -148,7 +148,7 @@ def rasterize(
     features: [M, F] values to blend per projected Gaussian (e.g. colour, depth).
     chunk: Gaussians per tile composited at once; budget: the most elements
     in one [tiles, pixels, chunk] intermediate (default 2^21 on CPU, 2^25 on CUDA); should_stop: asked before
-    each batch of tiles (:class:`~artnvg_core.progress.Cancelled` when it says so).
+    each batch of tiles, in the backward pass too (:class:`~artnvg_core.progress.Cancelled` when it says so).
     Returns blended features [H, W, F] (no background) and transmittance [H, W], in the autograd
     graph of the inputs even when no Gaussian reaches a tile (their gradients are then zero).
     """
@@ -168,7 +168,7 @@ def rasterize(
         args = (tiles, order, starts, counts, *inputs, width, chunk)
         out = checkpoint(_composite_tiles, *args, use_reentrant=False) if needs_grad else _composite_tiles(*args)
         if needs_grad:  # a new tensor each batch keeps autograd's saved values intact
-            blended = blended.index_copy(0, tiles, out[0])
+            blended = blended.index_copy(0, tiles, stop_in_backward(out[0], should_stop))
             trans = trans.index_copy(0, tiles, out[1])
         else:  # in place: a copy of the whole view per batch made a 4096x4096 view spend half its time copying
             blended.index_copy_(0, tiles, out[0])
