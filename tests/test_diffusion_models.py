@@ -11,6 +11,7 @@ from artnvg_core.diffusion.model_files import (
     IMAGE_ENCODER,
     MissingModelError,
     ModelFiles,
+    check_model_files,
     hf_cache_path,
     locate,
 )
@@ -83,6 +84,15 @@ def test_fp16_request_runs_an_overflowing_vae_in_bfloat16_where_the_gpu_computes
     assert _vae_dtype(False, torch.float16, "cuda") == torch.float16
     assert _vae_dtype(True, torch.float32, "cuda") == torch.float32
     assert _vae_dtype(True, torch.bfloat16, "cuda") == torch.bfloat16
+
+
+@pytest.mark.parametrize("missing, option", [(0, "--sdxl"), (1, "--controlnet"), (2, "--image-encoder"), (3, "--csgo")])
+def test_a_missing_model_file_names_the_option_that_takes_its_path(tmp_path, missing, option):
+    """It said '... and pass its path.', leaving the user to find which of the four options."""
+    (tmp_path / "there").mkdir()
+    paths = [tmp_path / "there"] * missing + [tmp_path / "gone"] * (4 - missing)
+    with pytest.raises(MissingModelError, match=rf"looked for '.*gone'\. Get it from .* and pass its path with {option}\.$"):
+        check_model_files(ModelFiles(*paths))
 
 
 def test_sdxl_errors_name_the_missing_piece(tmp_path, sdxl_folder):

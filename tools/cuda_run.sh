@@ -18,8 +18,11 @@ export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=4
 if [ -n "${1:-}" ]; then
     python3 -m pip install -q --no-index --no-deps --no-cache-dir --break-system-packages "$1"/*.whl || exit 1
 fi
-python3 - > "$OUT/machine.txt" <<'EOF'
-import platform, torch, triton, gsplat
+python3 - > "$OUT/machine.txt" <<'EOF' || exit 1  # without a GPU every part below would pass on the CPU, or skip
+import platform, sys, torch
+if not torch.cuda.is_available():
+    sys.exit(f"tools/cuda_run.sh: no CUDA GPU visible to torch {torch.__version__}: run it on a CUDA machine")
+import triton, gsplat  # gsplat: the parity sweep's reference (WHEELS_DIR, when the machine lacks it)
 print(f"GPU: {torch.cuda.get_device_name(0)}; torch {torch.__version__}, CUDA {torch.version.cuda}; "
       f"triton {triton.__version__}; gsplat {gsplat.__version__}; Python {platform.python_version()}")
 EOF

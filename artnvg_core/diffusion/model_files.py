@@ -99,10 +99,12 @@ def hf_cache_path(source: ModelSource, cache_dir: str | Path | None = None) -> P
     return repo_dir / "snapshots" / revision / source.repo_path
 
 
-def locate(source: ModelSource, path: str | Path | None = None, *, hf_cache_dir: str | Path | None = None) -> Path:
+def locate(source: ModelSource, path: str | Path | None = None, *, hf_cache_dir: str | Path | None = None,
+           option: str = "") -> Path:
     """The existing path of ``source``: ``path`` when given (it must exist), else the Hugging Face cache.
 
-    Raises :class:`MissingModelError` naming the model, the places looked at and where to get it.
+    Raises :class:`MissingModelError` naming the model, the places looked at, where to get it and the
+    ``option`` that takes its path (e.g. "--controlnet"), when given.
     """
     candidates = [Path(path).expanduser()] if path is not None else [hf_cache_path(source, hf_cache_dir)]
     for candidate in candidates:
@@ -111,7 +113,7 @@ def locate(source: ModelSource, path: str | Path | None = None, *, hf_cache_dir:
     looked = ", ".join(f"'{c}'" for c in candidates)
     raise MissingModelError(
         f"{source.description} not found: looked for {looked}. Get it from {source.url} "
-        f"(e.g. `{source.download_command}`) and pass its path."
+        f"(e.g. `{source.download_command}`) and pass its path{f' with {option}' if option else ''}."
     )
 
 
@@ -146,9 +148,10 @@ def check_model_files(
 ) -> ModelFiles:
     """The existing paths of ``files`` (a None field: the Hugging Face cache), after checking without
     loading anything that each file or folder holds what its loader reads.
-    Raises :class:`MissingModelError` naming the first thing missing, and only that."""
-    found = ModelFiles(**{name: locate(MODEL_SOURCES[name], path, hf_cache_dir=hf_cache_dir)
-                          for name, path in files.items()})
+    Raises :class:`MissingModelError` naming the first thing missing, and only that, with the command line's
+    option for it (--sdxl, --controlnet, --image-encoder, --csgo: the fields' names)."""
+    found = ModelFiles(**{name: locate(MODEL_SOURCES[name], path, hf_cache_dir=hf_cache_dir,
+                                       option=f"--{name.replace('_', '-')}") for name, path in files.items()})
     check_sdxl(found.sdxl, sdxl_config_dir)
     for path, what in ((found.controlnet, "ControlNet folder"), (found.image_encoder, "image encoder folder")):
         if path.is_dir():
