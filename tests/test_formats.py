@@ -67,6 +67,15 @@ def test_writers_refuse_invalid_scenes_before_writing(tmp_path, suffix, field, v
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
+def test_writers_refuse_an_empty_scene_before_writing(tmp_path, suffix):
+    """Before any format's own work (the .spz writer's choice of fractional bits needs a Gaussian)."""
+    path = tmp_path / f"empty{suffix}"
+    with pytest.raises(ValueError, match=rf"empty\{suffix}: not written: the scene contains no Gaussians$"):
+        save_scene(random_scene(4, 1).select(slice(0, 0)), path)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_float64_beyond_float32_is_refused_not_written_as_inf(tmp_path):
     scene = random_scene(3, 0).map(lambda t: t.double())
     scene.sh[1, 0, 0] = 1e300

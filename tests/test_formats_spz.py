@@ -175,16 +175,83 @@ def test_corrupt_version_4_headers_name_the_field(tmp_path, offset, value, messa
         read_spz(path)
 
 
-def test_far_coordinates_give_up_fractional_bits_and_huge_ones_are_refused(tmp_path):
-    scene = plain_scene(20, 0)
-    scene.means[3] = torch.tensor([343035.0, -2.0, 1.0])  # the shared bear's farthest floater
-    write_spz(scene, tmp_path / "far.spz")
-    header, _ = payload_arrays(tmp_path / "far.spz")
-    assert header[4] == 4  # 19 integer bits + sign leave 4 fractional bits
-    assert (read_spz(tmp_path / "far.spz").means - scene.means).abs().max() <= 2.0**-5
-    scene.means[3, 0] = 2.0**23
-    with pytest.raises(ValueError, match=r"huge\.spz: not written: means: \|coordinate\| 8\.38861e\+06"):
-        write_spz(scene, tmp_path / "huge.spz")
+LIMIT_12 = (2**23 - 1) / 4096  # the largest |coordinate| SPZ holds at 12 fractional bits
+
+
+def with_far(scene, means: list, log_scales: list):
+    """``scene`` and, after it, copies of its first rows placed at ``means`` with ``log_scales``."""
+    far = scene.select(slice(0, len(means))).map(torch.clone)
+    far.means[:], far.log_scales[:] = torch.tensor(means), torch.tensor(log_scales)
+    return dataclasses.replace(scene, **{name: torch.cat([value, getattr(far, name)])
+                                         for name, value in scene.tensors().items()})
+
+
+def rows(path, count: int) -> dict[str, bytes]:
+    """The first ``count`` Gaussians' bytes in each array of a version 3 file we wrote."""
+    _, arrays = payload_arrays(path)
+    total = len(arrays["alphas"])
+    return {name: data[: len(data) // total * count] for name, data in arrays.items()}
+
+
+def test_up_to_one_in_a_thousand_far_gaussians_are_moved_onto_the_12_bit_range_along_their_rays(tmp_path, caplog):
+    """Two floaters (at the shared bear's farthest distance, and one past 2^23) among 2,000: the file keeps 12
+    fractional bits and every other Gaussian's bytes; each floater keeps its direction from the origin and its
+    apparent size from there (log-scales shifted by the log of the distance ratio; 7 lands inside SPZ's
+    [-10, 5.9])."""
+    scene = plain_scene(2000, 1)
+    floaters = [[343035.0, -2.0, 1.0], [-5000.0, 3000.0, 1e7]]
+    far = with_far(scene, floaters, [[7.0, 4.0, 3.0], [0.0, 1.0, 2.0]])
+    write_spz(scene, tmp_path / "near.spz")
+    with caplog.at_level("WARNING", logger="artnvg_core.formats.spz"):
+        write_spz(far, tmp_path / "far.spz")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'far.spz'}: 2 Gaussians beyond SPZ's range at 12 fractional bits (|coordinate| up to 2048) "
+        "moved onto it along their rays from the origin, their sizes scaled alike (the same direction and apparent "
+        "size from there); the farthest from |coordinate| 1e+07"]
+    assert payload_arrays(tmp_path / "far.spz")[0][4] == 12
+    assert rows(tmp_path / "far.spz", 2000) == rows(tmp_path / "near.spz", 2000)
+    back = read_spz(tmp_path / "far.spz")
+    original = torch.tensor(floaters, dtype=torch.float64)
+    ratio = LIMIT_12 / original.abs().amax(1, keepdim=True)
+    moved = back.means[2000:].double()
+    assert moved.abs().amax(1).tolist() == [LIMIT_12, LIMIT_12]
+    assert (moved - original * ratio).abs().max() <= 2.0**-13
+    expected = (far.log_scales[2000:].double() + ratio.log()).clamp(-10, 5.9)
+    assert expected[0].tolist() == pytest.approx([7 + float(ratio[0].log()), 4 + float(ratio[0].log()),
+                                                  3 + float(ratio[0].log())])
+    assert (back.log_scales[2000:].double() - expected).abs().max() <= 1 / 32 + 1e-6
+
+
+def test_more_far_gaussians_give_up_fractional_bits_instead(tmp_path, caplog):
+    """Beyond one in a thousand, the far Gaussians are the scene (all near 1e5: 6 bits) or one is among too few
+    others to be moved (one of 20 at the bear's farthest |coordinate|: 4 bits), and nothing is moved."""
+    everywhere_far = plain_scene(300, 0)
+    everywhere_far.means += 1e5
+    one_of_20 = with_far(plain_scene(19, 0), [[343035.0, -2.0, 1.0]], [[0.0, 0.0, 0.0]])
+    with caplog.at_level("WARNING", logger="artnvg_core.formats.spz"):
+        for name, scene, bits in (("everywhere", everywhere_far, 6), ("one_of_20", one_of_20, 4)):
+            write_spz(scene, tmp_path / f"{name}.spz")
+            assert payload_arrays(tmp_path / f"{name}.spz")[0][4] == bits, name
+            back = read_spz(tmp_path / f"{name}.spz")
+            assert (back.means.double() - scene.means.double()).abs().max() <= 2.0 ** -(bits + 1), name
+            assert (back.log_scales - scene.log_scales.clamp(-10, 5.9)).abs().max() <= 1 / 32 + 1e-6, name
+    assert not [r for r in caplog.records if "moved onto it" in r.getMessage()]
+
+
+@pytest.mark.parametrize(("count", "huge"), [(19, 1), (1998, 3)])
+def test_more_than_one_in_a_thousand_gaussians_past_2_to_the_23_are_refused(tmp_path, count, huge):
+    """A |coordinate| of 2^23 fits no fractional bits: refused by the writer and by the geometry check made
+    before a finetune, unless the Gaussians so far are few enough to be moved (the first test's 1e7)."""
+    from artnvg_core.formats import check_geometry_writable
+
+    scene = with_far(plain_scene(count, 0), [[2.0**23, 0.0, 0.0]] * huge, [[0.0, 0.0, 0.0]] * huge)
+    message = (rf"huge\.spz: not written: means: {huge} Gaussians? of {count + huge:,} with a \|coordinate\| of 2\^23 "
+               rf"or more \(up to 8\.38861e\+06\), beyond SPZ's 24-bit fixed point at any fractional bits; at most "
+               rf"{(count + huge) // 1000} \(one in 1,000, rounded down\) may be moved onto its range")
+    for check in (write_spz, check_geometry_writable):
+        with pytest.raises(ValueError, match=message):
+            check(scene, tmp_path / "huge.spz")
+    assert not (tmp_path / "huge.spz").exists()
 
 
 def test_fuzzed_and_truncated_files_raise_only_value_error(tmp_path):
@@ -380,9 +447,11 @@ def test_auto_reads_a_real_capture_without_a_record_in_front_of_its_cameras(tmp_
     capture = shared_data / "scenes" / "bear"
     scene = load_scene(capture / "scene.ply")
     write_spz(scene, tmp_path / "bear.spz", axes=axes)
-    step = 2.0 ** -spz._fractional_bits(tmp_path, scene.means.double().numpy())
     back = load_scene(tmp_path / "bear.spz", cameras=load_cameras(capture / "transforms.json"))
-    assert (back.means - scene.means).abs().max() <= step / 2 + 1e-3 * step
+    kept = scene.means.abs().amax(1) < LIMIT_12  # all but its 63 floaters, which the writer moves
+    assert int((~kept).sum()) == 63 and back.means.abs().max() <= LIMIT_12
+    assert (back.means - scene.means)[kept].abs().max() <= 2.0**-13 * (1 + 1e-3)
+    caplog.clear()
     with caplog.at_level("WARNING", logger="artnvg_core.formats.spz"):
         alone = load_scene(tmp_path / "bear.spz")
     assert [r.getMessage() for r in caplog.records] == [

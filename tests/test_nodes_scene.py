@@ -82,17 +82,20 @@ def test_save_scene_never_writes_over_a_file_another_process_saved_under_its_nam
 
 def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear):
     """A .spz in RUB with no record: read upright with the capture's cameras connected (spz_axes auto), in
-    the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way."""
+    the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way (compared
+    within SPZ's 12-bit range: the writer moves the 3 floaters beyond it)."""
+    near = small_bear.means.abs().amax(1) < 2048
+    assert int((~near).sum()) == 3
     save_scene(small_bear, comfy_dirs / "input" / "rub.spz", spz_axes="rub")
     (with_cameras,) = call(LoadGaussianScene, scene_file="rub.spz", cameras=bear["cameras"])
     (alone,) = call(LoadGaussianScene, scene_file="rub.spz")
-    assert (with_cameras.means - small_bear.means).abs().max() < 1e-3
+    assert (with_cameras.means - small_bear.means)[near].abs().max() < 1e-3
     assert torch.equal(alone.means, with_cameras.means * torch.tensor([1.0, -1, -1]))
     saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="ours", format="spz")
     name = saved["ui"]["scenes"][0]["filename"]
     for cameras in (None, bear["cameras"]):
         (ours,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / name), cameras=cameras)
-        assert (ours.means - small_bear.means).abs().max() < 1e-3
+        assert (ours.means - small_bear.means)[near].abs().max() < 1e-3
 
 
 def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_dirs, small_bear):

@@ -34,10 +34,18 @@ writers write (``axes="rub"``: in RUB).
 Written as version 3 (gzip, which the stdlib writes; read by Niantic's library since
 2.0 and by splat-transform) or, with ``version=2``, version 2 (rotations in 3 bytes; for
 spz-js 1.2, which reads versions 1 and 2 only), with the reference's default quantisation:
-12 fractional bits (fewer when the largest |coordinate| needs it, the bound doubling with
-each bit given up; |coordinate| >= 2^23 is refused), SH degree-1 coefficients in 5 bits and
-higher degrees in 4. Round trip ply -> spz -> ply, per field: means within 0.5 / 2^bits
-(2^-13 at 12 bits); log-scales within 1/32 inside [-10, 5.9] (clamped outside); f_dc within
+12 fractional bits, SH degree-1 coefficients in 5 bits and higher degrees in 4. Positions then
+hold |coordinate| < 2048 (2^23 / 2^bits). Far floaters, up to one Gaussian in a thousand
+(:data:`MOST_MOVED`, rounded down), may lie beyond: each is moved along its ray from the origin
+onto the range's edge (largest |coordinate| (2^23 - 1) / 2^bits), its scales multiplied by the same ratio,
+so that it keeps its direction and apparent size seen from the origin, where a capture's cameras
+stand; one logged warning says how many and the farthest. The reference writer wraps them into
+garbage instead, and keeping them by giving up bits cost the bear capture's renders 10 dB
+(docs/scenes_and_formats.md). When more lie beyond, the writer gives up fractional bits (the
+range doubling with each) until all but that share fit, and moves the rest; more than that
+share at |coordinate| >= 2^23 is refused. Round trip ply -> spz -> ply, per field: means within
+0.5 / 2^bits (2^-13 at 12 bits), a moved Gaussian's of its new position; log-scales within 1/32
+inside [-10, 5.9] (clamped outside), a moved Gaussian's after their shift; f_dc within
 0.5 / (0.15 * 255) = 0.0131 inside [-3.33, 3.33] (clamped outside); opacity sigmoid(logit)
 within 0.5 / 255; unit quaternion components within 0.002 (up to the sign of q; version 2:
 x y z within 0.5 / 127.5 with w >= 0, w derived from them); SH degree-1 coefficients within
@@ -85,6 +93,7 @@ _FACING_SAMPLE = 65536, 64  # at most this many Gaussians and views decide "auto
 _SQRT1_2 = math.sqrt(0.5)
 _NO_FLIP, _RUB_FLIP = torch.tensor([1.0, 1, 1]), torch.tensor([1.0, -1, -1])  # RDF <-> RUB
 _MAX_DEGREE = 4
+MOST_MOVED = 0.001  # the share of Gaussians the writer may move onto the positions' range (module docstring)
 
 
 def _sh_flip_signs(x: float, y: float, z: float) -> np.ndarray:
@@ -306,21 +315,48 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
     return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
 
 
-def _fractional_bits(path: Path, means: np.ndarray) -> int:
-    """12, or fewer when the largest |coordinate| needs the range (24-bit signed fixed point)."""
-    largest = float(np.abs(means).max())
+def _fractional_bits(path: Path, extents: np.ndarray) -> int:
+    """The most fractional bits, at most 12, at which the Gaussians' largest |coordinate| ``extents`` [N] fit
+    SPZ's 24-bit signed fixed point, all but the farthest :data:`MOST_MOVED` of them (rounded down), which
+    :func:`_onto_range` moves; refused when even 0 bits leave more of them out."""
+    spared = int(len(extents) * MOST_MOVED)
+    bulk = float(np.partition(extents, len(extents) - 1 - spared)[len(extents) - 1 - spared])
     bits = 12
-    while bits >= 0 and math.floor(largest * (1 << bits) + 0.5) >= 1 << 23:
+    while bits >= 0 and math.floor(bulk * (1 << bits) + 0.5) >= 1 << 23:
         bits -= 1
     if bits < 0:
-        raise ValueError(f"{path}: not written: means: |coordinate| {largest:.6g} does not fit SPZ's 24-bit "
-                         "fixed point (at most 2^23)")
+        huge = int((np.floor(extents + 0.5) >= 1 << 23).sum())
+        raise ValueError(f"{path}: not written: means: {counted(huge, 'Gaussian')} of {len(extents):,} with a "
+                         f"|coordinate| of 2^23 or more (up to {float(extents.max()):.6g}), beyond SPZ's 24-bit fixed "
+                         f"point at any fractional bits; at most {spared:,} (one in {round(1 / MOST_MOVED):,}, "
+                         "rounded down) may be moved onto its range")
     return bits
 
 
+def _onto_range(path: Path, means: np.ndarray, log_scales: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """``means`` [N, 3] and ``log_scales`` [N, 3] with each Gaussian beyond the range of ``bits`` fractional bits
+    moved along its ray from the origin onto that range, its scales multiplied by the same ratio (so it keeps
+    its direction and apparent size seen from the origin); one logged warning says how many and how far."""
+    extents = np.abs(means).max(1)
+    far = np.floor(extents * (1 << bits) + 0.5) >= 1 << 23
+    if not far.any():
+        return means, log_scales
+    limit = ((1 << 23) - 1) / (1 << bits)
+    ratio = limit / extents[far]
+    means, log_scales = means.copy(), log_scales.copy()
+    means[far] *= ratio[:, None]
+    log_scales[far] += np.log(ratio)[:, None]
+    _log.warning("%s: %s beyond SPZ's range at %d fractional bits (|coordinate| up to %.6g) moved onto it along "
+                 "their rays from the origin, their sizes scaled alike (the same direction and apparent size "
+                 "from there); the farthest from |coordinate| %.6g", path,
+                 counted(int(far.sum()), "Gaussian"), bits, limit, float(extents[far].max()))
+    return means, log_scales
+
+
 def check_geometry(cpu: GaussianScene, path: Path) -> None:
-    """What :func:`write_spz` refuses of the geometry alone (|coordinate| >= 2^23), checked now."""
-    _fractional_bits(path, cpu.means.double().numpy())
+    """What :func:`write_spz` refuses of the geometry alone (more than :data:`MOST_MOVED` of the Gaussians
+    with a |coordinate| of 2^23 or more), checked now."""
+    _fractional_bits(path, cpu.means.double().abs().amax(1).numpy())
 
 
 def _quantized_sh(values: np.ndarray, bits: int) -> np.ndarray:
@@ -357,8 +393,8 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
     "ply"), or in RUB (``axes="rub"``); module docstring. With ``overwrite`` False never over an existing file
     (:func:`~artnvg_core.fileio.write_atomically`).
 
-    Refused with a ValueError before writing: non-finite values, zero
-    quaternions, a coordinate of magnitude 2^23 or more.
+    Refused with a ValueError before writing: non-finite values, zero quaternions, more than one
+    Gaussian in a thousand with a coordinate of magnitude 2^23 or more.
     """
     path = Path(path)
     _check_axes(axes)
@@ -367,7 +403,8 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
     cpu = scene_to_write(scene, path)
     x, y, z = _axis_flips(RUB if axes == "rub" else RDF, path)
     means = cpu.means.double().numpy() * (x, y, z)
-    bits = _fractional_bits(path, means)
+    bits = _fractional_bits(path, np.abs(means).max(1))
+    means, log_scales = _onto_range(path, means, cpu.log_scales.double().numpy(), bits)
     fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
     positions = np.stack([fixed & 255, fixed >> 8 & 255, fixed >> 16], -1).astype(np.uint8)
     q = normalize_quats(cpu.quats.double()).numpy()[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
@@ -380,7 +417,7 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
         positions,
         opacity_bytes(cpu.opacity_logits),
         to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
-        to_bytes((cpu.log_scales.double().numpy() + 10) * 16),
+        to_bytes((log_scales + 10) * 16),
         _smallest_three(q) if version == 3 else _first_three(q),
         sh_bytes,
     ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import time
 import urllib.error
 import urllib.request
 import uuid
@@ -214,6 +215,33 @@ def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
     assert messages[-1]["type"] == "execution_interrupted" and messages[-1]["data"]["node_id"] == FINETUNE
     assert max(value for value, _ in _finetune_progress(messages)) < interrupted[0] + 5  # stopped promptly
     assert not list(folder.glob("interrupted*")) and not list(folder.glob(".*.tmp"))
+
+
+def test_cancel_pressed_inside_a_512_px_finetune_step_stops_it_within_the_step(comfy_server):
+    """A step at 512 px takes seconds on a CPU (7 to 9 on 2 cores). Cancel pressed halfway through step 2 stops
+    the node well before that step would end: the step asks for a stop inside itself (its render, the VGG's
+    convolutions, NNFM's search and the backward pass), not only between steps."""
+    steps, pressed, stopped = 20, [], []
+
+    def press_cancel_halfway_through_step_two(message):
+        data = message["data"]
+        if message["type"] == "progress" and data.get("node") == FINETUNE and data["max"] == steps:
+            pressed.append(time.monotonic())  # steps 0 and 1 reported: step 1's length
+            if len(pressed) == 2:
+                time.sleep((pressed[1] - pressed[0]) / 2)
+                pressed.append(time.monotonic())
+                queue.interrupt(comfy_server.url)
+        if message["type"] == "execution_interrupted":
+            stopped.append(time.monotonic())
+
+    entry, messages = _run(comfy_server, _workflow(
+        comfy_server, f"6.iterations={steps}", "Render Views.scale=1", "Render Views.stride=24",
+        f"Save Gaussian Scene.filename_prefix={comfy_server.test_folder}/cancelled_mid_step"),
+        on_message=press_cancel_halfway_through_step_two)
+    assert queue.run_summary(entry)["status"] == "interrupted" and len(pressed) == 3 and stopped
+    step, latency = pressed[1] - pressed[0], stopped[0] - pressed[2]
+    assert max(value for value, _ in _finetune_progress(messages)) == 1
+    assert latency < step / 4, (latency, step)  # waiting for the step's end would take about step / 2
 
 
 def _refusal(server, *overrides: str) -> str:
