@@ -569,6 +569,26 @@ def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_w
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply", "style.safetensors"]
 
 
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_a_diffusion_preset_given_by_name_without_the_model_files_is_refused_before_any_work(tmp_path, capsys, preset):
+    """'stylize ... --preset balanced' where the model files are missing ran NNFM's 1,000 iterations instead (two
+    hours at 512x512 on a CPU), the preset unread: a diffusion preset named is refused, naming the missing file and
+    what runs without diffusion. Without --preset (the demo, a first try) auto still falls back to NNFM."""
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    common = ["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+              str(tmp_path / "out.ply"), "--sdxl", str(tmp_path / "no_sdxl"), "--iters", "1", "--scale", "0.05",
+              "--device", "cpu"]
+    assert main([*common, "--preset", preset]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"error: --preset {preset}: a diffusion preset, and diffusion models not found "
+                                   "(SDXL 1.0 base"), captured.err
+    assert "--preset preview for a first look without diffusion, or --stylizer nnfm" in captured.err
+    assert "loading" not in captured.out and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+    assert main([*common, "--preset", preset, "--stylizer", "nnfm"]) == 0  # NNFM asked for: it runs
+    assert main(common) == 0  # no preset named: auto falls back, saying why
+    assert "stylizer: nnfm (auto: diffusion models not found (SDXL 1.0 base" in capsys.readouterr().out
+
+
 def test_a_bar_first_told_of_its_work_at_the_end_shows_no_rate(capsys):
     """A render of one chunk once drew its bar only when done, at 170,000 it/s: 8 views over no time."""
     from artnvg_core.cli.common import ProgressBar

@@ -192,6 +192,8 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
         capsys.readouterr().out
     assert cli.main(["stylize", *common, "--stylizer", "diffusion"]) == 2
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
+    assert cli.main(["stylize", *common, "--preset", "paper"]) == 2  # a diffusion preset named: no NNFM instead
+    assert "error: diffusion models could not be loaded" in capsys.readouterr().err and len(finetuned) == 1
 
 
 def test_a_failed_load_or_a_stop_ends_the_content_renders(tmp_path, monkeypatch):

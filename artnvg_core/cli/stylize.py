@@ -85,6 +85,10 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
+        if stylizer == "nnfm" and args.stylizer == "auto" and args.preset_given:
+            raise ValueError(f"--preset {args.preset}: a diffusion preset, and {reason.removeprefix('auto: ')}: give "
+                             "the model files (README, 'Model files'), or --preset preview for a first look without "
+                             "diffusion, or --stylizer nnfm for the NNFM stylizer's full run")
     if stylizer == "nnfm":  # what only the diffusion stylizer reads would go unread: refused before any work
         for option, given, what in (("--lora", args.lora, "a LoRA changes SDXL"),
                                     ("--devices", args.devices, "the devices share the diffusion stage's groups"),
@@ -143,7 +147,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           progress=ProgressBar("finetune"), render_progress=ProgressBar("views"),
                                           should_stop=args.should_stop, selection=selection)
         except DiffusionModelsUnavailable as error:
-            if args.stylizer != "auto":
+            if args.stylizer != "auto" or args.preset_given:  # diffusion asked for: no NNFM instead
                 raise
             stylizer, config = "nnfm", finetune_config("nnfm")
             print(f"stylizer: nnfm (auto: falling back, {error}); {counted(config.iterations, 'iteration')}")
@@ -155,6 +159,15 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
                         should_stop=args.should_stop)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+class _GivenPreset(argparse.Action):
+    """``--preset``, noting that it was given (``preset_given``): a diffusion preset asked for by name wants the
+    diffusion stylizer, so ``--stylizer auto`` does not fall back to NNFM for it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.preset_given = True
 
 
 def lora_option(text: str):
@@ -174,8 +187,10 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
                    "NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
-    p.add_argument("--preset", choices=tuple(PRESETS), default="paper",
-                   help="speed/accuracy preset (docs/presets.md); preview: a first look in seconds, without diffusion")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="paper", action=_GivenPreset,
+                   help="speed/accuracy preset (docs/presets.md); preview: a first look in seconds, without diffusion; "
+                   "a diffusion preset given here needs the model files (auto then never falls back to NNFM)")
+    p.set_defaults(preset_given=False)
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
                    help="released (default): CSGO's released inference, content only through the Tile ControlNet; "
                    "paper: content tokens into the UNet's down blocks too (needs the CSGO file's content entries)")
