@@ -105,6 +105,21 @@ def test_a_scene_whose_content_is_not_its_extensions_format_says_what_it_starts_
             load_scene(tmp_path / name)
 
 
+@pytest.mark.parametrize("suffix", [".splat", ".ksplat", ".ckpt"])
+@pytest.mark.parametrize("renamed", [".ply", ".spz"])
+def test_a_scene_renamed_to_a_format_without_a_signature_says_what_it_starts_with_when_refused(tmp_path, suffix,
+                                                                                               renamed):
+    """A PLY renamed .splat was reported as 'not a multiple of the 32-byte record' alone: a format with no
+    signature is read as it is named (a .splat's floats may start with any bytes), and the reader's refusal then
+    says what the file starts with."""
+    save_scene(random_scene(8, 0).select(slice(3, None)), tmp_path / f"scene{renamed}")
+    (tmp_path / f"scene{renamed}").rename(tmp_path / f"scene{suffix}")
+    what = {".ply": "a PLY header", ".spz": "a gzip stream, as an SPZ file of version 1-3"}[renamed]
+    with pytest.raises(ValueError, match=rf"scene\{suffix}: .+; it starts with {what}: if it is one, rename it "
+                                         rf"\{renamed}$"):
+        load_scene(tmp_path / f"scene{suffix}")
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
 @pytest.mark.parametrize("suffix", [".ply", ".spz", ".splat", ".ksplat", ".ckpt"])
 def test_a_fifo_is_refused_by_every_reader_without_reading(tmp_path, suffix):

@@ -70,9 +70,8 @@ def check_scene_content(path: Path) -> None:
     suffix = path.suffix.lower()
     if not any(extension == suffix for _, extension, _ in SIGNATURES):
         return
-    with open(path, "rb") as stream:
-        head = stream.read(8)
-    found = next(((extension, what) for signature, extension, what in SIGNATURES if head.startswith(signature)), None)
+    head = _head(path)
+    found = _signature_of(head)
     if found is not None and found[0] == suffix:
         return
     start = f"it starts with bytes {head.hex(' ')}" if head else "it is empty"
@@ -80,6 +79,16 @@ def check_scene_content(path: Path) -> None:
         raise ValueError(f"{path}: not a {suffix} file ({start}: {found[1]}); rename it {found[0]}")
     raise ValueError(f"{path}: not a {suffix} file ({start}, no format's signature; a headerless antimatter15 .splat "
                      "or a .ksplat cannot be recognized by its content: if it is one, rename it .splat or .ksplat)")
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as stream:
+        return stream.read(8)
+
+
+def _signature_of(head: bytes) -> tuple[str, str] | None:
+    """(extension, description) of the format whose signature ``head`` starts with (:data:`SIGNATURES`), else None."""
+    return next(((extension, what) for signature, extension, what in SIGNATURES if head.startswith(signature)), None)
 
 
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
@@ -95,7 +104,13 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     reader = READERS[path.suffix.lower()]
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras)
-    return reader(path, drop_invalid=drop_invalid)
+    try:
+        return reader(path, drop_invalid=drop_invalid)
+    except ValueError as error:  # a format with no signature (.splat...): it may be another one, renamed
+        found = _signature_of(_head(path))
+        if found is None or found[0] == path.suffix.lower():
+            raise
+        raise ValueError(f"{error}; it starts with {found[1]}: if it is one, rename it {found[0]}") from error
 
 
 def writable_scene_path(path: str | os.PathLike, option: str | None = None) -> Path:
