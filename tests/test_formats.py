@@ -128,3 +128,103 @@ def test_a_fifo_is_refused_by_every_reader_without_reading(tmp_path, suffix):
         load_scene(tmp_path / f"pipe{suffix}")
     with pytest.raises(ValueError, match=rf"pipe\{suffix}: scene file is a FIFO"):
         READERS[suffix](tmp_path / f"pipe{suffix}")
+
+
+# --------------------------------------------------------------------------- chunks: progress and cancellation
+
+CHUNKED = [(".ply", {}), (".ply", {"binary": False}), (".spz", {"version": 3}), (".spz", {"version": 2})]
+
+
+def write_chunked(scene, path, options: dict, **kwargs) -> None:
+    """``scene`` written to ``path`` as ``save_scene`` would (an ASCII PLY and an SPZ version by their writers)."""
+    from artnvg_core.formats import write_ply, write_spz
+
+    (write_ply if path.suffix == ".ply" else write_spz)(scene, path, **options, **kwargs)
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+@pytest.mark.parametrize("suffix, options", CHUNKED)
+def test_chunked_reads_and_writes_give_the_whole_arrays_results(tmp_path, monkeypatch, suffix, options, degree):
+    from artnvg_core.formats import common
+
+    scene = random_scene(103, degree).select(slice(3, None))  # rows 0-2 exceed the SPZ's ranges
+    whole, chunked = tmp_path / f"whole{suffix}", tmp_path / f"chunked{suffix}"
+    write_chunked(scene, whole, options)
+    read_whole = load_scene(whole)
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 7)  # 100 Gaussians: 14 chunks, the last of 2
+    write_chunked(scene, chunked, options)
+    assert chunked.read_bytes() == whole.read_bytes()
+    assert_same_bits(load_scene(chunked), read_whole)
+
+
+@pytest.mark.parametrize("suffix, options", CHUNKED)
+def test_progress_counts_the_gaussians_up_to_the_total(tmp_path, monkeypatch, suffix, options):
+    from artnvg_core.formats import common
+
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    scene, path = random_scene(103, 1).select(slice(3, None)), tmp_path / f"scene{suffix}"
+    for action in ("write", "read"):
+        calls = []
+        progress = lambda step, total, info: calls.append((info.get("stage"), step, total))  # noqa: E731
+        if action == "write":
+            write_chunked(scene, path, options, progress=progress)
+        else:
+            load_scene(path, progress=progress)
+        stages = list(dict.fromkeys(stage for stage, _, _ in calls))
+        if action == "read" and options.get("binary", True) and suffix == ".ply":
+            assert stages == ["reading vertex", "decoding"]
+        for stage in stages:
+            steps = [step for s, step, _ in calls if s == stage]
+            totals = {total for s, _, total in calls if s == stage}
+            passes = 6 if (suffix, action) == (".spz", "write") else 1
+            assert totals == {100 * passes}, (action, stage)
+            assert steps[0] == 0 and steps[-1] == 100 * passes, (action, stage)
+            assert all(b > a for a, b in zip(steps, steps[1:])), (action, stage, steps)
+
+
+def stop_at(call: int):
+    """A ``should_stop`` that says stop on its ``call``-th call (1-based), and counts its calls."""
+    def should_stop() -> bool:
+        should_stop.calls += 1
+        return should_stop.calls >= call
+    should_stop.calls = 0
+    return should_stop
+
+
+@pytest.mark.parametrize("suffix, options", CHUNKED)
+@pytest.mark.parametrize("call", [1, 2, 6])
+def test_a_stop_ends_a_write_between_chunks_leaving_no_file(tmp_path, monkeypatch, suffix, options, call):
+    from artnvg_core.formats import common
+    from artnvg_core.progress import Cancelled
+
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    scene, path = random_scene(103, 1).select(slice(3, None)), tmp_path / f"scene{suffix}"
+    written, full = [], []
+    write_chunked(scene, tmp_path / f"full{suffix}", options, progress=lambda step, total, info: full.append(step))
+    (tmp_path / f"full{suffix}").unlink()
+    should_stop = stop_at(call)
+    with pytest.raises(Cancelled):
+        write_chunked(scene, path, options, should_stop=should_stop,
+                      progress=lambda step, total, info: written.append(step))
+    assert should_stop.calls == call  # asked before the work, then before each chunk: no chunk after the stop
+    assert written == full[: len(written)] and len(written) < len(full) and (call < 6 or len(written) > 2)
+    assert os.listdir(tmp_path) == []  # no file, no temporary
+    path.write_bytes(b"kept")  # a stop never touches the file it would have replaced
+    with pytest.raises(Cancelled):
+        write_chunked(scene, path, options, should_stop=stop_at(call))
+    assert os.listdir(tmp_path) == [path.name] and path.read_bytes() == b"kept"
+
+
+@pytest.mark.parametrize("suffix, options", CHUNKED)
+@pytest.mark.parametrize("call", [1, 3, 9])
+def test_a_stop_ends_a_read_between_chunks(tmp_path, monkeypatch, suffix, options, call):
+    from artnvg_core.formats import common
+    from artnvg_core.progress import Cancelled
+
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    path = tmp_path / f"scene{suffix}"
+    write_chunked(random_scene(103, 1).select(slice(3, None)), path, options)
+    should_stop = stop_at(call)
+    with pytest.raises(Cancelled):
+        load_scene(path, should_stop=should_stop)
+    assert should_stop.calls == call

@@ -51,3 +51,25 @@ def test_counts_in_the_messages_agree_with_one(caplog):
     with caplog.at_level("WARNING", logger="artnvg_core.scene"):
         assert validate_scene(scene, "memory", drop_invalid=True)[1] == 1
     assert "memory: dropped 1 invalid Gaussian of 1,200 (means: 1 with non-finite values)" in caplog.text
+
+
+def test_validation_in_chunks_finds_what_the_whole_check_finds_and_stops_between_them(monkeypatch):
+    from artnvg_core import scene as scene_module
+    from artnvg_core.progress import Cancelled
+    from artnvg_core.scene import invalid_gaussians
+
+    scene = random_scene(100, 1)
+    scene.sh[37, 2, 1] = float("nan")
+    scene.quats[99] = 0
+    scene.means[0, 2] = float("inf")
+    whole = invalid_gaussians(scene)
+    monkeypatch.setattr(scene_module, "CHECKED_ROWS", 16)
+    chunked = invalid_gaussians(scene)
+    assert [(name, problem) for name, problem, _ in chunked] == [(name, problem) for name, problem, _ in whole]
+    for (_, _, a), (_, _, b) in zip(chunked, whole):
+        assert torch.equal(a, b)
+    assert [int(bad.nonzero()[0, 0]) for _, _, bad in chunked if bad.any()] == [0, 37, 99]
+    calls = []
+    with pytest.raises(Cancelled):
+        validate_scene(scene, "scene.ply", should_stop=lambda: calls.append(1) or len(calls) == 3)
+    assert len(calls) == 3  # asked before each chunk of 16: stopped before the third

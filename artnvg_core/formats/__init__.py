@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ..cameras.camera_set import CameraSet
 from ..fileio import require_regular_file
+from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene
 from . import ksplat, splat, spz
 from .common import scene_to_write
@@ -92,18 +93,25 @@ def _signature_of(head: bytes) -> tuple[str, str] | None:
 
 
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
-               cameras: CameraSet | None = None) -> GaussianScene:
+               cameras: CameraSet | None = None, progress: ProgressFn | None = None,
+               should_stop: StopFn | None = None) -> GaussianScene:
     """Read a Gaussian scene, the reader chosen by the file's extension (any case; :func:`check_scene_path`),
     whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
     puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
-    :mod:`.spz`)."""
+    :mod:`.spz`). ``progress`` follows a PLY's or an SPZ's Gaussians, a chunk at a time (by stage), and
+    ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`); the other formats,
+    read whole in a second or two at 3M Gaussians, are asked before they start."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
     check_scene_content(path)
+    check_stop(should_stop)
     reader = READERS[path.suffix.lower()]
     if reader is read_spz:
-        return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras)
+        return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras, progress=progress,
+                        should_stop=should_stop)
+    if reader is read_ply:
+        return read_ply(path, drop_invalid=drop_invalid, progress=progress, should_stop=should_stop)
     try:
         return reader(path, drop_invalid=drop_invalid)
     except ValueError as error:  # a format with no signature (.splat...): it may be another one, renamed
@@ -141,16 +149,25 @@ def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> No
 
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto",
-               spz_version: int = 3, overwrite: bool = True) -> None:
+               spz_version: int = 3, overwrite: bool = True, progress: ProgressFn | None = None,
+               should_stop: StopFn | None = None) -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
     a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them,
     as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js). With ``overwrite``
     False never over an existing file: FileExistsError naming ``path`` when one holds it by the time the new
-    one is complete (:func:`~artnvg_core.fileio.write_atomically`)."""
+    one is complete (:func:`~artnvg_core.fileio.write_atomically`). ``progress`` follows a PLY's or an SPZ's
+    Gaussians written, a chunk at a time, and ``should_stop`` ends the write between chunks
+    (:class:`~artnvg_core.progress.Cancelled`: no file, partial or whole, is left); a .splat or .ksplat, written
+    whole in a second or two at 3M Gaussians, is asked before it starts."""
     path = writable_scene_path(path)
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     _check_option("spz_version", spz_version, SPZ_VERSIONS)
-    if path.suffix.lower() == ".spz":
-        write_spz(scene, path, axes=spz_axes, version=spz_version, overwrite=overwrite)
+    check_stop(should_stop)
+    writer = WRITERS[path.suffix.lower()]
+    if writer is write_spz:
+        write_spz(scene, path, axes=spz_axes, version=spz_version, overwrite=overwrite, progress=progress,
+                  should_stop=should_stop)
+    elif writer is write_ply:
+        write_ply(scene, path, overwrite=overwrite, progress=progress, should_stop=should_stop)
     else:
-        WRITERS[path.suffix.lower()](scene, path, overwrite=overwrite)
+        writer(scene, path, overwrite=overwrite)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ..counted import counted
+from ..progress import StopFn, check_stop
 
 CHUNK = 1 << 24  # bytes inflated per read
 # At most this many bytes inflated per byte of the file (files under INFLATION_FLOOR / MAX_INFLATION
@@ -37,10 +38,12 @@ def require_inflatable(size: int, path: Path, field: str) -> None:
                          "are wrong or the file is a decompression bomb")
 
 
-def read_at_most(stream: BinaryIO, limit: int) -> bytearray:
-    """Up to ``limit`` bytes of a decompressing ``stream``, read ``CHUNK`` bytes at a time."""
+def read_at_most(stream: BinaryIO, limit: int, should_stop: StopFn | None = None) -> bytearray:
+    """Up to ``limit`` bytes of a decompressing ``stream``, read ``CHUNK`` bytes at a time (``should_stop`` asked
+    before each: :class:`~artnvg_core.progress.Cancelled`)."""
     data = bytearray()
     while len(data) < limit:
+        check_stop(should_stop)
         piece = stream.read(min(CHUNK, limit - len(data)))
         if not piece:
             break
@@ -48,10 +51,12 @@ def read_at_most(stream: BinaryIO, limit: int) -> bytearray:
     return data
 
 
-def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trailing_allowed: bool = False) -> bytearray:
+def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trailing_allowed: bool = False,
+                    should_stop: StopFn | None = None) -> bytearray:
     """The next ``size`` bytes of ``stream``; ValueError naming ``path`` and ``field`` when it ends
-    sooner or, unless ``trailing_allowed``, holds more (found by inflating one byte past ``size``)."""
-    data = read_at_most(stream, size if trailing_allowed else size + 1)
+    sooner or, unless ``trailing_allowed``, holds more (found by inflating one byte past ``size``).
+    ``should_stop``: as :func:`read_at_most`'s."""
+    data = read_at_most(stream, size if trailing_allowed else size + 1, should_stop)
     if len(data) < size:
         raise ValueError(f"{path}: {field}: {counted(size, 'byte')} expected, the stream ends after {len(data):,} "
                          "(truncated, or the header's counts are wrong)")

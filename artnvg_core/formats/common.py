@@ -1,14 +1,53 @@
-"""What every scene file reader and writer shares: file checks, the scene check before writing, 8-bit opacities."""
+"""What every scene file reader and writer shares: file checks, the scene check before writing, 8-bit opacities,
+work done a chunk of Gaussians at a time (progress and cancellation)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..fileio import require_regular_file
+from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene, describe_invalid, invalid_gaussians, logit
+
+
+# Gaussians per chunk: at 3M Gaussians of SH degree 3 on a 2-core CPU a chunk's SPZ quantisation and deflate take
+# about 0.15 s, a PLY's rows 0.02 s (a stop waits at most that long), and a 3M file's 46 chunks cost no measurable time.
+CHUNK_GAUSSIANS = 1 << 16
+
+
+class ChunkedWork:
+    """A reader's or writer's work on ``count`` Gaussians in ``passes`` passes over them (an SPZ writer's one per
+    attribute array, a PLY reader's copy then decode), :data:`CHUNK_GAUSSIANS` at a time: :meth:`chunks` yields
+    one pass's slices, raising :class:`~artnvg_core.progress.Cancelled` before any whose ``should_stop()`` is
+    True and calling ``progress(done, count * passes, {})`` after each (and ``progress(0, ...)`` first), the
+    Gaussians done over all passes so far."""
+
+    def __init__(self, count: int, passes: int = 1, progress: ProgressFn | None = None,
+                 should_stop: StopFn | None = None):
+        self.count, self.total, self.done = count, count * passes, 0
+        self.progress, self.should_stop = progress, should_stop
+        check_stop(should_stop)
+        if progress is not None:
+            progress(0, self.total, {})
+
+    def chunks(self) -> Iterator[slice]:
+        """One pass's slices of the Gaussians, in order."""
+        size = CHUNK_GAUSSIANS
+        for start in range(0, self.count, size):
+            check_stop(self.should_stop)
+            rows = slice(start, min(start + size, self.count))
+            yield rows
+            self.done += rows.stop - rows.start
+            if self.progress is not None:
+                self.progress(self.done, self.total, {})
+
+    def check_stop(self) -> None:
+        """Raise :class:`~artnvg_core.progress.Cancelled` if ``should_stop`` says so (between passes)."""
+        check_stop(self.should_stop)
 
 
 def require_file(path: Path) -> None:
@@ -16,13 +55,14 @@ def require_file(path: Path) -> None:
     require_regular_file(path, "scene file")
 
 
-def scene_to_write(scene: GaussianScene, path: Path) -> GaussianScene:
+def scene_to_write(scene: GaussianScene, path: Path, should_stop: StopFn | None = None) -> GaussianScene:
     """``scene`` as detached float32 CPU tensors; a ValueError naming ``path`` and the field when
-    any Gaussian is non-finite (after the float32 cast) or has a zero quaternion, before anything is written."""
+    any Gaussian is non-finite (after the float32 cast) or has a zero quaternion, before anything is written.
+    ``should_stop``: as :func:`~artnvg_core.scene.invalid_gaussians`'s."""
     cpu = scene.map(lambda t: t.detach().to("cpu", torch.float32))
     if len(cpu) == 0:
         raise ValueError(f"{path}: not written: the scene contains no Gaussians")
-    for name, problem, bad in invalid_gaussians(cpu):
+    for name, problem, bad in invalid_gaussians(cpu, should_stop):
         if bad.any():
             raise ValueError(f"{path}: not written: {describe_invalid(name, bad, f'have {problem}')}")
     return cpu

@@ -30,9 +30,10 @@ import torch
 
 from ..counted import counted
 from ..fileio import write_atomically
+from ..progress import ProgressFn, StopFn, staged
 from ..scene import GaussianScene, logit, validate_scene
 from . import compressed_ply
-from .common import require_file, scene_to_write
+from .common import ChunkedWork, require_file, scene_to_write
 from .ply_data import PlyData, read_ply_data
 
 _PLY_ELEMENT = "vertex"
@@ -67,18 +68,22 @@ def _vertices(path: Path, ply: PlyData) -> np.ndarray:
     return element.data
 
 
-def _ply_columns(path: Path, data: np.ndarray, names: list[str]) -> torch.Tensor:
-    """The named scalar properties as one float32 tensor [N, len(names)]."""
+def _ply_columns(path: Path, data: np.ndarray, blocks: dict[str, list[str]], work: ChunkedWork) -> dict[str, torch.Tensor]:
+    """Each block's named scalar properties as one float32 tensor [N, len(names)], filled a chunk of rows at a
+    time (``work``: one pass)."""
     available = set(data.dtype.names or ())
-    missing = [name for name in names if name not in available]
+    missing = [name for names in blocks.values() for name in names if name not in available]
     if missing:
         noun = "property" if len(missing) == 1 else "properties"
         raise ValueError(f"{path}: element '{_PLY_ELEMENT}' lacks {noun} {', '.join(missing)}")
-    table = np.empty((len(data), len(names)), dtype=np.float32)
+    tables = {key: np.empty((len(data), len(names)), dtype=np.float32) for key, names in blocks.items()}
     with np.errstate(over="ignore", invalid="ignore"):  # float64 overflow -> inf, rejected by validation
-        for column, name in enumerate(names):
-            table[:, column] = data[name]
-    return torch.from_numpy(table)
+        for rows in work.chunks():
+            chunk = data[rows]
+            for key, names in blocks.items():
+                for column, name in enumerate(names):
+                    tables[key][rows, column] = chunk[name]
+    return {key: torch.from_numpy(table) for key, table in tables.items()}
 
 
 def _sh_rest_count(path: Path, property_names: tuple[str, ...]) -> int:
@@ -118,14 +123,17 @@ def _fold_filter_3d(path: Path, scene: GaussianScene, filter_3d: torch.Tensor) -
     )
 
 
-def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
+             should_stop: StopFn | None = None) -> GaussianScene:
     """Read an INRIA 3DGS PLY (ASCII or binary of either byte order) as float32 tensors, or a
     PlayCanvas compressed PLY. Layout and Mip-Splatting's ``filter_3D`` in the module docstring.
-    Validated with :func:`~artnvg_core.scene.validate_scene`.
+    Validated with :func:`~artnvg_core.scene.validate_scene`. ``progress`` follows the binary rows read
+    (stage "reading vertex") and decoded (stage "decoding"), in Gaussians; ``should_stop`` ends the read
+    between chunks (:class:`~artnvg_core.progress.Cancelled`).
     """
     path = Path(path)
     require_file(path)
-    ply = read_ply_data(path, (_PLY_ELEMENT, *compressed_ply.ELEMENTS))
+    ply = read_ply_data(path, (_PLY_ELEMENT, *compressed_ply.ELEMENTS), progress=progress, should_stop=should_stop)
     if compressed_ply.is_compressed_ply(ply):
         return compressed_ply.scene_from_compressed_ply(path, ply, drop_invalid=drop_invalid)
     data = _vertices(path, ply)
@@ -138,7 +146,9 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
                          "properties (f_dc_*, opacity, scale_*, rot_*); expected a trained 3DGS scene (e.g. 3DGS's "
                          "point_cloud/iteration_30000/point_cloud.ply or nerfstudio's ns-export gaussian-splat), not "
                          "a capture's points (COLMAP's or nerfstudio's sparse_pc.ply)")
-    columns = {key: _ply_columns(path, data, names) for key, names in layout.items()}
+    if _FILTER_3D in (data.dtype.names or ()):
+        layout["filter_3d"] = [_FILTER_3D]
+    columns = _ply_columns(path, data, layout, ChunkedWork(len(data), 1, staged(progress, "decoding"), should_stop))
     n, coeffs_per_channel = len(data), num_rest // 3
     sh_rest = columns["sh_rest"].reshape(n, 3, coeffs_per_channel).transpose(1, 2)
     scene = GaussianScene(
@@ -148,29 +158,27 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussian
         opacity_logits=columns["opacity_logits"][:, 0].contiguous(),
         sh=torch.cat([columns["sh_dc"][:, None, :], sh_rest], dim=1).contiguous(),
     )
-    if _FILTER_3D in (data.dtype.names or ()):
-        scene = _fold_filter_3d(path, scene, _ply_columns(path, data, [_FILTER_3D])[:, 0])
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+    if "filter_3d" in columns:
+        scene = _fold_filter_3d(path, scene, columns["filter_3d"][:, 0])
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
 
 
-def _ply_table(scene: GaussianScene) -> tuple[list[str], np.ndarray]:
-    """Property names and the float32 table [N, P] of ``scene`` in the INRIA layout (zero normals)."""
-    n, k = scene.sh.shape[:2]
-    blocks = {
-        "means": scene.means,
-        "normals": torch.zeros(n, 3),
-        "sh_dc": scene.sh[:, 0, :],
-        "sh_rest": scene.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),
-        "opacity_logits": scene.opacity_logits[:, None],
-        "log_scales": scene.log_scales,
-        "quats": scene.quats,
-    }
-    layout = _ply_layout(3 * (k - 1))
-    names = [name for key in blocks for name in layout[key]]
+def _ply_names(scene: GaussianScene) -> list[str]:
+    """The properties :func:`_ply_rows` writes, in file order."""
+    names = [name for names in _ply_layout(3 * (scene.sh.shape[1] - 1)).values() for name in names]
+    return names + [_FILTER_3D] if scene.antialiased else names
+
+
+def _ply_rows(scene: GaussianScene, rows: slice) -> np.ndarray:
+    """The float32 table [R, P] of ``scene``'s Gaussians ``rows`` in the INRIA layout (zero normals), the columns
+    of :func:`_ply_names`."""
+    sh = scene.sh[rows]
+    n, k = sh.shape[:2]
+    blocks = [scene.means[rows], torch.zeros(n, 3), sh[:, 0, :], sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),
+              scene.opacity_logits[rows, None], scene.log_scales[rows], scene.quats[rows]]
     if scene.antialiased:
-        blocks["filter_3d"] = torch.zeros(n, 1)
-        names.append(_FILTER_3D)
-    return names, torch.cat(list(blocks.values()), dim=1).numpy()
+        blocks.append(torch.zeros(n, 1))
+    return torch.cat(blocks, dim=1).numpy()
 
 
 def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
@@ -181,7 +189,8 @@ def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
         np.savetxt(stream, table, fmt="%.9g")  # 9 significant digits identify every float32
 
 
-def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True, overwrite: bool = True) -> None:
+def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True, overwrite: bool = True,
+              progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
     """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically; with ``overwrite`` False never over an existing
     file (:func:`~artnvg_core.fileio.write_atomically`).
 
@@ -189,20 +198,25 @@ def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = T
     scale_* rot_* (and a zero ``filter_3D`` when ``scene.antialiased``); binary
     little-endian by default, ASCII with ``binary=False``. Reading the file back
     gives bit-identical tensors in either format. A scene with non-finite values
-    or zero quaternions is refused with a ValueError before anything is written.
+    or zero quaternions is refused with a ValueError before anything is written. Rows are written a chunk
+    at a time: ``progress`` counts them (Gaussians), ``should_stop`` ends the write between chunks
+    (:class:`~artnvg_core.progress.Cancelled`, no file left).
     """
     path = Path(path)
-    names, table = _ply_table(scene_to_write(scene, path))
+    cpu = scene_to_write(scene, path, should_stop)
+    names = _ply_names(cpu)
+    work = ChunkedWork(len(cpu), 1, progress, should_stop)
     header = "\n".join([
         "ply",
         f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-        f"element {_PLY_ELEMENT} {len(table)}",
+        f"element {_PLY_ELEMENT} {len(cpu)}",
         *(f"property float {name}" for name in names),
         "end_header",
     ]) + "\n"
 
     def write(stream: BinaryIO) -> None:
         stream.write(header.encode("ascii"))
-        _write_ply_body(stream, table, binary)
+        for rows in work.chunks():
+            _write_ply_body(stream, _ply_rows(cpu, rows), binary)
 
     write_atomically(path, write, overwrite=overwrite)

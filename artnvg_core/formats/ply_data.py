@@ -20,6 +20,8 @@ from typing import BinaryIO
 import numpy as np
 
 from ..counted import counted
+from ..progress import ProgressFn, StopFn, check_stop, staged
+from .common import ChunkedWork
 
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
 
@@ -179,7 +181,8 @@ def _list_element_bytes(path: Path, element: PlyElement, data: np.ndarray, order
     return offset
 
 
-def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyElement], wanted: set[str]) -> None:
+def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyElement], wanted: set[str],
+                 progress: ProgressFn | None, should_stop: StopFn | None) -> None:
     order = _FORMATS[fmt]
     start = stream.tell()
     size = os.fstat(stream.fileno()).st_size
@@ -198,7 +201,10 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
             continue
         dtype = _scalar_dtype(element, order)
         if element.name in wanted:
-            element.data = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype).copy()
+            rows = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype)
+            element.data = np.empty(element.count, dtype)
+            for chunk in ChunkedWork(element.count, 1, staged(progress, f"reading {element.name}"), should_stop).chunks():
+                element.data[chunk] = rows[chunk]
         offset += element.count * dtype.itemsize
     if offset != len(data):
         raise _counts_error(path, elements, f"{counted(len(data) - offset, 'byte')} more than those records need")
@@ -229,14 +235,18 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
                 element.data[prop.name] = values[:, column]
 
 
-def read_ply_data(path: Path, wanted: tuple[str, ...]) -> PlyData:
+def read_ply_data(path: Path, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
+                  should_stop: StopFn | None = None) -> PlyData:
     """The PLY at ``path`` with the scalar elements named in ``wanted`` read (their ``data`` set), every other
     element skipped; a ValueError naming ``path`` for anything that is not a well-formed PLY whose counts
-    account for its data (module docstring)."""
+    account for its data (module docstring). A binary element is read a chunk of rows at a time: ``progress``
+    follows its rows (stage "reading ELEMENT"), ``should_stop`` ends the read between chunks
+    (:class:`~artnvg_core.progress.Cancelled`); ASCII is read whole, asked to stop before."""
+    check_stop(should_stop)
     with open(path, "rb") as stream:
         fmt, elements = _header(path, stream)
         if fmt == "ascii":
             _read_text(path, stream, elements, set(wanted))
         else:
-            _read_binary(path, stream, fmt, elements, set(wanted))
+            _read_binary(path, stream, fmt, elements, set(wanted), progress, should_stop)
     return PlyData(elements, text=fmt == "ascii")

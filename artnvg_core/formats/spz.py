@@ -70,9 +70,10 @@ from ..cameras.camera_set import CameraSet
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene, validate_scene
 from .bounded import inflate_exactly, read_at_most, require_inflatable
-from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
+from .common import ChunkedWork, opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -148,7 +149,7 @@ def _check_header(path: Path, version: int, count: int, degree: int, valid_versi
         raise ValueError(f"{path}: shDegree: {degree} is above SPZ's maximum 4")
 
 
-def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
+def _read_legacy(path: Path, raw: bytes, should_stop: StopFn | None) -> tuple[dict, dict[str, bytes], int | None]:
     try:
         with gzip.GzipFile(fileobj=io.BytesIO(raw)) as stream:
             head = read_at_most(stream, _LEGACY_HEADER.size)
@@ -162,7 +163,7 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | 
             field = f"numPoints: {counted(count, 'Gaussian')} of SH degree {degree}"
             require_inflatable(sum(sizes.values()), path, field)
             data = inflate_exactly(stream, sum(sizes.values()), path, field,
-                                   trailing_allowed=bool(flags & FLAG_EXTENSIONS))
+                                   trailing_allowed=bool(flags & FLAG_EXTENSIONS), should_stop=should_stop)
             trailer = read_at_most(stream, _MAX_TRAILER) if flags & FLAG_EXTENSIONS else None  # extension records
             system = None if trailer is None else _stored_system(path, bytes(trailer))
     except (OSError, EOFError, zlib.error) as error:
@@ -174,7 +175,7 @@ def _read_legacy(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | 
     return header, arrays, system
 
 
-def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None]:
+def _read_v4(path: Path, raw: bytes, should_stop: StopFn | None) -> tuple[dict, dict[str, bytes], int | None]:
     if len(raw) < _HEADER.size:
         raise ValueError(f"{path}: header: {counted(len(raw), 'byte')}, expected {_HEADER.size}")
     _, version, count, degree, fractional_bits, flags, streams, toc = _HEADER.unpack_from(raw)
@@ -203,7 +204,7 @@ def _read_v4(path: Path, raw: bytes) -> tuple[dict, dict[str, bytes], int | None
                              "end of the file (truncated)")
         reader = zstandard.ZstdDecompressor().stream_reader(raw[offset : offset + compressed])
         try:
-            arrays[name] = inflate_exactly(reader, size, path, f"{name} stream")
+            arrays[name] = inflate_exactly(reader, size, path, f"{name} stream", should_stop=should_stop)
         except zstandard.ZstdError as error:
             raise ValueError(f"{path}: {name} stream: not valid zstd data ({error})") from error
         offset += compressed
@@ -225,20 +226,20 @@ def _positions(path: Path, header: dict, raw: bytes) -> np.ndarray:
     return fixed / float(1 << header["bits"])
 
 
-def _rotations_xyzw(header: dict, raw: bytes) -> np.ndarray:
-    count = header["count"]
-    if header["version"] < 3:
-        xyz = np.frombuffer(raw, np.uint8).reshape(count, 3) / 127.5 - 1
+def _rotations_xyzw(version: int, codes: np.ndarray) -> np.ndarray:
+    """[N, 4] x y z w quaternions of rotation codes [N, 3] (version 1-2) or [N, 4] bytes (version 3+)."""
+    if version < 3:
+        xyz = codes / 127.5 - 1
         return np.concatenate([xyz, np.sqrt(np.maximum(0, 1 - (xyz**2).sum(1)))[:, None]], 1)
-    comp = np.frombuffer(raw, "<u4").astype(np.int64)
+    comp = np.ascontiguousarray(codes).view("<u4")[:, 0].astype(np.int64)
     largest = comp >> 30
-    q = np.zeros((count, 4))
+    q = np.zeros((len(comp), 4))
     for i in range(3, -1, -1):  # the last component is in the lowest 10 bits
         value = _SQRT1_2 * (comp & 511) / 511 * np.where(comp >> 9 & 1, -1.0, 1.0)
         take = largest != i
         q[take, i] = value[take]
         comp = np.where(take, comp >> 10, comp)
-    rows = np.arange(count)
+    rows = np.arange(len(q))
     q[rows, largest] = np.sqrt(np.maximum(0, 1 - (q**2).sum(1)))
     return q
 
@@ -274,18 +275,21 @@ def _unrecorded_system(path: Path, axes: str, stored: np.ndarray, cameras: Camer
 
 
 def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "auto",
-             cameras: CameraSet | None = None) -> GaussianScene:
+             cameras: CameraSet | None = None, progress: ProgressFn | None = None,
+             should_stop: StopFn | None = None) -> GaussianScene:
     """Read an SPZ file of version 1 to 4 (layout and axes in the module docstring); a file without a
     coordinate-system record is read in ``axes``: "ply", "rub" or "auto" (by ``cameras`` when given,
-    else the PLY's axes)."""
+    else the PLY's axes). The arrays are decoded a chunk of Gaussians at a time: ``progress`` counts them,
+    ``should_stop`` ends the read between chunks, or between the pieces inflated before
+    (:class:`~artnvg_core.progress.Cancelled`)."""
     path = Path(path)
     _check_axes(axes)
     require_file(path)
     raw = path.read_bytes()
     if raw[:4] == struct.pack("<I", MAGIC):
-        header, arrays, system = _read_v4(path, raw)
+        header, arrays, system = _read_v4(path, raw, should_stop)
     elif raw[:2] == b"\x1f\x8b":
-        header, arrays, system = _read_legacy(path, raw)
+        header, arrays, system = _read_legacy(path, raw, should_stop)
     else:
         raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
     stored = _positions(path, header, arrays["positions"])
@@ -294,25 +298,29 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
     count, degree = header["count"], header["degree"]
     flips = _axis_flips(system, path)
     x, y, z = flips
-    q = _rotations_xyzw(header, arrays["rotations"])
-    q[:, :3] *= (y * z, x * z, x * y)
     coefficients = (degree + 1) ** 2 - 1
-    sh = arrays.get("sh", b"")  # version 4 has no SH stream at degree 0
-    sh_rest = (np.frombuffer(sh, np.uint8).reshape(count, coefficients, 3) - 128.0) / 128
+    sh_codes = np.frombuffer(arrays.get("sh", b""), np.uint8).reshape(count, coefficients, 3)  # none in v4 at degree 0
+    rotations = np.frombuffer(arrays["rotations"], np.uint8).reshape(count, -1)
     if degree > 3:
         _log.warning("%s: SH degree %d read as degree 3 (the degree-4 terms are dropped)", path, degree)
-        sh_rest, degree = sh_rest[:, :15], 3
-    sh_rest = sh_rest * _sh_flip_signs(x, y, z)[: sh_rest.shape[1], None]
-    dc = (np.frombuffer(arrays["colors"], np.uint8).reshape(count, 1, 3) / 255 - 0.5) / COLOR_SCALE
-    scene = GaussianScene(
-        means=torch.from_numpy(stored * flips).float(),
-        quats=torch.from_numpy(q[:, [3, 0, 1, 2]]).float(),
-        log_scales=torch.from_numpy(np.frombuffer(arrays["scales"], np.uint8).reshape(count, 3) / 16 - 10).float(),
-        opacity_logits=torch.from_numpy(opacity_logits_from_bytes(np.frombuffer(arrays["alphas"], np.uint8))).float(),
-        sh=torch.from_numpy(np.concatenate([dc, sh_rest], 1)).float(),
-        antialiased=bool(header["flags"] & FLAG_ANTIALIASED),
-    )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+        sh_codes, degree = sh_codes[:, :15], 3
+    signs = _sh_flip_signs(x, y, z)[: sh_codes.shape[1], None]
+    colours = np.frombuffer(arrays["colors"], np.uint8).reshape(count, 1, 3)
+    scales = np.frombuffer(arrays["scales"], np.uint8).reshape(count, 3)
+    alphas = np.frombuffer(arrays["alphas"], np.uint8)
+    scene = GaussianScene(means=torch.empty(count, 3), quats=torch.empty(count, 4), log_scales=torch.empty(count, 3),
+                          opacity_logits=torch.empty(count), sh=torch.empty(count, 1 + sh_codes.shape[1], 3),
+                          antialiased=bool(header["flags"] & FLAG_ANTIALIASED))
+    for rows in ChunkedWork(count, 1, progress, should_stop).chunks():
+        q = _rotations_xyzw(header["version"], rotations[rows])
+        q[:, :3] *= (y * z, x * z, x * y)
+        dc = (colours[rows] / 255 - 0.5) / COLOR_SCALE
+        scene.means[rows] = torch.from_numpy(stored[rows] * flips)
+        scene.quats[rows] = torch.from_numpy(q[:, [3, 0, 1, 2]])
+        scene.log_scales[rows] = torch.from_numpy(scales[rows] / 16 - 10)
+        scene.opacity_logits[rows] = torch.from_numpy(opacity_logits_from_bytes(alphas[rows]))
+        scene.sh[rows] = torch.from_numpy(np.concatenate([dc, (sh_codes[rows] - 128.0) / 128 * signs], 1))
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
 
 
 def _fractional_bits(path: Path, extents: np.ndarray) -> int:
@@ -386,12 +394,44 @@ def _first_three(q: np.ndarray) -> np.ndarray:
     return to_bytes(q[:, :3] * 127.5 + 127.5)
 
 
+def _attribute_arrays(cpu: GaussianScene, means: np.ndarray, log_scales: np.ndarray, bits: int, flips: np.ndarray,
+                      version: int) -> list:
+    """The functions giving each attribute array's bytes (file order) of Gaussians ``rows`` (a slice): ``means``
+    [N, 3] in the file's axes (``flips``) and ``log_scales`` [N, 3] as written (:func:`_onto_range`)."""
+    x, y, z = flips
+    degree = cpu.sh_degree
+    signs = _sh_flip_signs(x, y, z)[: (degree + 1) ** 2 - 1, None]
+
+    def positions(rows: slice) -> np.ndarray:
+        fixed = np.floor(means[rows] * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
+        return np.stack([fixed & 255, fixed >> 8 & 255, fixed >> 16], -1).astype(np.uint8)
+
+    def rotations(rows: slice) -> np.ndarray:
+        q = normalize_quats(cpu.quats[rows].double()).numpy()[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
+        return _smallest_three(q) if version == 3 else _first_three(q)
+
+    def sh(rows: slice) -> np.ndarray:
+        sh_rest = cpu.sh[rows, 1:].double().numpy() * signs
+        return np.concatenate([_quantized_sh(sh_rest[:, :3], 5), _quantized_sh(sh_rest[:, 3:], 4)], 1)
+
+    return [
+        positions,
+        lambda rows: opacity_bytes(cpu.opacity_logits[rows]),
+        lambda rows: to_bytes(cpu.sh[rows, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
+        lambda rows: to_bytes((log_scales[rows] + 10) * 16),
+        rotations,
+        sh,
+    ]
+
+
 def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "auto", version: int = 3,
-              overwrite: bool = True) -> None:
+              overwrite: bool = True, progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
     """Write ``scene`` as an SPZ file of ``version`` 3 (or 2) atomically, in the PLY's axes with no
     coordinate-system record, as splat-transform, spz-js and Niantic's ply-to-spz write (``axes`` "auto" or
     "ply"), or in RUB (``axes="rub"``); module docstring. With ``overwrite`` False never over an existing file
-    (:func:`~artnvg_core.fileio.write_atomically`).
+    (:func:`~artnvg_core.fileio.write_atomically`). Each attribute array is quantised and deflated a chunk of
+    Gaussians at a time into one gzip stream: ``progress`` counts the chunks' Gaussians over the 6 arrays,
+    ``should_stop`` ends the write between chunks (:class:`~artnvg_core.progress.Cancelled`, no file left).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, more than one
     Gaussian in a thousand with a coordinate of magnitude 2^23 or more.
@@ -400,27 +440,22 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
     _check_axes(axes)
     if version not in WRITTEN_VERSIONS:
         raise ValueError(f"spz version: expected one of {', '.join(map(str, WRITTEN_VERSIONS))}, got {version!r}")
-    cpu = scene_to_write(scene, path)
-    x, y, z = _axis_flips(RUB if axes == "rub" else RDF, path)
-    means = cpu.means.double().numpy() * (x, y, z)
+    cpu = scene_to_write(scene, path, should_stop)
+    flips = _axis_flips(RUB if axes == "rub" else RDF, path)
+    means = cpu.means.double().numpy() * flips
     bits = _fractional_bits(path, np.abs(means).max(1))
     means, log_scales = _onto_range(path, means, cpu.log_scales.double().numpy(), bits)
-    fixed = np.floor(means * (1 << bits) + 0.5).astype(np.int64) & 0xFFFFFF
-    positions = np.stack([fixed & 255, fixed >> 8 & 255, fixed >> 16], -1).astype(np.uint8)
-    q = normalize_quats(cpu.quats.double()).numpy()[:, [1, 2, 3, 0]] * (y * z, x * z, x * y, 1)
-    count, degree = len(cpu), cpu.sh_degree
-    sh_rest = cpu.sh[:, 1:].double().numpy() * _sh_flip_signs(x, y, z)[: (degree + 1) ** 2 - 1, None]
-    sh_bytes = np.concatenate([_quantized_sh(sh_rest[:, :3], 5), _quantized_sh(sh_rest[:, 3:], 4)], 1)
+    arrays = _attribute_arrays(cpu, means, log_scales, bits, flips, version)
+    work = ChunkedWork(len(cpu), len(arrays), progress, should_stop)
     flags = FLAG_ANTIALIASED if cpu.antialiased else 0
-    arrays = [
-        _LEGACY_HEADER.pack(MAGIC, version, count, degree, bits, flags, 0),
-        positions,
-        opacity_bytes(cpu.opacity_logits),
-        to_bytes(cpu.sh[:, 0].double().numpy() * (COLOR_SCALE * 255) + 127.5),
-        to_bytes((log_scales + 10) * 16),
-        _smallest_three(q) if version == 3 else _first_three(q),
-        sh_bytes,
-    ]
-    payload = b"".join(a if isinstance(a, bytes) else np.ascontiguousarray(a).tobytes() for a in arrays)
-    write_atomically(path, lambda stream: stream.write(gzip.compress(payload, compresslevel=6, mtime=0)),
-                     overwrite=overwrite)
+    header = _LEGACY_HEADER.pack(MAGIC, version, len(cpu), cpu.sh_degree, bits, flags, 0)
+
+    def write(stream) -> None:
+        deflate = zlib.compressobj(6, zlib.DEFLATED, 31)  # gzip.compress(..., compresslevel=6, mtime=0)'s stream
+        stream.write(deflate.compress(header))
+        for array in arrays:
+            for rows in work.chunks():
+                stream.write(deflate.compress(np.ascontiguousarray(array(rows)).tobytes()))
+        stream.write(deflate.flush())
+
+    write_atomically(path, write, overwrite=overwrite)
