@@ -92,3 +92,40 @@ def test_validation_refuses_the_prompt_with_the_message_labelled_by_the_file_inp
     assert "partial_execution_targets" not in check_prompt({"prompt": prompt, "prompt_id": "p"}, classes)
     assert LoadCSGO.VALIDATE_INPUTS(csgo_name="csgo_4_32.bin") is True
     assert "p" not in prompt_checks._results
+
+
+def test_each_file_the_shipped_workflows_give_a_stock_loader_is_told_its_exact_source():
+    """ComfyUI's own loaders (STOCK_LOADERS): the name a shipped workflow picks gets the source the full workflow's
+    missing-models list downloads (one file: its repository and path); another name, the kind of model wanted with
+    that source as an example."""
+    import json
+
+    from test_workflows import API_FILES, FULL_API, WORKFLOWS
+
+    from nodes.model_files import STOCK_LOADERS
+
+    picked = {(node["class_type"], node["inputs"][STOCK_LOADERS[node["class_type"]].name])
+              for path in API_FILES for node in json.loads(path.read_text()).values()
+              if node["class_type"] in STOCK_LOADERS}
+    assert {kind for kind, _ in picked} == {"CheckpointLoaderSimple", "ControlNetLoader", "CLIPVisionLoader"}
+    listed = {model["name"]: model["url"] for model in
+              json.loads(next(WORKFLOWS.glob(f"{FULL_API.stem.removesuffix('_api')}.json")).read_text())["models"]}
+    for kind, name in picked:
+        loader = STOCK_LOADERS[kind]
+        source = loader.source
+        assert loader.usual_name == name
+        file = source.download_file or source.repo_path
+        assert listed[name] == f"https://huggingface.co/{source.repo}/resolve/main/{file}"
+        where = f"{source.description} from {source.url} (`{source.download_command}`)"
+        assert loader.where_to_get(name) == f"Get the {where} and save it as models/{loader.folder}/{name}"
+        assert loader.where_to_get("mine.safetensors") == (
+            f"Save {loader.kind} as models/{loader.folder}/mine.safetensors, e.g. the {where}")
+
+
+def test_apply_csgo_names_the_image_encoders_source_from_the_same_entry():
+    from artnvg_core.diffusion.model_files import IMAGE_ENCODER_FILE
+    from nodes.model_patch_nodes import ApplyCSGO
+
+    tooltip = ApplyCSGO.INPUT_TYPES()["required"]["clip_vision"][1]["tooltip"]
+    assert (f"from {IMAGE_ENCODER_FILE.url} (`hf download h94/IP-Adapter sdxl_models/image_encoder/model.safetensors`) "
+            "and save it as models/clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors") in tooltip

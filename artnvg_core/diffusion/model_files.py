@@ -65,6 +65,10 @@ TILE_CONTROLNET = ModelSource(
 IMAGE_ENCODER = ModelSource(
     "IP-Adapter SDXL image encoder (OpenCLIP ViT-bigG/14)", "h94/IP-Adapter", "sdxl_models/image_encoder"
 )
+IMAGE_ENCODER_FILE = ModelSource(  # its weights as the one file ComfyUI's Load CLIP Vision reads
+    "IP-Adapter SDXL image encoder (OpenCLIP ViT-bigG/14)", "h94/IP-Adapter",
+    "sdxl_models/image_encoder/model.safetensors",
+)
 CSGO_WEIGHTS = ModelSource("CSGO content/style weights (4 content / 32 style tokens)", "InstantX/CSGO", "csgo_4_32.bin")
 
 
