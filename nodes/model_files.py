@@ -73,6 +73,9 @@ class ModelFile:
         source = f"{self.source.description} from {self.source.url} (`{self.source.download_command}`)"
         if self.kind and file.strip() not in ("", self.usual_name):
             return f"Save {self.kind} as {saved_as}, e.g. the {source}"
+        direct = self.source.download_as(saved_as)
+        if direct:
+            return f"Get the {self.source.description} from {self.source.url}: `{direct}` saves it as {saved_as}"
         return f"Get the {source} and save it as {saved_as}"
 
     def path(self, node: str, file: str) -> Path:

@@ -215,8 +215,8 @@ def test_a_pack_node_fed_by_a_stock_loader_whose_file_is_missing_names_its_input
     folder = model_folders / "checkpoints"
     loader = ("Load Checkpoint (node #4, CheckpointLoaderSimple): input 'ckpt_name': 'sd_xl_base_1.0.safetensors' is "
               f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the "
-              f"{SDXL_BASE.description} from {SDXL_BASE.url} (`{SDXL_BASE.download_command}`) and save it as "
-              f"{folder / 'sd_xl_base_1.0.safetensors'}")
+              f"{SDXL_BASE.description} from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
+              f"--local-dir {folder}` saves it as {folder / 'sd_xl_base_1.0.safetensors'}")
     assert _model_file_messages(prompt) == {"4": loader, "9": f"Apply CSGO: input 'model' comes from {loader}",
                                             "10": f"Sample Group: input 'vae' comes from {loader}"}
     request = check_prompt({"prompt": prompt}, {**NODE_CLASS_MAPPINGS, "PreviewImage": Output, "SaveImage": Output})

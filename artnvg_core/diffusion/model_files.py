@@ -9,6 +9,7 @@ and the file or folder inside it. The four files of the diffusion stylizer trave
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -48,6 +49,16 @@ class ModelSource:
         if self._is_file:
             return f"hf download {self.repo} {self.repo_path}"
         return f"hf download {self.repo} --include '{self.repo_path}/*'"
+
+    def download_as(self, path: str | Path) -> str | None:
+        """The command that saves the model's one file as ``path`` (``hf download ... --local-dir`` its folder), where
+        that file lies at the repository's top under ``path``'s name; else None (a file in a folder of the
+        repository would come with that folder, another name would need a rename)."""
+        path = Path(path)
+        file = self.download_file or (self.repo_path if self._is_file else "")
+        if not file or "/" in file or file != path.name:
+            return None
+        return f"hf download {self.repo} {file} --local-dir {shlex.quote(str(path.parent))}"
 
 
 SDXL_BASE = ModelSource(

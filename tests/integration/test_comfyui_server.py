@@ -357,8 +357,10 @@ def test_a_missing_model_file_is_refused_naming_it_the_folder_looked_in_and_wher
         details = _csgo_file_refusal(comfy_server, name)
         assert details.startswith(f"csgo_name - Load CSGO: input 'csgo_name': '{name}' is not in the 'csgo' model "
                                   f"folder (looked in {folder}; found "), details
-        assert ("from https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin (`hf download InstantX/CSGO "
-                f"csgo_4_32.bin`) and save it as {folder / name}") in details, details
+        where = "from https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin"
+        assert (f"{where}: `hf download InstantX/CSGO csgo_4_32.bin --local-dir {folder}` saves it as {folder / name}"
+                if name == "csgo_4_32.bin" else  # another name: the command saves the source's, to be renamed
+                f"{where} (`hf download InstantX/CSGO csgo_4_32.bin`) and save it as {folder / name}") in details, details
 
 
 def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folder_and_source(comfy_server):
@@ -389,8 +391,8 @@ def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folde
               f"'sd_xl_base_1.0.safetensors' is not in the 'checkpoints' model folder (looked in {folder}")
     # ... then in the other folders ComfyUI searches (0.3.64: output/checkpoints)
     source = ("; found nothing). Get the SDXL 1.0 base (diffusers folder or single-file checkpoint) from "
-              "https://huggingface.co/stabilityai/stable-diffusion-xl-base-1.0 (`hf download "
-              "stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors`) and save it as "
+              "https://huggingface.co/stabilityai/stable-diffusion-xl-base-1.0: `hf download "
+              f"stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors --local-dir {folder}` saves it as "
               f"{folder / 'sd_xl_base_1.0.safetensors'}")
     for title, input_name in (("Apply CSGO", "model"), ("Sample Group", "vae")):
         (error,) = errors[queue.find_node(workflow, title)]["errors"]
