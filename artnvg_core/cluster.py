@@ -1,4 +1,5 @@
-"""Ray, the optional engine behind several devices and machines (``pip install "artnvg[cluster]"``).
+"""Ray, the optional engine behind several devices and machines (``pip install "ray>=2.30"``; from a clone,
+``pip install -e ".[cluster]"``).
 
 * :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
   already initialised in this process, or starts a local Ray instance with exactly the given devices
@@ -28,6 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
+RAY_REQUIREMENT = "ray>=2.30"  # the [cluster] extra's (pyproject.toml), named in the message when Ray is missing
+
 from .counted import counted
 from .progress import StopFn, check_stop
 
@@ -50,8 +53,8 @@ def import_ray(needed_by: str):
     try:
         import ray
     except ImportError as error:
-        raise RayUnavailable(f"{needed_by} needs Ray, which is not installed: pip install \"artnvg[cluster]\" "
-                             "(or pip install ray)") from error
+        raise RayUnavailable(f"{needed_by} needs Ray, which is not installed: pip install \"{RAY_REQUIREMENT}\" in "
+                             "the Python that runs ArtNVG (ComfyUI's, for the nodes)") from error
     return ray
 
 

@@ -6,6 +6,10 @@ A :class:`ModelFile` declares the loader's list input as a COMBO, which ComfyUI 
 (``prompt_checks``) asks :meth:`ModelFile.check` before anything runs, so an empty folder, a file named but not
 there, and a file deleted after the server started are all refused with this message; the loader asks again
 (:meth:`ModelFile.path`) as it runs.
+
+ComfyUI's own model loaders (:data:`STOCK_LOADERS`) keep their list and its "Value not in list"; the prompt check
+gives :meth:`ModelFile.check`'s message to each node of the pack such a loader feeds. The file the pack's workflows
+name is told its exact source; another name, the kind of model wanted and that source as an example.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from artnvg_core.diffusion.model_files import ModelSource
+from artnvg_core.diffusion.model_files import IMAGE_ENCODER_FILE, SDXL_BASE, TILE_CONTROLNET, ModelSource
 
 from .comfy_bridge import model_file_path, model_files, model_folder_paths
 from .node_errors import NodeInputError
@@ -24,12 +28,21 @@ _LISTED = 5  # files of the folder a message names; then how many more
 @dataclass(frozen=True)
 class ModelFile:
     """A loader's input ``name``: a file of ComfyUI's model folder ``folder``, the model ``source`` (its Hugging Face
-    repository and file: where to get it); ``tooltip`` is the input's tooltip."""
+    repository and file: where to get it); ``tooltip`` is the input's tooltip; ``file`` the name the pack's workflows
+    give it ('': the source's own file name); ``kind`` what a file of another name should be ('': any name is told
+    ``source``)."""
 
     name: str
     folder: str
     source: ModelSource
-    tooltip: str
+    tooltip: str = ""
+    file: str = ""
+    kind: str = ""
+
+    @property
+    def usual_name(self) -> str:
+        """The file's name in the pack's workflows: ``file``, else the name of the source's file."""
+        return self.file or Path(self.source.download_file or self.source.repo_path).name
 
     def list_input(self) -> tuple:
         """The declaration of input ``name``, with the folder's files listed now: a COMBO, whose value ComfyUI leaves
@@ -42,18 +55,28 @@ class ModelFile:
         the path to save it as."""
         if file.strip() and model_file_path(self.folder, file) is not None:
             return None
-        folders = model_folder_paths(self.folder)
         present = model_files(self.folder)
         held = ", ".join(f"'{name}'" for name in present[:_LISTED]) or "nothing"
         if len(present) > _LISTED:
             held += f" and {len(present) - _LISTED} more"
-        looked = ", ".join(folders) or f"ComfyUI's models/{self.folder}"
-        saved_as = Path(folders[0] if folders else f"models/{self.folder}") / (file.strip() or
-                                                                               Path(self.source.repo_path).name)
+        looked = ", ".join(model_folder_paths(self.folder)) or f"ComfyUI's models/{self.folder}"
         chosen = f"'{file}' is not in" if file.strip() else "no file chosen from"
         return (f"{node}: input '{self.name}': {chosen} the '{self.folder}' model folder (looked in {looked}; found "
-                f"{held}). Get the {self.source.description} from {self.source.url} "
-                f"(`{self.source.download_command}`) and save it as {saved_as}")
+                f"{held}). {self.where_to_get(file)}")
+
+    def where_to_get(self, file: str = "") -> str:
+        """Where to get ``file`` and the path to save it as (in the folder ComfyUI searches first): the source for the
+        name the pack's workflows use (or for any name, without ``kind``), else ``kind`` with the source as an
+        example."""
+        folders = model_folder_paths(self.folder)
+        saved_as = Path(folders[0] if folders else f"models/{self.folder}") / (file.strip() or self.usual_name)
+        source = f"{self.source.description} from {self.source.url} (`{self.source.download_command}`)"
+        if self.kind and file.strip() not in ("", self.usual_name):
+            return f"Save {self.kind} as {saved_as}, e.g. the {source}"
+        direct = self.source.download_as(saved_as)
+        if direct:
+            return f"Get the {self.source.description} from {self.source.url}: `{direct}` saves it as {saved_as}"
+        return f"Get the {source} and save it as {saved_as}"
 
     def path(self, node: str, file: str) -> Path:
         """The full path of ``file`` in the folder; a :class:`~.node_errors.NodeInputError` with :meth:`check`'s
@@ -62,3 +85,17 @@ class ModelFile:
         if missing:
             raise NodeInputError(missing)
         return model_file_path(self.folder, file)
+
+
+SDXL_LORA_EXAMPLE = ModelSource("Pixel Art XL style LoRA", "nerijs/pixel-art-xl", "pixel-art-xl.safetensors")
+STOCK_LOADERS = {  # ComfyUI's own model loader (node type) -> its file input
+    "CheckpointLoaderSimple": ModelFile("ckpt_name", "checkpoints", SDXL_BASE, kind=(
+        "an SDXL 1.0 checkpoint (the base or a fine-tune of it: CSGO and the tile ControlNet are trained on SDXL)")),
+    "LoraLoader": ModelFile("lora_name", "loras", SDXL_LORA_EXAMPLE, kind="a LoRA trained on SDXL 1.0"),
+    "ControlNetLoader": ModelFile("control_net_name", "controlnet", TILE_CONTROLNET, kind=(
+        "an SDXL tile ControlNet (CSGO's ControlNet weights were trained with TTPlanet's)")),
+    "CLIPVisionLoader": ModelFile("clip_name", "clip_vision", IMAGE_ENCODER_FILE,
+                                  file="CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors", kind=(
+                                      "the OpenCLIP ViT-bigG/14 image encoder (CSGO's resamplers read its 1664-wide "
+                                      "features)")),
+}

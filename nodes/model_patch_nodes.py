@@ -30,7 +30,7 @@ from .comfy_patches import (
     patch_controlnet,
     transformer_layers,
 )
-from .model_files import ModelFile
+from .model_files import STOCK_LOADERS, ModelFile
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CSGO
@@ -40,9 +40,7 @@ CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
 CSGO_FILE = ModelFile("csgo_name", CSGO_FOLDER, CSGO_WEIGHTS, tooltip=(
     f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_WEIGHTS.url}: `{CSGO_WEIGHTS.download_command}`, saved as "
     f"models/{CSGO_FOLDER}/csgo_4_32.bin)."))
-IMAGE_ENCODER_URL = ("https://huggingface.co/h94/IP-Adapter: `hf download h94/IP-Adapter "
-                     "sdxl_models/image_encoder/model.safetensors`, saved (renamed) as "
-                     "models/clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")
+CLIP_VISION_FILE = STOCK_LOADERS["CLIPVisionLoader"]
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
 _log = logging.getLogger("artnvg")
@@ -167,7 +165,8 @@ class ApplyCSGO(ArtNVGNode):
         "model": ("MODEL", {"tooltip": "An SDXL checkpoint (Load Checkpoint; LoRAs applied before)."}),
         "control_net": ("CONTROL_NET", {"tooltip": "The TTPlanet SDXL tile ControlNet (Load ControlNet Model)."}),
         "csgo": (CSGO,),
-        "clip_vision": ("CLIP_VISION", {"tooltip": f"ViT-bigG/14, IP-Adapter's SDXL image encoder: {IMAGE_ENCODER_URL}."}),
+        "clip_vision": ("CLIP_VISION", {"tooltip": (
+            f"ViT-bigG/14, IP-Adapter's SDXL image encoder (Load CLIP Vision). {CLIP_VISION_FILE.where_to_get()}.")}),
         "style_image": STYLE_IMAGE_INPUT,
         "style_scale": ("FLOAT", {"default": SamplerSettings.style_scale, "min": 0.0, "max": 10.0, "step": 0.05,
                                   "tooltip": "Weight of the style tokens (UNet up blocks, ControlNet)."}),
@@ -205,7 +204,8 @@ class ApplyCSGO(ArtNVGNode):
         features = clip_vision.encode_image(style_image[:1]).penultimate_hidden_states
         if features.shape[-1] != csgo.style.config.embedding_dim:
             raise NodeInputError(f"{node}: input 'clip_vision': its features are {features.shape[-1]} wide, CSGO's "
-                                 f"resamplers read {csgo.style.config.embedding_dim}: use ViT-bigG/14 ({IMAGE_ENCODER_URL})")
+                                 f"resamplers read {csgo.style.config.embedding_dim}: use ViT-bigG/14. "
+                                 f"{CLIP_VISION_FILE.where_to_get()}")
         state = CSGOState(projections.tokens("style", features), style_scale, content_scale, content_routing,
                           functools.partial(_content_tokens, clip_vision, projections))
         patched = model.clone()

@@ -25,9 +25,11 @@ which ComfyUI does not compare with the value itself: the check's message says m
 where the file belongs, where to get it).
 Without the handler (a prompt validated some other way) the loaders raise the same message when they run.
 
-ComfyUI's own model loaders (:data:`MODEL_LOADERS`) list their folder's files, and ComfyUI's own check
-names a file that is not there ("Value not in list"); the handler counts such a node as failing too, so
-that a graph missing a model file runs not at all either.
+ComfyUI's own model loaders (:data:`~.model_files.STOCK_LOADERS`) list their folder's files, and ComfyUI's own
+check names a file that is not there ("Value not in list"), neither where it looked nor where to get it; the
+handler counts such a node as failing too, so that a graph missing a model file runs not at all either, and
+gives each node of the pack that such a loader feeds (straight, or through ComfyUI's LoRA loaders) one message
+naming its input, the loader, the file, the folders looked in and where to get it (:func:`_missing_models`).
 """
 
 from __future__ import annotations
@@ -39,16 +41,11 @@ from collections.abc import Mapping
 
 from artnvg_core.images import image_size
 
-from .comfy_bridge import comfy_module, load_image_path, model_file_path
+from .comfy_bridge import comfy_module, load_image_path
 from .input_files import outside_folders
+from .model_files import STOCK_LOADERS
 
 CHECK_INPUT = "node_id"  # every node's hidden input (ComfyUI's UNIQUE_ID), which its VALIDATE_INPUTS takes
-MODEL_LOADERS = {  # ComfyUI's node type -> (its file input, its model folder)
-    "CheckpointLoaderSimple": ("ckpt_name", "checkpoints"),
-    "LoraLoader": ("lora_name", "loras"),
-    "ControlNetLoader": ("control_net_name", "controlnet"),
-    "CLIPVisionLoader": ("clip_name", "clip_vision"),
-}
 REFUSED = (TypeError, ValueError, OverflowError)  # what comfyui_value raises for a value ComfyUI refuses itself
 _KEPT_PROMPTS = 32
 _results: OrderedDict[str, dict[str, str]] = OrderedDict()  # prompt id -> node id -> message
@@ -71,6 +68,11 @@ def _inputs(node) -> dict:
     return inputs if isinstance(inputs, dict) else {}
 
 
+def _links(node) -> dict[str, str]:
+    """Input name -> the node id it is linked to, of a prompt node."""
+    return {name: str(value[0]) for name, value in _inputs(node).items() if isinstance(value, list) and len(value) == 2}
+
+
 def _upstream(prompt: dict, node_id: str) -> set[str]:
     """``node_id`` and every node it reads from, directly or not (links are ``[node id, slot]`` inputs)."""
     seen, stack = set(), [node_id]
@@ -79,8 +81,7 @@ def _upstream(prompt: dict, node_id: str) -> set[str]:
         if current in seen or current not in prompt:
             continue
         seen.add(current)
-        stack.extend(str(value[0]) for value in _inputs(prompt[current]).values()
-                     if isinstance(value, list) and len(value) == 2)
+        stack.extend(_links(prompt[current]).values())
     return seen
 
 
@@ -103,6 +104,43 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
         return None
 
 
+def _missing_model(prompt: dict, loader_id: str) -> str | None:
+    """The message of ComfyUI's model loader ``loader_id`` (:data:`~.model_files.STOCK_LOADERS`) whose file is not
+    in its folder, naming it by its title, type and id; None when the file is there."""
+    loader = prompt[loader_id]
+    model_file = STOCK_LOADERS[loader["class_type"]]
+    file = comfyui_value(None, _inputs(loader).get(model_file.name, ""))  # {"__value__": name} unwrapped
+    if isinstance(file, list):  # a name another node gives, known only as the graph runs
+        return None
+    title = (loader.get("_meta") or {}).get("title") or loader["class_type"]
+    return model_file.check(f"{title} (node #{loader_id}, {loader['class_type']})", str(file))
+
+
+def _missing_models(prompt: dict, node: dict, node_name: str) -> str | None:
+    """The message of pack node ``node`` (called ``node_name``) fed by ComfyUI's model loaders whose file is missing,
+    straight or through their own links (a LoRA loader's MODEL and CLIP): a line per loader, naming the node's
+    inputs it feeds; None when each file is there."""
+    fed: dict[str, list[str]] = {}  # loader id -> the node's inputs it feeds
+    for input_name, source in _links(node).items():
+        seen, stack = set(), [source]
+        while stack:
+            current = stack.pop()
+            loader = prompt.get(current)
+            if current in seen or not isinstance(loader, dict) or loader.get("class_type") not in STOCK_LOADERS:
+                continue
+            seen.add(current)
+            fed.setdefault(current, []).append(input_name)
+            stack.extend(_links(prompt[current]).values())
+    lines = []
+    for loader_id, input_names in fed.items():
+        message = _missing_model(prompt, loader_id)
+        names = ", ".join(f"'{name}'" for name in input_names)
+        inputs = f"input {names} comes" if len(input_names) == 1 else f"inputs {names} come"
+        if message:
+            lines.append(f"{node_name}: {inputs} from {message}")
+    return "\n".join(lines) or None
+
+
 def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, str | None]]:
     """Node id -> (its problem, as :func:`failed_checks` names it; what its ``VALIDATE_INPUTS`` answers with:
     None where ComfyUI's own validation reports that problem itself: a value out of range or choices, or one it
@@ -112,11 +150,10 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         if not isinstance(node, dict):
             continue
         values = {name: value for name, value in _inputs(node).items() if not isinstance(value, list)}
-        if node.get("class_type") in MODEL_LOADERS:
-            name, folder = MODEL_LOADERS[node["class_type"]]
-            file = comfyui_value(None, values.get(name, ""))  # as ComfyUI passes it: {"__value__": name} unwrapped
-            if model_file_path(folder, str(file)) is None:
-                checked[str(node_id)] = (f"'{file}' is not in the '{folder}' model folder", None)
+        if node.get("class_type") in STOCK_LOADERS:
+            message = _missing_model(prompt, node_id)
+            if message:
+                checked[str(node_id)] = (message, None)
             continue
         cls = classes.get(node.get("class_type"))
         message = cls.check_values(**values) if hasattr(cls, "check_values") else None
@@ -127,6 +164,8 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         message = cls.check_files(**passed) if hasattr(cls, "check_files") else None
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
+        if not message and hasattr(cls, "check_images"):  # a node of the pack
+            message = _missing_models(prompt, node, cls.DISPLAY_NAME)
         if message:
             checked[str(node_id)] = (message, message)
     return checked

@@ -57,7 +57,7 @@ def test_a_bad_strength_is_refused_naming_it(text, message):
         LoRA(Path("a.safetensors"), float("nan"))
 
 
-def test_without_peft_a_lora_is_refused_naming_the_extra(tmp_path, monkeypatch):
+def test_without_peft_a_lora_is_refused_naming_the_package_to_install(tmp_path, monkeypatch):
     import importlib.util
 
     lora = tmp_path / "style.safetensors"
@@ -65,7 +65,7 @@ def test_without_peft_a_lora_is_refused_naming_the_extra(tmp_path, monkeypatch):
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None if name == "peft" else find_spec(name, *args))
     with pytest.raises(LoRAError, match=f"LoRA '{lora}': LoRAs are applied through the peft package, which is not "
-                                        r'installed: pip install "artnvg\[lora\]"'):
+                                        r'installed: pip install "peft>=0\.21" in the Python that runs ArtNVG'):
         check_lora(LoRA(lora))
 
 

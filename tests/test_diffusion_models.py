@@ -246,6 +246,21 @@ def test_locate_explicit_path_then_hf_cache(tmp_path):
     assert locate(IMAGE_ENCODER, hf_cache_dir=tmp_path / "cache") == target
 
 
+def test_a_download_command_saves_a_top_level_file_as_the_path_asked_for():
+    """``hf download REPO FILE --local-dir DIR`` saves the repository's FILE as DIR/FILE (a file in a folder of the
+    repository as DIR/FOLDER/FILE): a command is given only where that is the path asked for."""
+    from artnvg_core.diffusion.model_files import IMAGE_ENCODER_FILE, SDXL_BASE
+
+    assert CSGO_WEIGHTS.download_as("models/csgo/csgo_4_32.bin") == \
+        "hf download InstantX/CSGO csgo_4_32.bin --local-dir models/csgo"
+    assert SDXL_BASE.download_as("/my models/checkpoints/sd_xl_base_1.0.safetensors") == (
+        "hf download stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors --local-dir "
+        "'/my models/checkpoints'")  # quoted for the shell
+    assert CSGO_WEIGHTS.download_as("models/csgo/mine.bin") is None  # another name: a rename
+    assert IMAGE_ENCODER_FILE.download_as("models/clip_vision/model.safetensors") is None  # in a folder
+    assert IMAGE_ENCODER.download_as("models/clip_vision/image_encoder") is None  # a folder
+
+
 def test_controlnet_folder_and_single_files(tmp_path):
     base = tiny_base()
     controlnet = tiny_controlnet(base.unet)

@@ -135,26 +135,124 @@ def test_validation_repeats_no_problem_comfyui_reports_itself(executing):
         assert request["partial_execution_targets"] == ["2"] and check_result() == shown, values
 
 
-def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(monkeypatch):
+@pytest.fixture
+def model_folders(tmp_path, monkeypatch):
+    """ComfyUI's model folders (checkpoints, loras, controlnet, clip_vision) under tmp_path/models, empty."""
+    from test_nodes_comfy_bridge import FakeComfy
+
+    for name, module in FakeComfy(tmp_path).modules.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    folder_paths = sys.modules["folder_paths"]
+    folder_paths.folder_names_and_paths["loras"] = ([str(tmp_path / "models" / "loras")], {".safetensors"})
+    folder_paths.get_annotated_filepath = lambda name: str(tmp_path / "input" / name)  # Load Image's file
+    for folder in ("checkpoints", "loras", "controlnet", "clip_vision"):
+        (tmp_path / "models" / folder).mkdir(parents=True)
+    return tmp_path / "models"
+
+
+def test_a_model_loader_whose_file_is_not_in_its_folder_blocks_its_outputs(model_folders):
     """ComfyUI's own loaders are checked by folder: ComfyUI names the file itself ("Value not in list"), so
     their VALIDATE_INPUTS (none) has nothing to add; Load CSGO's file is its check_files' (test_nodes_model_files)."""
     from nodes import NODE_CLASS_MAPPINGS
 
-    monkeypatch.setattr(prompt_checks, "model_file_path",
-                        lambda folder, name: f"/models/{folder}/{name}" if name == "sdxl.safetensors" else None)
+    (model_folders / "checkpoints" / "sdxl.safetensors").write_bytes(b"")
     classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
     prompt = {"1": {"class_type": "CheckpointLoaderSimple", "inputs": {"ckpt_name": "sdxl.safetensors"}},
               "2": {"class_type": "ControlNetLoader", "inputs": {"control_net_name": "tile.safetensors"}},
               "3": {"class_type": "Output", "inputs": {"model": ["1", 0], "control_net": ["2", 0]}},
               "4": {"class_type": "Output", "inputs": {}}}
-    assert failed_checks(prompt, classes) == {"2": "'tile.safetensors' is not in the 'controlnet' model folder"}
+    missing = ("ControlNetLoader (node #2, ControlNetLoader): input 'control_net_name': 'tile.safetensors' is not in "
+               "the 'controlnet' model folder")
+    assert list(failed_checks(prompt, classes)) == ["2"] and failed_checks(prompt, classes)["2"].startswith(missing)
     request = check_prompt({"prompt": prompt}, classes)
     assert request["partial_execution_targets"] == ["3"]
     assert prompt_checks._results[request["prompt_id"]] == {}  # ComfyUI's message alone
     # a name as the editor wraps a list value, which ComfyUI unwraps: the check read the wrapper
     prompt["1"]["inputs"]["ckpt_name"] = {"__value__": "sdxl.safetensors"}
     prompt["2"]["inputs"]["control_net_name"] = {"__value__": "tile.safetensors"}
-    assert failed_checks(prompt, classes) == {"2": "'tile.safetensors' is not in the 'controlnet' model folder"}
+    assert list(failed_checks(prompt, classes)) == ["2"] and failed_checks(prompt, classes)["2"].startswith(missing)
+    prompt["2"]["inputs"]["control_net_name"] = ["4", 0]  # a name another node gives: known as the graph runs
+    assert failed_checks(prompt, classes) == {}
+
+
+def _full_workflow() -> dict:
+    """The shipped full-method API workflow (ArtNVG_3)."""
+    import json
+
+    from test_workflows import FULL_API
+
+    return json.loads(FULL_API.read_text())
+
+
+def _model_file_messages(prompt: dict) -> dict[str, str]:
+    """Node id -> message of the prompt's nodes that failed for a model file: the stock loaders, the pack's nodes they
+    feed (the scene and camera loaders, whose demo files are not in this input folder, left out)."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "PreviewImage": Output, "SaveImage": Output}
+    return {node_id: message for node_id, message in failed_checks(prompt, classes).items()
+            if prompt[node_id]["class_type"] not in ("ArtNVGLoadGaussianScene", "ArtNVGLoadCameras")}
+
+
+def test_a_pack_node_fed_by_a_stock_loader_whose_file_is_missing_names_its_input_the_loader_and_the_file(
+        model_folders, executing):
+    """The shipped full workflow, its SDXL checkpoint missing: ComfyUI's "Value not in list: ckpt_name:
+    'sd_xl_base_1.0.safetensors' not in []" on Load Checkpoint was all it said. Apply CSGO (its model) and Sample
+    Group (its vae), which Load Checkpoint feeds straight, fail too, each once, naming their input, the loader, the
+    file, the folder looked in and where to get it; nodes fed through a node of the pack (NV-Attention Patch) do
+    not repeat it."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    from artnvg_core.diffusion.model_files import SDXL_BASE
+
+    for folder, name in (("controlnet", "TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors"),
+                         ("clip_vision", "CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")):
+        (model_folders / folder / name).write_bytes(b"")
+    sys.modules["folder_paths"].folder_names_and_paths["csgo"] = ([str(model_folders / "csgo")], {".bin"})
+    (model_folders / "csgo").mkdir()
+    (model_folders / "csgo" / "csgo_4_32.bin").write_bytes(b"")
+    prompt = _full_workflow()
+    folder = model_folders / "checkpoints"
+    loader = ("Load Checkpoint (node #4, CheckpointLoaderSimple): input 'ckpt_name': 'sd_xl_base_1.0.safetensors' is "
+              f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the "
+              f"{SDXL_BASE.description} from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
+              f"--local-dir {folder}` saves it as {folder / 'sd_xl_base_1.0.safetensors'}")
+    assert _model_file_messages(prompt) == {"4": loader, "9": f"Apply CSGO: input 'model' comes from {loader}",
+                                            "10": f"Sample Group: input 'vae' comes from {loader}"}
+    request = check_prompt({"prompt": prompt}, {**NODE_CLASS_MAPPINGS, "PreviewImage": Output, "SaveImage": Output})
+    executing["prompt"], executing["node"] = request["prompt_id"], "9"
+    assert NODE_CLASS_MAPPINGS["ArtNVGApplyCSGO"].VALIDATE_INPUTS() == f"Apply CSGO: input 'model' comes from {loader}"
+    executing["node"] = "4"  # ComfyUI's own node: its "Value not in list" alone
+    assert check_result() is True
+    (folder / "sd_xl_base_1.0.safetensors").write_bytes(b"")  # the file there: nothing changes
+    assert _model_file_messages(prompt) == {}
+
+
+def test_a_loader_feeding_through_lora_loaders_is_named_once_per_node_with_each_input_it_feeds(model_folders):
+    """Load Checkpoint -> Load LoRA -> Load LoRA -> a node of the pack, another input of it straight from Load
+    Checkpoint: a line per missing file, each naming the node's inputs it reaches; a title left out names the type."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": "CheckpointLoaderSimple", "inputs": {"ckpt_name": "mine.safetensors"}},
+              "2": {"class_type": "LoraLoader", "inputs": {"lora_name": "ink.safetensors", "model": ["1", 0],
+                                                            "clip": ["1", 1]}, "_meta": {"title": "Ink LoRA"}},
+              "3": {"class_type": "LoraLoader", "inputs": {"lora_name": "there.safetensors", "model": ["2", 0],
+                                                            "clip": ["2", 1]}},
+              "4": {"class_type": "ArtNVGSampleGroup", "inputs": {"model": ["3", 0], "vae": ["1", 2]}},
+              "5": {"class_type": "Output", "inputs": {"images": ["4", 0]}}}
+    (model_folders / "loras" / "there.safetensors").write_bytes(b"")
+    lines = failed_checks(prompt, classes)["4"].split("\n")
+    assert len(lines) == 2
+    assert lines[0].startswith("Sample Group: input 'model' comes from Ink LoRA (node #2, LoraLoader): input "
+                               "'lora_name': 'ink.safetensors' is not in the 'loras' model folder")
+    assert lines[0].endswith(f"Save a LoRA trained on SDXL 1.0 as {model_folders / 'loras' / 'ink.safetensors'}, e.g. "
+                             "the Pixel Art XL style LoRA from https://huggingface.co/nerijs/pixel-art-xl/blob/main/"
+                             "pixel-art-xl.safetensors (`hf download nerijs/pixel-art-xl pixel-art-xl.safetensors`)")
+    assert lines[1].startswith("Sample Group: inputs 'model', 'vae' come from CheckpointLoaderSimple (node #1, "
+                               "CheckpointLoaderSimple): input 'ckpt_name': 'mine.safetensors' is not in ")
+    assert "Save an SDXL 1.0 checkpoint (the base or a fine-tune of it" in lines[1]
+    assert sorted(failed_checks(prompt, classes)) == ["1", "2", "4"]
 
 
 def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tmp_path, monkeypatch):

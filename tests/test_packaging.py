@@ -69,3 +69,13 @@ def test_registry_metadata_follows_the_comfy_registry_specification():
     assert project["classifiers"] == ["Operating System :: OS Independent"]
     assert project["license"] == "Apache-2.0" and project["license-files"] == ["LICENSE"]
     assert (REPO / "LICENSE").read_text().split()[:4] == ["Apache", "License", "Version", "2.0,"]
+
+
+def test_the_messages_for_a_missing_optional_package_name_the_extras_requirement():
+    """A missing Ray or PEFT is named with the requirement of its extra (pip install "ray>=2.30"), which works in
+    any Python, ComfyUI's included; "artnvg[cluster]" would send pip to an index where artnvg is not ours."""
+    from artnvg_core.cluster import RAY_REQUIREMENT
+    from artnvg_core.diffusion.lora import PEFT_REQUIREMENT
+
+    extras = _project()["optional-dependencies"]
+    assert extras["cluster"] == [RAY_REQUIREMENT] and extras["lora"] == [PEFT_REQUIREMENT]

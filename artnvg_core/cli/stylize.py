@@ -213,7 +213,7 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                         "BENCHMARKS.md, Diffusion step; "
                         "not with --preset low-memory)")
     p.add_argument("--devices", help="diffusion stage: comma-separated GPUs sharing the groups, e.g. cuda:0,cuda:1, "
-                   "one Ray worker each (pip install \"artnvg[cluster]\"; default: --device)")
+                   "one Ray worker each (pip install \"ray>=2.30\"; default: --device)")
     p.add_argument("--ray-address", help="diffusion stage: spread the groups over the GPUs of a running Ray cluster "
                    "(auto, or HOST:PORT)")
     p.add_argument("--group-multiple", type=integer_at_least(1), default=1, metavar="M",

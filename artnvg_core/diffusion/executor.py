@@ -10,7 +10,7 @@ worker has). The groups do not depend on the number of workers: with ``G`` group
 last round leaves ``W - G mod W`` of them idle unless G is a multiple of W, which
 :func:`~artnvg_core.grouping.group_views`'s ``multiple`` gives when asked (``stylize --group-multiple``).
 A group whose worker dies (a killed process, a lost machine) is handed to another worker, with the
-same seed: the result is unchanged. Needs Ray (``pip install "artnvg[cluster]"``; :mod:`artnvg_core.cluster`).
+same seed: the result is unchanged. Needs Ray (``pip install "ray>=2.30"``; :mod:`artnvg_core.cluster`).
 """
 
 from __future__ import annotations

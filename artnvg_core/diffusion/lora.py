@@ -19,6 +19,7 @@ from pathlib import Path
 
 from .quiet_notices import lora_loading_notices_silenced, torchvision_fallback_notice_silenced
 
+PEFT_REQUIREMENT = "peft>=0.21"  # the [lora] extra's (pyproject.toml), named in the message when PEFT is missing
 LORA_COMPONENTS = ("unet", "text_encoder", "text_encoder_2")  # what an SDXL LoRA may change
 
 
@@ -66,7 +67,7 @@ def check_lora(lora: LoRA) -> None:
     where = f"LoRA '{lora.path}'"
     if importlib.util.find_spec("peft") is None:
         raise LoRAError(f"{where}: LoRAs are applied through the peft package, which is not installed: "
-                        'pip install "artnvg[lora]"')
+                        f'pip install "{PEFT_REQUIREMENT}" in the Python that runs ArtNVG (ComfyUI\'s, for the nodes)')
     if not lora.path.is_file():
         raise LoRAError(f"{where}: no such file")
     if lora.path.suffix.lower() != ".safetensors":

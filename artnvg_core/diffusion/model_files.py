@@ -9,6 +9,7 @@ and the file or folder inside it. The four files of the diffusion stylizer trave
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -49,6 +50,16 @@ class ModelSource:
             return f"hf download {self.repo} {self.repo_path}"
         return f"hf download {self.repo} --include '{self.repo_path}/*'"
 
+    def download_as(self, path: str | Path) -> str | None:
+        """The command that saves the model's one file as ``path`` (``hf download ... --local-dir`` its folder), where
+        that file lies at the repository's top under ``path``'s name; else None (a file in a folder of the
+        repository would come with that folder, another name would need a rename)."""
+        path = Path(path)
+        file = self.download_file or (self.repo_path if self._is_file else "")
+        if not file or "/" in file or file != path.name:
+            return None
+        return f"hf download {self.repo} {file} --local-dir {shlex.quote(str(path.parent))}"
+
 
 SDXL_BASE = ModelSource(
     "SDXL 1.0 base (diffusers folder or single-file checkpoint)", "stabilityai/stable-diffusion-xl-base-1.0",
@@ -64,6 +75,10 @@ TILE_CONTROLNET = ModelSource(
 )
 IMAGE_ENCODER = ModelSource(
     "IP-Adapter SDXL image encoder (OpenCLIP ViT-bigG/14)", "h94/IP-Adapter", "sdxl_models/image_encoder"
+)
+IMAGE_ENCODER_FILE = ModelSource(  # its weights as the one file ComfyUI's Load CLIP Vision reads
+    "IP-Adapter SDXL image encoder (OpenCLIP ViT-bigG/14)", "h94/IP-Adapter",
+    "sdxl_models/image_encoder/model.safetensors",
 )
 CSGO_WEIGHTS = ModelSource("CSGO content/style weights (4 content / 32 style tokens)", "InstantX/CSGO", "csgo_4_32.bin")
 

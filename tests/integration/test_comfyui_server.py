@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
-from test_workflows import CAMERA_FREE_API, NNFM_API, REGION_API, STOCK_NODES
+from test_workflows import CAMERA_FREE_API, FULL_API, NNFM_API, REGION_API, STOCK_NODES
 from ws_client import WebSocket
 
 from artnvg_core.formats import read_ply
@@ -357,8 +357,49 @@ def test_a_missing_model_file_is_refused_naming_it_the_folder_looked_in_and_wher
         details = _csgo_file_refusal(comfy_server, name)
         assert details.startswith(f"csgo_name - Load CSGO: input 'csgo_name': '{name}' is not in the 'csgo' model "
                                   f"folder (looked in {folder}; found "), details
-        assert ("from https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin (`hf download InstantX/CSGO "
-                f"csgo_4_32.bin`) and save it as {folder / name}") in details, details
+        where = "from https://huggingface.co/InstantX/CSGO/blob/main/csgo_4_32.bin"
+        assert (f"{where}: `hf download InstantX/CSGO csgo_4_32.bin --local-dir {folder}` saves it as {folder / name}"
+                if name == "csgo_4_32.bin" else  # another name: the command saves the source's, to be renamed
+                f"{where} (`hf download InstantX/CSGO csgo_4_32.bin`) and save it as {folder / name}") in details, details
+
+
+def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folder_and_source(comfy_server):
+    """The shipped full workflow posted over HTTP, its three other model files there and its SDXL checkpoint not:
+    ComfyUI's "Value not in list: ckpt_name: 'sd_xl_base_1.0.safetensors' not in [...]" on Load Checkpoint was all
+    the answer said. Apply CSGO and Sample Group, which Load Checkpoint feeds (their model, their vae), now fail
+    too, each once, naming the loader, the file, the folder ComfyUI looked in and where to get the file."""
+    models = comfy_server.input_dir.parent / "models"
+    present = [models / "controlnet" / "TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors",
+               models / "clip_vision" / "CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors",
+               models / "csgo" / "csgo_4_32.bin"]
+    workflow = queue.load_api_workflow(FULL_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/scene.ply",
+                       f"Load Cameras.camera_source={comfy_server.test_folder}/transforms.json",
+                       f"Style image.image={comfy_server.test_folder}/style.jpg"):
+        queue.apply_override(workflow, assignment)
+    for path in present:
+        path.write_bytes(b"")
+    try:
+        errors = _refused_before_any_work(comfy_server, workflow)
+    finally:
+        for path in present:
+            path.unlink()
+    checkpoint = queue.find_node(workflow, "Load Checkpoint")
+    assert [e["type"] for e in errors[checkpoint]["errors"]] == ["value_not_in_list"]  # ComfyUI's own, as it was
+    folder = models / "checkpoints"
+    loader = (f"Load Checkpoint (node #{checkpoint}, CheckpointLoaderSimple): input 'ckpt_name': "
+              f"'sd_xl_base_1.0.safetensors' is not in the 'checkpoints' model folder (looked in {folder}")
+    # ... then in the other folders ComfyUI searches (0.3.64: output/checkpoints)
+    source = ("; found nothing). Get the SDXL 1.0 base (diffusers folder or single-file checkpoint) from "
+              "https://huggingface.co/stabilityai/stable-diffusion-xl-base-1.0: `hf download "
+              f"stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors --local-dir {folder}` saves it as "
+              f"{folder / 'sd_xl_base_1.0.safetensors'}")
+    for title, input_name in (("Apply CSGO", "model"), ("Sample Group", "vae")):
+        (error,) = errors[queue.find_node(workflow, title)]["errors"]
+        assert error["type"] == "custom_validation_failed", error
+        assert error["details"].startswith(f"node_id - {title}: input '{input_name}' comes from {loader}"), error
+        assert error["details"].endswith(source) and "\n" not in error["details"], error
+    assert set(errors) == {checkpoint, *(queue.find_node(workflow, title) for title in ("Apply CSGO", "Sample Group"))}
 
 
 def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_server):

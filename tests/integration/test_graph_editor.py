@@ -374,7 +374,11 @@ def test_missing_models_refuse_the_whole_run_in_the_editor_naming_each_file(edit
         folder = comfy_server.input_dir.parent / "models" / "csgo"
         assert (f"csgo_name - Load CSGO: input 'csgo_name': 'csgo_4_32.bin' is not in the 'csgo' model folder (looked "
                 f"in {folder}; found ") in text, text
-        assert "(`hf download InstantX/CSGO csgo_4_32.bin`) and save it as " in text, text
+        assert f": `hf download InstantX/CSGO csgo_4_32.bin --local-dir {folder}` saves it as " in text, text
+        # and each node of the pack that ComfyUI's loaders feed names the loader, its file, folder and source
+        checkpoints = comfy_server.input_dir.parent / "models" / "checkpoints"
+        assert "Apply CSGO: input 'model' comes from Load Checkpoint (node #" in text, text
+        assert f"saves it as {checkpoints / 'sd_xl_base_1.0.safetensors'}" in text, text
     time.sleep(3)
     assert _history_count(comfy_server) == runs  # nothing queued, not even the content renders
     _close_dialogs(editor)
