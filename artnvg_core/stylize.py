@@ -306,15 +306,18 @@ def stylize_diffusion(
 
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                 out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3,
-                progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> Path:
+                progress: ProgressFn | None = None, should_stop: StopFn | None = None,
+                scene_progress: ProgressFn | None = None) -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
     :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
-    neither and nothing on disk changes. ``progress`` follows the sheet's renders and ``should_stop`` may end
-    them (:func:`contact_sheet`): a stop writes nothing. Returns the sheet's path."""
+    neither and nothing on disk changes. ``progress`` follows the sheet's renders, ``scene_progress`` the scene
+    file's Gaussians written, and ``should_stop`` may end either (:func:`contact_sheet`): a stop writes nothing.
+    Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend, progress=progress,
                           should_stop=should_stop)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
-        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version)
+        save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version, progress=scene_progress,
+                   should_stop=should_stop)
         save_png(sheet, sheet_file)
     return sheet_path(out_ply)

@@ -19,7 +19,7 @@ from artnvg_core.formats import (
     save_scene,
 )
 
-from .comfy_bridge import output_directory
+from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
@@ -70,10 +70,14 @@ class LoadGaussianScene(ArtNVGNode):
     def IS_CHANGED(cls, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):
         return SCENE_FILE.signature(scene_file, path)
 
+    @cancellable
     def load(self, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):
+        """The scene read with the node's progress bar moving (seconds for millions of Gaussians) and ComfyUI's
+        Cancel stopping it."""
         file, input_name = SCENE_FILE.readable(self.DISPLAY_NAME, scene_file, path)
         with node_input(self.DISPLAY_NAME, input_name):
-            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras),)
+            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
+                               progress=progress_bar(), should_stop=interrupt_requested),)
 
 
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:
@@ -152,7 +156,9 @@ class SaveGaussianScene(ArtNVGNode):
             return f"{cls.DISPLAY_NAME}: input 'filename_prefix': {error}"
         return None
 
+    @cancellable
     def save(self, scene, filename_prefix, format="ply", spz_version="3", node_id=None):
+        """The scene written with the node's progress bar moving and ComfyUI's Cancel stopping it, no file left."""
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
@@ -161,10 +167,12 @@ class SaveGaussianScene(ArtNVGNode):
                 raise ValueError(f"expected one of {SPZ_VERSION_CHOICES}, got {spz_version!r}")
         with node_input(self.DISPLAY_NAME, "filename_prefix"):
             names = _numbered_paths(filename_prefix, f".{format}")
+        report = progress_bar()
         for file in names:
             try:
                 with node_input(self.DISPLAY_NAME, "scene"):
-                    save_scene(scene, file, spz_version=int(spz_version), overwrite=False)
+                    save_scene(scene, file, spz_version=int(spz_version), overwrite=False, progress=report,
+                               should_stop=interrupt_requested)
                 break
             except FileExistsError:
                 continue  # taken while this file was written: the next number

@@ -40,8 +40,11 @@ def test_a_region_blended_at_a_strength_is_written_exactly_as_ply(tmp_path, caps
                  "--region", BOX, "--out", str(out)]) == 0
     inside = _inside(original)
     assert 0 < inside.sum() < len(original)
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert f"region: {int(inside.sum()):,} of 1,000 Gaussians selected" in printed and "blended at strength 0.25" in printed
+    for bar in ("loading (reading vertex)", "loading (decoding)", "saving"):  # seconds each for millions of Gaussians
+        assert f"{bar}: 100%|" in captured.err and "1.00k/1.00k" in captured.err, bar
     result = load_scene(out)
     assert result.sh_degree == 3
     for name, value in result.tensors().items():

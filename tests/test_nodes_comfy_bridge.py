@@ -21,7 +21,7 @@ from nodes.blend_nodes import BlendStylization
 from nodes.model_patch_nodes import CSGO_FOLDER, LoadCSGO
 from nodes.finetune_nodes import FinetuneGaussians
 from nodes.render_nodes import RenderViews
-from nodes.scene_nodes import LoadGaussianScene
+from nodes.scene_nodes import LoadGaussianScene, SaveGaussianScene
 from nodes.selection_nodes import SelectGaussians
 
 
@@ -235,6 +235,32 @@ def test_select_gaussians_by_masks_reports_progress_and_stops(comfy):
     comfy.interrupted = True
     with pytest.raises(InterruptProcessingException), torch.inference_mode():
         SelectGaussians().select(scene, "mask", "", cameras=cameras, mask=masks, views="0, 1, 2")
+
+
+@pytest.mark.parametrize("format", ["ply", "spz"])
+def test_scene_files_load_and_save_with_progress_and_stop_leaving_no_file(comfy, monkeypatch, format):
+    """Millions of Gaussians take seconds to read or write: the bar moves a chunk at a time, Cancel stops it."""
+    from artnvg_core.formats import common, save_scene
+
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    scene = _tiny_scene()
+    (comfy.root / "input").mkdir()
+    save_scene(scene, comfy.root / "input" / f"scene.{format}")
+    rising = [(0, 40), (16, 40), (32, 40), (40, 40)]
+    with torch.inference_mode():
+        LoadGaussianScene().load(f"scene.{format}")
+        assert comfy.bars == [rising * (2 if format == "ply" else 1)]  # a PLY's rows read, then decoded
+        comfy.bars.clear()
+        SaveGaussianScene().save(scene, "artnvg/saved", format)
+        total = 40 * (6 if format == "spz" else 1)  # an SPZ: its 6 attribute arrays in turn
+        assert comfy.bars[0][0] == (0, total) and comfy.bars[0][-1] == (total, total)
+    assert [p.name for p in (comfy.root / "output" / "artnvg").iterdir()] == [f"saved_00001.{format}"]
+    for run in (lambda: LoadGaussianScene().load(f"scene.{format}"),
+                lambda: SaveGaussianScene().save(scene, "artnvg/saved", format)):
+        comfy.interrupted = True
+        with pytest.raises(InterruptProcessingException), torch.inference_mode():
+            run()
+    assert [p.name for p in (comfy.root / "output" / "artnvg").iterdir()] == [f"saved_00001.{format}"]
 
 
 def test_finetune_runs_under_inference_mode_with_progress_and_stops(comfy, caplog):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import load_scene_verbose
+from .common import ProgressBar, load_scene_verbose
 from .options import SCENE_FILES, add_scene_file_options, unit_interval
 from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
 
@@ -32,7 +32,8 @@ def cmd_blend(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     result = blend(original, stylized, args.strength, selection, names=(str(args.original), str(args.stylized)))
     elapsed = time.perf_counter() - start
-    save_scene(result, out, spz_axes=args.spz_axes, spz_version=args.spz_version)
+    save_scene(result, out, spz_axes=args.spz_axes, spz_version=args.spz_version,
+               progress=ProgressBar("saving", "Gaussian"))
     print(f"blended at strength {args.strength:g} in {elapsed * 1000:.0f} ms; wrote {out}")
 
 

@@ -18,6 +18,7 @@ from ..counted import counted
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
+    from ..progress import StopFn
     from ..scene import GaussianScene
 
 
@@ -75,7 +76,8 @@ def close_progress_bars() -> None:
 
 class ProgressBar:
     """A tqdm bar (rate and ETA, on stderr) fed by core progress callbacks; float ``info`` values follow it.
-    ``unit``: what the steps count ("it"; "B": bytes, shown scaled, e.g. 6.5G/13.8G). Callbacks whose
+    ``unit``: what the steps count ("it"; others, such as "B" for bytes or "Gaussian", shown scaled: 6.5G/13.8GB,
+    1.50M/3.00MGaussian). Callbacks whose
     ``info["stage"]`` changes (the finetune's renders before and after its steps) start a new bar,
     described as ``DESCRIPTION (STAGE)``. A bar starts at its first callback's step: its rate counts the work
     done after that (a first callback at the end shows none, where it once divided the work by no time).
@@ -104,7 +106,7 @@ class ProgressBar:
                 self.stage = stage
                 description = self.description if stage is None else f"{self.description} ({stage})"
                 self.bar = tqdm(total=total, initial=step, desc=description, unit=self.unit,
-                                unit_scale=self.unit == "B", dynamic_ncols=True, leave=False)
+                                unit_scale=self.unit != "it", dynamic_ncols=True, leave=False)
                 _drawn.append(self)
             self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
             self.bar.update(step - self.bar.n)
@@ -134,10 +136,11 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
-                       spz_axes: str = "auto", cameras: CameraSet | None = None) -> GaussianScene:
-    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``
-    passed on),
-    printing the file size first and the count and time after. The library's advice on invalid Gaussians
+                       spz_axes: str = "auto", cameras: CameraSet | None = None,
+                       should_stop: StopFn | None = None) -> GaussianScene:
+    """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``,
+    ``should_stop`` passed on), printing the file size first, a progress bar of the Gaussians read (seconds for
+    millions), and the count and time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
     from ..formats import load_scene
@@ -147,7 +150,8 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
     start = time.perf_counter()
     try:
-        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras).to(device)
+        scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
+                           progress=ProgressBar("loading", "Gaussian"), should_stop=should_stop).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise

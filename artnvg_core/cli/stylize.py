@@ -104,7 +104,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                         progress=ProgressBar("models", "B"))
 
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
-                               cameras=capture_cameras)
+                               cameras=capture_cameras, should_stop=args.should_stop)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
         check_geometry_writable(scene, out)
     except ValueError as error:
@@ -157,7 +157,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                               selection=selection)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
-                        should_stop=args.should_stop)
+                        should_stop=args.should_stop, scene_progress=ProgressBar("saving", "Gaussian"))
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
