@@ -174,3 +174,25 @@ def test_packed_columns_are_read_by_their_declared_type(tmp_path, declared):
     with pytest.raises(ValueError, match=r"bad\.ply: element 'vertex': packed_\* values must be whole numbers from 0 "
                        r"to 2\^32 - 1 \(declared (float|int)"):
         load_scene(tmp_path / "bad.ply")
+
+
+def test_decoded_in_chunks_as_whole_with_progress_and_a_stop_between_chunks(tmp_path, monkeypatch):
+    """Chunks of 100 Gaussians straddle the file's 256-Gaussian chunks: the same bits as one chunk."""
+    from artnvg_core.formats import common
+    from artnvg_core.progress import Cancelled
+    from tests.test_formats_ply import assert_same_bits
+
+    path = tmp_path / "scene.compressed.ply"
+    chunks, packed, sh = encode(plain_scene(1000, 3))
+    write_compressed(path, chunks, packed, sh, colours=np.tile([0.1, 0.0, 0.2, 0.9, 1.0, 0.8], (len(chunks), 1)))
+    whole = load_scene(path)
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 100)
+    steps = []
+    assert_same_bits(load_scene(path, progress=lambda step, total, info: steps.append((info["stage"], step, total))),
+                     whole)
+    decoding = [(step, total) for stage, step, total in steps if stage == "decoding"]
+    assert decoding == [(step, 1000) for step in range(0, 1001, 100)]
+    with pytest.raises(Cancelled):
+        load_scene(path, progress=lambda step, total, info: steps.append((info["stage"], step, total)),
+                   should_stop=lambda: steps[-1] == ("decoding", 300, 1000))
+    assert steps[-1] == ("decoding", 300, 1000)  # stopped before the fourth chunk's decoding

@@ -99,7 +99,8 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
     puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
-    :mod:`.spz`). ``progress`` follows a PLY's or an SPZ's Gaussians, a chunk at a time (by stage), and
+    :mod:`.spz`). ``progress`` follows a PLY's (compressed ones too) or an SPZ's Gaussians, a chunk at a time
+    (by stage), and
     ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`); the other formats,
     read whole in a second or two at 3M Gaussians, are asked before they start."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)

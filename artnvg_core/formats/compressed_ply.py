@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from ..counted import counted
+from ..progress import ProgressFn, StopFn, staged
 from ..scene import SH_C0, GaussianScene, validate_scene
-from .common import opacity_logits_from_bytes
+from .common import ChunkedWork, opacity_logits_from_bytes
 from .ply_data import PlyData
 
 CHUNK_SIZE = 256
@@ -39,8 +40,8 @@ def is_compressed_ply(ply: PlyData) -> bool:
     return "chunk" in names and "vertex" in names and "packed_position" in ply["vertex"].property_names
 
 
-def _columns(path: Path, ply: PlyData, element: str, names: list[str]) -> np.ndarray:
-    """The named properties of ``element`` as one array [count, len(names)] (float64 or int64)."""
+def _columns(path: Path, ply: PlyData, element: str, names: list[str], rows: slice = slice(None)) -> np.ndarray:
+    """The named properties of ``element``'s ``rows`` as one array [rows, len(names)] (float64 or int64)."""
     data = ply[element].data
     if data is None:  # an element with list properties is never read
         raise ValueError(f"{path}: element '{element}' has list properties; expected numbers")
@@ -50,6 +51,7 @@ def _columns(path: Path, ply: PlyData, element: str, names: list[str]) -> np.nda
     kinds = {data.dtype[name].kind for name in names}
     if kinds - {"f"} and kinds - {"u", "i"}:
         raise ValueError(f"{path}: element '{element}': properties {', '.join(names)} have the wrong types")
+    data = data[rows]
     return np.stack([data[name] for name in names], 1).astype(np.int64 if kinds <= {"u", "i"} else np.float64)
 
 
@@ -80,44 +82,58 @@ def _rotations(packed: np.ndarray) -> np.ndarray:
     return q
 
 
-def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = False) -> GaussianScene:
-    """The scene of a parsed compressed PLY (layout in the module docstring)."""
-    packed = _columns(path, ply, "vertex", _PACKED)
+def _packed_codes(path: Path, ply: PlyData, rows: slice) -> np.ndarray:
+    """The packed_* codes [rows, 4] (int64) of ``rows`` of the vertex element, whole numbers from 0 to 2^32 - 1."""
+    packed = _columns(path, ply, "vertex", _PACKED, rows)
     if (packed < 0).any() or (packed >= 1 << 32).any() or (packed != np.floor(packed)).any():
         raise ValueError(f"{path}: element 'vertex': packed_* values must be whole numbers from 0 to 2^32 - 1 "
                          f"(declared {', '.join(sorted({str(ply['vertex'].data.dtype[n]) for n in _PACKED}))})")
-    packed = packed.astype(np.int64)  # codes declared as float (any exact whole number) read as their value
-    n = len(packed)
+    return packed.astype(np.int64)  # codes declared as float (any exact whole number) read as their value
+
+
+def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = False,
+                              progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> GaussianScene:
+    """The scene of a parsed compressed PLY (layout in the module docstring), decoded a chunk of Gaussians at a
+    time: ``progress`` (stage "decoding") counts them, ``should_stop`` ends the work between chunks
+    (:class:`~artnvg_core.progress.Cancelled`)."""
+    _packed_codes(path, ply, slice(0))  # the vertex element's properties checked before any work
+    n = len(ply["vertex"].data)
     chunks = (n + CHUNK_SIZE - 1) // CHUNK_SIZE
     if ply["chunk"].count != chunks:
         raise ValueError(f"{path}: element 'chunk': count {ply['chunk'].count}, expected {chunks} "
                          f"(one per {CHUNK_SIZE} of the {counted(n, 'vertex', 'vertices')})")
     if n == 0:
         raise ValueError(f"{path}: the scene contains no Gaussians")
-    chunk_of = np.arange(n) // CHUNK_SIZE
-    bounds = _columns(path, ply, "chunk", _CHUNK_BOUNDS)[chunk_of]
-    scales = _columns(path, ply, "chunk", _CHUNK_SCALES)[chunk_of]
-    position, rotation, scale, colour = packed.T
-    rgba = np.stack([colour >> shift & 255 for shift in (24, 16, 8, 0)], 1)
-    rgb = rgba[:, :3] / 255
-    if "min_r" in ply["chunk"].property_names:
-        colours = _columns(path, ply, "chunk", _CHUNK_COLOURS)[chunk_of]
-        rgb = _lerp(colours[:, :3], colours[:, 3:], rgb)
-    sh = [(rgb - 0.5)[:, None, :] / SH_C0]
+    bounds = _columns(path, ply, "chunk", _CHUNK_BOUNDS)
+    scales = _columns(path, ply, "chunk", _CHUNK_SCALES)
+    colours = _columns(path, ply, "chunk", _CHUNK_COLOURS) if "min_r" in ply["chunk"].property_names else None
+    rest = 0
     if "sh" in ply:
         names = ply["sh"].property_names
         if len(names) not in (9, 24, 45) or ply["sh"].count != n:
             raise ValueError(f"{path}: element 'sh': {counted(len(names), 'property', 'properties')} for "
                              f"{counted(ply['sh'].count, 'row')}, expected 9, 24 or 45 f_rest_* for "
                              f"{counted(n, 'row')}")
-        coded = _columns(path, ply, "sh", [f"f_rest_{i}" for i in range(len(names))])
-        value = np.where(coded == 0, 0.0, np.where(coded == 255, 1.0, (coded + 0.5) / 256))
-        sh.append(((value - 0.5) * 8).reshape(n, 3, -1).transpose(0, 2, 1))  # channel-major, as INRIA's f_rest
-    scene = GaussianScene(
-        means=torch.from_numpy(_lerp(bounds[:, :3], bounds[:, 3:], _unpack_11_10_11(position))).float(),
-        quats=torch.from_numpy(_rotations(rotation)).float(),
-        log_scales=torch.from_numpy(_lerp(scales[:, :3], scales[:, 3:], _unpack_11_10_11(scale))).float(),
-        opacity_logits=torch.from_numpy(opacity_logits_from_bytes(rgba[:, 3])).float(),
-        sh=torch.from_numpy(np.concatenate(sh, 1)).float(),
-    )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+        rest = len(names)
+    scene = GaussianScene(means=torch.empty(n, 3), quats=torch.empty(n, 4), log_scales=torch.empty(n, 3),
+                          opacity_logits=torch.empty(n), sh=torch.empty(n, 1 + rest // 3, 3))
+    for rows in ChunkedWork(n, 1, staged(progress, "decoding"), should_stop).chunks():
+        position, rotation, scale, colour = _packed_codes(path, ply, rows).T
+        chunk_of = np.arange(rows.start, rows.stop) // CHUNK_SIZE
+        rgba = np.stack([colour >> shift & 255 for shift in (24, 16, 8, 0)], 1)
+        rgb = rgba[:, :3] / 255
+        if colours is not None:
+            rgb = _lerp(colours[chunk_of, :3], colours[chunk_of, 3:], rgb)
+        sh = [(rgb - 0.5)[:, None, :] / SH_C0]
+        if rest:
+            coded = _columns(path, ply, "sh", [f"f_rest_{i}" for i in range(rest)], rows)
+            value = np.where(coded == 0, 0.0, np.where(coded == 255, 1.0, (coded + 0.5) / 256))
+            sh.append(((value - 0.5) * 8).reshape(len(coded), 3, -1).transpose(0, 2, 1))  # channel-major f_rest
+        low, high = bounds[chunk_of, :3], bounds[chunk_of, 3:]
+        scene.means[rows] = torch.from_numpy(_lerp(low, high, _unpack_11_10_11(position)))
+        scene.quats[rows] = torch.from_numpy(_rotations(rotation))
+        low, high = scales[chunk_of, :3], scales[chunk_of, 3:]
+        scene.log_scales[rows] = torch.from_numpy(_lerp(low, high, _unpack_11_10_11(scale)))
+        scene.opacity_logits[rows] = torch.from_numpy(opacity_logits_from_bytes(rgba[:, 3]))
+        scene.sh[rows] = torch.from_numpy(np.concatenate(sh, 1))
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]

@@ -68,7 +68,8 @@ def _vertices(path: Path, ply: PlyData) -> np.ndarray:
     return element.data
 
 
-def _ply_columns(path: Path, data: np.ndarray, blocks: dict[str, list[str]], work: ChunkedWork) -> dict[str, torch.Tensor]:
+def _ply_columns(path: Path, data: np.ndarray, blocks: dict[str, list[str]],
+                 work: ChunkedWork) -> dict[str, torch.Tensor]:
     """Each block's named scalar properties as one float32 tensor [N, len(names)], filled a chunk of rows at a
     time (``work``: one pass)."""
     available = set(data.dtype.names or ())
@@ -135,7 +136,8 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, progress: P
     require_file(path)
     ply = read_ply_data(path, (_PLY_ELEMENT, *compressed_ply.ELEMENTS), progress=progress, should_stop=should_stop)
     if compressed_ply.is_compressed_ply(ply):
-        return compressed_ply.scene_from_compressed_ply(path, ply, drop_invalid=drop_invalid)
+        return compressed_ply.scene_from_compressed_ply(path, ply, drop_invalid=drop_invalid, progress=progress,
+                                                        should_stop=should_stop)
     data = _vertices(path, ply)
     num_rest = _sh_rest_count(path, data.dtype.names or ())
     layout = _ply_layout(num_rest)
