@@ -132,14 +132,15 @@ def test_a_fifo_is_refused_by_every_reader_without_reading(tmp_path, suffix):
 
 # --------------------------------------------------------------------------- chunks: progress and cancellation
 
-CHUNKED = [(".ply", {}), (".ply", {"binary": False}), (".spz", {"version": 3}), (".spz", {"version": 2})]
+CHUNKED = [(".ply", {}), (".ply", {"binary": False}), (".spz", {"version": 3}), (".spz", {"version": 2}),
+           (".splat", {}), (".ksplat", {})]
 
 
 def write_chunked(scene, path, options: dict, **kwargs) -> None:
-    """``scene`` written to ``path`` as ``save_scene`` would (an ASCII PLY and an SPZ version by their writers)."""
-    from artnvg_core.formats import write_ply, write_spz
+    """``scene`` written to ``path`` by its format's writer (which takes the options: an ASCII PLY, an SPZ version)."""
+    from artnvg_core.formats import WRITERS
 
-    (write_ply if path.suffix == ".ply" else write_spz)(scene, path, **options, **kwargs)
+    WRITERS[path.suffix](scene, path, **options, **kwargs)
 
 
 @pytest.mark.parametrize("degree", [0, 3])

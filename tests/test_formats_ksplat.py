@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from artnvg_core.formats import load_scene, save_scene
+from artnvg_core.formats import common, load_scene, save_scene
 from artnvg_core.formats.ksplat import read_ksplat, write_ksplat
 from artnvg_core.scene import SH_C0
+from tests.test_formats_ply import assert_same_bits
 from tests.test_formats_splat import assert_only_value_errors, plain_scene, quat_error
 
 
@@ -71,7 +72,7 @@ def test_comfyui_cores_level_0_layout(tmp_path):
 
 
 @pytest.mark.parametrize("level", [1, 2])
-def test_levels_1_and_2_with_buckets_written_by_hand(tmp_path, level):
+def test_levels_1_and_2_with_buckets_written_by_hand(tmp_path, monkeypatch, level):
     """Three Gaussians, SH degree 1, in a full bucket of 2 and a partly filled one of 1 (bucket
     centres (10, 0, 0) and (0, -5, 0), block size 4, range 32767); positions as SplatBuffer
     quantises them, scales and rotations as float16, SH float16 (level 1) or bytes in the header's
@@ -97,6 +98,8 @@ def test_levels_1_and_2_with_buckets_written_by_hand(tmp_path, level):
     assert quat_error(scene.quats, torch.tensor([[0.0, 0, 1, 0]] * 3)) == 0
     expected = sh.reshape(3, 3, 3).transpose(0, 2, 1)  # [N, coefficient, channel]
     np.testing.assert_allclose(scene.sh[:, 1:].numpy(), expected, atol=0 if level == 1 else 4 / 255)
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 2)  # the second chunk starts in the partly filled bucket
+    assert_same_bits(read_ksplat(path), scene)
 
 
 def test_corrupt_headers_name_the_field(tmp_path):

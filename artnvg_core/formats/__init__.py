@@ -99,10 +99,9 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
     puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
-    :mod:`.spz`). ``progress`` follows a PLY's (compressed ones too) or an SPZ's Gaussians, a chunk at a time
-    (by stage), and
-    ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`); the other formats,
-    read whole in a second or two at 3M Gaussians, are asked before they start."""
+    :mod:`.spz`). ``progress`` follows the Gaussians read, a chunk at a time (by stage where a format reads in
+    several), and ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`); a
+    splatfacto ``.ckpt`` loads in one ``torch.load`` and reports no progress (its Gaussians' check stops)."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
     check_scene_content(path)
@@ -111,10 +110,9 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras, progress=progress,
                         should_stop=should_stop)
-    if reader is read_ply:
-        return read_ply(path, drop_invalid=drop_invalid, progress=progress, should_stop=should_stop)
+    reporting = {} if reader is read_splatfacto_ckpt else {"progress": progress}
     try:
-        return reader(path, drop_invalid=drop_invalid)
+        return reader(path, drop_invalid=drop_invalid, should_stop=should_stop, **reporting)
     except ValueError as error:  # a format with no signature (.splat...): it may be another one, renamed
         found = _signature_of(_head(path))
         if found is None or found[0] == path.suffix.lower():
@@ -156,19 +154,14 @@ def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str =
     a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them,
     as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js). With ``overwrite``
     False never over an existing file: FileExistsError naming ``path`` when one holds it by the time the new
-    one is complete (:func:`~artnvg_core.fileio.write_atomically`). ``progress`` follows a PLY's or an SPZ's
-    Gaussians written, a chunk at a time, and ``should_stop`` ends the write between chunks
-    (:class:`~artnvg_core.progress.Cancelled`: no file, partial or whole, is left); a .splat or .ksplat, written
-    whole in a second or two at 3M Gaussians, is asked before it starts."""
+    one is complete (:func:`~artnvg_core.fileio.write_atomically`). ``progress`` follows the Gaussians written,
+    a chunk at a time, and ``should_stop`` ends the write between chunks (:class:`~artnvg_core.progress.Cancelled`:
+    no file, partial or whole, is left)."""
     path = writable_scene_path(path)
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     _check_option("spz_version", spz_version, SPZ_VERSIONS)
-    check_stop(should_stop)
-    writer = WRITERS[path.suffix.lower()]
-    if writer is write_spz:
+    if path.suffix.lower() == ".spz":
         write_spz(scene, path, axes=spz_axes, version=spz_version, overwrite=overwrite, progress=progress,
                   should_stop=should_stop)
-    elif writer is write_ply:
-        write_ply(scene, path, overwrite=overwrite, progress=progress, should_stop=should_stop)
     else:
-        writer(scene, path, overwrite=overwrite)
+        WRITERS[path.suffix.lower()](scene, path, overwrite=overwrite, progress=progress, should_stop=should_stop)

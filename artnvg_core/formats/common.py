@@ -34,12 +34,13 @@ class ChunkedWork:
         if progress is not None:
             progress(0, self.total, {})
 
-    def chunks(self) -> Iterator[slice]:
-        """One pass's slices of the Gaussians, in order."""
-        size = CHUNK_GAUSSIANS
-        for start in range(0, self.count, size):
+    def chunks(self, start: int = 0, stop: int | None = None) -> Iterator[slice]:
+        """One pass's slices of the Gaussians, in order (of those from ``start`` to ``stop`` only: a pass made
+        of parts, such as a file's sections)."""
+        size, stop = CHUNK_GAUSSIANS, self.count if stop is None else stop
+        for first in range(start, stop, size):
             check_stop(self.should_stop)
-            rows = slice(start, min(start + size, self.count))
+            rows = slice(first, min(first + size, stop))
             yield rows
             self.done += rows.stop - rows.start
             if self.progress is not None:

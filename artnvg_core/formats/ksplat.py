@@ -40,8 +40,9 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene, validate_scene
-from .common import require_file, scene_to_write
+from .common import ChunkedWork, require_file, scene_to_write
 from .splat import colour_and_opacity, linear_scales, rgba_bytes
 
 _log = logging.getLogger(__name__)
@@ -98,8 +99,11 @@ def _bucket_of_each(path: Path, s: int, section: dict, count: int) -> np.ndarray
     return np.concatenate([index, partial])
 
 
-def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
-    """Read a ``.ksplat`` file of compression level 0, 1 or 2 (layout in the module docstring)."""
+def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
+                should_stop: StopFn | None = None) -> GaussianScene:
+    """Read a ``.ksplat`` file of compression level 0, 1 or 2 (layout in the module docstring). Its sections'
+    headers are checked first, then their records decoded a chunk of Gaussians at a time: ``progress`` counts
+    them, ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
     path = Path(path)
     require_file(path)
     data = path.read_bytes()
@@ -127,44 +131,52 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gauss
         if offset + storage > len(data):
             raise ValueError(f"{path}: section {s}: its counts need {counted(storage, 'byte')}, the file holds "
                              f"{len(data) - offset} after its start (truncated, or the counts are wrong)")
-        rows = np.frombuffer(data, record, count, offset + meta + bucket_bytes * buckets)
-        means = rows["center"].astype(np.float64)
+        part = {"rows": np.frombuffer(data, record, count, offset + meta + bucket_bytes * buckets), "degree": degree}
         if level > 0:
             if buckets and bucket_bytes != _BUCKET_BYTES:
                 raise ValueError(f"{path}: section {s}: bucketStorageSizeBytes: {bucket_bytes}, expected "
                                  f"{_BUCKET_BYTES} (a bucket's centre, 3 float32)")
             section = {"full": full, "bucket_size": bucket_size,
                        "lengths": np.frombuffer(data, "<u4", partial, offset).astype(np.int64)}
-            centres = np.frombuffer(data, "<f4", 3 * buckets, offset + meta).reshape(-1, 3).astype(np.float64)
             scale_range = scale_range or _DEFAULT_SCALE_RANGE[level]
             if full + partial > buckets:
                 raise ValueError(f"{path}: section {s}: fullBucketCount {full} + partiallyFilledBucketCount "
                                  f"{partial} is more than its bucketCount {buckets}")
-            bucket = _bucket_of_each(path, s, section, count)
-            means = (means - scale_range) * (block / 2 / scale_range) + centres[bucket]
-        sh = rows["sh"].astype(np.float64) if degree else np.zeros((count, 0))
-        if level == 2 and degree:
-            sh = sh / 255 * (sh_max - sh_min) + sh_min
-        parts.append((means, rows["scale"].astype(np.float64), rows["rotation"].astype(np.float64), rows["rgba"],
-                      sh, degree))
+            part["bucket"] = _bucket_of_each(path, s, section, count)
+            part["centres"] = np.frombuffer(data, "<f4", 3 * buckets, offset + meta).reshape(-1, 3).astype(np.float64)
+            part["range"], part["block"] = scale_range, block
+        parts.append(part)
         offset += storage
     if offset != len(data):
         raise ValueError(f"{path}: the file holds {counted(len(data) - offset, 'byte')} after its last section")
-    degree = min((p[5] for p in parts), default=0)
-    if not parts or sum(len(p[0]) for p in parts) == 0:
+    degree = min((p["degree"] for p in parts), default=0)
+    total = sum(len(p["rows"]) for p in parts)
+    if total == 0:
         raise ValueError(f"{path}: the scene contains no Gaussians")
-    means, scales, rotations, rgba = (np.concatenate([p[i] for p in parts]) for i in range(4))
-    rest = np.concatenate([_sh_rest(p[4], p[5])[:, : (degree + 1) ** 2 - 1] for p in parts])
-    tiny = np.finfo(np.float32).tiny
-    dc, opacity_logits = colour_and_opacity(rgba)
-    scene = GaussianScene(
-        means=torch.from_numpy(means).float(),
-        quats=torch.from_numpy(rotations).float(),
-        log_scales=torch.from_numpy(np.log(np.maximum(np.abs(scales), tiny))).float(),
-        opacity_logits=opacity_logits,
-        sh=torch.cat([dc, torch.from_numpy(rest).float()], 1),
-    )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+    scene = GaussianScene(means=torch.empty(total, 3), quats=torch.empty(total, 4), log_scales=torch.empty(total, 3),
+                          opacity_logits=torch.empty(total), sh=torch.empty(total, (degree + 1) ** 2, 3))
+    work, start, tiny = ChunkedWork(total, 1, progress, should_stop), 0, np.finfo(np.float32).tiny
+    for part in parts:
+        for rows in work.chunks(start, start + len(part["rows"])):
+            local = slice(rows.start - start, rows.stop - start)
+            records = part["rows"][local]
+            means = records["center"].astype(np.float64)
+            if level > 0:
+                scale_range = part["range"]
+                means = (means - scale_range) * (part["block"] / 2 / scale_range) + part["centres"][part["bucket"][local]]
+            sh = records["sh"].astype(np.float64) if part["degree"] else np.zeros((len(records), 0))
+            if level == 2 and part["degree"]:
+                sh = sh / 255 * (sh_max - sh_min) + sh_min
+            dc, opacity_logits = colour_and_opacity(records["rgba"])
+            scales = np.abs(records["scale"].astype(np.float64))
+            scene.means[rows] = torch.from_numpy(means)
+            scene.quats[rows] = torch.from_numpy(records["rotation"].astype(np.float64))
+            scene.log_scales[rows] = torch.from_numpy(np.log(np.maximum(scales, tiny)))
+            scene.opacity_logits[rows] = opacity_logits
+            rest = _sh_rest(sh, part["degree"])[:, : (degree + 1) ** 2 - 1]
+            scene.sh[rows] = torch.cat([dc, torch.from_numpy(rest).float()], 1)
+        start += len(part["rows"])
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
 
 
 def check_geometry(cpu: GaussianScene, path: Path) -> None:
@@ -172,30 +184,45 @@ def check_geometry(cpu: GaussianScene, path: Path) -> None:
     linear_scales(cpu, path, ".ksplat")
 
 
-def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+def _rows(cpu: GaussianScene, scales: np.ndarray, degree: int, rows: slice) -> np.ndarray:
+    """The level-0 records with SH ``degree`` of Gaussians ``rows`` of ``cpu``, whose linear scales are ``scales``."""
+    part = cpu.select(rows)
+    records = np.zeros(len(part), _record(0, degree))
+    records["center"] = part.means.numpy()
+    records["scale"] = scales[rows]
+    records["rotation"] = normalize_quats(part.quats.double()).numpy()
+    records["rgba"] = rgba_bytes(part)
+    if degree:
+        records["sh"] = _stored_sh(part.sh[:, 1 : (degree + 1) ** 2].double().numpy())
+    return records
+
+
+def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True,
+                 progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
     """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring); with ``overwrite`` False never
-    over an existing file (:func:`~artnvg_core.fileio.write_atomically`).
+    over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk of
+    Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
+    (:class:`~artnvg_core.progress.Cancelled`, no file left).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, log-scales
     outside [-87, 88].
     """
     path = Path(path)
-    cpu = scene_to_write(scene, path)
+    cpu = scene_to_write(scene, path, should_stop)
     scales = linear_scales(cpu, path, ".ksplat")
     degree = min(cpu.sh_degree, 2)
     if cpu.sh_degree > 2:
         _log.warning("%s: .ksplat holds SH up to degree 2; the degree-3 view-dependent terms are dropped", path)
     n, record = len(cpu), _record(0, degree)
-    rows = np.zeros(n, record)
-    rows["center"] = cpu.means.numpy()
-    rows["scale"] = scales
-    rows["rotation"] = normalize_quats(cpu.quats.double()).numpy()
-    rows["rgba"] = rgba_bytes(cpu)
-    if degree:
-        rows["sh"] = _stored_sh(cpu.sh[:, 1 : (degree + 1) ** 2].double().numpy())
     header = bytearray(HEADER_BYTES)
     _HEADER.pack_into(header, 0, *VERSION, 1, 1, n, n, 0, 0.0, 0.0, 0.0, -_DEFAULT_SH_RANGE, _DEFAULT_SH_RANGE)
     section = bytearray(SECTION_HEADER_BYTES)
     _SECTION.pack_into(section, 0, n, n, 0, 0, 0.0, 0, 0, record.itemsize * n, 0, 0, degree)
-    write_atomically(path, lambda stream: stream.write(bytes(header) + bytes(section) + rows.tobytes()),
-                     overwrite=overwrite)
+    work = ChunkedWork(n, 1, progress, should_stop)
+
+    def write(stream) -> None:
+        stream.write(bytes(header) + bytes(section))
+        for rows in work.chunks():
+            stream.write(_rows(cpu, scales, degree, rows).tobytes())
+
+    write_atomically(path, write, overwrite=overwrite)

@@ -26,8 +26,9 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..progress import ProgressFn, StopFn
 from ..scene import DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
-from .common import opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
+from .common import ChunkedWork, opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -64,8 +65,11 @@ def check_geometry(cpu: GaussianScene, path: Path) -> None:
     linear_scales(cpu, path, ".splat")
 
 
-def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
-    """Read a ``.splat`` file (layout in the module docstring) as an SH degree 0 scene."""
+def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
+               should_stop: StopFn | None = None) -> GaussianScene:
+    """Read a ``.splat`` file (layout in the module docstring) as an SH degree 0 scene, decoded a chunk of
+    Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the read between chunks
+    (:class:`~artnvg_core.progress.Cancelled`)."""
     path = Path(path)
     require_file(path)
     size = path.stat().st_size
@@ -80,36 +84,51 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussi
     if bad.any() and not drop_invalid:
         problem = "have a scale that is not a positive finite number"
         raise ValueError(f"{path}: {describe_invalid('scale', bad, problem)}; {DROP_INVALID_HINT}")
-    rotation = records["rotation"].astype(np.float64) - 128  # all 128: the zero quaternion, refused by validation
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_scales = np.log(scales)
-    sh, opacity_logits = colour_and_opacity(records["rgba"])
-    scene = GaussianScene(
-        means=torch.from_numpy(records["position"].copy()),
-        quats=torch.from_numpy(rotation / 128).float(),
-        log_scales=torch.from_numpy(log_scales).float(),
-        opacity_logits=opacity_logits,
-        sh=sh,
-    )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+    n = len(records)
+    scene = GaussianScene(means=torch.empty(n, 3), quats=torch.empty(n, 4), log_scales=torch.empty(n, 3),
+                          opacity_logits=torch.empty(n), sh=torch.empty(n, 1, 3))
+    for rows in ChunkedWork(n, 1, progress, should_stop).chunks():
+        rotation = records["rotation"][rows].astype(np.float64) - 128  # all 128: the zero quaternion, refused later
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_scales = np.log(scales[rows])
+        scene.means[rows] = torch.from_numpy(records["position"][rows])
+        scene.quats[rows] = torch.from_numpy(rotation / 128)
+        scene.log_scales[rows] = torch.from_numpy(log_scales)
+        scene.sh[rows], scene.opacity_logits[rows] = colour_and_opacity(records["rgba"][rows])
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
 
 
-def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True) -> None:
+def _records(cpu: GaussianScene, scales: np.ndarray, rows: slice) -> np.ndarray:
+    """The .splat records of Gaussians ``rows`` of ``cpu``, whose linear scales [N, 3] are ``scales``."""
+    part = cpu.select(rows)
+    records = np.empty(len(part), dtype=RECORD)
+    records["position"] = part.means.numpy()
+    records["scale"] = scales[rows]
+    records["rgba"] = rgba_bytes(part)
+    records["rotation"] = to_bytes(normalize_quats(part.quats.double()).numpy() * 128 + 128)
+    return records
+
+
+def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True,
+                progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
     """Write ``scene`` as a ``.splat`` file atomically (quantisation in the module docstring); with ``overwrite``
-    False never over an existing file (:func:`~artnvg_core.fileio.write_atomically`).
+    False never over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk
+    of Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
+    (:class:`~artnvg_core.progress.Cancelled`, no file left).
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, log-scales outside [-87, 88].
     """
     path = Path(path)
-    cpu = scene_to_write(scene, path)
+    cpu = scene_to_write(scene, path, should_stop)
     scales = linear_scales(cpu, path, ".splat")
     if cpu.sh_degree > 0:
         _log.warning("%s: .splat holds SH degree 0 only; the degree %d view-dependent terms are dropped",
                      path, cpu.sh_degree)
-    records = np.empty(len(cpu), dtype=RECORD)
-    records["position"] = cpu.means.numpy()
-    records["scale"] = scales
-    records["rgba"] = rgba_bytes(cpu)
-    records["rotation"] = to_bytes(normalize_quats(cpu.quats.double()).numpy() * 128 + 128)
-    write_atomically(path, lambda stream: stream.write(records.tobytes()), overwrite=overwrite)
+    work = ChunkedWork(len(cpu), 1, progress, should_stop)
+
+    def write(stream) -> None:
+        for rows in work.chunks():
+            stream.write(_records(cpu, scales, rows).tobytes())
+
+    write_atomically(path, write, overwrite=overwrite)

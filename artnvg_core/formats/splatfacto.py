@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from ..progress import StopFn
 from ..scene import SH_C0, GaussianScene, validate_scene
 from ..tensor_files import load_failure
 from .bounded import require_stored_zip
@@ -97,7 +98,8 @@ def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, 
         raise ValueError(f"{path}: {_SPLATFACTO_PREFIX}{name}: expected shape {shape}, got {tuple(value.shape)}")
 
 
-def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False) -> GaussianScene:
+def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
+                         should_stop: StopFn | None = None) -> GaussianScene:
     """Read the Gaussians of a nerfstudio splatfacto ``.ckpt`` (loaded with ``weights_only=True``).
 
     Uses ``pipeline["_model.gauss_params.*"]``: means [N, 3], scales [N, 3] (log),
@@ -131,4 +133,4 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False)
         sh=torch.cat([dc[:, None, :], rest], dim=1).contiguous(),
         antialiased=trained_antialiased(path),
     )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid)[0]
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
