@@ -70,14 +70,15 @@ def test_render_names_a_view_given_twice_before_loading(tmp_path, capsys, camera
     assert "loading" not in captured.out and not (tmp_path / "r").exists()
 
 
-@pytest.mark.parametrize("command", ["render", "stylize", "evaluate"])
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate", "blend"])
 def test_a_folder_given_as_a_scene_is_named_as_one_before_any_loading(tmp_path, capsys, command):
     demo, folder = DemoInputs(), tmp_path / "capture"
     folder.mkdir()
-    inputs = {"render": [str(folder)], "stylize": [str(folder), "--style", str(demo.style)],
-              "evaluate": ["--original", str(demo.scene), "--stylized", str(folder), "--style", str(demo.style)]}
+    inputs = {"render": [str(folder), "--device", "cpu"], "stylize": [str(folder), "--style", str(demo.style)],
+              "evaluate": ["--original", str(demo.scene), "--stylized", str(folder), "--style", str(demo.style)],
+              "blend": [str(demo.scene), str(folder), "--strength", "0.5"]}
     out = tmp_path / "out" / ("report.json" if command == "evaluate" else "s.ply")
-    assert main([command, *inputs[command], "--cameras", str(demo.cameras), "--out", str(out), "--device", "cpu"]) == 2
+    assert main([command, *inputs[command], "--cameras", str(demo.cameras), "--out", str(out)]) == 2
     captured = capsys.readouterr()
     assert captured.err == (f"error: {folder}: scene file is a folder, not a regular file; expected .ply (INRIA 3DGS or "
                             "compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)\n")
