@@ -637,3 +637,16 @@ def test_a_line_printed_while_a_bar_is_drawn_gets_a_line_of_its_own(tmp_path, mo
     screen = _terminal(terminal.getvalue())
     at = screen.index("a status line")
     assert re.fullmatch(r"finetune: 100%\|#+\| 10/10 \[[^\]]+\]", screen[at + 1]), screen  # ASCII: no Unicode in a StringIO
+
+
+def test_render_names_an_sh_degree_above_the_scenes_before_writing(tmp_path, capsys):
+    """'--sh-degree 5' on a degree-1 scene said 'render: sh_degree must be in 0..1 for this scene' after making --out."""
+    scene, out = _small_scene(tmp_path), tmp_path / "r"
+    assert main(["render", str(scene), "--cameras", str(DemoInputs().cameras), "--out", str(out), "--views", "0",
+                 "--sh-degree", "2", "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.endswith(f"\nerror: --sh-degree: 2 is above the SH degree of {scene}, 1; give 0 to 1\n")
+    assert "rendering" not in captured.out and not out.exists()
+    with pytest.raises(SystemExit):
+        main(["render", str(scene), "--out", str(out), "--sh-degree", "-1"])
+    assert "argument --sh-degree: expected an integer >= 0, got '-1'" in capsys.readouterr().err
