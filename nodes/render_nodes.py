@@ -70,7 +70,7 @@ class RenderViews(ArtNVGNode):
             "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
-    TEXT_CHECKS = {"views": EACH_VIEW_ONCE}
+    VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -110,7 +110,7 @@ class RenderCameraPath(ArtNVGNode):
             "interpolate: frames between consecutive key views.")}),
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
-    TEXT_CHECKS = {"key_views": EACH_VIEW_ONCE}
+    VALUE_CHECKS = {"key_views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop, node_id=None):

@@ -422,10 +422,13 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
                                                            "not an elevation in (-90, 90)"),  # once only as it ran
     ("ArtNVGCamerasAroundScene", {"up": "0, 0, 0"}, "Cameras Around Scene: input 'up': expected 3 finite numbers, "
                                                     "not all zero"),
+    # within the declared 0 to 16384, which ComfyUI checks; refused as 'FinetuneConfig.nnfm_max_side' once it ran
+    ("ArtNVGFinetuneGaussians", {"nnfm_max_side": 7}, "Finetune Gaussians: input 'nnfm_max_side': expected 0 (full "
+                                                      "resolution) or at least 16 px, got 7"),
 ])
-def test_text_a_node_would_refuse_when_it_runs_is_refused_at_validation(executing, node_type, inputs, message):
-    """A node's TEXT_CHECKS: the parser it reads the text with, run before the graph runs (the camera count is not
-    known then: an index past the last view is refused when the node runs)."""
+def test_values_a_node_would_refuse_when_it_runs_are_refused_at_validation(executing, node_type, inputs, message):
+    """A node's VALUE_CHECKS: the parser it reads the text (or number) with, run before the graph runs (the camera
+    count is not known then: an index past the last view is refused when the node runs)."""
     shown, failed, targets = _validated(node_type, inputs, executing)
     assert shown == failed and shown.startswith(message) and targets == ["2"]
     assert _validated("ArtNVGRenderViews", {"views": "0, 2; 1"}, executing)[1] is None
