@@ -6,7 +6,7 @@ import functools
 
 import torch
 
-from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.counted import counted
 from artnvg_core.key_views import select_key_views
@@ -118,7 +118,11 @@ class RenderCameraPath(ArtNVGNode):
             raise NodeInputError(f"{self.DISPLAY_NAME}: input 'path': expected one of {PATH_KINDS}, got {path!r}")
         if path == "orbit":
             with node_input(self.DISPLAY_NAME, "cameras"):
-                path_cameras = orbit_path(cameras, num_frames)
+                try:
+                    path_cameras = orbit_path(cameras, num_frames)
+                except NoOrbit as error:  # its advice names orbit_path's own arguments, which the node lacks
+                    raise ValueError(f"no orbit around these cameras ({error.reason}); set 'path' to interpolate, "
+                                     "through two views or more") from None
         else:
             with node_input(self.DISPLAY_NAME, "key_views"):
                 path_cameras = interpolate_path(

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
+from ..cameras import CameraSet, NoOrbit, interpolate_path, load_cameras, orbit_path
 from ..cameras.selection import parse_views
 from ..counted import counted
 from ..devices import DEVICE_CHOICES
@@ -136,9 +136,8 @@ def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, 
     if kind == "orbit":
         try:
             return orbit_path(cameras, frames).scaled(scale)
-        except ValueError as error:  # its advice names orbit_path's own arguments, which the CLI lacks
-            reason = str(error).split(";")[0].removeprefix("orbit_path: ")
-            raise ValueError(f"--path orbit: no orbit around these cameras ({reason}); use --path interp") from None
+        except NoOrbit as error:  # its advice names orbit_path's own arguments, which the CLI lacks
+            raise ValueError(f"--path orbit: no orbit around these cameras ({error.reason}); use --path interp") from None
     if len(indices) < 2:
         raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
     per_segment = max(1, round((frames - 1) / (len(indices) - 1)))
