@@ -42,6 +42,7 @@ from .progress import StopFn, check_stop
 _log = logging.getLogger(__name__)
 
 SH_C0 = 0.28209479177387814
+DEFAULT_BLUR_PX2 = 0.3  # the 2D low-pass of 3DGS, gsplat and splatfacto (px^2)
 # The end of every invalid-Gaussian refusal; callers with their own words for the option replace it.
 DROP_INVALID_HINT = "pass drop_invalid=True to drop invalid Gaussians"
 
@@ -70,7 +71,7 @@ class GaussianScene:
     log_scales: torch.Tensor
     opacity_logits: torch.Tensor
     sh: torch.Tensor
-    blur_px2: float = 0.3
+    blur_px2: float = DEFAULT_BLUR_PX2
     antialiased: bool = False
 
     def __post_init__(self) -> None:
@@ -105,7 +106,7 @@ class GaussianScene:
     @property
     def classic(self) -> bool:
         """True when rendered as gsplat's "classic" mode (0.3 px^2 blur, no compensation)."""
-        return self.blur_px2 == 0.3 and not self.antialiased
+        return self.blur_px2 == DEFAULT_BLUR_PX2 and not self.antialiased
 
     def tensors(self) -> dict[str, torch.Tensor]:
         """The parameter tensors by field name, in declaration order."""

@@ -31,7 +31,7 @@ from .images import save_png
 from .preview import comparison_strip, evenly_spaced
 from .progress import Cancelled, ProgressFn, StopFn, staged
 from .raster.views import render_views
-from .formats import save_scene, writable_scene_path
+from .formats import NoteFn, save_scene, writable_scene_path
 from .scene import GaussianScene
 from .tensor_files import drop_early_reads, read_ahead, read_early
 
@@ -307,17 +307,18 @@ def stylize_diffusion(
 def save_result(original: GaussianScene, stylized: GaussianScene, cameras: CameraSet, style_image: torch.Tensor,
                 out_ply: str | Path, backend: str = "auto", *, spz_axes: str = "auto", spz_version: int = 3,
                 progress: ProgressFn | None = None, should_stop: StopFn | None = None,
-                scene_progress: ProgressFn | None = None) -> Path:
+                scene_progress: ProgressFn | None = None, scene_notes: NoteFn | None = None) -> Path:
     """Write ``out_ply`` (a ``.spz`` in ``spz_axes``, as ``spz_version``, see
     :func:`~artnvg_core.formats.save_scene`) and its contact sheet together: both appear, or (on any failure)
     neither and nothing on disk changes. ``progress`` follows the sheet's renders, ``scene_progress`` the scene
-    file's Gaussians written, and ``should_stop`` may end either (:func:`contact_sheet`): a stop writes nothing.
+    file's Gaussians written, ``scene_notes`` is told what its format changes of the scene (``save_scene``'s
+    ``notes``), and ``should_stop`` may end either (:func:`contact_sheet`): a stop writes nothing.
     Returns the sheet's path."""
     out_ply = writable_scene_path(out_ply)  # before the contact sheet's renders
     sheet = contact_sheet(original, stylized, cameras, style_image, backend=backend, progress=progress,
                           should_stop=should_stop)
     with written_together(out_ply, sheet_path(out_ply)) as (ply_file, sheet_file):
         save_scene(stylized.to("cpu"), ply_file, spz_axes=spz_axes, spz_version=spz_version, progress=scene_progress,
-                   should_stop=should_stop)
+                   should_stop=should_stop, notes=scene_notes)
         save_png(sheet, sheet_file)
     return sheet_path(out_ply)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,6 +27,8 @@ from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, SCENE
 from .preview3d import preview_camera
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, MODEL_3D, file3d, file3d_link_type
+
+_log = logging.getLogger("artnvg")
 
 SCENE_FILE = InputFile(
     "scene_file",
@@ -158,7 +161,9 @@ class SaveGaussianScene(ArtNVGNode):
 
     @cancellable
     def save(self, scene, filename_prefix, format="ply", spz_version="3", node_id=None):
-        """The scene written with the node's progress bar moving and ComfyUI's Cancel stopping it, no file left."""
+        """The scene written with the node's progress bar moving and ComfyUI's Cancel stopping it, no file left; what
+        the format changes of the scene (dropped SH terms, far Gaussians moved) shown under the node after the
+        file's name and logged once on the console."""
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
@@ -169,10 +174,11 @@ class SaveGaussianScene(ArtNVGNode):
             names = _numbered_paths(filename_prefix, f".{format}")
         report = progress_bar()
         for file in names:
+            notes: list[str] = []  # what the format changes of the scene, told once per file written
             try:
                 with node_input(self.DISPLAY_NAME, "scene"):
                     save_scene(scene, file, spz_version=int(spz_version), overwrite=False, progress=report,
-                               should_stop=interrupt_requested)
+                               should_stop=interrupt_requested, notes=notes.append)
                 break
             except FileExistsError:
                 continue  # taken while this file was written: the next number
@@ -181,7 +187,9 @@ class SaveGaussianScene(ArtNVGNode):
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
+        for note in notes:
+            _log.warning("%s: %s: %s", self.DISPLAY_NAME, file, note)
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
-              "text": [written]}
+              "text": [written, *(f"note: {note}" for note in notes)]}
         result = (relative.as_posix(), preview_camera(scene))
         return {"ui": ui, "result": result + ((file3d(file),) if FILE3D_CLASS is not None else ())}

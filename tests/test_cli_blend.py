@@ -122,3 +122,14 @@ def test_strength_outside_zero_to_one_exits_2(tmp_path, capsys, value):
     with pytest.raises(SystemExit) as exit_:
         main(["blend", "a.ply", "b.ply", "--strength", value, "--out", str(tmp_path / "o.ply")])
     assert exit_.value.code == 2 and "argument --strength: expected a number from 0 to 1" in capsys.readouterr().err
+
+
+def test_what_the_output_format_drops_is_printed_once_and_not_logged(tmp_path, capsys, caplog):
+    _pair(tmp_path)
+    with caplog.at_level("INFO"):
+        assert main(["blend", str(tmp_path / "original.ply"), str(tmp_path / "stylized.ply"), "--strength", "0.5",
+                     "--out", str(tmp_path / "blend.ksplat")]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed.count("note: .ksplat holds SH up to degree 2; the degree 3 view-dependent terms are dropped") == 1
+    assert printed[-1].startswith("blended at strength 0.5") and len([line for line in printed if "note" in line]) == 1
+    assert not [record for record in caplog.records if "view-dependent" in record.getMessage()]

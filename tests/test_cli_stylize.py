@@ -37,3 +37,13 @@ def test_the_nnfm_stylizers_work_on_every_view_and_the_contact_sheet_show_progre
         assert re.search(rf"{re.escape(bar)}: 100%\|.*\| 24/24 \[.*it/s\]", err), err
     for bar in ("contact sheet (original)", "contact sheet (stylized)"):
         assert re.search(rf"{re.escape(bar)}: 100%\|.*\| 4/4 \[.*it/s\]", err), err
+
+
+def test_what_the_output_format_drops_is_printed_once(tmp_path, capsys, caplog):
+    """The demo scene is of SH degree 1, a .splat of degree 0."""
+    with caplog.at_level("INFO"):
+        assert _stylize(_small_scene(tmp_path), DemoInputs().style, tmp_path / "out.splat") == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert [line for line in printed if "view-dependent" in line] == [
+        "note: .splat holds SH up to degree 0; the degree 1 view-dependent terms are dropped"]
+    assert not [record for record in caplog.records if "view-dependent" in record.getMessage()]

@@ -1,5 +1,6 @@
 """The extension dispatch of load_scene / save_scene, and the writers' shared refusals."""
 
+import dataclasses
 import os
 import re
 
@@ -44,6 +45,40 @@ def test_every_writer_keeps_a_file_it_may_not_overwrite(tmp_path, suffix):
     assert taken.read_bytes() == b"another writer's" and list(tmp_path.iterdir()) == [taken]
     save_scene(scene, tmp_path / f"new{suffix}", overwrite=False)
     assert len(load_scene(tmp_path / f"new{suffix}")) == 1
+
+
+NOTES = {  # of a degree-3 scene trained antialiased (0.3 px^2) with one far floater among 2,000 Gaussians
+    ".ply": ["cannot record the scene's 2D filter (0.3 px^2 blur, antialiased); it reads back with 0.1 px^2 blur, "
+             "antialiased"],
+    ".spz": ["1 Gaussian beyond SPZ's range at 12 fractional bits (|coordinate| up to 2048) moved onto it along their "
+             "rays from the origin, their sizes scaled alike (the same direction and apparent size from there); the "
+             "farthest from |coordinate| 1e+07"],
+    ".splat": ["holds SH up to degree 0; the degree 1-3 view-dependent terms are dropped",
+               "cannot record the scene's 2D filter (0.3 px^2 blur, antialiased); it reads back with 0.3 px^2 blur, "
+               "classic"],
+    ".ksplat": ["holds SH up to degree 2; the degree 3 view-dependent terms are dropped",
+                "cannot record the scene's 2D filter (0.3 px^2 blur, antialiased); it reads back with 0.3 px^2 blur, "
+                "classic"],
+}
+
+
+@pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
+def test_what_a_format_changes_of_the_scene_is_told_once_to_notes_or_else_logged(tmp_path, suffix, caplog):
+    """A caller that shows the user the notes (a node's text, a command's output) gets each once and nothing is
+    logged; without ``notes``, each is logged once as a warning naming the file. A classic scene of degree 0
+    within every range has none."""
+    scene = dataclasses.replace(random_scene(2001, 3).select(slice(3, None)), antialiased=True)
+    scene.means[-1] = torch.tensor([1e7, 5.0, -3.0])
+    expected = [note if note[0].isdigit() else f"{suffix} {note}" for note in NOTES[suffix]]
+    notes = []
+    with caplog.at_level("INFO"):
+        save_scene(scene, tmp_path / f"told{suffix}", notes=notes.append)
+        assert notes == expected and caplog.records == []
+        save_scene(scene, tmp_path / f"logged{suffix}")
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("WARNING", f"{tmp_path / f'logged{suffix}'}: {note}") for note in expected]
+    save_scene(random_scene(8, 0).select(slice(3, None)), tmp_path / f"plain{suffix}", notes=notes.append)
+    assert notes == expected
 
 
 @pytest.mark.parametrize(("option", "value"), [("spz_version", 4), ("spz_version", "2"), ("spz_axes", "up")])

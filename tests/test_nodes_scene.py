@@ -80,6 +80,33 @@ def test_save_scene_never_writes_over_a_file_another_process_saved_under_its_nam
     assert sorted(p.name for p in folder.iterdir()) == ["stylized_00001.ply", "stylized_00002.ply"]
 
 
+def test_save_scene_shows_what_the_format_changes_under_the_node_and_logs_it_once(comfy_dirs, small_bear, caplog,
+                                                                                  monkeypatch):
+    """The bear's 3 floaters beyond an SPZ's range, moved onto it: said under the node after the file's name and
+    once on the console, also when the first name was taken while the file was written (a second write)."""
+    import nodes.scene_nodes as scene_nodes
+
+    def rival_saves_first(scene, path, **options):
+        if path.name.endswith("_00001.spz"):
+            path.write_bytes(b"rival")
+        return save_scene(scene, path, **options)
+
+    monkeypatch.setattr(scene_nodes, "save_scene", rival_saves_first)
+    with caplog.at_level("INFO"):
+        saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/far", format="spz")
+    file = comfy_dirs / "output" / "artnvg" / "far_00002.spz"
+    note = ("3 Gaussians beyond SPZ's range at 12 fractional bits (|coordinate| up to 2048) moved onto it along their "
+            "rays from the origin, their sizes scaled alike (the same direction and apparent size from there); the "
+            "farthest from |coordinate| 7682.61")
+    assert saved["ui"]["text"] == [f"wrote output/artnvg/far_00002.spz ({file.stat().st_size / 1e6:.1f} MB, "
+                                   f"{len(small_bear):,} Gaussians)", f"note: {note}"]
+    assert [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "WARNING"] == [
+        ("artnvg", f"Save Gaussian Scene: {file.resolve()}: {note}")]
+    assert call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/near", format="ply")["ui"]["text"] == [
+        f"wrote output/artnvg/near_00001.ply ({(file.parent / 'near_00001.ply').stat().st_size / 1e6:.1f} MB, "
+        f"{len(small_bear):,} Gaussians)"]
+
+
 def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear):
     """A .spz in RUB with no record: read upright with the capture's cameras connected (spz_axes auto), in
     the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way (compared

@@ -127,6 +127,12 @@ class ProgressBar:
             tqdm.write("\r" + last, file=self.bar.fp)
 
 
+def print_note(note: str) -> None:
+    """A note for the user from the library (what a scene file's format changes of the scene: ``save_scene``'s
+    ``notes``), printed on a line of its own."""
+    print(f"note: {note}", flush=True)
+
+
 def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
     """Load the rasterizer ``backend`` renders with on ``device`` before the first render; gsplat's
     first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced on stdout before it starts."""

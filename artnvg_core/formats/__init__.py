@@ -22,7 +22,7 @@ from ..fileio import require_regular_file
 from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene
 from . import ksplat, splat, spz
-from .common import scene_to_write
+from .common import NoteFn, scene_to_write
 from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
@@ -149,19 +149,22 @@ def check_geometry_writable(scene: GaussianScene, path: str | os.PathLike) -> No
 
 def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str = "auto",
                spz_version: int = 3, overwrite: bool = True, progress: ProgressFn | None = None,
-               should_stop: StopFn | None = None) -> None:
+               should_stop: StopFn | None = None, notes: NoteFn | None = None) -> None:
     """Write ``scene`` atomically, the format chosen by the extension: .ply, .spz, .splat or .ksplat;
     a ``.spz`` in the PLY's axes (``spz_axes`` "auto" or "ply") or in RUB ("rub"), with no record of them,
     as SPZ version ``spz_version``: 3, or 2 for readers of versions 1-2 only (spz-js). With ``overwrite``
     False never over an existing file: FileExistsError naming ``path`` when one holds it by the time the new
     one is complete (:func:`~artnvg_core.fileio.write_atomically`). ``progress`` follows the Gaussians written,
     a chunk at a time, and ``should_stop`` ends the write between chunks (:class:`~artnvg_core.progress.Cancelled`:
-    no file, partial or whole, is left)."""
+    no file, partial or whole, is left). ``notes`` is called once with each note for the user on what the format
+    changes of the scene (SH terms it cannot hold, a 2D filter it cannot record, far Gaussians moved onto an SPZ's
+    range), before the file is written; without it each is logged as a warning."""
     path = writable_scene_path(path)
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     _check_option("spz_version", spz_version, SPZ_VERSIONS)
     if path.suffix.lower() == ".spz":
         write_spz(scene, path, axes=spz_axes, version=spz_version, overwrite=overwrite, progress=progress,
-                  should_stop=should_stop)
+                  should_stop=should_stop, notes=notes)
     else:
-        WRITERS[path.suffix.lower()](scene, path, overwrite=overwrite, progress=progress, should_stop=should_stop)
+        WRITERS[path.suffix.lower()](scene, path, overwrite=overwrite, progress=progress, should_stop=should_stop,
+                                     notes=notes)

@@ -1,9 +1,10 @@
-"""What every scene file reader and writer shares: file checks, the scene check before writing, 8-bit opacities,
-work done a chunk of Gaussians at a time (progress and cancellation)."""
+"""What every scene file reader and writer shares: file checks, the scene check before writing, notes for the user
+on what a format changes, 8-bit opacities, work done a chunk of Gaussians at a time (progress and cancellation)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import logging
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,8 @@ from ..fileio import require_regular_file
 from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene, describe_invalid, invalid_gaussians, logit
 
+_log = logging.getLogger(__name__)
+NoteFn = Callable[[str], None]
 
 # Gaussians per chunk: at 3M Gaussians of SH degree 3 on a 2-core CPU a chunk's SPZ quantisation and deflate take
 # about 0.15 s, a PLY's rows 0.02 s (a stop waits at most that long), and a 3M file's 46 chunks cost no measurable time.
@@ -54,6 +57,29 @@ class ChunkedWork:
 def require_file(path: Path) -> None:
     """ValueError naming ``path`` unless it is a regular file (a FIFO would block the read)."""
     require_regular_file(path, "scene file")
+
+
+def tell(notes: NoteFn | None, path: Path, note: str) -> None:
+    """``note``, what writing ``path`` changes of the scene that the user should know (SH terms its format cannot
+    hold, Gaussians moved onto its range), to ``notes`` (a node's text, a command's output), else logged as a
+    warning naming ``path``."""
+    if notes is None:
+        _log.warning("%s: %s", path, note)
+    else:
+        notes(note)
+
+
+def tell_filter_change(notes: NoteFn | None, path: Path, cpu: GaussianScene, kind: str, blur_px2: float,
+                       antialiased: bool) -> None:
+    """A note (:func:`tell`) when a file of format ``kind`` reads back with another 2D filter (``blur_px2``,
+    ``antialiased``: what it records, at most the antialiased flag) than ``cpu``'s."""
+    if (cpu.blur_px2, cpu.antialiased) != (blur_px2, antialiased):
+        tell(notes, path, f"{kind} cannot record the scene's 2D filter ({_filter(cpu.blur_px2, cpu.antialiased)}); "
+                          f"it reads back with {_filter(blur_px2, antialiased)}")
+
+
+def _filter(blur_px2: float, antialiased: bool) -> str:
+    return f"{blur_px2:g} px^2 blur, {'antialiased' if antialiased else 'classic'}"
 
 
 def scene_to_write(scene: GaussianScene, path: Path, should_stop: StopFn | None = None) -> GaussianScene:

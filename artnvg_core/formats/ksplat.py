@@ -23,13 +23,12 @@ smallest normal float32 (a flat Gaussian, as the viewer draws it).
 
 Written at level 0, one section: means, linear scales (log-scales in [-87, 88]), unit quaternions
 and SH degree 1-2 coefficients as float32 (exact to float32 rounding); colour and opacity as
-``.splat`` writes them (within 0.5 / 255, colour clamped to [0, 1]); degree-3 SH terms dropped
-with a warning.
+``.splat`` writes them (within 0.5 / 255, colour clamped to [0, 1]); degree-3 SH terms and a scene's
+2D filter (the format records none: read back classic) dropped, each with a note for the user.
 """
 
 from __future__ import annotations
 
-import logging
 import os
 import struct
 from pathlib import Path
@@ -42,10 +41,8 @@ from ..counted import counted
 from ..fileio import write_atomically
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene, validate_scene
-from .common import ChunkedWork, require_file, scene_to_write
-from .splat import colour_and_opacity, linear_scales, rgba_bytes
-
-_log = logging.getLogger(__name__)
+from .common import ChunkedWork, NoteFn, require_file, scene_to_write
+from .splat import colour_and_opacity, linear_scales, rgba_bytes, tell_dropped
 
 HEADER_BYTES, SECTION_HEADER_BYTES = 4096, 1024
 VERSION = (0, 1)
@@ -198,11 +195,13 @@ def _rows(cpu: GaussianScene, scales: np.ndarray, degree: int, rows: slice) -> n
 
 
 def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True,
-                 progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
+                 progress: ProgressFn | None = None, should_stop: StopFn | None = None,
+                 notes: NoteFn | None = None) -> None:
     """Write ``scene`` as a level-0 ``.ksplat`` atomically (module docstring); with ``overwrite`` False never
     over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk of
     Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
-    (:class:`~artnvg_core.progress.Cancelled`, no file left).
+    (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told what the format drops (degree-3
+    SH, a 2D filter other than classic; :func:`~.common.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, log-scales
     outside [-87, 88].
@@ -211,8 +210,7 @@ def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bo
     cpu = scene_to_write(scene, path, should_stop)
     scales = linear_scales(cpu, path, ".ksplat")
     degree = min(cpu.sh_degree, 2)
-    if cpu.sh_degree > 2:
-        _log.warning("%s: .ksplat holds SH up to degree 2; the degree-3 view-dependent terms are dropped", path)
+    tell_dropped(cpu, path, ".ksplat", degree, notes)
     n, record = len(cpu), _record(0, degree)
     header = bytearray(HEADER_BYTES)
     _HEADER.pack_into(header, 0, *VERSION, 1, 1, n, n, 0, 0.0, 0.0, 0.0, -_DEFAULT_SH_RANGE, _DEFAULT_SH_RANGE)

@@ -31,9 +31,9 @@ import torch
 from ..counted import counted
 from ..fileio import write_atomically
 from ..progress import ProgressFn, StopFn, staged
-from ..scene import GaussianScene, logit, validate_scene
+from ..scene import DEFAULT_BLUR_PX2, GaussianScene, logit, validate_scene
 from . import compressed_ply
-from .common import ChunkedWork, require_file, scene_to_write
+from .common import ChunkedWork, NoteFn, require_file, scene_to_write, tell_filter_change
 from .ply_data import PlyData, read_ply_data
 
 _PLY_ELEMENT = "vertex"
@@ -192,7 +192,8 @@ def _write_ply_body(stream: BinaryIO, table: np.ndarray, binary: bool) -> None:
 
 
 def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = True, overwrite: bool = True,
-              progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
+              progress: ProgressFn | None = None, should_stop: StopFn | None = None,
+              notes: NoteFn | None = None) -> None:
     """Write ``scene`` as an INRIA 3DGS PLY, float32, atomically; with ``overwrite`` False never over an existing
     file (:func:`~artnvg_core.fileio.write_atomically`).
 
@@ -202,10 +203,13 @@ def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = T
     gives bit-identical tensors in either format. A scene with non-finite values
     or zero quaternions is refused with a ValueError before anything is written. Rows are written a chunk
     at a time: ``progress`` counts them (Gaussians), ``should_stop`` ends the write between chunks
-    (:class:`~artnvg_core.progress.Cancelled`, no file left).
+    (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told of a 2D filter the file cannot
+    record (it reads back Mip-Splatting's when antialiased, else the classic one; :func:`~.common.tell`).
     """
     path = Path(path)
     cpu = scene_to_write(scene, path, should_stop)
+    read_back = (MIP_SPLATTING_BLUR_PX2, True) if cpu.antialiased else (DEFAULT_BLUR_PX2, False)
+    tell_filter_change(notes, path, cpu, ".ply", *read_back)
     names = _ply_names(cpu)
     work = ChunkedWork(len(cpu), 1, progress, should_stop)
     header = "\n".join([

@@ -11,12 +11,12 @@ means exact; log-scales within 1e-6 (float32 exp/log), log-scales outside
 [-87, 88] are refused (float32 range of the linear scale); colour
 SH_C0 * f_dc + 0.5 within 0.5/255 where it lies in [0, 1] (clamped outside);
 opacity sigmoid(logit) within 0.5/255; unit quaternion components within
-1.5/128 (up to the sign of q); SH above degree 0 dropped (with a warning).
+1.5/128 (up to the sign of q); SH above degree 0 dropped, and a scene's 2D filter (the format records
+none: read back classic), each with a note for the user.
 """
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
@@ -27,10 +27,18 @@ from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
 from ..progress import ProgressFn, StopFn
-from ..scene import DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
-from .common import ChunkedWork, opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
-
-_log = logging.getLogger(__name__)
+from ..scene import DEFAULT_BLUR_PX2, DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
+from .common import (
+    ChunkedWork,
+    NoteFn,
+    opacity_bytes,
+    opacity_logits_from_bytes,
+    require_file,
+    scene_to_write,
+    tell,
+    tell_filter_change,
+    to_bytes,
+)
 
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
 LOG_SCALE_RANGE = (-87.0, 88.0)  # log-scales whose linear scale float32 holds
@@ -58,6 +66,15 @@ def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
         problem = f"lie outside {list(LOG_SCALE_RANGE)}, beyond the float32 linear scales of {kind}"
         raise ValueError(f"{path}: not written: {describe_invalid('log_scales', outside, problem)}")
     return np.exp(log_scales)
+
+
+def tell_dropped(cpu: GaussianScene, path: Path, kind: str, degree: int, notes: NoteFn | None) -> None:
+    """Notes for the user (:func:`~.common.tell`) on what a format ``kind`` that holds SH up to ``degree`` and no
+    2D filter (read back classic) drops of ``cpu``."""
+    if cpu.sh_degree > degree:
+        dropped = f"degree {cpu.sh_degree}" if cpu.sh_degree == degree + 1 else f"degree {degree + 1}-{cpu.sh_degree}"
+        tell(notes, path, f"{kind} holds SH up to degree {degree}; the {dropped} view-dependent terms are dropped")
+    tell_filter_change(notes, path, cpu, kind, DEFAULT_BLUR_PX2, False)
 
 
 def check_geometry(cpu: GaussianScene, path: Path) -> None:
@@ -110,11 +127,13 @@ def _records(cpu: GaussianScene, scales: np.ndarray, rows: slice) -> np.ndarray:
 
 
 def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bool = True,
-                progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
+                progress: ProgressFn | None = None, should_stop: StopFn | None = None,
+                notes: NoteFn | None = None) -> None:
     """Write ``scene`` as a ``.splat`` file atomically (quantisation in the module docstring); with ``overwrite``
     False never over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk
     of Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
-    (:class:`~artnvg_core.progress.Cancelled`, no file left).
+    (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told what the format drops (SH above
+    degree 0, a 2D filter other than classic; :func:`~.common.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, log-scales outside [-87, 88].
@@ -122,9 +141,7 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: boo
     path = Path(path)
     cpu = scene_to_write(scene, path, should_stop)
     scales = linear_scales(cpu, path, ".splat")
-    if cpu.sh_degree > 0:
-        _log.warning("%s: .splat holds SH degree 0 only; the degree %d view-dependent terms are dropped",
-                     path, cpu.sh_degree)
+    tell_dropped(cpu, path, ".splat", 0, notes)
     work = ChunkedWork(len(cpu), 1, progress, should_stop)
 
     def write(stream) -> None:

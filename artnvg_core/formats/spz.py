@@ -39,7 +39,7 @@ hold |coordinate| < 2048 (2^23 / 2^bits). Far floaters, up to one Gaussian in a 
 (:data:`MOST_MOVED`, rounded down), may lie beyond: each is moved along its ray from the origin
 onto the range's edge (largest |coordinate| (2^23 - 1) / 2^bits), its scales multiplied by the same ratio,
 so that it keeps its direction and apparent size seen from the origin, where a capture's cameras
-stand; one logged warning says how many and the farthest. The reference writer wraps them into
+stand; one note for the user says how many and the farthest. The reference writer wraps them into
 garbage instead, and keeping them by giving up bits cost the bear capture's renders 10 dB
 (docs/scenes_and_formats.md). When more lie beyond, the writer gives up fractional bits (the
 range doubling with each) until all but that share fit, and moves the rest; more than that
@@ -71,9 +71,19 @@ from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
 from ..progress import ProgressFn, StopFn
-from ..scene import GaussianScene, validate_scene
+from ..scene import DEFAULT_BLUR_PX2, GaussianScene, validate_scene
 from .bounded import inflate_exactly, read_at_most, require_inflatable
-from .common import ChunkedWork, opacity_bytes, opacity_logits_from_bytes, require_file, scene_to_write, to_bytes
+from .common import (
+    ChunkedWork,
+    NoteFn,
+    opacity_bytes,
+    opacity_logits_from_bytes,
+    require_file,
+    scene_to_write,
+    tell,
+    tell_filter_change,
+    to_bytes,
+)
 
 _log = logging.getLogger(__name__)
 
@@ -341,10 +351,12 @@ def _fractional_bits(path: Path, extents: np.ndarray) -> int:
     return bits
 
 
-def _onto_range(path: Path, means: np.ndarray, log_scales: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+def _onto_range(path: Path, means: np.ndarray, log_scales: np.ndarray, bits: int,
+                notes: NoteFn | None) -> tuple[np.ndarray, np.ndarray]:
     """``means`` [N, 3] and ``log_scales`` [N, 3] with each Gaussian beyond the range of ``bits`` fractional bits
     moved along its ray from the origin onto that range, its scales multiplied by the same ratio (so it keeps
-    its direction and apparent size seen from the origin); one logged warning says how many and how far."""
+    its direction and apparent size seen from the origin); one note to ``notes`` (:func:`~.common.tell`) says
+    how many and how far."""
     extents = np.abs(means).max(1)
     far = np.floor(extents * (1 << bits) + 0.5) >= 1 << 23
     if not far.any():
@@ -354,10 +366,10 @@ def _onto_range(path: Path, means: np.ndarray, log_scales: np.ndarray, bits: int
     means, log_scales = means.copy(), log_scales.copy()
     means[far] *= ratio[:, None]
     log_scales[far] += np.log(ratio)[:, None]
-    _log.warning("%s: %s beyond SPZ's range at %d fractional bits (|coordinate| up to %.6g) moved onto it along "
-                 "their rays from the origin, their sizes scaled alike (the same direction and apparent size "
-                 "from there); the farthest from |coordinate| %.6g", path,
-                 counted(int(far.sum()), "Gaussian"), bits, limit, float(extents[far].max()))
+    tell(notes, path, f"{counted(int(far.sum()), 'Gaussian')} beyond SPZ's range at {bits} fractional bits "
+                      f"(|coordinate| up to {limit:.6g}) moved onto it along their rays from the origin, their sizes "
+                      "scaled alike (the same direction and apparent size from there); the farthest from "
+                      f"|coordinate| {float(extents[far].max()):.6g}")
     return means, log_scales
 
 
@@ -425,13 +437,16 @@ def _attribute_arrays(cpu: GaussianScene, means: np.ndarray, log_scales: np.ndar
 
 
 def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "auto", version: int = 3,
-              overwrite: bool = True, progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> None:
+              overwrite: bool = True, progress: ProgressFn | None = None, should_stop: StopFn | None = None,
+              notes: NoteFn | None = None) -> None:
     """Write ``scene`` as an SPZ file of ``version`` 3 (or 2) atomically, in the PLY's axes with no
     coordinate-system record, as splat-transform, spz-js and Niantic's ply-to-spz write (``axes`` "auto" or
     "ply"), or in RUB (``axes="rub"``); module docstring. With ``overwrite`` False never over an existing file
     (:func:`~artnvg_core.fileio.write_atomically`). Each attribute array is quantised and deflated a chunk of
     Gaussians at a time into one gzip stream: ``progress`` counts the chunks' Gaussians over the 6 arrays,
     ``should_stop`` ends the write between chunks (:class:`~artnvg_core.progress.Cancelled`, no file left).
+    ``notes`` is told of far Gaussians moved onto the positions' range and of a 2D blur other than the default
+    (the format records the antialiased flag alone; :func:`~.common.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, more than one
     Gaussian in a thousand with a coordinate of magnitude 2^23 or more.
@@ -444,7 +459,8 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
     flips = _axis_flips(RUB if axes == "rub" else RDF, path)
     means = cpu.means.double().numpy() * flips
     bits = _fractional_bits(path, np.abs(means).max(1))
-    means, log_scales = _onto_range(path, means, cpu.log_scales.double().numpy(), bits)
+    means, log_scales = _onto_range(path, means, cpu.log_scales.double().numpy(), bits, notes)
+    tell_filter_change(notes, path, cpu, ".spz", DEFAULT_BLUR_PX2, cpu.antialiased)
     arrays = _attribute_arrays(cpu, means, log_scales, bits, flips, version)
     work = ChunkedWork(len(cpu), len(arrays), progress, should_stop)
     flags = FLAG_ANTIALIASED if cpu.antialiased else 0
