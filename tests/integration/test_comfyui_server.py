@@ -319,6 +319,16 @@ def test_cameras_around_scene_refuses_bad_text_before_anything_runs(comfy_server
     assert error["type"] == "custom_validation_failed" and f"Cameras Around Scene: {expected}" in error["details"]
 
 
+def test_save_gaussian_scenes_message_is_labelled_with_the_input_it_names(comfy_server):
+    """ComfyUI labels a node's VALIDATE_INPUTS message "NAME - ..." with each input that function takes (the input the
+    editor outlines): Save Gaussian Scene's name filename_prefix, as its messages do; they read "node_id - ..."."""
+    errors = _refused_before_any_work(comfy_server, _workflow(comfy_server, "Save Gaussian Scene.filename_prefix=../x"))
+    (error,) = errors["7"]["errors"]
+    assert error["extra_info"]["input_name"] == "filename_prefix", error
+    assert error["details"].startswith("filename_prefix - Save Gaussian Scene: input 'filename_prefix': '../x' must "
+                                       "name a file inside the output folder"), error
+
+
 @pytest.mark.parametrize("input_name, value", [
     ("path", "{folder}/missing_scene.ply"),
     ("scene_file", "{folder}/missing.ply"),
