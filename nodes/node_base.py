@@ -15,8 +15,9 @@ will pass them (:func:`comfyui_value`), to the declared types, ranges and choice
 :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
 ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS``), which ComfyUI labels with the one
 input that function takes, ``REPORTED_INPUT``: the hidden input :data:`~.prompt_checks.CHECK_INPUT` (the node id,
-which each node's function takes last, unused: "node_id - ..."), or a model loader's file input ("csgo_name - ...",
-:mod:`.model_files`). When a node runs, its
+which each node's function takes last, unused: "node_id - ..."), or, where every message the node shows names one
+input, that input ("csgo_name - ...", "filename_prefix - ..."). ComfyUI reads that function's inputs from the class,
+before it knows the node or the message, and labels the message with each of them: one fixed label per class. When a node runs, its
 function first holds what it is given to the same checks and to the Python type its declared type stands
 for, a number made its declared type's (:meth:`ArtNVGNode.run_inputs`): a value through a link meets no prompt
 check.
@@ -127,7 +128,8 @@ class ArtNVGNode:
     OPTIONAL: dict = {}
     HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
     REPORTED_INPUT = CHECK_INPUT  # the input ComfyUI labels the node's validation message with (_validate_inputs):
-    # the hidden node id, or a model loader's file input, a COMBO whose value ComfyUI does not check (model_files)
+    # the hidden node id, or the input each message of the node names: a required COMBO or STRING, whose value
+    # ComfyUI holds to no range or choices (naming an input in VALIDATE_INPUTS skips those checks of it)
     VALIDATE_INPUTS = _validate_inputs(CHECK_INPUT)
     VALUE_CHECKS: dict = {}  # input name -> the function (value, once of its declared type and range) -> anything
     # the node reads it with when it runs, raising ValueError for a value it refuses (text it cannot read, a number
