@@ -256,4 +256,8 @@ def require_regular_file(path: str | os.PathLike, what: str) -> Path:
     if not stat.S_ISREG(mode):
         kind = "folder" if stat.S_ISDIR(mode) else "FIFO (named pipe)" if stat.S_ISFIFO(mode) else "special file"
         raise ValueError(f"{path}: {what} is a {kind}, not a regular file")
+    try:
+        path.open("rb").close()  # a regular file: opening it never waits
+    except OSError as error:
+        raise ValueError(f"{path}: {what} cannot be read ({error.strerror})") from None
     return path

@@ -49,7 +49,7 @@ class BlendStylization(ArtNVGNode):
         "preview_strengths": ("STRING", {"default": "0, 0.25, 0.5, 0.75, 1", "tooltip": (
             "Strengths shown side by side in the preview, comma-separated.")}),
     }
-    TEXT_CHECKS = {"preview_strengths": parse_strengths}
+    VALUE_CHECKS = {"preview_strengths": parse_strengths}
 
     @cancellable
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,

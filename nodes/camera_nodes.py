@@ -81,7 +81,7 @@ class CamerasAroundScene(ArtNVGNode):
         "distance_factor": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 100.0, "step": 0.05, "tooltip": (
             "1: the main subject just fills the view; larger shows more of the surroundings.")}),
     }
-    TEXT_CHECKS = {"up": parse_up, "elevations": parse_elevations}  # as orbit_cameras reads them
+    VALUE_CHECKS = {"up": parse_up, "elevations": parse_elevations}  # as orbit_cameras reads them
 
     def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor, node_id=None):
         with node_input(self.DISPLAY_NAME):

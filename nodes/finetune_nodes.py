@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from artnvg_core.counted import counted
-from artnvg_core.finetune import OPTIMIZE_CHOICES, FinetuneConfig, check_stylized_views, finetune
+from artnvg_core.finetune import NNFM_MIN_SIDE, OPTIMIZE_CHOICES, FinetuneConfig, check_stylized_views, finetune
 from artnvg_core.losses import SEARCH_PRECISIONS
 from artnvg_core.presets import PRESETS
 from artnvg_core.style_image import check_style_size
@@ -54,6 +54,14 @@ def staged_progress():
     return staged
 
 
+def vgg_side(side: int) -> int | None:
+    """The input ``nnfm_max_side`` (px; 0: full resolution) as FinetuneConfig takes it (None: full resolution);
+    ValueError for a side too small for the VGG terms (1 to NNFM_MIN_SIDE - 1)."""
+    if 0 < side < NNFM_MIN_SIDE:
+        raise ValueError(f"expected 0 (full resolution) or at least {NNFM_MIN_SIDE} px, got {side}")
+    return side or None
+
+
 def _weight(default: float, tooltip: str) -> tuple:
     return ("FLOAT", {"default": default, "min": 0.0, "max": 1000.0, "step": 0.01, "tooltip": tooltip})
 
@@ -70,6 +78,7 @@ class FinetuneGaussians(ArtNVGNode):
     FUNCTION = "finetune"
     RETURN_TYPES = (SCENE,)
     RETURN_NAMES = ("scene",)
+    VALUE_CHECKS = {"nnfm_max_side": vgg_side}
     REQUIRED = {
         "scene": (SCENE,),
         "cameras": (CAMERAS, {"tooltip": (
@@ -92,7 +101,8 @@ class FinetuneGaussians(ArtNVGNode):
         "stylized_views": (IMAGE, {"tooltip": "Stylized views in the cameras' order; leave unconnected for NNFM only."}),
         "nnfm_max_side": ("INT", {"default": _DEFAULTS.nnfm_max_side, "min": 0, "max": 16384, "tooltip": (
             "Longest side (px) of the renders and style image the VGG terms see, shrunk to it as ARF does "
-            "(512: ARF's half resolution for 1024 px views, a quarter of the features to match); 0: full resolution.")}),
+            "(512: ARF's half resolution for 1024 px views, a quarter of the features to match); 0: full resolution; "
+            f"at least {NNFM_MIN_SIDE} otherwise.")}),
         "color_transfer": ("BOOLEAN", {"default": _DEFAULTS.color_transfer, "tooltip": (
             "Without stylized_views: match the scene's colours to the style image's mean and covariance "
             "before and after finetuning, as ARF does (exact, no extra iterations).")}),
@@ -124,7 +134,7 @@ class FinetuneGaussians(ArtNVGNode):
             config = FinetuneConfig(
                 iterations=iterations, optimize=optimize, l1_weight=l1_weight, ssim_weight=ssim_weight,
                 nnfm_weight=nnfm_weight, content_weight=content_weight, tv_weight=tv_weight, seed=seed,
-                nnfm_max_side=nnfm_max_side or None, color_transfer=color_transfer, views_per_step=views_per_step,
+                nnfm_max_side=vgg_side(nnfm_max_side), color_transfer=color_transfer, views_per_step=views_per_step,
                 nnfm_search=nnfm_search,
             )
             if preset == "preview":

@@ -7,9 +7,10 @@ A :class:`ModelFile` declares the loader's list input as a COMBO, which ComfyUI 
 there, and a file deleted after the server started are all refused with this message; the loader asks again
 (:meth:`ModelFile.path`) as it runs.
 
-ComfyUI's own model loaders (:data:`STOCK_LOADERS`) keep their list and its "Value not in list"; the prompt check
-gives :meth:`ModelFile.check`'s message to each node of the pack such a loader feeds. The file the pack's workflows
-name is told its exact source; another name, the kind of model wanted and that source as an example.
+ComfyUI's own model loaders (:data:`STOCK_LOADERS`: each that makes a MODEL, CONTROL_NET, CLIP_VISION or VAE, with
+its file inputs) keep their list and its "Value not in list"; the prompt check gives :meth:`ModelFile.check`'s
+message to each node of the pack such a loader feeds. The file the pack's workflows name is told its exact source;
+another name, the kind of model wanted and that source as an example.
 """
 
 from __future__ import annotations
@@ -88,14 +89,39 @@ class ModelFile:
 
 
 SDXL_LORA_EXAMPLE = ModelSource("Pixel Art XL style LoRA", "nerijs/pixel-art-xl", "pixel-art-xl.safetensors")
-STOCK_LOADERS = {  # ComfyUI's own model loader (node type) -> its file input
-    "CheckpointLoaderSimple": ModelFile("ckpt_name", "checkpoints", SDXL_BASE, kind=(
-        "an SDXL 1.0 checkpoint (the base or a fine-tune of it: CSGO and the tile ControlNet are trained on SDXL)")),
-    "LoraLoader": ModelFile("lora_name", "loras", SDXL_LORA_EXAMPLE, kind="a LoRA trained on SDXL 1.0"),
-    "ControlNetLoader": ModelFile("control_net_name", "controlnet", TILE_CONTROLNET, kind=(
-        "an SDXL tile ControlNet (CSGO's ControlNet weights were trained with TTPlanet's)")),
-    "CLIPVisionLoader": ModelFile("clip_name", "clip_vision", IMAGE_ENCODER_FILE,
-                                  file="CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors", kind=(
-                                      "the OpenCLIP ViT-bigG/14 image encoder (CSGO's resamplers read its 1664-wide "
-                                      "features)")),
+SDXL_UNET = ModelSource("SDXL 1.0 base's UNet (diffusers layout, fp16)", SDXL_BASE.repo,
+                        "unet/diffusion_pytorch_model.fp16.safetensors")
+SDXL_VAE = ModelSource("SDXL VAE, fp16-safe", "madebyollin/sdxl-vae-fp16-fix", "sdxl_vae.safetensors")
+SD_CONFIG = ModelSource("Stable Diffusion inference config", "stable-diffusion-v1-5/stable-diffusion-v1-5",
+                        "v1-inference.yaml")
+
+CHECKPOINT_FILE = ModelFile("ckpt_name", "checkpoints", SDXL_BASE, kind=(
+    "an SDXL 1.0 checkpoint (the base or a fine-tune of it: CSGO and the tile ControlNet are trained on SDXL)"))
+UNET_FILE = ModelFile("unet_name", "diffusion_models", SDXL_UNET, kind=(
+    "an SDXL 1.0 UNet alone (the base's or a fine-tune's, in ComfyUI's or diffusers' layout)"))
+CONFIG_FILE = ModelFile("config_name", "configs", SD_CONFIG, kind=(
+    "a model config (for an SDXL checkpoint v1-inference.yaml, which ComfyUI ships: the checkpoint then loads as "
+    "Load Checkpoint loads it)"))
+LORA_FILE = ModelFile("lora_name", "loras", SDXL_LORA_EXAMPLE, kind="a LoRA trained on SDXL 1.0")
+CONTROLNET_FILE = ModelFile("control_net_name", "controlnet", TILE_CONTROLNET, kind=(
+    "an SDXL tile ControlNet (CSGO's ControlNet weights were trained with TTPlanet's)"))
+CLIP_VISION_FILE = ModelFile("clip_name", "clip_vision", IMAGE_ENCODER_FILE,
+                             file="CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors", kind=(
+                                 "the OpenCLIP ViT-bigG/14 image encoder (CSGO's resamplers read its 1664-wide "
+                                 "features)"))
+VAE_FILE = ModelFile("vae_name", "vae", SDXL_VAE, kind="an SDXL VAE")
+# ComfyUI 0.3.64's loaders whose MODEL, CONTROL_NET, CLIP_VISION or VAE a node of the pack takes: node type (its title
+# in the editor) -> its file inputs
+STOCK_LOADERS = {
+    "CheckpointLoaderSimple": (CHECKPOINT_FILE,),  # Load Checkpoint
+    "CheckpointLoader": (CONFIG_FILE, CHECKPOINT_FILE),  # Load Checkpoint With Config (DEPRECATED)
+    "unCLIPCheckpointLoader": (CHECKPOINT_FILE,),
+    "ImageOnlyCheckpointLoader": (CHECKPOINT_FILE,),  # Image Only Checkpoint Loader (img2vid model)
+    "UNETLoader": (UNET_FILE,),  # Load Diffusion Model
+    "LoraLoader": (LORA_FILE,),  # Load LoRA
+    "LoraLoaderModelOnly": (LORA_FILE,),
+    "ControlNetLoader": (CONTROLNET_FILE,),  # Load ControlNet Model
+    "DiffControlNetLoader": (CONTROLNET_FILE,),  # Load ControlNet Model (diff)
+    "CLIPVisionLoader": (CLIP_VISION_FILE,),  # Load CLIP Vision
+    "VAELoader": (VAE_FILE,),  # Load VAE
 }

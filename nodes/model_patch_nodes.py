@@ -30,7 +30,7 @@ from .comfy_patches import (
     patch_controlnet,
     transformer_layers,
 )
-from .model_files import STOCK_LOADERS, ModelFile
+from .model_files import CLIP_VISION_FILE, ModelFile
 from .node_base import STYLE_IMAGE_INPUT, ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CSGO
@@ -40,7 +40,6 @@ CSGO_EXTENSIONS = {".bin", ".safetensors", ".pt", ".pth"}
 CSGO_FILE = ModelFile("csgo_name", CSGO_FOLDER, CSGO_WEIGHTS, tooltip=(
     f"A CSGO weight file in models/{CSGO_FOLDER} ({CSGO_WEIGHTS.url}: `{CSGO_WEIGHTS.download_command}`, saved as "
     f"models/{CSGO_FOLDER}/csgo_4_32.bin)."))
-CLIP_VISION_FILE = STOCK_LOADERS["CLIPVisionLoader"]
 UNET_ROUTES = {"input": "content", "output": "style", "middle": None}  # with the paper's content routing
 CONTROLNET_ROUTES = {"input": "style", "middle": None}
 _log = logging.getLogger("artnvg")

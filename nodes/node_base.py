@@ -11,12 +11,13 @@ Checks: a node's work runs inside :func:`~.node_errors.node_input`, which names 
 input in the error; a loader's file input is declared, found and checked by an
 :class:`~.input_files.InputFile`; :meth:`ArtNVGNode.check_values` holds a prompt's values, as ComfyUI
 will pass them (:func:`comfyui_value`), to the declared types, ranges and choices before anything runs
-(``prompt_checks``; a text input also to what the node's ``TEXT_CHECKS`` read from it), and
+(``prompt_checks``; an input also to what the node's ``VALUE_CHECKS`` read from it), and
 :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
 ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS``), which ComfyUI labels with the one
 input that function takes, ``REPORTED_INPUT``: the hidden input :data:`~.prompt_checks.CHECK_INPUT` (the node id,
-which each node's function takes last, unused: "node_id - ..."), or a model loader's file input ("csgo_name - ...",
-:mod:`.model_files`). When a node runs, its
+which each node's function takes last, unused: "node_id - ..."), or, where every message the node shows names one
+input, that input ("csgo_name - ...", "filename_prefix - ..."). ComfyUI reads that function's inputs from the class,
+before it knows the node or the message, and labels the message with each of them: one fixed label per class. When a node runs, its
 function first holds what it is given to the same checks and to the Python type its declared type stands
 for, a number made its declared type's (:meth:`ArtNVGNode.run_inputs`): a value through a link meets no prompt
 check.
@@ -127,10 +128,12 @@ class ArtNVGNode:
     OPTIONAL: dict = {}
     HIDDEN = {CHECK_INPUT: "UNIQUE_ID"}  # ComfyUI's hidden inputs: name -> "UNIQUE_ID", "PROMPT"...
     REPORTED_INPUT = CHECK_INPUT  # the input ComfyUI labels the node's validation message with (_validate_inputs):
-    # the hidden node id, or a model loader's file input, a COMBO whose value ComfyUI does not check (model_files)
+    # the hidden node id, or the input each message of the node names: a required COMBO or STRING, whose value
+    # ComfyUI holds to no range or choices (naming an input in VALIDATE_INPUTS skips those checks of it)
     VALIDATE_INPUTS = _validate_inputs(CHECK_INPUT)
-    TEXT_CHECKS: dict = {}  # STRING input name -> the function (text) -> anything the node reads it with when it
-    # runs, raising ValueError for text it refuses: checked with the prompt's values, before the graph runs
+    VALUE_CHECKS: dict = {}  # input name -> the function (value, once of its declared type and range) -> anything
+    # the node reads it with when it runs, raising ValueError for a value it refuses (text it cannot read, a number
+    # the declared range lets through): checked with the prompt's values, before the graph runs
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -147,9 +150,9 @@ class ArtNVGNode:
         prompt's value; links left out) that ComfyUI cannot convert to its declared type, or that lies, once
         converted (:func:`comfyui_value`), outside its declared range (INT or FLOAT ``min``/``max``, FLOAT finite)
         or choices, or is not text where a COMBO (a loader's file list, which the loader checks) takes it, or is
-        text where a BOOLEAN takes true or false, or is text that the node's ``TEXT_CHECKS`` refuse. ComfyUI checks
+        text where a BOOLEAN takes true or false, or that the node's ``VALUE_CHECKS`` refuse. ComfyUI checks
         the range and choices of every declared input (:meth:`VALIDATE_INPUTS` names none of them), but not a
-        FLOAT's NaN, a COMBO's value, a BOOLEAN's nor what a text means."""
+        FLOAT's NaN, a COMBO's value, a BOOLEAN's nor what a value means to the node."""
         inputs = {**cls.REQUIRED, **cls.OPTIONAL}
         declared = _declared({name: entry for name, entry in inputs.items() if name in values})
         for name, given in values.items():
@@ -162,31 +165,33 @@ class ArtNVGNode:
             except REFUSED:
                 yield f"{where}: expected a value of type {kind}, got {given!r}", True
                 continue
+            found = []  # (message, reported by ComfyUI too): at most one
             if isinstance(kind, list):
                 if value not in kind:
-                    yield f"{where}: expected one of {kind}, got {value!r}", True
+                    found.append((f"{where}: expected one of {kind}, got {value!r}", True))
             elif kind == "COMBO":
                 if not isinstance(value, str):
-                    yield f"{where}: expected a file name, got {value!r}", False
+                    found.append((f"{where}: expected a file name, got {value!r}", False))
             elif kind == "BOOLEAN":
                 if isinstance(comfyui_value(None, given), str):  # bool("false") is True
-                    yield f"{where}: expected true or false, got {given!r}", False
-            elif kind == "STRING" and name in cls.TEXT_CHECKS:
-                try:
-                    cls.TEXT_CHECKS[name](value)
-                except ValueError as error:
-                    yield f"{where}: {error}", False
+                    found.append((f"{where}: expected true or false, got {given!r}", False))
             elif kind in ("INT", "FLOAT"):
                 outside = value < options.get("min", -math.inf) or value > options.get("max", math.inf)
                 raw = comfyui_value(None, given)  # a number, or text ComfyUI converted
                 number = _number_problem(kind, raw) if isinstance(raw, numbers.Real) else None
                 if number:  # ComfyUI converts it: int(2.5) is 2
-                    yield f"{where}: {number}", False
+                    found.append((f"{where}: {number}", False))
                 elif not math.isfinite(value):  # a FLOAT: NaN passes ComfyUI's comparisons
-                    yield f"{where}: expected a finite number, got {value}", outside
+                    found.append((f"{where}: expected a finite number, got {value}", outside))
                 elif outside:
                     low, high = options.get("min", "-inf"), options.get("max", "inf")
-                    yield f"{where}: {value} is outside {low} to {high}", True
+                    found.append((f"{where}: {value} is outside {low} to {high}", True))
+            if not found and name in cls.VALUE_CHECKS:
+                try:
+                    cls.VALUE_CHECKS[name](value)
+                except ValueError as error:
+                    found.append((f"{where}: {error}", False))
+            yield from found
 
     @classmethod
     def passed_values(cls, values: dict) -> dict:

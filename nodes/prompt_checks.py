@@ -28,8 +28,10 @@ Without the handler (a prompt validated some other way) the loaders raise the sa
 ComfyUI's own model loaders (:data:`~.model_files.STOCK_LOADERS`) list their folder's files, and ComfyUI's own
 check names a file that is not there ("Value not in list"), neither where it looked nor where to get it; the
 handler counts such a node as failing too, so that a graph missing a model file runs not at all either, and
-gives each node of the pack that such a loader feeds (straight, or through ComfyUI's LoRA loaders) one message
-naming its input, the loader, the file, the folders looked in and where to get it (:func:`_missing_models`).
+gives each node of the pack that such a loader feeds (straight, or through the links of other such loaders: a LoRA
+loader's, a diff ControlNet loader's) one message naming its input, the loader, the file, the folders looked in and
+where to get it (:func:`_missing_models`). A name the loader lists that is no file (Load VAE's 'pixel_space') is not
+missing: ComfyUI accepts it.
 """
 
 from __future__ import annotations
@@ -104,22 +106,36 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
         return None
 
 
-def _missing_model(prompt: dict, loader_id: str) -> str | None:
-    """The message of ComfyUI's model loader ``loader_id`` (:data:`~.model_files.STOCK_LOADERS`) whose file is not
-    in its folder, naming it by its title, type and id; None when the file is there."""
+def _listed(loader: type | None, input_name: str) -> list:
+    """The choices ComfyUI's loader class ``loader`` lists now for its input ``input_name``, to which ComfyUI's own
+    validation holds the value: its folder's files, and names that are no file (Load VAE's 'pixel_space'); [] without
+    the class."""
+    declared = loader.INPUT_TYPES().get("required", {}).get(input_name) if loader is not None else None
+    return declared[0] if declared and isinstance(declared[0], list) else []
+
+
+def _missing_model_files(prompt: dict, loader_id: str, classes: Mapping[str, type]) -> list[str]:
+    """A message per file input of ComfyUI's model loader ``loader_id`` (:data:`~.model_files.STOCK_LOADERS`) whose
+    value is neither among the choices the loader lists nor a file in its folder, naming the loader by its title,
+    type and id."""
     loader = prompt[loader_id]
-    model_file = STOCK_LOADERS[loader["class_type"]]
-    file = comfyui_value(None, _inputs(loader).get(model_file.name, ""))  # {"__value__": name} unwrapped
-    if isinstance(file, list):  # a name another node gives, known only as the graph runs
-        return None
-    title = (loader.get("_meta") or {}).get("title") or loader["class_type"]
-    return model_file.check(f"{title} (node #{loader_id}, {loader['class_type']})", str(file))
+    kind = loader["class_type"]
+    title = (loader.get("_meta") or {}).get("title") or kind
+    messages = []
+    for model_file in STOCK_LOADERS[kind]:
+        file = comfyui_value(None, _inputs(loader).get(model_file.name, ""))  # {"__value__": name} unwrapped
+        if isinstance(file, list) or file in _listed(classes.get(kind), model_file.name):  # a link: known as it runs
+            continue
+        message = model_file.check(f"{title} (node #{loader_id}, {kind})", str(file))
+        if message:
+            messages.append(message)
+    return messages
 
 
-def _missing_models(prompt: dict, node: dict, node_name: str) -> str | None:
+def _missing_models(prompt: dict, node: dict, node_name: str, classes: Mapping[str, type]) -> str | None:
     """The message of pack node ``node`` (called ``node_name``) fed by ComfyUI's model loaders whose file is missing,
-    straight or through their own links (a LoRA loader's MODEL and CLIP): a line per loader, naming the node's
-    inputs it feeds; None when each file is there."""
+    straight or through the loaders' own links (a LoRA loader's MODEL and CLIP, a diff ControlNet loader's MODEL): a
+    line per missing file, naming the node's inputs its loader feeds; None when each file is there."""
     fed: dict[str, list[str]] = {}  # loader id -> the node's inputs it feeds
     for input_name, source in _links(node).items():
         seen, stack = set(), [source]
@@ -133,11 +149,9 @@ def _missing_models(prompt: dict, node: dict, node_name: str) -> str | None:
             stack.extend(_links(prompt[current]).values())
     lines = []
     for loader_id, input_names in fed.items():
-        message = _missing_model(prompt, loader_id)
         names = ", ".join(f"'{name}'" for name in input_names)
         inputs = f"input {names} comes" if len(input_names) == 1 else f"inputs {names} come"
-        if message:
-            lines.append(f"{node_name}: {inputs} from {message}")
+        lines += [f"{node_name}: {inputs} from {message}" for message in _missing_model_files(prompt, loader_id, classes)]
     return "\n".join(lines) or None
 
 
@@ -151,9 +165,9 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
             continue
         values = {name: value for name, value in _inputs(node).items() if not isinstance(value, list)}
         if node.get("class_type") in STOCK_LOADERS:
-            message = _missing_model(prompt, node_id)
-            if message:
-                checked[str(node_id)] = (message, None)
+            messages = _missing_model_files(prompt, node_id, classes)
+            if messages:
+                checked[str(node_id)] = ("\n".join(messages), None)
             continue
         cls = classes.get(node.get("class_type"))
         message = cls.check_values(**values) if hasattr(cls, "check_values") else None
@@ -165,7 +179,7 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
         if not message and hasattr(cls, "check_images"):  # a node of the pack
-            message = _missing_models(prompt, node, cls.DISPLAY_NAME)
+            message = _missing_models(prompt, node, cls.DISPLAY_NAME, classes)
         if message:
             checked[str(node_id)] = (message, message)
     return checked

@@ -6,7 +6,7 @@ import functools
 
 import torch
 
-from artnvg_core.cameras import CameraSet, interpolate_path, orbit_path
+from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.counted import counted
 from artnvg_core.key_views import select_key_views
@@ -70,7 +70,7 @@ class RenderViews(ArtNVGNode):
             "0: every chosen view; K: only K of them that cover the scene (farthest camera poses), for a "
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
-    TEXT_CHECKS = {"views": EACH_VIEW_ONCE}
+    VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -110,7 +110,7 @@ class RenderCameraPath(ArtNVGNode):
             "interpolate: frames between consecutive key views.")}),
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
-    TEXT_CHECKS = {"key_views": EACH_VIEW_ONCE}
+    VALUE_CHECKS = {"key_views": EACH_VIEW_ONCE}
 
     @cancellable
     def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop, node_id=None):
@@ -118,7 +118,11 @@ class RenderCameraPath(ArtNVGNode):
             raise NodeInputError(f"{self.DISPLAY_NAME}: input 'path': expected one of {PATH_KINDS}, got {path!r}")
         if path == "orbit":
             with node_input(self.DISPLAY_NAME, "cameras"):
-                path_cameras = orbit_path(cameras, num_frames)
+                try:
+                    path_cameras = orbit_path(cameras, num_frames)
+                except NoOrbit as error:  # its advice names orbit_path's own arguments, which the node lacks
+                    raise ValueError(f"no orbit around these cameras ({error.reason}); set 'path' to interpolate, "
+                                     "through two views or more") from None
         else:
             with node_input(self.DISPLAY_NAME, "key_views"):
                 path_cameras = interpolate_path(

@@ -149,6 +149,8 @@ class SaveGaussianScene(ArtNVGNode):
             "rotations stored a little coarser.")}),
     }
 
+    REPORTED_INPUT = "filename_prefix"  # what each of its messages names: the others are choices ComfyUI checks
+
     @classmethod
     def check_files(cls, filename_prefix="", format="ply", **_other_inputs) -> str | None:
         """The message when the file this node would write cannot be (``prompt_checks``: refused before the

@@ -64,7 +64,7 @@ class SelectGaussians(ArtNVGNode):
         "views": ("STRING", {"default": "0", "tooltip": (
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }
-    TEXT_CHECKS = {"views": listed_views}  # a view may hold several masks
+    VALUE_CHECKS = {"views": listed_views}  # a view may hold several masks
 
     @classmethod
     def _value_problems(cls, values: dict):

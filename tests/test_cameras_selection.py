@@ -31,7 +31,7 @@ def test_a_view_given_twice_is_named_where_each_view_is_one_file():
 
 
 def test_the_checks_that_need_no_camera_count_run_before_the_cameras_are_known():
-    """A node's view text is checked before the graph runs (nodes' TEXT_CHECKS), with the rule --views applies."""
+    """A node's view text is checked before the graph runs (nodes' VALUE_CHECKS), with the rule --views applies."""
     assert listed_views(" 9;2 ,", None) == [9, 2] and listed_views("", "views") == []
     for text, message in [("0,x", r"^views: expected comma-separated view indices"),
                           ("3,-1", r"^views: view index -1 is out of range: views count from 0$"),

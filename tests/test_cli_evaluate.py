@@ -137,6 +137,21 @@ def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
               "--cameras", "t.json", "--style", "s.png"])
 
 
+def test_view_images_and_model_files_are_named_before_the_scene_loads(inputs, tmp_path, capsys):
+    """A folder of 2D views missing one, or a --vgg that is no VGG, was named only after every view and path
+    rendered."""
+    images = tmp_path / "views"
+    images.mkdir()
+    for options, message in [(["--stylized-images", str(tmp_path / "none")], r"--stylized-images: .*none is not a folder"),
+                             (["--stylized-images", str(images)], r"--stylized-images: .*views has no image for view "),
+                             (["--stylized", str(inputs["original"]), "--vgg", str(inputs["style"])],
+                              r"--vgg: weights .*: not a readable torch file")]:
+        code = main(["evaluate", "--original", str(inputs["original"]), *options, "--cameras", str(inputs["cameras"]),
+                     "--style", str(inputs["style"]), "--views", VIEWS, "--out", str(tmp_path / "r.json")])
+        captured = capsys.readouterr()
+        assert code == 2 and re.search(message, captured.err) and "loading" not in captured.out, captured
+
+
 def test_input_errors_name_the_problem(inputs, tmp_path):
     cameras = load_cameras(inputs["cameras"]).subset([0, 1])
     save_png(torch.zeros(8, 8, 3), tmp_path / f"{cameras.names[0]}.png")
@@ -174,7 +189,8 @@ def _cli(inputs, *options):
                                            ("--alpha-threshold", "1"), ("--alpha-threshold", "-0.1"),
                                            ("--depth-tolerance", "-1"), ("--depth-tolerance", "0"),
                                            ("--depth-tolerance", "nan"), ("--scale", "inf"), ("--scale", "nan"),
-                                           ("--scale", "0"), ("--scale", "x")])
+                                           ("--scale", "0"), ("--scale", "x"), ("--frames", "1"),
+                                           ("--long-step", "0")])
 def test_bad_numbers_exit_2_naming_the_option(inputs, capsys, option, value):
     with pytest.raises(SystemExit) as exit_:
         _cli(inputs, option, value)

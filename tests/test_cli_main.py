@@ -70,14 +70,15 @@ def test_render_names_a_view_given_twice_before_loading(tmp_path, capsys, camera
     assert "loading" not in captured.out and not (tmp_path / "r").exists()
 
 
-@pytest.mark.parametrize("command", ["render", "stylize", "evaluate"])
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate", "blend"])
 def test_a_folder_given_as_a_scene_is_named_as_one_before_any_loading(tmp_path, capsys, command):
     demo, folder = DemoInputs(), tmp_path / "capture"
     folder.mkdir()
-    inputs = {"render": [str(folder)], "stylize": [str(folder), "--style", str(demo.style)],
-              "evaluate": ["--original", str(demo.scene), "--stylized", str(folder), "--style", str(demo.style)]}
+    inputs = {"render": [str(folder), "--device", "cpu"], "stylize": [str(folder), "--style", str(demo.style)],
+              "evaluate": ["--original", str(demo.scene), "--stylized", str(folder), "--style", str(demo.style)],
+              "blend": [str(demo.scene), str(folder), "--strength", "0.5"]}
     out = tmp_path / "out" / ("report.json" if command == "evaluate" else "s.ply")
-    assert main([command, *inputs[command], "--cameras", str(demo.cameras), "--out", str(out), "--device", "cpu"]) == 2
+    assert main([command, *inputs[command], "--cameras", str(demo.cameras), "--out", str(out)]) == 2
     captured = capsys.readouterr()
     assert captured.err == (f"error: {folder}: scene file is a folder, not a regular file; expected .ply (INRIA 3DGS or "
                             "compressed PLY), .splat, .spz, .ksplat or .ckpt (nerfstudio splatfacto checkpoint)\n")
@@ -636,3 +637,16 @@ def test_a_line_printed_while_a_bar_is_drawn_gets_a_line_of_its_own(tmp_path, mo
     screen = _terminal(terminal.getvalue())
     at = screen.index("a status line")
     assert re.fullmatch(r"finetune: 100%\|#+\| 10/10 \[[^\]]+\]", screen[at + 1]), screen  # ASCII: no Unicode in a StringIO
+
+
+def test_render_names_an_sh_degree_above_the_scenes_before_writing(tmp_path, capsys):
+    """'--sh-degree 5' on a degree-1 scene said 'render: sh_degree must be in 0..1 for this scene' after making --out."""
+    scene, out = _small_scene(tmp_path), tmp_path / "r"
+    assert main(["render", str(scene), "--cameras", str(DemoInputs().cameras), "--out", str(out), "--views", "0",
+                 "--sh-degree", "2", "--device", "cpu"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.endswith(f"\nerror: --sh-degree: 2 is above the SH degree of {scene}, 1; give 0 to 1\n")
+    assert "rendering" not in captured.out and not out.exists()
+    with pytest.raises(SystemExit):
+        main(["render", str(scene), "--out", str(out), "--sh-degree", "-1"])
+    assert "argument --sh-degree: expected an integer >= 0, got '-1'" in capsys.readouterr().err

@@ -1,6 +1,7 @@
 """Output-path checks, files written whole, and together or not at all."""
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -8,6 +9,7 @@ from artnvg_core.fileio import (
     check_output_file,
     check_output_folder,
     refuse_overwrites,
+    require_regular_file,
     write_atomically,
     written_together,
 )
@@ -182,3 +184,18 @@ def test_a_new_file_never_goes_over_one_that_took_its_name_while_it_was_written(
     write_atomically(tmp_path / "free.ply", lambda stream: stream.write(b"ours"), overwrite=False)
     assert (tmp_path / "free.ply").read_bytes() == b"ours"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["free.ply", "link.ply", "scene.ply"]
+
+
+def test_an_input_file_that_cannot_be_opened_is_named_with_what_it_is(tmp_path, monkeypatch):
+    locked = tmp_path / "locked.ply"
+    locked.write_bytes(b"ply\n")
+    opened = Path.open
+
+    def refuse_locked(self, *args, **kwargs):  # chmod 000 stops no root, which runs these tests in CI
+        if self == locked:
+            raise PermissionError(13, "Permission denied", str(self))
+        return opened(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "open", refuse_locked)
+    with pytest.raises(ValueError, match=r"locked\.ply: scene file cannot be read \(Permission denied\)$"):
+        require_regular_file(locked, "scene file")

@@ -159,11 +159,15 @@ def test_every_node_contract_is_valid_and_consistent(pack):
         parameters = inspect.signature(getattr(node, node.FUNCTION)).parameters
         hidden = list(node.INPUT_TYPES().get("hidden", {}))
         # every node answers ComfyUI's validation with the pack's checks of the prompt (nodes/prompt_checks.py),
-        # through one input, which labels the message: its id, or a model loader's file list (a COMBO, which ComfyUI
-        # does not check); ComfyUI still holds every other input to its range and choices
+        # through one input, which labels the message: its id, or the one input its messages name (a file list, a
+        # COMBO, or text: ComfyUI checks neither); ComfyUI still holds every other input to its range and choices
         assert node.INPUT_TYPES()["hidden"] == {"node_id": "UNIQUE_ID"}, name
         assert list(inspect.signature(node.VALIDATE_INPUTS).parameters) == [node.REPORTED_INPUT], name
-        assert node.REPORTED_INPUT == "node_id" or node.INPUT_TYPES()["required"][node.REPORTED_INPUT][0] == "COMBO"
+        assert node.REPORTED_INPUT == "node_id" or node.INPUT_TYPES()["required"][node.REPORTED_INPUT][0] in (
+            "COMBO", "STRING"), name
+        others = [spec[0] for key, spec in inputs.items() if key != node.REPORTED_INPUT]
+        assert node.REPORTED_INPUT == "node_id" or all(  # no other input that a message could name: choices that
+            isinstance(kind, list) or kind.startswith("ARTNVG_") for kind in others), name  # ComfyUI checks, links
         assert list(parameters)[1:] == list(inputs) + hidden, name  # self, then every input in order, then hidden
         for hidden_name in hidden:
             assert parameters[hidden_name].default is None, (name, hidden_name)

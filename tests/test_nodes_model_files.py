@@ -111,14 +111,12 @@ def test_each_file_the_shipped_workflows_give_a_stock_loader_is_told_its_exact_s
 
     from nodes.model_files import STOCK_LOADERS
 
-    picked = {(node["class_type"], node["inputs"][STOCK_LOADERS[node["class_type"]].name])
-              for path in API_FILES for node in json.loads(path.read_text()).values()
-              if node["class_type"] in STOCK_LOADERS}
-    assert {kind for kind, _ in picked} == {"CheckpointLoaderSimple", "ControlNetLoader", "CLIPVisionLoader"}
+    picked = {(loader, node["inputs"][loader.name]) for path in API_FILES for node in json.loads(path.read_text()).values()
+              for loader in STOCK_LOADERS.get(node["class_type"], ())}
+    assert {loader.folder for loader, _ in picked} == {"checkpoints", "controlnet", "clip_vision"}
     listed = {model["name"]: model["url"] for model in
               json.loads(next(WORKFLOWS.glob(f"{FULL_API.stem.removesuffix('_api')}.json")).read_text())["models"]}
-    for kind, name in picked:
-        loader = STOCK_LOADERS[kind]
+    for loader, name in picked:
         source = loader.source
         assert loader.usual_name == name
         file = source.download_file or source.repo_path

@@ -137,15 +137,17 @@ def test_validation_repeats_no_problem_comfyui_reports_itself(executing):
 
 @pytest.fixture
 def model_folders(tmp_path, monkeypatch):
-    """ComfyUI's model folders (checkpoints, loras, controlnet, clip_vision) under tmp_path/models, empty."""
+    """ComfyUI's model folders that the stock loaders read (checkpoints, loras, vae...) under tmp_path/models, empty."""
     from test_nodes_comfy_bridge import FakeComfy
+
+    from nodes.model_files import STOCK_LOADERS
 
     for name, module in FakeComfy(tmp_path).modules.items():
         monkeypatch.setitem(sys.modules, name, module)
     folder_paths = sys.modules["folder_paths"]
-    folder_paths.folder_names_and_paths["loras"] = ([str(tmp_path / "models" / "loras")], {".safetensors"})
     folder_paths.get_annotated_filepath = lambda name: str(tmp_path / "input" / name)  # Load Image's file
-    for folder in ("checkpoints", "loras", "controlnet", "clip_vision"):
+    for folder in {model_file.folder for model_files in STOCK_LOADERS.values() for model_file in model_files}:
+        folder_paths.folder_names_and_paths[folder] = ([str(tmp_path / "models" / folder)], {".safetensors", ".yaml"})
         (tmp_path / "models" / folder).mkdir(parents=True)
     return tmp_path / "models"
 
@@ -253,6 +255,99 @@ def test_a_loader_feeding_through_lora_loaders_is_named_once_per_node_with_each_
                                "CheckpointLoaderSimple): input 'ckpt_name': 'mine.safetensors' is not in ")
     assert "Save an SDXL 1.0 checkpoint (the base or a fine-tune of it" in lines[1]
     assert sorted(failed_checks(prompt, classes)) == ["1", "2", "4"]
+
+
+def test_every_comfyui_loader_that_feeds_a_node_of_the_pack_is_followed_through_the_loaders_links(model_folders):
+    """Load Diffusion Model -> LoraLoaderModelOnly -> Apply CSGO's model, the same UNet -> Load ControlNet Model (diff)
+    -> its control_net, Load VAE -> Sample Group's vae: these loaders were not followed, so Apply CSGO and Sample
+    Group said nothing (ComfyUI's "Value not in list" on each loader alone) and the outputs they did not feed ran."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": "UNETLoader", "inputs": {"unet_name": "sdxl_unet.safetensors", "weight_dtype":
+                                                            "default"}, "_meta": {"title": "SDXL UNet"}},
+              "2": {"class_type": "LoraLoaderModelOnly", "inputs": {"lora_name": "ink.safetensors", "model": ["1", 0],
+                                                                    "strength_model": 1.0}},
+              "3": {"class_type": "DiffControlNetLoader", "inputs": {"control_net_name": "tile.safetensors",
+                                                                     "model": ["1", 0]}},
+              "4": {"class_type": "VAELoader", "inputs": {"vae_name": "sdxl_vae.safetensors"}},
+              "5": {"class_type": "ArtNVGApplyCSGO", "inputs": {"model": ["2", 0], "control_net": ["3", 0]}},
+              "6": {"class_type": "ArtNVGSampleGroup", "inputs": {"model": ["5", 0], "control_net": ["5", 1],
+                                                                  "vae": ["4", 0]}},
+              "7": {"class_type": "Output", "inputs": {"images": ["6", 0]}},
+              "8": {"class_type": "Output", "inputs": {}}}
+    (model_folders / "controlnet" / "tile.safetensors").write_bytes(b"")
+    failed = failed_checks(prompt, classes)
+    assert sorted(failed) == ["1", "2", "4", "5", "6"]
+    unets, vaes = model_folders / "diffusion_models", model_folders / "vae"
+    unet = (f"SDXL UNet (node #1, UNETLoader): input 'unet_name': 'sdxl_unet.safetensors' is not in the "
+            f"'diffusion_models' model folder (looked in {unets}; found nothing). Save an SDXL 1.0 UNet alone (the "
+            f"base's or a fine-tune's, in ComfyUI's or diffusers' layout) as {unets / 'sdxl_unet.safetensors'}, e.g. "
+            "the SDXL 1.0 base's UNet (diffusers layout, fp16) from https://huggingface.co/stabilityai/stable-diffusion-"
+            "xl-base-1.0/blob/main/unet/diffusion_pytorch_model.fp16.safetensors (`hf download stabilityai/stable-"
+            "diffusion-xl-base-1.0 unet/diffusion_pytorch_model.fp16.safetensors`)")
+    lora = failed["2"]
+    assert lora.startswith("LoraLoaderModelOnly (node #2, LoraLoaderModelOnly): input 'lora_name': 'ink.safetensors' "
+                           "is not in the 'loras' model folder") and "Save a LoRA trained on SDXL 1.0 as" in lora
+    assert failed["5"].split("\n") == [f"Apply CSGO: input 'model' comes from {lora}",
+                                       f"Apply CSGO: inputs 'model', 'control_net' come from {unet}"]
+    assert failed["6"] == (
+        "Sample Group: input 'vae' comes from VAELoader (node #4, VAELoader): input 'vae_name': 'sdxl_vae.safetensors' "
+        f"is not in the 'vae' model folder (looked in {vaes}; found nothing). Get the SDXL VAE, fp16-safe from "
+        "https://huggingface.co/madebyollin/sdxl-vae-fp16-fix/blob/main/sdxl_vae.safetensors: `hf download "
+        f"madebyollin/sdxl-vae-fp16-fix sdxl_vae.safetensors --local-dir {vaes}` saves it as "
+        f"{vaes / 'sdxl_vae.safetensors'}")
+    assert check_prompt({"prompt": prompt}, classes)["partial_execution_targets"] == ["7"]
+
+
+def test_a_loader_with_two_files_is_named_once_per_missing_file(model_folders):
+    """Load Checkpoint With Config (CheckpointLoader): its config and its checkpoint, each a line."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": "CheckpointLoader", "inputs": {"config_name": "v1-inference.yaml",
+                                                                 "ckpt_name": "sdxl.safetensors"}},
+              "2": {"class_type": "ArtNVGNVAttentionPatch", "inputs": {"model": ["1", 0]}},
+              "3": {"class_type": "Output", "inputs": {"model": ["2", 0]}}}
+    configs = model_folders / "configs"
+    loader = "CheckpointLoader (node #1, CheckpointLoader)"
+    config = (f"{loader}: input 'config_name': 'v1-inference.yaml' is not in the 'configs' model folder (looked in "
+              f"{configs}; found nothing). Get the Stable Diffusion inference config from https://huggingface.co/"
+              "stable-diffusion-v1-5/stable-diffusion-v1-5/blob/main/v1-inference.yaml: `hf download stable-diffusion-"
+              f"v1-5/stable-diffusion-v1-5 v1-inference.yaml --local-dir {configs}` saves it as "
+              f"{configs / 'v1-inference.yaml'}")
+    checkpoint = f"{loader}: input 'ckpt_name': 'sdxl.safetensors' is not in the 'checkpoints' model folder"
+    lines = failed_checks(prompt, classes)["2"].split("\n")
+    assert lines[0] == f"NV-Attention Patch Model: input 'model' comes from {config}" and len(lines) == 2
+    assert lines[1].startswith(f"NV-Attention Patch Model: input 'model' comes from {checkpoint}")
+    assert failed_checks(prompt, classes)["1"].split("\n")[0] == config
+    (configs / "v1-inference.yaml").write_bytes(b"")
+    assert failed_checks(prompt, classes)["2"].startswith(f"NV-Attention Patch Model: input 'model' comes from {checkpoint}")
+    (model_folders / "checkpoints" / "sdxl.safetensors").write_bytes(b"")
+    assert failed_checks(prompt, classes) == {}
+
+
+def test_a_name_the_loader_lists_that_is_no_file_is_not_missing(model_folders):
+    """Load VAE lists 'pixel_space' (and its TAESD decoders, when in models/vae_approx), which are no file of
+    models/vae: ComfyUI accepts them; a name it does not list is missing."""
+    from nodes import NODE_CLASS_MAPPINGS
+
+    class VAELoader:  # ComfyUI's, listing models/vae (empty) and the names that are no file
+        @classmethod
+        def INPUT_TYPES(cls):
+            return {"required": {"vae_name": (["taesdxl", "pixel_space"],)}}
+
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output, "VAELoader": VAELoader}
+    prompt = {"1": {"class_type": "VAELoader", "inputs": {"vae_name": "pixel_space"}},
+              "2": {"class_type": "ArtNVGSampleGroup", "inputs": {"vae": ["1", 0]}},
+              "3": {"class_type": "Output", "inputs": {"images": ["2", 0]}}}
+    assert failed_checks(prompt, classes) == {}
+    prompt["1"]["inputs"]["vae_name"] = {"__value__": "taesdxl"}
+    assert failed_checks(prompt, classes) == {}
+    prompt["1"]["inputs"]["vae_name"] = "taesd"
+    assert failed_checks(prompt, classes)["2"].startswith(
+        "Sample Group: input 'vae' comes from VAELoader (node #1, VAELoader): input 'vae_name': 'taesd' is not in the "
+        "'vae' model folder")
 
 
 def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tmp_path, monkeypatch):
@@ -422,10 +517,13 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
                                                            "not an elevation in (-90, 90)"),  # once only as it ran
     ("ArtNVGCamerasAroundScene", {"up": "0, 0, 0"}, "Cameras Around Scene: input 'up': expected 3 finite numbers, "
                                                     "not all zero"),
+    # within the declared 0 to 16384, which ComfyUI checks; refused as 'FinetuneConfig.nnfm_max_side' once it ran
+    ("ArtNVGFinetuneGaussians", {"nnfm_max_side": 7}, "Finetune Gaussians: input 'nnfm_max_side': expected 0 (full "
+                                                      "resolution) or at least 16 px, got 7"),
 ])
-def test_text_a_node_would_refuse_when_it_runs_is_refused_at_validation(executing, node_type, inputs, message):
-    """A node's TEXT_CHECKS: the parser it reads the text with, run before the graph runs (the camera count is not
-    known then: an index past the last view is refused when the node runs)."""
+def test_values_a_node_would_refuse_when_it_runs_are_refused_at_validation(executing, node_type, inputs, message):
+    """A node's VALUE_CHECKS: the parser it reads the text (or number) with, run before the graph runs (the camera
+    count is not known then: an index past the last view is refused when the node runs)."""
     shown, failed, targets = _validated(node_type, inputs, executing)
     assert shown == failed and shown.startswith(message) and targets == ["2"]
     assert _validated("ArtNVGRenderViews", {"views": "0, 2; 1"}, executing)[1] is None

