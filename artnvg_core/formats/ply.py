@@ -128,9 +128,9 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, progress: P
              should_stop: StopFn | None = None) -> GaussianScene:
     """Read an INRIA 3DGS PLY (ASCII or binary of either byte order) as float32 tensors, or a
     PlayCanvas compressed PLY. Layout and Mip-Splatting's ``filter_3D`` in the module docstring.
-    Validated with :func:`~artnvg_core.scene.validate_scene`. ``progress`` follows the binary rows read
-    (stage "reading vertex") and decoded (stage "decoding"), in Gaussians; ``should_stop`` ends the read
-    between chunks (:class:`~artnvg_core.progress.Cancelled`).
+    Validated with :func:`~artnvg_core.scene.validate_scene`. ``progress`` follows the rows read (binary: stage
+    "reading vertex"; ASCII, every element's lines parsed: "reading") and decoded (stage "decoding");
+    ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`).
     """
     path = Path(path)
     require_file(path)

@@ -6,7 +6,8 @@ is skipped by its byte count, never built row by row: a fixed-size element's byt
 times its row size, a list element's are found from the list lengths (one strided look when every
 row has the same lengths, else one pass over the length fields). An element that needs more bytes
 than the file has left is refused before anything is read, and the counts must account for every
-byte (binary) or line (ASCII) of the data.
+byte (binary) or line (ASCII) of the data. ASCII data is read a block of lines at a time and parsed
+by numpy's loadtxt a chunk of rows at a time (blank lines skipped; other elements' lines counted).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from ..progress import ProgressFn, StopFn, check_stop, staged
 from .common import ChunkedWork
 
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
+TEXT_BLOCK_BYTES = 1 << 24  # ASCII data read per block: about 21,000 rows of SH degree 3
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
           "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
@@ -134,6 +136,12 @@ def _counts_error(path: Path, elements: list[PlyElement], holds: str) -> ValueEr
                       f"holds {holds}; the file is corrupt or its counts were edited")
 
 
+def _too_short(path: Path, element: PlyElement, needed: int, left: int) -> ValueError:
+    rows = counted(element.count, "row") + (" needs" if element.count == 1 else " need")
+    return ValueError(f"{path}: element '{element.name}': {rows} at least {counted(needed, 'byte')}, but the file "
+                      f"has {left:,} left (truncated, or the header's counts are wrong)")
+
+
 def _scalar_dtype(element: PlyElement, order: str) -> np.dtype:
     return np.dtype([(p.name, order + p.dtype) for p in element.properties])
 
@@ -192,10 +200,7 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
         left = len(data) - offset
         smallest = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in element.properties)
         if element.count * smallest > left:
-            rows = counted(element.count, "row") + (" needs" if element.count == 1 else " need")
-            raise ValueError(f"{path}: element '{element.name}': {rows} at least "
-                             f"{counted(element.count * smallest, 'byte')}, but the file has {left:,} left (truncated, or "
-                             "the header's counts are wrong)")
+            raise _too_short(path, element, element.count * smallest, left)
         if any(p.is_list for p in element.properties):
             offset += _list_element_bytes(path, element, data[offset:], order)
             continue
@@ -210,29 +215,79 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
         raise _counts_error(path, elements, f"{counted(len(data) - offset, 'byte')} more than those records need")
 
 
-def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted: set[str]) -> None:
-    lines = [line for line in stream.read().split(b"\n") if line.strip()]
-    declared = sum(element.count for element in elements)
-    if len(lines) != declared:
-        raise _counts_error(path, elements, f"{counted(len(lines), 'data line')} for {counted(declared, 'record')}")
-    start = 0
+class _TextLines:
+    """The data lines of an ASCII PLY, blank ones skipped, taken a number at a time from ``stream``, which is read
+    :data:`TEXT_BLOCK_BYTES` at a time: memory follows the lines taken, not the file."""
+
+    def __init__(self, stream: BinaryIO, size: int):
+        self.stream, self.left, self.lines, self.tail = stream, size, [], b""
+
+    def _read_block(self) -> bool:
+        """The next block's complete lines added to ``lines``; False at the end of the file (``size`` bytes)."""
+        block = self.stream.read(min(TEXT_BLOCK_BYTES, self.left))
+        self.left -= len(block)
+        text = self.tail + block
+        cut = len(text) if not block else text.rfind(b"\n") + 1  # the last line may lack its newline
+        self.lines += [line for line in text[:cut].split(b"\n") if line.strip()]
+        self.tail = text[cut:]
+        return bool(block)
+
+    def take(self, count: int) -> list[bytes]:
+        """The next ``count`` lines (fewer where the file ends sooner)."""
+        while len(self.lines) < count and self._read_block():
+            pass
+        taken, self.lines = self.lines[:count], self.lines[count:]
+        return taken
+
+    def count_rest(self) -> int:
+        """How many lines are left (read through to the end of the file)."""
+        left = len(self.lines)
+        self.lines = []
+        while self._read_block():
+            left, self.lines = left + len(self.lines), []
+        return left + len(self.lines)
+
+
+def _text_rows(path: Path, element: PlyElement, lines: list[bytes]) -> np.ndarray:
+    """Rows of a scalar ``element`` parsed from ``lines`` as float64 [len(lines), properties]."""
+    width = len(element.properties)
+    try:
+        values = np.loadtxt(lines, dtype=np.float64, comments=None, ndmin=2, encoding="latin1")
+    except ValueError:
+        values = None  # ragged rows, or text that is no number
+    if values is None or values.shape != (len(lines), width):
+        raise ValueError(f"{path}: element '{element.name}': a row holds something other than numbers, "
+                         f"or not {width} of them")
+    return values
+
+
+def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted: set[str],
+               progress: ProgressFn | None, should_stop: StopFn | None) -> None:
+    size = left = os.fstat(stream.fileno()).st_size - stream.tell()
+    for element in elements:  # before anything is made: a row of k numbers takes at least 2k bytes, "0 0\n"
+        smallest = 2 * len(element.properties) * element.count
+        if smallest - 1 > left:  # the last row may lack its newline
+            raise _too_short(path, element, smallest, left)
+        left -= smallest
+    lines, declared = _TextLines(stream, size), sum(element.count for element in elements)
+    work, start = ChunkedWork(declared, 1, progress, should_stop), 0
     for element in elements:
-        rows = lines[start:start + element.count]
+        scalar = element.name in wanted and not any(p.is_list for p in element.properties)
+        if scalar:
+            element.data = np.empty(element.count, _scalar_dtype(element, "="))
+        for rows in work.chunks(start, start + element.count):
+            taken = lines.take(rows.stop - rows.start)
+            if len(taken) < rows.stop - rows.start:
+                held = counted(rows.start + len(taken), "data line")
+                raise _counts_error(path, elements, f"{held} for {counted(declared, 'record')}")
+            if scalar:
+                values = _text_rows(path, element, taken)
+                with np.errstate(all="ignore"):  # out-of-range values -> inf, rejected by the scene's validation
+                    for column, prop in enumerate(element.properties):
+                        element.data[prop.name][rows.start - start:rows.stop - start] = values[:, column]
         start += element.count
-        if element.name not in wanted or any(p.is_list for p in element.properties):
-            continue
-        width = len(element.properties)
-        try:
-            values = np.array([row.split() for row in rows], dtype=np.float64) if rows else np.empty((0, width))
-        except ValueError:
-            values = None  # ragged rows, or text that is no number
-        if values is None or values.shape != (element.count, width):
-            raise ValueError(f"{path}: element '{element.name}': a row holds something other than numbers, "
-                             f"or not {width} of them")
-        element.data = np.empty(element.count, _scalar_dtype(element, "="))
-        with np.errstate(all="ignore"):  # out-of-range values -> inf, rejected by the scene's validation
-            for column, prop in enumerate(element.properties):
-                element.data[prop.name] = values[:, column]
+    if left := lines.count_rest():
+        raise _counts_error(path, elements, f"{counted(declared + left, 'data line')} for {counted(declared, 'record')}")
 
 
 def read_ply_data(path: Path, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
@@ -240,13 +295,13 @@ def read_ply_data(path: Path, wanted: tuple[str, ...], *, progress: ProgressFn |
     """The PLY at ``path`` with the scalar elements named in ``wanted`` read (their ``data`` set), every other
     element skipped; a ValueError naming ``path`` for anything that is not a well-formed PLY whose counts
     account for its data (module docstring). A binary element is read a chunk of rows at a time: ``progress``
-    follows its rows (stage "reading ELEMENT"), ``should_stop`` ends the read between chunks
-    (:class:`~artnvg_core.progress.Cancelled`); ASCII is read whole, asked to stop before."""
+    follows its rows (stage "reading ELEMENT"); ASCII is parsed a chunk of lines at a time, every element's
+    (stage "reading"); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
     check_stop(should_stop)
     with open(path, "rb") as stream:
         fmt, elements = _header(path, stream)
         if fmt == "ascii":
-            _read_text(path, stream, elements, set(wanted))
+            _read_text(path, stream, elements, set(wanted), staged(progress, "reading"), should_stop)
         else:
             _read_binary(path, stream, fmt, elements, set(wanted), progress, should_stop)
     return PlyData(elements, text=fmt == "ascii")
