@@ -47,3 +47,46 @@ def test_transformers_models_are_built_without_their_weight_initialisation(monke
     assert all(torch.equal(buffer, expected[name]) for name, buffer in built.named_buffers())
     type(encoder)(encoder.config)
     assert initialised  # the spy sees an initialisation outside the block
+
+
+class _Scaled(torch.nn.Module):
+    """A layer with a persistent buffer, a frozen parameter and a non-persistent buffer, under a container."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.inner = torch.nn.Sequential(torch.nn.Linear(3, 2))
+        self.scale = torch.nn.Parameter(torch.ones(2), requires_grad=False)
+        self.register_buffer("offset", torch.zeros(2))
+        self.register_buffer("steps", torch.arange(4), persistent=False)
+
+
+def _fitting_state() -> dict[str, torch.Tensor]:
+    return {"inner.0.weight": torch.full((2, 3), 2.0), "inner.0.bias": torch.full((2,), 3.0),
+            "scale": torch.full((2,), 4.0), "offset": torch.full((2,), 5.0)}
+
+
+def test_a_state_is_assigned_without_load_state_dict_s_work_per_module(monkeypatch):
+    """Each tensor becomes its module's parameter (requires_grad kept) or buffer as load_state_dict(assign=True)
+    makes it, directly (load_state_dict's checks, hooks and no_grad block per module and tensor were a tenth of
+    the lock a load held); the computed buffer stays the model's."""
+    def refused(*args, **kwargs):
+        raise AssertionError("load_state_dict called")
+
+    expected, model = _Scaled(), _Scaled()
+    expected.load_state_dict(_fitting_state(), assign=True)
+    state = _fitting_state()
+    monkeypatch.setattr(torch.nn.Module, "load_state_dict", refused)
+    assign_strict(model, state, "weights")
+    ours = dict((*model.named_parameters(), *model.named_buffers()))
+    for name, tensor in (*expected.named_parameters(), *expected.named_buffers()):
+        assert (type(ours[name]), ours[name].requires_grad) == (type(tensor), tensor.requires_grad), name
+        assert torch.equal(ours[name], tensor), name
+    assert model.offset is state["offset"] and model.inner[0].weight.data_ptr() == state["inner.0.weight"].data_ptr()
+
+
+def test_a_model_with_a_module_that_loads_its_own_way_goes_through_load_state_dict():
+    """A load hook (or a class's own _load_from_state_dict) is honoured: such a model is given to load_state_dict."""
+    model, seen = _Scaled(), []
+    model.inner[0]._register_load_state_dict_pre_hook(lambda state, prefix, *args: seen.append(prefix))
+    assign_strict(model, _fitting_state(), "weights")
+    assert seen == ["inner.0."] and torch.equal(model.offset, torch.full((2,), 5.0))
