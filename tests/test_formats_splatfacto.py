@@ -203,3 +203,18 @@ def test_tensors_standing_for_more_than_the_file_holds_are_refused_before_made_d
                        rf"means \({2**20}, 3\) \({layout}\)"):
         read_splatfacto_ckpt(path)
     assert len(read_splatfacto_ckpt(save(2**16))) == 2**16
+
+
+def test_a_checkpoints_load_fills_one_bar_and_a_stop_ends_its_check(tmp_path, monkeypatch):
+    """torch.load in one step, then the check a chunk of Gaussians at a time."""
+    from artnvg_core import scene
+    from artnvg_core.formats import splatfacto
+    from artnvg_core.progress import Cancelled
+    from tests.test_formats import assert_one_bar
+
+    monkeypatch.setattr(scene, "CHECKED_ROWS", 16)
+    path, calls = save_splatfacto(tmp_path / "run.ckpt", splatfacto_params(100, 1)), []
+    load_scene(path, progress=lambda *call: calls.append(call))
+    assert_one_bar(calls, path.stat().st_size, splatfacto.READ_STAGES)
+    with pytest.raises(Cancelled):
+        load_scene(path, progress=lambda *call: calls.append(call), should_stop=lambda: calls[-1][0] > 0)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from ..progress import StopFn
+from ..progress import ProgressFn, Stages, StopFn
 from ..scene import SH_C0, GaussianScene, validate_scene
 from ..tensor_files import load_failure
 from .bounded import require_stored_zip
@@ -30,6 +30,9 @@ _SPLATFACTO_REQUIRED = ("means", "scales", "quats", "features_dc", "opacities")
 # files double; at least EXPANSION_FLOOR for small files).
 MAX_EXPANSION = 4
 EXPANSION_FLOOR = 1 << 24
+# Seconds per million Gaussians of SH degree 3 (one thread of a 2-core CPU) in each stage of a read: the share of
+# the progress bar each fills.
+READ_STAGES = {"load": 0.2, "check": 0.18}
 _RASTERIZE_MODE = re.compile(r"^\s*rasterize_mode:\s*['\"]?(\w+)", re.MULTILINE)
 
 
@@ -98,7 +101,7 @@ def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, 
         raise ValueError(f"{path}: {_SPLATFACTO_PREFIX}{name}: expected shape {shape}, got {tuple(value.shape)}")
 
 
-def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
+def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
                          should_stop: StopFn | None = None) -> GaussianScene:
     """Read the Gaussians of a nerfstudio splatfacto ``.ckpt`` (loaded with ``weights_only=True``).
 
@@ -107,11 +110,16 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
     features_rest [N, K-1, 3]. At SH degree 0 (features_rest empty or absent)
     splatfacto renders colour = sigmoid(features_dc), which is converted to the
     SH DC coefficient (sigmoid(f) - 0.5) / SH_C0. ``antialiased`` from the run's config
-(module docstring). Validated with :func:`validate_scene`.
+(module docstring). Validated with :func:`validate_scene`. ``progress`` follows the whole read in the file's bytes,
+    filling once over its stages (:data:`READ_STAGES`: ``torch.load`` in one step, then the check a chunk of Gaussians
+    at a time), ``should_stop`` ends the check between chunks (:class:`~artnvg_core.progress.Cancelled`).
     """
     path = Path(path)
     require_file(path)
-    params = _splatfacto_params(path)
+    stages = Stages(progress, path.stat().st_size, READ_STAGES)
+    params, loaded = _splatfacto_params(path), stages["load"]
+    if loaded is not None:  # torch.load: one step
+        loaded(1, 1, {})
     n = params["means"].shape[0] if params["means"].ndim == 2 else -1
     shapes = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "features_dc": (n, 3), "opacities": (n, 1)}
     for name, shape in shapes.items():
@@ -133,4 +141,5 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
         sh=torch.cat([dc[:, None, :], rest], dim=1).contiguous(),
         antialiased=trained_antialiased(path),
     )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
+                          progress=stages["check"])[0]
