@@ -650,3 +650,20 @@ def test_render_names_an_sh_degree_above_the_scenes_before_writing(tmp_path, cap
     with pytest.raises(SystemExit):
         main(["render", str(scene), "--out", str(out), "--sh-degree", "-1"])
     assert "argument --sh-degree: expected an integer >= 0, got '-1'" in capsys.readouterr().err
+
+
+def test_every_option_says_what_it_does_and_its_default():
+    """'--stylizer {auto,nnfm,diffusion}' and render's '--backend' had no help line, and --preset, --device and
+    evaluate's --out and --path kept their defaults to themselves."""
+    import argparse
+
+    from artnvg_core.cli.main import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name, command in commands.items():
+        for option in command._actions:
+            if not option.option_strings or option.dest == "help":
+                continue
+            assert option.help, (name, option.option_strings)
+            if option.default not in (None, False, []):
+                assert "default" in option.help, (name, option.option_strings, option.default)

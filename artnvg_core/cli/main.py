@@ -16,7 +16,6 @@ import torch
 
 from ..cameras.selection import parse_views
 from ..counted import counted
-from ..devices import DEVICE_CHOICES
 from ..diffusion.lora import keep_peft_out
 from .batch import add_batch_command
 from .blend import add_blend_command
@@ -32,6 +31,7 @@ from .evaluate import add_evaluate_arguments
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
+    add_device_option,
     add_scene_file_options,
     integer_at_least,
     orbit_from_args,
@@ -111,11 +111,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "PNGs of the same names")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
-    p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto")
+    p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto",
+                   help="rasterizer: auto (default): triton on CUDA, else torch; torch: the PyTorch reference; "
+                   "triton: CUDA only; gsplat: CUDA only, needs pip install gsplat")
     p.add_argument("--sh-degree", type=integer_at_least(0), default=None, help="SH degree to evaluate (default: the scene's)")
     add_scene_file_options(p)
-    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
-                   help="auto: CUDA, else Apple MPS, else the CPU")
+    add_device_option(p)
     p.set_defaults(run=cmd_render)
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")
