@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from ..cameras import CameraSet, NoOrbit, interpolate_path, load_cameras, orbit_path
+from ..cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from ..cameras.selection import parse_views
 from ..counted import counted
 from ..diffusion.model_files import MissingModelError
@@ -42,7 +42,7 @@ from ..metrics.cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
 from ..metrics.clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
 from ..metrics.csd import CSD_WEIGHTS, csd_scores, load_csd
 from ..metrics.warp import warp_consistency
-from .common import ProgressBar, load_scene_verbose, prepare_rasterizer
+from .common import ProgressBar, load_camera_option, load_scene_verbose, named_option, prepare_rasterizer
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
@@ -279,8 +279,9 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     for scene in (args.original, args.stylized):  # e.g. a folder: named before the first scene loads and renders
         if scene:
             check_scene_path(scene)
-    style = load_image(args.style)
-    all_cameras = load_cameras(args.cameras) if args.cameras else None
+    with named_option("--style"):
+        style = load_image(args.style)
+    all_cameras = load_camera_option(args.cameras)
     chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)

@@ -22,6 +22,7 @@ from .blend import add_blend_command
 from .common import (
     close_progress_bars,
     is_out_of_memory,
+    load_camera_option,
     load_scene_verbose,
     prepare_rasterizer,
     printed_above_bars,
@@ -42,7 +43,6 @@ from .stylize import add_stylize_arguments
 
 
 def cmd_render(args: argparse.Namespace) -> None:
-    from ..cameras import load_cameras
     from ..fileio import check_output_folder, check_output_name, refuse_overwrites, sweep_temporaries
     from ..formats import check_scene_path
     from ..images import save_png
@@ -65,7 +65,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     check_scene_path(args.scene)
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
-    cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
+    cameras = chosen(load_camera_option(args.cameras)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])

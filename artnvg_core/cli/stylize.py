@@ -21,7 +21,14 @@ from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
-from .common import ProgressBar, load_scene_verbose, prepare_rasterizer, print_note, read_style_image
+from .common import (
+    ProgressBar,
+    load_camera_option,
+    load_scene_verbose,
+    prepare_rasterizer,
+    print_note,
+    read_style_image,
+)
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
@@ -41,7 +48,6 @@ SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that re
 
 def cmd_stylize(args: argparse.Namespace) -> None:
     # every check that needs no model comes before the diffusion libraries are imported (seconds)
-    from ..cameras import load_cameras
     from ..fileio import check_output_file, refuse_overwrites
     from ..formats import check_geometry_writable, check_scene_path, writable_scene_path
     from ..stylize import DemoInputs, sheet_path
@@ -71,7 +77,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
     for lora in args.lora:
         check_lora(lora)
-    capture_cameras = load_cameras(args.cameras) if args.cameras else None
+    capture_cameras = load_camera_option(args.cameras)
     if capture_cameras is not None:  # before the models and the scene load
         check_region_masks(args, capture_cameras.scaled(scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
