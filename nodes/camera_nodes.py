@@ -27,6 +27,7 @@ CAMERA_SOURCE = InputFile(
     exists=Path.exists,
     watched=lambda source: source / "transforms.json" if source.is_dir() else source,
     read=camera_files,
+    validate=camera_files,  # a scene file or a folder without a capture: named before the graph runs
 )
 
 

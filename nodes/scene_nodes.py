@@ -91,8 +91,8 @@ def _prefix_target(filename_prefix: str, suffix: str) -> Path:
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:
         raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
-    check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the file name")
-    check_output_folder(target.parent, "its folder")
+    check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the saved file")
+    check_output_folder(target.parent, "the saved file's folder")
     return target
 
 

@@ -670,3 +670,36 @@ def test_render_names_an_sh_degree_above_the_scenes_before_writing(tmp_path, cap
     with pytest.raises(SystemExit):
         main(["render", str(scene), "--out", str(out), "--sh-degree", "-1"])
     assert "argument --sh-degree: expected an integer >= 0, got '-1'" in capsys.readouterr().err
+
+
+def test_every_option_says_what_it_does_and_its_default():
+    """'--stylizer {auto,nnfm,diffusion}' and render's '--backend' had no help line, and --preset, --device and
+    evaluate's --out and --path kept their defaults to themselves."""
+    import argparse
+
+    from artnvg_core.cli.main import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name, command in commands.items():
+        for option in command._actions:
+            if not option.option_strings or option.dest == "help":
+                continue
+            assert option.help, (name, option.option_strings)
+            if option.default not in (None, False, []):
+                assert "default" in option.help, (name, option.option_strings, option.default)
+
+
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate", "blend"])
+def test_a_camera_file_refused_is_named_by_its_option(tmp_path, capsys, command):
+    """'error: scene.ply: not a supported camera source' named the file, not the option that gave it, as --style's
+    errors do."""
+    demo = DemoInputs()
+    inputs = {"render": [str(demo.scene), "--device", "cpu"], "stylize": [str(demo.scene), "--style", str(demo.style)],
+              "evaluate": ["--original", str(demo.scene), "--stylized", str(demo.scene), "--style", str(demo.style)],
+              "blend": [str(demo.scene), str(demo.scene), "--strength", "0.5"]}
+    out = tmp_path / "out" / ("report.json" if command == "evaluate" else "s.ply")
+    assert main([command, *inputs[command], "--cameras", str(demo.scene), "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"error: --cameras: {demo.scene}: not a supported camera source; expected a "
+                                   "nerfstudio .json file"), captured.err
+    assert "loading" not in captured.out and not (tmp_path / "out").exists()

@@ -68,6 +68,11 @@ def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
     assert "camera_source" in LoadCameras.check_files(camera_source="bear/missing.json")
     assert LoadCameras.check_files(camera_source="", path=str(comfy_dirs / "input" / "bear")) is None
     assert "is outside ComfyUI's input" in LoadCameras.check_files(camera_source="", path=str(bear["folder"]))
+    scene = comfy_dirs / "input" / "bear" / "scene.ply"  # refused only as the node ran, after the scene loaded
+    assert LoadCameras.check_files(camera_source="", path="bear/scene.ply") == (
+        f"Load Cameras: input 'path': {scene}: not a supported camera source; expected a nerfstudio .json file (e.g. "
+        "transforms.json), a folder containing transforms.json, or a COLMAP model folder (cameras.bin + images.bin "
+        "or cameras.txt + images.txt, directly or in sparse/0 or 0)")
 
 
 def test_group_neighbouring_views_matches_the_core(bear):

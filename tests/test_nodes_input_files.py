@@ -127,8 +127,9 @@ def test_files_inside_comfyuis_folders_are_read_and_the_setting_opens_every_path
 def test_a_capture_folder_is_watched_through_its_transforms_json(input_folder):
     capture = input_folder / "capture"
     capture.mkdir()
-    assert CAMERA_SOURCE.check("Load Cameras", "capture", "") is None  # folders count for cameras
+    assert "capture: not a supported camera source" in CAMERA_SOURCE.check("Load Cameras", "capture", "")
     _touch(capture / "transforms.json", b"{}", 10**18)
+    assert CAMERA_SOURCE.check("Load Cameras", "capture", "") is None  # a folder holding a capture counts
     first = CAMERA_SOURCE.signature("capture", "")
     _touch(capture / "image.png", b"more bytes", 2 * 10**18)  # the folder changes, the cameras do not
     assert CAMERA_SOURCE.signature("capture", "") == first

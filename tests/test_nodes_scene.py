@@ -175,7 +175,7 @@ def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_run
     fits = "artnvg/" + "s" * 200  # 200 + "_00001.ply" and the temporary's 29 bytes: 239 of 255
     assert SaveGaussianScene.check_files(filename_prefix=fits) is None
     message = SaveGaussianScene.check_files(filename_prefix="artnvg/" + "s" * 225, format="ply")
-    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the file name: the file name ssss")
+    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the saved file: the file name ssss")
     assert "is 235 bytes long; it may have at most 226 here" in message
     assert SaveGaussianScene.check_files(filename_prefix="../escape").startswith(
         "Save Gaussian Scene: input 'filename_prefix': '../escape' must name a file inside the output folder")
@@ -188,7 +188,7 @@ def test_save_scene_refuses_a_prefix_whose_folder_is_a_file_before_the_graph_run
     taken = comfy_dirs / "output" / "taken"
     taken.parent.mkdir()
     taken.write_bytes(b"a user's file")
-    expected = f"Save Gaussian Scene: input 'filename_prefix': its folder: {taken.resolve()} exists and is not a folder"
+    expected = f"Save Gaussian Scene: input 'filename_prefix': the saved file's folder: {taken.resolve()} exists and is not a folder"
     assert SaveGaussianScene.check_files(filename_prefix="taken/stylized") == expected
     with pytest.raises(NodeInputError) as refused:
         call(SaveGaussianScene, scene=small_bear, filename_prefix="taken/stylized")

@@ -186,12 +186,31 @@ def is_out_of_memory(error: BaseException) -> bool:
         isinstance(error, RuntimeError) and "can't allocate memory" in str(error))
 
 
+@contextlib.contextmanager
+def named_option(option: str):
+    """For the block, a ValueError names ``option`` first (``--cameras: FILE: ...``): the library's message names
+    the file and its field, this the option that gave the file."""
+    try:
+        yield
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
+
+
 def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.Tensor:
     """:func:`artnvg_core.style_image.read_style_image` (the image checked and decoded before any other work: a
     scene's load, a model's), its ValueError naming ``option``."""
     from ..style_image import read_style_image as read
 
-    try:
+    with named_option(option):
         return read(path)
-    except ValueError as error:
-        raise ValueError(f"{option}: {error}") from None
+
+
+def load_camera_option(path: str | os.PathLike | None) -> CameraSet | None:
+    """The cameras of ``--cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
+    ValueError names the option."""
+    from ..cameras import load_cameras
+
+    if not path:
+        return None
+    with named_option("--cameras"):
+        return load_cameras(path)
