@@ -102,7 +102,7 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     :mod:`.spz`). ``progress`` follows the whole read in the file's bytes, one bar filling once over the format's
     stages (reading, decoding, checking), each its share of the bar by its measured time (the readers'
     ``READ_STAGES``); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`; a
-    splatfacto ``.ckpt`` loads in one ``torch.load``, after which the check stops)."""
+    splatfacto ``.ckpt`` old-style pickle, not a zip archive, loads in one ``torch.load`` before its chunks)."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
     check_scene_content(path)

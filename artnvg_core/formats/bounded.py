@@ -69,16 +69,16 @@ def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trai
     return data
 
 
-def require_stored_zip(path: Path) -> None:
-    """A zip file (e.g. a ``torch.save`` checkpoint) whose records are all stored uncompressed within
-    the file; ValueError naming the first record that is compressed or reaches past the file's end.
+def require_stored_zip(path: Path) -> bool:
+    """Whether ``path`` is a zip file (e.g. a ``torch.save`` checkpoint), checked to hold its records all stored
+    uncompressed within the file; ValueError naming the first record that is compressed or reaches past the file's end.
     A file is a zip archive when it begins with a local file header (``PK\\x03\\x04``), as ``torch.load`` tells
     one (not ``zipfile.is_zipfile``, whose answer for a damaged archive differs between Python versions); others
     pass (they hold no compressed streams). An archive whose directory zipfile cannot read is a ValueError naming it."""
     size = path.stat().st_size
     with open(path, "rb") as stream:
         if stream.read(4) != b"PK\x03\x04":
-            return
+            return False
     try:
         with zipfile.ZipFile(path) as archive:
             records = archive.infolist()
@@ -92,3 +92,4 @@ def require_stored_zip(path: Path) -> None:
         if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
             raise ValueError(f"{path}: record {record.filename!r} claims {counted(record.file_size, 'byte')}, more than "
                              "the file holds (truncated or corrupt)")
+    return True
