@@ -292,6 +292,16 @@ def test_bad_inputs_rejected(demo):
     scene, cameras, style = demo
     with pytest.raises(ValueError, match="style_image"):
         finetune(scene, cameras, style[..., :2])
+    # an 8-bit image read without /255 ran on as if white, its colour transfer and NNFM features wrong
+    eight_bit = (style * 255).round()
+    quick = FinetuneConfig(iterations=1)  # without the check, each call would run to its end
+    for image, got in [(eight_bit.to(torch.uint8), "a torch.uint8 tensor"),
+                       (eight_bit, f"values up to {eight_bit.max().item():g}")]:
+        with pytest.raises(ValueError, match=rf"^finetune: style_image: expected floats in \[0, 1\], got {got} \(divide "
+                                             r"8-bit values by 255\)$"):
+            finetune(scene, cameras, image, config=quick)
+    with pytest.raises(ValueError, match="^finetune: style_image: expected floats in .*NaN or infinite"):
+        finetune(scene, cameras, style * float("nan"), config=quick)
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
 
