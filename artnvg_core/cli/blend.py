@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import ProgressBar, load_camera_option, load_scene_verbose, print_note
+from .common import SCENE_FILE_BAR_DELAY, ProgressBar, load_camera_option, load_scene_verbose, print_note
 from .options import SCENE_FILES, add_scene_file_options, unit_interval
 from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
 
@@ -34,7 +34,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     result = blend(original, stylized, args.strength, selection, names=(str(args.original), str(args.stylized)))
     elapsed = time.perf_counter() - start
     save_scene(result, out, spz_axes=args.spz_axes, spz_version=args.spz_version,
-               progress=ProgressBar("saving", "Gaussian"), notes=print_note)
+               progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), notes=print_note)
     print(f"blended at strength {args.strength:g} in {elapsed * 1000:.0f} ms; wrote {out}")
 
 

@@ -22,6 +22,7 @@ from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
 from .common import (
+    SCENE_FILE_BAR_DELAY,
     ProgressBar,
     load_camera_option,
     load_scene_verbose,
@@ -163,8 +164,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                               selection=selection)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
-                        should_stop=args.should_stop, scene_progress=ProgressBar("saving", "Gaussian"),
-                        scene_notes=print_note)
+                        should_stop=args.should_stop,
+                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=print_note)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 

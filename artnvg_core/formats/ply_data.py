@@ -21,7 +21,7 @@ from typing import BinaryIO
 import numpy as np
 
 from ..counted import counted
-from ..progress import ProgressFn, StopFn, check_stop, staged
+from ..progress import ProgressFn, StopFn, check_stop
 from .common import ChunkedWork
 
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
@@ -63,10 +63,16 @@ class PlyElement:
 
 @dataclass
 class PlyData:
-    """A parsed PLY file: its elements in file order; ``text`` for the ASCII format."""
+    """A PLY file's header: its elements in file order (their ``data`` once read), its ``format`` (ascii,
+    binary_little_endian or binary_big_endian) and the offset of its first data byte, ``start``."""
 
     elements: list[PlyElement]
-    text: bool
+    format: str
+    start: int
+
+    @property
+    def text(self) -> bool:
+        return self.format == "ascii"
 
     def __contains__(self, name: str) -> bool:
         return any(element.name == name for element in self.elements)
@@ -189,27 +195,33 @@ def _list_element_bytes(path: Path, element: PlyElement, data: np.ndarray, order
     return offset
 
 
+def _scalar(element: PlyElement) -> bool:
+    return not any(p.is_list for p in element.properties)
+
+
 def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyElement], wanted: set[str],
                  progress: ProgressFn | None, should_stop: StopFn | None) -> None:
     order = _FORMATS[fmt]
     start = stream.tell()
     size = os.fstat(stream.fileno()).st_size
     data = np.memmap(stream, np.uint8, "r", start) if size > start else np.zeros(0, np.uint8)
-    offset = 0
+    read = [element for element in elements if element.name in wanted and _scalar(element)]
+    work, done, offset = ChunkedWork(sum(element.count for element in read), 1, progress, should_stop), 0, 0
     for element in elements:
         left = len(data) - offset
         smallest = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in element.properties)
         if element.count * smallest > left:
             raise _too_short(path, element, element.count * smallest, left)
-        if any(p.is_list for p in element.properties):
+        if not _scalar(element):
             offset += _list_element_bytes(path, element, data[offset:], order)
             continue
         dtype = _scalar_dtype(element, order)
         if element.name in wanted:
             rows = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype)
             element.data = np.empty(element.count, dtype)
-            for chunk in ChunkedWork(element.count, 1, staged(progress, f"reading {element.name}"), should_stop).chunks():
-                element.data[chunk] = rows[chunk]
+            for chunk in work.chunks(done, done + element.count):
+                element.data[chunk.start - done:chunk.stop - done] = rows[chunk.start - done:chunk.stop - done]
+            done += element.count
         offset += element.count * dtype.itemsize
     if offset != len(data):
         raise _counts_error(path, elements, f"{counted(len(data) - offset, 'byte')} more than those records need")
@@ -272,7 +284,7 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
     lines, declared = _TextLines(stream, size), sum(element.count for element in elements)
     work, start = ChunkedWork(declared, 1, progress, should_stop), 0
     for element in elements:
-        scalar = element.name in wanted and not any(p.is_list for p in element.properties)
+        scalar = element.name in wanted and _scalar(element)
         if scalar:
             element.data = np.empty(element.count, _scalar_dtype(element, "="))
         for rows in work.chunks(start, start + element.count):
@@ -290,18 +302,25 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
         raise _counts_error(path, elements, f"{counted(declared + left, 'data line')} for {counted(declared, 'record')}")
 
 
-def read_ply_data(path: Path, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
-                  should_stop: StopFn | None = None) -> PlyData:
-    """The PLY at ``path`` with the scalar elements named in ``wanted`` read (their ``data`` set), every other
-    element skipped; a ValueError naming ``path`` for anything that is not a well-formed PLY whose counts
-    account for its data (module docstring). A binary element is read a chunk of rows at a time: ``progress``
-    follows its rows (stage "reading ELEMENT"); ASCII is parsed a chunk of lines at a time, every element's
-    (stage "reading"); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
-    check_stop(should_stop)
+def read_ply_header(path: Path) -> PlyData:
+    """The header of the PLY at ``path``, no element read yet; a ValueError naming ``path`` when it is not a
+    well-formed PLY header (module docstring)."""
     with open(path, "rb") as stream:
         fmt, elements = _header(path, stream)
-        if fmt == "ascii":
-            _read_text(path, stream, elements, set(wanted), staged(progress, "reading"), should_stop)
+        return PlyData(elements, fmt, stream.tell())
+
+
+def read_ply_elements(path: Path, ply: PlyData, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
+                      should_stop: StopFn | None = None) -> None:
+    """The scalar elements of ``ply`` (:func:`read_ply_header` of ``path``) named in ``wanted`` read (their ``data``
+    set), every other element skipped; a ValueError naming ``path`` when the counts do not account for the data or
+    a row is not numbers (module docstring). Read a chunk of rows at a time: ``progress`` follows the rows read
+    (binary: of the elements read; ASCII: every element's lines), ``should_stop`` ends the read between chunks
+    (:class:`~artnvg_core.progress.Cancelled`)."""
+    check_stop(should_stop)
+    with open(path, "rb") as stream:
+        stream.seek(ply.start)
+        if ply.text:
+            _read_text(path, stream, ply.elements, set(wanted), progress, should_stop)
         else:
-            _read_binary(path, stream, fmt, elements, set(wanted), progress, should_stop)
-    return PlyData(elements, text=fmt == "ascii")
+            _read_binary(path, stream, ply.format, ply.elements, set(wanted), progress, should_stop)

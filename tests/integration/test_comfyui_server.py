@@ -25,6 +25,7 @@ from artnvg_core.selection import parse_region, select_region
 
 REPO = Path(__file__).resolve().parents[2]
 FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
+LOAD_SCENE = "1"  # of Load Gaussian Scene
 
 
 def _queue_script():
@@ -80,9 +81,9 @@ def _run(server, workflow: dict, on_message=None, timeout: float = 900) -> tuple
     return queue.wait_for(server.url, prompt_id, timeout=60), messages
 
 
-def _finetune_progress(messages: list[dict]) -> list[tuple[int, int]]:
+def _finetune_progress(messages: list[dict], node: str = FINETUNE) -> list[tuple[int, int]]:
     return [(m["data"]["value"], m["data"]["max"]) for m in messages
-            if m["type"] == "progress" and m["data"].get("node") == FINETUNE]
+            if m["type"] == "progress" and m["data"].get("node") == node]
 
 
 def test_pack_loads_without_import_errors(comfy_server):
@@ -146,6 +147,11 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     # stage's bar shown as it starts (0)
     progress = _finetune_progress(messages)
     assert progress == [(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3), (3, 3), (0, 2), (2, 2)], progress
+    # the scene's load: one bar over the file's bytes, filled once (its read, decoding and check in turn)
+    loading = _finetune_progress(messages, LOAD_SCENE)
+    size = (comfy_server.input_dir / folder / "scene.ply").stat().st_size
+    assert {total for _, total in loading} == {size} and loading[0][0] == 0 and loading[-1][0] == size, loading
+    assert [value for value, _ in loading] == sorted(value for value, _ in loading), loading
     saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
     assert len(saved) == 1 and saved[0]["type"] == "output"
     path = comfy_server.output_dir / saved[0]["file"]
