@@ -278,7 +278,7 @@ def test_bf16_vgg_moves_the_result_by_its_rounding_only(demo, stylized):
 
 @pytest.mark.parametrize(
     "kwargs, field",
-    [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
+    [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"iterations": 1.5}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
      ({"lr_means": -1.0}, "lr_means"), ({"nnfm_max_side": 8}, "nnfm_max_side"),
      ({"nnfm_max_side": 256.0}, "nnfm_max_side"), ({"views_per_step": 0}, "views_per_step"),
      ({"nnfm_search": "fp16"}, "nnfm_search"), ({"vgg_precision": "fp16"}, "vgg_precision")],
