@@ -86,7 +86,11 @@ class LoadGaussianScene(ArtNVGNode):
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:
     """``<output>/<prefix>`` (symlinks and ``..`` resolved), checked before any work: inside the output folder,
     short enough that ``<prefix>_NNNNN<suffix>`` and its temporary fit the file system's names, in a folder
-    that is one or can be made and written (not a file). Creates nothing."""
+    that is one or can be made and written (not a file), ending in a file name, not a folder (``artnvg/`` would
+    resolve to the file ``artnvg_00001.ply`` beside that folder). Creates nothing."""
+    if filename_prefix.replace("\\", "/").rsplit("/", 1)[-1].strip() in ("", ".", ".."):
+        raise ValueError(f"'{filename_prefix}' ends in a folder, not a file name; add one (e.g. artnvg/stylized "
+                         "saves artnvg/stylized_00001.ply)")
     root = output_directory().resolve()
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:

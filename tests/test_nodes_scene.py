@@ -57,6 +57,17 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
+@pytest.mark.parametrize("prefix", ["artnvg/", "artnvg\\", "artnvg/.", "artnvg/sub/..", "artnvg/ "])
+def test_a_prefix_that_ends_in_a_folder_is_refused_before_the_graph_runs(tmp_path, monkeypatch, prefix):
+    """'artnvg/' saved output/artnvg_00001.ply, beside the folder it named."""
+    monkeypatch.chdir(tmp_path)  # the output folder: ./output
+    assert SaveGaussianScene.check_files(filename_prefix=prefix) == (
+        f"Save Gaussian Scene: input 'filename_prefix': '{prefix}' ends in a folder, not a file name; add one (e.g. "
+        "artnvg/stylized saves artnvg/stylized_00001.ply)")
+    assert SaveGaussianScene.check_files(filename_prefix="artnvg/stylized") is None
+    assert not (tmp_path / "output").exists()
+
+
 def test_a_prefix_refused_at_validation_is_labelled_with_that_input(tmp_path, monkeypatch):
     """ComfyUI labels a VALIDATE_INPUTS message with each input that function takes, read from the class: Save Gaussian
     Scene's messages all name filename_prefix ("filename_prefix - ...", the input the editor outlines; it was
