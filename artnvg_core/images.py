@@ -27,6 +27,9 @@ _PILLOW_ERRORS = (OSError, SyntaxError, ValueError)  # what Pillow raises for un
 # TIFF, 1.40 GB for an RGBA PNG of 249 KB.
 MAX_IMAGE_PIXELS = 64_000_000
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# The largest value an image tensor is taken with: [0, 1] and room for a resampler's overshoot (bicubic); an image
+# of 8-bit values (0 to 255) given as floats lies far beyond it.
+MAX_IMAGE_VALUE = 2.0
 
 
 def _check_png_chunks(path: Path) -> None:
@@ -146,6 +149,19 @@ def load_image(path: str | os.PathLike, *, max_side: int | None = None) -> torch
             rgb = rgb.resize(size, Image.LANCZOS) if size != image.size else rgb
             return torch.from_numpy(np.asarray(rgb, dtype=np.float32)).div_(255)  # Pillow's bytes, then float32
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+
+
+def check_image_values(image: torch.Tensor, name: str) -> None:
+    """ValueError naming ``name`` unless ``image`` holds finite floats of at most :data:`MAX_IMAGE_VALUE`: an
+    integer tensor or floats from 0 to 255 (8-bit values, which the image convention's [0, 1] would read as a
+    white image) are refused, saying to divide by 255."""
+    if not image.is_floating_point():
+        raise ValueError(f"{name}: expected floats in [0, 1], got a {image.dtype} tensor (divide 8-bit values by 255)")
+    if not bool(torch.isfinite(image).all()):
+        raise ValueError(f"{name}: expected floats in [0, 1], got NaN or infinite values")
+    peak = image.max().item() if image.numel() else 0.0
+    if peak > MAX_IMAGE_VALUE:
+        raise ValueError(f"{name}: expected floats in [0, 1], got values up to {peak:g} (divide 8-bit values by 255)")
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:

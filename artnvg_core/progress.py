@@ -28,6 +28,33 @@ def staged(progress: ProgressFn | None, stage: str) -> ProgressFn | None:
     return None if progress is None else lambda step, total, info: progress(step, total, {**info, "stage": stage})
 
 
+class Stages:
+    """One progress over work done in consecutive stages (a scene file's reading, decoding and checking), so that
+    one bar fills once, evenly: each stage of ``weights`` (its measured time, any unit) fills its share of ``whole``
+    steps. ``progress(0, whole, {})`` is called first; then ``stages[name]`` is the callback that stage reports its
+    own ``(step, total, info)`` to; it calls ``progress(done, whole, info)``, ``done`` the steps of the stages before
+    it plus its share of step / total (rounded down). None where ``progress`` is None."""
+
+    def __init__(self, progress: ProgressFn | None, whole: int, weights: dict[str, float]):
+        self.progress, self.whole, self.spans, start = progress, whole, {}, 0.0
+        for name, weight in weights.items():
+            share = weight / sum(weights.values())
+            self.spans[name], start = (start, share), start + share
+        if progress is not None:
+            progress(0, whole, {})
+
+    def __getitem__(self, name: str) -> ProgressFn | None:
+        if self.progress is None:
+            return None
+        start, share = self.spans[name]
+
+        def report(step: int, total: int, info: dict) -> None:
+            done = start + share * (step / total if total else 1)
+            self.progress(min(self.whole, int(self.whole * done)), self.whole, info)
+
+        return report
+
+
 def check_stop(should_stop: StopFn | None) -> None:
     """Raise :class:`Cancelled` if ``should_stop`` says so."""
     if should_stop is not None and should_stop():

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import torch
 
 from .counted import counted
-from .progress import StopFn, check_stop
+from .progress import ProgressFn, StopFn, check_stop
 
 _log = logging.getLogger(__name__)
 
@@ -149,9 +149,11 @@ def describe_invalid(name: str, bad, problem: str) -> str:
 CHECKED_ROWS = 1 << 16  # Gaussians checked between two questions to should_stop (0.02 s at SH degree 3 on a CPU core)
 
 
-def invalid_gaussians(scene: GaussianScene, should_stop: StopFn | None = None) -> list[tuple[str, str, torch.Tensor]]:
+def invalid_gaussians(scene: GaussianScene, should_stop: StopFn | None = None,
+                      progress: ProgressFn | None = None) -> list[tuple[str, str, torch.Tensor]]:
     """(field, problem, bad-mask [N]) for every check, in field order; checked :data:`CHECKED_ROWS` Gaussians at a
-    time, ``should_stop`` asked before each (:class:`~artnvg_core.progress.Cancelled`)."""
+    time, ``should_stop`` asked before each (:class:`~artnvg_core.progress.Cancelled`), ``progress`` told the
+    Gaussians checked after each."""
     n, tensors = len(scene), scene.tensors()
     masks = [torch.empty(n, dtype=torch.bool, device=scene.device) for _ in range(len(tensors) + 1)]
     for start in range(0, n, CHECKED_ROWS):
@@ -161,12 +163,14 @@ def invalid_gaussians(scene: GaussianScene, should_stop: StopFn | None = None) -
             chunk = value[rows]
             mask[rows] = ~torch.isfinite(chunk).reshape(len(chunk), -1).all(dim=1)
         masks[-1][rows] = torch.linalg.vector_norm(scene.quats[rows], dim=1) == 0
+        if progress is not None:
+            progress(min(start + CHECKED_ROWS, n), n, {})
     checks = [(name, "non-finite values", mask) for name, mask in zip(tensors, masks)]
     return checks + [("quats", "a zero norm", masks[-1])]
 
 
 def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = False,
-                   should_stop: StopFn | None = None) -> tuple[GaussianScene, int]:
+                   should_stop: StopFn | None = None, progress: ProgressFn | None = None) -> tuple[GaussianScene, int]:
     """Check that every Gaussian is finite in all fields and has a non-zero quaternion.
 
     Returns ``(scene, dropped)``. Without ``drop_invalid`` the first failing check
@@ -174,14 +178,14 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
     Gaussians fail and the first failing index, and ``dropped`` is 0. With
     ``drop_invalid`` the failing Gaussians are removed, counted in ``dropped``
     and reported as a warning on the ``artnvg_core.scene`` logger. A scene with
-    no (remaining) Gaussians is always an error. ``should_stop``: as :func:`invalid_gaussians`'s.
+    no (remaining) Gaussians is always an error. ``should_stop`` and ``progress``: as :func:`invalid_gaussians`'s.
     """
     n = len(scene)
     if n == 0:
         raise ValueError(f"{source}: the scene contains no Gaussians")
     invalid = torch.zeros(n, dtype=torch.bool, device=scene.device)
     reasons = []
-    for name, problem, bad in invalid_gaussians(scene, should_stop):
+    for name, problem, bad in invalid_gaussians(scene, should_stop, progress):
         count = int(bad.sum())
         if count == 0:
             continue

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,15 +19,13 @@ from artnvg_core.formats import (
     save_scene,
 )
 
-from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar
+from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar, progress_text
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, SCENE
 from .preview3d import preview_camera
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, MODEL_3D, file3d, file3d_link_type
-
-_log = logging.getLogger("artnvg")
 
 SCENE_FILE = InputFile(
     "scene_file",
@@ -86,13 +83,17 @@ class LoadGaussianScene(ArtNVGNode):
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:
     """``<output>/<prefix>`` (symlinks and ``..`` resolved), checked before any work: inside the output folder,
     short enough that ``<prefix>_NNNNN<suffix>`` and its temporary fit the file system's names, in a folder
-    that is one or can be made and written (not a file). Creates nothing."""
+    that is one or can be made and written (not a file), ending in a file name, not a folder (``artnvg/`` would
+    resolve to the file ``artnvg_00001.ply`` beside that folder). Creates nothing."""
+    if filename_prefix.replace("\\", "/").rsplit("/", 1)[-1].strip() in ("", ".", ".."):
+        raise ValueError(f"'{filename_prefix}' ends in a folder, not a file name; add one (e.g. artnvg/stylized "
+                         "saves artnvg/stylized_00001.ply)")
     root = output_directory().resolve()
     target = (root / filename_prefix).resolve()
     if target == root or root not in target.parents:
         raise ValueError(f"'{filename_prefix}' must name a file inside the output folder {root}")
-    check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the file name")
-    check_output_folder(target.parent, "its folder")
+    check_output_name(target.with_name(f"{target.name}_00001{suffix}"), "the saved file")
+    check_output_folder(target.parent, "the saved file's folder")
     return target
 
 
@@ -164,8 +165,8 @@ class SaveGaussianScene(ArtNVGNode):
     @cancellable
     def save(self, scene, filename_prefix, format="ply", spz_version="3", node_id=None):
         """The scene written with the node's progress bar moving and ComfyUI's Cancel stopping it, no file left; what
-        the format changes of the scene (dropped SH terms, far Gaussians moved) shown under the node after the
-        file's name and logged once on the console."""
+        the format changes of the scene (dropped SH terms, far Gaussians moved) in the node's UI text after the
+        file's name, under the node in the editor and once on the console."""
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
@@ -189,9 +190,10 @@ class SaveGaussianScene(ArtNVGNode):
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
-        for note in notes:
-            _log.warning("%s: %s: %s", self.DISPLAY_NAME, file, note)
+        noted = [f"note: {note}" for note in notes]
+        if noted:  # under the node in the editor, and once on the console
+            progress_text("\n".join(noted), self.DISPLAY_NAME)
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
-              "text": [written, *(f"note: {note}" for note in notes)]}
+              "text": [written, *noted]}
         result = (relative.as_posix(), preview_camera(scene))
         return {"ui": ui, "result": result + ((file3d(file),) if FILE3D_CLASS is not None else ())}

@@ -43,8 +43,8 @@ def test_a_region_blended_at_a_strength_is_written_exactly_as_ply(tmp_path, caps
     captured = capsys.readouterr()
     printed = captured.out
     assert f"region: {int(inside.sum()):,} of 1,000 Gaussians selected" in printed and "blended at strength 0.25" in printed
-    for bar in ("loading (reading vertex)", "loading (decoding)", "saving"):  # seconds each for millions of Gaussians
-        assert f"{bar}: 100%|" in captured.err and "1.00k/1.00k" in captured.err, bar
+    assert "loading" not in captured.err and "saving" not in captured.err  # milliseconds each: no bar (seconds
+    # for millions of Gaussians draw one: test_cli_main's test of ProgressBar's delay)
     result = load_scene(out)
     assert result.sh_degree == 3
     for name, value in result.tensors().items():

@@ -131,7 +131,7 @@ def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
     code = main(["evaluate", "--original", str(inputs["original"]), "--stylized-images", str(tmp_path / "none"),
                  "--cameras", str(inputs["cameras"]), "--style", str(tmp_path / "missing.png")])
     assert code == 2
-    assert "missing.png: image file not found" in capsys.readouterr().err
+    assert f"error: --style: {tmp_path / 'missing.png'}: image file not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["evaluate", "--original", "a.ply", "--stylized", "b.ply", "--stylized-images", "c",
               "--cameras", "t.json", "--style", "s.png"])

@@ -278,7 +278,7 @@ def test_bf16_vgg_moves_the_result_by_its_rounding_only(demo, stylized):
 
 @pytest.mark.parametrize(
     "kwargs, field",
-    [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
+    [({"optimize": "geometry"}, "optimize"), ({"iterations": -1}, "iterations"), ({"iterations": 1.5}, "iterations"), ({"nnfm_weight": float("nan")}, "nnfm_weight"),
      ({"lr_means": -1.0}, "lr_means"), ({"nnfm_max_side": 8}, "nnfm_max_side"),
      ({"nnfm_max_side": 256.0}, "nnfm_max_side"), ({"views_per_step": 0}, "views_per_step"),
      ({"nnfm_search": "fp16"}, "nnfm_search"), ({"vgg_precision": "fp16"}, "vgg_precision")],
@@ -292,6 +292,16 @@ def test_bad_inputs_rejected(demo):
     scene, cameras, style = demo
     with pytest.raises(ValueError, match="style_image"):
         finetune(scene, cameras, style[..., :2])
+    # an 8-bit image read without /255 ran on as if white, its colour transfer and NNFM features wrong
+    eight_bit = (style * 255).round()
+    quick = FinetuneConfig(iterations=1)  # without the check, each call would run to its end
+    for image, got in [(eight_bit.to(torch.uint8), "a torch.uint8 tensor"),
+                       (eight_bit, f"values up to {eight_bit.max().item():g}")]:
+        with pytest.raises(ValueError, match=rf"^finetune: style_image: expected floats in \[0, 1\], got {got} \(divide "
+                                             r"8-bit values by 255\)$"):
+            finetune(scene, cameras, image, config=quick)
+    with pytest.raises(ValueError, match="^finetune: style_image: expected floats in .*NaN or infinite"):
+        finetune(scene, cameras, style * float("nan"), config=quick)
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
 

@@ -3,6 +3,7 @@
 import dataclasses
 import os
 import re
+import sys
 
 import pytest
 import torch
@@ -193,29 +194,39 @@ def test_chunked_reads_and_writes_give_the_whole_arrays_results(tmp_path, monkey
     assert_same_bits(load_scene(chunked), read_whole)
 
 
+def assert_one_bar(calls: list, whole: int, stages: dict[str, float]) -> None:
+    """``calls`` (step, total, info) fill one bar of ``whole`` steps once, from 0, never going back, each stage of
+    ``stages`` (a reader's READ_STAGES) its share by weight: the bar passes each stage's end (within a step's
+    rounding) and moves within the last."""
+    steps = [step for step, _, _ in calls]
+    assert {total for _, total, _ in calls} == {whole} and [info for _, _, info in calls if info] == []
+    assert steps[0] == 0 and steps[-1] == whole and steps == sorted(steps), steps
+    weights = list(stages.values())
+    ends = [whole * sum(weights[:i]) / sum(weights) for i in range(1, len(weights))]
+    assert all(min(abs(step - end) for step in steps) <= 1 for end in ends), (ends, steps)
+    assert [step for step in steps if ends[-1] + 1 < step < whole], steps
+
+
 @pytest.mark.parametrize("suffix, options", CHUNKED)
-def test_progress_counts_the_gaussians_up_to_the_total(tmp_path, monkeypatch, suffix, options):
-    from artnvg_core.formats import common
+def test_a_write_counts_the_gaussians_and_a_read_fills_one_bar_over_its_stages(tmp_path, monkeypatch, suffix,
+                                                                                 options):
+    """A write counts the Gaussians (an SPZ's over its 6 arrays); a read fills one bar over the file's bytes, its
+    stages (reading or inflating, decoding, checking) each a share by its measured time."""
+    from artnvg_core import scene
+    from artnvg_core.formats import READERS, common
 
     monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
-    scene, path = random_scene(103, 1).select(slice(3, None)), tmp_path / f"scene{suffix}"
-    for action in ("write", "read"):
-        calls = []
-        progress = lambda step, total, info: calls.append((info.get("stage"), step, total))  # noqa: E731
-        if action == "write":
-            write_chunked(scene, path, options, progress=progress)
-        else:
-            load_scene(path, progress=progress)
-        stages = list(dict.fromkeys(stage for stage, _, _ in calls))
-        if action == "read" and options.get("binary", True) and suffix == ".ply":
-            assert stages == ["reading vertex", "decoding"]
-        for stage in stages:
-            steps = [step for s, step, _ in calls if s == stage]
-            totals = {total for s, _, total in calls if s == stage}
-            passes = 6 if (suffix, action) == (".spz", "write") else 1
-            assert totals == {100 * passes}, (action, stage)
-            assert steps[0] == 0 and steps[-1] == 100 * passes, (action, stage)
-            assert all(b > a for a, b in zip(steps, steps[1:])), (action, stage, steps)
+    monkeypatch.setattr(scene, "CHECKED_ROWS", 16)
+    path, calls = tmp_path / f"scene{suffix}", []
+    write_chunked(random_scene(103, 1).select(slice(3, None)), path, options, progress=lambda *call: calls.append(call))
+    whole = 100 * (6 if suffix == ".spz" else 1)
+    assert {total for _, total, _ in calls} == {whole} and calls[0][0] == 0 and calls[-1][0] == whole
+    assert all(b[0] > a[0] for a, b in zip(calls, calls[1:]))
+    calls.clear()
+    load_scene(path, progress=lambda *call: calls.append(call))
+    stages = sys.modules[READERS[suffix].__module__].READ_STAGES
+    assert_one_bar(calls, path.stat().st_size, stages["ascii" if "binary" in options else "binary"]
+                   if suffix == ".ply" else stages)
 
 
 def stop_at(call: int):

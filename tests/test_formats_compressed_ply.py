@@ -177,9 +177,12 @@ def test_packed_columns_are_read_by_their_declared_type(tmp_path, declared):
 
 
 def test_decoded_in_chunks_as_whole_with_progress_and_a_stop_between_chunks(tmp_path, monkeypatch):
-    """Chunks of 100 Gaussians straddle the file's 256-Gaussian chunks: the same bits as one chunk."""
-    from artnvg_core.formats import common
+    """Chunks of 100 Gaussians straddle the file's 256-Gaussian chunks: the same bits as one chunk; one bar fills
+    over the elements read, the decoding and the check."""
+    from artnvg_core import scene
+    from artnvg_core.formats import common, compressed_ply, ply
     from artnvg_core.progress import Cancelled
+    from tests.test_formats import assert_one_bar
     from tests.test_formats_ply import assert_same_bits
 
     path = tmp_path / "scene.compressed.ply"
@@ -187,12 +190,12 @@ def test_decoded_in_chunks_as_whole_with_progress_and_a_stop_between_chunks(tmp_
     write_compressed(path, chunks, packed, sh, colours=np.tile([0.1, 0.0, 0.2, 0.9, 1.0, 0.8], (len(chunks), 1)))
     whole = load_scene(path)
     monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 100)
-    steps = []
-    assert_same_bits(load_scene(path, progress=lambda step, total, info: steps.append((info["stage"], step, total))),
-                     whole)
-    decoding = [(step, total) for stage, step, total in steps if stage == "decoding"]
-    assert decoding == [(step, 1000) for step in range(0, 1001, 100)]
+    monkeypatch.setattr(scene, "CHECKED_ROWS", 100)
+    calls = []
+    assert_same_bits(load_scene(path, progress=lambda *call: calls.append(call)), whole)
+    assert_one_bar(calls, path.stat().st_size, ply.READ_STAGES["compressed"])
+    decode, decoded = compressed_ply._packed_codes, []
+    monkeypatch.setattr(compressed_ply, "_packed_codes", lambda *args: decoded.append(args[2]) or decode(*args))
     with pytest.raises(Cancelled):
-        load_scene(path, progress=lambda step, total, info: steps.append((info["stage"], step, total)),
-                   should_stop=lambda: steps[-1] == ("decoding", 300, 1000))
-    assert steps[-1] == ("decoding", 300, 1000)  # stopped before the fourth chunk's decoding
+        load_scene(path, should_stop=lambda: len(decoded) == 4)
+    assert decoded[1:] == [slice(0, 100), slice(100, 200), slice(200, 300)]  # none after the stop

@@ -547,15 +547,14 @@ def test_an_ascii_ply_is_parsed_a_chunk_of_rows_at_a_time_with_progress_and_a_st
     parse, parsed = ply_data._text_rows, []
     monkeypatch.setattr(ply_data, "_text_rows", lambda *args: parsed.append(len(args[2])) or parse(*args))
     steps = []
-    assert_same_bits(read_ply(path, progress=lambda step, total, info: steps.append((info["stage"], step, total))),
-                     scene)
-    assert [(step, total) for stage, step, total in steps if stage == "reading"] == [
-        (0, 50), (16, 50), (32, 50), (40, 50), (50, 50)]  # the vertices in chunks, then the faces
+    ply = ply_data.read_ply_header(path)
+    ply_data.read_ply_elements(path, ply, ("vertex",), progress=lambda step, total, info: steps.append((step, total)))
+    assert steps == [(0, 50), (16, 50), (32, 50), (40, 50), (50, 50)]  # the vertices in chunks, then the faces
     assert parsed == [16, 16, 8]  # the vertices' rows; the faces' lines only counted
+    assert_same_bits(read_ply(path), scene)
     parsed.clear()
     with pytest.raises(Cancelled):
-        read_ply(path, progress=lambda step, total, info: steps.append(step),
-                 should_stop=lambda: steps[-1:] == [32])
+        read_ply(path, should_stop=lambda: len(parsed) == 2)
     assert parsed == [16, 16]
 
 
@@ -568,4 +567,18 @@ def test_an_ascii_plys_parse_takes_memory_for_its_values_not_its_text(tmp_path, 
     write_ply(random_scene(20000, 3), path, binary=False)
     monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 1024)
     monkeypatch.setattr(ply_data, "TEXT_BLOCK_BYTES", 1 << 20)
-    assert _peak_bytes(lambda: ply_data.read_ply_data(path, ("vertex",))) < path.stat().st_size
+    ply = ply_data.read_ply_header(path)
+    assert _peak_bytes(lambda: ply_data.read_ply_elements(path, ply, ("vertex",))) < path.stat().st_size
+
+
+def test_an_ascii_ply_line_beyond_its_bound_is_refused(tmp_path, monkeypatch):
+    """A line of 1,000 bytes with no end (a binary file relabelled ascii, say) against a bound of 100: refused
+    as soon as a block's text holds no end of line within the bound, not gathered to the end of the file."""
+    from artnvg_core.formats import ply_data
+
+    monkeypatch.setattr(ply_data, "MAX_LINE_BYTES", 100)
+    monkeypatch.setattr(ply_data, "TEXT_BLOCK_BYTES", 64)
+    path = tmp_path / "long.ply"
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n" + b"1" * 1000)
+    with pytest.raises(ValueError, match=r"long\.ply: a data line longer than 100 bytes; not a PLY of numbers in text"):
+        read_ply(path)

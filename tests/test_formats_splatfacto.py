@@ -203,3 +203,34 @@ def test_tensors_standing_for_more_than_the_file_holds_are_refused_before_made_d
                        rf"means \({2**20}, 3\) \({layout}\)"):
         read_splatfacto_ckpt(path)
     assert len(read_splatfacto_ckpt(save(2**16))) == 2**16
+
+
+def test_a_checkpoints_gaussians_are_copied_out_of_it_with_one_bar_and_a_stop_between_chunks(tmp_path, monkeypatch):
+    """Mapped (torch.load's mmap), then copied a chunk of 16 Gaussians at a time: the bar fills once over the copy and
+    the check; a stop during the copy ends it there; the scene holds no page of the file (rewritten in place after
+    the load, as by a trainer saving its next checkpoint over it, the scene keeps its values)."""
+    from artnvg_core import scene
+    from artnvg_core.formats import common, splatfacto
+    from artnvg_core.progress import Cancelled
+    from tests.test_formats import assert_one_bar
+
+    monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    monkeypatch.setattr(scene, "CHECKED_ROWS", 16)
+    params = splatfacto_params(100, 1)
+    path, calls = save_splatfacto(tmp_path / "run.ckpt", params), []
+    loaded = load_scene(path, progress=lambda *call: calls.append(call))
+    assert_one_bar(calls, path.stat().st_size, splatfacto.READ_STAGES)
+    read_end = path.stat().st_size * 0.12 / 0.30
+    assert len([step for step, _, _ in calls if 0 < step < read_end]) > 20  # 6 tensors of 7 chunks
+    calls.clear()
+    with pytest.raises(Cancelled):
+        load_scene(path, progress=lambda *call: calls.append(call), should_stop=lambda: len(calls) == 10)
+    assert len(calls) == 10 and calls[-1][0] < read_end  # stopped within the copy
+    data = bytearray(path.read_bytes())
+    for value in params.values():  # every stored float of the Gaussians made 0
+        start = data.find(value.numpy().tobytes())
+        assert start > 0
+        data[start:start + value.numel() * 4] = bytes(value.numel() * 4)
+    with open(path, "r+b") as stream:
+        stream.write(data)
+    assert_same_bits(loaded, scene_from_splatfacto(params))

@@ -57,6 +57,17 @@ def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, smal
             call(SaveGaussianScene, scene=small_bear, filename_prefix=prefix)
 
 
+@pytest.mark.parametrize("prefix", ["artnvg/", "artnvg\\", "artnvg/.", "artnvg/sub/..", "artnvg/ "])
+def test_a_prefix_that_ends_in_a_folder_is_refused_before_the_graph_runs(tmp_path, monkeypatch, prefix):
+    """'artnvg/' saved output/artnvg_00001.ply, beside the folder it named."""
+    monkeypatch.chdir(tmp_path)  # the output folder: ./output
+    assert SaveGaussianScene.check_files(filename_prefix=prefix) == (
+        f"Save Gaussian Scene: input 'filename_prefix': '{prefix}' ends in a folder, not a file name; add one (e.g. "
+        "artnvg/stylized saves artnvg/stylized_00001.ply)")
+    assert SaveGaussianScene.check_files(filename_prefix="artnvg/stylized") is None
+    assert not (tmp_path / "output").exists()
+
+
 def test_a_prefix_refused_at_validation_is_labelled_with_that_input(tmp_path, monkeypatch):
     """ComfyUI labels a VALIDATE_INPUTS message with each input that function takes, read from the class: Save Gaussian
     Scene's messages all name filename_prefix ("filename_prefix - ...", the input the editor outlines; it was
@@ -124,7 +135,7 @@ def test_save_scene_shows_what_the_format_changes_under_the_node_and_logs_it_onc
     assert saved["ui"]["text"] == [f"wrote output/artnvg/far_00002.spz ({file.stat().st_size / 1e6:.1f} MB, "
                                    f"{len(small_bear):,} Gaussians)", f"note: {note}"]
     assert [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "WARNING"] == [
-        ("artnvg", f"Save Gaussian Scene: {file.resolve()}: {note}")]
+        ("artnvg", f"Save Gaussian Scene: note: {note}")]  # progress_text: under the node, and on the console
     assert call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/near", format="ply")["ui"]["text"] == [
         f"wrote output/artnvg/near_00001.ply ({(file.parent / 'near_00001.ply').stat().st_size / 1e6:.1f} MB, "
         f"{len(small_bear):,} Gaussians)"]
@@ -175,7 +186,7 @@ def test_save_scene_refuses_a_prefix_too_long_for_its_files_before_the_graph_run
     fits = "artnvg/" + "s" * 200  # 200 + "_00001.ply" and the temporary's 29 bytes: 239 of 255
     assert SaveGaussianScene.check_files(filename_prefix=fits) is None
     message = SaveGaussianScene.check_files(filename_prefix="artnvg/" + "s" * 225, format="ply")
-    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the file name: the file name ssss")
+    assert message.startswith("Save Gaussian Scene: input 'filename_prefix': the saved file: the file name ssss")
     assert "is 235 bytes long; it may have at most 226 here" in message
     assert SaveGaussianScene.check_files(filename_prefix="../escape").startswith(
         "Save Gaussian Scene: input 'filename_prefix': '../escape' must name a file inside the output folder")
@@ -188,7 +199,7 @@ def test_save_scene_refuses_a_prefix_whose_folder_is_a_file_before_the_graph_run
     taken = comfy_dirs / "output" / "taken"
     taken.parent.mkdir()
     taken.write_bytes(b"a user's file")
-    expected = f"Save Gaussian Scene: input 'filename_prefix': its folder: {taken.resolve()} exists and is not a folder"
+    expected = f"Save Gaussian Scene: input 'filename_prefix': the saved file's folder: {taken.resolve()} exists and is not a folder"
     assert SaveGaussianScene.check_files(filename_prefix="taken/stylized") == expected
     with pytest.raises(NodeInputError) as refused:
         call(SaveGaussianScene, scene=small_bear, filename_prefix="taken/stylized")

@@ -29,3 +29,17 @@ def test_without_a_stop_the_gradient_is_unchanged_and_tensors_without_one_are_le
     plain = torch.ones(2)
     assert stop_in_backward(plain, lambda: True) is plain  # no gradient: nothing to ask, no error
     (stop_in_backward(leaf * 2, None)).sum().backward()
+
+
+def test_stages_fill_one_bar_each_its_share_by_weight():
+    from artnvg_core.progress import Stages
+
+    calls = []
+    stages = Stages(lambda *call: calls.append(call), 1000, {"read": 1, "decode": 2, "check": 1})
+    for step in range(3):
+        stages["read"](step, 2, {})
+    stages["check"](1, 4, {"note": 1.0})  # a stage that does not report its start
+    stages["check"](4, 4, {})
+    assert calls == [(0, 1000, {}), (0, 1000, {}), (125, 1000, {}), (250, 1000, {}), (812, 1000, {"note": 1.0}),
+                     (1000, 1000, {})]
+    assert Stages(None, 1000, {"read": 1})["read"] is None

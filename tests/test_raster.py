@@ -395,3 +395,13 @@ def test_huge_sh_gives_finite_images_and_gradients(value):
             rgb, _, _ = brute_force_render(s.means, s.quats, s.log_scales, s.opacity_logits, s.sh,
                                            cams.world_to_cam[c], cams.intrinsics[c], 40, 32)
             assert np.abs(out.rgb[c].detach().clamp(0, 1).numpy() - np.clip(rgb, 0, 1)).max() <= 1e-4
+
+
+def test_cameras_of_another_dtype_than_the_scene_render_as_the_scenes():
+    """A float64 scene (the oracle) from a loader's float32 cameras stopped with torch's 'expected m1 and m2 to have
+    the same dtype' from inside the projection."""
+    scene, cams = hard_scene(0), make_cameras(EYES)
+    cams64 = CameraSet(cams.world_to_cam.double(), cams.intrinsics.double(), cams.width, cams.height, cams.names)
+    scene64 = scene.to(dtype=torch.float64)
+    assert torch.equal(render(scene64, cams, backend="torch").rgb, render(scene64, cams64, backend="torch").rgb)
+    assert torch.equal(render(scene, cams64, backend="torch").rgb, render(scene, cams, backend="torch").rgb)

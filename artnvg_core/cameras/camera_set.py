@@ -99,6 +99,8 @@ class CameraSet:
         k[:, 1, :] *= height / self.height
         return replace(self, intrinsics=k, width=width, height=height)
 
-    def to(self, device) -> "CameraSet":
-        return replace(self, world_to_cam=self.world_to_cam.to(device), intrinsics=self.intrinsics.to(device))
+    def to(self, device=None, dtype=None) -> "CameraSet":
+        """The poses and intrinsics on ``device`` and of ``dtype`` (each left as it is when None)."""
+        return replace(self, world_to_cam=self.world_to_cam.to(device=device, dtype=dtype),
+                       intrinsics=self.intrinsics.to(device=device, dtype=dtype))
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import ProgressBar, load_scene_verbose, print_note
+from .common import SCENE_FILE_BAR_DELAY, ProgressBar, load_camera_option, load_scene_verbose, print_note
 from .options import SCENE_FILES, add_scene_file_options, unit_interval
 from .region import add_region_arguments, check_region_arguments, check_region_masks, selection_from_args
 
@@ -15,7 +15,6 @@ def cmd_blend(args: argparse.Namespace) -> None:
     import torch
 
     from ..blend import blend
-    from ..cameras import load_cameras
     from ..fileio import check_output_file, refuse_overwrites
     from ..formats import check_scene_path, save_scene, writable_scene_path
 
@@ -24,7 +23,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     check_region_arguments(args)
     for scene in (args.original, args.stylized):  # both named before either loads
         check_scene_path(scene)
-    cameras = load_cameras(args.cameras) if args.cameras else None
+    cameras = load_camera_option(args.cameras)
     if cameras is not None:
         check_region_masks(args, cameras)
     device = torch.device("cpu")
@@ -35,7 +34,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     result = blend(original, stylized, args.strength, selection, names=(str(args.original), str(args.stylized)))
     elapsed = time.perf_counter() - start
     save_scene(result, out, spz_axes=args.spz_axes, spz_version=args.spz_version,
-               progress=ProgressBar("saving", "Gaussian"), notes=print_note)
+               progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), notes=print_note)
     print(f"blended at strength {args.strength:g} in {elapsed * 1000:.0f} ms; wrote {out}")
 
 

@@ -56,6 +56,8 @@ def printed_above_bars():
         yield
 
 
+# A scene file's load or save shorter than this (s) shows no bar: the line printed after it gives its time.
+SCENE_FILE_BAR_DELAY = 0.5
 _drawn: list[ProgressBar] = []  # those whose bar is on screen and not yet closed
 _closings = 0  # close_progress_bars calls so far: a ProgressBar made before the latest draws nothing more
 
@@ -85,11 +87,14 @@ class ProgressBar:
     Bars may run in several threads at once (the models loading in the background below the content views'
     renders): each has a line of its own (tqdm's positions, drawn under tqdm's lock), and a bar that ends
     leaves its last state above those still running (``tqdm.write``), not over whichever line the cursor is
-    on, as tqdm's own ``leave`` draws it."""
+    on, as tqdm's own ``leave`` draws it. With ``delay`` (seconds, tqdm's), a bar shows only once its work has
+    lasted that long, and work that ends sooner leaves nothing on screen (a scene file of thousands of
+    Gaussians, read in milliseconds)."""
 
-    def __init__(self, description: str, unit: str = "it"):
+    def __init__(self, description: str, unit: str = "it", delay: float = 0.0):
         self.description = description
         self.unit = unit
+        self.delay = delay
         self.bar = None
         self.stage = None
         self.made_after = _closings
@@ -106,7 +111,7 @@ class ProgressBar:
                 self.stage = stage
                 description = self.description if stage is None else f"{self.description} ({stage})"
                 self.bar = tqdm(total=total, initial=step, desc=description, unit=self.unit,
-                                unit_scale=self.unit != "it", dynamic_ncols=True, leave=False)
+                                unit_scale=self.unit != "it", dynamic_ncols=True, leave=False, delay=self.delay)
                 _drawn.append(self)
             self.bar.set_postfix({k: f"{v:.4g}" for k, v in info.items() if isinstance(v, float)}, refresh=False)
             self.bar.update(step - self.bar.n)
@@ -115,7 +120,7 @@ class ProgressBar:
 
     def close(self) -> None:
         """Close the bar on screen, if any, leaving its last state (its rate over the whole run, as tqdm's
-        ``leave`` shows it) on a line above the bars still running."""
+        ``leave`` shows it) on a line above the bars still running, unless its work ended within its ``delay``."""
         from tqdm import tqdm
 
         with tqdm.get_lock():
@@ -123,8 +128,10 @@ class ProgressBar:
                 return
             _drawn.remove(self)
             last = self.bar.format_meter(**{**self.bar.format_dict, "rate": None})
+            shown = self.bar.format_dict["elapsed"] >= self.delay
             self.bar.close()  # its line cleared; the cursor may be left mid-line, hence the "\r"
-            tqdm.write("\r" + last, file=self.bar.fp)
+            if shown:
+                tqdm.write("\r" + last, file=self.bar.fp)
 
 
 def print_note(note: str) -> None:
@@ -145,8 +152,9 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
                        spz_axes: str = "auto", cameras: CameraSet | None = None,
                        should_stop: StopFn | None = None) -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``,
-    ``should_stop`` passed on), printing the file size first, a progress bar of the Gaussians read (seconds for
-    millions), and the count and time after. The library's advice on invalid Gaussians
+    ``should_stop`` passed on), printing the file size first, one progress bar of the whole load in the file's
+    bytes where it lasts (seconds for millions of Gaussians; :data:`SCENE_FILE_BAR_DELAY`), and the count and
+    time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
     from ..formats import load_scene
@@ -157,7 +165,8 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
     start = time.perf_counter()
     try:
         scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
-                           progress=ProgressBar("loading", "Gaussian"), should_stop=should_stop).to(device)
+                           progress=ProgressBar("loading", "B", SCENE_FILE_BAR_DELAY),
+                           should_stop=should_stop).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise
@@ -177,12 +186,31 @@ def is_out_of_memory(error: BaseException) -> bool:
         isinstance(error, RuntimeError) and "can't allocate memory" in str(error))
 
 
+@contextlib.contextmanager
+def named_option(option: str):
+    """For the block, a ValueError names ``option`` first (``--cameras: FILE: ...``): the library's message names
+    the file and its field, this the option that gave the file."""
+    try:
+        yield
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
+
+
 def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.Tensor:
     """:func:`artnvg_core.style_image.read_style_image` (the image checked and decoded before any other work: a
     scene's load, a model's), its ValueError naming ``option``."""
     from ..style_image import read_style_image as read
 
-    try:
+    with named_option(option):
         return read(path)
-    except ValueError as error:
-        raise ValueError(f"{option}: {error}") from None
+
+
+def load_camera_option(path: str | os.PathLike | None) -> CameraSet | None:
+    """The cameras of ``--cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
+    ValueError names the option."""
+    from ..cameras import load_cameras
+
+    if not path:
+        return None
+    with named_option("--cameras"):
+        return load_cameras(path)

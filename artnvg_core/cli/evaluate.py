@@ -27,10 +27,9 @@ from pathlib import Path
 
 import torch
 
-from ..cameras import CameraSet, NoOrbit, interpolate_path, load_cameras, orbit_path
+from ..cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from ..cameras.selection import parse_views
 from ..counted import counted
-from ..devices import DEVICE_CHOICES
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
@@ -43,10 +42,11 @@ from ..metrics.cfsd import CAFFE_FEATURE_SCALE, CFSD_LAYER, cfsd_scores
 from ..metrics.clip_dc import CLIP_VIT_L, clip_dc_scores, load_clip_image_encoder
 from ..metrics.csd import CSD_WEIGHTS, csd_scores, load_csd
 from ..metrics.warp import warp_consistency
-from .common import ProgressBar, load_scene_verbose, prepare_rasterizer
+from .common import ProgressBar, load_camera_option, load_scene_verbose, named_option, prepare_rasterizer
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
+    add_device_option,
     fraction,
     integer_at_least,
     orbit_from_args,
@@ -69,11 +69,13 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     stylized.add_argument("--stylized-images", help="folder of 2D stylized views named after the view stems (e.g. frame_00001.png)")
     add_camera_arguments(parser)
     parser.add_argument("--style", required=True, help="the style image")
-    parser.add_argument("--out", default="report.json", help="JSON report path; the strip PNG and preview GIF go beside it")
+    parser.add_argument("--out", default="report.json", help="JSON report path (default report.json); the strip PNG and preview "
+                        "GIF go beside it")
     parser.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     parser.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor of the evaluation (default 1)")
     parser.add_argument("--path", choices=("orbit", "interp"), default="orbit",
-                        help="novel camera path for CLIP-DC and the preview: an orbit, or a spline through the views")
+                        help="novel camera path for CLIP-DC and the preview: an orbit (default), or a spline through "
+                        "the views")
     parser.add_argument("--frames", type=integer_at_least(2), default=60, help="frames of the camera path (default 60)")
     parser.add_argument("--clip", help="transformers CLIP folder (default: openai/clip-vit-large-patch14 in the HF cache)")
     parser.add_argument("--csd", help="CSD weights file (default: tomg-group-umd/CSD-ViT-L pytorch_model.bin in the HF cache)")
@@ -84,8 +86,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="relative depth agreement of the warp occlusion test (default 0.05)")
     parser.add_argument("--alpha-threshold", type=fraction, default=0.5,
                         help="warp co-visibility alpha threshold, in [0, 1) (default 0.5)")
-    parser.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
-                        help="auto: CUDA, else Apple MPS, else the CPU")
+    add_device_option(parser)
     parser.set_defaults(run=run_evaluate)
 
 
@@ -278,8 +279,9 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     for scene in (args.original, args.stylized):  # e.g. a folder: named before the first scene loads and renders
         if scene:
             check_scene_path(scene)
-    style = load_image(args.style)
-    all_cameras = load_cameras(args.cameras) if args.cameras else None
+    with named_option("--style"):
+        style = load_image(args.style)
+    all_cameras = load_camera_option(args.cameras)
     chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)

@@ -16,13 +16,13 @@ import torch
 
 from ..cameras.selection import parse_views
 from ..counted import counted
-from ..devices import DEVICE_CHOICES
 from ..diffusion.lora import keep_peft_out
 from .batch import add_batch_command
 from .blend import add_blend_command
 from .common import (
     close_progress_bars,
     is_out_of_memory,
+    load_camera_option,
     load_scene_verbose,
     prepare_rasterizer,
     printed_above_bars,
@@ -32,6 +32,7 @@ from .evaluate import add_evaluate_arguments
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
+    add_device_option,
     add_scene_file_options,
     integer_at_least,
     orbit_from_args,
@@ -42,7 +43,6 @@ from .stylize import add_stylize_arguments
 
 
 def cmd_render(args: argparse.Namespace) -> None:
-    from ..cameras import load_cameras
     from ..fileio import check_output_folder, check_output_name, refuse_overwrites, sweep_temporaries
     from ..formats import check_scene_path
     from ..images import save_png
@@ -65,7 +65,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     check_scene_path(args.scene)
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
-    cameras = chosen(load_cameras(args.cameras)) if args.cameras else None  # bad values fail before the load
+    cameras = chosen(load_camera_option(args.cameras)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
@@ -111,11 +111,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "PNGs of the same names")
     p.add_argument("--views", help="comma-separated view indices in file order (default: all)")
     p.add_argument("--scale", type=positive_number, default=1.0, help="resolution factor (default 1)")
-    p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto")
+    p.add_argument("--backend", choices=("auto", "torch", "triton", "gsplat"), default="auto",
+                   help="rasterizer: auto (default): triton on CUDA, else torch; torch: the PyTorch reference; "
+                   "triton: CUDA only; gsplat: CUDA only, needs pip install gsplat")
     p.add_argument("--sh-degree", type=integer_at_least(0), default=None, help="SH degree to evaluate (default: the scene's)")
     add_scene_file_options(p)
-    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
-                   help="auto: CUDA, else Apple MPS, else the CPU")
+    add_device_option(p)
     p.set_defaults(run=cmd_render)
 
     p = commands.add_parser("stylize", help="stylize a scene with a style image (no arguments: the bundled demo)")

@@ -13,7 +13,7 @@ import torch
 from ..cameras.camera_set import MAX_IMAGE_SIDE
 from ..cameras.framing import parse_up
 from ..counted import counted
-from ..devices import device_for
+from ..devices import DEVICE_CHOICES, device_for
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
@@ -138,6 +138,12 @@ def add_scene_file_options(parser: argparse.ArgumentParser, written: str = "") -
         parser.add_argument("--spz-version", type=int, choices=SPZ_VERSIONS, default=3,
                             help="SPZ version of a .spz --out: 3 (default; Niantic's library, splat-transform, "
                             "SuperSplat) or 2 (also spz-js and other readers of versions 1-2 only)")
+
+
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device``: where the command computes."""
+    parser.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
+                        help="auto (default): CUDA, else Apple MPS, else the CPU")
 
 
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:

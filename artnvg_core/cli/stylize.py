@@ -14,7 +14,6 @@ import time
 import torch
 
 from ..counted import counted
-from ..devices import DEVICE_CHOICES
 from ..diffusion.csgo import CONTENT_ROUTINGS
 from ..diffusion.lora import LoRAError, check_lora, parse_lora
 from ..diffusion.model_files import ModelFiles
@@ -22,10 +21,19 @@ from ..diffusion.settings import SCHEDULER_NAMES
 from ..formats import SAVE_SUFFIXES
 from ..losses import SEARCH_PRECISIONS
 from ..presets import PRESETS, get_preset
-from .common import ProgressBar, load_scene_verbose, prepare_rasterizer, print_note, read_style_image
+from .common import (
+    SCENE_FILE_BAR_DELAY,
+    ProgressBar,
+    load_camera_option,
+    load_scene_verbose,
+    prepare_rasterizer,
+    print_note,
+    read_style_image,
+)
 from .options import (
     SCENE_FILES,
     add_camera_arguments,
+    add_device_option,
     add_scene_file_options,
     integer_at_least,
     orbit_from_args,
@@ -41,7 +49,6 @@ SAMPLER_OPTIONS = ("scheduler", "steps", "cfg_until")  # stylize options that re
 
 def cmd_stylize(args: argparse.Namespace) -> None:
     # every check that needs no model comes before the diffusion libraries are imported (seconds)
-    from ..cameras import load_cameras
     from ..fileio import check_output_file, refuse_overwrites
     from ..formats import check_geometry_writable, check_scene_path, writable_scene_path
     from ..stylize import DemoInputs, sheet_path
@@ -71,7 +78,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
     for lora in args.lora:
         check_lora(lora)
-    capture_cameras = load_cameras(args.cameras) if args.cameras else None
+    capture_cameras = load_camera_option(args.cameras)
     if capture_cameras is not None:  # before the models and the scene load
         check_region_masks(args, capture_cameras.scaled(scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
@@ -157,8 +164,8 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                               selection=selection)
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
-                        should_stop=args.should_stop, scene_progress=ProgressBar("saving", "Gaussian"),
-                        scene_notes=print_note)
+                        should_stop=args.should_stop,
+                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=print_note)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
@@ -187,9 +194,13 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/stylized.ply",
                    help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
                    "NAME.contact.png is written beside it")
-    p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto")
+    p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto",
+                   help="auto (default): diffusion when every model file loads, else nnfm, saying why; nnfm: the "
+                   "diffusion-free stylizer (ARF's colour transfer and NNFM finetuning); diffusion: the full ArtNVG "
+                   "pipeline, which needs the model files")
     p.add_argument("--preset", choices=tuple(PRESETS), default="paper", action=_GivenPreset,
-                   help="speed/accuracy preset (docs/presets.md); preview: a first look in seconds, without diffusion; "
+                   help="speed/accuracy preset (docs/presets.md; default paper, the paper's settings); preview: a "
+                   "first look in seconds, without diffusion; "
                    "a diffusion preset given here needs the model files (auto then never falls back to NNFM)")
     p.set_defaults(preset_given=False)
     p.add_argument("--content-routing", choices=CONTENT_ROUTINGS, default="released",
@@ -232,8 +243,7 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    "NNFM search precision)")
     p.add_argument("--scale", type=positive_number, default=None,
                    help="render resolution factor (default 1; 0.25 for the demo)")
-    p.add_argument("--device", choices=DEVICE_CHOICES, default="auto",
-                   help="auto: CUDA, else Apple MPS, else the CPU")
+    add_device_option(p)
     p.add_argument("--seed", type=integer_at_least(0, 2**63 - 1), default=0, help="random seed (default 0)")
     add_region_arguments(p, "stylize")
     add_scene_file_options(p, " (and of --out)")

@@ -101,8 +101,8 @@ class FinetuneConfig:
     def __post_init__(self) -> None:
         if self.optimize not in OPTIMIZE_CHOICES:
             raise ValueError(f"FinetuneConfig.optimize: expected one of {OPTIMIZE_CHOICES}, got {self.optimize!r}")
-        if self.iterations < 0:
-            raise ValueError(f"FinetuneConfig.iterations: expected >= 0, got {self.iterations}")
+        if not (isinstance(self.iterations, int) and self.iterations >= 0):  # 1.5 failed in torch.randint, after the setup
+            raise ValueError(f"FinetuneConfig.iterations: expected an integer >= 0, got {self.iterations!r}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise ValueError(f"FinetuneConfig.views_per_step: expected an integer >= 1, got {self.views_per_step!r}")
         if self.nnfm_search not in SEARCH_PRECISIONS:

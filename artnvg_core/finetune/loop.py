@@ -39,7 +39,7 @@ import torch
 
 from ..cameras import CameraSet, scene_frame
 from ..counted import counted
-from ..images import resize_image
+from ..images import check_image_values, resize_image
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop, staged
 from ..raster import choose_backend, triton_warmups
@@ -225,6 +225,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         style_image = style_image[0]
     if style_image.ndim != 3 or style_image.shape[-1] != 3:
         raise ValueError(f"finetune: style_image must be [H, W, 3], got {tuple(style_image.shape)}")
+    check_image_values(style_image, "finetune: style_image")
     if len(cameras) == 0:
         raise ValueError("finetune: cameras is empty")
     device = scene.device

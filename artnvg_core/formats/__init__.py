@@ -99,9 +99,10 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
     puts the scene in front of ``cameras`` when given, else the PLY's axes, as most writers store them;
-    :mod:`.spz`). ``progress`` follows the Gaussians read, a chunk at a time (by stage where a format reads in
-    several), and ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`); a
-    splatfacto ``.ckpt`` loads in one ``torch.load`` and reports no progress (its Gaussians' check stops)."""
+    :mod:`.spz`). ``progress`` follows the whole read in the file's bytes, one bar filling once over the format's
+    stages (reading, decoding, checking), each its share of the bar by its measured time (the readers'
+    ``READ_STAGES``); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`; a
+    splatfacto ``.ckpt`` old-style pickle, not a zip archive, loads in one ``torch.load`` before its chunks)."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
     check_scene_content(path)
@@ -110,9 +111,8 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras, progress=progress,
                         should_stop=should_stop)
-    reporting = {} if reader is read_splatfacto_ckpt else {"progress": progress}
     try:
-        return reader(path, drop_invalid=drop_invalid, should_stop=should_stop, **reporting)
+        return reader(path, drop_invalid=drop_invalid, progress=progress, should_stop=should_stop)
     except ValueError as error:  # a format with no signature (.splat...): it may be another one, renamed
         found = _signature_of(_head(path))
         if found is None or found[0] == path.suffix.lower():

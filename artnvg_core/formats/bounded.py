@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ..counted import counted
-from ..progress import StopFn, check_stop
+from ..progress import ProgressFn, StopFn, check_stop
 
 CHUNK = 1 << 24  # bytes inflated per read
 # At most this many bytes inflated per byte of the file (files under INFLATION_FLOOR / MAX_INFLATION
@@ -38,9 +38,10 @@ def require_inflatable(size: int, path: Path, field: str) -> None:
                          "are wrong or the file is a decompression bomb")
 
 
-def read_at_most(stream: BinaryIO, limit: int, should_stop: StopFn | None = None) -> bytearray:
+def read_at_most(stream: BinaryIO, limit: int, should_stop: StopFn | None = None,
+                 progress: ProgressFn | None = None) -> bytearray:
     """Up to ``limit`` bytes of a decompressing ``stream``, read ``CHUNK`` bytes at a time (``should_stop`` asked
-    before each: :class:`~artnvg_core.progress.Cancelled`)."""
+    before each: :class:`~artnvg_core.progress.Cancelled`; ``progress`` told the bytes read of ``limit`` after)."""
     data = bytearray()
     while len(data) < limit:
         check_stop(should_stop)
@@ -48,15 +49,17 @@ def read_at_most(stream: BinaryIO, limit: int, should_stop: StopFn | None = None
         if not piece:
             break
         data += piece
+        if progress is not None:
+            progress(len(data), limit, {})
     return data
 
 
 def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trailing_allowed: bool = False,
-                    should_stop: StopFn | None = None) -> bytearray:
+                    should_stop: StopFn | None = None, progress: ProgressFn | None = None) -> bytearray:
     """The next ``size`` bytes of ``stream``; ValueError naming ``path`` and ``field`` when it ends
     sooner or, unless ``trailing_allowed``, holds more (found by inflating one byte past ``size``).
-    ``should_stop``: as :func:`read_at_most`'s."""
-    data = read_at_most(stream, size if trailing_allowed else size + 1, should_stop)
+    ``should_stop`` and ``progress``: as :func:`read_at_most`'s."""
+    data = read_at_most(stream, size if trailing_allowed else size + 1, should_stop, progress)
     if len(data) < size:
         raise ValueError(f"{path}: {field}: {counted(size, 'byte')} expected, the stream ends after {len(data):,} "
                          "(truncated, or the header's counts are wrong)")
@@ -66,16 +69,16 @@ def inflate_exactly(stream: BinaryIO, size: int, path: Path, field: str, *, trai
     return data
 
 
-def require_stored_zip(path: Path) -> None:
-    """A zip file (e.g. a ``torch.save`` checkpoint) whose records are all stored uncompressed within
-    the file; ValueError naming the first record that is compressed or reaches past the file's end.
+def require_stored_zip(path: Path) -> bool:
+    """Whether ``path`` is a zip file (e.g. a ``torch.save`` checkpoint), checked to hold its records all stored
+    uncompressed within the file; ValueError naming the first record that is compressed or reaches past the file's end.
     A file is a zip archive when it begins with a local file header (``PK\\x03\\x04``), as ``torch.load`` tells
     one (not ``zipfile.is_zipfile``, whose answer for a damaged archive differs between Python versions); others
     pass (they hold no compressed streams). An archive whose directory zipfile cannot read is a ValueError naming it."""
     size = path.stat().st_size
     with open(path, "rb") as stream:
         if stream.read(4) != b"PK\x03\x04":
-            return
+            return False
     try:
         with zipfile.ZipFile(path) as archive:
             records = archive.infolist()
@@ -89,3 +92,4 @@ def require_stored_zip(path: Path) -> None:
         if record.file_size != record.compress_size or record.header_offset + record.file_size > size:
             raise ValueError(f"{path}: record {record.filename!r} claims {counted(record.file_size, 'byte')}, more than "
                              "the file holds (truncated or corrupt)")
+    return True

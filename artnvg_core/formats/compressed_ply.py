@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from ..counted import counted
-from ..progress import ProgressFn, StopFn, staged
-from ..scene import SH_C0, GaussianScene, validate_scene
+from ..progress import ProgressFn, StopFn
+from ..scene import SH_C0, GaussianScene
 from .common import ChunkedWork, opacity_logits_from_bytes
 from .ply_data import PlyData
 
@@ -91,10 +91,10 @@ def _packed_codes(path: Path, ply: PlyData, rows: slice) -> np.ndarray:
     return packed.astype(np.int64)  # codes declared as float (any exact whole number) read as their value
 
 
-def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = False,
-                              progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> GaussianScene:
-    """The scene of a parsed compressed PLY (layout in the module docstring), decoded a chunk of Gaussians at a
-    time: ``progress`` (stage "decoding") counts them, ``should_stop`` ends the work between chunks
+def scene_from_compressed_ply(path: Path, ply: PlyData, *, progress: ProgressFn | None = None,
+                              should_stop: StopFn | None = None) -> GaussianScene:
+    """The scene of a parsed compressed PLY (layout in the module docstring), not yet validated, decoded a chunk of
+    Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the work between chunks
     (:class:`~artnvg_core.progress.Cancelled`)."""
     _packed_codes(path, ply, slice(0))  # the vertex element's properties checked before any work
     n = len(ply["vertex"].data)
@@ -117,7 +117,7 @@ def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = 
         rest = len(names)
     scene = GaussianScene(means=torch.empty(n, 3), quats=torch.empty(n, 4), log_scales=torch.empty(n, 3),
                           opacity_logits=torch.empty(n), sh=torch.empty(n, 1 + rest // 3, 3))
-    for rows in ChunkedWork(n, 1, staged(progress, "decoding"), should_stop).chunks():
+    for rows in ChunkedWork(n, 1, progress, should_stop).chunks():
         position, rotation, scale, colour = _packed_codes(path, ply, rows).T
         chunk_of = np.arange(rows.start, rows.stop) // CHUNK_SIZE
         rgba = np.stack([colour >> shift & 255 for shift in (24, 16, 8, 0)], 1)
@@ -136,4 +136,4 @@ def scene_from_compressed_ply(path: Path, ply: PlyData, *, drop_invalid: bool = 
         scene.log_scales[rows] = torch.from_numpy(_lerp(low, high, _unpack_11_10_11(scale)))
         scene.opacity_logits[rows] = torch.from_numpy(opacity_logits_from_bytes(rgba[:, 3]))
         scene.sh[rows] = torch.from_numpy(np.concatenate(sh, 1))
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
+    return scene

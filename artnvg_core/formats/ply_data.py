@@ -21,11 +21,12 @@ from typing import BinaryIO
 import numpy as np
 
 from ..counted import counted
-from ..progress import ProgressFn, StopFn, check_stop, staged
+from ..progress import ProgressFn, StopFn, check_stop
 from .common import ChunkedWork
 
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
 TEXT_BLOCK_BYTES = 1 << 24  # ASCII data read per block: about 21,000 rows of SH degree 3
+MAX_LINE_BYTES = 1 << 24  # an ASCII data line: an INRIA row of SH degree 3 takes about 800 bytes
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
           "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
@@ -63,10 +64,16 @@ class PlyElement:
 
 @dataclass
 class PlyData:
-    """A parsed PLY file: its elements in file order; ``text`` for the ASCII format."""
+    """A PLY file's header: its elements in file order (their ``data`` once read), its ``format`` (ascii,
+    binary_little_endian or binary_big_endian) and the offset of its first data byte, ``start``."""
 
     elements: list[PlyElement]
-    text: bool
+    format: str
+    start: int
+
+    @property
+    def text(self) -> bool:
+        return self.format == "ascii"
 
     def __contains__(self, name: str) -> bool:
         return any(element.name == name for element in self.elements)
@@ -189,38 +196,45 @@ def _list_element_bytes(path: Path, element: PlyElement, data: np.ndarray, order
     return offset
 
 
+def _scalar(element: PlyElement) -> bool:
+    return not any(p.is_list for p in element.properties)
+
+
 def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyElement], wanted: set[str],
                  progress: ProgressFn | None, should_stop: StopFn | None) -> None:
     order = _FORMATS[fmt]
     start = stream.tell()
     size = os.fstat(stream.fileno()).st_size
     data = np.memmap(stream, np.uint8, "r", start) if size > start else np.zeros(0, np.uint8)
-    offset = 0
+    read = [element for element in elements if element.name in wanted and _scalar(element)]
+    work, done, offset = ChunkedWork(sum(element.count for element in read), 1, progress, should_stop), 0, 0
     for element in elements:
         left = len(data) - offset
         smallest = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in element.properties)
         if element.count * smallest > left:
             raise _too_short(path, element, element.count * smallest, left)
-        if any(p.is_list for p in element.properties):
+        if not _scalar(element):
             offset += _list_element_bytes(path, element, data[offset:], order)
             continue
         dtype = _scalar_dtype(element, order)
         if element.name in wanted:
             rows = np.frombuffer(data[offset:offset + element.count * dtype.itemsize], dtype)
             element.data = np.empty(element.count, dtype)
-            for chunk in ChunkedWork(element.count, 1, staged(progress, f"reading {element.name}"), should_stop).chunks():
-                element.data[chunk] = rows[chunk]
+            for chunk in work.chunks(done, done + element.count):
+                element.data[chunk.start - done:chunk.stop - done] = rows[chunk.start - done:chunk.stop - done]
+            done += element.count
         offset += element.count * dtype.itemsize
     if offset != len(data):
         raise _counts_error(path, elements, f"{counted(len(data) - offset, 'byte')} more than those records need")
 
 
 class _TextLines:
-    """The data lines of an ASCII PLY, blank ones skipped, taken a number at a time from ``stream``, which is read
-    :data:`TEXT_BLOCK_BYTES` at a time: memory follows the lines taken, not the file."""
+    """The data lines of an ASCII PLY at ``path``, blank ones skipped, taken a number at a time from ``stream``,
+    which is read :data:`TEXT_BLOCK_BYTES` at a time: memory follows the lines taken, not the file (a line longer
+    than :data:`MAX_LINE_BYTES` is refused)."""
 
-    def __init__(self, stream: BinaryIO, size: int):
-        self.stream, self.left, self.lines, self.tail = stream, size, [], b""
+    def __init__(self, path: Path, stream: BinaryIO, size: int):
+        self.path, self.stream, self.left, self.lines, self.tail = path, stream, size, [], b""
 
     def _read_block(self) -> bool:
         """The next block's complete lines added to ``lines``; False at the end of the file (``size`` bytes)."""
@@ -230,6 +244,9 @@ class _TextLines:
         cut = len(text) if not block else text.rfind(b"\n") + 1  # the last line may lack its newline
         self.lines += [line for line in text[:cut].split(b"\n") if line.strip()]
         self.tail = text[cut:]
+        if len(self.tail) > MAX_LINE_BYTES:
+            raise ValueError(f"{self.path}: a data line longer than {counted(MAX_LINE_BYTES, 'byte')}; not a PLY "
+                             "of numbers in text")
         return bool(block)
 
     def take(self, count: int) -> list[bytes]:
@@ -269,10 +286,10 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
         if smallest - 1 > left:  # the last row may lack its newline
             raise _too_short(path, element, smallest, left)
         left -= smallest
-    lines, declared = _TextLines(stream, size), sum(element.count for element in elements)
+    lines, declared = _TextLines(path, stream, size), sum(element.count for element in elements)
     work, start = ChunkedWork(declared, 1, progress, should_stop), 0
     for element in elements:
-        scalar = element.name in wanted and not any(p.is_list for p in element.properties)
+        scalar = element.name in wanted and _scalar(element)
         if scalar:
             element.data = np.empty(element.count, _scalar_dtype(element, "="))
         for rows in work.chunks(start, start + element.count):
@@ -290,18 +307,25 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
         raise _counts_error(path, elements, f"{counted(declared + left, 'data line')} for {counted(declared, 'record')}")
 
 
-def read_ply_data(path: Path, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
-                  should_stop: StopFn | None = None) -> PlyData:
-    """The PLY at ``path`` with the scalar elements named in ``wanted`` read (their ``data`` set), every other
-    element skipped; a ValueError naming ``path`` for anything that is not a well-formed PLY whose counts
-    account for its data (module docstring). A binary element is read a chunk of rows at a time: ``progress``
-    follows its rows (stage "reading ELEMENT"); ASCII is parsed a chunk of lines at a time, every element's
-    (stage "reading"); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
-    check_stop(should_stop)
+def read_ply_header(path: Path) -> PlyData:
+    """The header of the PLY at ``path``, no element read yet; a ValueError naming ``path`` when it is not a
+    well-formed PLY header (module docstring)."""
     with open(path, "rb") as stream:
         fmt, elements = _header(path, stream)
-        if fmt == "ascii":
-            _read_text(path, stream, elements, set(wanted), staged(progress, "reading"), should_stop)
+        return PlyData(elements, fmt, stream.tell())
+
+
+def read_ply_elements(path: Path, ply: PlyData, wanted: tuple[str, ...], *, progress: ProgressFn | None = None,
+                      should_stop: StopFn | None = None) -> None:
+    """The scalar elements of ``ply`` (:func:`read_ply_header` of ``path``) named in ``wanted`` read (their ``data``
+    set), every other element skipped; a ValueError naming ``path`` when the counts do not account for the data or
+    a row is not numbers (module docstring). Read a chunk of rows at a time: ``progress`` follows the rows read
+    (binary: of the elements read; ASCII: every element's lines), ``should_stop`` ends the read between chunks
+    (:class:`~artnvg_core.progress.Cancelled`)."""
+    check_stop(should_stop)
+    with open(path, "rb") as stream:
+        stream.seek(ply.start)
+        if ply.text:
+            _read_text(path, stream, ply.elements, set(wanted), progress, should_stop)
         else:
-            _read_binary(path, stream, fmt, elements, set(wanted), progress, should_stop)
-    return PlyData(elements, text=fmt == "ascii")
+            _read_binary(path, stream, ply.format, ply.elements, set(wanted), progress, should_stop)

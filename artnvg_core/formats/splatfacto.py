@@ -6,6 +6,10 @@ trained with ``rasterize_mode: antialiased`` there is rendered with gsplat's
 antialiased mode (``GaussianScene.antialiased``). Without a config the scene is
 classic. Tensors saved sparse or expanded (stride 0) are made dense only when the dense
 Gaussians take at most 4 times the file's size; larger ones are refused before they are made.
+A checkpoint (a zip archive, as ``torch.save`` writes) is mapped rather than read
+(``torch.load(mmap=True)``: its pickle alone is read), its Gaussian tensors' shapes checked, then
+their values copied out of the file a chunk of Gaussians at a time, with progress and a stop between
+chunks; the scene holds no page of the file, which may change or go once it is read.
 """
 
 from __future__ import annotations
@@ -17,11 +21,11 @@ from pathlib import Path
 
 import torch
 
-from ..progress import StopFn
+from ..progress import ProgressFn, Stages, StopFn
 from ..scene import SH_C0, GaussianScene, validate_scene
 from ..tensor_files import load_failure
 from .bounded import require_stored_zip
-from .common import require_file
+from .common import ChunkedWork, require_file
 
 _log = logging.getLogger(__name__)
 _SPLATFACTO_PREFIX = "_model.gauss_params."
@@ -30,6 +34,9 @@ _SPLATFACTO_REQUIRED = ("means", "scales", "quats", "features_dc", "opacities")
 # files double; at least EXPANSION_FLOOR for small files).
 MAX_EXPANSION = 4
 EXPANSION_FLOOR = 1 << 24
+# Seconds per million Gaussians of SH degree 3 (one thread of a 2-core CPU) in each stage of a read: the share of
+# the progress bar each fills.
+READ_STAGES = {"read": 0.12, "check": 0.18}
 _RASTERIZE_MODE = re.compile(r"^\s*rasterize_mode:\s*['\"]?(\w+)", re.MULTILINE)
 
 
@@ -48,11 +55,12 @@ def trained_antialiased(path: Path) -> bool:
 
 
 def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
-    """The ``_model.gauss_params.*`` tensors of a checkpoint, by short name, as float32; its zip
-    records must be stored uncompressed (:func:`~.bounded.require_stored_zip`)."""
-    require_stored_zip(path)
+    """The ``_model.gauss_params.*`` tensors of a checkpoint, by short name, dense, as stored otherwise: a zip
+    archive's mapped from the file (nothing read yet), its records stored uncompressed
+    (:func:`~.bounded.require_stored_zip`); an old-style pickle's read whole."""
+    mapped = require_stored_zip(path)
     try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=mapped)
     except Exception as error:  # torch.load raises many types on corrupt or foreign files
         raise ValueError(f"{path}: not a loadable torch checkpoint ({load_failure(error)})") from error
     pipeline = checkpoint.get("pipeline") if isinstance(checkpoint, dict) else None
@@ -68,7 +76,18 @@ def _splatfacto_params(path: Path) -> dict[str, torch.Tensor]:
         raise ValueError(f"{path}: not a splatfacto checkpoint, pipeline lacks tensors {', '.join(missing)}")
     _require_dense_within_cap(path, params)
     # to_dense: tensors saved in a sparse layout (COO, CSR, ...) read as the dense values they hold
-    return {name: value.detach().to_dense().to(torch.float32) for name, value in params.items()}
+    return {name: value.detach().to_dense() for name, value in params.items()}
+
+
+def _in_memory(params: dict[str, torch.Tensor], work: ChunkedWork) -> dict[str, torch.Tensor]:
+    """float32 copies of ``params`` (each of ``work.count`` rows, mapped from their file), a chunk of Gaussians at a
+    time (``work``: one pass each)."""
+    copies = {}
+    for name, value in params.items():
+        copies[name] = torch.empty(value.shape, dtype=torch.float32)
+        for rows in work.chunks():
+            copies[name][rows] = value[rows]
+    return copies
 
 
 def _require_dense_within_cap(path: Path, params: dict[str, torch.Tensor]) -> None:
@@ -98,7 +117,7 @@ def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, 
         raise ValueError(f"{path}: {_SPLATFACTO_PREFIX}{name}: expected shape {shape}, got {tuple(value.shape)}")
 
 
-def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
+def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
                          should_stop: StopFn | None = None) -> GaussianScene:
     """Read the Gaussians of a nerfstudio splatfacto ``.ckpt`` (loaded with ``weights_only=True``).
 
@@ -107,10 +126,13 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
     features_rest [N, K-1, 3]. At SH degree 0 (features_rest empty or absent)
     splatfacto renders colour = sigmoid(features_dc), which is converted to the
     SH DC coefficient (sigmoid(f) - 0.5) / SH_C0. ``antialiased`` from the run's config
-(module docstring). Validated with :func:`validate_scene`.
+(module docstring). Validated with :func:`validate_scene`. ``progress`` follows the whole read in the file's bytes,
+    filling once over its stages (:data:`READ_STAGES`: the Gaussians copied out of the file, then checked, a chunk at
+    a time), ``should_stop`` ends it between chunks (:class:`~artnvg_core.progress.Cancelled`).
     """
     path = Path(path)
     require_file(path)
+    stages = Stages(progress, path.stat().st_size, READ_STAGES)
     params = _splatfacto_params(path)
     n = params["means"].shape[0] if params["means"].ndim == 2 else -1
     shapes = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "features_dc": (n, 3), "opacities": (n, 1)}
@@ -122,15 +144,18 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
             f"{path}: {_SPLATFACTO_PREFIX}features_rest: expected shape ({n}, K-1, 3) with K-1 in "
             f"0, 3, 8, 15 (SH degree 0 to 3), got {tuple(rest.shape)}"
         )
-    dc = params["features_dc"]
+    used = {name: params[name] for name in shapes} | {"features_rest": rest}
+    params = _in_memory(used, ChunkedWork(n, len(used), stages["read"], should_stop))
+    rest, dc = params["features_rest"], params["features_dc"]
     if rest.shape[1] == 0:
         dc = ((torch.sigmoid(dc.double()) - 0.5) / SH_C0).float()
     scene = GaussianScene(
-        means=params["means"].contiguous(),
-        quats=params["quats"].contiguous(),
-        log_scales=params["scales"].contiguous(),
+        means=params["means"],
+        quats=params["quats"],
+        log_scales=params["scales"],
         opacity_logits=params["opacities"][:, 0].contiguous(),
-        sh=torch.cat([dc[:, None, :], rest], dim=1).contiguous(),
+        sh=torch.cat([dc[:, None, :], rest], dim=1),
         antialiased=trained_antialiased(path),
     )
-    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop)[0]
+    return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
+                          progress=stages["check"])[0]

@@ -168,7 +168,8 @@ def render(
     scene: GaussianScene (tensors may require grad; rendering is differentiable
         in means, quats, log_scales, opacity_logits and sh).
     cameras: CameraSet, OpenCV world-to-camera [C, 4, 4], K [C, 3, 3] in
-        pixels, pixel centres at +0.5, on the scene's device.
+        pixels, pixel centres at +0.5; taken to the scene's device and dtype (a float64 scene, the
+        reference's oracle, renders from the float32 cameras a loader gives).
     sh_degree: SH degree to evaluate (default: the scene's); at most the scene's.
     background: [3] or [C, 3] colour composited behind the Gaussians (default black).
     return_depth: also return expected camera-space depth.
@@ -203,7 +204,7 @@ def render(
     degree = scene.sh_degree if sh_degree is None else sh_degree
     if not checked:
         check_render_inputs(scene, cameras, degree, background)
-    cameras = cameras.to(scene.device)
+    cameras = cameras.to(scene.device, scene.means.dtype)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
     composite = functools.partial(rasterize, should_stop=should_stop)
