@@ -1,6 +1,6 @@
 """Loading the released single weight files: seconds per loader, full-size random weights.
 
-    python bench/model_loading.py --dir DIR [--device cpu|cuda] [--dtype bf16|fp16] [--repeats 2]
+    python bench/model_loading.py --dir DIR [--device cpu|cuda] [--dtype bf16|fp16] [--repeats 2] [--loads NAME ...]
 
 Writes, where DIR lacks them, full-size files with random weights in the released layouts
 (``model_files.py``). Then times reading ``sd_xl_base_1.0.safetensors``'s tensors alone
@@ -10,7 +10,8 @@ and :func:`load_image_encoder` (the image encoder's ``model.safetensors``) to ``
 for comparison, diffusers' ``StableDiffusionXLPipeline.from_single_file`` on it then moved to the device
 (how :func:`load_sdxl` loaded it before), and :func:`load_diffusion_models` on all four files (SDXL's
 single file, the ControlNet, the image encoder's folder, ``csgo_4_32.bin``: what a stylize run loads),
-``--repeats`` times each (the first read may come from disk, later ones from the page cache).
+``--repeats`` times each (the first read may come from disk, later ones from the page cache); ``--loads`` picks
+rows by name (``sdxl``, ``all four`` ...).
 
 Each load runs alone, then again beside a thread that counts in Python (as the command's main thread
 renders beside the background load), within :func:`~artnvg_core.background.brief_switches` as the
@@ -51,6 +52,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", default="bf16", choices=sorted(DTYPES))
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--loads", nargs="+", help="the rows to time, by name (default: every row)")
     args = parser.parse_args()
     device, dtype = torch.device(args.device), DTYPES[args.dtype]
     files = write_model_files(Path(args.dir), device, sdxl_folder=False)
@@ -72,6 +74,11 @@ def main() -> None:
                "sdxl": lambda: load_sdxl(files["sdxl"], dtype=dtype, device=device),
                "all four": lambda: load_diffusion_models(four, dtype=dtype, device=device),
                "sdxl, diffusers from_single_file then moved (before)": pipeline}
+    if args.loads:
+        unknown = set(args.loads) - set(loaders)
+        if unknown:
+            parser.error(f"--loads: unknown {sorted(unknown)}; the rows are {list(loaders)}")
+        loaders = {name: load for name, load in loaders.items() if name in args.loads}
     idle = Ticker().rate(1.0)
     rows = []
     for name, load in loaders.items():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,15 +19,13 @@ from artnvg_core.formats import (
     save_scene,
 )
 
-from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar
+from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar, progress_text
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, SCENE
 from .preview3d import preview_camera
 from .splat_interop import FILE3D_CLASS, MISSING_FILE3D, MODEL_3D, file3d, file3d_link_type
-
-_log = logging.getLogger("artnvg")
 
 SCENE_FILE = InputFile(
     "scene_file",
@@ -168,8 +165,8 @@ class SaveGaussianScene(ArtNVGNode):
     @cancellable
     def save(self, scene, filename_prefix, format="ply", spz_version="3", node_id=None):
         """The scene written with the node's progress bar moving and ComfyUI's Cancel stopping it, no file left; what
-        the format changes of the scene (dropped SH terms, far Gaussians moved) shown under the node after the
-        file's name and logged once on the console."""
+        the format changes of the scene (dropped SH terms, far Gaussians moved) in the node's UI text after the
+        file's name, under the node in the editor and once on the console."""
         with node_input(self.DISPLAY_NAME, "format"):
             if f".{format}" not in SAVE_SUFFIXES:
                 raise ValueError(f"expected one of {[s.lstrip('.') for s in SAVE_SUFFIXES]}, got {format!r}")
@@ -193,9 +190,10 @@ class SaveGaussianScene(ArtNVGNode):
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
-        for note in notes:
-            _log.warning("%s: %s: %s", self.DISPLAY_NAME, file, note)
+        noted = [f"note: {note}" for note in notes]
+        if noted:  # under the node in the editor, and once on the console
+            progress_text("\n".join(noted), self.DISPLAY_NAME)
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
-              "text": [written, *(f"note: {note}" for note in notes)]}
+              "text": [written, *noted]}
         result = (relative.as_posix(), preview_camera(scene))
         return {"ui": ui, "result": result + ((file3d(file),) if FILE3D_CLASS is not None else ())}

@@ -208,6 +208,51 @@ def test_single_file_loads_bit_for_bit_as_diffusers_pipeline_loads_it(tmp_path, 
         assert built(scheduler_class, loaded.scheduler_config) == built(scheduler_class, pipe.scheduler.config)
 
 
+def _tensors_of(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """Every parameter and buffer (computed ones too) of ``model``, by name."""
+    return {**dict(model.named_parameters()), **dict(model.named_buffers())}
+
+
+def test_a_stylize_runs_models_are_their_files_bit_for_bit(tmp_path, monkeypatch):
+    """What a stylize run loads (load_diffusion_models on SDXL's single file, the ControlNet's, the image encoder's
+    folder and CSGO's .bin, in float16) is what the libraries' own loaders give from the same files, CSGO
+    attached alike: every parameter and buffer of every model, of the same kind (a parameter wanting gradients,
+    or a buffer), dtype and device, bit for bit. The loaders' speed-ups (fewer Python calls per tensor) must
+    change no loaded value."""
+    from diffusers import StableDiffusionXLPipeline
+    from transformers import CLIPVisionModelWithProjection
+
+    from artnvg_core.diffusion.csgo_weights import load_csgo
+
+    original, checkpoint, configs = _tiny_single_file(tmp_path, monkeypatch, torch.float16)
+    tiny_controlnet(original.unet).save_pretrained(tmp_path / "controlnet")
+    tiny_image_encoder().save_pretrained(tmp_path / "image_encoder")
+    write_csgo_file(tmp_path / "csgo.bin", csgo_state(original.unet, tiny_controlnet(original.unet)))
+    tile = tmp_path / "controlnet" / "diffusion_pytorch_model.safetensors"
+    loaded = load_diffusion_models(ModelFiles(checkpoint, tile, tmp_path / "image_encoder", tmp_path / "csgo.bin"),
+                                   dtype=torch.float16)
+    with configs() as folder:
+        pipe = StableDiffusionXLPipeline.from_single_file(str(checkpoint), config=str(folder), torch_dtype=torch.float16,
+                                                          local_files_only=True, add_watermarker=False)
+    pipe.vae.to(torch.float32)  # an fp16 request keeps SDXL's VAE in float32 on the CPU
+    controlnet = ControlNetModel.from_pretrained(tmp_path / "controlnet", torch_dtype=torch.float16)
+    csgo = load_csgo(tmp_path / "csgo.bin", pipe.unet, controlnet)
+    pairs = {"unet": (loaded.base.unet, pipe.unet), "vae": (loaded.base.vae, pipe.vae),
+             "text_encoder": (loaded.base.text_encoder, pipe.text_encoder),
+             "text_encoder_2": (loaded.base.text_encoder_2, pipe.text_encoder_2),
+             "controlnet": (loaded.controlnet, controlnet), "csgo": (loaded.csgo, csgo),
+             "image_encoder": (loaded.image_encoder, CLIPVisionModelWithProjection.from_pretrained(
+                 tmp_path / "image_encoder", dtype=torch.float16))}
+    for name, (ours, theirs) in pairs.items():
+        ours, theirs = _tensors_of(ours), _tensors_of(theirs)
+        assert ours.keys() == theirs.keys(), name
+        for key, tensor in theirs.items():
+            mine = ours[key]
+            assert (type(mine), mine.dtype, mine.device, mine.requires_grad) == (
+                type(tensor), tensor.dtype, tensor.device, tensor.requires_grad), (name, key)
+            assert torch.equal(mine, tensor), (name, key)
+
+
 def test_shipped_configs_are_sdxl_base_1_0():
     """The built-in folder builds SDXL's four models with their published parameter counts, and its tokenizer
     is CLIP's (49,408 tokens, the vocabulary derived from the shipped merges)."""

@@ -569,3 +569,16 @@ def test_an_ascii_plys_parse_takes_memory_for_its_values_not_its_text(tmp_path, 
     monkeypatch.setattr(ply_data, "TEXT_BLOCK_BYTES", 1 << 20)
     ply = ply_data.read_ply_header(path)
     assert _peak_bytes(lambda: ply_data.read_ply_elements(path, ply, ("vertex",))) < path.stat().st_size
+
+
+def test_an_ascii_ply_line_beyond_its_bound_is_refused(tmp_path, monkeypatch):
+    """A line of 1,000 bytes with no end (a binary file relabelled ascii, say) against a bound of 100: refused
+    as soon as a block's text holds no end of line within the bound, not gathered to the end of the file."""
+    from artnvg_core.formats import ply_data
+
+    monkeypatch.setattr(ply_data, "MAX_LINE_BYTES", 100)
+    monkeypatch.setattr(ply_data, "TEXT_BLOCK_BYTES", 64)
+    path = tmp_path / "long.ply"
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n" + b"1" * 1000)
+    with pytest.raises(ValueError, match=r"long\.ply: a data line longer than 100 bytes; not a PLY of numbers in text"):
+        read_ply(path)

@@ -242,14 +242,19 @@ def test_scene_files_load_and_save_with_progress_and_stop_leaving_no_file(comfy,
     """Millions of Gaussians take seconds to read or write: the bar moves a chunk at a time, Cancel stops it."""
     from artnvg_core.formats import common, save_scene
 
+    from artnvg_core import scene as scenes
+
     monkeypatch.setattr(common, "CHUNK_GAUSSIANS", 16)
+    monkeypatch.setattr(scenes, "CHECKED_ROWS", 16)
     scene = _tiny_scene()
     (comfy.root / "input").mkdir()
     save_scene(scene, comfy.root / "input" / f"scene.{format}")
-    rising = [(0, 40), (16, 40), (32, 40), (40, 40)]
+    size = (comfy.root / "input" / f"scene.{format}").stat().st_size
     with torch.inference_mode():
         LoadGaussianScene().load(f"scene.{format}")
-        assert comfy.bars == [rising * (2 if format == "ply" else 1)]  # a PLY's rows read, then decoded
+        (bar,) = comfy.bars  # one bar over the file's bytes, filled once: a PLY's rows read, decoded, checked
+        assert {total for _, total in bar} == {size} and bar[0] == (0, size) and bar[-1] == (size, size), bar
+        assert [value for value, _ in bar] == sorted(value for value, _ in bar) and len(bar) >= 7, bar
         comfy.bars.clear()
         SaveGaussianScene().save(scene, "artnvg/saved", format)
         total = 40 * (6 if format == "spz" else 1)  # an SPZ: its 6 attribute arrays in turn

@@ -26,6 +26,7 @@ from .common import ChunkedWork
 
 MAX_HEADER_BYTES = 1 << 20  # an INRIA 3DGS header of SH degree 3 takes about 1.5 kB
 TEXT_BLOCK_BYTES = 1 << 24  # ASCII data read per block: about 21,000 rows of SH degree 3
+MAX_LINE_BYTES = 1 << 24  # an ASCII data line: an INRIA row of SH degree 3 takes about 800 bytes
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
           "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
@@ -228,11 +229,12 @@ def _read_binary(path: Path, stream: BinaryIO, fmt: str, elements: list[PlyEleme
 
 
 class _TextLines:
-    """The data lines of an ASCII PLY, blank ones skipped, taken a number at a time from ``stream``, which is read
-    :data:`TEXT_BLOCK_BYTES` at a time: memory follows the lines taken, not the file."""
+    """The data lines of an ASCII PLY at ``path``, blank ones skipped, taken a number at a time from ``stream``,
+    which is read :data:`TEXT_BLOCK_BYTES` at a time: memory follows the lines taken, not the file (a line longer
+    than :data:`MAX_LINE_BYTES` is refused)."""
 
-    def __init__(self, stream: BinaryIO, size: int):
-        self.stream, self.left, self.lines, self.tail = stream, size, [], b""
+    def __init__(self, path: Path, stream: BinaryIO, size: int):
+        self.path, self.stream, self.left, self.lines, self.tail = path, stream, size, [], b""
 
     def _read_block(self) -> bool:
         """The next block's complete lines added to ``lines``; False at the end of the file (``size`` bytes)."""
@@ -242,6 +244,9 @@ class _TextLines:
         cut = len(text) if not block else text.rfind(b"\n") + 1  # the last line may lack its newline
         self.lines += [line for line in text[:cut].split(b"\n") if line.strip()]
         self.tail = text[cut:]
+        if len(self.tail) > MAX_LINE_BYTES:
+            raise ValueError(f"{self.path}: a data line longer than {counted(MAX_LINE_BYTES, 'byte')}; not a PLY "
+                             "of numbers in text")
         return bool(block)
 
     def take(self, count: int) -> list[bytes]:
@@ -281,7 +286,7 @@ def _read_text(path: Path, stream: BinaryIO, elements: list[PlyElement], wanted:
         if smallest - 1 > left:  # the last row may lack its newline
             raise _too_short(path, element, smallest, left)
         left -= smallest
-    lines, declared = _TextLines(stream, size), sum(element.count for element in elements)
+    lines, declared = _TextLines(path, stream, size), sum(element.count for element in elements)
     work, start = ChunkedWork(declared, 1, progress, should_stop), 0
     for element in elements:
         scalar = element.name in wanted and _scalar(element)

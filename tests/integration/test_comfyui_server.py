@@ -25,7 +25,7 @@ from artnvg_core.selection import parse_region, select_region
 
 REPO = Path(__file__).resolve().parents[2]
 FINETUNE = "6"  # node id of Finetune Gaussians in artnvg_nnfm_only_api.json
-LOAD_SCENE = "1"  # of Load Gaussian Scene
+LOAD_SCENE, SAVE_SCENE = "1", "7"  # of Load Gaussian Scene and Save Gaussian Scene
 
 
 def _queue_script():
@@ -161,6 +161,21 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     assert not torch.equal(result.sh, original.sh)  # the appearance was stylized
     previews = [o for o in summary["outputs"] if o["kind"] == "images"]
     assert len(previews) == 4  # 2 content views + 2 orbit frames
+
+
+def test_what_the_format_drops_reaches_save_gaussian_scenes_text_and_the_console_once(comfy_server):
+    """The test scene is of SH degree 1, a .splat of degree 0: the note follows the file's name in the node's UI
+    text (the run's history) and is logged once (it is also shown under the node: progress text)."""
+    folder = comfy_server.test_folder
+    logged = len(comfy_server.log.read_text())
+    entry, _ = _run(comfy_server, _workflow(comfy_server, "6.iterations=1", "Save Gaussian Scene.format=splat",
+                                            f"Save Gaussian Scene.filename_prefix={folder}/noted"))
+    assert queue.run_summary(entry)["status"] == "success"
+    note = "note: .splat holds SH up to degree 0; the degree 1 view-dependent terms are dropped"
+    written, *notes = entry["outputs"][SAVE_SCENE]["text"]
+    assert written.startswith(f"wrote output/{folder}/noted_") and notes == [note]
+    time.sleep(1)  # the log file is written by the server's process
+    assert comfy_server.log.read_text()[logged:].count(note) == 1
 
 
 def _run_saving_a_scene(server, api_workflow: Path, assignments) -> tuple:
