@@ -26,16 +26,16 @@ class ChunkedWork:
     """A reader's or writer's work on ``count`` Gaussians in ``passes`` passes over them (an SPZ writer's one per
     attribute array, a PLY reader's copy then decode), :data:`CHUNK_GAUSSIANS` at a time: :meth:`chunks` yields
     one pass's slices, raising :class:`~artnvg_core.progress.Cancelled` before any whose ``should_stop()`` is
-    True and calling ``progress(done, count * passes, {})`` after each (and ``progress(0, ...)`` first), the
-    Gaussians done over all passes so far."""
+    True and calling ``progress(done, count, {})`` after each (and ``progress(0, count, {})`` first): ``done``
+    the Gaussians done over all passes so far, divided by ``passes`` (a bar counts the scene's Gaussians)."""
 
     def __init__(self, count: int, passes: int = 1, progress: ProgressFn | None = None,
                  should_stop: StopFn | None = None):
-        self.count, self.total, self.done = count, count * passes, 0
+        self.count, self.passes, self.done = count, passes, 0
         self.progress, self.should_stop = progress, should_stop
         check_stop(should_stop)
         if progress is not None:
-            progress(0, self.total, {})
+            progress(0, count, {})
 
     def chunks(self, start: int = 0, stop: int | None = None) -> Iterator[slice]:
         """One pass's slices of the Gaussians, in order (of those from ``start`` to ``stop`` only: a pass made
@@ -47,7 +47,7 @@ class ChunkedWork:
             yield rows
             self.done += rows.stop - rows.start
             if self.progress is not None:
-                self.progress(self.done, self.total, {})
+                self.progress(self.done // self.passes, self.count, {})
 
     def check_stop(self) -> None:
         """Raise :class:`~artnvg_core.progress.Cancelled` if ``should_stop`` says so (between passes)."""
