@@ -19,12 +19,15 @@ command's background load runs (with the interpreter's default 5 ms switch inter
 thousands of calls into C waits for the counting thread's turn to end: minutes): "beside s" is that load's
 time, "others' GIL share" the thread's count per second during it over its count alone, so 1 means the
 loading left the interpreter lock to the rest of the process (it waited in system calls and device
-copies), 0 that it held it throughout. Prints a table.
+copies), 0 that it held it throughout. "thread CPU s" is the CPU time of the thread that called the load
+(alone): its own work, Python and the calls it waits in, whatever other processes take of a shared CPU
+(the readers' threads of a CUDA load are not in it). Prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import threading
 import time
@@ -85,27 +88,31 @@ def main() -> None:
         paths = [path for _, path in four.items()] if name == "all four" else [files[name.split(",")[0]]]
         size = sum(size for path in paths for _, size, _ in file_key(path)[1])
         for run in range(1, args.repeats + 1):
-            seconds = timed_load(load, device)
+            seconds, cpu = timed_load(load, device)
             with Ticker() as ticker, brief_switches():
-                beside = timed_load(load, device)
-            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds, beside,
+                beside, _ = timed_load(load, device)
+            rows.append([name, ", ".join(path.name for path in paths), f"{size / 2**30:.2f}", run, seconds, cpu, beside,
                          f"{ticker.count / beside / idle:.2f}"])
             print(rows[-1], flush=True)
     print_table(f"Loading single weight files to {args.device} in {args.dtype} (torch threads: "
                 f"{torch.get_num_threads()})",
-                ["model", "file", "GiB", "run", "seconds", "beside s", "others' GIL share"], rows,
+                ["model", "file", "GiB", "run", "seconds", "thread CPU s", "beside s", "others' GIL share"], rows,
                 "python " + " ".join(sys.argv))
 
 
-def timed_load(load, device: torch.device) -> float:
-    """Seconds of ``load()``, the device waited for at both ends; what it loaded is dropped."""
+def timed_load(load, device: torch.device) -> tuple[float, float]:
+    """(seconds, the calling thread's CPU seconds) of ``load()``, the device waited for at both ends and the
+    interpreter's garbage collected before (a full collection takes 0.25-0.4 s on a 2-core CPU: one that the
+    objects of earlier loads set off would fall in this load's figures, in some rows and not others); what it
+    loaded is dropped."""
     synchronize(device)
-    start = time.perf_counter()
+    gc.collect()
+    start, cpu = time.perf_counter(), time.thread_time()
     model = load()
     synchronize(device)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.thread_time() - cpu
     del model
-    return seconds
+    return seconds, cpu
 
 
 class Ticker:
