@@ -50,10 +50,15 @@ def list_input_files(
 def resolve_input_path(listed_input: str, listed: str, path: str) -> tuple[Path, str]:
     """The file to load and the name of the input that chose it.
 
-    ``path`` (input ``path``) when not blank, else ``listed`` (the list input named ``listed_input``).
+    ``path`` (input ``path``) when not blank, else ``listed`` (the list input named ``listed_input``). A path is
+    taken without the spaces around it and the quotes around those, which Windows' *Copy as path* adds
+    (``"C:\\scans\\scene.ply"``).
     """
-    if path.strip():
-        return input_directory() / Path(path.strip()).expanduser(), "path"
+    typed = path.strip()
+    if len(typed) >= 2 and typed[0] == typed[-1] and typed[0] in "\"'":
+        typed = typed[1:-1].strip()
+    if typed:
+        return input_directory() / Path(typed).expanduser(), "path"
     return input_directory() / listed, listed_input
 
 

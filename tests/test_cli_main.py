@@ -570,13 +570,16 @@ def test_a_devices_typo_is_refused_before_any_work_whichever_stylizer_runs(tmp_p
 
 
 @pytest.mark.parametrize("stylizer", ["nnfm", "auto"])
-def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_when_nnfm_would_run(tmp_path, capsys, stylizer):
+def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_when_nnfm_would_run(tmp_path, capsys, stylizer,
+                                                                                                    monkeypatch):
     """docs/scale_out.md's 'stylize ... --devices cuda:0,cuda:1', run where the model files are missing (auto:
     NNFM), once ran NNFM's 1,000 iterations on the CPU (two hours at 512x512), the devices unread; --ray-address
     and (with auto) --lora went unread the same way. Each is refused before the scene loads, saying why NNFM runs."""
     import torch
+    from huggingface_hub import constants
     from safetensors.torch import save_file
 
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))  # no model file anywhere
     demo, scene = DemoInputs(), _small_scene(tmp_path)
     save_file({"unet.down.lora_A.weight": torch.zeros(2, 2)}, tmp_path / "style.safetensors")
     reason = "requested" if stylizer == "nnfm" else "auto: diffusion models not found (SDXL 1.0 base"
@@ -584,8 +587,8 @@ def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_w
                                 ("--ray-address", "auto", "the Ray cluster shares the diffusion stage's groups"),
                                 ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL")]:
         assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
-                     str(tmp_path / "out.ply"), "--stylizer", stylizer, "--sdxl", str(tmp_path / "no_sdxl"),
-                     option, value, "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
+                     str(tmp_path / "out.ply"), "--stylizer", stylizer, option, value, "--iters", "1", "--scale",
+                     "0.05", "--device", "cpu"]) == 2
         captured = capsys.readouterr()
         assert captured.err.startswith(f"error: {option}: {what}, which only the diffusion stylizer runs; the NNFM "
                                        f"stylizer would run here ({reason}"), captured.err
@@ -609,7 +612,25 @@ def test_a_diffusion_preset_given_by_name_without_the_model_files_is_refused_bef
     assert "--preset preview for a first look without diffusion, or --stylizer nnfm" in captured.err
     assert "loading" not in captured.out and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
     assert main([*common, "--preset", preset, "--stylizer", "nnfm"]) == 0  # NNFM asked for: it runs
-    assert main(common) == 0  # no preset named: auto falls back, saying why
+
+
+def test_a_model_file_named_and_missing_is_refused_before_any_work_and_without_it_auto_falls_back(tmp_path, capsys,
+                                                                                                 monkeypatch):
+    """'stylize ... --sdxl TYPO' ran NNFM's 1,000 iterations instead (two hours at 512x512 on a CPU), the path's typo
+    told only in passing; as with a diffusion preset named, a model file named asks for diffusion."""
+    from huggingface_hub import constants
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))  # no model file anywhere
+    demo, scene = DemoInputs(), _small_scene(tmp_path)
+    common = ["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
+              str(tmp_path / "out.ply"), "--iters", "1", "--scale", "0.05", "--device", "cpu"]
+    for option in ("--sdxl", "--controlnet", "--image-encoder", "--csgo"):
+        assert main([*common, option, str(tmp_path / "typo")]) == 2
+        captured = capsys.readouterr()
+        assert captured.err.startswith(f"error: {option}: a diffusion model file named, and diffusion models not "
+                                       "found ("), captured.err
+        assert "loading" not in captured.out and not (tmp_path / "out.ply").exists()
+    assert main(common) == 0  # none named: auto falls back, saying why
     assert "stylizer: nnfm (auto: diffusion models not found (SDXL 1.0 base" in capsys.readouterr().out
 
 

@@ -33,6 +33,9 @@ def test_a_typed_path_wins_and_errors_name_the_input_that_chose(input_folder):
     (input_folder / "a.ply").write_bytes(b"")
     assert scene_file.resolve("a.ply", "  ") == (input_folder / "a.ply", "scene_file")
     assert scene_file.resolve("a.ply", "sub/b.ply") == (input_folder / "sub" / "b.ply", "path")
+    for quoted in ('"sub/b.ply"', " 'sub/b.ply' "):  # as Windows' Copy as path gives it: was "not found: input/"sub...
+        assert scene_file.resolve("a.ply", quoted) == (input_folder / "sub" / "b.ply", "path")
+    assert scene_file.resolve("a.ply", '""') == (input_folder / "a.ply", "scene_file")
     assert scene_file.check("Load", "a.ply", "") is None
     missing = input_folder / "gone.ply"
     message = scene_file.check("Load", "gone.ply", "")

@@ -180,19 +180,29 @@ def test_auto_falls_back_to_nnfm_when_a_file_is_missing_or_cannot_be_loaded(tmp_
     with pytest.raises(DiffusionModelsUnavailable, match="could not be loaded: CSGO weights .* not a readable"):
         load_models_for(paths, False, "cpu")
 
+    from huggingface_hub import constants
+
+    from artnvg_core.diffusion.model_files import MODEL_SOURCES, hf_cache_path
+
+    cache = tmp_path / "hf-cache"  # where the files are found when no option names them
+    for field, source in MODEL_SOURCES.items():
+        (place := hf_cache_path(source, cache)).parent.mkdir(parents=True, exist_ok=True)
+        place.symlink_to(files[field])
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(cache))
     finetuned = []
     monkeypatch.setattr(stylize, "stylize_nnfm", lambda scene, *args, **kwargs: finetuned.append(kwargs) or scene)
     monkeypatch.setattr(stylize, "save_result", lambda *args, **kwargs: tmp_path / "sheet.png")
     demo = DemoInputs()
     common = [str(demo.scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--device", "cpu",
-              "--out", str(tmp_path / "out.ply"), "--sdxl", str(files["sdxl"]), "--controlnet", str(files["controlnet"]),
-              "--image-encoder", str(files["image_encoder"]), "--csgo", str(files["csgo"])]
+              "--out", str(tmp_path / "out.ply")]
     assert cli.main(["stylize", *common]) == 0 and len(finetuned) == 1
     assert "stylizer: nnfm (auto: falling back, diffusion models could not be loaded: CSGO weights" in \
         capsys.readouterr().out
     assert cli.main(["stylize", *common, "--stylizer", "diffusion"]) == 2
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err
     assert cli.main(["stylize", *common, "--preset", "paper"]) == 2  # a diffusion preset named: no NNFM instead
+    assert "error: diffusion models could not be loaded" in capsys.readouterr().err and len(finetuned) == 1
+    assert cli.main(["stylize", *common, "--csgo", str(files["csgo"])]) == 2  # a model file named: nor here
     assert "error: diffusion models could not be loaded" in capsys.readouterr().err and len(finetuned) == 1
 
 

@@ -92,10 +92,10 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         stylizer, reason = "nnfm", f"preset {args.preset}: {preset.summary}"
     else:
         stylizer, reason = choose_stylizer(args.stylizer, files)
-        if stylizer == "nnfm" and args.stylizer == "auto" and args.preset_given:
-            raise ValueError(f"--preset {args.preset}: a diffusion preset, and {reason.removeprefix('auto: ')}: give "
-                             "the model files (README, 'Model files'), or --preset preview for a first look without "
-                             "diffusion, or --stylizer nnfm for the NNFM stylizer's full run")
+        if stylizer == "nnfm" and args.stylizer == "auto" and _diffusion_asked_by(args):
+            raise ValueError(f"{_diffusion_asked_by(args)}, and {reason.removeprefix('auto: ')}: give the model files "
+                             "(README, 'Model files'), or --preset preview for a first look without diffusion, or "
+                             "--stylizer nnfm for the NNFM stylizer's full run")
     if stylizer == "nnfm":  # what only the diffusion stylizer reads would go unread: refused before any work
         for option, given, what in (("--lora", args.lora, "a LoRA changes SDXL"),
                                     ("--devices", args.devices, "the devices share the diffusion stage's groups"),
@@ -154,7 +154,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                                           progress=ProgressBar("finetune"), render_progress=ProgressBar("views"),
                                           should_stop=args.should_stop, selection=selection)
         except DiffusionModelsUnavailable as error:
-            if args.stylizer != "auto" or args.preset_given:  # diffusion asked for: no NNFM instead
+            if args.stylizer != "auto" or _diffusion_asked_by(args):  # diffusion asked for: no NNFM instead
                 raise
             stylizer, config = "nnfm", finetune_config("nnfm")
             print(f"stylizer: nnfm (auto: falling back, {error}); {counted(config.iterations, 'iteration')}")
@@ -167,6 +167,19 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                         should_stop=args.should_stop,
                         scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=print_note)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
+
+
+MODEL_OPTIONS = ("--sdxl", "--controlnet", "--image-encoder", "--csgo")
+
+
+def _diffusion_asked_by(args: argparse.Namespace) -> str | None:
+    """What asks for the diffusion stylizer by name, so that ``--stylizer auto`` does not fall back to NNFM's long
+    run for it: a diffusion preset given (``--preset fast: a diffusion preset``) or a model file named (``--sdxl: a
+    diffusion model file named``; a typo in its path); None when neither."""
+    if args.preset_given:
+        return f"--preset {args.preset}: a diffusion preset"
+    named = next((option for option in MODEL_OPTIONS if getattr(args, option[2:].replace("-", "_"))), None)
+    return f"{named}: a diffusion model file named" if named else None
 
 
 class _GivenPreset(argparse.Action):
@@ -195,9 +208,10 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"output scene, {', '.join(SAVE_SUFFIXES)} by extension (default out/stylized.ply); a "
                    "NAME.contact.png is written beside it")
     p.add_argument("--stylizer", choices=("auto", "nnfm", "diffusion"), default="auto",
-                   help="auto (default): diffusion when every model file loads, else nnfm, saying why; nnfm: the "
-                   "diffusion-free stylizer (ARF's colour transfer and NNFM finetuning); diffusion: the full ArtNVG "
-                   "pipeline, which needs the model files")
+                   help="auto (default): diffusion when every model file loads, else nnfm, saying why (where "
+                   "--preset names a diffusion preset or a model file option is given, a missing file is an error); "
+                   "nnfm: the diffusion-free stylizer (ARF's colour transfer and NNFM finetuning); diffusion: the "
+                   "full ArtNVG pipeline, which needs the model files")
     p.add_argument("--preset", choices=tuple(PRESETS), default="paper", action=_GivenPreset,
                    help="speed/accuracy preset (docs/presets.md; default paper, the paper's settings); preview: a "
                    "first look in seconds, without diffusion; "
