@@ -85,27 +85,26 @@ def parameters_on_meta() -> Iterator[None]:
     """Modules built inside this context get their parameters on the meta device: no memory and no
     random initialisation, for weights a file is about to replace (the :data:`UNINITIALISED` layers skip
     their ``reset_parameters``, which would only run on meta tensors). Buffers stay real (a model's
-    computed buffers, e.g. CLIP's position ids, keep their values). Transformers' models skip their weight
-    initialisation too (its ``no_init_weights``, as its ``from_pretrained`` builds them: on meta parameters it ran
-    PyTorch's meta kernels in Python, 0.5 s of the interpreter lock for SDXL's text encoders and the image
-    encoder). Fill them with :func:`assign_strict` (``load_state_dict(state, assign=True)``), which takes the
-    state's tensors. The patches are the process's while the block runs."""
-    from transformers.initialization import no_init_weights
-
+    computed buffers, e.g. CLIP's position ids, keep their values). The parameters are marked initialised
+    (``_is_hf_initialized``), so transformers' initialisation of a model it builds leaves them alone: on meta
+    tensors it ran PyTorch's meta kernels in Python, 0.23 s of the interpreter lock for SDXL's text encoders and
+    the image encoder. Fill them with :func:`assign_strict` (``load_state_dict(state, assign=True)``), which
+    takes the state's tensors. The patches are the process's while the block runs."""
     register = torch.nn.Module.register_parameter
     resets = {layer: layer.__dict__["reset_parameters"] for layer in UNINITIALISED}
 
     def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
-        if param is not None and not param.is_meta:
-            param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
+        if param is not None:
+            if not param.is_meta:
+                param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
+            param._is_hf_initialized = True
         register(module, name, param)
 
     torch.nn.Module.register_parameter = on_meta
     for layer in UNINITIALISED:
         layer.reset_parameters = _no_reset
     try:
-        with no_init_weights():
-            yield
+        yield
     finally:
         torch.nn.Module.register_parameter = register
         for layer, reset in resets.items():

@@ -130,12 +130,12 @@ def read_ahead(paths: Iterable[str | os.PathLike]) -> None:
 
 
 def read_torch_file(path: str | os.PathLike, device: str | torch.device = "cpu"):
-    """What ``torch.save`` wrote at ``path`` (tensors, dicts of them ...), its tensors on ``device``. A zip-format
-    file is memory-mapped: no copy of the file in memory; another device's tensors are moved from the mapping,
-    the CPU's are the mapping's, read as they are used (privately: writing to them leaves the file as it is).
-    Reading it whole, as ``torch.load`` does otherwise, holds the interpreter lock while it copies (CSGO's
-    1.4 GiB from the page cache: 0.6-1.0 s, 1.5-2.1 s beside a thread running Python, on a 2-core CPU)."""
-    return torch.load(path, map_location=torch.device(device), weights_only=True, mmap=zipfile.is_zipfile(path))
+    """What ``torch.save`` wrote at ``path`` (tensors, dicts of them ...), its tensors on ``device``. For a
+    device other than the CPU a zip-format file is memory-mapped (no copy of the file in memory) and each
+    tensor moved from the mapping; for the CPU, ``torch.load`` reads it as it always has."""
+    device = torch.device(device)
+    return torch.load(path, map_location=device, weights_only=True,
+                      mmap=device.type != "cpu" and zipfile.is_zipfile(path))
 
 
 

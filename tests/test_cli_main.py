@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from artnvg_core.cli.main import main
-from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.formats import load_scene, save_scene, write_ply
 from artnvg_core.images import load_image
 from artnvg_core.stylize import DemoInputs
 from child_process import child_env
@@ -300,7 +300,7 @@ def test_a_scene_the_output_format_cannot_hold_is_refused_before_the_finetune(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
 
 
-def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_invalid(tmp_path, capsys):
+def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_invalid(tmp_path, capsys, caplog):
     import struct
 
     path = _small_scene(tmp_path)
@@ -315,8 +315,31 @@ def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_i
     assert main(command) == 2
     err = capsys.readouterr().err
     assert err.rstrip().endswith("give --drop-invalid to drop them") and "drop_invalid=True" not in err
-    assert main(command + ["--drop-invalid"]) == 0
-    assert "loaded 999 Gaussians" in capsys.readouterr().out
+    with caplog.at_level("INFO"):
+        assert main(command + ["--drop-invalid"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[1] == "note: dropped 1 invalid Gaussian of 1,000 (means: 1 with non-finite values)"
+    assert lines[0].startswith("loading ") and lines[2].startswith("loaded 999 Gaussians (SH degree 1) in ")
+    assert captured.out.count("dropped") == 1 and "dropped" not in captured.err
+    assert not [record for record in caplog.records if "dropped" in record.getMessage()]
+
+
+def test_the_axes_a_spz_is_read_in_are_printed_once_between_its_loading_lines(tmp_path, capsys, caplog):
+    """Without --cameras nothing chooses the axes of a .spz that names none: the PLY's are taken, as said."""
+    scene = tmp_path / "scene.spz"
+    save_scene(load_scene(DemoInputs().scene).select(slice(0, None, 40)), scene)
+    with caplog.at_level("INFO"):
+        assert main(["render", str(scene), "--out", str(tmp_path / "out"), "--views", "0", "--orbit-views", "2",
+                     "--scale", "0.05", "--device", "cpu"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[0].startswith(f"loading {scene} ") and lines[2].startswith("loaded 1,000 Gaussians")
+    assert lines[1] == ("note: the file names no axes: read in the PLY's axes (x right, y down, z forward), as "
+                        "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with "
+                        "spz axes 'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)")
+    assert captured.out.count("names no axes") == 1 and "names no axes" not in captured.err
+    assert not [record for record in caplog.records if "names no axes" in record.getMessage()]
 
 
 def test_out_of_memory_while_loading_does_not_advise_a_smaller_scale(tmp_path, capsys, monkeypatch):

@@ -5,7 +5,6 @@ malformed files refused by name."""
 import json
 import struct
 from fractions import Fraction
-from pathlib import Path
 
 import pytest
 import torch
@@ -18,7 +17,6 @@ from artnvg_core.tensor_files import (
     load_failure,
     read_by_readers,
     read_tensors,
-    read_torch_file,
     reader_spans,
     safetensors_header,
     stream_into,
@@ -61,19 +59,6 @@ def test_torch_save_files_are_read_too(tmp_path):
     read = read_tensors(path, dtype=torch.bfloat16)
     assert read["ids"].dtype == torch.int64 and torch.equal(read["weight"], _tensors()["weight"].bfloat16())
 
-
-@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads the process's mappings from /proc")
-def test_a_torch_file_read_to_the_cpu_is_mapped_not_copied(tmp_path):
-    """Its tensors lie in a mapping of the file (torch.load's whole read held the interpreter lock while it
-    copied: CSGO's 1.4 GiB, seconds beside another thread's Python), written privately."""
-    path = tmp_path / "w.bin"
-    torch.save(_tensors(), path)
-    read = read_torch_file(path)
-    mapped = [[int(end, 16) for end in line.split()[0].split("-")] for line in Path("/proc/self/maps").read_text()
-              .splitlines() if line.endswith(str(path))]
-    assert all(any(low <= read[name].data_ptr() < high for low, high in mapped) for name in ("weight", "ids"))
-    read["weight"] += 1
-    assert torch.equal(read_torch_file(path)["weight"], _tensors()["weight"])
 
 
 def test_a_ckpt_holding_its_state_dict_under_state_dict_is_read(tmp_path):
