@@ -747,3 +747,21 @@ def test_a_camera_file_refused_is_named_by_its_option(tmp_path, capsys, command)
     assert captured.err.startswith(f"error: --cameras: {demo.scene}: not a supported camera source; expected a "
                                    "nerfstudio .json file"), captured.err
     assert "loading" not in captured.out and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate"])
+def test_an_orbit_option_given_with_cameras_is_refused_before_any_work(tmp_path, capsys, command):
+    """'render scene.ply --cameras t.json --orbit-size 1024' rendered the cameras' views, the size unread."""
+    demo = DemoInputs()
+    quick = ["--scale", "0.05", "--device", "cpu"]  # were the option not refused
+    inputs = {"render": [str(demo.scene), "--views", "0", *quick],
+              "stylize": [str(demo.scene), "--style", str(demo.style), "--iters", "0", *quick],
+              "evaluate": ["--original", str(demo.scene), "--stylized", str(demo.scene), "--style", str(demo.style),
+                           "--views", "0,1", "--frames", "2", *quick]}
+    out = tmp_path / "out" / ("report.json" if command == "evaluate" else "s.ply")
+    for option in ("--orbit-views=4", "--fov=40", "--up=-y", "--orbit-size=64", "--orbit-around=full"):
+        assert main([command, *inputs[command], "--cameras", str(demo.cameras), option, "--out", str(out)]) == 2
+        captured = capsys.readouterr()
+        assert captured.err == (f"error: {option.split('=')[0]}: the views orbiting the scene are built only without "
+                                "--cameras, whose views are used here; give one or the other\n"), captured.err
+        assert "loading" not in captured.out and not (tmp_path / "out").exists()

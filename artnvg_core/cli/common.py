@@ -4,6 +4,7 @@ options: :mod:`.options`.)"""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import signal
@@ -208,12 +209,17 @@ def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.
         return read(path)
 
 
-def load_camera_option(path: str | os.PathLike | None) -> CameraSet | None:
-    """The cameras of ``--cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
-    ValueError names the option."""
+def load_camera_option(args: argparse.Namespace) -> CameraSet | None:
+    """The cameras of ``args.cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
+    ValueError names ``--cameras``, or an option of the views built around the scene given beside it
+    (``args.orbit_options``, which the cameras would leave unread)."""
     from ..cameras import load_cameras
 
-    if not path:
+    if not args.cameras:
         return None
+    unread = getattr(args, "orbit_options", [])
+    if unread:
+        raise ValueError(f"{unread[0]}: the views orbiting the scene are built only without --cameras, whose views "
+                         "are used here; give one or the other")
     with named_option("--cameras"):
-        return load_cameras(path)
+        return load_cameras(args.cameras)

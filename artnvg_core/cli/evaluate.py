@@ -281,7 +281,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
             check_scene_path(scene)
     with named_option("--style"):
         style = load_image(args.style)
-    all_cameras = load_camera_option(args.cameras)
+    all_cameras = load_camera_option(args)
     chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)

@@ -78,7 +78,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
     for lora in args.lora:
         check_lora(lora)
-    capture_cameras = load_camera_option(args.cameras)
+    capture_cameras = load_camera_option(args)
     if capture_cameras is not None:  # before the models and the scene load
         check_region_masks(args, capture_cameras.scaled(scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
