@@ -19,6 +19,7 @@ from ..counted import counted
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
+    from ..notes import NoteFn
     from ..progress import StopFn
     from ..scene import GaussianScene
 
@@ -151,11 +152,11 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
                        spz_axes: str = "auto", cameras: CameraSet | None = None,
-                       should_stop: StopFn | None = None) -> GaussianScene:
+                       should_stop: StopFn | None = None, notes: NoteFn = print_note) -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``,
     ``should_stop`` passed on), printing the file size first, one progress bar of the whole load in the file's
     bytes where it lasts (seconds for millions of Gaussians; :data:`SCENE_FILE_BAR_DELAY`), the read's notes
-    (:func:`print_note`, once the bar is gone) and the count and time after. The library's advice on invalid Gaussians
+    (to ``notes``, once the bar is gone: printed by default) and the count and time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
     from ..formats import load_scene
@@ -163,11 +164,11 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
 
     size = os.path.getsize(path) if os.path.isfile(path) else None
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
-    start, notes = time.perf_counter(), []
+    start, told = time.perf_counter(), []
     try:
         scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
                            progress=ProgressBar("loading", "B", SCENE_FILE_BAR_DELAY),
-                           should_stop=should_stop, notes=notes.append).to(device)
+                           should_stop=should_stop, notes=told.append).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise
@@ -176,8 +177,8 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
         if is_out_of_memory(error):
             error.advice = f"{path} needs more memory to load than is free on {device}"
         raise
-    for note in notes:
-        print_note(note)
+    for note in told:
+        notes(note)
     print(f"loaded {counted(len(scene), 'Gaussian')} (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
           flush=True)
     return scene

@@ -111,7 +111,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                         progress=ProgressBar("models", "B"))
 
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
-                               cameras=capture_cameras, should_stop=args.should_stop)
+                               cameras=capture_cameras, should_stop=args.should_stop, notes=args.notes)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
         check_geometry_writable(scene, out)
     except ValueError as error:
@@ -165,7 +165,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
                         should_stop=args.should_stop,
-                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=print_note)
+                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=args.notes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
@@ -266,4 +266,5 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
     models.add_argument("--image-encoder", help="IP-Adapter SDXL image encoder folder (ViT-bigG/14)")
     models.add_argument("--csgo", help="csgo_4_32.bin or csgo.bin")
-    p.set_defaults(run=cmd_stylize, should_stop=None)  # a caller (the batch worker) may set a StopFn
+    # a caller (the batch worker) may set a StopFn, and a NoteFn that keeps the scene files' notes
+    p.set_defaults(run=cmd_stylize, should_stop=None, notes=print_note)
