@@ -3,6 +3,7 @@
 import argparse
 import json
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -177,6 +178,17 @@ def test_orbit_error_names_only_cli_options(inputs):
         with pytest.raises(ValueError, match=r"--path orbit: no orbit around these cameras .*use --path interp") as error:
             camera_path(subset, [0, 1], "orbit", 10, 1.0)
         assert "=" not in str(error.value)
+
+
+def test_a_path_the_cameras_give_none_of_is_refused_before_the_scenes_load(inputs, tmp_path, capsys):
+    """One view: '--path orbit: no orbit' came after the first scene had loaded."""
+    capture = json.loads(Path(inputs["cameras"]).read_text())
+    (tmp_path / "one.json").write_text(json.dumps({**capture, "frames": capture["frames"][:1]}))
+    code = main(["evaluate", "--original", str(inputs["original"]), "--stylized", str(inputs["original"]), "--cameras",
+                 str(tmp_path / "one.json"), "--style", str(inputs["style"]), "--out", str(tmp_path / "r.json")])
+    captured = capsys.readouterr()
+    assert code == 2 and "error: --path orbit: no orbit around these cameras" in captured.err, captured
+    assert "loading" not in captured.out
 
 
 def _cli(inputs, *options):

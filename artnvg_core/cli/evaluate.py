@@ -120,14 +120,16 @@ def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
     return torch.stack(images)
 
 
-def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet]:
-    """The evaluated views: their indices in ``all_cameras`` and their cameras at ``--scale``; ValueError naming
-    ``--views`` (a view given twice would count twice), or ``--stylized-images`` without an image for one."""
+def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet, CameraSet | None]:
+    """The evaluated views: their indices in ``all_cameras``, their cameras at ``--scale`` and, for a stylized scene,
+    the novel camera path (:func:`camera_path`); ValueError naming ``--views`` (a view given twice would count
+    twice), ``--stylized-images`` without an image for one, or the path's options."""
     indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)
     cameras = all_cameras.subset(indices).scaled(args.scale)
     if args.stylized_images:
         find_view_images(Path(args.stylized_images), cameras.names)
-    return indices, cameras
+    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    return indices, cameras, path
 
 
 def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, scale: float) -> CameraSet:
@@ -294,8 +296,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     if all_cameras is None:
         all_cameras = orbit_from_args(args, original_scene)
         chosen = _chosen_views(all_cameras, args)
-    indices, cameras = chosen
-    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    indices, cameras, path = chosen
     prepare_rasterizer(device)
     print(f"evaluating {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height} on {device}")
 
