@@ -585,10 +585,18 @@ def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_w
     reason = "requested" if stylizer == "nnfm" else "auto: diffusion models not found (SDXL 1.0 base"
     for option, value, what in [("--devices", "cuda:0,cuda:1", "the devices share the diffusion stage's groups"),
                                 ("--ray-address", "auto", "the Ray cluster shares the diffusion stage's groups"),
-                                ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL")]:
+                                ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL"),
+                                # these ran NNFM as if not given
+                                ("--steps", "5", "the denoising steps are the diffusion stage's"),
+                                ("--scheduler", "unipc", "the sampler is the diffusion stage's"),
+                                ("--cfg-until", "0.5", "classifier-free guidance is the diffusion stage's"),
+                                ("--key-views", "4", "the key views are those the diffusion stage stylizes"),
+                                ("--content-routing", "paper", "the content routing is CSGO's"),
+                                ("--compile", None, "the compiled blocks are SDXL's and the ControlNet's"),
+                                ("--group-multiple", "2", "the groups are the diffusion stage's")]:
         assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
-                     str(tmp_path / "out.ply"), "--stylizer", stylizer, option, value, "--iters", "1", "--scale",
-                     "0.05", "--device", "cpu"]) == 2
+                     str(tmp_path / "out.ply"), "--stylizer", stylizer, option, *[value] * (value is not None),
+                     "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
         captured = capsys.readouterr()
         assert captured.err.startswith(f"error: {option}: {what}, which only the diffusion stylizer runs; the NNFM "
                                        f"stylizer would run here ({reason}"), captured.err

@@ -100,7 +100,20 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         for option, given, what in (("--lora", args.lora, "a LoRA changes SDXL"),
                                     ("--devices", args.devices, "the devices share the diffusion stage's groups"),
                                     ("--ray-address", args.ray_address, "the Ray cluster shares the diffusion "
-                                     "stage's groups")):
+                                     "stage's groups"),
+                                    ("--steps", args.steps is not None, "the denoising steps are the diffusion "
+                                     "stage's"),
+                                    ("--scheduler", args.scheduler is not None, "the sampler is the diffusion "
+                                     "stage's"),
+                                    ("--cfg-until", args.cfg_until is not None, "classifier-free guidance is the "
+                                     "diffusion stage's"),
+                                    ("--key-views", args.key_views is not None, "the key views are those the "
+                                     "diffusion stage stylizes"),
+                                    ("--content-routing", args.content_routing != "released", "the content routing "
+                                     "is CSGO's"),
+                                    ("--compile", args.compile, "the compiled blocks are SDXL's and the ControlNet's"),
+                                    ("--group-multiple", args.group_multiple != 1, "the groups are the diffusion "
+                                     "stage's")):
             if given:
                 raise ValueError(f"{option}: {what}, which only the diffusion stylizer runs; the NNFM stylizer "
                                  f"would run here ({reason})")
