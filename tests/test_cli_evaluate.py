@@ -141,10 +141,14 @@ def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
 def test_view_images_and_model_files_are_named_before_the_scene_loads(inputs, tmp_path, capsys):
     """A folder of 2D views missing one, or a --vgg that is no VGG, was named only after every view and path
     rendered."""
-    images = tmp_path / "views"
+    images, broken = tmp_path / "views", tmp_path / "broken"
     images.mkdir()
+    broken.mkdir()
+    for name in load_cameras(inputs["cameras"]).subset([int(v) for v in VIEWS.split(",")]).names:
+        (broken / f"{name}.png").write_text("not an image")
     for options, message in [(["--stylized-images", str(tmp_path / "none")], r"--stylized-images: .*none is not a folder"),
                              (["--stylized-images", str(images)], r"--stylized-images: .*views has no image for view "),
+                             (["--stylized-images", str(broken)], r"--stylized-images: .*\.png: not a readable image"),
                              (["--stylized", str(inputs["original"]), "--vgg", str(inputs["style"])],
                               r"--vgg: weights .*: not a readable torch file")]:
         code = main(["evaluate", "--original", str(inputs["original"]), *options, "--cameras", str(inputs["cameras"]),

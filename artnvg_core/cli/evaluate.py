@@ -33,7 +33,7 @@ from ..counted import counted
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
-from ..images import load_image, resize_image
+from ..images import image_size, load_image, resize_image
 from ..losses.vgg import load_vgg
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
@@ -95,7 +95,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def find_view_images(folder: Path, names: list[str]) -> list[Path]:
     """The image file of each view of ``names`` in ``folder``, NAME.png or NAME with another of
-    :data:`IMAGE_SUFFIXES`; ValueError naming ``--stylized-images`` and the first view without one."""
+    :data:`IMAGE_SUFFIXES`, each an image by its header; ValueError naming ``--stylized-images`` and the first view
+    without one, or whose file is not an image."""
     if not folder.is_dir():
         raise ValueError(f"--stylized-images: {folder} is not a folder")
     files = []
@@ -104,6 +105,8 @@ def find_view_images(folder: Path, names: list[str]) -> list[Path]:
         if not matches:
             raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
                              f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
+        with named_option("--stylized-images"):
+            image_size(matches[0])  # its header: a file that is no image is named before any render
         files.append(matches[0])
     return files
 
