@@ -9,6 +9,7 @@ import signal
 from pathlib import Path
 
 import pytest
+from tqdm import tqdm
 
 from artnvg_core.cli import main as cli
 from artnvg_core.cli.batch_jobs import Job, load_jobs, output_complete, stylize_options
@@ -115,9 +116,11 @@ def test_a_stop_whose_exception_is_lost_or_wrapped_still_cancels_the_job(tmp_pat
     demo = DemoInputs()
     argv = [str(demo.scene), f"--cameras={demo.cameras}", f"--style={demo.style}", "--stylizer=nnfm", "--iters=2",
             "--scale=0.0625", "--out=out/a.ply"]
+    bars = set(tqdm._instances)
     result = worker.run("run", argv, str(tmp_path))
     assert (result["status"], result["message"]) == ("cancelled", "stopped by request"), result
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    assert set(tqdm._instances) <= bars  # the stopped job's bars closed (one left open shifts every later bar down)
 
 
 def test_a_jobs_scene_file_notes_come_back_with_it_and_print_under_its_line(tmp_path, capsys, caplog):

@@ -45,7 +45,7 @@ from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
-from .common import terminate_as_interrupt
+from .common import close_progress_bars, terminate_as_interrupt
 from .options import parse_devices
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
@@ -108,7 +108,10 @@ class BatchWorker:
                 torch.cuda.reset_peak_memory_stats()
             os.chdir(folder)
             with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
-                args.run(args)
+                try:
+                    args.run(args)
+                finally:  # as the command line's: a stopped or failed job's bars end with it, none left open
+                    close_progress_bars()
             status, message = "done", ""
         except (Cancelled, KeyboardInterrupt):
             status, message = "cancelled", "stopped by request"
