@@ -23,23 +23,20 @@ How the trainer rendered them (defaults: gsplat "classic", the INRIA renderer):
 Scenes are read and written by :mod:`artnvg_core.formats` (``load_scene``, ``save_scene``),
 which this module does not import; every reader validates with :func:`validate_scene`: bad input raises
 ``ValueError`` naming the file and the field; with ``drop_invalid=True``
-invalid Gaussians are dropped instead and reported as a warning on the
-``artnvg_core.scene`` logger.
+invalid Gaussians are dropped instead and the user told so (:mod:`artnvg_core.notes`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 from dataclasses import dataclass
 
 import torch
 
 from .counted import counted
+from .notes import NoteFn, tell
 from .progress import ProgressFn, StopFn, check_stop
-
-_log = logging.getLogger(__name__)
 
 SH_C0 = 0.28209479177387814
 DEFAULT_BLUR_PX2 = 0.3  # the 2D low-pass of 3DGS, gsplat and splatfacto (px^2)
@@ -170,14 +167,15 @@ def invalid_gaussians(scene: GaussianScene, should_stop: StopFn | None = None,
 
 
 def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = False,
-                   should_stop: StopFn | None = None, progress: ProgressFn | None = None) -> tuple[GaussianScene, int]:
+                   should_stop: StopFn | None = None, progress: ProgressFn | None = None,
+                   notes: NoteFn | None = None) -> tuple[GaussianScene, int]:
     """Check that every Gaussian is finite in all fields and has a non-zero quaternion.
 
     Returns ``(scene, dropped)``. Without ``drop_invalid`` the first failing check
     raises ``ValueError`` naming ``source`` (the file), the field, how many
     Gaussians fail and the first failing index, and ``dropped`` is 0. With
     ``drop_invalid`` the failing Gaussians are removed, counted in ``dropped``
-    and reported as a warning on the ``artnvg_core.scene`` logger. A scene with
+    and told to ``notes`` (:func:`~artnvg_core.notes.tell`: else logged as a warning). A scene with
     no (remaining) Gaussians is always an error. ``should_stop`` and ``progress``: as :func:`invalid_gaussians`'s.
     """
     n = len(scene)
@@ -198,8 +196,7 @@ def validate_scene(scene: GaussianScene, source: str, *, drop_invalid: bool = Fa
         every = f"all {n:,} Gaussians are" if n > 1 else "its one Gaussian is"
         raise ValueError(f"{source}: {every} invalid ({'; '.join(reasons)})")
     if dropped:
-        _log.warning("%s: dropped %s of %s (%s)", source, counted(dropped, "invalid Gaussian"), f"{n:,}",
-                     "; ".join(reasons))
+        tell(notes, source, f"dropped {counted(dropped, 'invalid Gaussian')} of {n:,} ({'; '.join(reasons)})")
         scene = scene.select(~invalid)
     return scene, dropped
 

@@ -28,10 +28,11 @@ from .diffusion.model_files import ModelFiles, check_model_files, missing_model,
 from .fileio import written_together
 from .finetune import FinetuneConfig, compile_kernels, finetune
 from .images import save_png
+from .notes import NoteFn
 from .preview import comparison_strip, evenly_spaced
 from .progress import Cancelled, ProgressFn, StopFn, staged
 from .raster.views import render_views
-from .formats import NoteFn, save_scene, writable_scene_path
+from .formats import save_scene, writable_scene_path
 from .scene import GaussianScene
 from .tensor_files import drop_early_reads, read_ahead, read_early
 

@@ -73,11 +73,25 @@ class LoadGaussianScene(ArtNVGNode):
     @cancellable
     def load(self, scene_file, path="", drop_invalid=False, spz_axes="auto", cameras=None, node_id=None):
         """The scene read with the node's progress bar moving (seconds for millions of Gaussians) and ComfyUI's
-        Cancel stopping it."""
+        Cancel stopping it; what the read did to the scene (invalid Gaussians dropped, the axes taken for a .spz)
+        in the node's UI text after the scene's size, under the node in the editor and once on the console."""
         file, input_name = SCENE_FILE.readable(self.DISPLAY_NAME, scene_file, path)
+        notes: list[str] = []
         with node_input(self.DISPLAY_NAME, input_name):
-            return (load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
-                               progress=progress_bar(), should_stop=interrupt_requested),)
+            scene = load_scene(file, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
+                               progress=progress_bar(), should_stop=interrupt_requested, notes=notes.append)
+        loaded = f"loaded {file.name} ({counted(len(scene), 'Gaussian')}, SH degree {scene.sh_degree})"
+        return {"ui": {"text": [loaded, *shown_notes(notes, self.DISPLAY_NAME)]}, "result": (scene,)}
+
+
+def shown_notes(notes: list[str], node: str) -> list[str]:
+    """The library's ``notes`` for the user (a scene file's :mod:`artnvg_core.notes`) as lines of ``node``'s UI
+    text, ``note: ...``; any are also shown under the node in the editor and logged once on the console
+    (:func:`~nodes.comfy_bridge.progress_text`: ComfyUI's frontend 1.27.10 draws no node's UI text)."""
+    noted = [f"note: {note}" for note in notes]
+    if noted:
+        progress_text("\n".join(noted), node)
+    return noted
 
 
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:
@@ -190,10 +204,7 @@ class SaveGaussianScene(ArtNVGNode):
         relative = file.relative_to(output_directory().resolve())
         subfolder = relative.parent.as_posix()
         written = saved_text(relative.as_posix(), file.stat().st_size, len(scene))
-        noted = [f"note: {note}" for note in notes]
-        if noted:  # under the node in the editor, and once on the console
-            progress_text("\n".join(noted), self.DISPLAY_NAME)
         ui = {"scenes": [{"filename": relative.name, "subfolder": "" if subfolder == "." else subfolder, "type": "output"}],
-              "text": [written, *noted]}
+              "text": [written, *shown_notes(notes, self.DISPLAY_NAME)]}
         result = (relative.as_posix(), preview_camera(scene))
         return {"ui": ui, "result": result + ((file3d(file),) if FILE3D_CLASS is not None else ())}

@@ -9,6 +9,7 @@ import signal
 from pathlib import Path
 
 import pytest
+from tqdm import tqdm
 
 from artnvg_core.cli import main as cli
 from artnvg_core.cli.batch_jobs import Job, load_jobs, output_complete, stylize_options
@@ -115,9 +116,36 @@ def test_a_stop_whose_exception_is_lost_or_wrapped_still_cancels_the_job(tmp_pat
     demo = DemoInputs()
     argv = [str(demo.scene), f"--cameras={demo.cameras}", f"--style={demo.style}", "--stylizer=nnfm", "--iters=2",
             "--scale=0.0625", "--out=out/a.ply"]
+    bars = set(tqdm._instances)
     result = worker.run("run", argv, str(tmp_path))
     assert (result["status"], result["message"]) == ("cancelled", "stopped by request"), result
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    assert set(tqdm._instances) <= bars  # the stopped job's bars closed (one left open shifts every later bar down)
+
+
+def test_a_jobs_scene_file_notes_come_back_with_it_and_print_under_its_line(tmp_path, capsys, caplog):
+    """A bare .spz names no axes and a .splat holds SH degree 0: what the job's load and save told, which the
+    worker's silenced output would drop, is in its result, and the batch prints it under the job's line."""
+    pytest.importorskip("ray")  # the worker names its machine through Ray
+    from artnvg_core.cli.batch import BatchWorker, JobResult, _line
+    from artnvg_core.cluster import Workers
+
+    demo = DemoInputs()
+    save_scene(load_scene(demo.scene).select(slice(0, None, 40)), tmp_path / "bare.spz")
+    argv = ["bare.spz", f"--style={demo.style}", "--stylizer=nnfm", "--iters=1", "--orbit-views=2",
+            "--orbit-size=32", "--out=out/a.splat"]
+    with caplog.at_level("INFO"):
+        result = BatchWorker(Workers("cpu", 1)).run("run", argv, str(tmp_path))
+    assert result["status"] == "done", result
+    notes = ["the file names no axes: read in the PLY's axes (x right, y down, z forward), as splat-transform, "
+             "spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes 'rub' (--spz-axes "
+             "rub, the Load Gaussian Scene node's spz_axes)",
+             ".splat holds SH up to degree 0; the degree 1 view-dependent terms are dropped"]
+    assert result["notes"] == notes
+    assert not [r for r in caplog.records if "names no axes" in r.getMessage() or "degree 0" in r.getMessage()]
+    job = Job(1, tuple(argv), tmp_path, tmp_path / "out" / "a.splat")
+    assert _line(JobResult(job, "done", "", 3.0, "cpu", None, tuple(notes)), 2).splitlines() == [
+        f"done      job 1/2  {job.out}  3 s on cpu", *(f"  note: {note}" for note in notes)]
 
 
 # --- on a local Ray cluster of two CPU workers ---------------------------------------------------

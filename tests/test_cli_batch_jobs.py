@@ -155,3 +155,13 @@ def test_output_complete_needs_a_scene_that_loads_and_its_contact_sheet(tmp_path
     assert output_complete(out)
     out.write_bytes(out.read_bytes()[:1000])  # cut short
     assert not output_complete(out)
+
+
+def test_output_complete_reads_a_spz_without_telling_its_axes(tmp_path, caplog):
+    """A .spz output names no axes: the check, on every run of the batch, does not log that it takes the PLY's."""
+    out = tmp_path / "a.spz"
+    save_scene(load_scene(DemoInputs().scene).select(slice(0, None, 40)), out)
+    sheet_path(out).write_bytes(b"png")
+    with caplog.at_level("INFO"):
+        assert output_complete(out)
+    assert caplog.records == []

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from artnvg_core.cli.main import main
-from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.formats import load_scene, save_scene, write_ply
 from artnvg_core.scene import SH_C0, GaussianScene
 from artnvg_core.stylize import DemoInputs
 
@@ -133,3 +133,21 @@ def test_what_the_output_format_drops_is_printed_once_and_not_logged(tmp_path, c
     assert printed.count("note: .ksplat holds SH up to degree 2; the degree 3 view-dependent terms are dropped") == 1
     assert printed[-1].startswith("blended at strength 0.5") and len([line for line in printed if "note" in line]) == 1
     assert not [record for record in caplog.records if "view-dependent" in record.getMessage()]
+
+
+def test_what_each_scenes_read_did_is_printed_once_under_its_loading_line(tmp_path, capsys, caplog):
+    """Two .spz files that name no axes: each load prints its note between its own two lines."""
+    original, stylized = _pair(tmp_path)
+    for name, scene in (("original", original), ("stylized", stylized)):
+        save_scene(scene, tmp_path / f"{name}.spz")
+    with caplog.at_level("INFO"):
+        assert main(["blend", str(tmp_path / "original.spz"), str(tmp_path / "stylized.spz"), "--strength", "0.5",
+                     "--out", str(tmp_path / "blend.ply")]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert [line.split()[0] for line in lines[:6]] == ["loading", "note:", "loaded"] * 2
+    assert lines[1].startswith("note: the file names no axes: read in the PLY's axes (x right, y down, z forward)")
+    assert lines[0].startswith(f"loading {tmp_path / 'original.spz'}")
+    assert lines[3].startswith(f"loading {tmp_path / 'stylized.spz'}") and lines[4] == lines[1]
+    assert captured.out.count("names no axes") == 2 and "names no axes" not in captured.err
+    assert not [record for record in caplog.records if "names no axes" in record.getMessage()]

@@ -3,6 +3,7 @@
 import argparse
 import json
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -140,10 +141,14 @@ def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
 def test_view_images_and_model_files_are_named_before_the_scene_loads(inputs, tmp_path, capsys):
     """A folder of 2D views missing one, or a --vgg that is no VGG, was named only after every view and path
     rendered."""
-    images = tmp_path / "views"
+    images, broken = tmp_path / "views", tmp_path / "broken"
     images.mkdir()
+    broken.mkdir()
+    for name in load_cameras(inputs["cameras"]).subset([int(v) for v in VIEWS.split(",")]).names:
+        (broken / f"{name}.png").write_text("not an image")
     for options, message in [(["--stylized-images", str(tmp_path / "none")], r"--stylized-images: .*none is not a folder"),
                              (["--stylized-images", str(images)], r"--stylized-images: .*views has no image for view "),
+                             (["--stylized-images", str(broken)], r"--stylized-images: .*\.png: not a readable image"),
                              (["--stylized", str(inputs["original"]), "--vgg", str(inputs["style"])],
                               r"--vgg: weights .*: not a readable torch file")]:
         code = main(["evaluate", "--original", str(inputs["original"]), *options, "--cameras", str(inputs["cameras"]),
@@ -177,6 +182,17 @@ def test_orbit_error_names_only_cli_options(inputs):
         with pytest.raises(ValueError, match=r"--path orbit: no orbit around these cameras .*use --path interp") as error:
             camera_path(subset, [0, 1], "orbit", 10, 1.0)
         assert "=" not in str(error.value)
+
+
+def test_a_path_the_cameras_give_none_of_is_refused_before_the_scenes_load(inputs, tmp_path, capsys):
+    """One view: '--path orbit: no orbit' came after the first scene had loaded."""
+    capture = json.loads(Path(inputs["cameras"]).read_text())
+    (tmp_path / "one.json").write_text(json.dumps({**capture, "frames": capture["frames"][:1]}))
+    code = main(["evaluate", "--original", str(inputs["original"]), "--stylized", str(inputs["original"]), "--cameras",
+                 str(tmp_path / "one.json"), "--style", str(inputs["style"]), "--out", str(tmp_path / "r.json")])
+    captured = capsys.readouterr()
+    assert code == 2 and "error: --path orbit: no orbit around these cameras" in captured.err, captured
+    assert "loading" not in captured.out
 
 
 def _cli(inputs, *options):

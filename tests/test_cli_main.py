@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from artnvg_core.cli.main import main
-from artnvg_core.formats import load_scene, write_ply
+from artnvg_core.formats import load_scene, save_scene, write_ply
 from artnvg_core.images import load_image
 from artnvg_core.stylize import DemoInputs
 from child_process import child_env
@@ -300,7 +300,7 @@ def test_a_scene_the_output_format_cannot_hold_is_refused_before_the_finetune(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
 
 
-def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_invalid(tmp_path, capsys):
+def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_invalid(tmp_path, capsys, caplog):
     import struct
 
     path = _small_scene(tmp_path)
@@ -315,8 +315,31 @@ def test_invalid_gaussians_are_refused_in_the_clis_words_and_dropped_with_drop_i
     assert main(command) == 2
     err = capsys.readouterr().err
     assert err.rstrip().endswith("give --drop-invalid to drop them") and "drop_invalid=True" not in err
-    assert main(command + ["--drop-invalid"]) == 0
-    assert "loaded 999 Gaussians" in capsys.readouterr().out
+    with caplog.at_level("INFO"):
+        assert main(command + ["--drop-invalid"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[1] == "note: dropped 1 invalid Gaussian of 1,000 (means: 1 with non-finite values)"
+    assert lines[0].startswith("loading ") and lines[2].startswith("loaded 999 Gaussians (SH degree 1) in ")
+    assert captured.out.count("dropped") == 1 and "dropped" not in captured.err
+    assert not [record for record in caplog.records if "dropped" in record.getMessage()]
+
+
+def test_the_axes_a_spz_is_read_in_are_printed_once_between_its_loading_lines(tmp_path, capsys, caplog):
+    """Without --cameras nothing chooses the axes of a .spz that names none: the PLY's are taken, as said."""
+    scene = tmp_path / "scene.spz"
+    save_scene(load_scene(DemoInputs().scene).select(slice(0, None, 40)), scene)
+    with caplog.at_level("INFO"):
+        assert main(["render", str(scene), "--out", str(tmp_path / "out"), "--views", "0", "--orbit-views", "2",
+                     "--scale", "0.05", "--device", "cpu"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[0].startswith(f"loading {scene} ") and lines[2].startswith("loaded 1,000 Gaussians")
+    assert lines[1] == ("note: the file names no axes: read in the PLY's axes (x right, y down, z forward), as "
+                        "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with "
+                        "spz axes 'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)")
+    assert captured.out.count("names no axes") == 1 and "names no axes" not in captured.err
+    assert not [record for record in caplog.records if "names no axes" in record.getMessage()]
 
 
 def test_out_of_memory_while_loading_does_not_advise_a_smaller_scale(tmp_path, capsys, monkeypatch):
@@ -562,10 +585,18 @@ def test_options_only_the_diffusion_stylizer_reads_are_refused_before_any_work_w
     reason = "requested" if stylizer == "nnfm" else "auto: diffusion models not found (SDXL 1.0 base"
     for option, value, what in [("--devices", "cuda:0,cuda:1", "the devices share the diffusion stage's groups"),
                                 ("--ray-address", "auto", "the Ray cluster shares the diffusion stage's groups"),
-                                ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL")]:
+                                ("--lora", str(tmp_path / "style.safetensors"), "a LoRA changes SDXL"),
+                                # these ran NNFM as if not given
+                                ("--steps", "5", "the denoising steps are the diffusion stage's"),
+                                ("--scheduler", "unipc", "the sampler is the diffusion stage's"),
+                                ("--cfg-until", "0.5", "classifier-free guidance is the diffusion stage's"),
+                                ("--key-views", "4", "the key views are those the diffusion stage stylizes"),
+                                ("--content-routing", "paper", "the content routing is CSGO's"),
+                                ("--compile", None, "the compiled blocks are SDXL's and the ControlNet's"),
+                                ("--group-multiple", "2", "the groups are the diffusion stage's")]:
         assert main(["stylize", str(scene), "--cameras", str(demo.cameras), "--style", str(demo.style), "--out",
-                     str(tmp_path / "out.ply"), "--stylizer", stylizer, option, value, "--iters", "1", "--scale",
-                     "0.05", "--device", "cpu"]) == 2
+                     str(tmp_path / "out.ply"), "--stylizer", stylizer, option, *[value] * (value is not None),
+                     "--iters", "1", "--scale", "0.05", "--device", "cpu"]) == 2
         captured = capsys.readouterr()
         assert captured.err.startswith(f"error: {option}: {what}, which only the diffusion stylizer runs; the NNFM "
                                        f"stylizer would run here ({reason}"), captured.err
@@ -724,3 +755,21 @@ def test_a_camera_file_refused_is_named_by_its_option(tmp_path, capsys, command)
     assert captured.err.startswith(f"error: --cameras: {demo.scene}: not a supported camera source; expected a "
                                    "nerfstudio .json file"), captured.err
     assert "loading" not in captured.out and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["render", "stylize", "evaluate"])
+def test_an_orbit_option_given_with_cameras_is_refused_before_any_work(tmp_path, capsys, command):
+    """'render scene.ply --cameras t.json --orbit-size 1024' rendered the cameras' views, the size unread."""
+    demo = DemoInputs()
+    quick = ["--scale", "0.05", "--device", "cpu"]  # were the option not refused
+    inputs = {"render": [str(demo.scene), "--views", "0", *quick],
+              "stylize": [str(demo.scene), "--style", str(demo.style), "--iters", "0", *quick],
+              "evaluate": ["--original", str(demo.scene), "--stylized", str(demo.scene), "--style", str(demo.style),
+                           "--views", "0,1", "--frames", "2", *quick]}
+    out = tmp_path / "out" / ("report.json" if command == "evaluate" else "s.ply")
+    for option in ("--orbit-views=4", "--fov=40", "--up=-y", "--orbit-size=64", "--orbit-around=full"):
+        assert main([command, *inputs[command], "--cameras", str(demo.cameras), option, "--out", str(out)]) == 2
+        captured = capsys.readouterr()
+        assert captured.err == (f"error: {option.split('=')[0]}: the views orbiting the scene are built only without "
+                                "--cameras, whose views are used here; give one or the other\n"), captured.err
+        assert "loading" not in captured.out and not (tmp_path / "out").exists()

@@ -76,6 +76,7 @@ def test_a_file_that_is_not_a_lora_is_refused_naming_it(tmp_path, sdxl):
     (tmp_path / "broken.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json")
     (tmp_path / "lora.bin").write_bytes(b"")
     cases = [(tmp_path / "missing.safetensors", "no such file"), (tmp_path / "lora.bin", "expected a .safetensors"),
+             (tmp_path, "a folder, not a file"),  # was "no such file"
              (tmp_path / "broken.safetensors", "not a readable .safetensors"),
              (not_lora, r"not a LoRA \(tensors without 'lora' in their names, e.g. \['conv_in.weight'\]")]
     for path, message in cases:

@@ -3,6 +3,7 @@
 import dataclasses
 import os
 import re
+import struct
 import sys
 
 import pytest
@@ -10,6 +11,7 @@ import torch
 
 from artnvg_core.formats import READERS, SAVE_SUFFIXES, load_scene, save_scene
 from tests.test_formats_ply import assert_same_bits, random_scene
+from tests.test_formats_splatfacto import save_splatfacto, splatfacto_params
 
 
 def test_load_and_save_dispatch_by_suffix_in_any_case(tmp_path):
@@ -80,6 +82,47 @@ def test_what_a_format_changes_of_the_scene_is_told_once_to_notes_or_else_logged
         ("WARNING", f"{tmp_path / f'logged{suffix}'}: {note}") for note in expected]
     save_scene(random_scene(8, 0).select(slice(3, None)), tmp_path / f"plain{suffix}", notes=notes.append)
     assert notes == expected
+
+
+def _with_a_nan_at_gaussian_1(path, suffix):
+    """A file of ``suffix`` holding 5 Gaussians, the second's x NaN (a byte patch where the writer refuses it)."""
+    scene = random_scene(8, 1).select(slice(3, None))
+    if suffix == ".ckpt":
+        params = splatfacto_params(5, 1)
+        params["means"][1, 0] = float("nan")
+        return save_splatfacto(path, params)
+    save_scene(scene, path, notes=lambda note: None)
+    data = bytearray(path.read_bytes())
+    first = {".splat": 0, ".ksplat": 4096 + 1024}.get(suffix)
+    if first is None:  # .ply: after the header, x first in each row
+        first = data.index(b"end_header\n") + len(b"end_header\n")
+    row = (len(data) - first) // 5
+    data[first + row : first + row + 4] = struct.pack("<f", float("nan"))
+    path.write_bytes(bytes(data))
+    return path
+
+
+LOAD_NOTES = {  # what a load tells of the files above; a .spz (no NaN in its fixed point) of the axes it takes
+    suffix: "dropped 1 invalid Gaussian of 5 (means: 1 with non-finite values)" for suffix in (".ply", ".splat",
+                                                                                               ".ksplat", ".ckpt")}
+LOAD_NOTES[".spz"] = ("the file names no axes: read in the PLY's axes (x right, y down, z forward), as "
+                      "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with "
+                      "spz axes 'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)")
+
+
+@pytest.mark.parametrize("suffix", READERS)
+def test_what_a_read_did_to_the_scene_is_told_once_to_notes_or_else_logged(tmp_path, suffix, caplog):
+    path = tmp_path / f"scene{suffix}"
+    if suffix == ".spz":
+        save_scene(random_scene(8, 1).select(slice(3, None)), path)
+    else:
+        _with_a_nan_at_gaussian_1(path, suffix)
+    notes = []
+    with caplog.at_level("INFO"):
+        assert len(load_scene(path, drop_invalid=True, notes=notes.append)) == (5 if suffix == ".spz" else 4)
+        assert notes == [LOAD_NOTES[suffix]] and caplog.records == []
+        load_scene(path, drop_invalid=True)
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("WARNING", f"{path}: {LOAD_NOTES[suffix]}")]
 
 
 @pytest.mark.parametrize(("option", "value"), [("spz_version", 4), ("spz_version", "2"), ("spz_axes", "up")])

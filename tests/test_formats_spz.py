@@ -440,22 +440,52 @@ def test_a_legacy_files_record_after_its_arrays_names_its_axes(tmp_path):
 @pytest.mark.parametrize("axes", ["ply", "rub"])
 def test_auto_reads_a_real_capture_without_a_record_in_front_of_its_cameras(tmp_path, shared_data, axes, caplog):
     """Bear written in either axes with no record reads back as the PLY with its cameras; without them it is
-    read in the PLY's axes, which one logged line says (and how to change it)."""
+    read in the PLY's axes, which one note says (and how to change it), logged where no caller takes it."""
     from artnvg_core.cameras import load_cameras
     from artnvg_core.formats import load_scene
 
     capture = shared_data / "scenes" / "bear"
     scene = load_scene(capture / "scene.ply")
-    write_spz(scene, tmp_path / "bear.spz", axes=axes)
-    back = load_scene(tmp_path / "bear.spz", cameras=load_cameras(capture / "transforms.json"))
+    write_spz(scene, tmp_path / "bear.spz", axes=axes, notes=lambda note: None)
+    notes = []
+    with caplog.at_level("INFO"):
+        back = load_scene(tmp_path / "bear.spz", cameras=load_cameras(capture / "transforms.json"),
+                          notes=notes.append)
+    assert notes == [] and [r.levelname for r in caplog.records] == ["INFO"]  # which axes the cameras chose
     kept = scene.means.abs().amax(1) < LIMIT_12  # all but its 63 floaters, which the writer moves
     assert int((~kept).sum()) == 63 and back.means.abs().max() <= LIMIT_12
     assert (back.means - scene.means)[kept].abs().max() <= 2.0**-13 * (1 + 1e-3)
     caplog.clear()
-    with caplog.at_level("WARNING", logger="artnvg_core.formats.spz"):
-        alone = load_scene(tmp_path / "bear.spz")
-    assert [r.getMessage() for r in caplog.records] == [
-        f"{tmp_path / 'bear.spz'} names no axes: read in the PLY's axes (x right, y down, z forward), as "
-        "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes "
-        "'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)"]
+    with caplog.at_level("INFO"):
+        alone = load_scene(tmp_path / "bear.spz", notes=notes.append)
+        assert caplog.records == []
+        load_scene(tmp_path / "bear.spz")
+    note = ("the file names no axes: read in the PLY's axes (x right, y down, z forward), as splat-transform, "
+            "spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes 'rub' (--spz-axes "
+            "rub, the Load Gaussian Scene node's spz_axes)")
+    assert notes == [note]
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("WARNING", f"{tmp_path / 'bear.spz'}: {note}")]
     assert torch.equal(alone.means, back.means if axes == "ply" else back.means * FLIP)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_degree_4_sh_is_read_as_degree_3_with_a_note(tmp_path, version, caplog):
+    """A degree-4 file (Niantic's library writes up to 4) reads as its degree-3 part; the note is told to the
+    caller, else logged."""
+    write_spz(plain_scene(30, 3), tmp_path / "d3.spz")
+    header, arrays = payload_arrays(tmp_path / "d3.spz")
+    extra = np.random.default_rng(0).integers(0, 256, (30, 9, 3), dtype=np.uint8)
+    sh = np.concatenate([np.frombuffer(arrays["sh"], np.uint8).reshape(30, 15, 3), extra], 1)
+    header, arrays = (*header[:3], 4, *header[4:]), dict(arrays, sh=sh.tobytes())
+    (tmp_path / "d4.spz").write_bytes(version_4(header, arrays) if version == 4 else
+                                      gzip.compress(struct.pack("<IIIBBBB", *header) + b"".join(arrays.values())))
+    notes = []
+    with caplog.at_level("INFO"):
+        back = read_spz(tmp_path / "d4.spz", axes="ply", notes=notes.append)
+        assert caplog.records == []
+        read_spz(tmp_path / "d4.spz", axes="ply")
+    note = "SH degree 4 read as degree 3 (the degree-4 terms are dropped)"
+    assert notes == [note]
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("WARNING", f"{tmp_path / 'd4.spz'}: {note}")]
+    for name, value in read_spz(tmp_path / "d3.spz", axes="ply").tensors().items():
+        assert torch.equal(getattr(back, name), value), name

@@ -22,7 +22,7 @@ FLOORS = (
     ("artnvg_core", "artnvg_core.scene", "artnvg_core.fileio", "artnvg_core.images", "artnvg_core.statedict",
      "artnvg_core.progress", "artnvg_core.devices", "artnvg_core.tensor_tree", "artnvg_core.tensor_files",
      "artnvg_core.background", "artnvg_core.triton_runtime", "artnvg_core.style_image",
-     "artnvg_core.json_objects", "artnvg_core.counted"),  # the data and the plumbing
+     "artnvg_core.json_objects", "artnvg_core.counted", "artnvg_core.notes"),  # the data and the plumbing
     ("artnvg_core.cameras", "artnvg_core.cluster", "artnvg_core.losses", "artnvg_core.preview"),
     ("artnvg_core.formats", "artnvg_core.activated", "artnvg_core.raster", "artnvg_core.grouping",
      "artnvg_core.balanced_kmeans", "artnvg_core.key_views"),

@@ -16,13 +16,14 @@ def test_load_scene_from_input_folder_or_path(comfy_dirs, bear, monkeypatch):
     listed = LoadGaussianScene.INPUT_TYPES()["required"]["scene_file"]
     assert listed[0] == "COMBO" and listed[1]["options"] == ["bear/scene.ply"]
     assert LoadGaussianScene.check_files(scene_file="bear/scene.ply", drop_invalid=True) is None
-    (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")
-    (from_path,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "input" / "bear" / "scene.ply"))
+    (from_list,) = call(LoadGaussianScene, scene_file="bear/scene.ply")["result"]
+    (from_path,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "input" / "bear" / "scene.ply"),
+                        )["result"]
     assert same_scene(from_list, bear["scene"]) and same_scene(from_path, bear["scene"])
     outside = str(bear["folder"] / "scene.ply")
     assert "is outside ComfyUI's input" in LoadGaussianScene.check_files(scene_file="", path=outside)
     monkeypatch.setenv("ARTNVG_READ_ANY_PATH", "1")  # the setting that opens every path
-    assert same_scene(call(LoadGaussianScene, scene_file="", path=outside)[0], bear["scene"])
+    assert same_scene(call(LoadGaussianScene, scene_file="", path=outside)["result"][0], bear["scene"])
 
 
 def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
@@ -141,21 +142,34 @@ def test_save_scene_shows_what_the_format_changes_under_the_node_and_logs_it_onc
         f"{len(small_bear):,} Gaussians)"]
 
 
-def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear):
+def test_load_scene_reads_a_spz_naming_no_axes_in_front_of_connected_cameras(comfy_dirs, bear, small_bear, caplog):
     """A .spz in RUB with no record: read upright with the capture's cameras connected (spz_axes auto), in
-    the PLY's axes without them; a .spz Save Gaussian Scene writes reads back upright either way (compared
-    within SPZ's 12-bit range: the writer moves the 3 floaters beyond it)."""
+    the PLY's axes without them, which a note under the node says (logged once on the console); a .spz Save
+    Gaussian Scene writes reads back upright either way (compared within SPZ's 12-bit range: the writer moves the
+    3 floaters beyond it)."""
     near = small_bear.means.abs().amax(1) < 2048
     assert int((~near).sum()) == 3
-    save_scene(small_bear, comfy_dirs / "input" / "rub.spz", spz_axes="rub")
-    (with_cameras,) = call(LoadGaussianScene, scene_file="rub.spz", cameras=bear["cameras"])
-    (alone,) = call(LoadGaussianScene, scene_file="rub.spz")
+    save_scene(small_bear, comfy_dirs / "input" / "rub.spz", spz_axes="rub", notes=lambda note: None)
+    loaded = f"loaded rub.spz ({len(small_bear):,} Gaussians, SH degree {small_bear.sh_degree})"
+    read = call(LoadGaussianScene, scene_file="rub.spz", cameras=bear["cameras"])
+    (with_cameras,) = read["result"]
+    assert read["ui"]["text"] == [loaded]
+    with caplog.at_level("INFO"):
+        read = call(LoadGaussianScene, scene_file="rub.spz")
+    (alone,) = read["result"]
+    note = ("note: the file names no axes: read in the PLY's axes (x right, y down, z forward), as splat-transform, "
+            "spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes 'rub' (--spz-axes "
+            "rub, the Load Gaussian Scene node's spz_axes)")
+    assert read["ui"]["text"] == [loaded, note]
+    assert [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "WARNING"] == [
+        ("artnvg", f"Load Gaussian Scene: {note}")]  # progress_text: under the node, and on the console
     assert (with_cameras.means - small_bear.means)[near].abs().max() < 1e-3
     assert torch.equal(alone.means, with_cameras.means * torch.tensor([1.0, -1, -1]))
     saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="ours", format="spz")
     name = saved["ui"]["scenes"][0]["filename"]
     for cameras in (None, bear["cameras"]):
-        (ours,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / name), cameras=cameras)
+        ours = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / name), cameras=cameras)
+        (ours,) = ours["result"]
         assert (ours.means - small_bear.means)[near].abs().max() < 1e-3
 
 
@@ -164,7 +178,8 @@ def test_save_scene_format_picks_spz_splat_or_ksplat_and_load_reads_them(comfy_d
         saved = call(SaveGaussianScene, scene=small_bear, filename_prefix="artnvg/small", format=fmt)
         name = saved["ui"]["scenes"][0]["filename"]
         assert name == f"small_00001.{fmt}"
-        (loaded,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / "artnvg" / name))
+        (loaded,) = call(LoadGaussianScene, scene_file="", path=str(comfy_dirs / "output" / "artnvg" / name),
+                         )["result"]
         degree = {"spz": small_bear.sh_degree, "splat": 0, "ksplat": min(small_bear.sh_degree, 2)}[fmt]
         assert len(loaded) == len(small_bear) and loaded.sh_degree == degree
     with pytest.raises(NodeInputError, match="Save Gaussian Scene: input 'format': expected one of"):

@@ -53,6 +53,24 @@ def test_counts_in_the_messages_agree_with_one(caplog):
     assert "memory: dropped 1 invalid Gaussian of 1,200 (means: 1 with non-finite values)" in caplog.text
 
 
+def test_the_dropped_gaussians_are_told_to_notes_once_or_else_logged(caplog):
+    scene = random_scene(50, 1)
+    scene.means[3, 1] = float("nan")
+    scene.quats[9] = 0.0
+    scene.sh[9, 2, 0] = float("inf")  # the same Gaussian: dropped once
+    notes = []
+    with caplog.at_level("INFO"):
+        kept, dropped = validate_scene(scene, "memory", drop_invalid=True, notes=notes.append)
+        assert caplog.records == []
+        validate_scene(scene, "memory", drop_invalid=True)
+    note = ("dropped 2 invalid Gaussians of 50 (means: 1 with non-finite values; sh: 1 with non-finite values; "
+            "quats: 1 with a zero norm)")
+    assert (len(kept), dropped, notes) == (48, 2, [note])
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("WARNING", f"memory: {note}")]
+    validate_scene(random_scene(5, 0), "memory", drop_invalid=True, notes=notes.append)
+    assert notes == [note]  # none for a scene that is whole
+
+
 def test_validation_in_chunks_finds_what_the_whole_check_finds_and_stops_between_them(monkeypatch):
     from artnvg_core import scene as scene_module
     from artnvg_core.progress import Cancelled

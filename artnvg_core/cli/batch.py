@@ -11,8 +11,9 @@ jobs run is the batch's choice (``--devices``, ``--ray-address``), not a job's.
 Each job runs whole on one worker (a Ray actor with one GPU, or one CPU core), which keeps the diffusion
 models loaded from one job to the next. Jobs start longest first
 (:func:`~artnvg_core.cli.batch_jobs.expected_work`), so that no long
-job starts last while the other workers idle; each job's line is printed as it finishes, and the summary
-lists the failed ones in job order. The diffusion groups of a job run on that worker's GPU (``stylize
+job starts last while the other workers idle; each job's line is printed as it finishes (under it, what its
+scene files' read and write did to the scenes: their notes), and the summary lists the failed ones in job
+order. The diffusion groups of a job run on that worker's GPU (``stylize
 --devices`` spreads one scene's groups over several GPUs instead). A job whose worker dies is run again
 on another worker; a job that fails (bad input, missing file) fails alone, as does one that would write
 over its own inputs or over another job's output or contact sheet (``a.ply`` and ``a.spz`` share
@@ -44,7 +45,7 @@ from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
 from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
-from .common import terminate_as_interrupt
+from .common import close_progress_bars, terminate_as_interrupt
 from .options import parse_devices
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
@@ -55,7 +56,8 @@ STOP_SECONDS = 30.0  # how long stopped jobs may take to unwind before their wor
 class JobResult:
     """What became of a job: ``status`` one of :data:`STATUSES`, ``message`` the error or reason,
     ``seconds`` its run time, ``worker`` where it ran, ``peak_gib`` the most GPU memory it allocated
-    (GiB; None on the CPU or when it did not run)."""
+    (GiB; None on the CPU or when it did not run), ``notes`` what its scene files' read and write did to the
+    scenes (``load_scene``'s and ``save_scene``'s notes, each once)."""
 
     job: Job
     status: str
@@ -63,6 +65,7 @@ class JobResult:
     seconds: float = 0.0
     worker: str = ""
     peak_gib: float | None = None
+    notes: tuple[str, ...] = ()
 
 
 class BatchWorker:
@@ -85,8 +88,9 @@ class BatchWorker:
 
     def run(self, run: str, argv: Sequence[str], folder: str) -> dict:
         """Run one job (``argv``: stylize's arguments; relative paths from ``folder``); returns its
-        "status" (done, failed, cancelled), "message", "seconds", "worker" and "peak_gib". What the job
-        prints (stylize's lines and progress bars) is dropped: the batch prints a line per job."""
+        "status" (done, failed, cancelled), "message", "seconds", "worker", "peak_gib" and "notes" (its scene
+        files' notes for the user). What else the job prints (stylize's lines and progress bars) is dropped: the
+        batch prints a line per job, and its notes."""
         import ray
 
         worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
@@ -94,16 +98,20 @@ class BatchWorker:
         with self.lock:
             if run in self.stopped:
                 return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker,
-                            peak_gib=None)
+                            peak_gib=None, notes=[])
             self.running = (run, threading.get_ident())
+        notes: list[str] = []
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
-            args.should_stop = lambda: run in self.stopped
+            args.should_stop, args.notes = (lambda: run in self.stopped), notes.append
             if self.workers.kind == "cuda":
                 torch.cuda.reset_peak_memory_stats()
             os.chdir(folder)
             with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
-                args.run(args)
+                try:
+                    args.run(args)
+                finally:  # as the command line's: a stopped or failed job's bars end with it, none left open
+                    close_progress_bars()
             status, message = "done", ""
         except (Cancelled, KeyboardInterrupt):
             status, message = "cancelled", "stopped by request"
@@ -119,7 +127,8 @@ class BatchWorker:
                 self.running = None
             os.chdir(cwd)
         peak = torch.cuda.max_memory_allocated() / 2**30 if self.workers.kind == "cuda" else None
-        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak)
+        return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak,
+                    notes=notes)
 
     def stop(self, run: str) -> None:
         """Stop the job of ``run`` if it is running: its stylize stops at its next stop check, and
@@ -222,7 +231,8 @@ class BatchPool(WorkerPool):
 
 def _result(job: Job, value: dict) -> JobResult:
     """The result of ``job`` from what :meth:`BatchWorker.run` returned."""
-    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"], value["peak_gib"])
+    return JobResult(job, value["status"], value["message"], value["seconds"], value["worker"], value["peak_gib"],
+                     tuple(value["notes"]))
 
 
 def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> int:
@@ -258,7 +268,8 @@ def _line(result: JobResult, total: int) -> str:
     what = str(job.out) if job.out is not None else "(not run)"
     extra = {"done": f"{result.seconds:.0f} s on {result.worker}", "skipped": result.message}.get(
         result.status, result.message)
-    return f"{result.status:<9} job {job.number}/{total}  {what}  {extra}"
+    return f"{result.status:<9} job {job.number}/{total}  {what}  {extra}" + "".join(
+        f"\n  note: {note}" for note in result.notes)
 
 
 def plain_text(docstring: str) -> str:

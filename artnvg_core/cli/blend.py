@@ -23,7 +23,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
     check_region_arguments(args)
     for scene in (args.original, args.stylized):  # both named before either loads
         check_scene_path(scene)
-    cameras = load_camera_option(args.cameras)
+    cameras = load_camera_option(args)
     if cameras is not None:
         check_region_masks(args, cameras)
     device = torch.device("cpu")

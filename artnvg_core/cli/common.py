@@ -4,6 +4,7 @@ options: :mod:`.options`.)"""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import signal
@@ -18,6 +19,7 @@ from ..counted import counted
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
+    from ..notes import NoteFn
     from ..progress import StopFn
     from ..scene import GaussianScene
 
@@ -135,8 +137,8 @@ class ProgressBar:
 
 
 def print_note(note: str) -> None:
-    """A note for the user from the library (what a scene file's format changes of the scene: ``save_scene``'s
-    ``notes``), printed on a line of its own."""
+    """A note for the user from the library (what a scene file's format changes of the scene, what its read did:
+    ``save_scene``'s and ``load_scene``'s ``notes``), printed on a line of its own."""
     print(f"note: {note}", flush=True)
 
 
@@ -150,11 +152,11 @@ def prepare_rasterizer(device: torch.device, backend: str = "auto") -> None:
 
 def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_invalid: bool = False,
                        spz_axes: str = "auto", cameras: CameraSet | None = None,
-                       should_stop: StopFn | None = None) -> GaussianScene:
+                       should_stop: StopFn | None = None, notes: NoteFn = print_note) -> GaussianScene:
     """:func:`~artnvg_core.formats.load_scene` onto ``device`` (``drop_invalid``, ``spz_axes``, ``cameras``,
     ``should_stop`` passed on), printing the file size first, one progress bar of the whole load in the file's
-    bytes where it lasts (seconds for millions of Gaussians; :data:`SCENE_FILE_BAR_DELAY`), and the count and
-    time after. The library's advice on invalid Gaussians
+    bytes where it lasts (seconds for millions of Gaussians; :data:`SCENE_FILE_BAR_DELAY`), the read's notes
+    (to ``notes``, once the bar is gone: printed by default) and the count and time after. The library's advice on invalid Gaussians
     is given as the ``--drop-invalid`` option; running out of memory while loading says so (the other
     options cannot make a scene file smaller)."""
     from ..formats import load_scene
@@ -162,11 +164,11 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
 
     size = os.path.getsize(path) if os.path.isfile(path) else None
     print(f"loading {path} ({size / 2**20:,.1f} MiB)" if size is not None else f"loading {path}", flush=True)
-    start = time.perf_counter()
+    start, told = time.perf_counter(), []
     try:
         scene = load_scene(path, drop_invalid=drop_invalid, spz_axes=spz_axes, cameras=cameras,
                            progress=ProgressBar("loading", "B", SCENE_FILE_BAR_DELAY),
-                           should_stop=should_stop).to(device)
+                           should_stop=should_stop, notes=told.append).to(device)
     except ValueError as error:
         if DROP_INVALID_HINT not in str(error):
             raise
@@ -175,6 +177,8 @@ def load_scene_verbose(path: str | os.PathLike, device: torch.device, *, drop_in
         if is_out_of_memory(error):
             error.advice = f"{path} needs more memory to load than is free on {device}"
         raise
+    for note in told:
+        notes(note)
     print(f"loaded {counted(len(scene), 'Gaussian')} (SH degree {scene.sh_degree}) in {time.perf_counter() - start:.1f} s",
           flush=True)
     return scene
@@ -205,12 +209,17 @@ def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.
         return read(path)
 
 
-def load_camera_option(path: str | os.PathLike | None) -> CameraSet | None:
-    """The cameras of ``--cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
-    ValueError names the option."""
+def load_camera_option(args: argparse.Namespace) -> CameraSet | None:
+    """The cameras of ``args.cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
+    ValueError names ``--cameras``, or an option of the views built around the scene given beside it
+    (``args.orbit_options``, which the cameras would leave unread)."""
     from ..cameras import load_cameras
 
-    if not path:
+    if not args.cameras:
         return None
+    unread = getattr(args, "orbit_options", [])
+    if unread:
+        raise ValueError(f"{unread[0]}: the views orbiting the scene are built only without --cameras, whose views "
+                         "are used here; give one or the other")
     with named_option("--cameras"):
-        return load_cameras(path)
+        return load_cameras(args.cameras)

@@ -33,7 +33,7 @@ from ..counted import counted
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
-from ..images import load_image, resize_image
+from ..images import image_size, load_image, resize_image
 from ..losses.vgg import load_vgg
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
@@ -95,7 +95,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def find_view_images(folder: Path, names: list[str]) -> list[Path]:
     """The image file of each view of ``names`` in ``folder``, NAME.png or NAME with another of
-    :data:`IMAGE_SUFFIXES`; ValueError naming ``--stylized-images`` and the first view without one."""
+    :data:`IMAGE_SUFFIXES`, each an image by its header; ValueError naming ``--stylized-images`` and the first view
+    without one, or whose file is not an image."""
     if not folder.is_dir():
         raise ValueError(f"--stylized-images: {folder} is not a folder")
     files = []
@@ -104,6 +105,8 @@ def find_view_images(folder: Path, names: list[str]) -> list[Path]:
         if not matches:
             raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
                              f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
+        with named_option("--stylized-images"):
+            image_size(matches[0])  # its header: a file that is no image is named before any render
         files.append(matches[0])
     return files
 
@@ -120,14 +123,16 @@ def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
     return torch.stack(images)
 
 
-def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet]:
-    """The evaluated views: their indices in ``all_cameras`` and their cameras at ``--scale``; ValueError naming
-    ``--views`` (a view given twice would count twice), or ``--stylized-images`` without an image for one."""
+def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet, CameraSet | None]:
+    """The evaluated views: their indices in ``all_cameras``, their cameras at ``--scale`` and, for a stylized scene,
+    the novel camera path (:func:`camera_path`); ValueError naming ``--views`` (a view given twice would count
+    twice), ``--stylized-images`` without an image for one, or the path's options."""
     indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)
     cameras = all_cameras.subset(indices).scaled(args.scale)
     if args.stylized_images:
         find_view_images(Path(args.stylized_images), cameras.names)
-    return indices, cameras
+    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    return indices, cameras, path
 
 
 def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, scale: float) -> CameraSet:
@@ -281,7 +286,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
             check_scene_path(scene)
     with named_option("--style"):
         style = load_image(args.style)
-    all_cameras = load_camera_option(args.cameras)
+    all_cameras = load_camera_option(args)
     chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)
@@ -294,8 +299,7 @@ def run_evaluate(args: argparse.Namespace) -> dict:
     if all_cameras is None:
         all_cameras = orbit_from_args(args, original_scene)
         chosen = _chosen_views(all_cameras, args)
-    indices, cameras = chosen
-    path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
+    indices, cameras, path = chosen
     prepare_rasterizer(device)
     print(f"evaluating {counted(len(cameras), 'view')} at {cameras.width}x{cameras.height} on {device}")
 

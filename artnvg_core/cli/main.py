@@ -65,7 +65,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     check_scene_path(args.scene)
     inputs = [("SCENE", args.scene), ("--cameras", args.cameras)]
-    cameras = chosen(load_camera_option(args.cameras)) if args.cameras else None  # bad values fail before the load
+    cameras = chosen(load_camera_option(args)) if args.cameras else None  # bad values fail before the load
     if cameras is not None:  # e.g. --out into the capture's own image folder
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])

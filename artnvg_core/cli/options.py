@@ -146,22 +146,33 @@ def add_device_option(parser: argparse.ArgumentParser) -> None:
                         help="auto (default): CUDA, else Apple MPS, else the CPU")
 
 
+class _OrbitOption(argparse.Action):
+    """An option of the views built around the scene: its value stored, the option noted as given
+    (``orbit_options``), since ``--cameras`` would leave it unread (:func:`~.common.load_camera_option`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.orbit_options = [*namespace.orbit_options, option_string]
+
+
 def add_camera_arguments(parser: argparse.ArgumentParser) -> None:
     """``--cameras`` (optional) and the options of the cameras built from the scene when it is left out."""
     parser.add_argument("--cameras", help="transforms.json or a COLMAP sparse folder; left out: views orbiting "
                         "the scene, built from the Gaussians alone (docs/scenes_and_formats.md)")
     orbit = parser.add_argument_group("cameras from the scene alone (when --cameras is left out)")
-    orbit.add_argument("--orbit-views", type=integer_at_least(1), default=60,
+    orbit.add_argument("--orbit-views", type=integer_at_least(1), default=60, action=_OrbitOption,
                        help="number of views (default 60: four groups of 15)")
-    orbit.add_argument("--fov", type=field_of_view, default=50.0, help="horizontal field of view in degrees (default 50)")
-    orbit.add_argument("--up", default="auto", type=up_direction,
+    orbit.add_argument("--fov", type=field_of_view, default=50.0, action=_OrbitOption,
+                       help="horizontal field of view in degrees (default 50)")
+    orbit.add_argument("--up", default="auto", type=up_direction, action=_OrbitOption,
                        help="the world direction shown up in every view: auto (default: detected), an axis such as "
                        "--up=-y (COLMAP scenes are often -y) or 3 comma-separated numbers such as --up=0,-1,0")
-    orbit.add_argument("--orbit-size", type=image_size, default="512",
+    orbit.add_argument("--orbit-size", type=image_size, default="512", action=_OrbitOption,
                        help="image size WIDTHxHEIGHT or N for NxN (default 512)")
-    orbit.add_argument("--orbit-around", default="auto", choices=("auto", "full"),
+    orbit.add_argument("--orbit-around", default="auto", choices=("auto", "full"), action=_OrbitOption,
                        help="auto (default): views on the side the capture looked from (all round for a 360 capture); "
                        "full: all round always")
+    parser.set_defaults(orbit_options=[])
 
 
 def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet:

@@ -78,7 +78,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     devices = parse_devices(args.devices)  # a typo is named now, whichever stylizer runs
     for lora in args.lora:
         check_lora(lora)
-    capture_cameras = load_camera_option(args.cameras)
+    capture_cameras = load_camera_option(args)
     if capture_cameras is not None:  # before the models and the scene load
         check_region_masks(args, capture_cameras.scaled(scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
@@ -100,7 +100,20 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         for option, given, what in (("--lora", args.lora, "a LoRA changes SDXL"),
                                     ("--devices", args.devices, "the devices share the diffusion stage's groups"),
                                     ("--ray-address", args.ray_address, "the Ray cluster shares the diffusion "
-                                     "stage's groups")):
+                                     "stage's groups"),
+                                    ("--steps", args.steps is not None, "the denoising steps are the diffusion "
+                                     "stage's"),
+                                    ("--scheduler", args.scheduler is not None, "the sampler is the diffusion "
+                                     "stage's"),
+                                    ("--cfg-until", args.cfg_until is not None, "classifier-free guidance is the "
+                                     "diffusion stage's"),
+                                    ("--key-views", args.key_views is not None, "the key views are those the "
+                                     "diffusion stage stylizes"),
+                                    ("--content-routing", args.content_routing != "released", "the content routing "
+                                     "is CSGO's"),
+                                    ("--compile", args.compile, "the compiled blocks are SDXL's and the ControlNet's"),
+                                    ("--group-multiple", args.group_multiple != 1, "the groups are the diffusion "
+                                     "stage's")):
             if given:
                 raise ValueError(f"{option}: {what}, which only the diffusion stylizer runs; the NNFM stylizer "
                                  f"would run here ({reason})")
@@ -111,7 +124,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                         progress=ProgressBar("models", "B"))
 
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
-                               cameras=capture_cameras, should_stop=args.should_stop)
+                               cameras=capture_cameras, should_stop=args.should_stop, notes=args.notes)
     try:  # the finetune keeps the geometry: a format that cannot hold it is refused now, not after the work
         check_geometry_writable(scene, out)
     except ValueError as error:
@@ -165,7 +178,7 @@ def cmd_stylize(args: argparse.Namespace) -> None:
     sheet = save_result(scene, result, cameras, style, out, spz_axes=args.spz_axes,
                         spz_version=args.spz_version, progress=ProgressBar("contact sheet"),
                         should_stop=args.should_stop,
-                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=print_note)
+                        scene_progress=ProgressBar("saving", "Gaussian", SCENE_FILE_BAR_DELAY), scene_notes=args.notes)
     print(f"wrote {out} and {sheet} in {time.perf_counter() - start:.0f} s")
 
 
@@ -266,4 +279,5 @@ def add_stylize_arguments(p: argparse.ArgumentParser) -> None:
     models.add_argument("--controlnet", help="TTPLANET_Controlnet_Tile_realistic_v2_fp16.safetensors or its folder")
     models.add_argument("--image-encoder", help="IP-Adapter SDXL image encoder folder (ViT-bigG/14)")
     models.add_argument("--csgo", help="csgo_4_32.bin or csgo.bin")
-    p.set_defaults(run=cmd_stylize, should_stop=None)  # a caller (the batch worker) may set a StopFn
+    # a caller (the batch worker) may set a StopFn, and a NoteFn that keeps the scene files' notes
+    p.set_defaults(run=cmd_stylize, should_stop=None, notes=print_note)

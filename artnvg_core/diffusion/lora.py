@@ -69,7 +69,7 @@ def check_lora(lora: LoRA) -> None:
         raise LoRAError(f"{where}: LoRAs are applied through the peft package, which is not installed: "
                         f'pip install "{PEFT_REQUIREMENT}" in the Python that runs ArtNVG (ComfyUI\'s, for the nodes)')
     if not lora.path.is_file():
-        raise LoRAError(f"{where}: no such file")
+        raise LoRAError(f"{where}: {'a folder, not a file' if lora.path.is_dir() else 'no such file'}")
     if lora.path.suffix.lower() != ".safetensors":
         raise LoRAError(f"{where}: expected a .safetensors file")
     try:

@@ -19,10 +19,11 @@ from pathlib import Path
 
 from ..cameras.camera_set import CameraSet
 from ..fileio import require_regular_file
+from ..notes import NoteFn
 from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene
 from . import ksplat, splat, spz
-from .common import NoteFn, scene_to_write
+from .common import scene_to_write
 from .ksplat import read_ksplat, write_ksplat
 from .ply import read_ply, write_ply
 from .splat import read_splat, write_splat
@@ -94,7 +95,7 @@ def _signature_of(head: bytes) -> tuple[str, str] | None:
 
 def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes: str = "auto",
                cameras: CameraSet | None = None, progress: ProgressFn | None = None,
-               should_stop: StopFn | None = None) -> GaussianScene:
+               should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read a Gaussian scene, the reader chosen by the file's extension (any case; :func:`check_scene_path`),
     whose signature the file must start with where the format has one (:func:`check_scene_content`).
     ``spz_axes``: the axes of a ``.spz`` that does not name its own: "ply", "rub" or "auto" (the reading that
@@ -102,7 +103,10 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     :mod:`.spz`). ``progress`` follows the whole read in the file's bytes, one bar filling once over the format's
     stages (reading, decoding, checking), each its share of the bar by its measured time (the readers'
     ``READ_STAGES``); ``should_stop`` ends the read between chunks (:class:`~artnvg_core.progress.Cancelled`; a
-    splatfacto ``.ckpt`` old-style pickle, not a zip archive, loads in one ``torch.load`` before its chunks)."""
+    splatfacto ``.ckpt`` old-style pickle, not a zip archive, loads in one ``torch.load`` before its chunks).
+    ``notes`` is called once with each note for the user on what the read did to the scene (invalid Gaussians
+    dropped, the axes taken for a ``.spz`` that names none, SH terms above degree 3 dropped); without it each is
+    logged as a warning."""
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     path = check_scene_path(path)
     check_scene_content(path)
@@ -110,9 +114,9 @@ def load_scene(path: str | os.PathLike, *, drop_invalid: bool = False, spz_axes:
     reader = READERS[path.suffix.lower()]
     if reader is read_spz:
         return read_spz(path, drop_invalid=drop_invalid, axes=spz_axes, cameras=cameras, progress=progress,
-                        should_stop=should_stop)
+                        should_stop=should_stop, notes=notes)
     try:
-        return reader(path, drop_invalid=drop_invalid, progress=progress, should_stop=should_stop)
+        return reader(path, drop_invalid=drop_invalid, progress=progress, should_stop=should_stop, notes=notes)
     except ValueError as error:  # a format with no signature (.splat...): it may be another one, renamed
         found = _signature_of(_head(path))
         if found is None or found[0] == path.suffix.lower():

@@ -3,19 +3,16 @@ on what a format changes, 8-bit opacities, work done a chunk of Gaussians at a t
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..fileio import require_regular_file
+from ..notes import NoteFn, tell
 from ..progress import ProgressFn, StopFn, check_stop
 from ..scene import GaussianScene, describe_invalid, invalid_gaussians, logit
-
-_log = logging.getLogger(__name__)
-NoteFn = Callable[[str], None]
 
 # Gaussians per chunk: at 3M Gaussians of SH degree 3 on a 2-core CPU a chunk's SPZ quantisation and deflate take
 # about 0.15 s, a PLY's rows 0.02 s (a stop waits at most that long), and a 3M file's 46 chunks cost no measurable time.
@@ -59,20 +56,10 @@ def require_file(path: Path) -> None:
     require_regular_file(path, "scene file")
 
 
-def tell(notes: NoteFn | None, path: Path, note: str) -> None:
-    """``note``, what writing ``path`` changes of the scene that the user should know (SH terms its format cannot
-    hold, Gaussians moved onto its range), to ``notes`` (a node's text, a command's output), else logged as a
-    warning naming ``path``."""
-    if notes is None:
-        _log.warning("%s: %s", path, note)
-    else:
-        notes(note)
-
-
 def tell_filter_change(notes: NoteFn | None, path: Path, cpu: GaussianScene, kind: str, blur_px2: float,
                        antialiased: bool) -> None:
-    """A note (:func:`tell`) when a file of format ``kind`` reads back with another 2D filter (``blur_px2``,
-    ``antialiased``: what it records, at most the antialiased flag) than ``cpu``'s."""
+    """A note (:func:`~artnvg_core.notes.tell`) when a file of format ``kind`` reads back with another 2D filter
+    (``blur_px2``, ``antialiased``: what it records, at most the antialiased flag) than ``cpu``'s."""
     if (cpu.blur_px2, cpu.antialiased) != (blur_px2, antialiased):
         tell(notes, path, f"{kind} cannot record the scene's 2D filter ({_filter(cpu.blur_px2, cpu.antialiased)}); "
                           f"it reads back with {_filter(blur_px2, antialiased)}")

@@ -39,9 +39,10 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..notes import NoteFn
 from ..progress import ProgressFn, Stages, StopFn
 from ..scene import GaussianScene, validate_scene
-from .common import ChunkedWork, NoteFn, require_file, scene_to_write
+from .common import ChunkedWork, require_file, scene_to_write
 from .splat import colour_and_opacity, linear_scales, rgba_bytes, tell_dropped
 
 HEADER_BYTES, SECTION_HEADER_BYTES = 4096, 1024
@@ -100,11 +101,12 @@ def _bucket_of_each(path: Path, s: int, section: dict, count: int) -> np.ndarray
 
 
 def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
-                should_stop: StopFn | None = None) -> GaussianScene:
+                should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read a ``.ksplat`` file of compression level 0, 1 or 2 (layout in the module docstring). Its sections'
     headers are checked first, then their records decoded a chunk of Gaussians at a time: ``progress`` follows the
     whole read in the file's bytes, filling once over its stages (:data:`READ_STAGES`), ``should_stop`` ends it
-    between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
+    between chunks (:class:`~artnvg_core.progress.Cancelled`). ``notes`` is told of invalid Gaussians dropped
+    (:func:`~artnvg_core.notes.tell`)."""
     path = Path(path)
     require_file(path)
     stages = Stages(progress, path.stat().st_size, READ_STAGES)
@@ -179,7 +181,7 @@ def read_ksplat(path: str | os.PathLike, *, drop_invalid: bool = False, progress
             scene.sh[rows] = torch.cat([dc, torch.from_numpy(rest).float()], 1)
         start += len(part["rows"])
     return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
-                          progress=stages["check"])[0]
+                          progress=stages["check"], notes=notes)[0]
 
 
 def check_geometry(cpu: GaussianScene, path: Path) -> None:
@@ -207,7 +209,7 @@ def write_ksplat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: bo
     over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk of
     Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
     (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told what the format drops (degree-3
-    SH, a 2D filter other than classic; :func:`~.common.tell`).
+    SH, a 2D filter other than classic; :func:`~artnvg_core.notes.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, log-scales
     outside [-87, 88].

@@ -30,10 +30,11 @@ import torch
 
 from ..counted import counted
 from ..fileio import write_atomically
+from ..notes import NoteFn
 from ..progress import ProgressFn, Stages, StopFn
 from ..scene import DEFAULT_BLUR_PX2, GaussianScene, logit, validate_scene
 from . import compressed_ply
-from .common import ChunkedWork, NoteFn, require_file, scene_to_write, tell_filter_change
+from .common import ChunkedWork, require_file, scene_to_write, tell_filter_change
 from .ply_data import PlyData, read_ply_elements, read_ply_header
 
 _PLY_ELEMENT = "vertex"
@@ -130,12 +131,13 @@ def _fold_filter_3d(path: Path, scene: GaussianScene, filter_3d: torch.Tensor) -
 
 
 def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
-             should_stop: StopFn | None = None) -> GaussianScene:
+             should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read an INRIA 3DGS PLY (ASCII or binary of either byte order) as float32 tensors, or a
     PlayCanvas compressed PLY. Layout and Mip-Splatting's ``filter_3D`` in the module docstring.
     Validated with :func:`~artnvg_core.scene.validate_scene`. ``progress`` follows the whole read in the
     file's bytes, filling once over its stages (:data:`READ_STAGES`); ``should_stop`` ends it between chunks
-    (:class:`~artnvg_core.progress.Cancelled`).
+    (:class:`~artnvg_core.progress.Cancelled`). ``notes`` is told of invalid Gaussians dropped
+    (:func:`~artnvg_core.notes.tell`).
     """
     path = Path(path)
     require_file(path)
@@ -148,7 +150,7 @@ def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, progress: P
     decode = compressed_ply.scene_from_compressed_ply if compressed else _inria_scene
     scene = decode(path, ply, progress=stages["decode"], should_stop=should_stop)
     return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
-                          progress=stages["check"])[0]
+                          progress=stages["check"], notes=notes)[0]
 
 
 def _inria_scene(path: Path, ply: PlyData, *, progress: ProgressFn | None,
@@ -221,7 +223,7 @@ def write_ply(scene: GaussianScene, path: str | os.PathLike, *, binary: bool = T
     or zero quaternions is refused with a ValueError before anything is written. Rows are written a chunk
     at a time: ``progress`` counts them (Gaussians), ``should_stop`` ends the write between chunks
     (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told of a 2D filter the file cannot
-    record (it reads back Mip-Splatting's when antialiased, else the classic one; :func:`~.common.tell`).
+    record (it reads back Mip-Splatting's when antialiased, else the classic one; :func:`~artnvg_core.notes.tell`).
     """
     path = Path(path)
     cpu = scene_to_write(scene, path, should_stop)

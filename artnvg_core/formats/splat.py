@@ -26,16 +26,15 @@ import torch
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..notes import NoteFn, tell
 from ..progress import ProgressFn, Stages, StopFn
 from ..scene import DEFAULT_BLUR_PX2, DROP_INVALID_HINT, SH_C0, GaussianScene, describe_invalid, validate_scene
 from .common import (
     ChunkedWork,
-    NoteFn,
     opacity_bytes,
     opacity_logits_from_bytes,
     require_file,
     scene_to_write,
-    tell,
     tell_filter_change,
     to_bytes,
 )
@@ -72,8 +71,8 @@ def linear_scales(cpu: GaussianScene, path: Path, kind: str) -> np.ndarray:
 
 
 def tell_dropped(cpu: GaussianScene, path: Path, kind: str, degree: int, notes: NoteFn | None) -> None:
-    """Notes for the user (:func:`~.common.tell`) on what a format ``kind`` that holds SH up to ``degree`` and no
-    2D filter (read back classic) drops of ``cpu``."""
+    """Notes for the user (:func:`~artnvg_core.notes.tell`) on what a format ``kind`` that holds SH up to ``degree``
+    and no 2D filter (read back classic) drops of ``cpu``."""
     if cpu.sh_degree > degree:
         dropped = f"degree {cpu.sh_degree}" if cpu.sh_degree == degree + 1 else f"degree {degree + 1}-{cpu.sh_degree}"
         tell(notes, path, f"{kind} holds SH up to degree {degree}; the {dropped} view-dependent terms are dropped")
@@ -86,10 +85,11 @@ def check_geometry(cpu: GaussianScene, path: Path) -> None:
 
 
 def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
-               should_stop: StopFn | None = None) -> GaussianScene:
+               should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read a ``.splat`` file (layout in the module docstring) as an SH degree 0 scene, decoded a chunk of
     Gaussians at a time: ``progress`` follows the whole read in the file's bytes, filling once over its stages
-    (:data:`READ_STAGES`), ``should_stop`` ends it between chunks (:class:`~artnvg_core.progress.Cancelled`)."""
+    (:data:`READ_STAGES`), ``should_stop`` ends it between chunks (:class:`~artnvg_core.progress.Cancelled`).
+    ``notes`` is told of invalid Gaussians dropped (:func:`~artnvg_core.notes.tell`)."""
     path = Path(path)
     require_file(path)
     size = path.stat().st_size
@@ -117,7 +117,7 @@ def read_splat(path: str | os.PathLike, *, drop_invalid: bool = False, progress:
         scene.log_scales[rows] = torch.from_numpy(log_scales)
         scene.sh[rows], scene.opacity_logits[rows] = colour_and_opacity(records["rgba"][rows])
     return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
-                          progress=stages["check"])[0]
+                          progress=stages["check"], notes=notes)[0]
 
 
 def _records(cpu: GaussianScene, scales: np.ndarray, rows: slice) -> np.ndarray:
@@ -138,7 +138,7 @@ def write_splat(scene: GaussianScene, path: str | os.PathLike, *, overwrite: boo
     False never over an existing file (:func:`~artnvg_core.fileio.write_atomically`). Records are written a chunk
     of Gaussians at a time: ``progress`` counts them, ``should_stop`` ends the write between chunks
     (:class:`~artnvg_core.progress.Cancelled`, no file left). ``notes`` is told what the format drops (SH above
-    degree 0, a 2D filter other than classic; :func:`~.common.tell`).
+    degree 0, a 2D filter other than classic; :func:`~artnvg_core.notes.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero
     quaternions, log-scales outside [-87, 88].

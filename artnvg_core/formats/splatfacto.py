@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from ..notes import NoteFn
 from ..progress import ProgressFn, Stages, StopFn
 from ..scene import SH_C0, GaussianScene, validate_scene
 from ..tensor_files import load_failure
@@ -118,7 +119,7 @@ def _expect_shape(path: Path, name: str, value: torch.Tensor, shape: tuple[int, 
 
 
 def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False, progress: ProgressFn | None = None,
-                         should_stop: StopFn | None = None) -> GaussianScene:
+                         should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read the Gaussians of a nerfstudio splatfacto ``.ckpt`` (loaded with ``weights_only=True``).
 
     Uses ``pipeline["_model.gauss_params.*"]``: means [N, 3], scales [N, 3] (log),
@@ -129,6 +130,7 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
 (module docstring). Validated with :func:`validate_scene`. ``progress`` follows the whole read in the file's bytes,
     filling once over its stages (:data:`READ_STAGES`: the Gaussians copied out of the file, then checked, a chunk at
     a time), ``should_stop`` ends it between chunks (:class:`~artnvg_core.progress.Cancelled`).
+    ``notes`` is told of invalid Gaussians dropped (:func:`~artnvg_core.notes.tell`).
     """
     path = Path(path)
     require_file(path)
@@ -158,4 +160,4 @@ def read_splatfacto_ckpt(path: str | os.PathLike, *, drop_invalid: bool = False,
         antialiased=trained_antialiased(path),
     )
     return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
-                          progress=stages["check"])[0]
+                          progress=stages["check"], notes=notes)[0]

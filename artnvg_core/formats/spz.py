@@ -12,7 +12,7 @@ float16 in version 1), opacities (uint8, value / 255), colours (uint8, f_dc =
 uint8), SH coefficients (uint8, (b - 128) / 128, coefficient-major with the
 colour channel inner). Flag 0x1 marks a scene trained antialiased (loaded
 with ``GaussianScene.antialiased``, written from it). Reading version 4 needs
-the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a warning). Streams are
+the ``zstandard`` package. Degree-4 SH is read as degree 3 (with a note for the user). Streams are
 inflated only up to the size the header implies, which may be at most 64 times the file's
 size (:mod:`.bounded`).
 
@@ -26,7 +26,7 @@ the PLY's axes (x right, y down, z forward) unchanged, while the format's descri
 splat-transform 2.1-2.7 store RUB (x right, y up, z back); docs/scenes_and_formats.md gives the
 evidence. Such a file is read with ``axes``: "ply" or "rub" as named, or "auto": with cameras,
 the reading that puts more of the scene inside their views; without, the PLY's axes (the
-majority writers'), said in one logged line. RUB is converted to the PLY's axes by flipping y and
+majority writers'), said in one note for the user. RUB is converted to the PLY's axes by flipping y and
 z of positions, the x y z components of quaternions as (x, -y, -z), and each SH coefficient by the
 parity of its basis function under that flip. Written in the PLY's axes with no record, as those
 writers write (``axes="rub"``: in RUB).
@@ -70,17 +70,16 @@ from ..cameras.camera_set import CameraSet
 from ..cameras.geometry import normalize_quats
 from ..counted import counted
 from ..fileio import write_atomically
+from ..notes import NoteFn, tell
 from ..progress import ProgressFn, Stages, StopFn
 from ..scene import DEFAULT_BLUR_PX2, GaussianScene, validate_scene
 from .bounded import inflate_exactly, read_at_most, require_inflatable
 from .common import (
     ChunkedWork,
-    NoteFn,
     opacity_bytes,
     opacity_logits_from_bytes,
     require_file,
     scene_to_write,
-    tell,
     tell_filter_change,
     to_bytes,
 )
@@ -277,8 +276,10 @@ def _facing_system(stored: np.ndarray, cameras: CameraSet) -> int:
     return RDF if as_ply >= as_rub else RUB
 
 
-def _unrecorded_system(path: Path, axes: str, stored: np.ndarray, cameras: CameraSet | None) -> int:
-    """The axes of a file without a coordinate-system record (module docstring)."""
+def _unrecorded_system(path: Path, axes: str, stored: np.ndarray, cameras: CameraSet | None,
+                       notes: NoteFn | None) -> int:
+    """The axes of a file without a coordinate-system record (module docstring); the PLY's axes taken by default
+    told to ``notes``."""
     if axes != "auto":
         return _NAMED[axes]
     if cameras is not None and len(cameras):
@@ -286,20 +287,22 @@ def _unrecorded_system(path: Path, axes: str, stored: np.ndarray, cameras: Camer
         _log.info("%s names no axes: read in %s, which puts more of it in front of the cameras", path,
                   "RUB" if system == RUB else "the PLY's axes")
         return system
-    _log.warning("%s names no axes: read in the PLY's axes (x right, y down, z forward), as splat-transform, "
-                 "spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz axes 'rub' "
-                 "(--spz-axes rub, the Load Gaussian Scene node's spz_axes)", path)
+    tell(notes, path, "the file names no axes: read in the PLY's axes (x right, y down, z forward), as "
+                      "splat-transform, spz-js and Niantic's ply-to-spz write; if it is upside down, read it with spz "
+                      "axes 'rub' (--spz-axes rub, the Load Gaussian Scene node's spz_axes)")
     return RDF
 
 
 def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str = "auto",
              cameras: CameraSet | None = None, progress: ProgressFn | None = None,
-             should_stop: StopFn | None = None) -> GaussianScene:
+             should_stop: StopFn | None = None, notes: NoteFn | None = None) -> GaussianScene:
     """Read an SPZ file of version 1 to 4 (layout and axes in the module docstring); a file without a
     coordinate-system record is read in ``axes``: "ply", "rub" or "auto" (by ``cameras`` when given,
     else the PLY's axes). The arrays are inflated a piece at a time, then decoded a chunk of Gaussians at a time:
     ``progress`` follows the whole read in the file's bytes, filling once over its stages (:data:`READ_STAGES`),
-    ``should_stop`` ends it between pieces and chunks (:class:`~artnvg_core.progress.Cancelled`)."""
+    ``should_stop`` ends it between pieces and chunks (:class:`~artnvg_core.progress.Cancelled`). ``notes`` is told
+    (:func:`~artnvg_core.notes.tell`) of the PLY's axes taken for a file that names none when no cameras choose,
+    of degree-4 SH read as degree 3 and of invalid Gaussians dropped."""
     path = Path(path)
     _check_axes(axes)
     require_file(path)
@@ -313,7 +316,7 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
         raise ValueError(f"{path}: not an SPZ file: starts with neither 'NGSP' (version 4) nor a gzip stream")
     stored = _positions(path, header, arrays["positions"])
     if system is None:
-        system = _unrecorded_system(path, axes, stored, cameras)
+        system = _unrecorded_system(path, axes, stored, cameras, notes)
     count, degree = header["count"], header["degree"]
     flips = _axis_flips(system, path)
     x, y, z = flips
@@ -321,7 +324,7 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
     sh_codes = np.frombuffer(arrays.get("sh", b""), np.uint8).reshape(count, coefficients, 3)  # none in v4 at degree 0
     rotations = np.frombuffer(arrays["rotations"], np.uint8).reshape(count, -1)
     if degree > 3:
-        _log.warning("%s: SH degree %d read as degree 3 (the degree-4 terms are dropped)", path, degree)
+        tell(notes, path, f"SH degree {degree} read as degree 3 (the degree-4 terms are dropped)")
         sh_codes, degree = sh_codes[:, :15], 3
     signs = _sh_flip_signs(x, y, z)[: sh_codes.shape[1], None]
     colours = np.frombuffer(arrays["colors"], np.uint8).reshape(count, 1, 3)
@@ -340,7 +343,7 @@ def read_spz(path: str | os.PathLike, *, drop_invalid: bool = False, axes: str =
         scene.opacity_logits[rows] = torch.from_numpy(opacity_logits_from_bytes(alphas[rows]))
         scene.sh[rows] = torch.from_numpy(np.concatenate([dc, (sh_codes[rows] - 128.0) / 128 * signs], 1))
     return validate_scene(scene, str(path), drop_invalid=drop_invalid, should_stop=should_stop,
-                          progress=stages["check"])[0]
+                          progress=stages["check"], notes=notes)[0]
 
 
 def _fractional_bits(path: Path, extents: np.ndarray) -> int:
@@ -365,7 +368,7 @@ def _onto_range(path: Path, means: np.ndarray, log_scales: np.ndarray, bits: int
                 notes: NoteFn | None) -> tuple[np.ndarray, np.ndarray]:
     """``means`` [N, 3] and ``log_scales`` [N, 3] with each Gaussian beyond the range of ``bits`` fractional bits
     moved along its ray from the origin onto that range, its scales multiplied by the same ratio (so it keeps
-    its direction and apparent size seen from the origin); one note to ``notes`` (:func:`~.common.tell`) says
+    its direction and apparent size seen from the origin); one note to ``notes`` (:func:`~artnvg_core.notes.tell`) says
     how many and how far."""
     extents = np.abs(means).max(1)
     far = np.floor(extents * (1 << bits) + 0.5) >= 1 << 23
@@ -456,7 +459,7 @@ def write_spz(scene: GaussianScene, path: str | os.PathLike, *, axes: str = "aut
     Gaussians at a time into one gzip stream: ``progress`` counts the chunks' Gaussians over the 6 arrays,
     ``should_stop`` ends the write between chunks (:class:`~artnvg_core.progress.Cancelled`, no file left).
     ``notes`` is told of far Gaussians moved onto the positions' range and of a 2D blur other than the default
-    (the format records the antialiased flag alone; :func:`~.common.tell`).
+    (the format records the antialiased flag alone; :func:`~artnvg_core.notes.tell`).
 
     Refused with a ValueError before writing: non-finite values, zero quaternions, more than one
     Gaussian in a thousand with a coordinate of magnitude 2^23 or more.

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import struct
 import time
 import urllib.error
 import urllib.request
@@ -176,6 +177,31 @@ def test_what_the_format_drops_reaches_save_gaussian_scenes_text_and_the_console
     assert written.startswith(f"wrote output/{folder}/noted_") and notes == [note]
     time.sleep(1)  # the log file is written by the server's process
     assert comfy_server.log.read_text()[logged:].count(note) == 1
+
+
+def test_what_the_read_did_reaches_load_gaussian_scenes_text_and_the_console_once(comfy_server):
+    """The test scene with one Gaussian's x made NaN, loaded with drop_invalid: the note follows the scene's size in
+    the node's UI text (the run's history) and is logged once (it is also shown under the node: progress text)."""
+    folder = comfy_server.test_folder
+    data = (comfy_server.input_dir / folder / "scene.ply").read_bytes()
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    count = len(read_ply(comfy_server.input_dir / folder / "scene.ply"))
+    row = (len(data) - body) // count
+    invalid = comfy_server.input_dir / folder / "one_nan.ply"
+    invalid.write_bytes(data[: body + row] + struct.pack("<f", float("nan")) + data[body + row + 4 :])  # x of one
+    logged = len(comfy_server.log.read_text())
+    try:
+        entry, _ = _run(comfy_server, _workflow(comfy_server, "6.iterations=1",
+                                                f"Load Gaussian Scene.scene_file={folder}/one_nan.ply",
+                                                "Load Gaussian Scene.drop_invalid=true",
+                                                f"Save Gaussian Scene.filename_prefix={folder}/dropped"))
+    finally:
+        invalid.unlink()
+    assert queue.run_summary(entry)["status"] == "success"
+    note = f"note: dropped 1 invalid Gaussian of {count:,} (means: 1 with non-finite values)"
+    assert entry["outputs"][LOAD_SCENE]["text"] == [f"loaded one_nan.ply ({count - 1:,} Gaussians, SH degree 1)", note]
+    time.sleep(1)  # the log file is written by the server's process
+    assert comfy_server.log.read_text()[logged:].count("dropped 1 invalid Gaussian") == 1
 
 
 def _run_saving_a_scene(server, api_workflow: Path, assignments) -> tuple:
