@@ -140,8 +140,17 @@ def test_splat_nodes_say_what_this_comfyui_lacks(comfy_server):
 def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     folder = comfy_server.test_folder
     before = set((comfy_server.output_dir / folder).glob("nnfm_*.ply"))
-    entry, messages = _run(comfy_server, _workflow(
-        comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm"))
+    # a scene file no earlier prompt loaded: ComfyUI reuses a node's output for the inputs it ran with before, and a
+    # node it does not run sends no progress (the other tests load scene.ply, in any order)
+    scene = comfy_server.input_dir / folder / f"scene_{uuid.uuid4().hex[:8]}.ply"
+    scene.write_bytes((comfy_server.input_dir / folder / "scene.ply").read_bytes())
+    try:
+        entry, messages = _run(comfy_server, _workflow(
+            comfy_server, "6.iterations=3", f"Save Gaussian Scene.filename_prefix={folder}/nnfm",
+            f"Load Gaussian Scene.scene_file={folder}/{scene.name}"))
+        size = scene.stat().st_size
+    finally:
+        scene.unlink()
     summary = queue.run_summary(entry)
     assert summary["status"] == "success", summary["error"]
     # 2 views rendered before the steps (one call), their content features, 3 steps, the 2 views again: each
@@ -150,7 +159,6 @@ def test_nnfm_workflow_completes_and_writes_a_ply_that_loads(comfy_server):
     assert progress == [(0, 2), (2, 2), (0, 2), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3), (3, 3), (0, 2), (2, 2)], progress
     # the scene's load: one bar over the file's bytes, filled once (its read, decoding and check in turn)
     loading = _finetune_progress(messages, LOAD_SCENE)
-    size = (comfy_server.input_dir / folder / "scene.ply").stat().st_size
     assert {total for _, total in loading} == {size} and loading[0][0] == 0 and loading[-1][0] == size, loading
     assert [value for value, _ in loading] == sorted(value for value, _ in loading), loading
     saved = [o for o in summary["outputs"] if o["kind"] == "scenes"]
