@@ -773,3 +773,13 @@ def test_an_orbit_option_given_with_cameras_is_refused_before_any_work(tmp_path,
         assert captured.err == (f"error: {option.split('=')[0]}: the views orbiting the scene are built only without "
                                 "--cameras, whose views are used here; give one or the other\n"), captured.err
         assert "loading" not in captured.out and not (tmp_path / "out").exists()
+
+
+def test_an_orbit_option_given_to_the_demo_names_the_demo_not_cameras_it_was_not_given(tmp_path, capsys):
+    """'stylize --orbit-views 4' (no inputs: the demo, whose cameras the demo brings) said the option was given
+    with --cameras, which the user never typed."""
+    assert main(["stylize", "--orbit-views=4", "--out", str(tmp_path / "out" / "s.ply")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == ("error: --orbit-views: the bundled demo renders its own cameras' views; give SCENE and "
+                            "--style, without --cameras, for views orbiting a scene\n"), captured.err
+    assert "demo" not in captured.out and not (tmp_path / "out").exists()

@@ -59,6 +59,9 @@ def cmd_stylize(args: argparse.Namespace) -> None:
                          "or none of them for the bundled demo")
     demo = not any(given)
     if demo:
+        if getattr(args, "orbit_options", []):
+            raise ValueError(f"{args.orbit_options[0]}: the bundled demo renders its own cameras' views; give SCENE "
+                             "and --style, without --cameras, for views orbiting a scene")
         inputs = DemoInputs()
         args.scene, args.cameras, args.style = inputs.scene, inputs.cameras, inputs.style
         print(f"no inputs given: running the bundled demo ({inputs.scene.parent})")
