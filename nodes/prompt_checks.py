@@ -8,7 +8,8 @@ And it repeats a ``VALIDATE_INPUTS`` message once per input that function declar
 So the pack registers :func:`check_prompt` as an on-prompt handler. For each node of the prompt whose
 class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values of their declared
 types, within their declared ranges and choices, read as ComfyUI will pass them: ``"nan"`` and
-``{"__value__": NaN}`` are a FLOAT NaN) or ``check_files(**inputs) -> str | None`` (the loaders, given
+``{"__value__": NaN}`` are a FLOAT NaN), ``check_links(linked input names, **inputs) -> str | None`` (every node of
+the pack: the optional inputs a value needs connected) or ``check_files(**inputs) -> str | None`` (the loaders, given
 the values as ComfyUI passes them), it runs those checks on the node's values, and ``check_images`` on the
 size of each image a stock Load Image feeds it (every node of the pack: a style image's shape); a message
 is kept under (prompt id, node id). When any node fails, the prompt's execution targets become the outputs
@@ -176,6 +177,8 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
             continue
         passed = cls.passed_values(values) if hasattr(cls, "passed_values") else values  # as ComfyUI passes them
         message = cls.check_files(**passed) if hasattr(cls, "check_files") else None
+        if not message and hasattr(cls, "check_links"):  # an unconnected optional input is not in the prompt
+            message = cls.check_links(_links(node).keys(), **passed)
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
         if not message and hasattr(cls, "check_images"):  # a node of the pack

@@ -502,6 +502,17 @@ def test_a_prompt_id_posted_again_is_validated_by_its_latest_values(executing):
     assert check_result() is True
 
 
+def test_an_optional_input_a_value_needs_connected_is_named_at_validation(executing):
+    """Select Gaussians in mask mode with no mask connected was refused only as it ran."""
+    scene, cameras, mask = ["9", 0], ["8", 0], ["7", 0]
+    shown, failed, targets = _validated("ArtNVGSelectGaussians", {"scene": scene, "mode": "mask", "cameras": cameras},
+                                        executing)
+    assert shown == failed == "Select Gaussians: input 'mask': mode mask needs cameras and mask connected"
+    assert targets == ["2"]
+    linked = {"scene": scene, "mode": "mask", "cameras": cameras, "mask": mask}
+    assert _validated("ArtNVGSelectGaussians", linked, executing)[1:] == (None, None)
+
+
 @pytest.mark.parametrize("node_type, inputs, message", [
     ("ArtNVGRenderViews", {"views": "3, 0,3"}, "Render Views: input 'views': view 3 is given twice in '3, 0,3'; give "
                                                 "each view once"),  # as render --views and evaluate --views

@@ -374,6 +374,20 @@ def test_cameras_around_scene_refuses_bad_text_before_anything_runs(comfy_server
     assert error["type"] == "custom_validation_failed" and f"Cameras Around Scene: {expected}" in error["details"]
 
 
+def test_select_gaussians_in_mask_mode_without_a_mask_is_refused_before_anything_runs(comfy_server):
+    """It was refused only as it ran, after the scene had loaded; ComfyUI leaves an unconnected optional input out of
+    the prompt, so the pack's check of the prompt sees it missing."""
+    workflow = queue.load_api_workflow(REGION_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/scene.ply",
+                       f"Load Cameras.camera_source={comfy_server.test_folder}/transforms.json",
+                       f"Style image.image={comfy_server.test_folder}/style.jpg", "Select Gaussians: the bear.mode=mask"):
+        queue.apply_override(workflow, assignment)
+    errors = _refused_before_any_work(comfy_server, workflow)
+    (error,) = errors[queue.find_node(workflow, "Select Gaussians: the bear")]["errors"]
+    assert error["type"] == "custom_validation_failed" and error["details"].endswith(
+        "Select Gaussians: input 'cameras': mode mask needs cameras and mask connected")
+
+
 def test_save_gaussian_scenes_message_is_labelled_with_the_input_it_names(comfy_server):
     """ComfyUI labels a node's VALIDATE_INPUTS message "NAME - ..." with each input that function takes (the input the
     editor outlines): Save Gaussian Scene's name filename_prefix, as its messages do; they read "node_id - ..."."""
