@@ -330,6 +330,9 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     # a view given twice, which render --views refuses: the pack's check of the text, before the cameras are known
     ("Render Views.views=1,1", "4", "Render Views: input 'views': view 1 is given twice in '1,1'; give each view once",
      "custom_validation_failed"),
+    # past the 24 cameras Load Cameras' file holds: refused before the scene loads (it was as Render Views ran)
+    ("Render Views.views=0,30", "4", "Render Views: input 'views': view index 30 is out of range for 24 cameras "
+     "(0..23)", "custom_validation_failed"),
     # a key view twice: a zero-length segment of the path (loop returns to the first), as evaluate --views refuses
     ("Render Camera Path.key_views=0,1,1", "8", "Render Camera Path: input 'key_views': view 1 is given twice in "
      "'0,1,1'; give each view once", "custom_validation_failed"),
