@@ -4,9 +4,13 @@
 * :func:`ray_session` joins a running cluster (``address``: ``"auto"`` or ``"HOST:PORT"``), uses a Ray
   already initialised in this process, or starts a local Ray instance with exactly the given devices
   (``cuda:0,cuda:1``: no cluster set-up needed); it yields the :class:`Workers` to start.
+* :func:`ray_joined` only joins a running cluster (or uses this process's Ray): for what starts no
+  workers (:func:`release_workers`).
 * :func:`to_wire` and :func:`from_wire`: a tensor as a task's argument or result (a NumPy array, which
   Ray passes through its shared store without pickling) and back.
-* :class:`WorkerPool` holds the worker actors; :func:`dispatch` hands tasks to them in the order
+* :class:`WorkerPool` holds the worker actors, its own or, kept, named ones that outlive it (a later pool
+  of a later process reuses those alive, so their imports and loaded models); :func:`release_workers`
+  ends the kept ones. :func:`dispatch` hands tasks to them in the order
   given, one at a time per actor or, with ``per_actor=2``, the next one while it runs one (so that
   the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
   killed process, a lost machine) is handed again to the next idle actor; the dead actor restarts by
@@ -38,6 +42,7 @@ RESTARTS = 1  # how often Ray restarts a worker actor whose process died
 ATTEMPTS = 3  # how often one task is handed out before it counts as failed
 POLL_SECONDS = 0.1  # how often dispatch checks should_stop and calls on_tick
 PROBES = 3  # how often a worker that lost its task is asked whether it is back before it is given up
+KEPT_NAMESPACE = "artnvg"  # the Ray namespace of kept workers (WorkerPool's keep)
 
 
 class RayUnavailable(ValueError):
@@ -106,22 +111,34 @@ def ray_session(devices: Sequence[str | torch.device] | None = None, address: st
       else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only.
 
     What the block started it shuts down (disconnects from a cluster); Ray's actors of this process go
-    with it.
+    with it, kept workers (:class:`WorkerPool`) of a cluster it joined stay.
     """
     ray = import_ray(needed_by)
     workers = plan_workers(devices)
-    started = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, **_QUIET)
-        else:
-            workers = workers or _local_default()
-            _start_local(ray, workers, devices)
-        started = True
+    if address or ray.is_initialized():
+        with ray_joined(address, needed_by=needed_by):
+            yield workers or _cluster_gpus(ray, address)
+        return
+    workers = workers or _local_default()
+    _start_local(ray, workers, devices)
     try:
-        yield workers or _cluster_gpus(ray, address)
+        yield workers
     finally:
-        if started:
+        ray.shutdown()
+
+
+@contextlib.contextmanager
+def ray_joined(address: str | None, *, needed_by: str) -> Iterator[Any]:
+    """The ``ray`` module connected for the block to the running cluster at ``address`` (``"auto"`` or
+    ``"HOST:PORT"``), or as this process already is; disconnects what it connected."""
+    ray = import_ray(needed_by)
+    joined = not ray.is_initialized()
+    if joined:
+        ray.init(address=address, **_QUIET)
+    try:
+        yield ray
+    finally:
+        if joined:
             ray.shutdown()
 
 
@@ -183,12 +200,23 @@ class WorkerPool:
     """``workers.count`` Ray actors of class ``worker``, each built with ``args`` and given ``threads``
     threads (one per task it holds at once, one more to answer progress and stop requests); leaving the
     ``with`` block, or :meth:`close`, ends them and frees their memory. Ray must be connected
-    (:func:`ray_session`)."""
+    (:func:`ray_session`).
 
-    def __init__(self, worker: type, workers: Workers, *args, threads: int = 2):
+    ``keep``: the actors are named ``CLASS-KIND-INDEX`` (``BatchWorker-cuda-0``) in the Ray namespace
+    :data:`KEPT_NAMESPACE` and detached, so they outlive the pool and its process: a later pool of the
+    same class and kind takes those alive, warm (imports done, models loaded), and starts only the missing
+    ones (never started, or dead for good). They hold their memory, a GPU's models, until
+    :func:`release_workers` or ``ray stop``; they run the code they imported when they started.
+    """
+
+    def __init__(self, worker: type, workers: Workers, *args, threads: int = 2, keep: bool = False):
         ray = import_ray(worker.__name__)
-        actor = ray.remote(worker).options(**workers.actor_options(), max_concurrency=threads)
-        self.actors = [actor.remote(*args) for _ in range(workers.count)]
+        actor, options = ray.remote(worker), dict(workers.actor_options(), max_concurrency=threads)
+        if keep:
+            options.update(namespace=KEPT_NAMESPACE, lifetime="detached", get_if_exists=True)
+        self.keep = keep
+        names = [f"{worker.__name__}-{workers.kind}-{index}" if keep else None for index in range(workers.count)]
+        self.actors = [actor.options(**options, name=name).remote(*args) for name in names]
 
     def __enter__(self):
         return self
@@ -197,10 +225,29 @@ class WorkerPool:
         self.close()
 
     def close(self) -> None:
+        """Ends the actors, unless kept; the pool holds none after."""
+        if self.keep:
+            self.actors = []
+        else:
+            self.kill()
+
+    def kill(self) -> None:
+        """Ends the actors, kept or not (a later pool starts new ones in place of kept ones)."""
         ray = import_ray("WorkerPool")
         for actor in self.actors:
             ray.kill(actor)
         self.actors = []
+
+
+def release_workers() -> list[str]:
+    """Ends every kept worker (:class:`WorkerPool`'s ``keep``) of the cluster Ray is connected to
+    (:func:`ray_joined`), whichever process started it; returns their names, sorted."""
+    ray = import_ray("release_workers")
+    names = sorted(actor["name"] for actor in ray.util.list_named_actors(all_namespaces=True)
+                   if actor["namespace"] == KEPT_NAMESPACE)
+    for name in names:
+        ray.kill(ray.get_actor(name, namespace=KEPT_NAMESPACE))
+    return names
 
 
 def dispatch(

@@ -4,7 +4,9 @@ by every weight loader."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+import functools
+import threading
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 
 import torch
@@ -80,35 +82,76 @@ def _assign(model: torch.nn.Module, modules: dict[str, torch.nn.Module], state: 
             module._buffers[name] = tensor
 
 
+_this_thread = threading.local()  # .blocks: this thread's open parameters_on_meta blocks
+_patch_lock = threading.Lock()  # guards _open_blocks and _replaced
+_open_blocks = 0  # every thread's open blocks: PyTorch is patched while > 0
+_replaced: dict[tuple[type, str], Callable] = {}  # (class, function name): the function the patch replaced
+
+
 @contextmanager
 def parameters_on_meta() -> Iterator[None]:
-    """Modules built inside this context get their parameters on the meta device: no memory and no
-    random initialisation, for weights a file is about to replace (the :data:`UNINITIALISED` layers skip
+    """Modules that this thread builds inside this context get their parameters on the meta device: no memory
+    and no random initialisation, for weights a file is about to replace (the :data:`UNINITIALISED` layers skip
     their ``reset_parameters``, which would only run on meta tensors). Buffers stay real (a model's
     computed buffers, e.g. CLIP's position ids, keep their values). The parameters are marked initialised
     (``_is_hf_initialized``), so transformers' initialisation of a model it builds leaves them alone: on meta
     tensors it ran PyTorch's meta kernels in Python, 0.23 s of the interpreter lock for SDXL's text encoders and
     the image encoder. Fill them with :func:`assign_strict` (``load_state_dict(state, assign=True)``), which
-    takes the state's tensors. The patches are the process's while the block runs."""
-    register = torch.nn.Module.register_parameter
-    resets = {layer: layer.__dict__["reset_parameters"] for layer in UNINITIALISED}
+    takes the state's tensors.
 
-    def on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
+    Threads: PyTorch is patched (``Module.register_parameter`` and the layers' ``reset_parameters``) from the
+    first entry of any thread to the last exit, and the patches act only for a thread inside a block, so a
+    module another thread builds meanwhile (a load runs beside the caller's thread and ComfyUI's server) gets
+    real, initialised parameters. Blocks nest and run in several threads at once; once no thread is inside,
+    PyTorch's functions are again the very ones the first entry found."""
+    global _open_blocks
+    with _patch_lock:
+        if _open_blocks == 0:
+            _patch()
+        _open_blocks += 1
+    _this_thread.blocks = getattr(_this_thread, "blocks", 0) + 1
+    try:
+        yield
+    finally:
+        _this_thread.blocks -= 1
+        with _patch_lock:
+            _open_blocks -= 1
+            if _open_blocks == 0:
+                _unpatch()
+
+
+def _on_meta_or(original: Callable, on_meta: Callable) -> Callable:
+    """``original``, but ``on_meta`` for a thread inside :func:`parameters_on_meta`."""
+    @functools.wraps(original)
+    def patched(*args, **kwargs):
+        return (on_meta if getattr(_this_thread, "blocks", 0) else original)(*args, **kwargs)
+    return patched
+
+
+def _patch() -> None:
+    """Replace ``Module.register_parameter`` and the :data:`UNINITIALISED` layers' ``reset_parameters`` (noted
+    in ``_replaced``) by functions that act only for a thread inside :func:`parameters_on_meta`."""
+    register = torch.nn.Module.register_parameter
+
+    def register_on_meta(module: torch.nn.Module, name: str, param: torch.nn.Parameter | None) -> None:
         if param is not None:
             if not param.is_meta:
                 param = torch.nn.Parameter(param.to("meta"), requires_grad=param.requires_grad)
             param._is_hf_initialized = True
         register(module, name, param)
 
-    torch.nn.Module.register_parameter = on_meta
-    for layer in UNINITIALISED:
-        layer.reset_parameters = _no_reset
-    try:
-        yield
-    finally:
-        torch.nn.Module.register_parameter = register
-        for layer, reset in resets.items():
-            layer.reset_parameters = reset
+    on_meta = {(torch.nn.Module, "register_parameter"): register_on_meta,
+               **{(layer, "reset_parameters"): _no_reset for layer in UNINITIALISED}}
+    for (owner, name), replacement in on_meta.items():
+        _replaced[owner, name] = owner.__dict__[name]
+        setattr(owner, name, _on_meta_or(owner.__dict__[name], replacement))
+
+
+def _unpatch() -> None:
+    """Put back the functions :func:`_patch` replaced."""
+    for (owner, name), original in _replaced.items():
+        setattr(owner, name, original)
+    _replaced.clear()
 
 
 def _no_reset(self: torch.nn.Module) -> None:

@@ -72,6 +72,7 @@ class RenderViews(ArtNVGNode):
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
     VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
+    VIEW_INPUTS = {"views": "cameras"}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):

@@ -65,6 +65,7 @@ class SelectGaussians(ArtNVGNode):
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }
     VALUE_CHECKS = {"views": listed_views}  # a view may hold several masks
+    NEEDS_LINKS = {"mode": {"mask": ("cameras", "mask")}}
 
     @classmethod
     def _value_problems(cls, values: dict):
@@ -87,10 +88,7 @@ class SelectGaussians(ArtNVGNode):
         if mode != "mask":
             with node_input(self.DISPLAY_NAME, "bounds"):
                 selection = select_region(scene, parse_bounds(mode, bounds))
-        else:
-            with node_input(self.DISPLAY_NAME, "mask"):
-                if cameras is None or mask is None:
-                    raise ValueError("mode mask needs cameras and mask connected")
+        else:  # cameras and mask connected (NEEDS_LINKS)
             masks = mask if mask.ndim == 3 else mask[None]
             with node_input(self.DISPLAY_NAME, "views"):
                 indices = parse_views(views, len(cameras))

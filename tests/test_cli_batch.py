@@ -34,7 +34,7 @@ def session(devices, address, needed_by):  # as ray.init does: SIGTERM exits mid
     yield Workers("cpu", 1)
 
 class Pool:  # stops as BatchPool does on Ctrl-C: every job cancelled
-    def __init__(self, workers): pass
+    def __init__(self, workers, keep): pass
     def __enter__(self): return self
     def __exit__(self, *exc): pass
     def run(self, jobs, redo=False, on_event=None):
@@ -71,7 +71,7 @@ def test_a_batch_that_fails_closes_its_bar_before_the_error(tmp_path, monkeypatc
     from artnvg_core.cluster import Workers
 
     class Pool:  # one job finished, then the run fails
-        def __init__(self, workers): pass
+        def __init__(self, workers, keep): pass
         def __enter__(self): return self
         def __exit__(self, *exc): pass
         def run(self, jobs, redo=False, on_event=None):
@@ -239,7 +239,7 @@ def test_batch_equals_single_runs_a_killed_worker_retried_bad_jobs_alone(inputs,
     assert not (jobs_path.parent / "out" / "missing.ply").exists() and not leftovers
 
 
-def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, first_batch, capsys):
+def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, pool, first_batch, capsys, ray_local):
     jobs_path, references = inputs
     jobs = load_jobs(jobs_path, stylize_options())
     assert all(output_complete(jobs[n - 1].out) for n in references)
@@ -261,12 +261,94 @@ def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, po
         if kind == "started":
             raise KeyboardInterrupt
 
+    processes = ray_local.get([actor.ping.remote() for actor in pool.actors])
     results = pool.run(jobs, on_event=ctrl_c)
     assert [r.status for r in results] == ["cancelled", "skipped", "cancelled", "cancelled", "failed"], results
     assert not jobs[0].out.exists() and not jobs[2].out.exists() and not _leftovers(jobs_path.parent / "out")
-    results = pool.run(jobs)  # the workers go on: the cancelled jobs run now
+    results = pool.run(jobs)  # the workers go on, the same processes (warm): the cancelled jobs run now
     assert [r.status for r in results] == ["done", "skipped", "done", "failed", "failed"], results
+    assert ray_local.get([actor.ping.remote() for actor in pool.actors]) == processes
     assert _same_output(jobs[0].out, references[1]) and _same_output(jobs[2].out, references[3])
+
+
+def test_a_kept_worker_busy_with_another_batchs_job_fails_the_job_at_once(tmp_path):
+    """Two batches on one kept worker would run two jobs in its process at once, in one working folder."""
+    pytest.importorskip("ray")  # the worker names its machine through Ray
+    from artnvg_core.cli.batch import BatchWorker
+    from artnvg_core.cluster import Workers
+
+    worker = BatchWorker(Workers("cpu", 1))
+    worker.running = ("another batch", 0)
+    result = worker.run("run", ["a.ply", "--out=out/a.ply"], str(tmp_path))
+    assert result["status"] == "failed" and "runs a job of another batch" in result["message"], result
+    assert worker.running == ("another batch", 0)
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["JOBS", "--keep-workers"], "--keep-workers needs --ray-address: workers are kept by a running Ray cluster"),
+    (["--release-workers"], "--release-workers needs the --ray-address of the cluster that keeps them"),
+    (["JOBS", "--release-workers", "--ray-address=auto"], "--release-workers takes --ray-address alone"),
+    ([], "batch: give a JOBS file (or --release-workers)"),
+])
+def test_kept_workers_need_a_running_cluster_and_release_runs_no_jobs(tmp_path, monkeypatch, capsys, arguments,
+                                                                      message):
+    from artnvg_core.cli import batch
+
+    monkeypatch.setattr(batch, "ray_session", None)  # refused before Ray
+    monkeypatch.setattr(batch, "ray_joined", None)
+    jobs = str(write_jobs(tmp_path / "jobs.json", [{"scene": "a.ply", "style": "s.jpg", "out": "out/a.ply"}]))
+    assert cli.main(["batch", *(jobs if a == "JOBS" else a for a in arguments)]) == 2
+    assert capsys.readouterr().err.startswith(f"error: {message}")
+
+
+def test_kept_workers_serve_later_batches_warm_through_a_stop_until_released(tmp_path, ray_local):
+    """Two batch commands (processes of their own) with --keep-workers on one running Ray instance run on
+    the same worker process; a batch stopped in between ends its job, not the worker, and the next batch's
+    job runs (its own run is not the stopped one); --release-workers ends it."""
+    import subprocess
+    import sys
+
+    from artnvg_core.cli.batch import BatchPool
+    from artnvg_core.cluster import Workers, release_workers
+
+    demo = DemoInputs()
+    jobs_path = write_jobs(tmp_path / "jobs.json", [{
+        "scene": str(demo.scene), "style": str(demo.style), "stylizer": "nnfm", "iters": 1, "orbit_views": 2,
+        "orbit_size": 32, "out": "out/a.ply"}])
+    address = ray_local.get_runtime_context().gcs_address
+
+    def command(*arguments: str) -> str:
+        result = subprocess.run([sys.executable, "-m", "artnvg_core", "batch", *arguments, "--ray-address", address],
+                                capture_output=True, text=True, timeout=300, env=child_env(),
+                                cwd=str(Path(__file__).parents[1]))  # the workers import this checkout
+        assert result.returncode == 0, (result.returncode, result.stdout[-2000:], result.stderr[-2000:])
+        return result.stdout
+
+    def kept_process() -> int:
+        return ray_local.get(ray_local.get_actor("BatchWorker-cpu-0", namespace="artnvg").ping.remote())
+
+    try:
+        printed = command(str(jobs_path), "--devices=cpu", "--keep-workers")
+        assert "summary: 1 done" in printed and "(kept after the batch" in printed, printed
+        process = kept_process()
+        assert f"pid {process}" in printed
+
+        def ctrl_c(kind: str, job: Job, detail) -> None:
+            if kind == "started":
+                raise KeyboardInterrupt
+
+        with BatchPool(Workers("cpu", 1), keep=True) as pool:
+            assert [r.status for r in pool.run(load_jobs(jobs_path, stylize_options()), redo=True,
+                                               on_event=ctrl_c)] == ["cancelled"]
+        assert kept_process() == process
+
+        printed = command(str(jobs_path), "--devices=cpu", "--keep-workers", "--redo")
+        assert "summary: 1 done" in printed and f"pid {process}" in printed, printed
+        assert command("--release-workers") == "released 1 kept worker\n  BatchWorker-cpu-0\n"
+        with pytest.raises(ValueError, match="Failed to look up actor"):
+            kept_process()
+    finally:
+        release_workers()
 
 
 def test_batch_help_prints_its_description_without_markup(capsys):

@@ -2,6 +2,7 @@
 order of dispatch's hand-outs on a local Ray cluster (its retries are tested through GroupExecutor and
 batch)."""
 
+import os
 import sys
 
 import numpy as np
@@ -75,8 +76,8 @@ class Echo:
     def run(self, task: int) -> int:
         return 10 * task
 
-    def ping(self) -> bool:
-        return True
+    def ping(self) -> int:
+        return os.getpid()
 
 
 @pytest.mark.parametrize("tasks, per_actor, handed_before_any_ends", [
@@ -100,3 +101,34 @@ def test_dispatch_hands_a_second_task_only_while_a_round_waits(ray_local, tasks,
     assert sorted(event[0] for event in events if event[0] != "ended") == list(range(tasks))
     for actor in actors:
         ray_local.kill(actor)
+
+
+def test_kept_workers_outlive_their_pool_until_released_and_a_dead_one_is_replaced(ray_local):
+    """A kept pool's actors stay after it closes and a later pool of the same class and kind takes the
+    same processes; one killed is started anew; release_workers ends them all (and only kept ones)."""
+    from ray.exceptions import RayActorError
+
+    from artnvg_core.cluster import WorkerPool, release_workers
+
+    def processes(pool):
+        return ray_local.get([actor.ping.remote() for actor in pool.actors])
+
+    try:
+        with WorkerPool(Echo, Workers("cpu", 1), keep=True) as pool:
+            first = processes(pool)
+        with WorkerPool(Echo, Workers("cpu", 1), keep=True) as pool:
+            assert processes(pool) == first
+            (killed,) = pool.actors
+            pool.kill()
+        with pytest.raises(RayActorError):  # gone for good: no restart
+            ray_local.get(killed.ping.remote())
+        with WorkerPool(Echo, Workers("cpu", 1), keep=True) as pool:
+            second = processes(pool)
+        assert second != first
+        with WorkerPool(Echo, Workers("cpu", 1)) as own:  # not kept: not named, not released
+            assert release_workers() == ["Echo-cpu-0"]
+            assert processes(own)
+    finally:
+        release_workers()
+    with pytest.raises(ValueError, match="Failed to look up actor"):
+        ray_local.get_actor("Echo-cpu-0", namespace="artnvg")

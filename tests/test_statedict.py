@@ -1,9 +1,11 @@
 """Strict state dicts: weights given to a model built without random ones, every key checked."""
 
+import threading
+
 import pytest
 import torch
 
-from artnvg_core.statedict import assign_strict, parameters_on_meta
+from artnvg_core.statedict import UNINITIALISED, assign_strict, parameters_on_meta
 from diffusion_tiny import tiny_image_encoder
 
 
@@ -95,3 +97,76 @@ def test_a_model_with_a_module_that_loads_its_own_way_goes_through_load_state_di
     model.inner[0]._register_load_state_dict_pre_hook(lambda state, prefix, *args: seen.append(prefix))
     assign_strict(model, _fitting_state(), "weights")
     assert seen == ["inner.0."] and torch.equal(model.offset, torch.full((2,), 5.0))
+
+
+def _pytorch_functions() -> dict:
+    """The functions parameters_on_meta patches, by class and name."""
+    return {(owner, name): owner.__dict__[name] for owner, name in
+            ((torch.nn.Module, "register_parameter"), *((layer, "reset_parameters") for layer in UNINITIALISED))}
+
+
+def _in_a_thread(entered: threading.Event, leave: threading.Event, built: list) -> threading.Thread:
+    """A started thread that enters parameters_on_meta, builds a Linear into ``built``, sets ``entered``, and
+    leaves the block once ``leave`` is set."""
+    def inside() -> None:
+        with parameters_on_meta():
+            built.append(torch.nn.Linear(3, 2))
+            entered.set()
+            assert leave.wait(10)
+
+    thread = threading.Thread(target=inside)
+    thread.start()
+    assert entered.wait(10)
+    return thread
+
+
+def test_two_threads_leaving_in_the_order_they_entered_leave_pytorch_unpatched():
+    """A enters, B enters, A leaves, B leaves: PyTorch's functions are the originals again (B had saved A's patch
+    and put it back for good), and each thread built its Linear on meta."""
+    originals, built = _pytorch_functions(), []
+    a_in, b_in, a_out, b_out = (threading.Event() for _ in range(4))
+    a = _in_a_thread(a_in, a_out, built)
+    b = _in_a_thread(b_in, b_out, built)
+    a_out.set()
+    a.join(10)
+    b_out.set()
+    b.join(10)
+    assert _pytorch_functions() == originals  # == on functions: identity
+    assert [linear.weight.is_meta for linear in built] == [True, True]
+    assert not torch.nn.Linear(3, 2).weight.is_meta
+
+
+def test_a_module_another_thread_builds_during_a_block_has_real_initialised_parameters():
+    """While a load runs parameters_on_meta in its thread, the caller's thread (ComfyUI's server) builds modules
+    as ever: parameters real and initialised by reset_parameters (the same values for the same seed)."""
+    torch.manual_seed(0)
+    expected = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Conv2d(2, 4, 3), torch.nn.LayerNorm(4))
+    entered, leave, built = threading.Event(), threading.Event(), []
+    thread = _in_a_thread(entered, leave, built)
+    try:
+        torch.manual_seed(0)
+        beside = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Conv2d(2, 4, 3), torch.nn.LayerNorm(4))
+        assert built[0].weight.is_meta  # the block is still open
+    finally:
+        leave.set()
+        thread.join(10)
+    assert not any(parameter.is_meta for parameter in beside.parameters())
+    for name, parameter in expected.named_parameters():
+        assert torch.equal(beside.get_parameter(name), parameter), name
+
+
+def test_blocks_nest_in_one_thread():
+    """Leaving an inner block leaves the outer one building on meta; leaving the outer one restores PyTorch."""
+    originals = _pytorch_functions()
+    with parameters_on_meta():
+        with parameters_on_meta():
+            assert torch.nn.Linear(3, 2).weight.is_meta
+        assert torch.nn.Linear(3, 2).weight.is_meta
+    assert _pytorch_functions() == originals and not torch.nn.Linear(3, 2).weight.is_meta
+
+
+def test_an_exception_inside_the_block_restores_pytorch():
+    originals = _pytorch_functions()
+    with pytest.raises(RuntimeError, match="failed load"), parameters_on_meta():
+        raise RuntimeError("failed load")
+    assert _pytorch_functions() == originals and not torch.nn.Linear(3, 2).weight.is_meta

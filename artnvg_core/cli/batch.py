@@ -22,6 +22,15 @@ exists, both its own, is skipped (``--redo`` runs it anyway); outputs are writte
 (:func:`artnvg_core.fileio.written_together`). Ctrl-C or SIGTERM stops the running jobs at their next
 Python step; a job that does not get there within 30 s has its worker killed, which may leave a hidden
 temporary (``.NAME.*.partial.*``) behind.
+
+With ``--keep-workers`` (and ``--ray-address``: a local Ray that the command starts ends with it) the workers
+stay after the batch, named Ray actors of the cluster, and the next batch with ``--keep-workers`` runs on
+them warm (their imports done, their models loaded: a worker's first job takes about 15 s more on an H200),
+starting only those missing or dead. Kept workers hold their memory, the models on each GPU, until
+``batch --release-workers --ray-address ADDR`` or ``ray stop``; they run the code they started with
+(release them after updating ArtNVG), and one batch at a time (a job handed to a worker busy with another
+batch's job fails). A stop (Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers (unless one is
+killed for not stopping within 30 s; the next batch replaces it).
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_session
+from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_joined, ray_session, release_workers
 from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
@@ -71,7 +80,8 @@ class JobResult:
 class BatchWorker:
     """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
     between jobs (:func:`artnvg_core.diffusion.loader.load_models_for` keeps the latest set). Two threads: one runs
-    the job, the other answers ``ping`` (its process id) and ``stop``."""
+    the job, the other answers ``ping`` (its process id) and ``stop``. A kept worker (``--keep-workers``) serves
+    one batch after another; a job handed to it while it runs another batch's fails at once."""
 
     def __init__(self, workers: Workers):
         self.workers = workers
@@ -99,6 +109,10 @@ class BatchWorker:
             if run in self.stopped:
                 return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker,
                             peak_gib=None, notes=[])
+            if self.running is not None:  # two batches on one kept worker: their jobs would share its folder
+                return dict(status="failed", message=f"its worker ({worker}) runs a job of another batch; run "
+                            "batches on kept workers one after another", seconds=0.0, worker=worker, peak_gib=None,
+                            notes=[])
             self.running = (run, threading.get_ident())
         notes: list[str] = []
         try:
@@ -141,11 +155,12 @@ class BatchWorker:
 
 
 class BatchPool(WorkerPool):
-    """``workers.count`` :class:`BatchWorker` actors (a :class:`~artnvg_core.cluster.WorkerPool`);
-    :meth:`run` them over jobs, as often as needed."""
+    """``workers.count`` :class:`BatchWorker` actors (a :class:`~artnvg_core.cluster.WorkerPool`, ``keep``: kept
+    for later pools); :meth:`run` them over jobs, as often as needed, each run on the workers as the last left
+    them (warm)."""
 
-    def __init__(self, workers: Workers):
-        super().__init__(BatchWorker, workers, workers)
+    def __init__(self, workers: Workers, keep: bool = False):
+        super().__init__(BatchWorker, workers, workers, keep=keep)
 
     def run(
         self,
@@ -224,8 +239,8 @@ class BatchPool(WorkerPool):
                     except Exception:  # its worker died meanwhile, or the stop came as it returned
                         continue
                     ended.append((job, _result(job, value)))
-            if late:  # a job that did not reach a Python step in time: the workers go
-                self.close()
+            if late:  # a job that did not reach a Python step in time: the workers go, kept or not
+                self.kill()
         return ended
 
 
@@ -240,15 +255,24 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
     (Ctrl-C), 143 when terminated (SIGTERM)."""
     from tqdm import tqdm
 
+    if args.release_workers:
+        return cmd_release(args)
+    if args.jobs is None:
+        raise ValueError("batch: give a JOBS file (or --release-workers)")
+    if args.keep_workers and not args.ray_address:
+        raise ValueError("--keep-workers needs --ray-address: workers are kept by a running Ray cluster (ray start "
+                         "--head), and a local Ray that this command starts ends with it")
     jobs = load_jobs(args.jobs, options)
     devices = parse_devices(args.devices)
     # the terminate handler goes in after Ray's (ray.init sets one that exits mid-call, with a C stack)
     with ray_session(devices, args.ray_address, needed_by="batch") as workers, terminate_as_interrupt() as terminated:
         place = f" of the Ray cluster at {args.ray_address}" if args.ray_address else ""
-        print(f"batch: {counted(len(jobs), 'job')} on {counted(workers.count, f'{workers.kind} worker')}{place}",
+        kept = " (kept after the batch: --release-workers ends them)" if args.keep_workers else ""
+        print(f"batch: {counted(len(jobs), 'job')} on {counted(workers.count, f'{workers.kind} worker')}{place}{kept}",
               flush=True)
         # the bar is closed however the run ends, before main prints an error below it
-        with tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True) as bar, BatchPool(workers) as pool:
+        with tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True) as bar, \
+                BatchPool(workers, keep=args.keep_workers) as pool:
             def report(kind: str, job: Job, detail) -> None:
                 if kind == "finished":
                     bar.update(1)
@@ -261,6 +285,18 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
         if result.status == "failed":
             print(f"  failed job {result.job.number}: {result.message}")
     return 143 if terminated else 130 if counts["cancelled"] else 1 if counts["failed"] else 0
+
+
+def cmd_release(args: argparse.Namespace) -> int:
+    """``batch --release-workers``: ends the workers that batches kept on the cluster at ``--ray-address``."""
+    if args.jobs is not None or args.devices or args.redo or args.keep_workers:
+        raise ValueError("--release-workers takes --ray-address alone (no JOBS, --devices, --redo or --keep-workers)")
+    if not args.ray_address:
+        raise ValueError("--release-workers needs the --ray-address of the cluster that keeps them")
+    with ray_joined(args.ray_address, needed_by="batch"):
+        names = release_workers()
+    print(f"released {counted(len(names), 'kept worker')}" + "".join(f"\n  {name}" for name in names))
+    return 0
 
 
 def _line(result: JobResult, total: int) -> str:
@@ -284,10 +320,17 @@ def add_batch_command(commands) -> None:
     options = stylize_options()
     p = commands.add_parser("batch", help="run many stylize jobs (a JSON or CSV list) over GPUs or a Ray cluster",
                             description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("jobs", help="JSON list of jobs or CSV table; each job holds stylize's options by name")
+    p.add_argument("jobs", nargs="?", help="JSON list of jobs or CSV table; each job holds stylize's options by "
+                   "name (none with --release-workers)")
     p.add_argument("--devices", help="GPUs of this machine sharing the jobs, e.g. cuda:0,cuda:1 (default: every "
                    "visible GPU, else one CPU worker; cpu,cpu: two CPU workers)")
     p.add_argument("--ray-address", help="join a running Ray cluster (auto, or HOST:PORT) instead: one worker per "
                    "GPU of the cluster")
     p.add_argument("--redo", action="store_true", help="run jobs whose output is already complete, too")
+    p.add_argument("--keep-workers", action="store_true", help="keep the workers running after the batch (needs "
+                   "--ray-address); a later batch with --keep-workers runs on them warm, their imports done and "
+                   "models loaded. They hold their GPU memory until --release-workers or `ray stop` (default: the "
+                   "workers end with the batch)")
+    p.add_argument("--release-workers", action="store_true", help="end the workers that batches kept on the cluster "
+                   "at --ray-address, run no jobs")
     p.set_defaults(run=functools.partial(cmd_batch, options=options))

@@ -330,6 +330,9 @@ def test_paths_outside_comfyuis_folders_are_refused_alike_whether_or_not_they_ex
     # a view given twice, which render --views refuses: the pack's check of the text, before the cameras are known
     ("Render Views.views=1,1", "4", "Render Views: input 'views': view 1 is given twice in '1,1'; give each view once",
      "custom_validation_failed"),
+    # past the 24 cameras Load Cameras' file holds: refused before the scene loads (it was as Render Views ran)
+    ("Render Views.views=0,30", "4", "Render Views: input 'views': view index 30 is out of range for 24 cameras "
+     "(0..23)", "custom_validation_failed"),
     # a key view twice: a zero-length segment of the path (loop returns to the first), as evaluate --views refuses
     ("Render Camera Path.key_views=0,1,1", "8", "Render Camera Path: input 'key_views': view 1 is given twice in "
      "'0,1,1'; give each view once", "custom_validation_failed"),
@@ -372,6 +375,20 @@ def test_cameras_around_scene_refuses_bad_text_before_anything_runs(comfy_server
     cameras = queue.find_node(workflow, "Cameras Around Scene")
     (error,) = errors[cameras]["errors"]
     assert error["type"] == "custom_validation_failed" and f"Cameras Around Scene: {expected}" in error["details"]
+
+
+def test_select_gaussians_in_mask_mode_without_a_mask_is_refused_before_anything_runs(comfy_server):
+    """It was refused only as it ran, after the scene had loaded; ComfyUI leaves an unconnected optional input out of
+    the prompt, so the pack's check of the prompt sees it missing."""
+    workflow = queue.load_api_workflow(REGION_API)
+    for assignment in (f"Load Gaussian Scene.scene_file={comfy_server.test_folder}/scene.ply",
+                       f"Load Cameras.camera_source={comfy_server.test_folder}/transforms.json",
+                       f"Style image.image={comfy_server.test_folder}/style.jpg", "Select Gaussians: the bear.mode=mask"):
+        queue.apply_override(workflow, assignment)
+    errors = _refused_before_any_work(comfy_server, workflow)
+    (error,) = errors[queue.find_node(workflow, "Select Gaussians: the bear")]["errors"]
+    assert error["type"] == "custom_validation_failed" and error["details"].endswith(
+        "Select Gaussians: input 'cameras': mode mask needs cameras and mask connected")
 
 
 def test_save_gaussian_scenes_message_is_labelled_with_the_input_it_names(comfy_server):
