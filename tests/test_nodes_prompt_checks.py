@@ -558,6 +558,10 @@ def test_an_optional_input_a_value_needs_connected_is_named_at_validation(execut
     # a key view twice: a zero-length segment of the path (loop returns to the first); as evaluate --views
     ("ArtNVGRenderCameraPath", {"key_views": "0, 5, 5"}, "Render Camera Path: input 'key_views': view 5 is given "
                                                          "twice in '0, 5, 5'; give each view once"),
+    # one key view: no path through it (the node ran until interpolate_path refused it, naming that function)
+    ("ArtNVGRenderCameraPath", {"path": "interpolate", "key_views": " 4,"}, "Render Camera Path: input 'key_views': a "
+                                                                            "path through views needs at least 2 key "
+                                                                            "views, got 1: [4]"),
     ("ArtNVGCamerasAroundScene", {"elevations": "10, 95"}, "Cameras Around Scene: input 'elevations': 95 degrees is "
                                                            "not an elevation in (-90, 90)"),  # once only as it ran
     ("ArtNVGCamerasAroundScene", {"up": "0, 0, 0"}, "Cameras Around Scene: input 'up': expected 3 finite numbers, "
@@ -572,3 +576,5 @@ def test_values_a_node_would_refuse_when_it_runs_are_refused_at_validation(execu
     shown, failed, targets = _validated(node_type, inputs, executing)
     assert shown == failed and shown.startswith(message) and targets == ["2"]
     assert _validated("ArtNVGRenderViews", {"views": "0, 2; 1"}, executing)[1] is None
+    for path, key_views in (("orbit", "4"), ("interpolate", ""), ("interpolate", "4, 0")):  # orbit reads none
+        assert _validated("ArtNVGRenderCameraPath", {"path": path, "key_views": key_views}, executing)[1] is None
