@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING
 
+from .counted import counted
 from .diffusion.settings import SamplerSettings
 
 if TYPE_CHECKING:
@@ -38,6 +39,11 @@ class Preset:
         """The finetune's share: ``config`` with this preset's length and views per step (the views' scale,
         :attr:`scale`, is the caller's to apply where it makes its views)."""
         return replace(config, iterations=self.finetune_iterations, views_per_step=self.views_per_step)
+
+    def finetune_words(self) -> str:
+        """The finetune's share in words, e.g. '100 iterations of 1 view each, at the views' own size'."""
+        size = "the views' own size" if self.scale == 1 else f"{self.scale:g} x the views' size"
+        return f"{counted(self.finetune_iterations, 'iteration')} of {counted(self.views_per_step, 'view')} each, at {size}"
 
     def sampler_settings(self, content_routing: str, changes: Mapping[str, object] | None = None) -> SamplerSettings:
         """The diffusion stage's share: this preset's sampler settings with ``content_routing`` and the fields of

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from artnvg_core.blend import blend, render_strengths
-from artnvg_core.counted import counted
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
@@ -50,16 +49,13 @@ class BlendStylization(ArtNVGNode):
             "Strengths shown side by side in the preview, comma-separated.")}),
     }
     VALUE_CHECKS = {"preview_strengths": parse_strengths}
+    VIEW_INPUTS = {"view": "cameras"}
 
     @cancellable
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,
               preview_strengths="0, 0.25, 0.5, 0.75, 1", node_id=None):
         with node_input(self.DISPLAY_NAME, "preview_strengths"):
             strengths = parse_strengths(preview_strengths)
-        with node_input(self.DISPLAY_NAME, "view"):
-            if cameras is not None and view >= len(cameras):
-                raise ValueError(f"the cameras have {counted(len(cameras), 'view')} (0 to {len(cameras) - 1}), "
-                                 f"got {view}")
         with node_input(self.DISPLAY_NAME):  # blend's messages name what they refuse: the two scenes, selection...
             result = blend(original, stylized, strength, selection)
             camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])

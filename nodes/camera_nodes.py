@@ -47,6 +47,18 @@ class LoadCameras(ArtNVGNode):
         return CAMERA_SOURCE.check(cls.DISPLAY_NAME, camera_source, path)
 
     @classmethod
+    def camera_count(cls, camera_source="", path="", **_other_inputs) -> int | None:
+        """How many cameras the node will load (``prompt_checks``: the view indices of the nodes it feeds, checked
+        before the graph runs); None when its file does not load (:meth:`check_files` or the node names it) or an input
+        comes through a link (a ``[node id, slot]``: known as the graph runs)."""
+        if not (isinstance(camera_source, str) and isinstance(path, str)) or cls.check_files(camera_source, path):
+            return None
+        try:
+            return len(load_cameras(CAMERA_SOURCE.resolve(camera_source, path)[0]))
+        except (OSError, ValueError):
+            return None
+
+    @classmethod
     def IS_CHANGED(cls, camera_source, path="", node_id=None):
         return CAMERA_SOURCE.signature(camera_source, path)
 
@@ -83,6 +95,12 @@ class CamerasAroundScene(ArtNVGNode):
             "1: the main subject just fills the view; larger shows more of the surroundings.")}),
     }
     VALUE_CHECKS = {"up": parse_up, "elevations": parse_elevations}  # as orbit_cameras reads them
+
+    @classmethod
+    def camera_count(cls, count=None, **_other_inputs) -> int | None:
+        """How many cameras the node will place (``prompt_checks``, as :meth:`LoadCameras.camera_count`): ``count``
+        when it is one the node takes, else None (through a link: known as the graph runs)."""
+        return count if isinstance(count, int) and cls.check_values(count=count) is None else None
 
     def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor, node_id=None):
         with node_input(self.DISPLAY_NAME):

@@ -107,9 +107,8 @@ class FinetuneGaussians(ArtNVGNode):
             "Without stylized_views: match the scene's colours to the style image's mean and covariance "
             "before and after finetuning, as ARF does (exact, no extra iterations).")}),
         "preset": (PRESET_CHOICES, {"default": "custom", "tooltip": (
-            f"preview: a first look in seconds: {_PREVIEW.finetune_iterations} iterations of "
-            f"{_PREVIEW.views_per_step} views at {_PREVIEW.scale:g} x the cameras' size replace iterations, "
-            "views_per_step and the size (BENCHMARKS.md, First look); custom: the inputs as set.")}),
+            f"preview: a first look in seconds (BENCHMARKS.md, First look): {_PREVIEW.finetune_words()}, in place of "
+            "iterations, views_per_step and the views' size; custom: the inputs as set.")}),
         "views_per_step": ("INT", {"default": _DEFAULTS.views_per_step, "min": 1, "max": 64, "tooltip": (
             "Views rendered and compared per step, their losses averaged.")}),
         "nnfm_search": (SEARCH_PRECISIONS, {"default": _DEFAULTS.nnfm_search, "tooltip": (

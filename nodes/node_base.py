@@ -13,7 +13,8 @@ input in the error; a loader's file input is declared, found and checked by an
 will pass them (:func:`comfyui_value`), to the declared types, ranges and choices before anything runs
 (``prompt_checks``; an input also to what the node's ``VALUE_CHECKS`` read from it), :meth:`ArtNVGNode.check_links`
 the prompt's links to the optional inputs a value needs connected (``NEEDS_LINKS``: Select Gaussians' mode mask its
-cameras and mask), and
+cameras and mask), :meth:`ArtNVGNode.check_views` a view index against the count of the cameras it indexes where
+that is known (``VIEW_INPUTS``: a Load Cameras' file read), and
 :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
 ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS``), which ComfyUI labels with the one
 input that function takes, ``REPORTED_INPUT``: the hidden input :data:`~.prompt_checks.CHECK_INPUT` (the node id,
@@ -36,6 +37,7 @@ from collections.abc import Callable, Collection, Iterator
 
 import torch
 
+from artnvg_core.cameras.selection import check_view_index, parse_views
 from artnvg_core.style_image import check_style_size
 
 from .node_errors import NodeInputError
@@ -136,6 +138,8 @@ class ArtNVGNode:
     VALUE_CHECKS: dict = {}  # input name -> the function (value, once of its declared type and range) -> anything
     # the node reads it with when it runs, raising ValueError for a value it refuses (text it cannot read, a number
     # the declared range lets through): checked with the prompt's values, before the graph runs
+    VIEW_INPUTS: dict = {}  # input name (a view list's text, or an INT view) -> the CAMERAS input whose views it
+    # indexes: checked against their count where it is known before the graph runs (a Load Cameras' file)
     NEEDS_LINKS: dict = {}  # input name -> {a value of it -> the optional inputs the node then needs connected}:
     # checked with the prompt's links, before the graph runs (an unconnected optional input is not in the prompt)
 
@@ -230,6 +234,26 @@ class ArtNVGNode:
         return None
 
     @classmethod
+    def check_views(cls, camera_count: Callable[[str], int | None], **values) -> str | None:
+        """The message naming the first input of :attr:`VIEW_INPUTS` among ``values`` (input name -> a prompt's value)
+        that indexes a view past the last of its cameras, whose count ``camera_count(cameras input)`` gives where
+        known (else None), else None. Run after :meth:`check_values`, which refuses text that is no view list."""
+        passed = cls.passed_values(values)
+        for name, cameras in cls.VIEW_INPUTS.items():
+            value = passed.get(name)
+            count = camera_count(cameras) if value is not None else None
+            if count is None:
+                continue
+            try:
+                if isinstance(value, str):
+                    parse_views(value, count)
+                elif isinstance(value, int) and not isinstance(value, bool):
+                    check_view_index(value, count)
+            except ValueError as error:
+                return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
+        return None
+
+    @classmethod
     def unreported_value(cls, **values) -> str | None:
         """As :meth:`check_values`, for the values ComfyUI's own validation lets through (a FLOAT NaN, a COMBO's
         value that is not text, a BOOLEAN's that is; it reports the others itself, so a message of ours would
@@ -244,7 +268,8 @@ class ArtNVGNode:
         first input that is not what its declared type holds (:data:`~.node_types.RUN_TYPES`: another pack's output
         of type ``*`` passes ComfyUI's link check, and ComfyUI passes it as it is: 2.5 to an INT), or that
         :meth:`check_values` refuses (a value through a link meets no prompt check), or an optional input left
-        unconnected that :meth:`check_links` needs (an input given counts as linked). Inputs declared by a function
+        unconnected that :meth:`check_links` needs (an input given counts as linked), or a view index past the
+        cameras given (:meth:`check_views`). Inputs declared by a function
         (a loader's file list, ComfyUI's samplers) are left to the node, whose message says more."""
         declared = _declared({name: entry for name, entry in {**cls.REQUIRED, **cls.OPTIONAL}.items()
                               if name in inputs and not callable(entry)})
@@ -254,7 +279,8 @@ class ArtNVGNode:
             problem = _run_type_problem(declared[name][0], value)
             if problem:
                 raise NodeInputError(f"{cls.DISPLAY_NAME}: input '{name}': {problem}")
-        problem = cls.check_values(**given) or cls.check_links(given.keys(), **given)
+        problem = (cls.check_values(**given) or cls.check_links(given.keys(), **given)
+                   or cls.check_views(lambda cameras: len(given[cameras]) if cameras in given else None, **given))
         if problem:
             raise NodeInputError(problem)
         return {name: RUN_TYPES[declared[name][0]].cls(value) for name, value in given.items()

@@ -9,7 +9,9 @@ So the pack registers :func:`check_prompt` as an on-prompt handler. For each nod
 class has ``check_values(**inputs) -> str | None`` (every node of the pack: its values of their declared
 types, within their declared ranges and choices, read as ComfyUI will pass them: ``"nan"`` and
 ``{"__value__": NaN}`` are a FLOAT NaN), ``check_links(linked input names, **inputs) -> str | None`` (every node of
-the pack: the optional inputs a value needs connected) or ``check_files(**inputs) -> str | None`` (the loaders, given
+the pack: the optional inputs a value needs connected), ``check_views(camera count of a CAMERAS input, **inputs)``
+(every node of the pack: view indices past the last camera, where a node such as Load Cameras gives the count before
+the graph runs: ``camera_count``) or ``check_files(**inputs) -> str | None`` (the loaders, given
 the values as ComfyUI passes them), it runs those checks on the node's values, and ``check_images`` on the
 size of each image a stock Load Image feeds it (every node of the pack: a style image's shape); a message
 is kept under (prompt id, node id). When any node fails, the prompt's execution targets become the outputs
@@ -107,6 +109,19 @@ def _loaded_image_size(prompt: dict, node: dict, input_name: str) -> tuple[int, 
         return None
 
 
+def _camera_count(prompt: dict, node: dict, classes: Mapping[str, type], input_name: str) -> int | None:
+    """How many cameras input ``input_name`` of ``node`` will get, where the node feeding it (its output 0) says so
+    before the graph runs (its class's ``camera_count(**inputs)``, given its values as ComfyUI passes them and its
+    links as ``[node id, slot]``: Load Cameras reads its file); None for another source."""
+    link = _inputs(node).get(input_name)
+    source = prompt.get(str(link[0])) if isinstance(link, list) and len(link) == 2 and link[1] == 0 else None
+    cls = classes.get(source.get("class_type")) if isinstance(source, dict) else None
+    if not hasattr(cls, "camera_count"):
+        return None
+    values = {name: value for name, value in _inputs(source).items() if not isinstance(value, list)}
+    return cls.camera_count(**{**_inputs(source), **cls.passed_values(values)})
+
+
 def _listed(loader: type | None, input_name: str) -> list:
     """The choices ComfyUI's loader class ``loader`` lists now for its input ``input_name``, to which ComfyUI's own
     validation holds the value: its folder's files, and names that are no file (Load VAE's 'pixel_space'); [] without
@@ -179,6 +194,8 @@ def _checked(prompt: dict, classes: Mapping[str, type]) -> dict[str, tuple[str, 
         message = cls.check_files(**passed) if hasattr(cls, "check_files") else None
         if not message and hasattr(cls, "check_links"):  # an unconnected optional input is not in the prompt
             message = cls.check_links(_links(node).keys(), **passed)
+        if not message and hasattr(cls, "check_views"):
+            message = cls.check_views(functools.partial(_camera_count, prompt, node, classes), **passed)
         if not message and hasattr(cls, "check_images"):
             message = cls.check_images(functools.partial(_loaded_image_size, prompt, node))
         if not message and hasattr(cls, "check_images"):  # a node of the pack

@@ -7,6 +7,7 @@ import functools
 import torch
 
 from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
+from artnvg_core.cameras.paths import check_key_views
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.counted import counted
 from artnvg_core.key_views import select_key_views
@@ -71,6 +72,7 @@ class RenderViews(ArtNVGNode):
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
     VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
+    VIEW_INPUTS = {"views": "cameras"}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -111,6 +113,24 @@ class RenderCameraPath(ArtNVGNode):
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
     VALUE_CHECKS = {"key_views": EACH_VIEW_ONCE}
+
+    @classmethod
+    def _value_problems(cls, values: dict):
+        """The base's problems, then an interpolated path's key_views that list fewer than two views (checked with
+        the prompt's values too, though it reads the path; blank, every view, is left to the camera count)."""
+        yield from super()._value_problems(values)
+        passed = cls.passed_values(values)
+        key_views = passed.get("key_views")
+        if passed.get("path") != "interpolate" or not isinstance(key_views, str) or not key_views.strip():
+            return
+        try:
+            listed = EACH_VIEW_ONCE(key_views)
+        except ValueError:  # the base refused it
+            return
+        try:
+            check_key_views(listed)
+        except ValueError as error:
+            yield f"{cls.DISPLAY_NAME}: input 'key_views': {error}", False
 
     @cancellable
     def render(self, scene, cameras, path, scale, num_frames, key_views, frames_per_segment, loop, node_id=None):

@@ -8,6 +8,7 @@ import torch
 
 from artnvg_core.cameras import CameraSet, load_cameras
 from artnvg_core.finetune import FinetuneConfig, finetune
+from artnvg_core.presets import PRESETS
 from artnvg_core.scene import GaussianScene
 from artnvg_core.stylize import DemoInputs
 from node_calls import SCALE, bear, call, same_scene, small_bear  # noqa: F401  (fixtures)
@@ -78,3 +79,9 @@ def test_finetune_node_preview_preset_is_the_cores_preview(small_bear, bear, mon
                             optimize="appearance", seed=3, nnfm_search="fp32", **weights)
     expected = finetune(small_bear, cameras.scaled(preview.scale), style[0], config=config)
     assert same_scene(result, expected)
+
+
+def test_finetune_node_preset_tooltip_says_what_preview_sets_in_words():
+    tooltip = FinetuneGaussians.INPUT_TYPES()["optional"]["preset"][1]["tooltip"]
+    assert f"preview: a first look in seconds (BENCHMARKS.md, First look): {PRESETS['preview'].finetune_words()}, " in tooltip
+    assert "1 views" not in tooltip and "1 x" not in tooltip

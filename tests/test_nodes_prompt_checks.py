@@ -380,6 +380,40 @@ def test_a_style_image_a_load_image_feeds_in_is_checked_before_the_graph_runs(tm
     assert failed_checks(prompt, classes) == {}
 
 
+def test_view_indices_past_the_cameras_a_loader_gives_are_refused_before_the_graph_runs(tmp_path, monkeypatch):
+    """Render Views' views and Blend Stylization's view were checked against the cameras only as the nodes ran, after
+    the nodes before them (the scene's load, a finetune); the count is known as soon as Load Cameras' file is, or
+    Cameras Around Scene's count: each names the node, the input, the index and the range."""
+    import shutil
+
+    from artnvg_core.stylize import DemoInputs
+    from nodes import NODE_CLASS_MAPPINGS
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "input").mkdir()
+    shutil.copyfile(DemoInputs().cameras, tmp_path / "input" / "transforms.json")  # 24 cameras
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    prompt = {"1": {"class_type": "ArtNVGLoadCameras", "inputs": {"camera_source": "transforms.json", "path": ""}},
+              "2": {"class_type": "ArtNVGRenderViews", "inputs": {"cameras": ["1", 0], "views": "0, 24", "stride": 1}},
+              "3": {"class_type": "ArtNVGBlendStylization", "inputs": {"cameras": ["1", 0], "view": 30, "strength": 1}},
+              "4": {"class_type": "ArtNVGCamerasAroundScene", "inputs": {"count": 3, "scene": ["9", 0]}},
+              "5": {"class_type": "ArtNVGRenderViews", "inputs": {"cameras": ["4", 0], "views": "3", "stride": 1}},
+              "6": {"class_type": "Output", "inputs": {"a": ["2", 0], "b": ["3", 0]}},
+              "7": {"class_type": "Output", "inputs": {"a": ["5", 0]}}, "8": {"class_type": "Output", "inputs": {}}}
+    assert failed_checks(prompt, classes) == {
+        "2": "Render Views: input 'views': view index 24 is out of range for 24 cameras (0..23)",
+        "3": "Blend Stylization: input 'view': view index 30 is out of range for 24 cameras (0..23)",
+        "5": "Render Views: input 'views': view index 3 is out of range for 3 cameras (0..2)"}
+    assert check_prompt({"prompt": prompt}, classes)["partial_execution_targets"] == ["6", "7"]
+    prompt["2"]["inputs"]["views"], prompt["3"]["inputs"]["view"], prompt["5"]["inputs"]["views"] = "0, 23", 23, "2"
+    assert failed_checks(prompt, classes) == {}
+    prompt["2"]["inputs"]["views"], prompt["5"]["inputs"]["views"] = "99", "99"
+    for unknown in ({"camera_source": "missing.json", "path": ""},  # Load Cameras names it
+                    {"camera_source": "transforms.json", "path": ["10", 0]}):  # a path through a link: known as it runs
+        prompt["1"]["inputs"], prompt["4"]["inputs"]["count"] = unknown, ["11", 0]
+        assert set(failed_checks(prompt, classes)) <= {"1"}
+
+
 def _inputs_of_type(kind: str) -> list[tuple[str, type, str, dict]]:
     """(node type, class, input name, options) of every input of type ``kind`` of every node of the pack."""
     from nodes import NODE_CLASS_MAPPINGS
@@ -524,6 +558,10 @@ def test_an_optional_input_a_value_needs_connected_is_named_at_validation(execut
     # a key view twice: a zero-length segment of the path (loop returns to the first); as evaluate --views
     ("ArtNVGRenderCameraPath", {"key_views": "0, 5, 5"}, "Render Camera Path: input 'key_views': view 5 is given "
                                                          "twice in '0, 5, 5'; give each view once"),
+    # one key view: no path through it (the node ran until interpolate_path refused it, naming that function)
+    ("ArtNVGRenderCameraPath", {"path": "interpolate", "key_views": " 4,"}, "Render Camera Path: input 'key_views': a "
+                                                                            "path through views needs at least 2 key "
+                                                                            "views, got 1: [4]"),
     ("ArtNVGCamerasAroundScene", {"elevations": "10, 95"}, "Cameras Around Scene: input 'elevations': 95 degrees is "
                                                            "not an elevation in (-90, 90)"),  # once only as it ran
     ("ArtNVGCamerasAroundScene", {"up": "0, 0, 0"}, "Cameras Around Scene: input 'up': expected 3 finite numbers, "
@@ -534,7 +572,9 @@ def test_an_optional_input_a_value_needs_connected_is_named_at_validation(execut
 ])
 def test_values_a_node_would_refuse_when_it_runs_are_refused_at_validation(executing, node_type, inputs, message):
     """A node's VALUE_CHECKS: the parser it reads the text (or number) with, run before the graph runs (the camera
-    count is not known then: an index past the last view is refused when the node runs)."""
+    count is not known here: an index past the last view is refused where Load Cameras gives the count)."""
     shown, failed, targets = _validated(node_type, inputs, executing)
     assert shown == failed and shown.startswith(message) and targets == ["2"]
     assert _validated("ArtNVGRenderViews", {"views": "0, 2; 1"}, executing)[1] is None
+    for path, key_views in (("orbit", "4"), ("interpolate", ""), ("interpolate", "4, 0")):  # orbit reads none
+        assert _validated("ArtNVGRenderCameraPath", {"path": path, "key_views": key_views}, executing)[1] is None

@@ -78,3 +78,11 @@ def test_a_preset_gives_its_sampler_settings_with_the_changes_and_refuses_unknow
         fast.sampler_settings("released", {"stpes": 9})
     with pytest.raises(ValueError, match="diffusion-free"):
         get_preset("preview").sampler_settings("released")
+
+
+def test_a_presets_finetune_share_reads_as_words():
+    """The Finetune node's tooltip quotes it: one view, not '1 views'; the views' own size, not '1 x' it."""
+    preview = get_preset("preview")
+    assert preview.finetune_words() == "100 iterations of 1 view each, at the views' own size"
+    halved = dataclasses.replace(preview, finetune_iterations=1, views_per_step=4, scale=0.5)
+    assert halved.finetune_words() == "1 iteration of 4 views each, at 0.5 x the views' size"

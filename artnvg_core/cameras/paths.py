@@ -114,6 +114,12 @@ def _catmull_rom(points: torch.Tensor, steps: int, loop: bool) -> torch.Tensor:
     return torch.cat(segments)
 
 
+def check_key_views(indices: list[int]) -> None:
+    """ValueError unless ``indices`` name at least two views, the fewest a path through views passes through."""
+    if len(indices) < 2:
+        raise ValueError(f"a path through views needs at least 2 key views, got {len(indices)}: {indices}")
+
+
 def interpolate_path(
     cameras: CameraSet, view_indices, frames_per_segment: int = 30, *, loop: bool = False
 ) -> CameraSet:
@@ -127,8 +133,7 @@ def interpolate_path(
     repeated). Views use the first key view's intrinsics and image size.
     """
     indices = [int(i) for i in view_indices]
-    if len(indices) < 2:
-        raise ValueError(f"interpolate_path: need at least 2 view indices, got {len(indices)}")
+    check_key_views(indices)
     if int(frames_per_segment) != frames_per_segment or frames_per_segment < 1:
         raise ValueError(f"interpolate_path: frames_per_segment must be a positive integer, got {frames_per_segment!r}")
     steps = int(frames_per_segment)

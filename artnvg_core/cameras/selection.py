@@ -38,6 +38,14 @@ def listed_views(text: str | None, what: str | None = None, *, distinct: bool = 
     return indices
 
 
+def check_view_index(index: int, count: int, what: str | None = None) -> None:
+    """ValueError naming the view index ``index`` (>= 0), after ``what:`` when given, and the valid range when it lies
+    past the last of ``count`` views."""
+    if index >= count:
+        where = f"{what}: " if what else ""
+        raise ValueError(f"{where}view index {index} is out of range for {counted(count, 'camera')} (0..{count - 1})")
+
+
 def parse_views(text: str | None, count: int, what: str | None = None, *, distinct: bool = False) -> list[int]:
     """Indices from ``text`` (the module's grammar) for a set of ``count`` views: every view when blank.
 
@@ -45,8 +53,5 @@ def parse_views(text: str | None, count: int, what: str | None = None, *, distin
     """
     indices = listed_views(text, what, distinct=distinct)
     for index in indices:
-        if index >= count:
-            where = f"{what}: " if what else ""
-            raise ValueError(f"{where}view index {index} is out of range for {counted(count, 'camera')} "
-                             f"(0..{count - 1})")
+        check_view_index(index, count, what)
     return indices or list(range(count))
