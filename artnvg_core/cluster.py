@@ -9,8 +9,8 @@
 * :func:`to_wire` and :func:`from_wire`: a tensor as a task's argument or result (a NumPy array, which
   Ray passes through its shared store without pickling) and back.
 * :class:`WorkerPool` holds the worker actors, its own or, kept, named ones that outlive it (a later pool
-  of a later process reuses those alive, so their imports and loaded models); :func:`release_workers`
-  ends the kept ones. :func:`dispatch` hands tasks to them in the order
+  of a later process reuses those alive, so their imports and loaded models); :func:`kept_workers` names
+  the kept ones and :func:`release_workers` ends them. :func:`dispatch` hands tasks to them in the order
   given, one at a time per actor or, with ``per_actor=2``, the next one while it runs one (so that
   the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
   killed process, a lost machine) is handed again to the next idle actor; the dead actor restarts by
@@ -258,12 +258,18 @@ class WorkerPool:
         self.actors = []
 
 
+def kept_workers() -> list[str]:
+    """The names of the kept workers (:class:`WorkerPool`'s ``keep``) of the cluster Ray is connected to,
+    whichever process started them, sorted."""
+    ray = import_ray("kept_workers")
+    return sorted(actor["name"] for actor in ray.util.list_named_actors(all_namespaces=True)
+                  if actor["namespace"] == KEPT_NAMESPACE)
+
+
 def release_workers() -> list[str]:
-    """Ends every kept worker (:class:`WorkerPool`'s ``keep``) of the cluster Ray is connected to
-    (:func:`ray_joined`), whichever process started it; returns their names, sorted."""
+    """Ends every kept worker of the cluster Ray is connected to (:func:`ray_joined`); returns their names."""
     ray = import_ray("release_workers")
-    names = sorted(actor["name"] for actor in ray.util.list_named_actors(all_namespaces=True)
-                   if actor["namespace"] == KEPT_NAMESPACE)
+    names = kept_workers()
     for name in names:
         ray.kill(ray.get_actor(name, namespace=KEPT_NAMESPACE))
     return names
