@@ -134,7 +134,7 @@ def ray_joined(address: str | None, *, needed_by: str) -> Iterator[Any]:
     ray = import_ray(needed_by)
     joined = not ray.is_initialized()
     if joined:
-        ray.init(address=address, **_QUIET)
+        _init(ray, address=address)
     try:
         yield ray
     finally:
@@ -143,6 +143,25 @@ def ray_joined(address: str | None, *, needed_by: str) -> Iterator[Any]:
 
 
 _QUIET = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+# Ray's notice, as a local cluster starts (or one found with "auto" is joined), that it turned token authentication
+# on: Ray made the token itself (~/.ray/auth_token), nothing for our users to do. Ray 2.5x on logs it as a warning.
+TOKEN_NOTICE_LOGGER = "ray._private.authentication.authentication_token_setup"
+TOKEN_NOTICE = "Token authentication is enabled for this Ray cluster"
+
+
+def _init(ray, **options) -> None:
+    """``ray.init(**options)`` quietly: no dashboard, Ray's own INFO lines hidden and its token notice
+    (:data:`TOKEN_NOTICE`) dropped; its other warnings and errors, and what the workers print, still shown."""
+    logger = logging.getLogger(TOKEN_NOTICE_LOGGER)
+
+    def not_the_token_notice(record: logging.LogRecord) -> bool:
+        return TOKEN_NOTICE not in record.getMessage()
+
+    logger.addFilter(not_the_token_notice)
+    try:
+        ray.init(**options, **_QUIET)
+    finally:
+        logger.removeFilter(not_the_token_notice)
 
 
 def _local_default() -> Workers:
@@ -154,7 +173,7 @@ def _start_local(ray, workers: Workers, devices) -> None:
     """A local Ray instance with ``workers``' resources; for CUDA devices only the GPUs named are visible
     to it (Ray's GPU list is the CUDA_VISIBLE_DEVICES of the process that starts it)."""
     if workers.kind == "cpu":
-        ray.init(num_cpus=workers.count, num_gpus=0, **_QUIET)
+        _init(ray, num_cpus=workers.count, num_gpus=0)
         return
     indices = [torch.device(d).index or 0 for d in devices] if devices else list(range(workers.count))
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
@@ -164,7 +183,7 @@ def _start_local(ray, workers: Workers, devices) -> None:
                          f"{counted(len(physical), 'CUDA device')}")
     try:
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(physical[i] for i in indices)
-        ray.init(num_gpus=len(indices), **_QUIET)
+        _init(ray, num_gpus=len(indices))
     finally:
         if visible is None:
             del os.environ["CUDA_VISIBLE_DEVICES"]

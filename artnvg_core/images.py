@@ -176,6 +176,18 @@ def save_png(image: torch.Tensor, path: str | os.PathLike) -> None:
     write_atomically(path, lambda stream: pil.save(stream, format="PNG", compress_level=1))
 
 
+def same_aspect(width: int, height: int, other_width: int, other_height: int) -> bool:
+    """Whether ``width`` x ``height`` pixels and ``other_width`` x ``other_height`` pixels can have one aspect
+    within a pixel's rounding: some aspect gives both sizes with each side rounded to whole pixels (an image of a
+    view rendered at another scale), so that resizing one to the other stretches neither."""
+    def aspects(w: int, h: int) -> tuple[float, float]:  # those whose sides round to w x h
+        return (w - 0.5) / (h + 0.5), (w + 0.5) / (h - 0.5)
+
+    low, high = aspects(width, height)
+    other_low, other_high = aspects(other_width, other_height)
+    return low <= other_high and other_low <= high
+
+
 def resize_image(image: torch.Tensor, height: int, width: int, *, mode: str = "bilinear") -> torch.Tensor:
     """Resize [H, W, 3] or [B, H, W, 3] (``mode`` "bilinear" or "bicubic", antialiased when
     shrinking, clamped to [0, 1]); an image already of that size is returned as it is."""

@@ -24,7 +24,7 @@ import torch
 
 from .cameras import CameraSet
 from .counted import counted
-from .images import resize_image
+from .images import resize_image, same_aspect
 from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import SH_C0, GaussianScene
@@ -134,13 +134,9 @@ def check_mask_size(mask_width: int, mask_height: int, view_width: int, view_hei
     """ValueError naming ``what`` (the mask's file or input), its size and the view's unless a mask of
     ``mask_width`` x ``mask_height`` pixels has the aspect of its view's ``view_width`` x ``view_height`` within a
     pixel's rounding: some aspect gives both sizes with each side rounded to whole pixels (a mask painted on a
-    render of the view at another scale), and the mask is resized to the view; another would be stretched."""
-    def aspects(width: int, height: int) -> tuple[float, float]:  # those whose sides round to width x height
-        return (width - 0.5) / (height + 0.5), (width + 0.5) / (height - 0.5)
-
-    mask_low, mask_high = aspects(mask_width, mask_height)
-    view_low, view_high = aspects(view_width, view_height)
-    if mask_low > view_high or view_low > mask_high:
+    render of the view at another scale, :func:`~artnvg_core.images.same_aspect`), and the mask is resized to the view;
+    another would be stretched."""
+    if not same_aspect(mask_width, mask_height, view_width, view_height):
         raise ValueError(f"{what}: {mask_width}x{mask_height} pixels, not the aspect of its view's "
                          f"{view_width}x{view_height} (it would be stretched); paint the mask on a render of the view, "
                          "at any scale")

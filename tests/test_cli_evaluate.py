@@ -141,14 +141,20 @@ def test_cli_reports_bad_input_with_exit_code_2(inputs, tmp_path, capsys):
 def test_view_images_and_model_files_are_named_before_the_scene_loads(inputs, tmp_path, capsys):
     """A folder of 2D views missing one, or a --vgg that is no VGG, was named only after every view and path
     rendered."""
-    images, broken = tmp_path / "views", tmp_path / "broken"
-    images.mkdir()
-    broken.mkdir()
-    for name in load_cameras(inputs["cameras"]).subset([int(v) for v in VIEWS.split(",")]).names:
+    images, broken, wide = tmp_path / "views", tmp_path / "broken", tmp_path / "wide"
+    for folder in (images, broken, wide):
+        folder.mkdir()
+    names = load_cameras(inputs["cameras"]).subset([int(v) for v in VIEWS.split(",")]).names
+    for name in names:
         (broken / f"{name}.png").write_text("not an image")
+        size = (64, 66) if name == names[-1] else (128, 128)  # the views: 512x512; 128x128 is resized
+        save_png(torch.zeros(*size, 3), wide / f"{name}.png")
     for options, message in [(["--stylized-images", str(tmp_path / "none")], r"--stylized-images: .*none is not a folder"),
                              (["--stylized-images", str(images)], r"--stylized-images: .*views has no image for view "),
                              (["--stylized-images", str(broken)], r"--stylized-images: .*\.png: not a readable image"),
+                             # it was stretched to the views' 512x512
+                             (["--stylized-images", str(wide)], rf"--stylized-images: .*wide/{names[-1]}\.png: 66x64 "
+                              r"pixels, not the aspect of the evaluated views' 512x512 \(it would be stretched\)"),
                              (["--stylized", str(inputs["original"]), "--vgg", str(inputs["style"])],
                               r"--vgg: weights .*: not a readable torch file")]:
         code = main(["evaluate", "--original", str(inputs["original"]), *options, "--cameras", str(inputs["cameras"]),
@@ -165,6 +171,10 @@ def test_input_errors_name_the_problem(inputs, tmp_path):
     with pytest.raises(ValueError, match="is not a folder"):
         load_view_images(tmp_path / "nothing", cameras)
     assert load_view_images(tmp_path, cameras.subset([0]).scaled(0.05)).shape == (1, 26, 26, 3)  # resized
+    save_png(torch.zeros(8, 12, 3), tmp_path / f"{cameras.names[0]}.png")  # it was stretched to 26x26
+    with pytest.raises(ValueError, match=rf"--stylized-images: .*{cameras.names[0]}\.png: 12x8 pixels, not the aspect "
+                                         r"of the evaluated views' 26x26 \(it would be stretched\)"):
+        load_view_images(tmp_path, cameras.subset([0]).scaled(0.05))
     with pytest.raises(ValueError, match="--path interp: needs at least 2"):
         camera_path(cameras, [0], "interp", 10, 1.0)
     with pytest.raises(ValueError, match="--frames: need at least 2"):

@@ -2,7 +2,9 @@
 order of dispatch's hand-outs on a local Ray cluster (its retries are tested through GroupExecutor and
 batch)."""
 
+import logging
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -11,6 +13,7 @@ import torch
 
 from artnvg_core.cli import main as cli
 from artnvg_core.cluster import RayUnavailable, Workers, from_wire, plan_workers, ray_session, to_wire
+from child_process import child_env
 
 
 def test_devices_become_workers_of_one_kind():
@@ -52,6 +55,49 @@ def test_without_ray_the_options_that_need_it_say_how_to_install_it(monkeypatch,
     (tmp_path / "jobs.json").write_text('[{"scene": "a.ply", "out": "a.ply"}]')
     assert cli.main(["batch", str(tmp_path / "jobs.json")]) == 2
     assert "error: batch needs Ray, which is not installed" in capsys.readouterr().err
+
+
+class _Kept(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def test_rays_token_notice_is_dropped_as_ray_starts_and_its_other_records_kept(monkeypatch):
+    """``artnvg batch`` printed Ray's 'Token authentication is enabled for this Ray cluster ...' to the terminal:
+    dropped while Ray starts, exactly; a warning or error of Ray's, and the notice outside that call, are logged."""
+    notice = ("Token authentication is enabled for this Ray cluster. Set RAY_AUTH_MODE=disabled to opt out. For more "
+              "information, see https://docs.ray.io/en/latest/ray-security/token-auth.html")
+    logger = logging.getLogger("ray._private.authentication.authentication_token_setup")  # Ray 2.60's
+    kept = _Kept()
+    logger.addHandler(kept)
+    ray = type(sys)("ray")
+    ray.is_initialized = lambda: False
+    ray.init = lambda **options: [logger.warning(notice), logger.error("the token file is unreadable")]
+    ray.shutdown = lambda: None
+    monkeypatch.setitem(sys.modules, "ray", ray)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    try:
+        with ray_session(None, needed_by="batch") as workers:
+            assert workers == Workers("cpu", 1)
+        logger.warning(notice)
+    finally:
+        logger.removeHandler(kept)
+    assert kept.messages == ["the token file is unreadable", notice]
+
+
+@pytest.mark.slow
+def test_a_local_ray_starts_without_printing_its_notices():
+    """The real thing, in a child process as the command line runs it (RAY_AUTH_MODE unset, as a user's shell has
+    it: set, Ray says nothing)."""
+    script = "from artnvg_core.cluster import ray_session\nwith ray_session(['cpu']):\n    print('inside')\n"
+    env = {name: value for name, value in child_env().items() if name != "RAY_AUTH_MODE"}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0 and result.stdout == "inside\n", result
+    assert "Token authentication" not in result.stderr and "WARNING" not in result.stderr, result.stderr
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.uint8, torch.bfloat16])

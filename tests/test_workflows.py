@@ -458,6 +458,8 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
     reject = False
     partial = False  # /prompt queues the workflow but reports node_errors, as ComfyUI does when some outputs validate
     posted: ClassVar[list] = []
+    running: ClassVar[list] = []  # prompt ids /queue lists as running and pending; abc in either has not ended
+    pending: ClassVar[list] = []
 
     def _answer(self, code: int, payload: dict) -> None:
         body = json.dumps(payload).encode()
@@ -488,7 +490,15 @@ class _FakeServer(http.server.BaseHTTPRequestHandler):
             self._answer(200, {"prompt_id": "abc", "number": 0, "node_errors": {}})
 
     def do_GET(self):
+        if self.path == "/queue":
+            listed = {name: [[number, prompt_id, {}, {}, []] for number, prompt_id in enumerate(ids)]
+                      for name, ids in (("queue_running", self.running), ("queue_pending", self.pending))}
+            self._answer(200, listed)
+            return
         assert self.path == "/history/abc"
+        if "abc" in self.running + self.pending:
+            self._answer(200, {})
+            return
         self._answer(200, {"abc": _history_entry("success", [], {"7": {"scenes": [
             {"filename": "nnfm_00001.ply", "subfolder": "artnvg", "type": "output"}]}})})
 
@@ -505,6 +515,7 @@ def fake_server():
     yield f"http://127.0.0.1:{server.server_address[1]}"
     server.shutdown()
     _FakeServer.reject = _FakeServer.partial = False
+    _FakeServer.running, _FakeServer.pending = [], []
 
 
 def test_main_queues_waits_and_reports(queue, fake_server, capsys):
@@ -532,9 +543,22 @@ def test_main_reports_rejections_and_unreachable_servers(queue, fake_server, cap
 
 
 def test_node_errors_in_an_accepted_prompt_are_a_failure_and_the_prompt_is_withdrawn(queue, fake_server, capsys):
-    _FakeServer.partial = True
+    _FakeServer.partial, _FakeServer.running = True, ["abc"]  # it started at once
     assert queue.main([str(NNFM_API), "--server", fake_server, "--set", "Finetune Gaussians.iterations=-1"]) == 2
     assert ("node 6 (Finetune Gaussians), input 'iterations': Value smaller than min: iterations -1 < 1"
             in capsys.readouterr().err)
     assert [path for path, _ in _FakeServer.posted] == ["/prompt", "/queue", "/interrupt"]
     assert _FakeServer.posted[1][1] == {"delete": ["abc"]} and _FakeServer.posted[2][1] == {"prompt_id": "abc"}
+
+
+@pytest.mark.parametrize("running, pending, posted, done", [
+    (["abc"], ["xyz"], [("/queue", {"delete": ["abc"]}), ("/interrupt", {"prompt_id": "abc"})], "interrupted it"),
+    (["xyz"], ["abc"], [("/queue", {"delete": ["abc"]})], "deleted it from the queue before it started"),
+])
+def test_a_run_past_its_timeout_is_taken_off_the_server(queue, fake_server, capsys, running, pending, posted, done):
+    """It went on running on the server after the script had given up on it. Our prompt is interrupted only when it
+    is the one running, never another client's (xyz); a pending one is deleted from the queue."""
+    _FakeServer.running, _FakeServer.pending = running, pending
+    assert queue.main([str(NNFM_API), "--server", fake_server, "--timeout", "0"]) == 3
+    assert capsys.readouterr().err.splitlines()[-1] == f"error: prompt abc did not finish within 0 s; {done}"
+    assert _FakeServer.posted[1:] == posted

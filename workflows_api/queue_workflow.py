@@ -19,7 +19,8 @@ Exit status: 0 the run succeeded; 1 it failed or was interrupted; 2 the server r
 the workflow or any of its nodes (validation errors are printed per node and input; a
 workflow the server would run only in part is withdrawn from its queue), or the file or an
 override is bad; 3 the server could not be reached or the run did not finish within
-``--timeout`` seconds.
+``--timeout`` seconds: then the prompt is taken off the server, deleted from its queue if it has not
+started, else interrupted (only when it is the prompt running), and the message says which.
 """
 
 from __future__ import annotations
@@ -146,8 +147,7 @@ def queue_prompt(server: str, workflow: dict, client_id: str | None = None) -> s
     """
     answer = _request(server, "/prompt", {"prompt": workflow, "client_id": client_id or uuid.uuid4().hex})
     if answer.get("node_errors"):
-        _request(server, "/queue", {"delete": [answer["prompt_id"]]})
-        _request(server, "/interrupt", {"prompt_id": answer["prompt_id"]})
+        withdraw(server, answer["prompt_id"])
         raise RejectedError(f"{server}/prompt: nodes failed validation", answer)
     return answer["prompt_id"]
 
@@ -157,15 +157,47 @@ def interrupt(server: str) -> None:
     _request(server, "/interrupt", {})
 
 
+def _queued_ids(queue: dict, key: str) -> set[str]:
+    """The prompt ids of ``queue[key]`` (``/queue``'s ``queue_running`` or ``queue_pending``: lists of
+    ``[number, prompt id, prompt, extra data, outputs]``)."""
+    return {str(item[1]) for item in queue.get(key) or [] if isinstance(item, list) and len(item) > 1}
+
+
+def withdraw(server: str, prompt_id: str) -> str | None:
+    """Take ``prompt_id`` off the server: delete it from the queue (``POST /queue {"delete": [id]}``, which leaves a
+    running prompt alone), then, if it is the prompt running (``GET /queue``), interrupt it (``POST /interrupt``
+    naming it: another client's prompt is never stopped). Returns what was done, for a message ("interrupted it",
+    "deleted it from the queue before it started"), or None when it was neither queued nor running (it had ended)."""
+    pending = prompt_id in _queued_ids(_request(server, "/queue"), "queue_pending")
+    _request(server, "/queue", {"delete": [prompt_id]})
+    if prompt_id in _queued_ids(_request(server, "/queue"), "queue_running"):  # it may have started meanwhile
+        _request(server, "/interrupt", {"prompt_id": prompt_id})
+        return "interrupted it"
+    return "deleted it from the queue before it started" if pending else None
+
+
+def _finished(server: str, prompt_id: str) -> dict | None:
+    """The history entry of ``prompt_id`` once it has ended, else None."""
+    entry = _request(server, f"/history/{prompt_id}").get(prompt_id)
+    return entry if entry is not None and (entry.get("status") or {}).get("completed") is not None else None
+
+
 def wait_for(server: str, prompt_id: str, timeout: float, poll: float = 0.5) -> dict:
-    """The history entry of ``prompt_id`` once it has finished (``status``, ``outputs``)."""
+    """The history entry of ``prompt_id`` once it has ended (``status``, ``outputs``). When ``timeout`` seconds pass
+    first, the prompt is withdrawn (:func:`withdraw`: it would go on running on the server) and ServerError says
+    so (unless it ended meanwhile)."""
     deadline = time.monotonic() + timeout
     while True:
-        entry = _request(server, f"/history/{prompt_id}").get(prompt_id)
-        if entry is not None and (entry.get("status") or {}).get("completed") is not None:
+        entry = _finished(server, prompt_id)
+        if entry is not None:
             return entry
         if time.monotonic() > deadline:
-            raise ServerError(f"prompt {prompt_id} did not finish within {timeout:g} s")
+            done = withdraw(server, prompt_id)
+            entry = _finished(server, prompt_id) if done is None else None
+            if entry is not None:
+                return entry
+            raise ServerError(f"prompt {prompt_id} did not finish within {timeout:g} s; "
+                              f"{done or 'it is no longer on the server'}")
         time.sleep(poll)
 
 
@@ -257,7 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--server", default="http://127.0.0.1:8188", help="ComfyUI address (default %(default)s)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NODE.INPUT=VALUE",
                         help="override an input; NODE is an id or a title; repeatable")
-    parser.add_argument("--timeout", type=float, default=3600, help="seconds to wait for the run (default %(default)s)")
+    parser.add_argument("--timeout", type=float, default=3600, help="seconds to wait for the run (default %(default)s); "
+                        "then the prompt is deleted from the queue, or interrupted if it is running")
     parser.add_argument("--no-wait", action="store_true", help="print the prompt id and return at once")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     args = parser.parse_args(argv)

@@ -33,7 +33,7 @@ from ..counted import counted
 from ..diffusion.model_files import MissingModelError
 from ..fileio import check_output_file, refuse_overwrites, write_atomically, written_together
 from ..formats import check_scene_path
-from ..images import image_size, load_image, resize_image
+from ..images import image_size, load_image, resize_image, same_aspect
 from ..losses.vgg import load_vgg
 from ..preview import evenly_spaced, save_gif, save_strip
 from ..raster import RenderOutput
@@ -93,29 +93,34 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- inputs
 
 
-def find_view_images(folder: Path, names: list[str]) -> list[Path]:
-    """The image file of each view of ``names`` in ``folder``, NAME.png or NAME with another of
-    :data:`IMAGE_SUFFIXES`, each an image by its header; ValueError naming ``--stylized-images`` and the first view
-    without one, or whose file is not an image."""
+def find_view_images(folder: Path, cameras: CameraSet) -> list[Path]:
+    """The image file of each view of ``cameras`` in ``folder``, NAME.png or NAME with another of
+    :data:`IMAGE_SUFFIXES` (NAME: the view's name), each an image of the views' aspect at any size by its header
+    (:func:`~artnvg_core.images.same_aspect`: resized to the views' size, it is not stretched); ValueError naming
+    ``--stylized-images`` and the first view without one, or whose file is not an image or of another aspect."""
     if not folder.is_dir():
         raise ValueError(f"--stylized-images: {folder} is not a folder")
     files = []
-    for name in names:
+    for name in cameras.names:
         matches = [folder / f"{name}{suffix}" for suffix in IMAGE_SUFFIXES if (folder / f"{name}{suffix}").is_file()]
         if not matches:
             raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
                              f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
         with named_option("--stylized-images"):
-            image_size(matches[0])  # its header: a file that is no image is named before any render
+            width, height = image_size(matches[0])  # its header: named before any render
+        if not same_aspect(width, height, cameras.width, cameras.height):
+            raise ValueError(f"--stylized-images: {matches[0]}: {width}x{height} pixels, not the aspect of the "
+                             f"evaluated views' {cameras.width}x{cameras.height} (it would be stretched); give each "
+                             "view's image at the view's aspect, at any size")
         files.append(matches[0])
     return files
 
 
 def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
-    """Images [V, H, W, 3] named after ``cameras.names`` in ``folder`` (:func:`find_view_images`), resized to the
+    """Images [V, H, W, 3] of the views of ``cameras`` in ``folder`` (:func:`find_view_images`), resized to the
     cameras' size."""
     images = []
-    for file in find_view_images(folder, cameras.names):
+    for file in find_view_images(folder, cameras):
         image = load_image(file)
         if image.shape[:2] != (cameras.height, cameras.width):
             image = resize_image(image, cameras.height, cameras.width).clamp(0, 1)
@@ -130,7 +135,7 @@ def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[lis
     indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)
     cameras = all_cameras.subset(indices).scaled(args.scale)
     if args.stylized_images:
-        find_view_images(Path(args.stylized_images), cameras.names)
+        find_view_images(Path(args.stylized_images), cameras)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
     return indices, cameras, path
 

@@ -272,6 +272,27 @@ def test_interrupt_mid_finetune_stops_it_without_writing_a_ply(comfy_server):
     assert not list(folder.glob("interrupted*")) and not list(folder.glob(".*.tmp"))
 
 
+def test_a_run_past_its_timeout_is_taken_off_the_server_and_no_other(comfy_server):
+    """queue_workflow --timeout gave up waiting and left the prompt running on the server. Two long runs queued: the
+    second's timeout deletes it from the queue and leaves the first running; the first's interrupts it."""
+    def queued() -> dict[str, list[str]]:
+        listed = _get(comfy_server, "/queue")
+        return {key: [item[1] for item in listed[key]] for key in ("queue_running", "queue_pending")}
+
+    first, second = (queue.queue_prompt(comfy_server.url, _workflow(
+        comfy_server, "6.iterations=2000", f"6.seed={seed}",
+        f"Save Gaussian Scene.filename_prefix={comfy_server.test_folder}/timed_out")) for seed in (11, 12))
+    with pytest.raises(queue.ServerError, match=f"^prompt {second} did not finish within 1 s; deleted it from the "
+                                                "queue before it started$"):
+        queue.wait_for(comfy_server.url, second, timeout=1)
+    assert queued() == {"queue_running": [first], "queue_pending": []}
+    with pytest.raises(queue.ServerError, match=f"^prompt {first} did not finish within 1 s; interrupted it$"):
+        queue.wait_for(comfy_server.url, first, timeout=1)
+    assert queue.run_summary(queue.wait_for(comfy_server.url, first, timeout=120))["status"] == "interrupted"
+    assert queued() == {"queue_running": [], "queue_pending": []} and second not in _get(comfy_server, "/history")
+    assert not list((comfy_server.output_dir / comfy_server.test_folder).glob("timed_out*"))
+
+
 def test_cancel_pressed_inside_a_512_px_finetune_step_stops_it_within_the_step(comfy_server):
     """A step at 512 px takes seconds on a CPU (7 to 9 on 2 cores). Cancel pressed halfway through step 2 stops
     the node well before that step would end: the step asks for a stop inside itself (its render, the VGG's
