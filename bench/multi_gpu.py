@@ -18,7 +18,10 @@
   output against the 1-GPU run's: the scene's largest parameter difference and the contact sheet's
   PSNR. The 1-GPU worker runs the first job a second time (not timed): the same comparison for one GPU
   twice (the rasterizer's backward adds gradients with atomics, in no fixed order, so two finetunes
-  differ in the last bits and then drift).
+  differ in the last bits and then drift). With ``--warm`` each worker count runs the batch twice on the same
+  workers: the first round (cold, measured as without ``--warm``) and a second (warm: imports done, models
+  loaded, as ``batch --keep-workers`` keeps its workers), each with its wall and its speed-up over the same
+  round on 1 GPU, its outputs against the 1-GPU cold run's.
 
 For each run: speed-up over 1 GPU; per GPU the busy fraction (seconds inside group or job tasks over
 the wall: the rest is waiting for work, or loading) and the peak memory allocated. The runs of a
@@ -28,6 +31,7 @@ section go in one Ray session (a local instance with the GPUs given), one after 
     python bench/multi_gpu.py --sections groups --presets paper --views 30 # 2 groups of 15
     python bench/multi_gpu.py --sections batch                             # 4 scenes, fast
     python bench/multi_gpu.py --sections batch --batch-scenes bear face bear face bear face bear face --workers 1 4 2
+    python bench/multi_gpu.py --sections batch --batch-scenes bear face bear face bear face bear face --workers 1 4 --warm
     python bench/multi_gpu.py --tiny --device cpu --views 8 --presets fast --batch-scenes bear face  # CPU smoke test
 """
 
@@ -227,48 +231,59 @@ def batch_section(args, devices: list[str], rows: list[str]) -> None:
 
     import ray
 
+    rounds = ("cold", "warm") if args.warm else ("cold",)
     with ray_session(devices) as available:
-        reference, reference_wall = None, None
+        reference, reference_walls = None, {}  # the first run's jobs (cold); per round, the first run's wall
         for count in worker_counts(args, available.count):
-            jobs, spans = jobs_to(f"out-{count}", entries), {}  # job number -> [worker, start, end]
-
-            def record(kind: str, job, detail) -> None:
-                if kind == "started":
-                    spans[job.number] = [detail["worker"], time.time(), None]
-                elif job.number in spans:
-                    spans[job.number][2] = time.time()
-
+            first = reference is None
             with TimedBatchPool(Workers(available.kind, count)) as pool:
-                start = time.time()
-                results = pool.run(jobs, on_event=record)
-                end = time.time()
-                parts = ray.get([actor.parts.remote() for actor in pool.actors])
-                again = jobs_to("again", entries[:1]) if reference is None and count == 1 else None
-                if again:  # the first job once more on the same GPU, its models loaded (not timed)
-                    results += pool.run(again)
-            bad = [f"job {r.job.number}: {r.status} {r.message}" for r in results if r.status != "done"]
-            if bad:
-                raise RuntimeError("batch bench: " + "; ".join(bad))
-            per_worker = [{"busy_s": 0.0, "peak_gib": None} for _ in range(count)]
-            for result in results[: len(jobs)]:
-                entry = per_worker[spans[result.job.number][0]]
-                entry["busy_s"] += result.seconds
-                if result.peak_gib is not None:
-                    entry["peak_gib"] = max(entry["peak_gib"] or 0.0, result.peak_gib)
-            reference = reference or jobs
-            reference_wall = reference_wall or end - start
-            equal = "reference" if reference is jobs else compare_outputs(jobs, reference)
-            rows.append(busy_row(f"batch of {len(jobs)}, {args.batch_preset}", count, end - start, reference_wall,
-                                 per_worker, equal))
-            print(rows[-1], flush=True)
-            names = {r.job.number: f"job {r.job.number} ({args.batch_scenes[r.job.number - 1]}, {r.seconds:.1f} s "
-                     "in the worker)" for r in results[: len(jobs)]}
-            print(timeline(start, end, [[(names[n], a, b) for n, (w, a, b) in spans.items() if w == worker]
-                                        for worker in range(count)]), flush=True)
-            print("  parts of the jobs:\n" + timeline(start, end, parts), flush=True)
-            if again:
-                rows.append(f"| batch, job 1 twice on 1 GPU | 1 | | | | | {compare_outputs(again, reference[:1])} |")
-                print(rows[-1], flush=True)
+                for round in rounds:
+                    jobs = jobs_to(f"out-{count}" + ("-warm" if round == "warm" else ""), entries)
+                    start, end, results, spans, parts = timed_run(ray, pool, jobs)
+                    per_worker = [{"busy_s": 0.0, "peak_gib": None} for _ in range(count)]
+                    for result in results:
+                        entry = per_worker[spans[result.job.number][0]]
+                        entry["busy_s"] += result.seconds
+                        if result.peak_gib is not None:
+                            entry["peak_gib"] = max(entry["peak_gib"] or 0.0, result.peak_gib)
+                    reference = reference or jobs
+                    reference_walls.setdefault(round, end - start)
+                    equal = "reference" if reference is jobs else compare_outputs(jobs, reference)
+                    label = f"batch of {len(jobs)}, {args.batch_preset}" + (f", {round}" if args.warm else "")
+                    rows.append(busy_row(label, count, end - start, reference_walls[round], per_worker, equal))
+                    print(rows[-1], flush=True)
+                    names = {r.job.number: f"job {r.job.number} ({args.batch_scenes[r.job.number - 1]}, "
+                             f"{r.seconds:.1f} s in the worker)" for r in results}
+                    print(timeline(start, end, [[(names[n], a, b) for n, (w, a, b) in spans.items() if w == worker]
+                                                for worker in range(count)]), flush=True)
+                    print("  parts of the jobs:\n" + timeline(start, end, parts), flush=True)
+                if first and count == 1:  # the first job once more on the same GPU, its models loaded (not timed)
+                    again = jobs_to("again", entries[:1])
+                    timed_run(ray, pool, again)
+                    rows.append(f"| batch, job 1 twice on 1 GPU | 1 | | | | | {compare_outputs(again, reference[:1])} |")
+                    print(rows[-1], flush=True)
+
+
+def timed_run(ray, pool: TimedBatchPool, jobs) -> tuple[float, float, list, dict, list]:
+    """``jobs`` run on ``pool``: the run's start and end (Unix seconds), the results (RuntimeError unless every
+    job is done), per job number its [worker, start, end] and per worker the parts of its jobs
+    (:data:`JOB_PARTS`) that began in this run."""
+    spans = {}
+
+    def record(kind: str, job, detail) -> None:
+        if kind == "started":
+            spans[job.number] = [detail["worker"], time.time(), None]
+        elif job.number in spans:
+            spans[job.number][2] = time.time()
+
+    start = time.time()
+    results = pool.run(jobs, on_event=record)
+    end = time.time()
+    bad = [f"job {r.job.number}: {r.status} {r.message}" for r in results if r.status != "done"]
+    if bad:
+        raise RuntimeError("batch bench: " + "; ".join(bad))
+    parts = [[part for part in own if part[1] >= start] for own in ray.get([actor.parts.remote() for actor in pool.actors])]
+    return start, end, results, spans, parts
 
 
 def compile_job_kernels(entry: dict) -> None:
@@ -312,6 +327,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, help="groups: long side of the content views (default the cameras' 512)")
     parser.add_argument("--batch-scenes", nargs="+", default=["bear", "face", "bear", "face"])
     parser.add_argument("--batch-preset", choices=DIFFUSION_PRESETS, default="fast")
+    parser.add_argument("--warm", action="store_true", help="batch: run the batch a second time on the same workers "
+                        "(warm: imports done, models loaded, as --keep-workers keeps them) and report both rounds")
     parser.add_argument("--gpus", type=int, help="GPUs of the multi-GPU runs (default: every visible one)")
     parser.add_argument("--workers", type=int, nargs="+", help="worker counts to run, in this order, the first the "
                         "reference (default: 1, 2, 4 and --gpus)")

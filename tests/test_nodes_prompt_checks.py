@@ -216,8 +216,8 @@ def test_a_pack_node_fed_by_a_stock_loader_whose_file_is_missing_names_its_input
     prompt = _full_workflow()
     folder = model_folders / "checkpoints"
     loader = ("Load Checkpoint (node #4, CheckpointLoaderSimple): input 'ckpt_name': 'sd_xl_base_1.0.safetensors' is "
-              f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the "
-              f"{SDXL_BASE.description} from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
+              f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the SDXL 1.0 base "
+              f"checkpoint from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
               f"--local-dir {folder}` saves it as {folder / 'sd_xl_base_1.0.safetensors'}")
     assert _model_file_messages(prompt) == {"4": loader, "9": f"Apply CSGO: input 'model' comes from {loader}",
                                             "10": f"Sample Group: input 'vae' comes from {loader}"}
