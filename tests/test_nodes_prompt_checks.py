@@ -407,6 +407,11 @@ def test_view_indices_past_the_cameras_a_loader_gives_are_refused_before_the_gra
     assert check_prompt({"prompt": prompt}, classes)["partial_execution_targets"] == ["6", "7"]
     prompt["2"]["inputs"]["views"], prompt["3"]["inputs"]["view"], prompt["5"]["inputs"]["views"] = "0, 23", 23, "2"
     assert failed_checks(prompt, classes) == {}
+    prompt["2"]["inputs"]["views"], prompt["3"]["inputs"]["view"] = "", 0  # every view, the first: read no file
+    monkeypatch.setattr("nodes.camera_nodes.load_cameras", lambda *args, **kwargs: pytest.fail("read for nothing"))
+    assert failed_checks(prompt, classes) == {}
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
     prompt["2"]["inputs"]["views"], prompt["5"]["inputs"]["views"] = "99", "99"
     for unknown in ({"camera_source": "missing.json", "path": ""},  # Load Cameras names it
                     {"camera_source": "transforms.json", "path": ["10", 0]}):  # a path through a link: known as it runs
