@@ -15,7 +15,7 @@ another name, the kind of model wanted and that source as an example.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from artnvg_core.diffusion.model_files import IMAGE_ENCODER_FILE, SDXL_BASE, TILE_CONTROLNET, ModelSource
@@ -95,7 +95,11 @@ SDXL_VAE = ModelSource("SDXL VAE, fp16-safe", "madebyollin/sdxl-vae-fp16-fix", "
 SD_CONFIG = ModelSource("Stable Diffusion inference config", "stable-diffusion-v1-5/stable-diffusion-v1-5",
                         "v1-inference.yaml")
 
-CHECKPOINT_FILE = ModelFile("ckpt_name", "checkpoints", SDXL_BASE, kind=(
+# a checkpoint folder holds single files: the library's SDXL source also takes a diffusers folder, which Load Checkpoint
+# does not read
+SDXL_CHECKPOINT = replace(SDXL_BASE, description="SDXL 1.0 base checkpoint")
+
+CHECKPOINT_FILE = ModelFile("ckpt_name", "checkpoints", SDXL_CHECKPOINT, kind=(
     "an SDXL 1.0 checkpoint (the base or a fine-tune of it: CSGO and the tile ControlNet are trained on SDXL)"))
 UNET_FILE = ModelFile("unet_name", "diffusion_models", SDXL_UNET, kind=(
     "an SDXL 1.0 UNet alone (the base's or a fine-tune's, in ComfyUI's or diffusers' layout)"))

@@ -37,7 +37,7 @@ from collections.abc import Callable, Collection, Iterator
 
 import torch
 
-from artnvg_core.cameras.selection import check_view_index, parse_views
+from artnvg_core.cameras.selection import check_view_index, listed_views
 from artnvg_core.style_image import check_style_size
 
 from .node_errors import NodeInputError
@@ -237,20 +237,18 @@ class ArtNVGNode:
     def check_views(cls, camera_count: Callable[[str], int | None], **values) -> str | None:
         """The message naming the first input of :attr:`VIEW_INPUTS` among ``values`` (input name -> a prompt's value)
         that indexes a view past the last of its cameras, whose count ``camera_count(cameras input)`` gives where
-        known (else None), else None. Run after :meth:`check_values`, which refuses text that is no view list."""
+        known (else None), else None. Run after :meth:`check_values`, which refuses text that is no view list. The
+        count is asked for only where an index is above 0 (a camera set is never empty)."""
         passed = cls.passed_values(values)
         for name, cameras in cls.VIEW_INPUTS.items():
             value = passed.get(name)
-            count = camera_count(cameras) if value is not None else None
-            if count is None:
-                continue
-            try:
-                if isinstance(value, str):
-                    parse_views(value, count)
-                elif isinstance(value, int) and not isinstance(value, bool):
-                    check_view_index(value, count)
-            except ValueError as error:
-                return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
+            indices = listed_views(value) if isinstance(value, str) else [value] if type(value) is int else []
+            count = camera_count(cameras) if any(indices) else None  # a Load Cameras reads its file for it
+            for index in indices if count is not None else ():
+                try:
+                    check_view_index(index, count)
+                except ValueError as error:
+                    return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
         return None
 
     @classmethod

@@ -75,6 +75,18 @@ def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
         "or cameras.txt + images.txt, directly or in sparse/0 or 0)")
 
 
+def test_load_cameras_tells_the_lens_distortion_it_ignores_once_as_it_runs(comfy_dirs, caplog):
+    """The bear's transforms.json has OPENCV's k1, k2, p1, p2: ignored silently before. Shown under the node and
+    logged once on the console as the node runs; counting its cameras before the graph runs tells nothing."""
+    with caplog.at_level("WARNING"):
+        assert LoadCameras.camera_count(camera_source="bear/transforms.json", path="") == 96
+        assert not caplog.records
+        call(LoadCameras, camera_source="bear/transforms.json")
+    (message,) = [record.getMessage() for record in caplog.records]
+    assert message.startswith("Load Cameras: note: lens distortion ignored (k1, k2, p1, p2 non-zero in 96 of 96 "
+                              "views): the views are rendered as pinhole cameras")
+
+
 def test_group_neighbouring_views_matches_the_core(bear):
     (groups,) = call(GroupNeighbouringViews, cameras=bear["cameras"], group_size=15, context=2)
     expected = group_views(bear["cameras"], 15, context=2)

@@ -216,8 +216,8 @@ def test_a_pack_node_fed_by_a_stock_loader_whose_file_is_missing_names_its_input
     prompt = _full_workflow()
     folder = model_folders / "checkpoints"
     loader = ("Load Checkpoint (node #4, CheckpointLoaderSimple): input 'ckpt_name': 'sd_xl_base_1.0.safetensors' is "
-              f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the "
-              f"{SDXL_BASE.description} from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
+              f"not in the 'checkpoints' model folder (looked in {folder}; found nothing). Get the SDXL 1.0 base "
+              f"checkpoint from {SDXL_BASE.url}: `hf download {SDXL_BASE.repo} sd_xl_base_1.0.safetensors "
               f"--local-dir {folder}` saves it as {folder / 'sd_xl_base_1.0.safetensors'}")
     assert _model_file_messages(prompt) == {"4": loader, "9": f"Apply CSGO: input 'model' comes from {loader}",
                                             "10": f"Sample Group: input 'vae' comes from {loader}"}
@@ -407,6 +407,11 @@ def test_view_indices_past_the_cameras_a_loader_gives_are_refused_before_the_gra
     assert check_prompt({"prompt": prompt}, classes)["partial_execution_targets"] == ["6", "7"]
     prompt["2"]["inputs"]["views"], prompt["3"]["inputs"]["view"], prompt["5"]["inputs"]["views"] = "0, 23", 23, "2"
     assert failed_checks(prompt, classes) == {}
+    prompt["2"]["inputs"]["views"], prompt["3"]["inputs"]["view"] = "", 0  # every view, the first: read no file
+    monkeypatch.setattr("nodes.camera_nodes.load_cameras", lambda *args, **kwargs: pytest.fail("read for nothing"))
+    assert failed_checks(prompt, classes) == {}
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
     prompt["2"]["inputs"]["views"], prompt["5"]["inputs"]["views"] = "99", "99"
     for unknown in ({"camera_source": "missing.json", "path": ""},  # Load Cameras names it
                     {"camera_source": "transforms.json", "path": ["10", 0]}):  # a path through a link: known as it runs

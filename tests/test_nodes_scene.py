@@ -7,7 +7,7 @@ import struct
 import pytest
 import torch
 
-from artnvg_core.formats import read_ply, save_scene
+from artnvg_core.formats import read_ply, save_scene, write_ply
 from node_calls import bear, call, comfy_dirs, same_scene, small_bear  # noqa: F401  (fixtures)
 from nodes.node_errors import NodeInputError
 from nodes.scene_nodes import LoadGaussianScene, SaveGaussianScene
@@ -36,6 +36,22 @@ def test_missing_scene_names_the_input_and_the_file(comfy_dirs):
     (comfy_dirs / "input" / "broken.ply").write_text("not a ply")
     with pytest.raises(NodeInputError, match=r"input 'scene_file': .*broken\.ply"):
         call(LoadGaussianScene, scene_file="broken.ply")
+
+
+def test_invalid_gaussians_are_refused_naming_the_nodes_own_switch(comfy_dirs, small_bear):
+    """The library's advice, 'pass drop_invalid=True', is a Python argument; the node has a drop_invalid toggle."""
+    ply = comfy_dirs / "input" / "nan.ply"
+    write_ply(small_bear, ply)
+    data = bytearray(ply.read_bytes())
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    data[body:body + 4] = struct.pack("<f", float("nan"))  # x of the first Gaussian
+    ply.write_bytes(bytes(data))
+    with pytest.raises(NodeInputError, match=r"^Load Gaussian Scene: input 'scene_file': .*nan\.ply: means: 1 of "
+                                             r"[0-9,]+ Gaussians has non-finite values \(first at index 0\); turn "
+                                             r"drop_invalid on to drop them$"):
+        call(LoadGaussianScene, scene_file="nan.ply")
+    (scene,) = call(LoadGaussianScene, scene_file="nan.ply", drop_invalid=True)["result"]
+    assert len(scene) == len(small_bear) - 1
 
 
 def test_save_scene_writes_numbered_plys_into_the_output_folder(comfy_dirs, small_bear):

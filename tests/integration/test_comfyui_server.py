@@ -502,7 +502,7 @@ def test_a_missing_sdxl_checkpoint_is_named_by_the_nodes_it_feeds_with_its_folde
     loader = (f"Load Checkpoint (node #{checkpoint}, CheckpointLoaderSimple): input 'ckpt_name': "
               f"'sd_xl_base_1.0.safetensors' is not in the 'checkpoints' model folder (looked in {folder}")
     # ... then in the other folders ComfyUI searches (0.3.64: output/checkpoints)
-    source = ("; found nothing). Get the SDXL 1.0 base (diffusers folder or single-file checkpoint) from "
+    source = ("; found nothing). Get the SDXL 1.0 base checkpoint from "
               "https://huggingface.co/stabilityai/stable-diffusion-xl-base-1.0: `hf download "
               f"stabilityai/stable-diffusion-xl-base-1.0 sd_xl_base_1.0.safetensors --local-dir {folder}` saves it as "
               f"{folder / 'sd_xl_base_1.0.safetensors'}")
