@@ -107,8 +107,11 @@ def ray_session(devices: Sequence[str | torch.device] | None = None, address: st
     * ``address`` given: joins that cluster; the workers are ``devices``' count and kind, else one per
       GPU of the cluster.
     * Ray already initialised in this process: used as it is, workers as with ``address``.
-    * Otherwise a local Ray instance is started with exactly ``devices`` (default: every visible GPU,
-      else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only.
+    * Otherwise a new local Ray instance is started with exactly ``devices`` (default: every visible GPU,
+      else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only. It is started even where
+      a cluster runs that a bare ``ray.init()`` would join (one from ``ray start --head`` on this machine,
+      or the ``RAY_ADDRESS`` environment variable's): only ``address`` joins one (``"auto"``: the one
+      ``RAY_ADDRESS`` names, else this machine's).
 
     What the block started it shuts down (disconnects from a cluster); Ray's actors of this process go
     with it, kept workers (:class:`WorkerPool`) of a cluster it joined stay.
@@ -170,10 +173,11 @@ def _local_default() -> Workers:
 
 
 def _start_local(ray, workers: Workers, devices) -> None:
-    """A local Ray instance with ``workers``' resources; for CUDA devices only the GPUs named are visible
+    """A new local Ray instance with ``workers``' resources (``address="local"``: not a running cluster that
+    Ray would otherwise join, which refuses resources); for CUDA devices only the GPUs named are visible
     to it (Ray's GPU list is the CUDA_VISIBLE_DEVICES of the process that starts it)."""
     if workers.kind == "cpu":
-        _init(ray, num_cpus=workers.count, num_gpus=0)
+        _init(ray, address="local", num_cpus=workers.count, num_gpus=0)
         return
     indices = [torch.device(d).index or 0 for d in devices] if devices else list(range(workers.count))
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
@@ -183,7 +187,7 @@ def _start_local(ray, workers: Workers, devices) -> None:
                          f"{counted(len(physical), 'CUDA device')}")
     try:
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(physical[i] for i in indices)
-        _init(ray, num_gpus=len(indices))
+        _init(ray, address="local", num_gpus=len(indices))
     finally:
         if visible is None:
             del os.environ["CUDA_VISIBLE_DEVICES"]

@@ -93,6 +93,7 @@ def pinhole_matrix(fx: float, fy: float, cx: float, cy: float) -> list[list[floa
 # Lens distortion coefficients, as nerfstudio names them (OpenCV's model: k1..k4 radial, p1, p2 tangential); a COLMAP
 # model's are a part of them. The loaders ignore them (pinhole cameras) and say so (:func:`tell_distortion`).
 DISTORTION_NAMES = ("k1", "k2", "k3", "k4", "p1", "p2")
+TOLD_SHIFT_PX = 1.0  # a lens that moves no image corner by this many pixels goes untold: no render would show it
 
 
 def corner_shift(intrinsics: torch.Tensor, width: int, height: int, coefficients: torch.Tensor) -> torch.Tensor:
@@ -117,14 +118,17 @@ def tell_distortion(notes: NoteFn | None, source: Path, intrinsics: torch.Tensor
                     coefficients: torch.Tensor) -> None:
     """Tell ``notes`` (:func:`~artnvg_core.notes.tell`), once, that the lens distortion ``coefficients`` [C, 6]
     (:data:`DISTORTION_NAMES`, 0 where the file ``source`` gives none) of views of ``intrinsics`` [C, 3, 3] and size
-    ``width`` x ``height`` are ignored, when any is non-zero: which, in how many views, what that means and how many
-    pixels it moves an image corner by at most (:func:`corner_shift`). Nothing when all are zero."""
+    ``width`` x ``height`` are ignored, when they move an image corner by :data:`TOLD_SHIFT_PX` or more
+    (:func:`corner_shift`; a phone's or a DSLR's capture, fitted by COLMAP, moves them by less than a pixel): which,
+    in how many views, what that means and how many pixels at most. Nothing otherwise."""
     distorted = coefficients != 0
     if not distorted.any():
         return
+    shift = corner_shift(intrinsics, width, height, coefficients).max().item()
+    if shift < TOLD_SHIFT_PX:
+        return
     names = ", ".join(name for name, given in zip(DISTORTION_NAMES, distorted.any(0).tolist()) if given)
     views = int(distorted.any(1).sum())
-    shift = corner_shift(intrinsics, width, height, coefficients).max().item()
     tell(notes, source, f"lens distortion ignored ({names} non-zero in {views:,} of {counted(len(coefficients), 'view')}):"
                         f" the views are rendered as pinhole cameras, as undistorted images; photos taken through the "
                         f"lens differ from them by up to {shift:.1f} px towards the image corners")
