@@ -9,8 +9,8 @@
 * :func:`to_wire` and :func:`from_wire`: a tensor as a task's argument or result (a NumPy array, which
   Ray passes through its shared store without pickling) and back.
 * :class:`WorkerPool` holds the worker actors, its own or, kept, named ones that outlive it (a later pool
-  of a later process reuses those alive, so their imports and loaded models); :func:`release_workers`
-  ends the kept ones. :func:`dispatch` hands tasks to them in the order
+  of a later process reuses those alive, so their imports and loaded models); :func:`kept_workers` names
+  the kept ones and :func:`release_workers` ends them. :func:`dispatch` hands tasks to them in the order
   given, one at a time per actor or, with ``per_actor=2``, the next one while it runs one (so that
   the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
   killed process, a lost machine) is handed again to the next idle actor; the dead actor restarts by
@@ -107,8 +107,11 @@ def ray_session(devices: Sequence[str | torch.device] | None = None, address: st
     * ``address`` given: joins that cluster; the workers are ``devices``' count and kind, else one per
       GPU of the cluster.
     * Ray already initialised in this process: used as it is, workers as with ``address``.
-    * Otherwise a local Ray instance is started with exactly ``devices`` (default: every visible GPU,
-      else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only.
+    * Otherwise a new local Ray instance is started with exactly ``devices`` (default: every visible GPU,
+      else one CPU worker): for ``cuda:2,cuda:3`` Ray sees those two GPUs only. It is started even where
+      a cluster runs that a bare ``ray.init()`` would join (one from ``ray start --head`` on this machine,
+      or the ``RAY_ADDRESS`` environment variable's): only ``address`` joins one (``"auto"``: the one
+      ``RAY_ADDRESS`` names, else this machine's).
 
     What the block started it shuts down (disconnects from a cluster); Ray's actors of this process go
     with it, kept workers (:class:`WorkerPool`) of a cluster it joined stay.
@@ -170,10 +173,11 @@ def _local_default() -> Workers:
 
 
 def _start_local(ray, workers: Workers, devices) -> None:
-    """A local Ray instance with ``workers``' resources; for CUDA devices only the GPUs named are visible
+    """A new local Ray instance with ``workers``' resources (``address="local"``: not a running cluster that
+    Ray would otherwise join, which refuses resources); for CUDA devices only the GPUs named are visible
     to it (Ray's GPU list is the CUDA_VISIBLE_DEVICES of the process that starts it)."""
     if workers.kind == "cpu":
-        _init(ray, num_cpus=workers.count, num_gpus=0)
+        _init(ray, address="local", num_cpus=workers.count, num_gpus=0)
         return
     indices = [torch.device(d).index or 0 for d in devices] if devices else list(range(workers.count))
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
@@ -183,7 +187,7 @@ def _start_local(ray, workers: Workers, devices) -> None:
                          f"{counted(len(physical), 'CUDA device')}")
     try:
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(physical[i] for i in indices)
-        _init(ray, num_gpus=len(indices))
+        _init(ray, address="local", num_gpus=len(indices))
     finally:
         if visible is None:
             del os.environ["CUDA_VISIBLE_DEVICES"]
@@ -258,12 +262,18 @@ class WorkerPool:
         self.actors = []
 
 
+def kept_workers() -> list[str]:
+    """The names of the kept workers (:class:`WorkerPool`'s ``keep``) of the cluster Ray is connected to,
+    whichever process started them, sorted."""
+    ray = import_ray("kept_workers")
+    return sorted(actor["name"] for actor in ray.util.list_named_actors(all_namespaces=True)
+                  if actor["namespace"] == KEPT_NAMESPACE)
+
+
 def release_workers() -> list[str]:
-    """Ends every kept worker (:class:`WorkerPool`'s ``keep``) of the cluster Ray is connected to
-    (:func:`ray_joined`), whichever process started it; returns their names, sorted."""
+    """Ends every kept worker of the cluster Ray is connected to (:func:`ray_joined`); returns their names."""
     ray = import_ray("release_workers")
-    names = sorted(actor["name"] for actor in ray.util.list_named_actors(all_namespaces=True)
-                   if actor["namespace"] == KEPT_NAMESPACE)
+    names = kept_workers()
     for name in names:
         ray.kill(ray.get_actor(name, namespace=KEPT_NAMESPACE))
     return names

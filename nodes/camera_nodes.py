@@ -8,6 +8,7 @@ from artnvg_core.cameras import camera_files, load_cameras, parse_up
 from artnvg_core.orbit import orbit_cameras, parse_elevations
 from artnvg_core.grouping import DEFAULT_GROUP_SIZE, group_views
 
+from .comfy_bridge import shown_notes
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import node_input
@@ -53,8 +54,8 @@ class LoadCameras(ArtNVGNode):
         comes through a link (a ``[node id, slot]``: known as the graph runs)."""
         if not (isinstance(camera_source, str) and isinstance(path, str)) or cls.check_files(camera_source, path):
             return None
-        try:
-            return len(load_cameras(CAMERA_SOURCE.resolve(camera_source, path)[0]))
+        try:  # its notes are told when the node runs
+            return len(load_cameras(CAMERA_SOURCE.resolve(camera_source, path)[0], notes=lambda _note: None))
         except (OSError, ValueError):
             return None
 
@@ -63,9 +64,14 @@ class LoadCameras(ArtNVGNode):
         return CAMERA_SOURCE.signature(camera_source, path)
 
     def load(self, camera_source, path="", node_id=None):
+        """The cameras; what the load ignored (lens distortion) under the node in the editor and once on the
+        console."""
         source, input_name = CAMERA_SOURCE.readable(self.DISPLAY_NAME, camera_source, path)
+        notes: list[str] = []
         with node_input(self.DISPLAY_NAME, input_name):
-            return (load_cameras(source),)
+            cameras = load_cameras(source, notes=notes.append)
+        shown_notes(notes, self.DISPLAY_NAME)
+        return (cameras,)
 
 
 class CamerasAroundScene(ArtNVGNode):

@@ -206,6 +206,16 @@ def progress_text(message: str, node: str = "") -> None:
         server.PromptServer.instance.send_progress_text(message, context.node_id)
 
 
+def shown_notes(notes: list[str], node: str) -> list[str]:
+    """The library's ``notes`` for the user (:mod:`artnvg_core.notes`: what a file's read or write did) as lines of
+    ``node``'s UI text, ``note: ...``; any are also shown under the node in the editor and logged once on the console
+    (:func:`progress_text`: ComfyUI's frontend 1.27.10 draws no node's UI text)."""
+    noted = [f"note: {note}" for note in notes]
+    if noted:
+        progress_text("\n".join(noted), node)
+    return noted
+
+
 def prepare_rasterizer(device: torch.device) -> None:
     """Load the rasterizer that renders on ``device`` before a node's first render: gsplat's
     first-use kernel build (minutes; BENCHMARKS.md, "First look") is announced by :func:`progress_text` first."""

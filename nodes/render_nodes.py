@@ -14,7 +14,7 @@ from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
-from .node_base import ArtNVGNode
+from .node_base import ArtNVGNode, ViewInput
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
 
@@ -70,7 +70,7 @@ class RenderViews(ArtNVGNode):
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
     VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
-    VIEW_INPUTS = {"views": "cameras"}
+    VIEW_INPUTS = {"views": ViewInput()}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -111,6 +111,7 @@ class RenderCameraPath(ArtNVGNode):
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
     VALUE_CHECKS = {"key_views": EACH_VIEW_ONCE}
+    VIEW_INPUTS = {"key_views": ViewInput(mode=("path", "interpolate"))}
 
     @classmethod
     def _value_problems(cls, values: dict):

@@ -20,7 +20,7 @@ from artnvg_core.formats import (
 )
 from artnvg_core.scene import DROP_INVALID_HINT
 
-from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar, progress_text
+from .comfy_bridge import cancellable, interrupt_requested, output_directory, progress_bar, shown_notes
 from .input_files import InputFile, list_input_files
 from .node_base import ArtNVGNode
 from .node_errors import NodeInputError, node_input
@@ -88,16 +88,6 @@ class LoadGaussianScene(ArtNVGNode):
                 raise ValueError(str(error).replace(DROP_INVALID_HINT, "turn drop_invalid on to drop them")) from None
         loaded = f"loaded {file.name} ({counted(len(scene), 'Gaussian')}, SH degree {scene.sh_degree})"
         return {"ui": {"text": [loaded, *shown_notes(notes, self.DISPLAY_NAME)]}, "result": (scene,)}
-
-
-def shown_notes(notes: list[str], node: str) -> list[str]:
-    """The library's ``notes`` for the user (a scene file's :mod:`artnvg_core.notes`) as lines of ``node``'s UI
-    text, ``note: ...``; any are also shown under the node in the editor and logged once on the console
-    (:func:`~nodes.comfy_bridge.progress_text`: ComfyUI's frontend 1.27.10 draws no node's UI text)."""
-    noted = [f"note: {note}" for note in notes]
-    if noted:
-        progress_text("\n".join(noted), node)
-    return noted
 
 
 def _prefix_target(filename_prefix: str, suffix: str) -> Path:

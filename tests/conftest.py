@@ -59,17 +59,18 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def ray_local():
-    """One local Ray instance for the whole test session (its start-up is paid once), with three CPU
-    slots: a module's pool of two workers and a test's own worker beside it, in whatever order the tests
-    run; skips the test when Ray is not installed. Its workers import this checkout and its tests/
-    helpers (PYTHONPATH) and run ``ray_workers.setup_worker``."""
+    """One new local Ray instance for the whole test session (its start-up is paid once; not a cluster
+    that ``ray start`` or RAY_ADDRESS points Ray to), with three CPU slots: a module's pool of two workers
+    and a test's own worker beside it, in whatever order the tests run; skips the test when Ray is not
+    installed. Its workers import this checkout and its tests/ helpers (PYTHONPATH) and run
+    ``ray_workers.setup_worker``."""
     import logging
 
     ray = pytest.importorskip("ray")
     from ray_workers import setup_worker
 
     paths = [str(REPO), str(REPO / "tests"), *filter(None, [os.environ.get("PYTHONPATH")])]
-    ray.init(num_cpus=3, num_gpus=0, include_dashboard=False, logging_level=logging.WARNING,
+    ray.init(address="local", num_cpus=3, num_gpus=0, include_dashboard=False, logging_level=logging.WARNING,
              runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(paths)}, "worker_process_setup_hook": setup_worker})
     yield ray
     ray.shutdown()

@@ -1,5 +1,7 @@
 """COLMAP sparse models: binary and text agree, every supported model, errors naming file and field."""
 
+import re
+
 import pytest
 import torch
 
@@ -237,3 +239,33 @@ def test_colmap_an_id_given_twice_is_refused_naming_both_places(tmp_path, binary
     with pytest.raises(ValueError, match=rf"cameras\.{'bin' if binary else 'txt'}: camera id 1 is given twice, at "
                                          rf"{places[0]} and at {places[1]}; give each its own id$"):
         load_colmap(folder)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_distortion_that_moves_a_corner_a_pixel_is_told_once_per_load_and_less_not_at_all(tmp_path, binary, caplog):
+    """It was ignored silently: the views render as pinhole cameras. The note names the coefficients (as k1..k4, p1,
+    p2), the views that have them, and the most an image corner moves (64x48 views, f 50: SIMPLE_RADIAL's k moves the
+    farthest corner, (64, 0) at x = 0.67, y = -0.5 from the centre (r² 0.6989), by k * 0.6989 * 50 * sqrt(0.67² +
+    0.5²) px: 0.29 px for MODEL_PARAMS' 0.01, too little to tell, 2.9 px for 0.1)."""
+    quats, trans = random_capture(4, seed=6)
+
+    def told(cameras: dict) -> list[str]:
+        notes = []
+        load_colmap(write_colmap(tmp_path / str(len(list(tmp_path.iterdir()))), cameras, colmap_images(quats, trans),
+                                 binary), notes=notes.append)
+        return notes
+
+    for model, params in [*MODEL_PARAMS.items(), ("OPENCV", [50.0, 50.0, 30.5, 25.0, 0, 0, 0, 0])]:
+        assert told({1: (model, 64, 48, params)}) == [], model  # zero, or under a pixel
+    assert told({1: ("SIMPLE_RADIAL", 64, 48, [50.0, 30.5, 25.0, 0.1])}) == [
+        "lens distortion ignored (k1 non-zero in 4 of 4 views): the views are rendered as pinhole cameras, as "
+        "undistorted images; photos taken through the lens differ from them by up to 2.9 px towards the image corners"]
+    (note,) = told({1: ("RADIAL", 64, 48, [50.0, 30.5, 25.0, 0.1, -0.02])})
+    assert note.startswith("lens distortion ignored (k1, k2 non-zero in 4 of 4 views)")
+    (note,) = told({1: ("OPENCV", 64, 48, [50.0, 50.0, 30.5, 25.0, 0.1, -0.02, 0.01, 0.005])})
+    assert note.startswith("lens distortion ignored (k1, k2, p1, p2 non-zero in 4 of 4 views)")
+    two = {1: ("PINHOLE", 64, 48, MODEL_PARAMS["PINHOLE"]), 2: ("OPENCV", 64, 48, [*MODEL_PARAMS["PINHOLE"], 0, 0, 0, 0.3])}
+    with caplog.at_level("WARNING"):  # without notes, logged after the file
+        load_colmap(write_colmap(tmp_path / "two", two, colmap_images(quats, trans, [1, 2, 2, 1]), binary))
+    (record,) = [r.getMessage() for r in caplog.records if "lens distortion" in r.getMessage()]
+    assert re.match(r".*cameras\.(txt|bin): lens distortion ignored \(p2 non-zero in 2 of 4 views\)", record)

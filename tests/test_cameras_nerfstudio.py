@@ -244,3 +244,35 @@ def test_camera_positions_beyond_range_are_refused_at_load_naming_the_frame(tmp_
                        r".*transforms\.json at x: expected a finite number within \+-1e\+09, got 3\.\d+e\+299"):
         load_nerfstudio(path, dataparser_transforms=write_json(
             tmp_path / "dataparser_transforms.json", {"transform": torch.eye(4)[:3].tolist(), "scale": 1e300}))
+
+
+def test_distortion_that_moves_a_corner_a_pixel_is_told_once_per_load_and_less_not_at_all(tmp_path, caplog):
+    """k1..k4, p1, p2 were ignored silently: the views render as pinhole cameras. A frame's own coefficient overrides
+    the top level's; under a pixel at the corners nothing is told. 100x100 views, f 100 at the centre: k1 0.1 moves each corner (x, y = +-0.5, r² 0.5) by
+    0.05 * 0.5 * 100 = 2.5 px along each axis, 3.5 px in all; p2 0.1 by 100 * 0.1 * (r² + 2x²) = 10 px along x and
+    100 * 2 * 0.1 * |x y| = 5 px along y: 11.2 px."""
+    def frame(index: int, **coefficients) -> dict:
+        return {"file_path": f"{index}.png", "transform_matrix": [[1, 0, 0, index], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                                  [0, 0, 0, 1]], **coefficients}
+
+    intrinsics = {"w": 100, "h": 100, "fl_x": 100.0, "fl_y": 100.0, "cx": 50.0, "cy": 50.0}
+    mixed = write_json(tmp_path / "mixed.json", {**intrinsics, "k1": 0.1, "frames": [frame(0), frame(1, k1=0),
+                                                                                      frame(2, k1=0, p2=0.1)]})
+    radial = write_json(tmp_path / "radial.json", {**intrinsics, "k1": 0.1, "frames": [frame(0), frame(1)]})
+    zero = write_json(tmp_path / "zero.json", {**intrinsics, "k1": 0, "k2": 0.0, "p1": 0, "p2": 0,
+                                               "frames": [frame(0), frame(1, k3=0.0)]})
+    slight = write_json(tmp_path / "slight.json", {**intrinsics, "k1": 0.02, "frames": [frame(0)]})  # 0.7 px
+    told = {}
+    with caplog.at_level("WARNING"):
+        for path in (mixed, radial, zero, slight):
+            told[path.stem] = []
+            load_nerfstudio(path, notes=told[path.stem].append)
+    assert told == {"mixed": [
+        "lens distortion ignored (k1, p2 non-zero in 2 of 3 views): the views are rendered as pinhole cameras, as "
+        "undistorted images; photos taken through the lens differ from them by up to 11.2 px towards the image corners"],
+        "radial": ["lens distortion ignored (k1 non-zero in 2 of 2 views): the views are rendered as pinhole cameras, "
+                   "as undistorted images; photos taken through the lens differ from them by up to 3.5 px towards the "
+                   "image corners"], "zero": [], "slight": []}
+    assert not caplog.records  # told, not logged
+    load_nerfstudio(radial)  # without notes: logged after the file
+    assert [r.getMessage() for r in caplog.records] == [f"{radial}: {told['radial'][0]}"]

@@ -301,10 +301,11 @@ def test_kept_workers_need_a_running_cluster_and_release_runs_no_jobs(tmp_path, 
     assert capsys.readouterr().err.startswith(f"error: {message}")
 
 
-def test_kept_workers_serve_later_batches_warm_through_a_stop_until_released(tmp_path, ray_local):
+def test_kept_workers_serve_later_batches_warm_through_a_stop_until_released(tmp_path, ray_local, capsys):
     """Two batch commands (processes of their own) with --keep-workers on one running Ray instance run on
     the same worker process; a batch stopped in between ends its job, not the worker, and the next batch's
-    job runs (its own run is not the stopped one); --release-workers ends it."""
+    job runs (its own run is not the stopped one); a batch without --keep-workers says that it waits for
+    the devices kept workers hold (else it would wait without a word); --release-workers ends them."""
     import subprocess
     import sys
 
@@ -344,6 +345,9 @@ def test_kept_workers_serve_later_batches_warm_through_a_stop_until_released(tmp
 
         printed = command(str(jobs_path), "--devices=cpu", "--keep-workers", "--redo")
         assert "summary: 1 done" in printed and f"pid {process}" in printed, printed
+        assert cli.main(["batch", str(jobs_path), "--devices=cpu", "--ray-address", address]) == 0  # skipped: done
+        assert ("note: workers kept by earlier batches hold their devices (BatchWorker-cpu-0); this batch's workers "
+                "wait for free ones") in capsys.readouterr().out
         assert command("--release-workers") == "released 1 kept worker\n  BatchWorker-cpu-0\n"
         with pytest.raises(ValueError, match="Failed to look up actor"):
             kept_process()

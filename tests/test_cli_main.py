@@ -18,7 +18,7 @@ def test_render_reports_loading_and_each_view(tmp_path, capsys):
     write_ply(load_scene(demo.scene).select(slice(0, None, 40)), scene)  # 1,000 Gaussians: quick renders
     assert main(["render", str(scene), "--cameras", str(demo.cameras), "--out", str(tmp_path / "out"),
                  "--views", "0,5,9", "--scale", "0.1", "--device", "cpu"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = capsys.readouterr().out.splitlines()  # no note on the demo's lens: it moves a corner by 0.6 px
     assert re.fullmatch(rf"loading {re.escape(str(scene))} \(0\.1 MiB\)", lines[0])
     assert lines[1].startswith("loaded 1,000 Gaussians (SH degree 1) in ")
     assert lines[2].startswith("rendering 3 views at ")
@@ -175,7 +175,7 @@ def test_a_failing_stylize_writes_neither_output(tmp_path, capsys, monkeypatch):
 def test_out_of_memory_is_an_error_with_advice(tmp_path, capsys, monkeypatch, failure):
     import artnvg_core.cameras
 
-    def exhausted(path):
+    def exhausted(path, notes):
         raise failure
 
     monkeypatch.setattr(artnvg_core.cameras, "load_cameras", exhausted)
@@ -183,7 +183,7 @@ def test_out_of_memory_is_an_error_with_advice(tmp_path, capsys, monkeypatch, fa
     assert main(command) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: out of memory (") and "try a smaller --scale" in err
-    monkeypatch.setattr(artnvg_core.cameras, "load_cameras", lambda path: 1 / 0)
+    monkeypatch.setattr(artnvg_core.cameras, "load_cameras", lambda path, notes: 1 / 0)
     with pytest.raises(ZeroDivisionError):  # other failures are not disguised
         main(command)
 

@@ -4,8 +4,11 @@ batch)."""
 
 import logging
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,14 +92,46 @@ def test_rays_token_notice_is_dropped_as_ray_starts_and_its_other_records_kept(m
     assert kept.messages == ["the token file is unreadable", notice]
 
 
+def test_devices_start_a_new_local_ray_even_where_a_cluster_runs_and_only_an_address_joins_one(monkeypatch):
+    """With RAY_ADDRESS set (or after ``ray start --head`` here), a bare ``ray.init(num_cpus=...)`` joins that
+    cluster and refuses the resources ('When connecting to an existing cluster, num_cpus and num_gpus must not be
+    provided'): ``--devices`` asks for a new local instance (``address="local"``, which Ray starts whatever
+    RAY_ADDRESS says); ``--ray-address auto`` joins the cluster RAY_ADDRESS names (Ray reads it for "auto")."""
+    calls = []
+    ray = type(sys)("ray")
+    ray.is_initialized = lambda: False
+    ray.init = lambda **options: calls.append({k: options.get(k) for k in ("address", "num_cpus", "num_gpus")})
+    ray.shutdown = lambda: None
+    monkeypatch.setitem(sys.modules, "ray", ray)
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    for devices in (["cpu", "cpu"], ["cuda:0", "cuda:1"]):
+        with ray_session(devices):
+            pass
+    with ray_session(["cpu"], "auto"):
+        pass
+    assert calls == [dict(address="local", num_cpus=2, num_gpus=0), dict(address="local", num_cpus=None, num_gpus=2),
+                     dict(address="auto", num_cpus=None, num_gpus=None)]
+
+
 @pytest.mark.slow
-def test_a_local_ray_starts_without_printing_its_notices():
+def test_a_local_ray_starts_without_printing_its_notices_beside_a_cluster_that_ray_start_left(tmp_path):
     """The real thing, in a child process as the command line runs it (RAY_AUTH_MODE unset, as a user's shell has
-    it: set, Ray says nothing)."""
-    script = "from artnvg_core.cluster import ray_session\nwith ray_session(['cpu']):\n    print('inside')\n"
-    env = {name: value for name, value in child_env().items() if name != "RAY_AUTH_MODE"}
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, env=env)
-    assert result.returncode == 0 and result.stdout == "inside\n", result
+    it: set, Ray says nothing), on a machine where ``ray start --head`` wrote its cluster's address for later
+    ``ray.init()`` calls to join (here in a Ray temporary folder of the test's own, naming a cluster that is gone)."""
+    temporary = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))  # short: Ray's socket paths lie under it
+    try:
+        (temporary / "ray").mkdir()
+        (temporary / "ray" / "ray_current_cluster").write_text("127.0.0.1:1")
+        script = ("import ray\nfrom artnvg_core.cluster import ray_session\nwith ray_session(['cpu', 'cpu']):\n"
+                  "    print('inside', ray.cluster_resources()['CPU'])\n")
+        env = {name: value for name, value in child_env().items() if name not in ("RAY_AUTH_MODE", "RAY_ADDRESS")}
+        result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                                env=dict(env, RAY_TMPDIR=str(temporary)))
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+    assert result.returncode == 0 and result.stdout == "inside 2.0\n", result
     assert "Token authentication" not in result.stderr and "WARNING" not in result.stderr, result.stderr
 
 

@@ -1,6 +1,7 @@
 """Load Cameras, Cameras Around Scene and Group Neighbouring Views, called as ComfyUI calls them: cameras from the
 input folder or a path, the core's orbit_cameras and its text inputs, the core's view groups."""
 
+import json
 import re
 
 import pytest
@@ -73,6 +74,24 @@ def test_load_cameras_from_input_folder_or_path(comfy_dirs, bear):
         f"Load Cameras: input 'path': {scene}: not a supported camera source; expected a nerfstudio .json file (e.g. "
         "transforms.json), a folder containing transforms.json, or a COLMAP model folder (cameras.bin + images.bin "
         "or cameras.txt + images.txt, directly or in sparse/0 or 0)")
+
+
+def test_load_cameras_tells_the_lens_distortion_it_ignores_once_as_it_runs(comfy_dirs, caplog):
+    """The bear's transforms.json has OPENCV's k1, k2, p1, p2, moving a corner by 0.6 px: nothing told. With ten
+    times its k1 (ignored silently before): shown under the node and logged once on the console as the node runs;
+    counting its cameras before the graph runs tells nothing."""
+    bear = comfy_dirs / "input" / "bear" / "transforms.json"
+    wide = json.loads(bear.read_text())
+    (comfy_dirs / "input" / "wide").mkdir()
+    (comfy_dirs / "input" / "wide" / "transforms.json").write_text(json.dumps({**wide, "k1": 10 * wide["k1"]}))
+    with caplog.at_level("WARNING"):
+        call(LoadCameras, camera_source="bear/transforms.json")
+        assert LoadCameras.camera_count(camera_source="wide/transforms.json", path="") == 96
+        assert not caplog.records
+        call(LoadCameras, camera_source="wide/transforms.json")
+    (message,) = [record.getMessage() for record in caplog.records]
+    assert message.startswith("Load Cameras: note: lens distortion ignored (k1, k2, p1, p2 non-zero in 96 of 96 "
+                              "views): the views are rendered as pinhole cameras")
 
 
 def test_group_neighbouring_views_matches_the_core(bear):

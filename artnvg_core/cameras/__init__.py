@@ -15,13 +15,14 @@ and :mod:`.colmap` (with :func:`load_cameras` here choosing between them),
 (:func:`scene_frame`: where a scene is and which way is up; the views built around a
 scene without cameras are :mod:`artnvg_core.orbit`'s). Loaders return float32 CPU
 tensors; all pose maths runs in float64. Lens distortion is ignored everywhere:
-these are pinhole cameras.
+these are pinhole cameras (a loader tells its ``notes`` when a file's coefficients are not zero).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from ..notes import NoteFn
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .colmap import find_colmap_model, load_colmap
 from .geometry import look_at, normalize_quats, quat_to_rotmat, rotmat_to_quat
@@ -58,9 +59,11 @@ def camera_files(path) -> list[Path]:
     )
 
 
-def load_cameras(path) -> CameraSet:
+def load_cameras(path, *, notes: NoteFn | None = None) -> CameraSet:
     """Cameras from a nerfstudio or COLMAP capture, chosen by layout (:func:`camera_files`):
     :func:`load_nerfstudio` of a ``.json`` file or a folder's ``transforms.json``, else
-    :func:`load_colmap` of the COLMAP model folder."""
+    :func:`load_colmap` of the COLMAP model folder; ``notes`` is told of the lens distortion they ignore."""
     files = camera_files(path)
-    return load_nerfstudio(files[0]) if files[0].suffix.lower() == ".json" else load_colmap(files[0].parent)
+    if files[0].suffix.lower() == ".json":
+        return load_nerfstudio(files[0], notes=notes)
+    return load_colmap(files[0].parent, notes=notes)

@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from ..counted import counted
+from ..notes import NoteFn
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
 from .common import (
     PERSPECTIVE_MODELS,
@@ -19,6 +20,7 @@ from .common import (
     check_text_size,
     loaded_camera_set,
     pinhole_matrix,
+    tell_distortion,
     view_names,
 )
 from .geometry import quat_to_rotmat
@@ -308,6 +310,14 @@ def _colmap_intrinsics(camera: _ColmapCamera, where: str) -> list[list[float]]:
     return pinhole_matrix(fx, fy, cx, cy)
 
 
+def _colmap_distortion(camera: _ColmapCamera) -> list[float]:
+    """The camera's distortion parameters as :data:`~.common.DISTORTION_NAMES` (k1..k4, p1, p2): SIMPLE_RADIAL's k
+    is k1, RADIAL's k1 k2, OPENCV's k1 k2 p1 p2; none for the pinhole models."""
+    rest = camera.params[3:] if camera.model in _SINGLE_FOCAL_MODELS else camera.params[4:]
+    radial, tangential = (rest[:2], rest[2:4]) if camera.model == "OPENCV" else (rest, ())
+    return [*radial, *[0.0] * (4 - len(radial)), *tangential, *[0.0] * (2 - len(tangential))]
+
+
 def _image_file(model_dir: Path, name: str) -> Path | None:
     """The image ``name`` in an ``images`` folder one or two levels above the model, else None (also for a name
     the file system refuses, e.g. one too long: ``os.path.isfile`` says False where ``Path.is_file`` raised)."""
@@ -317,14 +327,15 @@ def _image_file(model_dir: Path, name: str) -> Path | None:
     return None
 
 
-def load_colmap(path) -> CameraSet:
+def load_colmap(path, *, notes: NoteFn | None = None) -> CameraSet:
     """Cameras of a COLMAP sparse model, sorted by image name.
 
     ``path`` is the model folder (``cameras`` + ``images`` as ``.bin`` or
     ``.txt``; binary preferred when both exist) or a folder holding it as
     ``sparse/0``, ``sparse`` or ``0``. Supported camera models: SIMPLE_PINHOLE,
     PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, their radial/tangential
-    distortion ignored. COLMAP poses are already OpenCV world-to-camera.
+    distortion ignored: when any is non-zero, ``notes`` is told so once
+    (:func:`~.common.tell_distortion`; logged without). COLMAP poses are already OpenCV world-to-camera.
     ``names`` are the image name stems; COLMAP does not store the image
     folder, so ``image_paths`` are set only where the file exists in an
     ``images/`` folder one or two levels above the model folder (else None).
@@ -351,7 +362,7 @@ def load_colmap(path) -> CameraSet:
     check_distinct_images([image.name for image in images], lambda index: f"image record {index}'s NAME", images_file)
 
     images.sort(key=lambda image: image.name)
-    poses, intrinsics = [], []
+    poses, intrinsics, distortion = [], [], []
     size = None
     for image in images:
         where = f"{images_file}: image record {image.record}"
@@ -366,6 +377,7 @@ def load_colmap(path) -> CameraSet:
                 f"{size[0]}x{size[1]}; all images must share one size"
             )
         intrinsics.append(_colmap_intrinsics(camera, f"{cameras_file}: camera {image.camera_id}"))
+        distortion.append(_colmap_distortion(camera))
         quat = torch.tensor(image.quat, dtype=torch.float64)
         if not torch.isfinite(quat).all() or quat.norm() < 1e-12:
             raise ValueError(f"{where}: quaternion QW QX QY QZ must be finite and non-zero, got {image.quat}")
@@ -374,7 +386,7 @@ def load_colmap(path) -> CameraSet:
         pose[:3, 3] = torch.tensor([check_camera_value(t, f"{where}: T{axis}")
                                     for t, axis in zip(image.translation, "XYZ")], dtype=torch.float64)
         poses.append(pose)
-    return loaded_camera_set(
+    cameras = loaded_camera_set(
         torch.stack(poses),
         intrinsics,
         size[0],
@@ -383,4 +395,7 @@ def load_colmap(path) -> CameraSet:
         [_image_file(model_dir, image.name) for image in images],
         lambda index: f"{images_file}: image record {images[index].record}",
     )
+    tell_distortion(notes, cameras_file, torch.tensor(intrinsics, dtype=torch.float64), size[0], size[1],
+                    torch.tensor(distortion, dtype=torch.float64))
+    return cameras
 

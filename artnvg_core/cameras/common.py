@@ -1,5 +1,5 @@
 """What the capture loaders (nerfstudio, COLMAP) share: text reading, bounds on values, view names,
-pinhole matrices, the finished camera set."""
+pinhole matrices, the note on the lens distortion they ignore, the finished camera set."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from pathlib import Path
 
 import torch
 
+from ..counted import counted
+from ..notes import NoteFn, tell
 from .camera_set import CameraSet
 
 # Bytes a camera text file (transforms.json, COLMAP cameras.txt / images.txt) may have, checked before it
@@ -86,6 +88,50 @@ def check_distinct_images(files: list[str], field: Callable[[int], str], source:
 def pinhole_matrix(fx: float, fy: float, cx: float, cy: float) -> list[list[float]]:
     """K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels) as nested lists."""
     return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+
+
+# Lens distortion coefficients, as nerfstudio names them (OpenCV's model: k1..k4 radial, p1, p2 tangential); a COLMAP
+# model's are a part of them. The loaders ignore them (pinhole cameras) and say so (:func:`tell_distortion`).
+DISTORTION_NAMES = ("k1", "k2", "k3", "k4", "p1", "p2")
+TOLD_SHIFT_PX = 1.0  # a lens that moves no image corner by this many pixels goes untold: no render would show it
+
+
+def corner_shift(intrinsics: torch.Tensor, width: int, height: int, coefficients: torch.Tensor) -> torch.Tensor:
+    """[C] float64: how many pixels the lens distortion ``coefficients`` [C, 6] (:data:`DISTORTION_NAMES`) move the
+    farthest of the four image corners of each view of ``intrinsics`` [C, 3, 3] and size ``width`` x ``height``:
+    OpenCV's model, x' = x (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) + 2 p1 x y + p2 (r² + 2 x²) (y' alike) on the
+    normalised coordinates x = (u - cx) / fx, y = (v - cy) / fy."""
+    k = intrinsics.to(torch.float64)
+    focal = torch.stack([k[:, 0, 0], k[:, 1, 1]], -1)[:, None]  # [C, 1, 2]
+    centre = torch.stack([k[:, 0, 2], k[:, 1, 2]], -1)[:, None]
+    corners = torch.tensor([[0, 0], [width, 0], [0, height], [width, height]], dtype=torch.float64)
+    x, y = ((corners - centre) / focal).unbind(-1)  # [C, 4] each
+    r2 = x * x + y * y
+    k1, k2, k3, k4, p1, p2 = coefficients.to(torch.float64)[:, :, None].unbind(1)  # [C, 1] each
+    radial = k1 * r2 + k2 * r2**2 + k3 * r2**3 + k4 * r2**4
+    dx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    dy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return (torch.stack([dx, dy], -1) * focal).norm(dim=-1).amax(1)
+
+
+def tell_distortion(notes: NoteFn | None, source: Path, intrinsics: torch.Tensor, width: int, height: int,
+                    coefficients: torch.Tensor) -> None:
+    """Tell ``notes`` (:func:`~artnvg_core.notes.tell`), once, that the lens distortion ``coefficients`` [C, 6]
+    (:data:`DISTORTION_NAMES`, 0 where the file ``source`` gives none) of views of ``intrinsics`` [C, 3, 3] and size
+    ``width`` x ``height`` are ignored, when they move an image corner by :data:`TOLD_SHIFT_PX` or more
+    (:func:`corner_shift`; a phone's or a DSLR's capture, fitted by COLMAP, moves them by less than a pixel): which,
+    in how many views, what that means and how many pixels at most. Nothing otherwise."""
+    distorted = coefficients != 0
+    if not distorted.any():
+        return
+    shift = corner_shift(intrinsics, width, height, coefficients).max().item()
+    if shift < TOLD_SHIFT_PX:
+        return
+    names = ", ".join(name for name, given in zip(DISTORTION_NAMES, distorted.any(0).tolist()) if given)
+    views = int(distorted.any(1).sum())
+    tell(notes, source, f"lens distortion ignored ({names} non-zero in {views:,} of {counted(len(coefficients), 'view')}):"
+                        f" the views are rendered as pinhole cameras, as undistorted images; photos taken through the "
+                        f"lens differ from them by up to {shift:.1f} px towards the image corners")
 
 
 def check_camera_value(value: float, where: str) -> float:

@@ -11,13 +11,16 @@ import torch
 from ..counted import counted
 from ..json_objects import parse_json
 from .camera_set import MAX_IMAGE_SIDE, CameraSet
+from ..notes import NoteFn
 from .common import (
+    DISTORTION_NAMES,
     PERSPECTIVE_MODELS,
     MAX_CAMERA_VALUE,
     check_camera_value,
     check_distinct_images,
     loaded_camera_set,
     read_text,
+    tell_distortion,
     view_names,
 )
 from .geometry import check_rotation, rigid_inverse
@@ -216,6 +219,19 @@ def _intrinsics(path: Path, meta: dict, frames: list) -> tuple[int, int, torch.T
     raise AssertionError("_check_frames found nothing wrong with frames the bulk check refused")
 
 
+def _distortion(meta: dict, frames: list[dict]) -> torch.Tensor:
+    """[C, 6] float64: each frame's :data:`~.common.DISTORTION_NAMES` coefficients (the frame's own, else the top
+    level's; 0 where neither gives a number)."""
+    def number(value) -> float:
+        return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else 0.0
+
+    top = [number(meta.get(name)) for name in DISTORTION_NAMES]
+    if not any(isinstance(frame, dict) and not frame.keys().isdisjoint(DISTORTION_NAMES) for frame in frames):
+        return torch.tensor([top], dtype=torch.float64).expand(len(frames), -1)
+    return torch.tensor([[number(frame[name]) if name in frame else value for name, value in zip(DISTORTION_NAMES, top)]
+                         for frame in frames], dtype=torch.float64)
+
+
 def _check_positions(cam_to_world: torch.Tensor, where) -> None:
     """ValueError naming ``where(index, axis)`` ("x", "y" or "z") of the first camera of ``cam_to_world``
     [C, 4, 4] whose position lies beyond :data:`MAX_CAMERA_VALUE` (or is not finite)."""
@@ -225,13 +241,14 @@ def _check_positions(cam_to_world: torch.Tensor, where) -> None:
         check_camera_value(cam_to_world[index, axis, 3].item(), where(index, "xyz"[axis]))
 
 
-def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
+def load_nerfstudio(path, *, dataparser_transforms=None, notes: NoteFn | None = None) -> CameraSet:
     """Cameras of a nerfstudio ``transforms.json``, in file order.
 
     Intrinsics ``fl_x, fl_y, cx, cy, w, h`` (pixels) come from each frame or,
     where a frame lacks a key, from the top level; ``cx``/``cy`` default to
     ``w/2``/``h/2``. All frames must share one ``w`` x ``h``. Lens distortion
-    (``k1..k4, p1, p2``) is ignored. ``transform_matrix`` is an OpenGL
+    (``k1..k4, p1, p2``) is ignored; when any is non-zero, ``notes`` is told so once
+    (:func:`~.common.tell_distortion`; logged without). ``transform_matrix`` is an OpenGL
     camera-to-world matrix; it is converted to an OpenCV world-to-camera one.
     ``names`` are the image file stems, ``image_paths`` the ``file_path``s
     resolved against the JSON file's folder.
@@ -282,6 +299,8 @@ def load_nerfstudio(path, *, dataparser_transforms=None) -> CameraSet:
         _check_positions(cam_to_world, lambda index, axis: f"{dataparser}: 'transform' and 'scale' put frame {index} "
                                                            f"of {path} at {axis}")
     world_to_cam = rigid_inverse(cam_to_world)
-    return loaded_camera_set(world_to_cam, intrinsics, width, height, view_names(names, path), image_paths,
-                             lambda index: f"{path}: frame {index}")
+    cameras = loaded_camera_set(world_to_cam, intrinsics, width, height, view_names(names, path), image_paths,
+                                lambda index: f"{path}: frame {index}")
+    tell_distortion(notes, path, intrinsics, width, height, _distortion(meta, frames))
+    return cameras
 

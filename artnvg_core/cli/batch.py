@@ -29,8 +29,9 @@ them warm (their imports done, their models loaded: a worker's first job takes a
 starting only those missing or dead. Kept workers hold their memory, the models on each GPU, until
 ``batch --release-workers --ray-address ADDR`` or ``ray stop``; they run the code they started with
 (release them after updating ArtNVG), and one batch at a time (a job handed to a worker busy with another
-batch's job fails). A stop (Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers (unless one is
-killed for not stopping within 30 s; the next batch replaces it).
+batch's job fails); a batch without --keep-workers waits for the devices they hold (it says so). A stop
+(Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers (unless one is killed for not stopping within
+30 s; the next batch replaces it).
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cluster import WorkerPool, Workers, dispatch, import_ray, ray_joined, ray_session, release_workers
+from ..cluster import (WorkerPool, Workers, dispatch, import_ray, kept_workers, ray_joined, ray_session,
+                       release_workers)
 from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
@@ -270,6 +272,11 @@ def cmd_batch(args: argparse.Namespace, options: dict[str, argparse.Action]) -> 
         kept = " (kept after the batch: --release-workers ends them)" if args.keep_workers else ""
         print(f"batch: {counted(len(jobs), 'job')} on {counted(workers.count, f'{workers.kind} worker')}{place}{kept}",
               flush=True)
+        others = kept_workers() if args.ray_address and not args.keep_workers else []
+        if others:  # they hold their GPUs: this batch's workers would wait for them without a word
+            print(f"note: workers kept by earlier batches hold their devices ({', '.join(others)}); this batch's "
+                  "workers wait for free ones. Give --keep-workers to run on them, or end them with --release-workers",
+                  flush=True)
         # the bar is closed however the run ends, before main prints an error below it
         with tqdm(total=len(jobs), desc="batch", unit="job", dynamic_ncols=True) as bar, \
                 BatchPool(workers, keep=args.keep_workers) as pool:

@@ -212,7 +212,8 @@ def read_style_image(path: str | os.PathLike, option: str = "--style") -> torch.
 def load_camera_option(args: argparse.Namespace) -> CameraSet | None:
     """The cameras of ``args.cameras`` (:func:`artnvg_core.cameras.load_cameras`), None when it is left out; a
     ValueError names ``--cameras``, or an option of the views built around the scene given beside it
-    (``args.orbit_options``, which the cameras would leave unread)."""
+    (``args.orbit_options``, which the cameras would leave unread). The load's notes (the lens distortion ignored)
+    go to ``args.notes`` where the command has one (stylize: a batch job keeps them), else are printed."""
     from ..cameras import load_cameras
 
     if not args.cameras:
@@ -222,4 +223,4 @@ def load_camera_option(args: argparse.Namespace) -> CameraSet | None:
         raise ValueError(f"{unread[0]}: the views orbiting the scene are built only without --cameras, whose views "
                          "are used here; give one or the other")
     with named_option("--cameras"):
-        return load_cameras(args.cameras)
+        return load_cameras(args.cameras, notes=getattr(args, "notes", None) or print_note)
