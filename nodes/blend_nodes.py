@@ -7,7 +7,7 @@ from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
 from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
-from .node_base import ArtNVGNode
+from .node_base import ArtNVGNode, ViewInput
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
 
@@ -49,7 +49,7 @@ class BlendStylization(ArtNVGNode):
             "Strengths shown side by side in the preview, comma-separated.")}),
     }
     VALUE_CHECKS = {"preview_strengths": parse_strengths}
-    VIEW_INPUTS = {"view": "cameras"}
+    VIEW_INPUTS = {"view": ViewInput()}
 
     @cancellable
     def blend(self, original, stylized, strength, selection=None, cameras=None, view=0,

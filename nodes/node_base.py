@@ -14,7 +14,7 @@ will pass them (:func:`comfyui_value`), to the declared types, ranges and choice
 (``prompt_checks``; an input also to what the node's ``VALUE_CHECKS`` read from it), :meth:`ArtNVGNode.check_links`
 the prompt's links to the optional inputs a value needs connected (``NEEDS_LINKS``: Select Gaussians' mode mask its
 cameras and mask), :meth:`ArtNVGNode.check_views` a view index against the count of the cameras it indexes where
-that is known (``VIEW_INPUTS``: a Load Cameras' file read), and
+that is known, in the modes that read it (``VIEW_INPUTS``: a Load Cameras' file read), and
 :meth:`ArtNVGNode.check_images` a style image's size where a Load Image feeds it. Every node answers
 ComfyUI's validation with what those checks kept for it (``VALIDATE_INPUTS``), which ComfyUI labels with the one
 input that function takes, ``REPORTED_INPUT``: the hidden input :data:`~.prompt_checks.CHECK_INPUT` (the node id,
@@ -34,6 +34,7 @@ import inspect
 import math
 import numbers
 from collections.abc import Callable, Collection, Iterator
+from typing import NamedTuple
 
 import torch
 
@@ -124,6 +125,15 @@ def _checking_inputs(function: Callable) -> Callable:
     return run
 
 
+class ViewInput(NamedTuple):
+    """An input of view indices (a view list's text, or an INT view) in a node's ``VIEW_INPUTS``: the CAMERAS input
+    whose views it indexes and, for an input that one mode alone reads, that mode as (input name, value): Render
+    Camera Path's key_views ("path", "interpolate"); None where every mode reads it."""
+
+    cameras: str = "cameras"
+    mode: tuple[str, str] | None = None
+
+
 class ArtNVGNode:
     """Base of the pack's nodes (module docstring): the menu category, the description, the inputs."""
 
@@ -138,8 +148,8 @@ class ArtNVGNode:
     VALUE_CHECKS: dict = {}  # input name -> the function (value, once of its declared type and range) -> anything
     # the node reads it with when it runs, raising ValueError for a value it refuses (text it cannot read, a number
     # the declared range lets through): checked with the prompt's values, before the graph runs
-    VIEW_INPUTS: dict = {}  # input name (a view list's text, or an INT view) -> the CAMERAS input whose views it
-    # indexes: checked against their count where it is known before the graph runs (a Load Cameras' file)
+    VIEW_INPUTS: dict[str, ViewInput] = {}  # input name -> the cameras whose views it indexes (and the mode that
+    # reads it): checked against their count where it is known before the graph runs (a Load Cameras' file)
     NEEDS_LINKS: dict = {}  # input name -> {a value of it -> the optional inputs the node then needs connected}:
     # checked with the prompt's links, before the graph runs (an unconnected optional input is not in the prompt)
 
@@ -237,16 +247,19 @@ class ArtNVGNode:
     def check_views(cls, camera_count: Callable[[str], int | None], **values) -> str | None:
         """The message naming the first input of :attr:`VIEW_INPUTS` among ``values`` (input name -> a prompt's value)
         that indexes a view past the last of its cameras, whose count ``camera_count(cameras input)`` gives where
-        known (else None), else None. Run after :meth:`check_values`, which refuses text that is no view list. The
-        count is asked for only where an index is above 0 (a camera set is never empty)."""
+        known (else None), else None; an input that one mode alone reads only in that mode (its message names it), not
+        when the mode is another or unknown (through a link). Run after :meth:`check_values`, which refuses text that
+        is no view list. The count is asked for only where an index is above 0 (a camera set is never empty)."""
         passed = cls.passed_values(values)
-        for name, cameras in cls.VIEW_INPUTS.items():
+        for name, (cameras, mode) in cls.VIEW_INPUTS.items():
+            if mode is not None and passed.get(mode[0]) != mode[1]:
+                continue
             value = passed.get(name)
             indices = listed_views(value) if isinstance(value, str) else [value] if type(value) is int else []
             count = camera_count(cameras) if any(indices) else None  # a Load Cameras reads its file for it
             for index in indices if count is not None else ():
                 try:
-                    check_view_index(index, count)
+                    check_view_index(index, count, " ".join(mode) if mode else None)
                 except ValueError as error:
                     return f"{cls.DISPLAY_NAME}: input '{name}': {error}"
         return None

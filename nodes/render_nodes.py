@@ -9,13 +9,12 @@ import torch
 from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from artnvg_core.cameras.paths import check_key_views
 from artnvg_core.cameras.selection import listed_views, parse_views
-from artnvg_core.counted import counted
 from artnvg_core.key_views import select_key_views
 from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
-from .node_base import ArtNVGNode
+from .node_base import ArtNVGNode, ViewInput
 from .node_errors import NodeInputError, node_input
 from .node_types import CAMERAS, IMAGE, SCENE
 
@@ -43,8 +42,7 @@ def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: fl
     (:func:`~artnvg_core.raster.views.check_render_plan`) is refused before the first view."""
     with node_input(node, "scale"):
         cameras = cameras.scaled(scale)
-        check_render_plan(len(cameras), cameras.width, cameras.height,
-                          what=f"{counted(len(cameras), 'view')} at scale {scale}")
+        check_render_plan(len(cameras), cameras.width, cameras.height)
     with node_input(node, "scene"):
         return render_frames(scene, cameras), cameras
 
@@ -72,7 +70,7 @@ class RenderViews(ArtNVGNode):
             "diffusion stage and finetune on key views alone. The cameras output holds the same views.")}),
     }
     VALUE_CHECKS = {"views": EACH_VIEW_ONCE}
-    VIEW_INPUTS = {"views": "cameras"}
+    VIEW_INPUTS = {"views": ViewInput()}
 
     @cancellable
     def render(self, scene, cameras, scale, stride, views, key_views=0, node_id=None):
@@ -113,6 +111,7 @@ class RenderCameraPath(ArtNVGNode):
         "loop": ("BOOLEAN", {"default": False, "tooltip": "interpolate: return to the first key view."}),
     }
     VALUE_CHECKS = {"key_views": EACH_VIEW_ONCE}
+    VIEW_INPUTS = {"key_views": ViewInput(mode=("path", "interpolate"))}
 
     @classmethod
     def _value_problems(cls, values: dict):

@@ -18,7 +18,7 @@ from .comfy_bridge import (
     render_device,
     trainable_copy,
 )
-from .node_base import ArtNVGNode
+from .node_base import ArtNVGNode, ViewInput
 from .node_errors import node_input
 from .node_types import CAMERAS, MASK, SCENE, SELECTION
 
@@ -65,6 +65,7 @@ class SelectGaussians(ArtNVGNode):
             "mask: the camera index of each mask in the batch, comma-separated, in the cameras' order.")}),
     }
     VALUE_CHECKS = {"views": listed_views}  # a view may hold several masks
+    VIEW_INPUTS = {"views": ViewInput(mode=("mode", "mask"))}
     NEEDS_LINKS = {"mode": {"mask": ("cameras", "mask")}}
 
     @classmethod

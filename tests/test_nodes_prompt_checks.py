@@ -419,6 +419,38 @@ def test_view_indices_past_the_cameras_a_loader_gives_are_refused_before_the_gra
         assert set(failed_checks(prompt, classes)) <= {"1"}
 
 
+def test_view_indices_a_mode_reads_are_refused_before_the_graph_runs_in_that_mode_alone(tmp_path, monkeypatch):
+    """Render Camera Path's key_views (read by path interpolate) and Select Gaussians' views (read by mode mask) were
+    checked against the cameras only as the nodes ran; in the mode that reads them the count Load Cameras gives refuses
+    them before, naming the mode. An input its mode ignores, or whose mode comes through a link, is never refused."""
+    import shutil
+
+    from artnvg_core.stylize import DemoInputs
+    from nodes import NODE_CLASS_MAPPINGS
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "input").mkdir()
+    shutil.copyfile(DemoInputs().cameras, tmp_path / "input" / "transforms.json")  # 24 cameras
+    classes = {**NODE_CLASS_MAPPINGS, "Output": Output}
+    path = {"cameras": ["1", 0], "path": "interpolate", "key_views": "0, 30", "scale": 0.5, "num_frames": 2,
+            "frames_per_segment": 2, "loop": False}
+    select = {"scene": ["9", 0], "cameras": ["1", 0], "mask": ["10", 0], "mode": "mask", "bounds": "", "views": "5, 24"}
+    prompt = {"1": {"class_type": "ArtNVGLoadCameras", "inputs": {"camera_source": "transforms.json", "path": ""}},
+              "2": {"class_type": "ArtNVGRenderCameraPath", "inputs": path},
+              "3": {"class_type": "ArtNVGSelectGaussians", "inputs": select},
+              "4": {"class_type": "Output", "inputs": {"a": ["2", 0], "b": ["3", 0]}}}
+    assert failed_checks(prompt, classes) == {
+        "2": "Render Camera Path: input 'key_views': path interpolate: view index 30 is out of range for 24 cameras "
+             "(0..23)",
+        "3": "Select Gaussians: input 'views': mode mask: view index 24 is out of range for 24 cameras (0..23)"}
+    path["key_views"], select["views"] = "0, 23", "5, 23"
+    assert failed_checks(prompt, classes) == {}
+    path["key_views"], select["views"] = "0, 30", "5, 24"
+    for orbit, box in (("orbit", "box"), ("orbit", "sphere"), (["11", 0], ["12", 0])):  # ignored, or the mode unknown
+        path["path"], select["mode"], select["bounds"] = orbit, box, "0, 0, 0, 1, 1, 1" if box == "box" else "0, 0, 0, 1"
+        assert failed_checks(prompt, classes) == {}
+
+
 def _inputs_of_type(kind: str) -> list[tuple[str, type, str, dict]]:
     """(node type, class, input name, options) of every input of type ``kind`` of every node of the pack."""
     from nodes import NODE_CLASS_MAPPINGS

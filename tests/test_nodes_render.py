@@ -66,12 +66,30 @@ def test_render_camera_path_orbit_and_interpolation(small_bear, bear):
              key_views="0, 30, 30", frames_per_segment=2, loop=False)
 
 
+def test_render_camera_paths_key_views_are_checked_against_the_cameras_in_mode_interpolate_alone(small_bear, bear,
+                                                                                                monkeypatch):
+    """Through a link the count is known only as the node starts: refused then, before any render, naming the mode
+    (as at validation, check_views); orbit reads no key view, so none is refused."""
+    import nodes.render_nodes as render_nodes
+
+    cameras = bear["cameras"]
+    inputs = dict(scene=small_bear, cameras=cameras, scale=SCALE, num_frames=2, key_views="0, 96",
+                  frames_per_segment=2, loop=False)
+    with monkeypatch.context() as patched:
+        patched.setattr(render_nodes, "render_views", lambda *args, **kwargs: pytest.fail("rendered"))
+        with pytest.raises(NodeInputError, match=r"^Render Camera Path: input 'key_views': path interpolate: view index "
+                                                 r"96 is out of range for 96 cameras \(0\.\.95\)$"):
+            call(RenderCameraPath, path="interpolate", **inputs)
+    frames, path = call(RenderCameraPath, path="orbit", **inputs)
+    assert torch.equal(path.world_to_cam, orbit_path(cameras, 2).scaled(SCALE).world_to_cam) and len(frames) == 2
+
+
 def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):
     import artnvg_core.raster.views as views
 
     monkeypatch.setattr(views, "available_memory", lambda: 2**30)
     monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
-    with pytest.raises(NodeInputError, match=r"Render Camera Path: input 'scale': 60 views at scale 4\.0: 60 views of "
-                       r"2048x2048 pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):
+    with pytest.raises(NodeInputError, match=r"^Render Camera Path: input 'scale': 60 views of 2048x2048 "
+                       r"pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):
         call(RenderCameraPath, scene=small_bear, cameras=bear["cameras"], path="orbit", scale=4.0, num_frames=60,
              key_views="", frames_per_segment=30, loop=False)

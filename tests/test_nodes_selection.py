@@ -108,11 +108,14 @@ def test_select_node_needs_one_view_per_mask(demo):
     with pytest.raises(NodeInputError, match="Select Gaussians.*views.*2 masks but 1 view "):
         call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras,
              mask=torch.ones(2, cameras.height, cameras.width), views="0")
-    for views, problem in [("0, 99", "view index 99 is out of range for 24 cameras"),  # named once (was 'views: ...')
+    for views, problem in [("0, 99", "mode mask: view index 99 is out of range for 24 cameras"),  # as it starts
                            ("0, -1", "view index -1 is out of range: views count from 0")]:
         with pytest.raises(NodeInputError, match=f"^Select Gaussians: input 'views': {problem}"):
             call(SelectGaussians, scene=original, mode="mask", bounds="", cameras=cameras,
                  mask=torch.ones(2, cameras.height, cameras.width), views=views)
+    (box,) = call(SelectGaussians, scene=original, mode="box", bounds="-1, -1, -1, 1, 1, 1", cameras=cameras,
+                  views="0, 99")  # views box ignores: never refused
+    assert torch.equal(box, select_region(original, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))))
     assert SelectGaussians.check_values(views="3, 3") is None  # a view may hold several masks
     assert SelectGaussians.check_values(views="3, x").startswith("Select Gaussians: input 'views': expected comma")
 

@@ -368,6 +368,17 @@ def test_a_value_our_nodes_refuse_refuses_the_whole_prompt_before_any_work(comfy
     assert set(errors) <= {node, "7", "9"}  # the outputs it feeds, reported; no other output ran either
 
 
+def test_a_key_view_past_the_cameras_is_refused_before_anything_runs_where_path_interpolate_reads_it(comfy_server):
+    """Render Camera Path's key views were checked against Load Cameras' 24 cameras only as it ran, after the scene had
+    loaded and the finetune had run; mode orbit reads none, so never refuses them (tests/test_nodes_prompt_checks)."""
+    errors = _refused_before_any_work(comfy_server, _workflow(comfy_server, "Render Camera Path.path=interpolate",
+                                                              "Render Camera Path.key_views=0,30"))
+    (error,) = errors["8"]["errors"]
+    assert error["type"] == "custom_validation_failed" and error["details"].endswith(
+        "Render Camera Path: input 'key_views': path interpolate: view index 30 is out of range for 24 cameras (0..23)")
+    assert set(errors) <= {"8", "9"}  # the output it feeds; no other output ran either
+
+
 def _refused_before_any_work(server, workflow: dict) -> dict:
     """The node errors ComfyUI refuses ``workflow`` with, whole (HTTP 400, not 200 with node errors), having written
     nothing."""
