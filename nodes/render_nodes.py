@@ -9,7 +9,6 @@ import torch
 from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from artnvg_core.cameras.paths import check_key_views
 from artnvg_core.cameras.selection import listed_views, parse_views
-from artnvg_core.counted import counted
 from artnvg_core.key_views import select_key_views
 from artnvg_core.raster.views import check_render_plan, render_views
 from artnvg_core.scene import GaussianScene
@@ -43,8 +42,7 @@ def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: fl
     (:func:`~artnvg_core.raster.views.check_render_plan`) is refused before the first view."""
     with node_input(node, "scale"):
         cameras = cameras.scaled(scale)
-        check_render_plan(len(cameras), cameras.width, cameras.height,
-                          what=f"{counted(len(cameras), 'view')} at scale {scale}")
+        check_render_plan(len(cameras), cameras.width, cameras.height)
     with node_input(node, "scene"):
         return render_frames(scene, cameras), cameras
 

@@ -21,8 +21,8 @@ KEPT_BYTES_PER_PIXEL = 12
 RENDERING_BYTES_PER_PIXEL = 165
 
 
-def check_render_plan(views: int, width: int, height: int, *, kept: int | None = None, what: str = "views") -> None:
-    """Before any work: a ValueError naming ``what`` (the inputs that chose the plan) when rendering ``views``
+def check_render_plan(views: int, width: int, height: int, *, kept: int | None = None, what: str = "") -> None:
+    """Before any work: a ValueError naming ``what`` (the inputs that chose the plan; '': none) when rendering ``views``
     views of ``width`` x ``height`` pixels, ``kept`` of whose images are held at once (default: all, as the render
     nodes return them; 1 where each is written as it is done), needs more than half the main memory available
     (:func:`~artnvg_core.devices.available_memory`; no check where the system does not say)."""
@@ -31,7 +31,7 @@ def check_render_plan(views: int, width: int, height: int, *, kept: int | None =
     available = available_memory()
     if available is not None and needed > available // 2:
         held = "all their images held at once" if kept == views else f"{kept} of their images held at once"
-        raise ValueError(f"{what}: {counted(views, 'view')} of {width}x{height} pixels, {held}, "
+        raise ValueError(f"{what + ': ' if what else ''}{counted(views, 'view')} of {width}x{height} pixels, {held}, "
                          f"need {needed / 2**30:.1f} GiB, "
                          f"more than half the {available / 2**30:.1f} GiB of memory available now; render fewer "
                          "views or at a smaller scale")
