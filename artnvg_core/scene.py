@@ -61,7 +61,8 @@ def logit(p: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class GaussianScene:
-    """Raw 3DGS parameters of N Gaussians (shapes in the module docstring)."""
+    """Raw 3DGS parameters of N Gaussians (shapes in the module docstring), floating-point tensors of one
+    dtype on one device."""
 
     means: torch.Tensor
     quats: torch.Tensor
@@ -72,6 +73,14 @@ class GaussianScene:
     antialiased: bool = False
 
     def __post_init__(self) -> None:
+        for name in _TENSOR_FIELDS:
+            value = getattr(self, name)
+            if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
+                kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(f"GaussianScene.{name}: expected a floating-point torch.Tensor, got {kind}")
+            if (value.dtype, value.device) != (self.means.dtype, self.means.device):
+                raise ValueError(f"GaussianScene.{name}: expected the means' dtype and device "
+                                 f"({self.means.dtype} on {self.means.device}), got {value.dtype} on {value.device}")
         n = self.means.shape[0] if self.means.ndim == 2 else -1
         expected = {
             "means": (n, 3),

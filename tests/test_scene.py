@@ -1,5 +1,7 @@
 """GaussianScene: shapes, render settings, validation."""
 
+import re
+
 import pytest
 import torch
 
@@ -19,6 +21,21 @@ def test_map_and_select_keep_the_render_settings():
 def test_bad_blur_is_rejected(blur):
     with pytest.raises(ValueError, match="GaussianScene.blur_px2: expected a finite number >= 0"):
         GaussianScene(**random_scene(3, 0).tensors(), blur_px2=blur)
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("means", lambda t: t.long(), "a floating-point torch.Tensor, got torch.int64"),
+    ("sh", lambda t: t.numpy(), "a floating-point torch.Tensor, got ndarray"),
+    ("sh", lambda t: t.double(), "the means' dtype and device (torch.float32 on cpu), got torch.float64 on cpu"),
+    ("quats", lambda t: t.to("meta"), "the means' dtype and device (torch.float32 on cpu), got torch.float32 on meta"),
+])
+def test_tensors_of_another_kind_dtype_or_device_are_rejected(field, value, expected):
+    """An integer scene rendered silently through integer cameras; float64 means beside float32 SH stopped
+    deep in the compositing with torch's "expected scalar type Float but found Double"."""
+    tensors = random_scene(3, 1).tensors()
+    tensors[field] = value(tensors[field])
+    with pytest.raises(ValueError, match=re.escape(f"GaussianScene.{field}: expected {expected}")):
+        GaussianScene(**tensors)
 
 
 def test_validate_scene_passes_a_valid_scene_through():

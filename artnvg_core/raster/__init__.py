@@ -114,7 +114,7 @@ def _positive_focals(intrinsics: torch.Tensor) -> torch.Tensor:
 def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int | None = None,
                         background: torch.Tensor | None = None) -> None:
     """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the scene's
-    tensors finite and on its device, finite camera poses and intrinsics with positive focal lengths,
+    tensors finite (their one dtype and device: :class:`~artnvg_core.scene.GaussianScene`'s own check), finite camera poses and intrinsics with positive focal lengths,
     the background's shape. The value checks are reduced on the device and read back together: one
     wait for the device (one per device where the cameras live elsewhere). A tensor that passed them is
     not checked again until it is changed in place (its version counter moves; writes that bypass it,
@@ -128,8 +128,6 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
         raise ValueError(f"render: background must have shape (3,) or ({len(cameras)}, 3), got {tuple(background.shape)}")
     tests = []  # (message if false, tensor, test), in the order they are reported
     for name, value in scene.tensors().items():
-        if value.device != scene.device:
-            raise ValueError(f"render: scene.{name} is on {value.device}, expected {scene.device}")
         tests.append((f"render: scene.{name} has non-finite values", value, torch.isfinite))
     tests += [("render: cameras have non-finite poses or intrinsics", cameras.world_to_cam, torch.isfinite),
               ("render: cameras have non-finite poses or intrinsics", cameras.intrinsics, torch.isfinite),
