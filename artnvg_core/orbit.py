@@ -146,6 +146,11 @@ def captured_arc(scene: GaussianScene, frame: SceneFrame, distance: float, half_
     return float(axis - span / 2), span
 
 
+def orbit_view_names(count: int) -> list[str]:
+    """The names of the ``count`` views :func:`orbit_cameras` builds: ``orbit_0000``, ``orbit_0001``..."""
+    return [f"orbit_{i:04d}" for i in range(count)]
+
+
 def orbit_cameras(
     scene: GaussianScene,
     count: int = 60,
@@ -216,5 +221,5 @@ def orbit_cameras(
         intrinsics=intrinsics.expand(int(count), 3, 3).to(torch.float32).clone(),
         width=width,
         height=height,
-        names=[f"orbit_{i:04d}" for i in range(int(count))],
+        names=orbit_view_names(int(count)),
     )

@@ -9,6 +9,7 @@ import signal
 from pathlib import Path
 
 import pytest
+import torch
 from tqdm import tqdm
 
 from artnvg_core.cli import main as cli
@@ -282,6 +283,55 @@ def test_a_kept_worker_busy_with_another_batchs_job_fails_the_job_at_once(tmp_pa
     result = worker.run("run", ["a.ply", "--out=out/a.ply"], str(tmp_path))
     assert result["status"] == "failed" and "runs a job of another batch" in result["message"], result
     assert worker.running == ("another batch", 0)
+
+
+def test_a_worker_frees_its_cached_gpu_memory_when_asked_between_batches_not_in_a_job(tmp_path, monkeypatch):
+    """``rest`` (a batch ended) empties PyTorch's CUDA cache, a stand-in here; a job does not, nor does a
+    ``rest`` that arrives while a later batch's job runs (it would take that job's working memory away)."""
+    pytest.importorskip("ray")  # the worker names its machine through Ray
+    from artnvg_core.cli.batch import BatchWorker
+    from artnvg_core.cluster import Workers
+
+    emptied = []
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: emptied.append(True))
+    worker = BatchWorker(Workers("cpu", 1))
+    demo = DemoInputs()
+    argv = [str(demo.scene), f"--style={demo.style}", "--stylizer=nnfm", "--iters=1", "--orbit-views=2",
+            "--orbit-size=32", "--out=out/a.ply"]
+    assert worker.run("run", argv, str(tmp_path))["status"] == "done" and not emptied
+    worker.running = ("a later batch", 0)
+    worker.rest()
+    assert not emptied
+    worker.running = None
+    worker.rest()
+    assert emptied == [True]
+
+
+def test_a_batch_lets_its_workers_free_their_cached_memory_once_its_last_job_ended(ray_local, monkeypatch):
+    """Two batches on one worker: the cache is emptied after each batch's last job, not between jobs."""
+    from artnvg_core.cli import batch
+    from artnvg_core.cluster import Workers
+
+    class Recorded(batch.BatchWorker):  # its jobs only record themselves, as its torch.cuda.empty_cache does
+        def __init__(self, workers):
+            super().__init__(workers)
+            self.events = []
+            torch.cuda.empty_cache = lambda: self.events.append("empty_cache")  # in the actor's process
+
+        def run(self, run, argv, folder):
+            self.events.append(argv[0])
+            return dict(status="done", message="", seconds=0.0, worker="", peak_gib=None, notes=[])
+
+        def recorded(self) -> list[str]:
+            return self.events
+
+    monkeypatch.setattr(batch, "BatchWorker", Recorded)
+    jobs = [Job(n, (f"job {n}",), Path("/nonexistent"), Path(f"/nonexistent/{n}.ply")) for n in (1, 2, 3)]
+    with batch.BatchPool(Workers("cpu", 1)) as pool:
+        assert [r.status for r in pool.run(jobs)] == ["done"] * 3
+        assert [r.status for r in pool.run(jobs[:1])] == ["done"]
+        assert ray_local.get(pool.actors[0].recorded.remote()) == [
+            "job 1", "job 2", "job 3", "empty_cache", "job 1", "empty_cache"]
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -14,6 +14,12 @@ from .geometry import camera_centers
 MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
 
 
+def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """(width, height) in pixels at ``factor`` (> 0) times, each side rounded to whole pixels and at least 1: the size
+    :meth:`CameraSet.scaled` gives views of ``width`` x ``height``."""
+    return max(1, round(width * factor)), max(1, round(height * factor))
+
+
 @dataclass
 class CameraSet:
     """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`).
@@ -89,8 +95,7 @@ class CameraSet:
         """
         if not (math.isfinite(factor) and factor > 0):
             raise ValueError(f"CameraSet.scaled: factor must be a finite number > 0, got {factor}")
-        width = max(1, round(self.width * factor))
-        height = max(1, round(self.height * factor))
+        width, height = scaled_size(self.width, self.height, factor)
         if max(width, height) > MAX_IMAGE_SIDE:
             raise ValueError(f"CameraSet.scaled: factor {factor} makes {self.width}x{self.height} views "
                              f"{width}x{height}, above the {MAX_IMAGE_SIDE} pixels a side a view may have")

@@ -26,12 +26,12 @@ temporary (``.NAME.*.partial.*``) behind.
 With ``--keep-workers`` (and ``--ray-address``: a local Ray that the command starts ends with it) the workers
 stay after the batch, named Ray actors of the cluster, and the next batch with ``--keep-workers`` runs on
 them warm (their imports done, their models loaded: a worker's first job takes about 15 s more on an H200),
-starting only those missing or dead. Kept workers hold their memory, the models on each GPU, until
-``batch --release-workers --ray-address ADDR`` or ``ray stop``; they run the code they started with
-(release them after updating ArtNVG), and one batch at a time (a job handed to a worker busy with another
-batch's job fails); a batch without --keep-workers waits for the devices they hold (it says so). A stop
-(Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers (unless one is killed for not stopping within
-30 s; the next batch replaces it).
+starting only those missing or dead. Kept workers hold their models' memory on each GPU (what the jobs
+worked in is freed as their batch ends) until ``batch --release-workers --ray-address ADDR`` or ``ray
+stop``; they run the code they started with (release them after updating ArtNVG), and one batch at a time
+(a job handed to a worker busy with another batch's job fails); a batch without --keep-workers waits for
+the devices they hold (it says so). A stop (Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers
+(unless one is killed for not stopping within 30 s; the next batch replaces it).
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ from .options import parse_devices
 
 STATUSES = ("done", "failed", "skipped", "cancelled")
 STOP_SECONDS = 30.0  # how long stopped jobs may take to unwind before their workers are killed
+REST_SECONDS = 10.0  # how long a batch's end waits for its workers to free their cached memory (BatchWorker.rest)
 
 
 @dataclass(frozen=True)
@@ -146,6 +147,15 @@ class BatchWorker:
         return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak,
                     notes=notes)
 
+    def rest(self) -> None:
+        """A batch ended: PyTorch's cached GPU memory that no tensor holds goes back to the driver
+        (``torch.cuda.empty_cache``; nothing on the CPU or before CUDA starts), so that a kept worker waits
+        holding its models, not a job's peak. Not while a job runs (a later batch's), nor between a batch's
+        jobs: each would allocate its working memory again."""
+        with self.lock:
+            if self.running is None:
+                torch.cuda.empty_cache()
+
     def stop(self, run: str) -> None:
         """Stop the job of ``run`` if it is running: its stylize stops at its next stop check, and
         :class:`Cancelled` is raised at its next Python step (steps with no check: loading); the jobs of
@@ -179,7 +189,8 @@ class BatchPool(WorkerPool):
         ``on_event("started", job, {"worker": i, "actor": actor})`` when a job is handed out (again, if its
         worker died) and ``on_event("finished", job, result)`` for every job. When ``should_stop`` says
         so, or on KeyboardInterrupt (Ctrl-C), the running jobs are stopped (a worker whose job has not
-        stopped within :data:`STOP_SECONDS` is killed), and every job not finished is ``cancelled``.
+        stopped within :data:`STOP_SECONDS` is killed), and every job not finished is ``cancelled``. At the
+        end the workers free their cached GPU memory (:meth:`BatchWorker.rest`).
         """
         ray = import_ray("batch")
         results: dict[int, JobResult] = {}
@@ -223,6 +234,8 @@ class BatchPool(WorkerPool):
             for job in todo:
                 if job.number not in results:
                     finish(JobResult(job, "cancelled", "batch stopped"))
+        if self.actors:  # waited for: a command that ends at once could take the calls with it
+            ray.wait([actor.rest.remote() for actor in self.actors], num_returns=len(self.actors), timeout=REST_SECONDS)
         return [results[job.number] for job in jobs]
 
     def _stop(self, ray, run: str, running: list[tuple[Job, object]]) -> list[tuple[Job, JobResult]]:
