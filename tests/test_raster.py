@@ -290,6 +290,19 @@ def test_bad_arguments_rejected():
     bad = CameraSet(cams.world_to_cam, cams.intrinsics * torch.tensor([-1.0, 1, 1])[:, None], 40, 32, ["x"])
     with pytest.raises(ValueError, match="focal"):
         render(scene, bad)
+    with pytest.raises(ValueError, match="background has non-finite values"):
+        render(scene, cams, background=torch.tensor([0.0, float("nan"), 0.0]))
+    for near_plane in (-1.0, float("nan"), float("inf"), "0.01", None):  # -1 drew the Gaussians behind the camera
+        with pytest.raises(ValueError, match=f"near_plane must be a finite number >= 0, got {near_plane!r}"):
+            render(scene, cams, near_plane=near_plane)
+
+
+def test_cameras_of_no_views_render_no_views():
+    """Cameras of no views (e.g. an empty subset) stopped with torch.stack's "expects a non-empty TensorList"."""
+    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1]).subset([])
+    out = render(scene, cams, return_depth=True)
+    assert [tuple(x.shape) for x in (out.rgb, out.alpha, out.depth)] == [(0, 32, 40, 3), (0, 32, 40, 1), (0, 32, 40, 1)]
+    assert render(scene, cams).depth is None
 
 
 def test_bear_scene_reproduces_held_out_photos(shared_data):
