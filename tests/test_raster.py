@@ -418,3 +418,20 @@ def test_cameras_of_another_dtype_than_the_scene_render_as_the_scenes():
     scene64 = scene.to(dtype=torch.float64)
     assert torch.equal(render(scene64, cams, backend="torch").rgb, render(scene64, cams64, backend="torch").rgb)
     assert torch.equal(render(scene, cams64, backend="torch").rgb, render(scene, cams, backend="torch").rgb)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_scenes_render_as_their_float32_copies(dtype):
+    """float16 stopped with "value cannot be converted to type c10::Half without overflow" (the footprints'
+    2^31 px cap, the colours' cap); bfloat16 rendered with its depths, pixel positions and radii rounded to
+    8 bits, 0.7 off the float64 render of its own values at worst."""
+    scene = hard_scene(1, n=60).to(dtype=dtype)
+    cams = make_cameras(EYES[:2])
+    params = {k: v.clone().requires_grad_() for k, v in scene.tensors().items()}
+    out = render(GaussianScene(**params), cams, return_depth=True)
+    expected = render(scene.to(dtype=torch.float32), cams, return_depth=True)
+    for got, want in zip((out.rgb, out.alpha, out.depth), (expected.rgb, expected.alpha, expected.depth)):
+        assert got.dtype == torch.float32 and torch.equal(got, want)
+    out.rgb.sum().backward()
+    for name, p in params.items():
+        assert p.grad.dtype == dtype and torch.isfinite(p.grad).all(), name

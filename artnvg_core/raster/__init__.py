@@ -170,7 +170,9 @@ def render(
     """Render ``scene`` from every camera of ``cameras``.
 
     scene: GaussianScene (tensors may require grad; rendering is differentiable
-        in means, quats, log_scales, opacity_logits and sh).
+        in means, quats, log_scales, opacity_logits and sh). A float16 or bfloat16 scene renders as
+        its float32 copy (their ranges and precision cannot hold the projection's and compositing's values),
+        to float32 images.
     cameras: CameraSet, OpenCV world-to-camera [C, 4, 4], K [C, 3, 3] in
         pixels, pixel centres at +0.5; taken to the scene's device and dtype (a float64 scene, the
         reference's oracle, renders from the float32 cameras a loader gives).
@@ -208,6 +210,8 @@ def render(
     degree = scene.sh_degree if sh_degree is None else sh_degree
     if not checked:
         check_render_inputs(scene, cameras, degree, background, near_plane)
+    if scene.means.dtype.itemsize < 4:  # float16, bfloat16: too narrow for the projection and compositing
+        scene = scene.to(dtype=torch.float32)
     cameras = cameras.to(scene.device, scene.means.dtype)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
