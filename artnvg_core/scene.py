@@ -125,6 +125,11 @@ class GaussianScene:
     def to(self, device=None, dtype=None) -> "GaussianScene":
         return self.map(lambda t: t.to(device=device, dtype=dtype))
 
+    def widened(self) -> "GaussianScene":
+        """This scene, or its float32 copy where it is float16 or bfloat16: too narrow to render or train in
+        (:func:`~artnvg_core.raster.render` and :func:`~artnvg_core.finetune.finetune` work on that copy)."""
+        return self.to(dtype=torch.float32) if self.means.dtype.itemsize < 4 else self
+
     def detach(self) -> "GaussianScene":
         return self.map(lambda t: t.detach().clone())
 

@@ -177,7 +177,8 @@ def finetune(
 ) -> GaussianScene:
     """Finetune ``scene`` so its renders from ``cameras`` take on the style.
 
-    scene: the original Gaussians (not modified; a new scene is returned, detached).
+    scene: the original Gaussians (not modified; a new scene is returned, detached; a float16 or bfloat16
+        scene's float32 copy is trained and returned).
     cameras: C views, rendered at their own resolution (scale them beforehand).
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
     stylized: optional [C, H', W', 3] stylized views in camera order, resized to
@@ -228,7 +229,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     check_image_values(style_image, "finetune: style_image")
     if len(cameras) == 0:
         raise ValueError("finetune: cameras is empty")
-    device = scene.device
+    scene, device = scene.widened(), scene.device
     cameras = cameras.to(device)
     if stylized is not None:
         try:

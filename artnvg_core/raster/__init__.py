@@ -210,8 +210,7 @@ def render(
     degree = scene.sh_degree if sh_degree is None else sh_degree
     if not checked:
         check_render_inputs(scene, cameras, degree, background, near_plane)
-    if scene.means.dtype.itemsize < 4:  # float16, bfloat16: too narrow for the projection and compositing
-        scene = scene.to(dtype=torch.float32)
+    scene = scene.widened()
     cameras = cameras.to(scene.device, scene.means.dtype)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
