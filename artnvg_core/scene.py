@@ -128,8 +128,22 @@ class GaussianScene:
     def detach(self) -> "GaussianScene":
         return self.map(lambda t: t.detach().clone())
 
-    def select(self, index: torch.Tensor) -> "GaussianScene":
-        """Subset by boolean mask or integer index over the N Gaussians."""
+    def select(self, index) -> "GaussianScene":
+        """Subset by a boolean mask [N], integer indices [K] in -N..N-1 (a tensor or a sequence) or a slice over the N
+        Gaussians. ValueError otherwise."""
+        if not isinstance(index, slice):
+            index, n = torch.as_tensor(index, device=self.device), len(self)
+            got = f"got {index.dtype} of shape {tuple(index.shape)}"
+            if index.dtype == torch.bool:
+                if tuple(index.shape) != (n,):
+                    raise ValueError(f"GaussianScene.select: a boolean mask must have shape ({n},), {got}")
+            elif index.ndim != 1 or (len(index) and (index.is_floating_point() or index.is_complex())):
+                raise ValueError(f"GaussianScene.select: expected a boolean mask [N], integer indices [K] or a slice, {got}")
+            else:
+                index = index.long()  # not uint8, which torch would take for a mask; [] (float32) selects none
+                if len(index) and not -n <= int(index.min()) <= int(index.max()) < n:
+                    raise ValueError(f"GaussianScene.select: indices must lie in {-n}..{n - 1} for "
+                                     f"{counted(n, 'Gaussian')}")
         return self.map(lambda t: t[index])
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -41,6 +42,14 @@ class CameraSet:
             raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")
         if tuple(self.intrinsics.shape) != (c, 3, 3):
             raise ValueError(f"CameraSet.intrinsics: expected shape ({c}, 3, 3), got {tuple(self.intrinsics.shape)}")
+        for side in ("width", "height"):
+            value = getattr(self, side)
+            try:
+                if isinstance(value, bool):
+                    raise TypeError
+                setattr(self, side, operator.index(value))  # ints as numpy's and 0-d integer tensors too
+            except TypeError:
+                raise ValueError(f"CameraSet.{side}: expected a whole number of pixels (an int), got {value!r}") from None
         if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
             raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
                              f"got {self.width}x{self.height}")
