@@ -304,6 +304,11 @@ def test_bad_inputs_rejected(demo):
         finetune(scene, cameras, style * float("nan"), config=quick)
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
+    views = render(scene, cameras).rgb.clamp(0, 1)  # stylized views of 8-bit values or NaN ran on, white or skipped
+    for image, got in [((views * 255).round().to(torch.uint8), "a torch.uint8 tensor"), (views * 255, "values up to"),
+                       (views * float("nan"), "NaN or infinite values")]:
+        with pytest.raises(ValueError, match=rf"^finetune: stylized: expected floats in \[0, 1\], got {got}"):
+            finetune(scene, cameras, style, stylized=image, config=quick)
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

@@ -181,7 +181,7 @@ def finetune(
         scene's float32 copy is trained and returned).
     cameras: C views, rendered at their own resolution (scale them beforehand).
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
-    stylized: optional [C, H', W', 3] stylized views in camera order, resized to
+    stylized: optional [C, H', W', 3] stylized views in camera order, floats in [0, 1], resized to
         the camera size when they differ; None runs the NNFM-only stylizer.
     progress(step, total, info): called with step 0 and ``info`` {} as the steps start (a step takes seconds
         at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
@@ -236,6 +236,7 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
             check_stylized_views(stylized, len(cameras))
         except ValueError as error:
             raise ValueError(f"finetune: stylized: {error}") from None
+        check_image_values(stylized, "finetune: stylized")
         stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
     weights = None
     if selection is not None:
