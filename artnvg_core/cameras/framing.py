@@ -155,14 +155,15 @@ def scene_frame(scene: GaussianScene, *, up=None, quantile: float = 0.5) -> Scen
     center = torch.tensor([_weighted_quantile(means[:, i], weights, 0.5) for i in range(3)], dtype=torch.float64)
     distances = (means - center).norm(dim=1)
     scale = float(distances.max())
-    if not scale > 1e-9 * (1 + float(center.abs().max())):
+    negligible = 1e-9 * (1 + float(center.abs().max()))  # a distance from the centre that is float32's rounding
+    if not scale > negligible:
         which = f"all {len(means):,} finite Gaussians sit" if len(means) > 1 else "its one finite Gaussian sits"
         raise ValueError(
             f"scene: {which} at one point {center.tolist()}; "
             "it has no extent to place cameras around"
         )
     radius = _weighted_quantile(distances, weights, quantile)
-    if not radius > 1e-9 * scale:  # most of the weight at the centre itself
+    if not radius > negligible:  # most of the weight at the centre itself (not: far from the farthest floater)
         radius = scale
     if given_up is not None:
         return SceneFrame(center, radius, given_up, "given")
