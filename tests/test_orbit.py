@@ -24,18 +24,38 @@ def blob(means, seed=0):
                          torch.zeros(n), 0.3 * torch.randn(n, 1, 3, generator=g))
 
 
-def test_views_around_a_scene_without_ground_say_their_up_is_a_guess(caplog):
-    """No ground plane (a standing blob): the views' up is the core's long axis, a guess the log names with
-    what to do about it."""
-    standing = blob(torch.randn(2000, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.5, 0.45, 1.0]))
+def standing_blob():
+    """A blob taller than wide, with no ground: its up can only be guessed."""
+    return blob(torch.randn(2000, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.5, 0.45, 1.0]))
+
+
+def test_views_around_a_scene_without_ground_say_their_up_is_a_guess_in_the_callers_terms(caplog):
+    """No ground plane: the views' up is the core's long axis, a guess told to the caller's notes with how the caller's
+    user sets it; without notes, logged in the library's terms; with up given, nothing."""
+    told = []
     with caplog.at_level("WARNING"):
-        orbit_cameras(standing, 4, width=16, height=16, around="full")
-    assert any("up axis guessed" in r.getMessage() and "pass up=" in r.getMessage()
-               and "on the command line --up=-y" in r.getMessage() for r in caplog.records)  # its option, as written
+        orbit_cameras(standing_blob(), 4, width=16, height=16, around="full", notes=told.append, up_option="--up=-y")
+    assert not caplog.records and len(told) == 1
+    assert told[0].startswith("the up direction is a guess") and told[0].endswith("give the scene's up axis: --up=-y")
+    with caplog.at_level("WARNING"):
+        orbit_cameras(standing_blob(), 4, width=16, height=16, around="full")
+    assert [r.getMessage()[-len("up='-y'"):] for r in caplog.records] == ["up='-y'"]
+    told.clear()
     caplog.clear()
     with caplog.at_level("WARNING"):
-        orbit_cameras(standing, 4, width=16, height=16, around="full", up="+z")
-    assert not [r for r in caplog.records if "up axis guessed" in r.getMessage()]
+        orbit_cameras(standing_blob(), 4, width=16, height=16, around="full", up="+z", notes=told.append)
+    assert not told and not caplog.records
+
+
+def test_cli_notes_a_guessed_up_on_a_line_of_its_own(tmp_path, capsys):
+    path = tmp_path / "standing.ply"
+    save_scene(standing_blob(), path)
+    assert main(["render", str(path), "--out", str(tmp_path / "renders"), "--orbit-views", "1", "--orbit-size", "8",
+                 "--orbit-around", "full", "--device", "cpu"]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+    assert notes == ["note: the up direction is a guess, the long axis of the scene's core (no ground plane found); "
+                     "if the views come out tilted or upside down, give the scene's up axis: --up=-y or another "
+                     "axis (with '=')"]
 
 
 @pytest.mark.parametrize("name", ["bear", "face", "garden"])

@@ -17,7 +17,7 @@
   third moment, which a few floaters under the ground outweigh (on the bundled demo bear,
   the bear capture's 40,000 best-seen Gaussians, it pointed down and the views came out
   upside down, from under the ground). Otherwise (objects, portraits) up is a
-  guess (``up_source`` "long axis", which the callers that place views log): the longest
+  guess (``up_source`` "long axis", which the callers that place views note): the longest
   axis of the dense core (the weighted 30 % nearest the centre), pointing to its narrower
   end (a head above shoulders). Pass ``up`` explicitly to override.
 

@@ -14,6 +14,7 @@ from ..cameras.camera_set import MAX_IMAGE_SIDE, scaled_size
 from ..cameras.framing import parse_up
 from ..counted import counted
 from ..devices import DEVICE_CHOICES, device_for
+from .common import print_note
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
@@ -181,7 +182,8 @@ def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet
 
     width, height = args.orbit_size
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
-                            around=args.orbit_around)
+                            around=args.orbit_around, notes=getattr(args, "notes", None) or print_note,
+                            up_option="--up=-y or another axis (with '=')")
     print(f"no --cameras: {counted(len(cameras), 'view')} orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
           flush=True)
     return cameras
