@@ -43,7 +43,7 @@ def check_corresponding(original: GaussianScene, stylized: GaussianScene,
     """ValueError, naming the two scenes by ``names``, unless ``stylized`` can be a finetune of ``original``:
     the same number of Gaussians, SH degree and render settings (blur, antialiasing), and Gaussian i of
     one within :data:`MAX_MEDIAN_SHIFT` of the scene's size of Gaussian i of the other, in the median (over
-    :data:`SAMPLE` evenly spaced Gaussians)."""
+    :data:`SAMPLE` evenly spaced Gaussians; not checked where that size is 0)."""
     first, second = names
     refusal = f"cannot blend {first} and {second}: "
     if len(original) != len(stylized):
@@ -63,7 +63,7 @@ def check_corresponding(original: GaussianScene, stylized: GaussianScene,
     before, after = original.means[sample], stylized.means[sample].to(original.means)
     shift = float((before - after).norm(dim=1).median())
     size = scene_size(before)
-    if shift > MAX_MEDIAN_SHIFT * size:
+    if shift > MAX_MEDIAN_SHIFT * size and size > 0:  # size 0 (one Gaussian, or all at one point): nothing to measure by
         raise ValueError(refusal + f"Gaussian i lies {shift:.4g} apart in the two scenes in the median, "
                          f"{shift / size:.0%} of the scene's size {size:.4g}: they are not one scene before and "
                          "after a finetune (a different scene, or its Gaussians reordered, e.g. by a .splat or "

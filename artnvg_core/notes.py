@@ -1,6 +1,7 @@
 """Notes for the user: what the library did to a scene that they should know and would not otherwise see (SH terms a
 format drops, Gaussians moved onto an SPZ's range, invalid Gaussians dropped while reading, the axes a ``.spz`` that
-names none is read in), told to the caller's ``notes`` (a node's text, a command's printed lines), else logged."""
+names none is read in, an up direction guessed for the views around a scene), told to the caller's ``notes`` (a node's
+text, a command's printed lines), else logged."""
 
 from __future__ import annotations
 

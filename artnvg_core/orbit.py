@@ -20,6 +20,7 @@ import torch
 
 from .cameras import CameraSet, SceneFrame, look_at, scene_frame
 from .cameras.framing import horizontal_axes
+from .notes import NoteFn, tell
 from .raster import render
 from .scene import GaussianScene
 
@@ -146,6 +147,11 @@ def captured_arc(scene: GaussianScene, frame: SceneFrame, distance: float, half_
     return float(axis - span / 2), span
 
 
+def orbit_view_names(count: int) -> list[str]:
+    """The names of the ``count`` views :func:`orbit_cameras` builds: ``orbit_0000``, ``orbit_0001``..."""
+    return [f"orbit_{i:04d}" for i in range(count)]
+
+
 def orbit_cameras(
     scene: GaussianScene,
     count: int = 60,
@@ -158,6 +164,8 @@ def orbit_cameras(
     quantile: float = 0.5,
     distance_factor: float = 1.0,
     around: str = "auto",
+    notes: NoteFn | None = None,
+    up_option: str = "up='-y'",
 ) -> CameraSet:
     """``count`` views around ``scene`` on rings about its up axis, all looking at its centre.
 
@@ -177,6 +185,10 @@ def orbit_cameras(
     around: "auto" puts the rings on the side the capture looked from
         (:func:`captured_arc`: all round for a 360-degree capture, an arc for a
         forward-facing one); "full" always orbits all round.
+    notes: where a note goes when ``up`` is a guess (:func:`scene_frame`'s "long axis"; no ground
+        found), as :mod:`artnvg_core.notes` tells it: a node's text, a command's printed lines.
+    up_option: how the caller's user sets ``up``, with an example, for that note: "--up=-y" on
+        the command line, the up input of a node.
     Views are named ``orbit_0000``...; float32 CPU tensors.
     """
     if isinstance(count, bool) or int(count) != count or count < 1:
@@ -194,8 +206,8 @@ def orbit_cameras(
 
     frame = scene_frame(scene, up=up, quantile=quantile)
     if frame.up_source == "long axis":
-        _log.warning("up axis guessed from the long axis of the scene's core (no ground plane found); "
-                     "pass up= (e.g. '-y'; on the command line --up=-y) if the views come out tilted")
+        tell(notes, "scene", "the up direction is a guess, the long axis of the scene's core (no ground plane found); "
+             f"if the views come out tilted or upside down, give the scene's up axis: {up_option}")
     focal = width / 2 / math.tan(math.radians(fov_deg) / 2)
     half_fov = min(math.atan(width / 2 / focal), math.atan(height / 2 / focal))
     distance = distance_factor * frame.radius / math.sin(half_fov)
@@ -216,5 +228,5 @@ def orbit_cameras(
         intrinsics=intrinsics.expand(int(count), 3, 3).to(torch.float32).clone(),
         width=width,
         height=height,
-        names=[f"orbit_{i:04d}" for i in range(int(count))],
+        names=orbit_view_names(int(count)),
     )

@@ -61,7 +61,8 @@ def logit(p: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class GaussianScene:
-    """Raw 3DGS parameters of N Gaussians (shapes in the module docstring)."""
+    """Raw 3DGS parameters of N Gaussians (shapes in the module docstring), floating-point tensors of one
+    dtype on one device."""
 
     means: torch.Tensor
     quats: torch.Tensor
@@ -72,6 +73,14 @@ class GaussianScene:
     antialiased: bool = False
 
     def __post_init__(self) -> None:
+        for name in _TENSOR_FIELDS:
+            value = getattr(self, name)
+            if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
+                kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(f"GaussianScene.{name}: expected a floating-point torch.Tensor, got {kind}")
+            if (value.dtype, value.device) != (self.means.dtype, self.means.device):
+                raise ValueError(f"GaussianScene.{name}: expected the means' dtype and device "
+                                 f"({self.means.dtype} on {self.means.device}), got {value.dtype} on {value.device}")
         n = self.means.shape[0] if self.means.ndim == 2 else -1
         expected = {
             "means": (n, 3),
@@ -116,11 +125,30 @@ class GaussianScene:
     def to(self, device=None, dtype=None) -> "GaussianScene":
         return self.map(lambda t: t.to(device=device, dtype=dtype))
 
+    def widened(self) -> "GaussianScene":
+        """This scene, or its float32 copy where it is float16 or bfloat16: too narrow to render or train in
+        (:func:`~artnvg_core.raster.render` and :func:`~artnvg_core.finetune.finetune` work on that copy)."""
+        return self.to(dtype=torch.float32) if self.means.dtype.itemsize < 4 else self
+
     def detach(self) -> "GaussianScene":
         return self.map(lambda t: t.detach().clone())
 
-    def select(self, index: torch.Tensor) -> "GaussianScene":
-        """Subset by boolean mask or integer index over the N Gaussians."""
+    def select(self, index) -> "GaussianScene":
+        """Subset by a boolean mask [N], integer indices [K] in -N..N-1 (a tensor or a sequence) or a slice over the N
+        Gaussians. ValueError otherwise."""
+        if not isinstance(index, slice):
+            index, n = torch.as_tensor(index, device=self.device), len(self)
+            got = f"got {index.dtype} of shape {tuple(index.shape)}"
+            if index.dtype == torch.bool:
+                if tuple(index.shape) != (n,):
+                    raise ValueError(f"GaussianScene.select: a boolean mask must have shape ({n},), {got}")
+            elif index.ndim != 1 or (len(index) and (index.is_floating_point() or index.is_complex())):
+                raise ValueError(f"GaussianScene.select: expected a boolean mask [N], integer indices [K] or a slice, {got}")
+            else:
+                index = index.long()  # not uint8, which torch would take for a mask; [] (float32) selects none
+                if len(index) and not -n <= int(index.min()) <= int(index.max()) < n:
+                    raise ValueError(f"GaussianScene.select: indices must lie in {-n}..{n - 1} for "
+                                     f"{counted(n, 'Gaussian')}")
         return self.map(lambda t: t[index])
 
 

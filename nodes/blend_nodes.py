@@ -6,7 +6,7 @@ from artnvg_core.blend import blend, render_strengths
 from artnvg_core.orbit import orbit_cameras
 from artnvg_core.preview import side_by_side
 
-from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
+from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device, shown_notes
 from .node_base import ArtNVGNode, ViewInput
 from .node_errors import node_input
 from .node_types import CAMERAS, IMAGE, SCENE, SELECTION
@@ -58,7 +58,11 @@ class BlendStylization(ArtNVGNode):
             strengths = parse_strengths(preview_strengths)
         with node_input(self.DISPLAY_NAME):  # blend's messages name what they refuse: the two scenes, selection...
             result = blend(original, stylized, strength, selection)
-            camera = orbit_cameras(original, 1) if cameras is None else cameras.subset([view])
+            notes: list[str] = []
+            camera = cameras.subset([view]) if cameras is not None else orbit_cameras(
+                original, 1, notes=notes.append,
+                up_option="connect cameras, e.g. Cameras Around Scene's with its up input set to -y or another axis")
+            shown_notes(notes, self.DISPLAY_NAME)
             with render_device() as device:
                 previews = render_strengths(original.to(device), stylized.to(device), camera, strengths,
                                             None if selection is None else selection.to(device),

@@ -93,7 +93,7 @@ class CamerasAroundScene(ArtNVGNode):
         "height": ("INT", {"default": 512, "min": 8, "max": 8192, "tooltip": "Image height in pixels."}),
         "up": ("STRING", {"default": "auto", "tooltip": (
             "The world direction shown up in every view: auto (detected from the scene; a guess is "
-            "logged), an axis such as -y or +z, or three numbers x, y, z.")}),
+            "noted under the node), an axis such as -y or +z, or three numbers x, y, z.")}),
         "elevations": ("STRING", {"default": "10, 30", "tooltip": (
             "One ring of views per angle (degrees above the horizontal plane through the centre), "
             "comma-separated, each between -90 and 90.")}),
@@ -109,9 +109,14 @@ class CamerasAroundScene(ArtNVGNode):
         return count if isinstance(count, int) and cls.check_values(count=count) is None else None
 
     def place(self, scene, count, fov_deg, width, height, up, elevations, distance_factor, node_id=None):
+        """The cameras; a guessed up direction (no ground found) said under the node and once on the console."""
+        notes: list[str] = []
         with node_input(self.DISPLAY_NAME):
-            return (orbit_cameras(scene, count, fov_deg=fov_deg, width=width, height=height, up=up,
-                                  elevations_deg=elevations, distance_factor=distance_factor),)
+            cameras = orbit_cameras(scene, count, fov_deg=fov_deg, width=width, height=height, up=up,
+                                    elevations_deg=elevations, distance_factor=distance_factor, notes=notes.append,
+                                    up_option="set this node's up input to -y or another axis")
+        shown_notes(notes, self.DISPLAY_NAME)
+        return (cameras,)
 
 
 class GroupNeighbouringViews(ArtNVGNode):

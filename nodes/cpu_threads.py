@@ -17,6 +17,8 @@ from contextlib import contextmanager
 
 import torch
 
+from artnvg_core.counted import counted
+
 _log = logging.getLogger("artnvg")
 _announced: set[tuple[int, int]] = set()
 
@@ -55,8 +57,8 @@ def cpu_threads(device: torch.device):
     threads = threads_for(cores, load)
     if threads != before and (threads, cores) not in _announced:
         _announced.add((threads, cores))
-        _log.warning("ArtNVG: torch computes with %d CPU thread(s) on %d core(s) (load %.1f; set OMP_NUM_THREADS "
-                     "to choose yourself)", threads, cores, load)
+        _log.warning("ArtNVG: torch computes with %s on %s (load %.1f; set OMP_NUM_THREADS to choose yourself)",
+                     counted(threads, "CPU thread"), counted(cores, "core"), load)
     torch.set_num_threads(threads)
     try:
         yield

@@ -115,6 +115,14 @@ def test_scenes_that_do_not_correspond_are_refused():
     check_corresponding(original, stylized)  # a finetune's small moves are accepted
 
 
+def test_scenes_of_no_size_are_blended():
+    """One Gaussian (or all at one point) has no size to measure a move by: a finetune that moved it stopped with a
+    ZeroDivisionError while the refusal was being worded."""
+    original, stylized = (scene.select([0]) for scene in _pair())
+    mixed = blend(original, stylized, 0.25)
+    torch.testing.assert_close(mixed.means, torch.lerp(original.means, stylized.means, 0.25), rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("strength", [-0.1, 1.5, float("nan"), "0.5"])
 def test_strength_outside_zero_to_one_is_refused(strength):
     original, stylized = _pair()

@@ -33,6 +33,31 @@ def test_far_floaters_and_a_sky_shell_do_not_move_the_frame():
     assert float(again.up @ frame.up) > 0.99
 
 
+@pytest.mark.parametrize("far", [1e12, 3e38])
+def test_floaters_past_a_billion_times_the_subject_do_not_become_its_radius(far):
+    """Two floaters 1e12 (or 3e38, float32's limit) away took the radius for theirs: a subject radius under 1e-9 of
+    the farthest distance was taken for "the weight at the centre itself", and the views were placed that far out
+    (non-finite float32 poses at 3e38)."""
+    g = torch.Generator().manual_seed(2)
+    subject = torch.rand(1000, 3, generator=g) - 0.5
+    frame = scene_frame(blob(subject), up="+z")
+    again = scene_frame(blob(torch.cat([subject, torch.tensor([[far, 0.0, 0.0], [0.0, -far, far]])])), up="+z")
+    assert (again.center - frame.center).norm() < 0.01 and abs(again.radius - frame.radius) < 0.01 * frame.radius
+
+
+def test_floaters_under_the_ground_do_not_turn_up_down():
+    """Up is the ground normal's side the mass reaches further to (a statue), even when a few floaters deep under the
+    ground (2.4 % of the weight) outweigh the statue in the heights' third moment."""
+    g = torch.Generator().manual_seed(1)
+    ground = torch.cat([torch.rand(3000, 2, generator=g) * 4 - 2, 0.02 * torch.randn(3000, 1, generator=g)], 1)
+    statue = torch.rand(1000, 3, generator=g) * torch.tensor([0.6, 0.6, 1.5])
+    below = torch.cat([torch.rand(100, 2, generator=g) * 2 - 1, torch.full((100, 1), -1.8)], 1)
+    for scene in (blob(torch.cat([ground, statue, below])), blob(-torch.cat([ground, statue, below]))):
+        frame = scene_frame(scene)
+        assert frame.up_source == "ground normal"
+        assert float(frame.up @ scene.means[3000:4000].mean(0).double()) > 0  # towards the statue, either way round
+        assert abs(float(frame.up[2])) > 0.99
+
 def test_up_override_and_names():
     assert parse_up("auto") is None and parse_up(None) is None
     assert parse_up("-y").tolist() == [0.0, -1.0, 0.0] and parse_up("z").tolist() == [0.0, 0.0, 1.0]

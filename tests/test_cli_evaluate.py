@@ -163,6 +163,37 @@ def test_view_images_and_model_files_are_named_before_the_scene_loads(inputs, tm
         assert code == 2 and re.search(message, captured.err) and "loading" not in captured.out, captured
 
 
+def test_the_views_built_around_the_scene_are_checked_before_anything_loads(inputs, tmp_path, capsys, monkeypatch):
+    """Without --cameras, --views past the last view orbiting the scene, --path interp through one view and a folder
+    of 2D views missing one or of another aspect were named only once the models and the scene had loaded; the views'
+    names and size follow from --orbit-views, --orbit-size and --scale."""
+    def reached(*args, **kwargs):
+        raise ValueError("reached")
+
+    monkeypatch.setattr("artnvg_core.cli.evaluate.load_vgg", reached)  # the first load after the checks
+    images = tmp_path / "views"
+    images.mkdir()
+    save_png(torch.zeros(8, 8, 3), images / "orbit_0000.png")
+    save_png(torch.zeros(8, 16, 3), images / "orbit_0001.png")
+    stylized = ["--stylized", str(inputs["stylized"])]
+    for options, message in [([*stylized, "--views", "0,4"], r"--views: view index 4 is out of range for 4 cameras "
+                              r"\(0\.\.3\)"),
+                             ([*stylized, "--views", "2", "--path", "interp"], "--path interp: needs at least 2 "
+                              r"evaluated views \(see --views\)"),
+                             (["--stylized-images", str(images), "--views", "0,2"], "--stylized-images: .*views has no "
+                              "image for view orbit_0002 "),
+                             (["--stylized-images", str(images), "--views", "1"], r"--stylized-images: .*orbit_0001\.png: "
+                              "16x8 pixels, not the aspect of the evaluated views' 32x32"),
+                             ([*stylized, "--views", "0,3", "--path", "interp"], "--vgg: reached"),
+                             (["--stylized-images", str(images), "--views", "0"], "--vgg: reached")]:
+        code = main(["evaluate", "--original", str(inputs["original"]), *options, "--orbit-views", "4",
+                     "--orbit-size", "64", "--scale", "0.5", "--style", str(inputs["style"]),
+                     "--out", str(tmp_path / "r.json")])
+        captured = capsys.readouterr()
+        assert code == 2 and re.match(f"error: {message}", captured.err), captured.err
+        assert "loading" not in captured.out
+
+
 def test_input_errors_name_the_problem(inputs, tmp_path):
     cameras = load_cameras(inputs["cameras"]).subset([0, 1])
     save_png(torch.zeros(8, 8, 3), tmp_path / f"{cameras.names[0]}.png")

@@ -783,3 +783,15 @@ def test_an_orbit_option_given_to_the_demo_names_the_demo_not_cameras_it_was_not
     assert captured.err == ("error: --orbit-views: the bundled demo renders its own cameras' views; give SCENE and "
                             "--style, without --cameras, for views orbiting a scene\n"), captured.err
     assert "demo" not in captured.out and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("size, scale", [("64", 0.5), ("50x30", 0.3), ("7x5", 0.01)])
+def test_the_views_built_around_a_scene_are_known_by_name_and_size_before_it_loads(size, scale):
+    """What the options naming those views (--views, --region-mask, --stylized-images) are checked against before the
+    scene loads is what orbit_from_args builds once it has, at --scale."""
+    from artnvg_core.cli.main import build_parser
+    from artnvg_core.cli.options import orbit_from_args, orbit_views_ahead
+
+    args = build_parser().parse_args(["render", "s.ply", "--out", "o", "--orbit-views", "3", "--orbit-size", size])
+    built = orbit_from_args(args, load_scene(DemoInputs().scene).select(slice(0, None, 40))).scaled(scale)
+    assert orbit_views_ahead(args, scale) == (built.names, built.width, built.height)

@@ -63,6 +63,30 @@ def test_a_mask_on_an_unknown_view_is_refused(tmp_path, capsys):
     assert "'frame_9' is neither a view index below 24 nor a view name" in capsys.readouterr().err
 
 
+def test_a_mask_on_a_view_built_around_the_scene_is_checked_before_anything_loads(tmp_path, capsys, monkeypatch):
+    """Without --cameras, stylize's masks on views past those orbiting the scene, or of another aspect, were named only
+    once the scene (and the diffusion models) had loaded; the views' names and size follow from --orbit-views,
+    --orbit-size and --scale."""
+    def reached(*args, **kwargs):
+        raise ValueError("reached")
+
+    monkeypatch.setattr("artnvg_core.cli.stylize.load_scene_verbose", reached)
+    _scenes(tmp_path)
+    square, wide = _mask(tmp_path), tmp_path / "wide.png"
+    save_png(torch.ones(32, 64, 3), wide)
+    for mask, message in [(f"4:{square}", f"--region-mask 4:{square}: '4' is neither a view index below 4 nor a view "
+                           "name of the cameras (e.g. 'orbit_0000')"),
+                          (f"orbit_0004:{square}", f"--region-mask orbit_0004:{square}: 'orbit_0004' is neither"),
+                          (f"orbit_0003:{wide}", f"--region-mask orbit_0003:{wide}: 64x32 pixels, not the aspect of its "
+                           "view's 32x32"),
+                          (f"orbit_0003:{square}", "reached"), (f"3:{square}", "reached")]:
+        assert main(["stylize", str(tmp_path / "original.ply"), "--style", str(DemoInputs().style), "--stylizer",
+                     "nnfm", "--orbit-views", "4", "--orbit-size", "64", "--scale", "0.5", "--region-mask", mask,
+                     "--out", str(tmp_path / "out.ply")]) == 2
+        captured = capsys.readouterr()
+        assert captured.err.startswith(f"error: {message}"), captured.err
+
+
 @pytest.mark.parametrize("command", ["stylize", "blend"])
 def test_a_mask_of_another_aspect_than_its_view_is_refused_before_any_scene_loads(tmp_path, capsys, command):
     """It was stretched to the view (within 2% silently; else refused after the scene loaded)."""

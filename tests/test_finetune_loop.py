@@ -304,6 +304,23 @@ def test_bad_inputs_rejected(demo):
         finetune(scene, cameras, style * float("nan"), config=quick)
     with pytest.raises(ValueError, match="stylized"):
         finetune(scene, cameras, style, stylized=torch.zeros(len(cameras) + 1, 8, 8, 3))
+    views = render(scene, cameras).rgb.clamp(0, 1)  # stylized views of 8-bit values or NaN ran on, white or skipped
+    for image, got in [((views * 255).round().to(torch.uint8), "a torch.uint8 tensor"), (views * 255, "values up to"),
+                       (views * float("nan"), "NaN or infinite values")]:
+        with pytest.raises(ValueError, match=rf"^finetune: stylized: expected floats in \[0, 1\], got {got}"):
+            finetune(scene, cameras, style, stylized=image, config=quick)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_half_precision_scene_is_finetuned_as_its_float32_copy(demo, dtype):
+    """float16 stopped after the steps with "render: scene.opacity_logits has non-finite values" (Adam's steps
+    in float16 overflowed); bfloat16 took Adam's steps rounded to 8 bits."""
+    scene, cameras, style = demo
+    narrow, config = scene.to(dtype=dtype), FinetuneConfig(iterations=2)
+    result = finetune(narrow, cameras.subset([0, 1]), style, config=config)
+    expected = finetune(narrow.to(dtype=torch.float32), cameras.subset([0, 1]), style, config=config)
+    for name, value in result.tensors().items():
+        assert value.dtype == torch.float32 and torch.equal(value, getattr(expected, name)), name
 
 
 def test_camera_extent_is_gsplats_scene_scale_and_ignores_floaters(demo):

@@ -14,6 +14,7 @@ from artnvg_core.stylize import DemoInputs
 from node_calls import call, same_scene
 from nodes.blend_nodes import BlendStylization
 from nodes.node_errors import NodeInputError
+from tests.test_orbit import standing_blob
 
 
 @pytest.fixture(scope="module")
@@ -71,3 +72,14 @@ def test_blend_node_called_directly_names_the_input_at_fault(demo, inputs, messa
     original, stylized, _ = demo
     with pytest.raises(NodeInputError, match=f"^Blend Stylization: {message}"):
         call(BlendStylization, **{"original": original, "stylized": stylized, "strength": 0.5, **inputs})
+
+
+def test_blend_node_without_cameras_shows_a_guessed_up_in_its_terms(monkeypatch, caplog):
+    """No cameras and a scene with no ground: the preview's guessed up is noted under the node, with what to connect."""
+    monkeypatch.setattr("nodes.comfy_bridge.compute_device", lambda: torch.device("cpu"))
+    original = standing_blob().select(slice(0, None, 10))
+    with caplog.at_level("WARNING"):
+        call(BlendStylization, original=original, stylized=original, strength=0.5, preview_strengths="0")
+    (message,) = [record.getMessage() for record in caplog.records]
+    assert message.startswith("Blend Stylization: note: the up direction is a guess")
+    assert message.endswith("connect cameras, e.g. Cameras Around Scene's with its up input set to -y or another axis")

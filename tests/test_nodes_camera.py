@@ -13,6 +13,7 @@ from node_calls import bear, call, comfy_dirs  # noqa: F401  (fixtures)
 from nodes.camera_nodes import CamerasAroundScene, GroupNeighbouringViews, LoadCameras
 from nodes.node_errors import NodeInputError
 from tests.test_activated import random_scene
+from tests.test_orbit import standing_blob
 
 SETTINGS = dict(count=7, fov_deg=40.0, width=64, height=48, distance_factor=1.5)
 
@@ -31,6 +32,20 @@ def test_node_places_the_cores_orbit(up, core_up):
     assert torch.equal(cameras.intrinsics, expected.intrinsics)
     assert (cameras.width, cameras.height, len(cameras)) == (64, 48, 7)
 
+
+
+def test_node_shows_a_guessed_up_under_itself_in_its_own_terms(caplog):
+    """A scene with no ground: the guessed up is noted under the node (and once on the console), naming its up input."""
+    standing = standing_blob()
+    with caplog.at_level("WARNING"):
+        place(standing)
+    (message,) = [record.getMessage() for record in caplog.records]
+    assert message.startswith("Cameras Around Scene: note: the up direction is a guess")
+    assert message.endswith("set this node's up input to -y or another axis") and "--up" not in message
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        place(standing, up="+z")
+    assert not caplog.records
 
 BAD_TEXT = [  # (inputs, the message after "Cameras Around Scene: input '<name>': ")
     ({"up": "1, 2"}, "expected 3 finite numbers, not all zero, got '1, 2'"),

@@ -290,6 +290,19 @@ def test_bad_arguments_rejected():
     bad = CameraSet(cams.world_to_cam, cams.intrinsics * torch.tensor([-1.0, 1, 1])[:, None], 40, 32, ["x"])
     with pytest.raises(ValueError, match="focal"):
         render(scene, bad)
+    with pytest.raises(ValueError, match="background has non-finite values"):
+        render(scene, cams, background=torch.tensor([0.0, float("nan"), 0.0]))
+    for near_plane in (-1.0, float("nan"), float("inf"), "0.01", None):  # -1 drew the Gaussians behind the camera
+        with pytest.raises(ValueError, match=f"near_plane must be a finite number >= 0, got {near_plane!r}"):
+            render(scene, cams, near_plane=near_plane)
+
+
+def test_cameras_of_no_views_render_no_views():
+    """Cameras of no views (e.g. an empty subset) stopped with torch.stack's "expects a non-empty TensorList"."""
+    scene, cams = hard_scene(0, n=5), make_cameras(EYES[:1]).subset([])
+    out = render(scene, cams, return_depth=True)
+    assert [tuple(x.shape) for x in (out.rgb, out.alpha, out.depth)] == [(0, 32, 40, 3), (0, 32, 40, 1), (0, 32, 40, 1)]
+    assert render(scene, cams).depth is None
 
 
 def test_bear_scene_reproduces_held_out_photos(shared_data):
@@ -405,3 +418,20 @@ def test_cameras_of_another_dtype_than_the_scene_render_as_the_scenes():
     scene64 = scene.to(dtype=torch.float64)
     assert torch.equal(render(scene64, cams, backend="torch").rgb, render(scene64, cams64, backend="torch").rgb)
     assert torch.equal(render(scene, cams64, backend="torch").rgb, render(scene, cams, backend="torch").rgb)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_scenes_render_as_their_float32_copies(dtype):
+    """float16 stopped with "value cannot be converted to type c10::Half without overflow" (the footprints'
+    2^31 px cap, the colours' cap); bfloat16 rendered with its depths, pixel positions and radii rounded to
+    8 bits, 0.7 off the float64 render of its own values at worst."""
+    scene = hard_scene(1, n=60).to(dtype=dtype)
+    cams = make_cameras(EYES[:2])
+    params = {k: v.clone().requires_grad_() for k, v in scene.tensors().items()}
+    out = render(GaussianScene(**params), cams, return_depth=True)
+    expected = render(scene.to(dtype=torch.float32), cams, return_depth=True)
+    for got, want in zip((out.rgb, out.alpha, out.depth), (expected.rgb, expected.alpha, expected.depth)):
+        assert got.dtype == torch.float32 and torch.equal(got, want)
+    out.rgb.sum().backward()
+    for name, p in params.items():
+        assert p.grad.dtype == dtype and torch.isfinite(p.grad).all(), name

@@ -26,6 +26,15 @@ def test_chunks_give_each_view_as_rendered_alone(chunk):
     assert calls == [(n, len(cameras), {}) for n in done]
 
 
+def test_cameras_of_no_views_give_no_views():
+    """They stopped with torch.cat's "expected a non-empty list of Tensors"."""
+    calls = []
+    out = render_views(hard_scene(seed=3), make_cameras(EYES).subset([]), depth=True,
+                       progress=lambda *a: calls.append(a))
+    assert [tuple(x.shape) for x in (out.rgb, out.alpha, out.depth)] == [(0, 32, 40, 3), (0, 32, 40, 1), (0, 32, 40, 1)]
+    assert calls == [(0, 0, {}), (0, 0, {})]
+
+
 def _stop_at_ask(number: int, asked: list):
     def stop() -> bool:
         asked.append(True)

@@ -1,5 +1,7 @@
 """GaussianScene: shapes, render settings, validation."""
 
+import re
+
 import pytest
 import torch
 
@@ -19,6 +21,39 @@ def test_map_and_select_keep_the_render_settings():
 def test_bad_blur_is_rejected(blur):
     with pytest.raises(ValueError, match="GaussianScene.blur_px2: expected a finite number >= 0"):
         GaussianScene(**random_scene(3, 0).tensors(), blur_px2=blur)
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("means", lambda t: t.long(), "a floating-point torch.Tensor, got torch.int64"),
+    ("sh", lambda t: t.numpy(), "a floating-point torch.Tensor, got ndarray"),
+    ("sh", lambda t: t.double(), "the means' dtype and device (torch.float32 on cpu), got torch.float64 on cpu"),
+    ("quats", lambda t: t.to("meta"), "the means' dtype and device (torch.float32 on cpu), got torch.float32 on meta"),
+])
+def test_tensors_of_another_kind_dtype_or_device_are_rejected(field, value, expected):
+    """An integer scene rendered silently through integer cameras; float64 means beside float32 SH stopped
+    deep in the compositing with torch's "expected scalar type Float but found Double"."""
+    tensors = random_scene(3, 1).tensors()
+    tensors[field] = value(tensors[field])
+    with pytest.raises(ValueError, match=re.escape(f"GaussianScene.{field}: expected {expected}")):
+        GaussianScene(**tensors)
+
+
+def test_select_takes_masks_indices_and_slices_and_refuses_others():
+    """A mask of another length, float indices and indices out of range stopped with torch's IndexError; uint8
+    indices were taken for a mask."""
+    scene = random_scene(6, 1)
+    picked = {"mask": [True, False] * 3, "indices": torch.tensor([-6, 5, 5]),
+              "uint8": torch.tensor([1, 0], dtype=torch.uint8),
+              "list": [4], "none": [], "slice": slice(1, 3)}
+    expected = {"mask": [0, 2, 4], "indices": [0, 5, 5], "uint8": [1, 0], "list": [4], "none": [], "slice": [1, 2]}
+    for name, index in picked.items():
+        assert torch.equal(scene.select(index).sh, scene.sh[expected[name]]), name
+    for index, message in [(torch.tensor([True, False]), r"a boolean mask must have shape \(6,\), got torch.bool of shape \(2,\)"),
+                           (torch.tensor([1.0, 0.0]), "expected a boolean mask \\[N\\], integer indices \\[K\\] or a slice, got torch.float32"),
+                           (torch.tensor(3), "expected .* got torch.int64 of shape \\(\\)"),
+                           ([6], r"indices must lie in -6..5 for 6 Gaussians"), ([-7, 0], "indices must lie in -6..5")]:
+        with pytest.raises(ValueError, match="GaussianScene.select: " + message):
+            scene.select(index)
 
 
 def test_validate_scene_passes_a_valid_scene_through():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -14,9 +15,16 @@ from .geometry import camera_centers
 MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
 
 
+def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """(width, height) in pixels at ``factor`` (> 0) times, each side rounded to whole pixels and at least 1: the size
+    :meth:`CameraSet.scaled` gives views of ``width`` x ``height``."""
+    return max(1, round(width * factor)), max(1, round(height * factor))
+
+
 @dataclass
 class CameraSet:
-    """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`).
+    """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`): floating-point
+    tensors on one device.
 
     ``names`` are the views' image file stems (e.g. ``frame_00096``);
     ``image_paths`` the source images when known (else ``None`` entries).
@@ -30,11 +38,27 @@ class CameraSet:
     image_paths: list[Path | None] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        for name in ("world_to_cam", "intrinsics"):
+            value = getattr(self, name)
+            if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
+                kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(f"CameraSet.{name}: expected a floating-point torch.Tensor, got {kind}")
+        if self.intrinsics.device != self.world_to_cam.device:
+            raise ValueError(f"CameraSet.intrinsics: expected world_to_cam's device ({self.world_to_cam.device}), "
+                             f"got {self.intrinsics.device}")
         c = self.world_to_cam.shape[0] if self.world_to_cam.ndim == 3 else -1
         if tuple(self.world_to_cam.shape) != (c, 4, 4) or c < 0:
             raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")
         if tuple(self.intrinsics.shape) != (c, 3, 3):
             raise ValueError(f"CameraSet.intrinsics: expected shape ({c}, 3, 3), got {tuple(self.intrinsics.shape)}")
+        for side in ("width", "height"):
+            value = getattr(self, side)
+            try:
+                if isinstance(value, bool):
+                    raise TypeError
+                setattr(self, side, operator.index(value))  # ints as numpy's and 0-d integer tensors too
+            except TypeError:
+                raise ValueError(f"CameraSet.{side}: expected a whole number of pixels (an int), got {value!r}") from None
         if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
             raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
                              f"got {self.width}x{self.height}")
@@ -89,8 +113,7 @@ class CameraSet:
         """
         if not (math.isfinite(factor) and factor > 0):
             raise ValueError(f"CameraSet.scaled: factor must be a finite number > 0, got {factor}")
-        width = max(1, round(self.width * factor))
-        height = max(1, round(self.height * factor))
+        width, height = scaled_size(self.width, self.height, factor)
         if max(width, height) > MAX_IMAGE_SIDE:
             raise ValueError(f"CameraSet.scaled: factor {factor} makes {self.width}x{self.height} views "
                              f"{width}x{height}, above the {MAX_IMAGE_SIDE} pixels a side a view may have")

@@ -25,7 +25,7 @@ def cmd_blend(args: argparse.Namespace) -> None:
         check_scene_path(scene)
     cameras = load_camera_option(args)
     if cameras is not None:
-        check_region_masks(args, cameras)
+        check_region_masks(args, cameras.names, cameras.width, cameras.height)
     device = torch.device("cpu")
     original, stylized = (load_scene_verbose(path, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                              cameras=cameras) for path in (args.original, args.stylized))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -50,6 +51,7 @@ from .options import (
     fraction,
     integer_at_least,
     orbit_from_args,
+    orbit_views_ahead,
     parse_device,
     positive_number,
 )
@@ -93,25 +95,25 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- inputs
 
 
-def find_view_images(folder: Path, cameras: CameraSet) -> list[Path]:
-    """The image file of each view of ``cameras`` in ``folder``, NAME.png or NAME with another of
-    :data:`IMAGE_SUFFIXES` (NAME: the view's name), each an image of the views' aspect at any size by its header
+def find_view_images(folder: Path, names: Sequence[str], width: int, height: int) -> list[Path]:
+    """The image file of each view named in ``names`` in ``folder``, NAME.png or NAME with another of
+    :data:`IMAGE_SUFFIXES`, each an image of the aspect of the views' ``width`` x ``height`` at any size by its header
     (:func:`~artnvg_core.images.same_aspect`: resized to the views' size, it is not stretched); ValueError naming
     ``--stylized-images`` and the first view without one, or whose file is not an image or of another aspect."""
     if not folder.is_dir():
         raise ValueError(f"--stylized-images: {folder} is not a folder")
     files = []
-    for name in cameras.names:
+    for name in names:
         matches = [folder / f"{name}{suffix}" for suffix in IMAGE_SUFFIXES if (folder / f"{name}{suffix}").is_file()]
         if not matches:
             raise ValueError(f"--stylized-images: {folder} has no image for view {name} "
                              f"(expected {name}.png or another of {', '.join(IMAGE_SUFFIXES)})")
         with named_option("--stylized-images"):
-            width, height = image_size(matches[0])  # its header: named before any render
-        if not same_aspect(width, height, cameras.width, cameras.height):
-            raise ValueError(f"--stylized-images: {matches[0]}: {width}x{height} pixels, not the aspect of the "
-                             f"evaluated views' {cameras.width}x{cameras.height} (it would be stretched); give each "
-                             "view's image at the view's aspect, at any size")
+            image_width, image_height = image_size(matches[0])  # its header: named before any render
+        if not same_aspect(image_width, image_height, width, height):
+            raise ValueError(f"--stylized-images: {matches[0]}: {image_width}x{image_height} pixels, not the aspect of "
+                             f"the evaluated views' {width}x{height} (it would be stretched); give each view's image at "
+                             "the view's aspect, at any size")
         files.append(matches[0])
     return files
 
@@ -120,7 +122,7 @@ def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
     """Images [V, H, W, 3] of the views of ``cameras`` in ``folder`` (:func:`find_view_images`), resized to the
     cameras' size."""
     images = []
-    for file in find_view_images(folder, cameras):
+    for file in find_view_images(folder, cameras.names, cameras.width, cameras.height):
         image = load_image(file)
         if image.shape[:2] != (cameras.height, cameras.width):
             image = resize_image(image, cameras.height, cameras.width).clamp(0, 1)
@@ -128,29 +130,44 @@ def load_view_images(folder: Path, cameras: CameraSet) -> torch.Tensor:
     return torch.stack(images)
 
 
-def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet, CameraSet | None]:
-    """The evaluated views: their indices in ``all_cameras``, their cameras at ``--scale`` and, for a stylized scene,
-    the novel camera path (:func:`camera_path`); ValueError naming ``--views`` (a view given twice would count
-    twice), ``--stylized-images`` without an image for one, or the path's options."""
-    indices = parse_views(args.views, len(all_cameras), "--views", distinct=True)
-    cameras = all_cameras.subset(indices).scaled(args.scale)
+def _evaluated_views(args: argparse.Namespace, names: Sequence[str], width: int, height: int) -> list[int]:
+    """The indices of the evaluated views among the views named ``names``, of ``width`` x ``height`` pixels at
+    ``--scale`` (the cameras', or before the scene loads those of the views built around it:
+    :func:`~.options.orbit_views_ahead`); ValueError naming ``--views`` (a view given twice would count twice),
+    ``--stylized-images`` without an image for one, or ``--path interp`` through fewer than 2 views."""
+    indices = parse_views(args.views, len(names), "--views", distinct=True)
     if args.stylized_images:
-        find_view_images(Path(args.stylized_images), cameras)
+        find_view_images(Path(args.stylized_images), [names[index] for index in indices], width, height)
+    if args.stylized:
+        _check_path_views(args.path, len(indices))
+    return indices
+
+
+def _chosen_views(all_cameras: CameraSet, args: argparse.Namespace) -> tuple[list[int], CameraSet, CameraSet | None]:
+    """The evaluated views (:func:`_evaluated_views`): their indices in ``all_cameras``, their cameras at ``--scale``
+    and, for a stylized scene, the novel camera path (:func:`camera_path`); ValueError naming the option at fault."""
+    scaled = all_cameras.scaled(args.scale)
+    indices = _evaluated_views(args, scaled.names, scaled.width, scaled.height)
     path = camera_path(all_cameras, indices, args.path, args.frames, args.scale) if args.stylized else None
-    return indices, cameras, path
+    return indices, scaled.subset(indices), path
+
+
+def _check_path_views(kind: str, count: int) -> None:
+    """ValueError naming ``--path`` when a path of ``kind`` cannot pass through ``count`` evaluated views."""
+    if kind == "interp" and count < 2:
+        raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
 
 
 def camera_path(cameras: CameraSet, indices: list[int], kind: str, frames: int, scale: float) -> CameraSet:
     """The novel-view path: an orbit around all ``cameras``, or a spline through the views ``indices``."""
     if frames < 2:
         raise ValueError(f"--frames: need at least 2 path frames, got {frames}")
+    _check_path_views(kind, len(indices))
     if kind == "orbit":
         try:
             return orbit_path(cameras, frames).scaled(scale)
         except NoOrbit as error:  # its advice names orbit_path's own arguments, which the CLI lacks
             raise ValueError(f"--path orbit: no orbit around these cameras ({error.reason}); use --path interp") from None
-    if len(indices) < 2:
-        raise ValueError("--path interp: needs at least 2 evaluated views (see --views)")
     per_segment = max(1, round((frames - 1) / (len(indices) - 1)))
     return interpolate_path(cameras, indices, per_segment).scaled(scale)
 
@@ -293,6 +310,8 @@ def run_evaluate(args: argparse.Namespace) -> dict:
         style = load_image(args.style)
     all_cameras = load_camera_option(args)
     chosen = _chosen_views(all_cameras, args) if all_cameras is not None else None  # named before the scene loads
+    if all_cameras is None:  # the views built around the scene: their names and size known before it loads
+        _evaluated_views(args, *orbit_views_ahead(args, args.scale))
     scoring = torch.device("cpu") if device.type == "mps" else device  # CFSD and warp sum in float64, which MPS lacks
     try:  # read whole before the scenes load, named by its option (CFSD reads it again from load_vgg's cache)
         load_vgg("vgg19", args.vgg)

@@ -36,6 +36,7 @@ from .options import (
     add_scene_file_options,
     integer_at_least,
     orbit_from_args,
+    orbit_views_ahead,
     parse_device,
     positive_number,
 )
@@ -70,9 +71,9 @@ def cmd_render(args: argparse.Namespace) -> None:
         refuse_overwrites([("--out", out_dir / f"{name}.png") for name in cameras.names],
                           inputs + [("the capture's image", image) for image in cameras.image_paths])
     if cameras is None:  # the views made from the scene: their choice and size checked before it loads
-        parse_views(args.views, args.orbit_views, "--views", distinct=True)
-        width, height = (max(1, round(side * args.scale)) for side in args.orbit_size)
-        check_render_plan(args.orbit_views, width, height, kept=1, what="--orbit-size and --scale")
+        names, width, height = orbit_views_ahead(args, args.scale)
+        parse_views(args.views, len(names), "--views", distinct=True)
+        check_render_plan(len(names), width, height, kept=1, what="--orbit-size and --scale")
     scene = load_scene_verbose(args.scene, device, drop_invalid=args.drop_invalid, spz_axes=args.spz_axes,
                                cameras=cameras)
     if args.sh_degree is not None and args.sh_degree > scene.sh_degree:

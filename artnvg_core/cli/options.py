@@ -10,10 +10,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..cameras.camera_set import MAX_IMAGE_SIDE
+from ..cameras.camera_set import MAX_IMAGE_SIDE, scaled_size
 from ..cameras.framing import parse_up
 from ..counted import counted
 from ..devices import DEVICE_CHOICES, device_for
+from .common import print_note
 
 if TYPE_CHECKING:
     from ..cameras import CameraSet
@@ -181,7 +182,17 @@ def orbit_from_args(args: argparse.Namespace, scene: GaussianScene) -> CameraSet
 
     width, height = args.orbit_size
     cameras = orbit_cameras(scene, args.orbit_views, fov_deg=args.fov, width=width, height=height, up=args.up,
-                            around=args.orbit_around)
+                            around=args.orbit_around, notes=getattr(args, "notes", None) or print_note,
+                            up_option="--up=-y or another axis (with '=')")
     print(f"no --cameras: {counted(len(cameras), 'view')} orbiting the scene at {width}x{height}, field of view {args.fov:g} deg",
           flush=True)
     return cameras
+
+
+def orbit_views_ahead(args: argparse.Namespace, scale: float = 1.0) -> tuple[list[str], int, int]:
+    """The names and the image size (width, height, at ``scale`` as :meth:`~artnvg_core.cameras.CameraSet.scaled`
+    rounds it) of the views :func:`orbit_from_args` builds: known before the scene loads, so the options that name
+    those views (``--views``, ``--region-mask``, ``--stylized-images``) are checked before it does."""
+    from ..orbit import orbit_view_names
+
+    return orbit_view_names(args.orbit_views), *scaled_size(*args.orbit_size, scale)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -28,17 +29,18 @@ def add_region_arguments(parser: argparse.ArgumentParser, what: str) -> None:
                        "cameras (of the view's aspect, resized to it); repeat for several views")
 
 
-def parse_region_mask(text: str, cameras: CameraSet) -> tuple[int, str]:
-    """``VIEW:MASK.png`` -> (view index into ``cameras``, mask path); ValueError naming ``--region-mask``."""
+def parse_region_mask(text: str, names: Sequence[str]) -> tuple[int, str]:
+    """``VIEW:MASK.png`` -> (view index among the views named ``names``, mask path); ValueError naming
+    ``--region-mask``."""
     view, sep, path = text.partition(":")
     if not sep or not path:
         raise ValueError(f"--region-mask: expected VIEW:MASK.png, got {text!r}")
-    if view in cameras.names:
-        return cameras.names.index(view), path
-    if view.isdigit() and int(view) < len(cameras):
+    if view in names:
+        return list(names).index(view), path
+    if view.isdigit() and int(view) < len(names):
         return int(view), path
-    raise ValueError(f"--region-mask {text}: {view!r} is neither a view index below {len(cameras)} nor a view "
-                     f"name of the cameras (e.g. {cameras.names[0]!r})")
+    raise ValueError(f"--region-mask {text}: {view!r} is neither a view index below {len(names)} nor a view "
+                     f"name of the cameras (e.g. {names[0]!r})")
 
 
 def check_region_arguments(args: argparse.Namespace, cameras_required: bool = True) -> None:
@@ -59,20 +61,21 @@ def check_region_arguments(args: argparse.Namespace, cameras_required: bool = Tr
             require_regular_file(path, "--region-mask image")
 
 
-def check_region_masks(args: argparse.Namespace, cameras: CameraSet) -> None:
-    """Before any work: each ``--region-mask``'s view among ``cameras`` and its image's size (from its header)
-    against the views' (:func:`~artnvg_core.selection.check_mask_size`)."""
+def check_region_masks(args: argparse.Namespace, names: Sequence[str], width: int, height: int) -> None:
+    """Before any work: each ``--region-mask``'s view among the views named ``names``, of ``width`` x ``height``
+    pixels (the cameras', or those of the views built around the scene: :func:`~.options.orbit_views_ahead`), and
+    its image's size (from its header) against theirs (:func:`~artnvg_core.selection.check_mask_size`)."""
     from ..images import image_size
     from ..selection import check_mask_size
 
     for text in args.region_mask:
-        _, path = parse_region_mask(text, cameras)
-        check_mask_size(*image_size(path), cameras.width, cameras.height, f"--region-mask {text}")
+        _, path = parse_region_mask(text, names)
+        check_mask_size(*image_size(path), width, height, f"--region-mask {text}")
 
 
 def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras: CameraSet | None) -> torch.Tensor | None:
     """The [N] bool selection of ``--region`` / ``--region-mask`` (None for neither; the masked views' renders
-    under a bar), printing its size."""
+    under a bar), printing its size; the masks checked before (:func:`check_region_masks`)."""
     from ..images import load_image, resize_image
     from ..selection import parse_region, select_by_masks, select_region
     from .common import ProgressBar
@@ -80,10 +83,9 @@ def selection_from_args(args: argparse.Namespace, scene: GaussianScene, cameras:
     if args.region:
         selection = select_region(scene, parse_region(args.region))
     elif args.region_mask:
-        check_region_masks(args, cameras)  # views built around the scene are known only now
         views, masks = [], []
         for text in args.region_mask:
-            view, path = parse_region_mask(text, cameras)
+            view, path = parse_region_mask(text, cameras.names)
             mask = load_image(path).mean(-1, keepdim=True)  # a regular file: check_region_arguments
             views.append(view)
             masks.append(resize_image(mask, cameras.height, cameras.width)[..., 0])

@@ -37,6 +37,7 @@ from .options import (
     add_scene_file_options,
     integer_at_least,
     orbit_from_args,
+    orbit_views_ahead,
     parse_device,
     parse_devices,
     positive_number,
@@ -83,7 +84,10 @@ def cmd_stylize(args: argparse.Namespace) -> None:
         check_lora(lora)
     capture_cameras = load_camera_option(args)
     if capture_cameras is not None:  # before the models and the scene load
-        check_region_masks(args, capture_cameras.scaled(scale))
+        scaled = capture_cameras.scaled(scale)
+        check_region_masks(args, scaled.names, scaled.width, scaled.height)
+    else:  # the views built around the scene: their names and size are known before it loads
+        check_region_masks(args, *orbit_views_ahead(args, scale))
     if args.preset == "low-memory":  # before the first CUDA allocation: far less fragmentation in 12 GiB
         os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     device = parse_device(args.device)

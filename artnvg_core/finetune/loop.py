@@ -177,10 +177,11 @@ def finetune(
 ) -> GaussianScene:
     """Finetune ``scene`` so its renders from ``cameras`` take on the style.
 
-    scene: the original Gaussians (not modified; a new scene is returned, detached).
+    scene: the original Gaussians (not modified; a new scene is returned, detached; a float16 or bfloat16
+        scene's float32 copy is trained and returned).
     cameras: C views, rendered at their own resolution (scale them beforehand).
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
-    stylized: optional [C, H', W', 3] stylized views in camera order, resized to
+    stylized: optional [C, H', W', 3] stylized views in camera order, floats in [0, 1], resized to
         the camera size when they differ; None runs the NNFM-only stylizer.
     progress(step, total, info): called with step 0 and ``info`` {} as the steps start (a step takes seconds
         at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
@@ -228,13 +229,14 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
     check_image_values(style_image, "finetune: style_image")
     if len(cameras) == 0:
         raise ValueError("finetune: cameras is empty")
-    device = scene.device
+    scene, device = scene.widened(), scene.device
     cameras = cameras.to(device)
     if stylized is not None:
         try:
             check_stylized_views(stylized, len(cameras))
         except ValueError as error:
             raise ValueError(f"finetune: stylized: {error}") from None
+        check_image_values(stylized, "finetune: stylized")
         stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
     weights = None
     if selection is not None:

@@ -12,6 +12,7 @@ optional: ``pip install ".[gsplat]"``; :mod:`.gsplat_backend`)."""
 from __future__ import annotations
 
 import functools
+import math
 import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -112,10 +113,11 @@ def _positive_focals(intrinsics: torch.Tensor) -> torch.Tensor:
 
 
 def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int | None = None,
-                        background: torch.Tensor | None = None) -> None:
-    """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the scene's
-    tensors finite and on its device, finite camera poses and intrinsics with positive focal lengths,
-    the background's shape. The value checks are reduced on the device and read back together: one
+                        background: torch.Tensor | None = None, near_plane: float = 0.01) -> None:
+    """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the near plane a
+    finite number >= 0, the scene's tensors finite (their one dtype and device: :class:`~artnvg_core.scene.GaussianScene`'s
+    own check), finite camera poses and intrinsics with positive focal lengths, the background's shape and
+    finite values. The value checks are reduced on the device and read back together: one
     wait for the device (one per device where the cameras live elsewhere). A tensor that passed them is
     not checked again until it is changed in place (its version counter moves; writes that bypass it,
     through ``.data`` or shared memory, go unseen): a scene rendered view after view waits once. Inference
@@ -124,17 +126,19 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
     sh_degree = scene.sh_degree if sh_degree is None else sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
+    if not (isinstance(near_plane, (int, float)) and math.isfinite(near_plane) and near_plane >= 0):
+        raise ValueError(f"render: near_plane must be a finite number >= 0, got {near_plane!r}")
     if background is not None and tuple(background.shape) not in ((3,), (len(cameras), 3)):
         raise ValueError(f"render: background must have shape (3,) or ({len(cameras)}, 3), got {tuple(background.shape)}")
     tests = []  # (message if false, tensor, test), in the order they are reported
     for name, value in scene.tensors().items():
-        if value.device != scene.device:
-            raise ValueError(f"render: scene.{name} is on {value.device}, expected {scene.device}")
         tests.append((f"render: scene.{name} has non-finite values", value, torch.isfinite))
     tests += [("render: cameras have non-finite poses or intrinsics", cameras.world_to_cam, torch.isfinite),
               ("render: cameras have non-finite poses or intrinsics", cameras.intrinsics, torch.isfinite),
               ("render: cameras.intrinsics must have positive focal lengths fx, fy", cameras.intrinsics,
                _positive_focals)]
+    if background is not None:
+        tests.append(("render: background has non-finite values", background, torch.isfinite))
     checks = [(message, tensor, test(tensor).all()) for message, tensor, test in tests
               if tensor.is_inference() or _PASSED.get(tensor) != tensor._version]
     passed = [True] * len(checks)
@@ -166,7 +170,9 @@ def render(
     """Render ``scene`` from every camera of ``cameras``.
 
     scene: GaussianScene (tensors may require grad; rendering is differentiable
-        in means, quats, log_scales, opacity_logits and sh).
+        in means, quats, log_scales, opacity_logits and sh). A float16 or bfloat16 scene renders as
+        its float32 copy (their ranges and precision cannot hold the projection's and compositing's values),
+        to float32 images.
     cameras: CameraSet, OpenCV world-to-camera [C, 4, 4], K [C, 3, 3] in
         pixels, pixel centres at +0.5; taken to the scene's device and dtype (a float64 scene, the
         reference's oracle, renders from the float32 cameras a loader gives).
@@ -199,11 +205,12 @@ def render(
     gradients, on every backend: unnormalised quaternions of any norm,
     log-scales up to the float32 limit, SH up to 3e38 (colours are capped where
     a pixel is already >= 1, see :mod:`.sh`). A render that shows nothing back-propagates
-    zero gradients. Returns a :class:`RenderOutput`.
+    zero gradients. Returns a :class:`RenderOutput`, of no views for cameras of none.
     """
     degree = scene.sh_degree if sh_degree is None else sh_degree
     if not checked:
-        check_render_inputs(scene, cameras, degree, background)
+        check_render_inputs(scene, cameras, degree, background, near_plane)
+    scene = scene.widened()
     cameras = cameras.to(scene.device, scene.means.dtype)
     if background is not None:
         background = background.to(scene.means).expand(len(cameras), 3)
@@ -220,6 +227,9 @@ def render(
         wait_for_compilation()  # the kernels compiling in the background, if any: not compiled twice
         composite = functools.partial(rasterize_triton, capacity=list_capacity)
     width, height, centers = cameras.width, cameras.height, cameras.centers
+    if len(cameras) == 0:
+        empty = [scene.means.new_zeros(0, height, width, channels) for channels in (3, 1, 1)]
+        return RenderOutput(*empty[:2], empty[2] if return_depth else None)
     rgbs, alphas, depths = [], [], []
     for c in range(len(cameras)):
         check_stop(should_stop)

@@ -54,7 +54,7 @@ def render_views(scene: GaussianScene, cameras: CameraSet, *, chunk: int = RENDE
     parts = []
     if progress is not None:
         progress(0, len(cameras), {})
-    for start in range(0, len(cameras), chunk):
+    for start in range(0, len(cameras), chunk) or [0]:  # cameras of no views: render's empty output
         views = range(start, min(start + chunk, len(cameras)))
         out = render(scene, cameras.subset(views), return_depth=depth, backend=backend, should_stop=should_stop)
         tensors = (out.rgb.clamp(0, 1), out.alpha, out.depth)
