@@ -15,6 +15,7 @@
   the next task's inputs reach it meanwhile; the actor runs them in turn). A task whose actor died (a
   killed process, a lost machine) is handed again to the next idle actor; the dead actor restarts by
   itself (``max_restarts``) and rejoins once it answers.
+* :func:`job_alive`: whether a driver (a command using the cluster) still runs.
 
 Ray is imported here, and only when one of these is called: without it installed nothing else changes.
 Actors see only the GPU Ray gave them, as ``cuda:0``.
@@ -277,6 +278,19 @@ def release_workers() -> list[str]:
     for name in names:
         ray.kill(ray.get_actor(name, namespace=KEPT_NAMESPACE))
     return names
+
+
+def job_alive(job_id: str) -> bool:
+    """Whether the Ray job ``job_id`` (hex, ``ray.get_runtime_context().get_job_id()``: a driver process, such
+    as a command) still runs on the cluster this process is in; True for "" (not known). Read from the GCS
+    job table, which marks a driver dead within a second even when it was killed (Ray's public job listing
+    needs its dashboard)."""
+    if not job_id:
+        return True
+    import_ray("job_alive")
+    from ray._private.state import jobs
+
+    return not any(job["JobID"] == job_id and job["IsDead"] for job in jobs())
 
 
 def dispatch(

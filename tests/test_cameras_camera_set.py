@@ -1,5 +1,7 @@
 """CameraSet: scaled and subset views, absurd image sizes refused."""
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -63,3 +65,17 @@ def test_image_sides_that_are_not_whole_numbers_refused(width):
         CameraSet(w2c, k, width, 12, ["a"])
     cameras = CameraSet(w2c, k, np.int64(16), torch.tensor(12), ["a"])
     assert (type(cameras.width), type(cameras.height), cameras.width, cameras.height) == (int, int, 16, 12)
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("world_to_cam", lambda t: t.long(), "expected a floating-point torch.Tensor, got torch.int64"),
+    ("world_to_cam", lambda t: t.numpy(), "expected a floating-point torch.Tensor, got ndarray"),
+    ("intrinsics", lambda t: t.to("meta"), "expected world_to_cam's device (cpu), got meta"),
+])
+def test_poses_and_intrinsics_of_another_kind_or_device_are_refused(field, value, expected):
+    """Integer poses rendered with their rotations truncated to integers; numpy arrays and a device apart from the
+    poses' stopped later, inside render."""
+    tensors = {"world_to_cam": torch.eye(4)[None], "intrinsics": torch.tensor([[10.0, 0, 8], [0, 10, 6], [0, 0, 1]])[None]}
+    tensors[field] = value(tensors[field])
+    with pytest.raises(ValueError, match=re.escape(f"CameraSet.{field}: {expected}")):
+        CameraSet(**tensors, width=16, height=12, names=["a"])

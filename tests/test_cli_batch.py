@@ -6,6 +6,8 @@ import json
 import os
 import re
 import signal
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -272,17 +274,46 @@ def test_second_run_skips_complete_outputs_and_a_stop_cancels_cleanly(inputs, po
     assert _same_output(jobs[0].out, references[1]) and _same_output(jobs[2].out, references[3])
 
 
-def test_a_kept_worker_busy_with_another_batchs_job_fails_the_job_at_once(tmp_path):
+def test_a_kept_worker_busy_with_another_batchs_job_fails_the_job_at_once(tmp_path, monkeypatch):
     """Two batches on one kept worker would run two jobs in its process at once, in one working folder."""
     pytest.importorskip("ray")  # the worker names its machine through Ray
-    from artnvg_core.cli.batch import BatchWorker
+    from artnvg_core.cli import batch
     from artnvg_core.cluster import Workers
 
-    worker = BatchWorker(Workers("cpu", 1))
-    worker.running = ("another batch", 0)
-    result = worker.run("run", ["a.ply", "--out=out/a.ply"], str(tmp_path))
+    monkeypatch.setattr(batch, "job_alive", lambda job_id: True)
+    worker = batch.BatchWorker(Workers("cpu", 1))
+    worker.running = ("another batch", "01000000", 0)
+    result = worker.run("run", ["a.ply", "--out=out/a.ply"], str(tmp_path), "02000000")
     assert result["status"] == "failed" and "runs a job of another batch" in result["message"], result
-    assert worker.running == ("another batch", 0)
+    assert worker.running == ("another batch", "01000000", 0)
+
+
+def test_a_job_left_running_by_a_killed_batch_command_is_stopped_for_the_next_batchs_job(tmp_path, monkeypatch):
+    """A batch command killed (SIGKILL) leaves its job running on its kept worker; the next batch's job there
+    stops that job (its command's Ray job is dead), waits for it, runs, and says so in a note."""
+    pytest.importorskip("ray")  # the worker names its machine through Ray
+    from artnvg_core.cli import batch
+    from artnvg_core.cluster import Workers
+
+    monkeypatch.setattr(batch, "job_alive", lambda job_id: job_id != "01000000")
+    worker = batch.BatchWorker(Workers("cpu", 1))
+    demo = DemoInputs()
+    argv = [str(demo.scene), f"--style={demo.style}", "--stylizer=nnfm", "--orbit-views=2", "--orbit-size=32"]
+    left = []
+    orphan = threading.Thread(target=lambda: left.append(
+        worker.run("killed batch", [*argv, "--iters=1000000", "--out=out/left.ply"], str(tmp_path), "01000000")))
+    orphan.start()
+    try:
+        while worker.running is None:
+            time.sleep(0.01)
+        result = worker.run("next batch", [*argv, "--iters=1", "--out=out/a.ply"], str(tmp_path), "02000000")
+    finally:  # not left running when the code is wrong
+        worker.stop("killed batch")
+        orphan.join(timeout=60)
+    assert result["status"] == "done", result
+    assert result["notes"][0] == "its worker first stopped a job left running by a batch whose command is gone"
+    assert [(r["status"], r["message"]) for r in left] == [("cancelled", "stopped by request")]
+    assert (tmp_path / "out" / "a.ply").exists() and not (tmp_path / "out" / "left.ply").exists()
 
 
 def test_a_worker_frees_its_cached_gpu_memory_when_asked_between_batches_not_in_a_job(tmp_path, monkeypatch):
@@ -318,7 +349,7 @@ def test_a_batch_lets_its_workers_free_their_cached_memory_once_its_last_job_end
             self.events = []
             torch.cuda.empty_cache = lambda: self.events.append("empty_cache")  # in the actor's process
 
-        def run(self, run, argv, folder):
+        def run(self, run, argv, folder, driver):
             self.events.append(argv[0])
             return dict(status="done", message="", seconds=0.0, worker="", peak_gib=None, notes=[])
 
@@ -402,6 +433,50 @@ def test_kept_workers_serve_later_batches_warm_through_a_stop_until_released(tmp
         with pytest.raises(ValueError, match="Failed to look up actor"):
             kept_process()
     finally:
+        release_workers()
+
+
+KILLED_DURING_A_BATCH = """
+import sys
+from artnvg_core.cli.batch import BatchPool
+from artnvg_core.cli.batch_jobs import load_jobs, stylize_options
+from artnvg_core.cluster import Workers, ray_joined
+
+with ray_joined(sys.argv[2], needed_by="test") as ray, BatchPool(Workers("cpu", 1), keep=True) as pool:
+    ray.get(pool.actors[0].ping.remote())  # started: the job reaches it at once
+    pool.run(load_jobs(sys.argv[1], stylize_options()), on_event=lambda kind, job, detail: print(kind, flush=True))
+"""
+
+
+def test_a_batch_runs_on_a_kept_worker_whose_last_batch_command_was_killed_mid_job(tmp_path, ray_local):
+    """A batch command killed with SIGKILL as its job runs on a kept worker: the next batch's job there stops
+    the job left running (it once failed at once, 'busy with another batch', until that job ended) and runs."""
+    import subprocess
+    import sys
+
+    from artnvg_core.cli.batch import BatchPool
+    from artnvg_core.cluster import Workers, release_workers
+
+    demo = DemoInputs()
+    entry = {"scene": str(demo.scene), "style": str(demo.style), "stylizer": "nnfm", "orbit_views": 2,
+             "orbit_size": 32}
+    endless = write_jobs(tmp_path / "endless.json", [{**entry, "iters": 1000000, "out": "out/endless.ply"}])
+    jobs = load_jobs(write_jobs(tmp_path / "jobs.json", [{**entry, "iters": 1, "out": "out/a.ply"}]), stylize_options())
+    command = subprocess.Popen([sys.executable, "-c", KILLED_DURING_A_BATCH, str(endless),
+                                ray_local.get_runtime_context().gcs_address], stdout=subprocess.PIPE, text=True,
+                               env=child_env(), cwd=str(Path(__file__).parents[1]))  # the workers import this checkout
+    try:
+        assert command.stdout.readline() == "started\n"
+        time.sleep(2)  # the job runs
+        command.kill()
+        command.wait()
+        with BatchPool(Workers("cpu", 1), keep=True) as pool:
+            (result,) = pool.run(jobs)
+        assert result.status == "done", result
+        assert result.notes == ("its worker first stopped a job left running by a batch whose command is gone",)
+        assert not (tmp_path / "out" / "endless.ply").exists()
+    finally:
+        command.kill()
         release_workers()
 
 

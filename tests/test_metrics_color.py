@@ -50,3 +50,19 @@ def test_mean_cov_distance_of_a_scaled_and_shifted_copy():
     expected = math.sqrt(float(((k - 1) * mean_a + shift).square().sum() + (1 - k) ** 2 * torch.trace(cov_a)))
     assert mean_cov_distance(a, b) == pytest.approx(expected, rel=1e-9)
     assert mean_cov_distance(b, a) == pytest.approx(expected, rel=1e-9)
+
+
+def test_pixels_other_than_rgb_floats_in_zero_to_one_are_refused():
+    """8-bit values were clamped to 0 or 1 (distances of a black-and-white palette); NaN and an alpha channel stopped
+    with torch's RuntimeErrors from the histogram."""
+    images, style = colors(0).reshape(1, 50, 60, 3), colors(1)
+    for bad, got in [((images * 255).round().to(torch.uint8), "expected floats in \\[0, 1\\], got a torch.uint8 tensor"),
+                     (images * 255, "expected floats in \\[0, 1\\], got values up to"),
+                     (images * float("nan"), "expected floats in \\[0, 1\\], got NaN or infinite values"),
+                     (torch.cat([images, torch.ones_like(images[..., :1])], -1), "must be RGB \\[..., 3\\]"),
+                     (images[:0], "has no pixels")]:
+        for distance in (histogram_distance, mean_cov_distance):
+            with pytest.raises(ValueError, match=f"^color distance: images:? {got}"):
+                distance(bad, style)
+            with pytest.raises(ValueError, match=f"^color distance: style image:? {got}"):
+                distance(style, bad)

@@ -23,7 +23,8 @@ def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
 
 @dataclass
 class CameraSet:
-    """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`).
+    """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`): floating-point
+    tensors on one device.
 
     ``names`` are the views' image file stems (e.g. ``frame_00096``);
     ``image_paths`` the source images when known (else ``None`` entries).
@@ -37,6 +38,14 @@ class CameraSet:
     image_paths: list[Path | None] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        for name in ("world_to_cam", "intrinsics"):
+            value = getattr(self, name)
+            if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
+                kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(f"CameraSet.{name}: expected a floating-point torch.Tensor, got {kind}")
+        if self.intrinsics.device != self.world_to_cam.device:
+            raise ValueError(f"CameraSet.intrinsics: expected world_to_cam's device ({self.world_to_cam.device}), "
+                             f"got {self.intrinsics.device}")
         c = self.world_to_cam.shape[0] if self.world_to_cam.ndim == 3 else -1
         if tuple(self.world_to_cam.shape) != (c, 4, 4) or c < 0:
             raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")

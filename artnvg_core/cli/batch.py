@@ -23,15 +23,16 @@ exists, both its own, is skipped (``--redo`` runs it anyway); outputs are writte
 Python step; a job that does not get there within 30 s has its worker killed, which may leave a hidden
 temporary (``.NAME.*.partial.*``) behind.
 
-With ``--keep-workers`` (and ``--ray-address``: a local Ray that the command starts ends with it) the workers
-stay after the batch, named Ray actors of the cluster, and the next batch with ``--keep-workers`` runs on
-them warm (their imports done, their models loaded: a worker's first job takes about 15 s more on an H200),
-starting only those missing or dead. Kept workers hold their models' memory on each GPU (what the jobs
-worked in is freed as their batch ends) until ``batch --release-workers --ray-address ADDR`` or ``ray
+With ``--keep-workers`` (and ``--ray-address``: a local Ray that the command starts ends with it) the
+workers stay after the batch, named Ray actors of the cluster, and the next batch with ``--keep-workers``
+runs on them warm (their imports done, their models loaded: a worker's first job takes about 15 s more on
+an H200), starting only those missing or dead. Kept workers hold their models' memory on each GPU (what the
+jobs worked in is freed as their batch ends) until ``batch --release-workers --ray-address ADDR`` or ``ray
 stop``; they run the code they started with (release them after updating ArtNVG), and one batch at a time
-(a job handed to a worker busy with another batch's job fails); a batch without --keep-workers waits for
-the devices they hold (it says so). A stop (Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers
-(unless one is killed for not stopping within 30 s; the next batch replaces it).
+(a job handed to a worker busy with another batch's job fails, unless that batch's command is gone, killed:
+its job is stopped first); a batch without --keep-workers waits for the devices they hold (it says so). A
+stop (Ctrl-C, SIGTERM) ends the batch's jobs, not its kept workers (unless one is killed for not stopping
+within 30 s; the next batch replaces it).
 """
 
 from __future__ import annotations
@@ -51,8 +52,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..cluster import (WorkerPool, Workers, dispatch, import_ray, kept_workers, ray_joined, ray_session,
-                       release_workers)
+from ..cluster import (POLL_SECONDS, WorkerPool, Workers, dispatch, import_ray, job_alive, kept_workers, ray_joined,
+                       ray_session, release_workers)
 from ..counted import counted
 from ..progress import Cancelled, StopFn
 from .batch_jobs import Job, load_jobs, output_complete, parse_stylize, stylize_options
@@ -82,9 +83,11 @@ class JobResult:
 
 class BatchWorker:
     """Ray actor running whole stylize jobs on its device, one at a time, keeping the diffusion models
-    between jobs (:func:`artnvg_core.diffusion.loader.load_models_for` keeps the latest set). Two threads: one runs
-    the job, the other answers ``ping`` (its process id) and ``stop``. A kept worker (``--keep-workers``) serves
-    one batch after another; a job handed to it while it runs another batch's fails at once."""
+    between jobs (:func:`artnvg_core.diffusion.loader.load_models_for` keeps the latest set). Three threads: one
+    runs the job, one answers ``ping`` (its process id), ``stop`` and ``rest``, and one lets a job wait for the job
+    of a batch whose command is gone. A kept worker (``--keep-workers``) serves one batch after another; a job
+    handed to it while it runs another batch's fails at once, unless that batch's command is gone (killed): then
+    that job is stopped first (:meth:`_take`)."""
 
     def __init__(self, workers: Workers):
         self.workers = workers
@@ -93,31 +96,26 @@ class BatchWorker:
         else:
             torch.set_num_threads(1)
         self.lock = threading.Lock()
-        self.running: tuple[str, int] | None = None  # (run, thread id) of the job running
+        self.running: tuple[str, str, int] | None = None  # the running job's (run, its command's Ray job, thread)
         self.stopped: set[str] = set()
 
     def ping(self) -> int:
         return os.getpid()
 
-    def run(self, run: str, argv: Sequence[str], folder: str) -> dict:
-        """Run one job (``argv``: stylize's arguments; relative paths from ``folder``); returns its
-        "status" (done, failed, cancelled), "message", "seconds", "worker", "peak_gib" and "notes" (its scene
-        files' notes for the user). What else the job prints (stylize's lines and progress bars) is dropped: the
-        batch prints a line per job, and its notes."""
+    def run(self, run: str, argv: Sequence[str], folder: str, driver: str = "") -> dict:
+        """Run one job (``argv``: stylize's arguments; relative paths from ``folder``) of the batch ``run``,
+        which the command of Ray job id ``driver`` runs (:meth:`_take`); returns its "status" (done, failed,
+        cancelled), "message", "seconds", "worker", "peak_gib" and "notes" (its scene files' notes for the user).
+        What else the job prints (stylize's lines and progress bars) is dropped: the batch prints a line per job,
+        and its notes."""
         import ray
 
         worker = f"{self.workers.kind} on {ray.util.get_node_ip_address()}, pid {os.getpid()}"
         start, cwd = time.perf_counter(), os.getcwd()
-        with self.lock:
-            if run in self.stopped:
-                return dict(status="cancelled", message="stopped by request", seconds=0.0, worker=worker,
-                            peak_gib=None, notes=[])
-            if self.running is not None:  # two batches on one kept worker: their jobs would share its folder
-                return dict(status="failed", message=f"its worker ({worker}) runs a job of another batch; run "
-                            "batches on kept workers one after another", seconds=0.0, worker=worker, peak_gib=None,
-                            notes=[])
-            self.running = (run, threading.get_ident())
         notes: list[str] = []
+        refused = self._take(run, driver, worker, notes)
+        if refused is not None:
+            return dict(status=refused[0], message=refused[1], seconds=0.0, worker=worker, peak_gib=None, notes=notes)
         try:
             args = parse_stylize([*argv, f"--device={self.workers.kind}"], "job")
             args.should_stop, args.notes = (lambda: run in self.stopped), notes.append
@@ -147,8 +145,34 @@ class BatchWorker:
         return dict(status=status, message=message, seconds=time.perf_counter() - start, worker=worker, peak_gib=peak,
                     notes=notes)
 
+    def _take(self, run: str, driver: str, worker: str, notes: list[str]) -> tuple[str, str] | None:
+        """Marks this worker running a job of ``run``: None; else the (status, message) of the job, which does
+        not run: cancelled once ``run`` is stopped, failed while a job of another batch runs (two jobs would
+        share the worker's folder). A job of a batch whose command (Ray job ``driver``) is gone, killed without
+        stopping its jobs, is stopped first (a note says so) and waited for, :data:`STOP_SECONDS` at most."""
+        stopping, deadline = None, 0.0
+        while True:
+            with self.lock:
+                if run in self.stopped:
+                    return "cancelled", "stopped by request"
+                if self.running is None:
+                    self.running = (run, driver, threading.get_ident())
+                    return None
+                other, other_driver, _ = self.running
+            if other != stopping:
+                if job_alive(other_driver):
+                    return "failed", (f"its worker ({worker}) runs a job of another batch; run batches on kept "
+                                      "workers one after another")
+                self.stop(other)
+                notes.append("its worker first stopped a job left running by a batch whose command is gone")
+                stopping, deadline = other, time.monotonic() + STOP_SECONDS
+            elif time.monotonic() > deadline:
+                return "failed", (f"its worker ({worker}) runs a job left by a batch whose command is gone, which "
+                                  f"did not stop within {STOP_SECONDS:.0f} s; end the worker with --release-workers")
+            time.sleep(POLL_SECONDS)
+
     def rest(self) -> None:
-        """A batch ended: PyTorch's cached GPU memory that no tensor holds goes back to the driver
+        """A batch ended: PyTorch's cached GPU memory that no tensor holds goes back to the GPU
         (``torch.cuda.empty_cache``; nothing on the CPU or before CUDA starts), so that a kept worker waits
         holding its models, not a job's peak. Not while a job runs (a later batch's), nor between a batch's
         jobs: each would allocate its working memory again."""
@@ -163,7 +187,7 @@ class BatchWorker:
         with self.lock:
             self.stopped.add(run)
             if self.running is not None and self.running[0] == run:
-                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.running[1]), ctypes.py_object(Cancelled))
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.running[2]), ctypes.py_object(Cancelled))
 
 
 class BatchPool(WorkerPool):
@@ -172,7 +196,7 @@ class BatchPool(WorkerPool):
     them (warm)."""
 
     def __init__(self, workers: Workers, keep: bool = False):
-        super().__init__(BatchWorker, workers, workers, keep=keep)
+        super().__init__(BatchWorker, workers, workers, threads=3, keep=keep)
 
     def run(
         self,
@@ -210,9 +234,10 @@ class BatchPool(WorkerPool):
                 todo.append(job)
         todo.sort(key=lambda job: job.work, reverse=True)  # a stable sort: equal work keeps job order
         run, running = uuid.uuid4().hex, {}  # job number -> (job, reference) while it runs
+        driver = ray.get_runtime_context().get_job_id()
 
         def submit(actor, job: Job):
-            reference = actor.run.remote(run, job.argv, str(job.folder))
+            reference = actor.run.remote(run, job.argv, str(job.folder), driver)
             running[job.number] = job, reference
             return reference
 

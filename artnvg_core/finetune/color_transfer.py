@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..images import check_image_values
 from ..scene import SH_C0, GaussianScene
 
 EIGENVALUE_RANGE = (1e-8, 1e8)  # ARF's clamp on both covariances' eigenvalues
@@ -57,23 +58,21 @@ class ColorTransform:
         return images @ matrix.T + offset
 
 
-def _pixels(images: torch.Tensor, name: str) -> torch.Tensor:
-    """``images [..., 3]`` as float64 pixels [P, 3], checked."""
+def rgb_pixels(images: torch.Tensor, what: str) -> torch.Tensor:
+    """``images [..., 3]`` as float64 pixels [P, 3]; a ValueError naming ``what`` unless they are RGB, some, and
+    floats in [0, 1] (:func:`~artnvg_core.images.check_image_values`: not 8-bit values, not NaN)."""
     if images.ndim < 2 or images.shape[-1] != 3:
-        raise ValueError(f"color transfer: {name} must be RGB [..., 3] (an alpha channel dropped), "
-                         f"got shape {tuple(images.shape)}")
-    pixels = images.detach().reshape(-1, 3).to(torch.float64)
-    if len(pixels) == 0:
-        raise ValueError(f"color transfer: {name} has no pixels")
-    if not torch.isfinite(pixels).all():
-        raise ValueError(f"color transfer: {name} has non-finite values")
-    return pixels
+        raise ValueError(f"{what} must be RGB [..., 3] (an alpha channel dropped), got shape {tuple(images.shape)}")
+    if images.numel() == 0:
+        raise ValueError(f"{what} has no pixels")
+    check_image_values(images, what)
+    return images.detach().reshape(-1, 3).to(torch.float64)
 
 
 def color_statistics(images: torch.Tensor, name: str = "images") -> tuple[torch.Tensor, torch.Tensor]:
     """Mean [3] and covariance [3, 3] (divided by the pixel count, as ARF) of all pixels of
     ``images [..., 3]``, in float64; ``name`` is for error messages."""
-    pixels = _pixels(images, name)
+    pixels = rgb_pixels(images, f"color transfer: {name}")
     mean = pixels.mean(0)
     centred = pixels - mean
     return mean, centred.T @ centred / len(pixels)

@@ -6,14 +6,15 @@
   colours, ``sqrt(|mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a^1/2 C_b C_a^1/2)^1/2))``, in [0, 1]
   colour units: 0 when means and covariances agree (what ARF's colour transfer achieves).
 
-Both look at colours only, not where they are; pixels are clamped to [0, 1]; float64.
+Both look at colours only, not where they are; they take RGB floats in [0, 1] (8-bit values and NaN are a
+ValueError), clamped to [0, 1]; float64.
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..finetune.color_transfer import color_statistics
+from ..finetune.color_transfer import color_statistics, rgb_pixels
 
 
 def _sqrtm(matrix: torch.Tensor) -> torch.Tensor:
@@ -22,21 +23,27 @@ def _sqrtm(matrix: torch.Tensor) -> torch.Tensor:
     return vectors @ torch.diag(eigenvalues.clamp_min(0).sqrt()) @ vectors.T
 
 
+def _pixels(images: torch.Tensor, name: str) -> torch.Tensor:
+    """``images [..., 3]``, floats in [0, 1] (checked: :func:`~artnvg_core.finetune.color_transfer.rgb_pixels`), as
+    float64 CPU pixels [P, 3] clamped to [0, 1]."""
+    return rgb_pixels(images, f"color distance: {name}").cpu().clamp(0, 1)
+
+
 def histogram_distance(images: torch.Tensor, style: torch.Tensor, bins: int = 8) -> float:
     """Total variation between the joint RGB histograms of ``images [..., 3]`` and ``style [..., 3]``."""
 
     def histogram(pixels: torch.Tensor) -> torch.Tensor:
-        index = (pixels.detach().reshape(-1, 3).double().clamp(0, 1) * bins).long().clamp_max(bins - 1)
+        index = (pixels * bins).long().clamp_max(bins - 1)
         flat = (index[:, 0] * bins + index[:, 1]) * bins + index[:, 2]
-        return torch.bincount(flat.cpu(), minlength=bins**3).double() / len(flat)
+        return torch.bincount(flat, minlength=bins**3).double() / len(flat)
 
-    return 0.5 * float((histogram(images) - histogram(style)).abs().sum())
+    return 0.5 * float((histogram(_pixels(images, "images")) - histogram(_pixels(style, "style image"))).abs().sum())
 
 
 def mean_cov_distance(images: torch.Tensor, style: torch.Tensor) -> float:
     """2-Wasserstein distance between Gaussian fits of the colours of ``images`` and ``style``."""
-    mu_a, cov_a = color_statistics(images.detach().clamp(0, 1).cpu(), "images")
-    mu_b, cov_b = color_statistics(style.detach().clamp(0, 1).cpu(), "style image")
+    mu_a, cov_a = color_statistics(_pixels(images, "images"), "images")
+    mu_b, cov_b = color_statistics(_pixels(style, "style image"), "style image")
     root_a = _sqrtm(cov_a)
     cross = _sqrtm(root_a @ cov_b @ root_a)
     squared = (mu_a - mu_b).square().sum() + torch.trace(cov_a + cov_b - 2 * cross)
