@@ -290,6 +290,11 @@ def test_bad_arguments_rejected():
     bad = CameraSet(cams.world_to_cam, cams.intrinsics * torch.tensor([-1.0, 1, 1])[:, None], 40, 32, ["x"])
     with pytest.raises(ValueError, match="focal"):
         render(scene, bad)
+    for row, column in [(0, 1), (1, 0), (2, 0), (2, 1), (2, 2)]:  # skew, a scaled last row: ignored, rendered wrong
+        k = cams.intrinsics.clone()
+        k[0, row, column] += 0.5
+        with pytest.raises(ValueError, match=r"intrinsics must be pinhole matrices \[\[fx, 0, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
+            render(scene, CameraSet(cams.world_to_cam, k, 40, 32, ["x"]))
     with pytest.raises(ValueError, match="background has non-finite values"):
         render(scene, cams, background=torch.tensor([0.0, float("nan"), 0.0]))
     for near_plane in (-1.0, float("nan"), float("inf"), "0.01", None):  # -1 drew the Gaussians behind the camera

@@ -112,11 +112,20 @@ def _positive_focals(intrinsics: torch.Tensor) -> torch.Tensor:
     return intrinsics[:, [0, 1], [0, 1]] > 0
 
 
+_PINHOLE_ZEROS = torch.tensor([[0, 1, 0], [1, 0, 0], [1, 1, 0]], dtype=torch.bool)  # K's entries that must be 0
+
+
+def _pinhole(intrinsics: torch.Tensor) -> torch.Tensor:
+    """Whether each K has no skew and a last row [0, 0, 1] (the entries the projection does not read)."""
+    zeros = _PINHOLE_ZEROS.to(intrinsics.device)
+    return (intrinsics[:, zeros] == 0).all(1) & (intrinsics[:, 2, 2] == 1)
+
+
 def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int | None = None,
                         background: torch.Tensor | None = None, near_plane: float = 0.01) -> None:
     """What :func:`render` checks before it renders (ValueError otherwise): the SH degree, the near plane a
     finite number >= 0, the scene's tensors finite (their one dtype and device: :class:`~artnvg_core.scene.GaussianScene`'s
-    own check), finite camera poses and intrinsics with positive focal lengths, the background's shape and
+    own check), finite camera poses and pinhole intrinsics with positive focal lengths, the background's shape and
     finite values. The value checks are reduced on the device and read back together: one
     wait for the device (one per device where the cameras live elsewhere). A tensor that passed them is
     not checked again until it is changed in place (its version counter moves; writes that bypass it,
@@ -136,7 +145,9 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
     tests += [("render: cameras have non-finite poses or intrinsics", cameras.world_to_cam, torch.isfinite),
               ("render: cameras have non-finite poses or intrinsics", cameras.intrinsics, torch.isfinite),
               ("render: cameras.intrinsics must have positive focal lengths fx, fy", cameras.intrinsics,
-               _positive_focals)]
+               _positive_focals),
+              ("render: cameras.intrinsics must be pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)",
+               cameras.intrinsics, _pinhole)]
     if background is not None:
         tests.append(("render: background has non-finite values", background, torch.isfinite))
     checks = [(message, tensor, test(tensor).all()) for message, tensor, test in tests
