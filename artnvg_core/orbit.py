@@ -5,7 +5,8 @@ looking at it; the centre, subject radius and up of :func:`~artnvg_core.cameras.
 at the distance where the subject sphere fills the field of view: all round, or for a
 one-sided (forward-facing) capture on the arc the capture looked from (:func:`captured_arc`:
 probe views find the side from which floaters and the background the cameras saw do not hide
-the subject). The probes render, so this module sits above :mod:`artnvg_core.raster`, outside
+the subject), pulled in where the views would stand inside the background around the subject
+(:func:`pulled_in`). The probes render, so this module sits above :mod:`artnvg_core.raster`, outside
 :mod:`artnvg_core.cameras`. World units and axes are the scene's; cameras follow the OpenCV
 convention of :mod:`artnvg_core.cameras`. All pose maths runs in float64 on the CPU; the probes
 render in float32. :func:`parse_elevations` reads the rings' elevations from text (the node's input).
@@ -31,6 +32,8 @@ _PROBE_AZIMUTHS = 24  # probe views per ring when looking for the side the captu
 _PROBE_PIXELS = 24  # their size, square
 _BLOCKED = 0.75  # a probe view with more of it covered by foreground than this is blocked
 _MIN_GAP_DEG = 90.0  # blocked azimuths spanning at least this: a one-sided capture
+_PULL = 0.85  # each pull moves the views in to this fraction of their distance from the centre
+_CLOSEST = 0.6  # ... down to no less than this fraction
 
 
 def parse_elevations(elevations, what: str | None = None) -> list[float]:
@@ -147,6 +150,27 @@ def captured_arc(scene: GaussianScene, frame: SceneFrame, distance: float, half_
     return float(axis - span / 2), span
 
 
+def pulled_in(scene: GaussianScene, frame: SceneFrame, eyes: torch.Tensor, half_fov: float) -> torch.Tensor:
+    """``eyes`` [V, 3] (float64, looking at ``frame.center``) moved towards the centre, all by one factor, until none
+    is blocked (:func:`occluded_fractions` over :data:`_BLOCKED`).
+
+    The subject-filling distance can stand beyond where the capture cameras stood, inside the bushes and trees
+    around the subject, which training fills wherever no camera needed the space empty: on the shared bear
+    and garden 2 and 10 of 60 views were over 75 % covered (at 2.0 and 1.6 times the capture's median distance).
+    Each pull takes the distance to :data:`_PULL` of itself, down to no less than :data:`_CLOSEST` of the
+    starting one: outside the subject sphere still, where the capture cameras stood (bear: 0.72, garden: 0.61).
+    """
+    offsets = eyes - frame.center
+    pull = 1.0
+    while pull * _PULL >= _CLOSEST and bool(
+            (occluded_fractions(scene, frame, frame.center + pull * offsets, half_fov) > _BLOCKED).any()):
+        pull *= _PULL
+    if pull < 1:
+        _log.info("views pulled in to %.0f %% of the subject-filling distance, out of the scene's background",
+                  100 * pull)
+    return frame.center + pull * offsets
+
+
 def orbit_view_names(count: int) -> list[str]:
     """The names of the ``count`` views :func:`orbit_cameras` builds: ``orbit_0000``, ``orbit_0001``..."""
     return [f"orbit_{i:04d}" for i in range(count)]
@@ -181,7 +205,8 @@ def orbit_cameras(
     quantile: weight fraction of the subject sphere (:func:`scene_frame`).
     distance_factor: the cameras sit ``distance_factor * radius / sin(half fov)`` from
         the centre (the smaller of the horizontal and vertical half angles), so at 1
-        the subject sphere just fills the view; above 1 it shows more surroundings.
+        the subject sphere just fills the view; above 1 it shows more surroundings; views that
+        would stand inside the scene's background there are pulled in (:func:`pulled_in`).
     around: "auto" puts the rings on the side the capture looked from
         (:func:`captured_arc`: all round for a 360-degree capture, an arc for a
         forward-facing one); "full" always orbits all round.
@@ -221,7 +246,7 @@ def orbit_cameras(
         else:  # all round: each ring offset by half a step from the previous one
             azimuths = start + (steps + 0.5 * (ring % 2)) * (span / max(views, 1))
         eyes.append(_eyes(frame, distance, azimuths, elevation))
-    world_to_cam = look_at(torch.cat(eyes), frame.center, frame.up)
+    world_to_cam = look_at(pulled_in(scene, frame, torch.cat(eyes), half_fov), frame.center, frame.up)
     intrinsics = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64)
     return CameraSet(
         world_to_cam=world_to_cam.to(torch.float32),
