@@ -10,7 +10,8 @@ from artnvg_core.cameras import CameraSet, NoOrbit, interpolate_path, orbit_path
 from artnvg_core.cameras.paths import check_key_views
 from artnvg_core.cameras.selection import listed_views, parse_views
 from artnvg_core.key_views import select_key_views
-from artnvg_core.raster.views import check_render_plan, render_views
+from artnvg_core.raster import check_render_plan
+from artnvg_core.raster.views import render_views
 from artnvg_core.scene import GaussianScene
 
 from .comfy_bridge import cancellable, interrupt_requested, progress_bar, render_device
@@ -39,7 +40,7 @@ def render_frames(scene: GaussianScene, cameras: CameraSet) -> torch.Tensor:
 def render_scaled(node: str, scene: GaussianScene, cameras: CameraSet, scale: float) -> tuple[torch.Tensor, CameraSet]:
     """(:func:`render_frames` of ``cameras`` at ``scale`` times their size, those cameras), errors naming ``node``'s
     inputs ``scale`` and ``scene``: the outputs of the render nodes. A plan whose images would not fit in memory
-    (:func:`~artnvg_core.raster.views.check_render_plan`) is refused before the first view."""
+    (:func:`~artnvg_core.raster.check_render_plan`) is refused before the first view."""
     with node_input(node, "scale"):
         cameras = cameras.scaled(scale)
         check_render_plan(len(cameras), cameras.width, cameras.height)

@@ -490,7 +490,7 @@ def test_render_into_a_folder_that_is_not_empty_needs_overwrite(tmp_path, capsys
 def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, capsys, monkeypatch):
     import json
 
-    import artnvg_core.raster.views as views
+    import artnvg_core.raster as raster
 
     transforms = json.loads(DemoInputs().cameras.read_text())
     transforms["frames"][0]["file_path"] = "images/" + "v" * 250 + ".jpg"
@@ -500,7 +500,7 @@ def test_render_refuses_long_view_names_and_huge_plans_before_loading(tmp_path, 
                  "--device", "cpu"]) == 2
     captured = capsys.readouterr()
     assert "error: --out (the PNG of view 0): the file name vvvv" in captured.err and "loading" not in captured.out
-    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    monkeypatch.setattr(raster, "available_memory", lambda: 2**30)
     assert main(["render", str(scene), "--orbit-size", "8192", "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
     captured = capsys.readouterr()
     assert ("error: --orbit-size and --scale: 60 views of 8192x8192 pixels, 1 of their images held at once, need "

@@ -85,9 +85,10 @@ def test_render_camera_paths_key_views_are_checked_against_the_cameras_in_mode_i
 
 
 def test_a_render_plan_beyond_the_memory_budget_is_refused_before_the_first_view(small_bear, bear, monkeypatch):
+    import artnvg_core.raster as raster
     import artnvg_core.raster.views as views
 
-    monkeypatch.setattr(views, "available_memory", lambda: 2**30)
+    monkeypatch.setattr(raster, "available_memory", lambda: 2**30)
     monkeypatch.setattr(views, "render", lambda *args, **kwargs: pytest.fail("rendered"))
     with pytest.raises(NodeInputError, match=r"^Render Camera Path: input 'scale': 60 views of 2048x2048 "
                        r"pixels, all their images held at once, need 3\.5 GiB, more than half the 1\.0 GiB"):

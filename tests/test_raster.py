@@ -440,3 +440,16 @@ def test_half_precision_scenes_render_as_their_float32_copies(dtype):
     out.rgb.sum().backward()
     for name, p in params.items():
         assert p.grad.dtype == dtype and torch.isfinite(p.grad).all(), name
+
+
+def test_cpu_renders_beyond_half_the_memory_available_are_refused_before_any_work(monkeypatch):
+    """A 16384x16384 view (CameraSet's largest) of a capture needs about 44 GiB on the CPU: the process was killed
+    for memory; render now refuses it as the render nodes and the command line refuse theirs."""
+    import artnvg_core.raster as raster
+
+    monkeypatch.setattr(raster, "available_memory", lambda: 2**30)
+    monkeypatch.setattr(raster, "project", lambda *args, **kwargs: pytest.fail("projected"))
+    cams = make_cameras(EYES[:2], width=4096, height=2048)
+    with pytest.raises(ValueError, match=r"^render: 2 views of 4096x2048 pixels, all their images held at once, need "
+                                         r"1\.5 GiB, more than half the 1\.0 GiB of memory available now"):
+        render(hard_scene(0, n=5), cams)

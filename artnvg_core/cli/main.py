@@ -47,8 +47,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     from ..fileio import check_output_folder, check_output_name, refuse_overwrites, sweep_temporaries
     from ..formats import check_scene_path
     from ..images import save_png
-    from ..raster import render
-    from ..raster.views import check_render_plan
+    from ..raster import check_render_plan, render
 
     device = parse_device(args.device)
     out_dir = check_output_folder(args.out, "--out")

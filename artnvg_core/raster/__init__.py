@@ -21,7 +21,8 @@ import torch
 from torch.utils.weak import WeakIdKeyDictionary
 
 from ..cameras import CameraSet
-from ..devices import triton_available
+from ..counted import counted
+from ..devices import available_memory, triton_available
 from ..progress import StopFn, check_stop
 from ..scene import GaussianScene
 from .gsplat_backend import gsplat_available, load_kernels, rasterize_gsplat
@@ -102,6 +103,30 @@ def triton_warmups(scene: GaussianScene, cameras: CameraSet, *, sh_degree: int |
     return [*triton_projection.warmups(scene.device, scene.sh.shape[1], width, height, degree, bool(scene.antialiased),
                                        gradients),
             *triton_backend.warmups(scene.device, 4 if return_depth else 3, width, height, gradients)]
+
+
+# Bytes a pixel takes: an image kept (float32 RGB, ComfyUI's IMAGE), and the view being rendered: its
+# outputs, the compositing's buffers and the reference rasterizer's tile lists (measured: one 8192x8192 view
+# of a 100,000-Gaussian capture, the test data's bear, peaked at 11.2 GB on the CPU, about 165 bytes a
+# pixel; a scene whose Gaussians cover more tiles needs more).
+KEPT_BYTES_PER_PIXEL = 12
+RENDERING_BYTES_PER_PIXEL = 165
+
+
+def check_render_plan(views: int, width: int, height: int, *, kept: int | None = None, what: str = "") -> None:
+    """Before any work: a ValueError naming ``what`` (the inputs that chose the plan; '': none) when rendering ``views``
+    views of ``width`` x ``height`` pixels, ``kept`` of whose images are held at once (default: all, as the render
+    nodes return them; 1 where each is written as it is done), needs more than half the main memory available
+    (:func:`~artnvg_core.devices.available_memory`; no check where the system does not say)."""
+    kept = views if kept is None else min(kept, views)
+    needed = width * height * (kept * KEPT_BYTES_PER_PIXEL + RENDERING_BYTES_PER_PIXEL)
+    available = available_memory()
+    if available is not None and needed > available // 2:
+        held = "all their images held at once" if kept == views else f"{kept} of their images held at once"
+        raise ValueError(f"{what + ': ' if what else ''}{counted(views, 'view')} of {width}x{height} pixels, {held}, "
+                         f"need {needed / 2**30:.1f} GiB, "
+                         f"more than half the {available / 2**30:.1f} GiB of memory available now; render fewer "
+                         "views or at a smaller scale")
 
 
 # tensors whose values passed render's checks -> their version then (``Tensor._version`` counts in-place changes)
@@ -195,10 +220,12 @@ def render(
         torch). All give the reference's projection and colours (triton from one fused kernel,
         :mod:`.triton_projection`) and differ in the per-pixel compositing (the reference's PyTorch
         tiles, :mod:`.triton_backend`'s kernels or gsplat's, see :mod:`.gsplat_backend`).
-    near_plane: Gaussians with camera-space z <= near_plane are culled.
+    near_plane: Gaussians with camera-space z <= near_plane (a finite number >= 0) are culled.
     checked: the caller has checked these inputs (:func:`check_render_inputs`) and keeps them valid, so
         the checks, which wait for the device where the inputs are new or changed, are skipped
-        (:class:`.step_renderer.StepRenderer`, whose optimiser changes the scene at every step, does so).
+        (:class:`.step_renderer.StepRenderer`, whose optimiser changes the scene at every step, does so), and so
+        is the memory check of a CPU render (:func:`check_render_plan`: views that need more than half the
+        memory available are a ValueError, where the process would be killed for memory).
     list_capacity: the Triton backend's :class:`.triton_tiles.ListCapacity` shared by renders made one
         after another, so that they do not wait for their tile intersection counts (ignored by the other
         backends); the caller checks it after each render for one that overflowed and must be redone
@@ -221,6 +248,8 @@ def render(
     degree = scene.sh_degree if sh_degree is None else sh_degree
     if not checked:
         check_render_inputs(scene, cameras, degree, background, near_plane)
+        if scene.device.type == "cpu":  # beyond main memory the process is killed; a device says so itself
+            check_render_plan(len(cameras), cameras.width, cameras.height, what="render")
     scene = scene.widened()
     cameras = cameras.to(scene.device, scene.means.dtype)
     if background is not None:

@@ -6,35 +6,11 @@ from __future__ import annotations
 import torch
 
 from ..cameras import CameraSet
-from ..counted import counted
-from ..devices import available_memory
 from ..progress import ProgressFn, StopFn
 from ..scene import GaussianScene
 from . import RenderOutput, render
 
 RENDER_CHUNK = 8  # views a render call: few enough to bound memory, enough to keep a GPU busy
-# Bytes a pixel takes: an image kept (float32 RGB, ComfyUI's IMAGE), and the view being rendered: its
-# outputs, the compositing's buffers and the reference rasterizer's tile lists (measured: one 8192x8192 view
-# of a 100,000-Gaussian capture, the test data's bear, peaked at 11.2 GB on the CPU, about 165 bytes a
-# pixel; a scene whose Gaussians cover more tiles needs more).
-KEPT_BYTES_PER_PIXEL = 12
-RENDERING_BYTES_PER_PIXEL = 165
-
-
-def check_render_plan(views: int, width: int, height: int, *, kept: int | None = None, what: str = "") -> None:
-    """Before any work: a ValueError naming ``what`` (the inputs that chose the plan; '': none) when rendering ``views``
-    views of ``width`` x ``height`` pixels, ``kept`` of whose images are held at once (default: all, as the render
-    nodes return them; 1 where each is written as it is done), needs more than half the main memory available
-    (:func:`~artnvg_core.devices.available_memory`; no check where the system does not say)."""
-    kept = views if kept is None else min(kept, views)
-    needed = width * height * (kept * KEPT_BYTES_PER_PIXEL + RENDERING_BYTES_PER_PIXEL)
-    available = available_memory()
-    if available is not None and needed > available // 2:
-        held = "all their images held at once" if kept == views else f"{kept} of their images held at once"
-        raise ValueError(f"{what + ': ' if what else ''}{counted(views, 'view')} of {width}x{height} pixels, {held}, "
-                         f"need {needed / 2**30:.1f} GiB, "
-                         f"more than half the {available / 2**30:.1f} GiB of memory available now; render fewer "
-                         "views or at a smaller scale")
 
 
 @torch.no_grad()
