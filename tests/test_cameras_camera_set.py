@@ -24,6 +24,13 @@ def test_scaled_and_subset():
     picked = cameras.subset([3, 0, 2])
     assert picked.names == ["d", "a", "c"]
     assert torch.equal(picked.world_to_cam, w2c[[3, 0, 2]])
+    assert cameras.subset(torch.tensor([3, -1])).names == cameras.subset(np.array([3, 3])).names == ["d", "d"]
+    for index in (0.5, True, "1"):  # 0.5 was view 0, True view 1
+        with pytest.raises(ValueError, match=f"CameraSet.subset: view indices must be ints, got {index!r}"):
+            cameras.subset([index])
+    for factor in (True, "2", None):  # True was 1, "2" a TypeError
+        with pytest.raises(ValueError, match="CameraSet.scaled: factor must be a finite number > 0"):
+            cameras.scaled(factor)
 
 
 def test_in_view_is_in_front_and_inside_the_image():

@@ -455,7 +455,7 @@ def test_a_batch_runs_on_a_kept_worker_whose_last_batch_command_was_killed_mid_j
     import sys
 
     from artnvg_core.cli.batch import BatchPool
-    from artnvg_core.cluster import Workers, release_workers
+    from artnvg_core.cluster import KEPT_NAMESPACE, Workers, release_workers
 
     demo = DemoInputs()
     entry = {"scene": str(demo.scene), "style": str(demo.style), "stylizer": "nnfm", "orbit_views": 2,
@@ -466,8 +466,12 @@ def test_a_batch_runs_on_a_kept_worker_whose_last_batch_command_was_killed_mid_j
                                 ray_local.get_runtime_context().gcs_address], stdout=subprocess.PIPE, text=True,
                                env=child_env(), cwd=str(Path(__file__).parents[1]))  # the workers import this checkout
     try:
-        assert command.stdout.readline() == "started\n"
-        time.sleep(2)  # the job runs
+        assert command.stdout.readline() == "started\n"  # handed out; killed once the worker runs it
+        kept = ray_local.get_actor("BatchWorker-cpu-0", namespace=KEPT_NAMESPACE)
+        deadline = time.monotonic() + 120
+        while not ray_local.get(kept.__ray_call__.remote(lambda worker: worker.running is not None)):
+            assert time.monotonic() < deadline, "the job never started on the kept worker"
+            time.sleep(0.05)
         command.kill()
         command.wait()
         with BatchPool(Workers("cpu", 1), keep=True) as pool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import operator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -92,9 +93,15 @@ class CameraSet:
         """The views at ``indices`` (a sequence of ints), in that order. ``on_device``: the same indices as
         a long tensor on the cameras' device, which selects without copying indices to it (such a copy
         waits for the device to finish its queued work)."""
-        idx = [int(i) for i in indices]
-        for i in idx:
-            if not -len(self) <= i < len(self):
+        idx = []
+        for i in indices:
+            try:
+                if isinstance(i, bool):
+                    raise TypeError
+                idx.append(operator.index(i))  # not int(): 0.5 would be view 0
+            except TypeError:
+                raise ValueError(f"CameraSet.subset: view indices must be ints, got {i!r}") from None
+            if not -len(self) <= idx[-1] < len(self):
                 raise ValueError(f"CameraSet.subset: view index {i} out of range for {counted(len(self), 'view')}")
         sel = torch.tensor(idx, dtype=torch.long) if on_device is None else on_device
         return replace(
@@ -111,7 +118,7 @@ class CameraSet:
         Intrinsics scale with the actual per-axis size ratio, so the image
         plane keeps covering the same field of view.
         """
-        if not (math.isfinite(factor) and factor > 0):
+        if isinstance(factor, bool) or not (isinstance(factor, numbers.Real) and math.isfinite(factor) and factor > 0):
             raise ValueError(f"CameraSet.scaled: factor must be a finite number > 0, got {factor}")
         width, height = scaled_size(self.width, self.height, factor)
         if max(width, height) > MAX_IMAGE_SIDE:
