@@ -18,10 +18,11 @@ from pathlib import Path
 import pytest
 import torch
 from test_nodes_contracts import PUBLIC_INPUTS, PUBLIC_OUTPUTS
+from test_orbit import standing_blob
 from test_workflows import CAMERA_FREE_API, FULL_API, NNFM_API, REGION_API, STOCK_NODES
 from ws_client import WebSocket
 
-from artnvg_core.formats import read_ply
+from artnvg_core.formats import read_ply, save_scene
 from artnvg_core.selection import parse_region, select_region
 
 REPO = Path(__file__).resolve().parents[2]
@@ -236,6 +237,27 @@ def test_camera_free_workflow_stylizes_a_bare_scene_file(comfy_server):
     assert torch.equal(result.means, original.means) and not torch.equal(result.sh, original.sh)
     assert len([o for o in summary["outputs"] if o["kind"] == "images"]) == 3 + 2  # content views + orbit frames
 
+
+
+def test_a_guessed_up_is_noted_under_cameras_around_scene_in_its_terms_once(comfy_server):
+    """A scene with no ground (a standing blob) and up auto: the guess is shown under the node naming its up input
+    (progress text) and logged once on the console."""
+    folder = comfy_server.test_folder
+    standing = comfy_server.input_dir / folder / "standing.ply"
+    save_scene(standing_blob().select(slice(0, None, 4)), standing)
+    logged = len(comfy_server.log.read_text())
+    try:
+        _run_saving_a_scene(comfy_server, CAMERA_FREE_API, (
+            f"Load Gaussian Scene.scene_file={folder}/standing.ply", f"Style image.image={folder}/style.jpg",
+            "Cameras Around Scene.up=auto", "Cameras Around Scene.count=2", "Render Views.scale=0.125",
+            "Finetune Gaussians.iterations=1", "Render Camera Path.scale=0.125", "Render Camera Path.num_frames=2",
+            f"Save Gaussian Scene.filename_prefix={folder}/standing"))
+    finally:
+        standing.unlink()
+    time.sleep(1)  # the log file is written by the server's process
+    log = comfy_server.log.read_text()[logged:]
+    assert log.count("Cameras Around Scene: note: the up direction is a guess") == 1
+    assert "give the scene's up axis: set this node's up input to -y or another axis" in log and "up='-y'" not in log
 
 def test_region_workflow_stylizes_and_blends_only_the_selection(comfy_server):
     folder = comfy_server.test_folder
