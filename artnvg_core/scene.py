@@ -95,8 +95,11 @@ class GaussianScene:
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"GaussianScene.sh: expected shape ({n}, K, 3), got {tuple(self.sh.shape)}")
         sh_degree_for(self.sh.shape[1])
-        if not (isinstance(self.blur_px2, (int, float)) and math.isfinite(self.blur_px2) and self.blur_px2 >= 0):
-            raise ValueError(f"GaussianScene.blur_px2: expected a finite number >= 0, got {self.blur_px2!r}")
+        blur = self.blur_px2
+        if isinstance(blur, bool) or not (isinstance(blur, (int, float)) and math.isfinite(blur) and blur >= 0):
+            raise ValueError(f"GaussianScene.blur_px2: expected a finite number >= 0, got {blur!r}")
+        if not isinstance(self.antialiased, bool):
+            raise ValueError(f"GaussianScene.antialiased: expected True or False, got {self.antialiased!r}")
 
     def __len__(self) -> int:
         return self.means.shape[0]

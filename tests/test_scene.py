@@ -17,10 +17,17 @@ def test_map_and_select_keep_the_render_settings():
     assert set(scene.tensors()) == {"means", "quats", "log_scales", "opacity_logits", "sh"}
 
 
-@pytest.mark.parametrize("blur", [-0.1, float("nan"), float("inf"), "0.3"])
+@pytest.mark.parametrize("blur", [-0.1, float("nan"), float("inf"), "0.3", True])
 def test_bad_blur_is_rejected(blur):
     with pytest.raises(ValueError, match="GaussianScene.blur_px2: expected a finite number >= 0"):
         GaussianScene(**random_scene(3, 0).tensors(), blur_px2=blur)
+
+
+@pytest.mark.parametrize("antialiased", ["no", 0, None])
+def test_antialiased_other_than_a_bool_is_rejected(antialiased):
+    """"no" was taken as true: the opacities compensated for a filter the scene was not trained with."""
+    with pytest.raises(ValueError, match=f"GaussianScene.antialiased: expected True or False, got {antialiased!r}"):
+        GaussianScene(**random_scene(3, 0).tensors(), antialiased=antialiased)
 
 
 @pytest.mark.parametrize("field, value, expected", [
