@@ -20,6 +20,7 @@ import math
 import torch
 
 from .cameras import CameraSet, SceneFrame, look_at, scene_frame
+from .cameras.camera_set import whole_number
 from .cameras.framing import horizontal_axes
 from .notes import NoteFn, tell
 from .raster import render
@@ -225,7 +226,7 @@ def orbit_cameras(
     elevations = parse_elevations(elevations_deg, "orbit_cameras: elevations_deg")
     if around not in AROUND:
         raise ValueError(f"orbit_cameras: around must be one of {AROUND}, got {around!r}")
-    width, height = int(width), int(height)
+    width, height = whole_number(width, "orbit_cameras: width"), whole_number(height, "orbit_cameras: height")
     if width < 1 or height < 1:
         raise ValueError(f"orbit_cameras: image size must be positive, got {width}x{height}")
 

@@ -26,7 +26,7 @@ def test_scaled_and_subset():
     assert torch.equal(picked.world_to_cam, w2c[[3, 0, 2]])
     assert cameras.subset(torch.tensor([3, -1])).names == cameras.subset(np.array([3, 3])).names == ["d", "d"]
     for index in (0.5, True, "1"):  # 0.5 was view 0, True view 1
-        with pytest.raises(ValueError, match=f"CameraSet.subset: view indices must be ints, got {index!r}"):
+        with pytest.raises(ValueError, match=f"CameraSet.subset: a view index: expected an int, got {index!r}"):
             cameras.subset([index])
     for factor in (True, "2", None):  # True was 1, "2" a TypeError
         with pytest.raises(ValueError, match="CameraSet.scaled: factor must be a finite number > 0"):
@@ -68,7 +68,7 @@ def test_image_sides_that_are_not_whole_numbers_refused(width):
     """A float width of 16.0 stopped deep inside render with bincount's "argument 'minlength' must be int", 16.5 and
     True were taken, "16" raised a TypeError."""
     w2c, k = torch.eye(4)[None], torch.tensor([[10.0, 0, 8], [0, 10, 6], [0, 0, 1]])[None]
-    with pytest.raises(ValueError, match=f"CameraSet.width: expected a whole number of pixels \\(an int\\), got {width!r}"):
+    with pytest.raises(ValueError, match=f"CameraSet.width: expected an int, got {width!r}"):
         CameraSet(w2c, k, width, 12, ["a"])
     cameras = CameraSet(w2c, k, np.int64(16), torch.tensor(12), ["a"])
     assert (type(cameras.width), type(cameras.height), cameras.width, cameras.height) == (int, int, 16, 12)

@@ -22,6 +22,17 @@ def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
     return max(1, round(width * factor)), max(1, round(height * factor))
 
 
+def whole_number(value, what: str) -> int:
+    """``value`` as an int: an int, numpy's or a 0-d integer tensor; a ValueError naming ``what`` for anything else (a
+    bool, a float, text)."""
+    if not isinstance(value, bool):
+        try:
+            return operator.index(value)
+        except TypeError:
+            pass
+    raise ValueError(f"{what}: expected an int, got {value!r}")
+
+
 @dataclass
 class CameraSet:
     """C pinhole cameras of one image size (shapes and conventions in :mod:`artnvg_core.cameras`): floating-point
@@ -52,14 +63,7 @@ class CameraSet:
             raise ValueError(f"CameraSet.world_to_cam: expected shape (C, 4, 4), got {tuple(self.world_to_cam.shape)}")
         if tuple(self.intrinsics.shape) != (c, 3, 3):
             raise ValueError(f"CameraSet.intrinsics: expected shape ({c}, 3, 3), got {tuple(self.intrinsics.shape)}")
-        for side in ("width", "height"):
-            value = getattr(self, side)
-            try:
-                if isinstance(value, bool):
-                    raise TypeError
-                setattr(self, side, operator.index(value))  # ints as numpy's and 0-d integer tensors too
-            except TypeError:
-                raise ValueError(f"CameraSet.{side}: expected a whole number of pixels (an int), got {value!r}") from None
+        self.width, self.height = whole_number(self.width, "CameraSet.width"), whole_number(self.height, "CameraSet.height")
         if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
             raise ValueError(f"CameraSet: image size must be 1 to {MAX_IMAGE_SIDE} pixels a side, "
                              f"got {self.width}x{self.height}")
@@ -93,15 +97,9 @@ class CameraSet:
         """The views at ``indices`` (a sequence of ints), in that order. ``on_device``: the same indices as
         a long tensor on the cameras' device, which selects without copying indices to it (such a copy
         waits for the device to finish its queued work)."""
-        idx = []
-        for i in indices:
-            try:
-                if isinstance(i, bool):
-                    raise TypeError
-                idx.append(operator.index(i))  # not int(): 0.5 would be view 0
-            except TypeError:
-                raise ValueError(f"CameraSet.subset: view indices must be ints, got {i!r}") from None
-            if not -len(self) <= idx[-1] < len(self):
+        idx = [whole_number(i, "CameraSet.subset: a view index") for i in indices]  # not int(): 0.5 would be view 0
+        for i in idx:
+            if not -len(self) <= i < len(self):
                 raise ValueError(f"CameraSet.subset: view index {i} out of range for {counted(len(self), 'view')}")
         sel = torch.tensor(idx, dtype=torch.long) if on_device is None else on_device
         return replace(
