@@ -89,3 +89,6 @@ def test_rejects_mismatched_inputs(content):
         cfsd(content, content[:, :64])
     with pytest.raises(ValueError, match=r"\[B, H, W, 3\]"):
         cfsd(content[0], content[0])
+    for bad, got in [((content * 255).to(torch.uint8), "a torch.uint8 tensor"), (content * float("nan"), "NaN")]:
+        with pytest.raises(ValueError, match=rf"^cfsd_scores: stylized: expected floats in \[0, 1\], got {got}"):
+            cfsd(content, bad)  # 264 for 8-bit values, NaN for NaN

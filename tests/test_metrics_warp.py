@@ -112,6 +112,10 @@ def test_long_range_step_and_input_checks(plane):
     for bad in (float("nan"), 0.0, -1.0):
         with pytest.raises(ValueError, match="depth_tolerance"):
             warp_consistency(images, depth, alpha, cameras, depth_tolerance=bad)
+    for bad, got in [((images * 255).to(torch.uint8), "a torch.uint8 tensor"), (images * 255, "values up to"),
+                     (images * float("nan"), "NaN")]:  # an error of 94 on 8-bit values, NaN on NaN
+        with pytest.raises(ValueError, match=rf"^warp_consistency: images: expected floats in \[0, 1\], got {got}"):
+            warp_consistency(bad, depth, alpha, cameras)
 
 
 # --------------------------------------------------------------------------- real scene

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from ..images import check_image_values
 from ..losses.vgg import IMAGENET_STD_RGB, load_vgg
 from ..progress import ProgressFn
 
@@ -37,6 +38,7 @@ def _check_pair(content: torch.Tensor, stylized: torch.Tensor) -> None:
     for name, images in (("content", content), ("stylized", stylized)):
         if images.ndim != 4 or images.shape[-1] != 3:
             raise ValueError(f"cfsd_scores: {name} must be an IMAGE batch [B, H, W, 3], got {tuple(images.shape)}")
+        check_image_values(images, f"cfsd_scores: {name}")
     if content.shape != stylized.shape:
         raise ValueError(
             f"cfsd_scores: content and stylized must have the same shape, got {tuple(content.shape)} and {tuple(stylized.shape)}"

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from ..cameras import CameraSet
 from ..counted import counted
+from ..images import check_image_values
 from ..progress import ProgressFn
 
 
@@ -100,6 +101,7 @@ def _check_inputs(images, depth, alpha, cameras: CameraSet, step: int, alpha_thr
             raise ValueError(f"warp_consistency: {name} must be [{count}, {size[0]}, {size[1]}, 1], got {tuple(value.shape)}")
     if len(cameras) != count:
         raise ValueError(f"warp_consistency: {counted(count, 'image')} but {counted(len(cameras), 'camera')}")
+    check_image_values(images, "warp_consistency: images")
     if int(step) != step or not 1 <= step < count:
         raise ValueError(f"warp_consistency: step must be an integer in 1..{count - 1} for "
                          f"{counted(count, 'view')}, got {step!r}")
