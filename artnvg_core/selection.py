@@ -32,12 +32,23 @@ from .scene import SH_C0, GaussianScene
 MASK_SHARE = 0.5  # a Gaussian is selected by masks when this share of its weight falls on painted pixels
 
 
+def _finite_point(point) -> bool:
+    """Whether ``point`` is 3 finite real numbers."""
+    return len(point) == 3 and all(isinstance(v, (int, float)) and math.isfinite(v) for v in point)
+
+
 @dataclass(frozen=True)
 class Box:
     """An axis-aligned box in world units: ``low`` and ``high`` corners (x, y, z), ``low <= high``."""
 
     low: tuple[float, float, float]
     high: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        if not (_finite_point(self.low) and _finite_point(self.high)):
+            raise ValueError(f"a box's corners must be 3 finite numbers each, got {self.low} and {self.high}")
+        if any(a > b for a, b in zip(self.low, self.high)):
+            raise ValueError(f"the box's minimum corner {self.low} must not exceed its maximum {self.high}")
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
         """[N] bool: which ``points [N, 3]`` lie inside or on the box."""
@@ -51,6 +62,12 @@ class Sphere:
 
     center: tuple[float, float, float]
     radius: float
+
+    def __post_init__(self) -> None:
+        if not _finite_point(self.center):
+            raise ValueError(f"the sphere's centre must be 3 finite numbers, got {self.center}")
+        if not (isinstance(self.radius, (int, float)) and math.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"the sphere's radius must be > 0, got {self.radius!r}")
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
         """[N] bool: which ``points [N, 3]`` lie inside or on the sphere (computed in float64)."""
@@ -76,14 +93,7 @@ def parse_bounds(kind: str, text: str) -> Region:
     if len(numbers) != count or not all(map(math.isfinite, numbers)):
         raise ValueError(f"a {kind} takes {count} finite numbers, {fields}, comma-separated in the scene's units; "
                          f"got {text!r}")
-    if kind == "box":
-        low, high = tuple(numbers[:3]), tuple(numbers[3:])
-        if any(a > b for a, b in zip(low, high)):
-            raise ValueError(f"the box's minimum corner {low} must not exceed its maximum {high}")
-        return Box(low, high)
-    if numbers[3] <= 0:
-        raise ValueError(f"the sphere's radius must be > 0, got {numbers[3]:g}")
-    return Sphere(tuple(numbers[:3]), numbers[3])
+    return Box(tuple(numbers[:3]), tuple(numbers[3:])) if kind == "box" else Sphere(tuple(numbers[:3]), numbers[3])
 
 
 def parse_region(text: str) -> Region:

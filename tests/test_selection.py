@@ -137,6 +137,20 @@ def test_bad_regions_are_refused_naming_the_option(text, message):
         parse_region(text)
 
 
+@pytest.mark.parametrize("make, message", [
+    (lambda: Box((0.0, float("nan"), 0.0), (1.0, 1.0, 1.0)), r"a box's corners must be 3 finite numbers each"),
+    (lambda: Box((0.0, 0.0), (1.0, 1.0, 1.0)), r"a box's corners must be 3 finite numbers each"),
+    (lambda: Box((0.0, 2.0, 0.0), (1.0, 1.0, 1.0)), r"the box's minimum corner \(0.0, 2.0, 0.0\) must not exceed"),
+    (lambda: Sphere((0.0, 0.0, float("inf")), 1.0), r"the sphere's centre must be 3 finite numbers"),
+    (lambda: Sphere((0.0, 0.0, 0.0), -1.0), r"the sphere's radius must be > 0, got -1.0"),
+    (lambda: Sphere((0.0, 0.0, 0.0), float("nan")), r"the sphere's radius must be > 0, got nan"),
+])
+def test_regions_made_in_python_are_checked_as_parsed_ones(make, message):
+    """A box with a NaN corner or reversed corners, and a sphere of negative radius, selected nothing, silently."""
+    with pytest.raises(ValueError, match="^" + message):
+        make()
+
+
 def test_bad_masks_and_selections_are_refused():
     scene, cameras = _scene(), _cameras()
     with pytest.raises(ValueError, match=r"one mask \[H, W\] per view \(2\)"):
