@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-from ..losses import SEARCH_PRECISIONS, VGG_PRECISIONS
+from ..losses import SEARCH_PRECISIONS, VGG_PRECISIONS, layer_names
+from ..raster import BACKENDS
 
 OPTIMIZE_CHOICES = ("appearance", "all")
 NNFM_MIN_SIDE = 16  # px: the smallest nnfm_max_side; relu3's features, two 2x poolings down, are then 4 px across
@@ -115,6 +116,22 @@ class FinetuneConfig:
             if f.name.endswith("_weight") or (f.name.startswith("lr_") and value is not None):
                 if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                     raise ValueError(f"FinetuneConfig.{f.name}: expected a finite number >= 0, got {value!r}")
+        try:
+            layers = layer_names(self.vgg)
+        except ValueError as error:
+            raise ValueError(f"FinetuneConfig.vgg: {str(error).removeprefix('arch: ')}") from None
+        if isinstance(self.nnfm_layers, str) or not (self.nnfm_layers and set(self.nnfm_layers) <= set(layers)):
+            raise ValueError(f"FinetuneConfig.nnfm_layers: expected a tuple of {self.vgg}'s layer names (such as "
+                             f"'relu3_1'), got {self.nnfm_layers!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"FinetuneConfig.backend: expected one of {BACKENDS}, got {self.backend!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError(f"FinetuneConfig.seed: expected an int, got {self.seed!r}")
+        for name in ("color_transfer", "from_scratch", "cuda_graph"):
+            value = getattr(self, name)
+            if not (isinstance(value, bool) or (value is None and name == "cuda_graph")):
+                raise ValueError(f"FinetuneConfig.{name}: expected True or False{' or None' * (name == 'cuda_graph')}, "
+                                 f"got {value!r}")
         side = self.nnfm_max_side
         if side is not None and not (isinstance(side, int) and side >= NNFM_MIN_SIDE):
             raise ValueError(f"FinetuneConfig.nnfm_max_side: expected None or an integer >= {NNFM_MIN_SIDE}, got {side!r}")
