@@ -24,7 +24,7 @@ import torch
 
 from .cameras import CameraSet
 from .counted import counted
-from .images import resize_image, same_aspect
+from .images import check_image_values, resize_image, same_aspect
 from .progress import ProgressFn, StopFn
 from .raster import render
 from .scene import SH_C0, GaussianScene
@@ -154,13 +154,15 @@ def check_mask_size(mask_width: int, mask_height: int, view_width: int, view_hei
 
 def select_by_masks(scene: GaussianScene, cameras: CameraSet, masks: torch.Tensor, backend: str = "auto",
                     progress: ProgressFn | None = None, should_stop: StopFn | None = None) -> torch.Tensor:
-    """[N] bool: the Gaussians that the painted pixels of ``masks [C, H', W']`` (in [0, 1], 1 painted; one per
-    view of ``cameras``, of their aspect (:func:`check_mask_size`) and resized to their size) see (module
-    docstring); ``progress`` and ``should_stop`` as :func:`gaussian_weights` takes them."""
+    """[N] bool: the Gaussians that the painted pixels of ``masks [C, H', W']`` (floats in [0, 1], 1 painted, or
+    bools; one per view of ``cameras``, of their aspect (:func:`check_mask_size`) and resized to their size) see
+    (module docstring); ``progress`` and ``should_stop`` as :func:`gaussian_weights` takes them."""
     if masks.ndim != 3 or masks.shape[0] != len(cameras):
         raise ValueError(f"select_by_masks: expected one mask [H, W] per view ({len(cameras)}), "
                          f"got shape {tuple(masks.shape)}")
     check_mask_size(masks.shape[2], masks.shape[1], cameras.width, cameras.height, "select_by_masks: masks")
+    masks = masks.float() if masks.dtype == torch.bool else masks
+    check_image_values(masks, "select_by_masks: masks")
     masks = resize_image(masks[..., None].float(), cameras.height, cameras.width)[..., 0].clamp(0, 1)
     weighted, total = gaussian_weights(scene, cameras.to(scene.device), masks.to(scene.device), backend, progress,
                                        should_stop)

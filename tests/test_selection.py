@@ -155,6 +155,12 @@ def test_bad_masks_and_selections_are_refused():
     scene, cameras = _scene(), _cameras()
     with pytest.raises(ValueError, match=r"one mask \[H, W\] per view \(2\)"):
         select_by_masks(scene, cameras, torch.ones(1, HEIGHT, WIDTH))
+    ones = torch.ones(2, HEIGHT, WIDTH)
+    for masks, got in [(ones * float("nan"), "NaN or infinite values"), (ones * 255, "values up to 255"),
+                       (ones.to(torch.uint8), "a torch.uint8 tensor")]:  # NaN selected nothing, silently
+        with pytest.raises(ValueError, match=rf"^select_by_masks: masks: expected floats in \[0, 1\], got {got}"):
+            select_by_masks(scene, cameras, masks)
+    assert torch.equal(select_by_masks(scene, cameras, ones.bool()), select_by_masks(scene, cameras, ones))
     with pytest.raises(ValueError, match="boolean mask of the scene's 24 Gaussians"):
         coverage(scene, torch.ones(3, dtype=torch.bool), cameras)
 
