@@ -155,6 +155,15 @@ def test_writers_refuse_an_empty_scene_before_writing(tmp_path, suffix):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("suffix", SAVE_SUFFIXES)
+def test_writers_refuse_a_missing_folder_before_their_work(tmp_path, suffix):
+    """A FileNotFoundError came once the scene was encoded, from the temporary file's opening."""
+    path = tmp_path / "missing" / f"scene{suffix}"
+    with pytest.raises(ValueError, match=rf"scene\{suffix}: not written: its folder .*missing does not exist$"):
+        save_scene(random_scene(4, 1), path)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_float64_beyond_float32_is_refused_not_written_as_inf(tmp_path):
     scene = random_scene(3, 0).map(lambda t: t.double())
     scene.sh[1, 0, 0] = 1e300

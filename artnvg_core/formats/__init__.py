@@ -164,6 +164,8 @@ def save_scene(scene: GaussianScene, path: str | os.PathLike, *, spz_axes: str =
     changes of the scene (SH terms it cannot hold, a 2D filter it cannot record, far Gaussians moved onto an SPZ's
     range), before the file is written; without it each is logged as a warning."""
     path = writable_scene_path(path)
+    if not path.parent.is_dir():  # else found only once the file is written, after the work
+        raise ValueError(f"{path}: not written: its folder {path.parent} does not exist")
     _check_option("spz_axes", spz_axes, SPZ_AXES)
     _check_option("spz_version", spz_version, SPZ_VERSIONS)
     if path.suffix.lower() == ".spz":
