@@ -316,6 +316,12 @@ def test_bad_inputs_rejected(demo):
                        (views * float("nan"), "NaN or infinite values")]:
         with pytest.raises(ValueError, match=rf"^finetune: stylized: expected floats in \[0, 1\], got {got}"):
             finetune(scene, cameras, style, stylized=image, config=quick)
+    wide = torch.zeros(len(cameras), cameras.height, 2 * cameras.width, 3)  # was stretched to the cameras' size
+    with pytest.raises(ValueError, match=rf"^finetune: stylized: views of {2 * cameras.width}x{cameras.height} pixels, not "
+                                         rf"the aspect of the cameras' {cameras.width}x{cameras.height}"):
+        finetune(scene, cameras, style, stylized=wide, config=quick)
+    finetune(scene, cameras, style, stylized=torch.zeros(len(cameras), 2 * cameras.height, 2 * cameras.width, 3),
+             config=FinetuneConfig(iterations=0, content_weight=0))  # another scale: resized
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

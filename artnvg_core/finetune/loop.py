@@ -39,7 +39,7 @@ import torch
 
 from ..cameras import CameraSet, scene_frame
 from ..counted import counted
-from ..images import check_image_values, resize_image
+from ..images import check_image_values, resize_image, same_aspect
 from ..losses import NNFMLoss, convolution_precision, load_vgg, resize_long_side, style_image_features
 from ..progress import ProgressFn, StopFn, check_stop, staged
 from ..raster import choose_backend, triton_warmups
@@ -181,8 +181,8 @@ def finetune(
         scene's float32 copy is trained and returned).
     cameras: C views, rendered at their own resolution (scale them beforehand).
     style_image: [H, W, 3] RGB in [0, 1] (ComfyUI IMAGE layout, or [1, H, W, 3]).
-    stylized: optional [C, H', W', 3] stylized views in camera order, floats in [0, 1], resized to
-        the camera size when they differ; None runs the NNFM-only stylizer.
+    stylized: optional [C, H', W', 3] stylized views in camera order, floats in [0, 1] of the cameras' aspect,
+        resized to the camera size when they differ; None runs the NNFM-only stylizer.
     progress(step, total, info): called with step 0 and ``info`` {} as the steps start (a step takes seconds
         at a capture's size on a CPU: a bar shows from the start), then after every step with the step's view
         (``view``, or ``views`` with several per step); at the first, every ``REPORT_EVERY``-th and the last step ``info`` also
@@ -237,6 +237,9 @@ def _finetune(scene: GaussianScene, cameras: CameraSet, style_image: torch.Tenso
         except ValueError as error:
             raise ValueError(f"finetune: stylized: {error}") from None
         check_image_values(stylized, "finetune: stylized")
+        if not same_aspect(stylized.shape[2], stylized.shape[1], cameras.width, cameras.height):
+            raise ValueError(f"finetune: stylized: views of {stylized.shape[2]}x{stylized.shape[1]} pixels, not the aspect "
+                             f"of the cameras' {cameras.width}x{cameras.height} (they would be stretched)")
         stylized = resize_image(stylized.to(device, torch.float32), cameras.height, cameras.width).clamp(0, 1)
     weights = None
     if selection is not None:
