@@ -20,7 +20,7 @@ import math
 import torch
 
 from .cameras import CameraSet, SceneFrame, look_at, scene_frame
-from .cameras.camera_set import whole_number
+from .cameras.camera_set import view_count, whole_number
 from .cameras.framing import horizontal_axes
 from .notes import NoteFn, tell
 from .raster import render
@@ -217,8 +217,7 @@ def orbit_cameras(
         the command line, the up input of a node.
     Views are named ``orbit_0000``...; float32 CPU tensors.
     """
-    if isinstance(count, bool) or int(count) != count or count < 1:
-        raise ValueError(f"orbit_cameras: count must be a positive integer, got {count!r}")
+    count = view_count(count, "orbit_cameras: count")
     if not 0 < fov_deg < 180:
         raise ValueError(f"orbit_cameras: fov_deg must be in (0, 180), got {fov_deg!r}")
     if not (distance_factor > 0 and math.isfinite(distance_factor)):
@@ -240,7 +239,7 @@ def orbit_cameras(
     start, span = (0.0, 2 * math.pi) if around == "full" else captured_arc(scene, frame, distance, half_fov, elevations)
 
     eyes = []
-    for ring, (elevation, views) in enumerate(zip(elevations, _ring_counts(int(count), elevations))):
+    for ring, (elevation, views) in enumerate(zip(elevations, _ring_counts(count, elevations))):
         steps = torch.arange(views, dtype=torch.float64)
         if span < 2 * math.pi:  # an arc: each ring spread over it, half a step in from its ends
             azimuths = start + (steps + 0.5) * (span / max(views, 1))
@@ -251,8 +250,8 @@ def orbit_cameras(
     intrinsics = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64)
     return CameraSet(
         world_to_cam=world_to_cam.to(torch.float32),
-        intrinsics=intrinsics.expand(int(count), 3, 3).to(torch.float32).clone(),
+        intrinsics=intrinsics.expand(count, 3, 3).to(torch.float32).clone(),
         width=width,
         height=height,
-        names=orbit_view_names(int(count)),
+        names=orbit_view_names(count),
     )

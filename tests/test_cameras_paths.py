@@ -46,8 +46,9 @@ def test_orbit_explicit_parameters_and_errors():
         orbit_path(parallel)
     with pytest.raises(ValueError, match="radius must be positive"):
         orbit_path(cameras, radius=0.0)
-    with pytest.raises(ValueError, match="num_frames"):
-        orbit_path(cameras, 0)
+    for frames, got in [(0, "0"), (10**9, "1,000,000,000"), (2.5, "2.5")]:  # 10^9 frames were killed for memory
+        with pytest.raises(ValueError, match=f"^orbit_path: num_frames: expected (an int|1 to 1,000,000), got {got}$"):
+            orbit_path(cameras, frames)
 
 
 def rotation_angles(a, b):
@@ -86,3 +87,9 @@ def test_interpolate_errors():
         interpolate_path(cameras, [0, 9])
     with pytest.raises(ValueError, match="frames_per_segment"):
         interpolate_path(cameras, [0, 1], 0)
+    with pytest.raises(ValueError, match="^interpolate_path: frames_per_segment: expected 1 to 1,000,000, got 1,000,001$"):
+        interpolate_path(cameras, [0, 1], 10**6 + 1)  # 10^9 was killed for memory
+    with pytest.raises(ValueError, match="^interpolate_path: the path's frames: expected 1 to 1,000,000, got 1,500,001$"):
+        interpolate_path(cameras, [0, 1, 2, 3], 500_000)
+    with pytest.raises(ValueError, match="^interpolate_path: a view index: expected an int, got 0.5$"):
+        interpolate_path(cameras, [0.5, 2])  # was view 0

@@ -212,6 +212,8 @@ def test_bad_scenes_raise_instead_of_nan_cameras():
                    {"around": "half"}):
         with pytest.raises(ValueError, match="orbit_cameras"):
             orbit_cameras(some_nan, **kwargs)
+    with pytest.raises(ValueError, match="^orbit_cameras: count: expected 1 to 1,000,000, got 1,000,000,000$"):
+        orbit_cameras(some_nan, 10**9)
     for width in (32.7, "32", True):  # 32.7 was 32 pixels wide, "32" a ValueError from int() naming no field
         with pytest.raises(ValueError, match=f"^orbit_cameras: width: expected an int, got {width!r}$"):
             orbit_cameras(some_nan, 4, width=width)

@@ -14,6 +14,7 @@ from ..counted import counted
 from .geometry import camera_centers
 
 MAX_IMAGE_SIDE = 16384  # pixels; a float32 RGB view this size already takes 3 GiB
+MAX_VIEWS = 1_000_000  # views a path or an orbit may be built of: their float64 poses take 128 MB on the way
 
 
 def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
@@ -31,6 +32,15 @@ def whole_number(value, what: str) -> int:
         except TypeError:
             pass
     raise ValueError(f"{what}: expected an int, got {value!r}")
+
+
+def view_count(value, what: str) -> int:
+    """``value`` as a number of views to build (a path's, an orbit's): an int (:func:`whole_number`) from 1 to
+    :data:`MAX_VIEWS`; a ValueError naming ``what`` otherwise, before they take the memory."""
+    count = whole_number(value, what)
+    if not 1 <= count <= MAX_VIEWS:
+        raise ValueError(f"{what}: expected 1 to {MAX_VIEWS:,}, got {count:,}")
+    return count
 
 
 @dataclass

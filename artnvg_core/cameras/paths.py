@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from .camera_set import CameraSet
+from .camera_set import CameraSet, view_count, whole_number
 from .geometry import camera_centers, look_at, quat_to_rotmat, rotmat_to_quat, slerp
 
 
@@ -68,8 +68,7 @@ def orbit_path(
     camera's intrinsics and image size. :class:`NoOrbit` when the cameras give no centre or no up direction
     (one camera, or all looking one way) and ``center`` or ``up`` is not given.
     """
-    if int(num_frames) != num_frames or num_frames < 1:
-        raise ValueError(f"orbit_path: num_frames must be a positive integer, got {num_frames!r}")
+    num_frames = view_count(num_frames, "orbit_path: num_frames")
     world_to_cam = cameras.world_to_cam.detach().cpu().to(torch.float64)
     rot = world_to_cam[:, :3, :3]
     centers = camera_centers(world_to_cam)
@@ -92,7 +91,7 @@ def orbit_path(
         start = torch.linalg.cross(up, torch.eye(3, dtype=torch.float64)[up.abs().argmin()])
     start = start / start.norm()
     side = torch.linalg.cross(up, start)
-    angles = torch.arange(int(num_frames), dtype=torch.float64) * (2 * math.pi / num_frames)
+    angles = torch.arange(num_frames, dtype=torch.float64) * (2 * math.pi / num_frames)
     eyes = center + height * up + radius * (torch.cos(angles)[:, None] * start + torch.sin(angles)[:, None] * side)
     return _path_camera_set(cameras.subset([0]), look_at(eyes, center, up))
 
@@ -132,11 +131,10 @@ def interpolate_path(
     returns towards the first (K * frames_per_segment frames, the first not
     repeated). Views use the first key view's intrinsics and image size.
     """
-    indices = [int(i) for i in view_indices]
+    indices = [whole_number(i, "interpolate_path: a view index") for i in view_indices]  # not int(): 0.5 was view 0
     check_key_views(indices)
-    if int(frames_per_segment) != frames_per_segment or frames_per_segment < 1:
-        raise ValueError(f"interpolate_path: frames_per_segment must be a positive integer, got {frames_per_segment!r}")
-    steps = int(frames_per_segment)
+    steps = view_count(frames_per_segment, "interpolate_path: frames_per_segment")
+    view_count(steps * (len(indices) - (not loop)) + (not loop), "interpolate_path: the path's frames")
     keys = cameras.subset(indices)
     world_to_cam = keys.world_to_cam.detach().cpu().to(torch.float64)
     centers = camera_centers(world_to_cam)
