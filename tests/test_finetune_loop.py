@@ -288,7 +288,9 @@ def test_bf16_vgg_moves_the_result_by_its_rounding_only(demo, stylized):
      ({"nnfm_layers": ("relu9_1",)}, "nnfm_layers"), ({"nnfm_layers": ()}, "nnfm_layers"),
      ({"nnfm_layers": "relu3_1"}, "nnfm_layers"), ({"backend": "cuda"}, "backend"), ({"seed": "7"}, "seed"),
      ({"color_transfer": "no"}, "color_transfer"), ({"from_scratch": 1}, "from_scratch"),
-     ({"cuda_graph": "yes"}, "cuda_graph")],
+     ({"cuda_graph": "yes"}, "cuda_graph"),
+     ({"iterations": 10**10}, "iterations: 10,000,000,000 steps of 1 view"),  # killed for memory (80 GB drawn up front)
+     ({"iterations": 6_000_000, "views_per_step": 2}, "iterations: .* render more than 10,000,000 views")],
 )
 def test_bad_config_rejected(kwargs, field):
     with pytest.raises(ValueError, match="^FinetuneConfig." + field):

@@ -12,6 +12,9 @@ OPTIMIZE_CHOICES = ("appearance", "all")
 NNFM_MIN_SIDE = 16  # px: the smallest nnfm_max_side; relu3's features, two 2x poolings down, are then 4 px across
 
 
+MAX_RENDERS = 10_000_000  # views a finetune renders (iterations x views_per_step): 80 MB of view indices drawn up front
+
+
 @dataclass
 class FinetuneConfig:
     """Finetuning settings; defaults follow the paper (1,000 iterations, L1/SSIM 0.8/0.2, NNFM weight 1)
@@ -19,7 +22,8 @@ class FinetuneConfig:
     the units of the stored parameter (world units for means, log-scale units, logit units, SH units).
 
     Args:
-        iterations (`int`, defaults to 1000): optimisation steps, ``views_per_step`` random views each, >= 0.
+        iterations (`int`, defaults to 1000): optimisation steps, ``views_per_step`` random views each, >= 0;
+            at most :data:`MAX_RENDERS` views in all.
         optimize (`str`, defaults to ``"appearance"``): ``"appearance"`` trains SH and opacities (geometry
             kept, as the paper's appearance edit); ``"all"`` also means, scales and rotations.
         l1_weight (`float`, defaults to 0.8): weight of the L1 term toward the stylized views.
@@ -106,6 +110,9 @@ class FinetuneConfig:
             raise ValueError(f"FinetuneConfig.iterations: expected an integer >= 0, got {self.iterations!r}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise ValueError(f"FinetuneConfig.views_per_step: expected an integer >= 1, got {self.views_per_step!r}")
+        if self.iterations * self.views_per_step > MAX_RENDERS:
+            raise ValueError(f"FinetuneConfig.iterations: {self.iterations:,} steps of {self.views_per_step} view(s) "
+                             f"render more than {MAX_RENDERS:,} views (the steps' views are drawn up front)")
         if self.nnfm_search not in SEARCH_PRECISIONS:
             raise ValueError(f"FinetuneConfig.nnfm_search: expected one of {SEARCH_PRECISIONS}, got {self.nnfm_search!r}")
         if self.vgg_precision not in VGG_PRECISIONS:
