@@ -66,3 +66,10 @@ def test_pixels_other_than_rgb_floats_in_zero_to_one_are_refused():
                 distance(bad, style)
             with pytest.raises(ValueError, match=f"^color distance: style image:? {got}"):
                 distance(style, bad)
+
+
+@pytest.mark.parametrize("bins", [0, 257, 10**4, 8.0, True])
+def test_bins_other_than_an_int_from_1_to_256_are_refused(bins):
+    """10^4 bins a channel asked for 8 TB of joint histogram counts; 8.0 failed inside torch.bincount."""
+    with pytest.raises(ValueError, match=f"^histogram_distance: bins must be an int from 1 to 256, got {bins!r}$"):
+        histogram_distance(colors(0), colors(1), bins=bins)

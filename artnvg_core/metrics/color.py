@@ -29,8 +29,14 @@ def _pixels(images: torch.Tensor, name: str) -> torch.Tensor:
     return rgb_pixels(images, f"color distance: {name}").cpu().clamp(0, 1)
 
 
+MAX_BINS = 256  # per channel: a joint histogram of 256^3 counts takes 128 MB
+
+
 def histogram_distance(images: torch.Tensor, style: torch.Tensor, bins: int = 8) -> float:
-    """Total variation between the joint RGB histograms of ``images [..., 3]`` and ``style [..., 3]``."""
+    """Total variation between the joint RGB histograms of ``images [..., 3]`` and ``style [..., 3]``, ``bins``
+    (1 to :data:`MAX_BINS`) per channel."""
+    if isinstance(bins, bool) or not (isinstance(bins, int) and 1 <= bins <= MAX_BINS):
+        raise ValueError(f"histogram_distance: bins must be an int from 1 to {MAX_BINS}, got {bins!r}")
 
     def histogram(pixels: torch.Tensor) -> torch.Tensor:
         index = (pixels * bins).long().clamp_max(bins - 1)
