@@ -279,8 +279,9 @@ def test_inference_tensors_are_checked_at_every_render():
 def test_bad_arguments_rejected():
     scene = hard_scene(0, n=5, degree=1)
     cams = make_cameras(EYES[:1])
-    with pytest.raises(ValueError, match="sh_degree"):
-        render(scene, cams, sh_degree=2)
+    for degree in (2, -1, 0.5, True):  # 0.5 evaluated the degree-1 terms, True was degree 1
+        with pytest.raises(ValueError, match=f"^render: sh_degree must be an int in 0..1 for this scene, got {degree!r}$"):
+            render(scene, cams, sh_degree=degree)
     with pytest.raises(ValueError, match="backend"):
         render(scene, cams, backend="vulkan")
     with pytest.raises(ValueError, match="gsplat"):

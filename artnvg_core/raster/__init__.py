@@ -158,8 +158,8 @@ def check_render_inputs(scene: GaussianScene, cameras: CameraSet, sh_degree: int
     tensors (made under ``torch.inference_mode``, as ComfyUI runs its nodes) keep no such counter and are
     checked at every render."""
     sh_degree = scene.sh_degree if sh_degree is None else sh_degree
-    if not 0 <= sh_degree <= scene.sh_degree:
-        raise ValueError(f"render: sh_degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
+    if isinstance(sh_degree, bool) or not (isinstance(sh_degree, int) and 0 <= sh_degree <= scene.sh_degree):
+        raise ValueError(f"render: sh_degree must be an int in 0..{scene.sh_degree} for this scene, got {sh_degree!r}")
     if not (isinstance(near_plane, (int, float)) and math.isfinite(near_plane) and near_plane >= 0):
         raise ValueError(f"render: near_plane must be a finite number >= 0, got {near_plane!r}")
     if background is not None and tuple(background.shape) not in ((3,), (len(cameras), 3)):
