@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -201,8 +202,11 @@ def test_kept_workers_outlive_their_pool_until_released_and_a_dead_one_is_replac
             assert processes(pool) == first
             (killed,) = pool.actors
             pool.kill()
-        with pytest.raises(RayActorError):  # gone for good: no restart
-            ray_local.get(killed.ping.remote())
+        deadline = time.monotonic() + 60  # ray.kill is asynchronous: a call just after it may still be answered
+        with pytest.raises(RayActorError):  # gone for good: no restart (a restarted one would answer until then)
+            while time.monotonic() < deadline:
+                ray_local.get(killed.ping.remote())
+                time.sleep(0.05)
         with WorkerPool(Echo, Workers("cpu", 1), keep=True) as pool:
             second = processes(pool)
         assert second != first
